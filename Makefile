@@ -1,0 +1,46 @@
+# Set-up is idempotent: the venv is created and the project installed only when missing or when
+# pyproject.toml changed. MUJOCO_GL=egl renders on the CPU through Mesa's software EGL.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export MUJOCO_GL ?= egl
+export PYOPENGL_PLATFORM ?= egl
+EGL_PACKAGES := libegl1 libgl1 libgl1-mesa-dri libegl-mesa0 libglvnd0 libglx-mesa0
+
+.PHONY: run test lint bench system-deps setup clean
+
+run: setup
+	$(PY) -m sim.run_episode --object phone
+
+test: setup
+	$(PY) -m pytest -q -m "not slow"
+
+lint: setup
+	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
+
+bench: setup
+	$(PY) bench/sim_speed.py
+
+setup: system-deps $(STAMP)
+
+# Software EGL needs Mesa; install it with apt-get when it is missing and we are root.
+system-deps:
+	@missing=""; for p in $(EGL_PACKAGES); do \
+	  dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    echo "installing system packages:$$missing"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
+	  else echo "missing system packages:$$missing (install them with apt-get as root)"; fi; \
+	fi
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[dev]"
+	@touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) *.egg-info

@@ -1,0 +1,398 @@
+"""Pose-error metrics and summary statistics (SPEC 7).
+
+Pure numpy functions with the BOP signature ``(R_est, t_est, R_gt, t_gt, ...)``. Units inside
+are SI: metres and radians, except where a name says otherwise (``_deg``, ``_px``, ``_pct``).
+Rotations are (3, 3) ``R_C_O`` and translations (3,) or (3, 1) ``t_C_O`` [m], mapping model
+points (object frame O, [m]) into the camera frame C.
+
+A symmetry set ``syms`` is a list of dicts ``{"R": (3, 3), "t": (3, 1) [m]}``: transforms S of
+the object frame that leave the object's appearance unchanged (BOP's convention; the identity
+must be included, see :func:`identity_symmetry`).
+
+References:
+    - Hinterstoisser et al., "Model based training, detection and pose estimation of
+      texture-less 3D objects in heavily cluttered scenes", ACCV 2012 (ADD, ADI).
+    - Hodan et al., "BOP: Benchmark for 6D object pose estimation", ECCV 2018, and Hodan et al.,
+      "BOP challenge 2020 on 6D object localization", ECCV Workshops 2020 (MSSD, MSPD, recall).
+    - Staszak & Belter, ICINCO 2019, eqs. 8-9 (centre error, relative distance error, rotation
+      error).
+    - Xiang et al., "PoseCNN", RSS 2018 (area under the ADD accuracy-threshold curve).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+Symmetry = dict[str, np.ndarray]
+
+
+def _rot(R: object, name: str) -> np.ndarray:
+    """Validate a finite (3, 3) matrix."""
+    arr = np.asarray(R, dtype=np.float64)
+    if arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be a finite (3, 3) matrix, got shape {arr.shape}")
+    return arr
+
+
+def _vec3(t: object, name: str) -> np.ndarray:
+    """Validate a finite translation of shape (3,) or (3, 1); returns (3,)."""
+    arr = np.asarray(t, dtype=np.float64)
+    if arr.shape not in ((3,), (3, 1)) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be a finite vector of shape (3,) or (3, 1), got {arr.shape}")
+    return arr.reshape(3)
+
+
+def _points(pts: object) -> np.ndarray:
+    """Validate model points (N, 3) [m], N >= 1."""
+    arr = np.asarray(pts, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] == 0 or not np.all(np.isfinite(arr)):
+        raise ValueError(f"pts must be a finite (N, 3) array with N >= 1, got shape {arr.shape}")
+    return arr
+
+
+def _syms(syms: Sequence[Symmetry]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Validate a symmetry list; returns [(R (3, 3), t (3,))]."""
+    if len(syms) == 0:
+        raise ValueError("syms must hold at least one transform (include the identity)")
+    out = []
+    for i, sym in enumerate(syms):
+        if "R" not in sym or "t" not in sym:
+            raise ValueError(f"syms[{i}] must be a dict with keys 'R' and 't', got {sorted(sym)}")
+        out.append((_rot(sym["R"], f"syms[{i}]['R']"), _vec3(sym["t"], f"syms[{i}]['t']")))
+    return out
+
+
+def _values(values: object, name: str) -> np.ndarray:
+    """Validate a non-empty 1D array of numbers."""
+    arr = np.asarray(values, dtype=np.float64).reshape(-1)
+    if arr.size == 0:
+        raise ValueError(f"{name} must not be empty")
+    return arr
+
+
+def _transform(pts: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Apply x -> R x + t to (N, 3) points."""
+    return pts @ R.T + t
+
+
+def identity_symmetry() -> list[Symmetry]:
+    """The symmetry set of an object with no symmetry: ``[{"R": I, "t": 0 (3, 1)}]``."""
+    return [{"R": np.eye(3), "t": np.zeros((3, 1))}]
+
+
+def add(
+    R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts: np.ndarray
+) -> float:
+    """Average Distance of model points, ADD [m] (Hinterstoisser et al. 2012; BOP ``add``).
+
+    ``mean_x || (R_est x + t_est) - (R_gt x + t_gt) ||``.
+
+    Args:
+        R_est, t_est: Estimated pose (3, 3), (3,) or (3, 1) [m].
+        R_gt, t_gt: Ground-truth pose.
+        pts: Model points in O (N, 3) [m].
+
+    Returns:
+        The error [m].
+    """
+    pts = _points(pts)
+    est = _transform(pts, _rot(R_est, "R_est"), _vec3(t_est, "t_est"))
+    gt = _transform(pts, _rot(R_gt, "R_gt"), _vec3(t_gt, "t_gt"))
+    return float(np.linalg.norm(est - gt, axis=1).mean())
+
+
+def adi(
+    R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, pts: np.ndarray
+) -> float:
+    """Average distance to the closest model point, ADI / ADD-S [m] (Hinterstoisser et al. 2012).
+
+    ``mean_{x1} min_{x2} || (R_gt x1 + t_gt) - (R_est x2 + t_est) ||`` (BOP ``adi``), with the
+    nearest neighbours found by a k-d tree.
+
+    Args:
+        R_est, t_est: Estimated pose (3, 3), (3,) or (3, 1) [m].
+        R_gt, t_gt: Ground-truth pose.
+        pts: Model points in O (N, 3) [m].
+
+    Returns:
+        The error [m]; never larger than :func:`add`.
+    """
+    pts = _points(pts)
+    est = _transform(pts, _rot(R_est, "R_est"), _vec3(t_est, "t_est"))
+    gt = _transform(pts, _rot(R_gt, "R_gt"), _vec3(t_gt, "t_gt"))
+    dists, _ = cKDTree(est).query(gt, k=1)
+    return float(np.mean(dists))
+
+
+def mssd(
+    R_est: np.ndarray,
+    t_est: np.ndarray,
+    R_gt: np.ndarray,
+    t_gt: np.ndarray,
+    pts: np.ndarray,
+    syms: Sequence[Symmetry],
+) -> float:
+    """Maximum Symmetry-aware Surface Distance, MSSD [m] (Hodan et al. 2020; BOP ``mssd``).
+
+    ``min_S max_x || (R_est x + t_est) - (R_gt (R_S x + t_S) + t_gt) ||`` over the symmetries S.
+
+    Args:
+        R_est, t_est: Estimated pose (3, 3), (3,) or (3, 1) [m].
+        R_gt, t_gt: Ground-truth pose.
+        pts: Model points in O (N, 3) [m].
+        syms: Symmetry set of the object (see module docstring).
+
+    Returns:
+        The error [m].
+    """
+    pts = _points(pts)
+    R_gt, t_gt = _rot(R_gt, "R_gt"), _vec3(t_gt, "t_gt")
+    est = _transform(pts, _rot(R_est, "R_est"), _vec3(t_est, "t_est"))
+    errors = []
+    for R_s, t_s in _syms(syms):
+        gt = _transform(pts, R_gt @ R_s, R_gt @ t_s + t_gt)
+        errors.append(np.linalg.norm(est - gt, axis=1).max())
+    return float(min(errors))
+
+
+def _project_or_inf(K: np.ndarray, pts_C: np.ndarray) -> np.ndarray:
+    """Project (N, 3) camera points with K; points with z <= 0 give inf."""
+    h = pts_C @ K.T
+    z = h[:, 2:3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = h[:, :2] / z
+    return np.where(z > 0.0, uv, np.inf)
+
+
+def mspd(
+    R_est: np.ndarray,
+    t_est: np.ndarray,
+    R_gt: np.ndarray,
+    t_gt: np.ndarray,
+    K: np.ndarray,
+    pts: np.ndarray,
+    syms: Sequence[Symmetry],
+) -> float:
+    """Maximum Symmetry-aware Projection Distance, MSPD [px] (Hodan et al. 2020; BOP ``mspd``).
+
+    ``min_S max_x || proj(R_est x + t_est) - proj(R_gt (R_S x + t_S) + t_gt) ||`` with the
+    pinhole projection ``proj`` of K. A point at or behind the camera plane gives inf.
+
+    Args:
+        R_est, t_est: Estimated pose (3, 3), (3,) or (3, 1) [m].
+        R_gt, t_gt: Ground-truth pose.
+        K: Intrinsics (3, 3).
+        pts: Model points in O (N, 3) [m].
+        syms: Symmetry set of the object.
+
+    Returns:
+        The error [px].
+    """
+    pts = _points(pts)
+    K = _rot(K, "K")
+    R_gt, t_gt = _rot(R_gt, "R_gt"), _vec3(t_gt, "t_gt")
+    uv_est = _project_or_inf(K, _transform(pts, _rot(R_est, "R_est"), _vec3(t_est, "t_est")))
+    errors = []
+    for R_s, t_s in _syms(syms):
+        uv_gt = _project_or_inf(K, _transform(pts, R_gt @ R_s, R_gt @ t_s + t_gt))
+        with np.errstate(invalid="ignore"):
+            d = np.linalg.norm(uv_est - uv_gt, axis=1)
+        errors.append(np.inf if not np.all(np.isfinite(d)) else d.max())
+    return float(min(errors))
+
+
+def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
+    """Angle of the relative rotation [deg] (paper eq. 9; BOP ``re``).
+
+    ``arccos((trace(R_est^T R_gt) - 1) / 2)``, the argument clipped to [-1, 1].
+
+    Args:
+        R_est: Estimated rotation (3, 3).
+        R_gt: Ground-truth rotation (3, 3).
+
+    Returns:
+        The angle [deg], in [0, 180].
+    """
+    R_est, R_gt = _rot(R_est, "R_est"), _rot(R_gt, "R_gt")
+    cos = (np.trace(R_est.T @ R_gt) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, float(cos)))))
+
+
+def rotation_error_sym_deg(
+    R_est: np.ndarray, R_gt: np.ndarray, syms: Sequence[Symmetry]
+) -> float:
+    """Symmetry-aware rotation error [deg]: ``min_S rotation_error_deg(R_est, R_gt R_S)``.
+
+    Args:
+        R_est: Estimated rotation (3, 3).
+        R_gt: Ground-truth rotation (3, 3).
+        syms: Symmetry set of the object (only the rotations are used).
+
+    Returns:
+        The smallest angle [deg] over the symmetries.
+    """
+    R_gt = _rot(R_gt, "R_gt")
+    return min(rotation_error_deg(R_est, R_gt @ R_s) for R_s, _ in _syms(syms))
+
+
+def translation_error_pct(t_est: np.ndarray, t_gt: np.ndarray) -> float:
+    """Relative distance error [%] (paper eq. 9): ``|t_gt - t_est| / |t_gt| * 100``.
+
+    Args:
+        t_est: Estimated translation (3,) or (3, 1) [m].
+        t_gt: Ground-truth translation, non-zero.
+
+    Returns:
+        The error [%].
+    """
+    t_est, t_gt = _vec3(t_est, "t_est"), _vec3(t_gt, "t_gt")
+    norm = float(np.linalg.norm(t_gt))
+    if norm == 0.0:
+        raise ValueError("t_gt must be non-zero")
+    return float(np.linalg.norm(t_gt - t_est)) / norm * 100.0
+
+
+def center_error_px(uv_est: np.ndarray, uv_gt: np.ndarray) -> float | np.ndarray:
+    """Centre error [px] (paper eq. 8): ``sqrt((u^ - u)^2 + (v^ - v)^2)``.
+
+    Args:
+        uv_est: Estimated origin pixel(s), (2,) or (N, 2) [px].
+        uv_gt: True origin pixel(s), same shape.
+
+    Returns:
+        A float for (2,) inputs, else an (N,) array [px].
+    """
+    a, b = np.asarray(uv_est, dtype=np.float64), np.asarray(uv_gt, dtype=np.float64)
+    if a.shape != b.shape or a.ndim not in (1, 2) or a.shape[-1] != 2:
+        raise ValueError(f"uv_est and uv_gt must share a shape (2,) or (N, 2): {a.shape}, {b.shape}")
+    d = np.linalg.norm(a - b, axis=-1)
+    return float(d) if d.ndim == 0 else d
+
+
+def mask_iou(mask_a: np.ndarray, mask_b: np.ndarray) -> float:
+    """Intersection over union of two binary masks (paper Table 2's IoU).
+
+    Args:
+        mask_a: (H, W) mask; non-zero means inside.
+        mask_b: (H, W) mask.
+
+    Returns:
+        |A and B| / |A or B| in [0, 1]; 1.0 when both masks are empty (they agree).
+    """
+    a, b = np.asarray(mask_a).astype(bool), np.asarray(mask_b).astype(bool)
+    if a.shape != b.shape or a.ndim != 2:
+        raise ValueError(f"masks must be 2D with the same shape, got {a.shape} and {b.shape}")
+    union = int(np.count_nonzero(a | b))
+    if union == 0:
+        return 1.0
+    return int(np.count_nonzero(a & b)) / union
+
+
+def recall(errors: np.ndarray | Sequence[float], threshold: float) -> float:
+    """Fraction of errors strictly below ``threshold`` (BOP: a pose is correct if e < th).
+
+    NaN errors count as failures. E.g. ADD(-S) recall: ``recall(errors_m, 0.1 * diameter)``.
+
+    Args:
+        errors: Errors, any shape, non-empty.
+        threshold: Threshold in the errors' unit.
+
+    Returns:
+        The recall in [0, 1].
+    """
+    e = _values(errors, "errors")
+    return float(np.mean(np.nan_to_num(e, nan=np.inf) < threshold))
+
+
+def add_auc(errors_m: np.ndarray | Sequence[float], max_threshold: float = 0.1) -> float:
+    """Area under the accuracy-threshold curve of ADD(-S) errors (Xiang et al., PoseCNN 2018).
+
+    ``(1 / max) * integral_0^max recall(errors, th) d th``, computed exactly (no
+    threshold grid): each error e contributes ``max(0, 1 - e / max)``.
+
+    Args:
+        errors_m: ADD or ADI errors [m], non-empty; NaN counts as a failure.
+        max_threshold: Upper end of the threshold range [m] (10 cm by default).
+
+    Returns:
+        The normalised area in [0, 1].
+    """
+    if not max_threshold > 0.0:
+        raise ValueError(f"max_threshold must be positive, got {max_threshold}")
+    e = np.nan_to_num(_values(errors_m, "errors_m"), nan=np.inf)
+    if np.any(e < 0.0):
+        raise ValueError("errors_m must be non-negative")
+    return float(np.mean(np.clip(1.0 - e / max_threshold, 0.0, 1.0)))
+
+
+def recall_5cm5deg(
+    trans_err_m: np.ndarray | Sequence[float], rot_err_deg: np.ndarray | Sequence[float]
+) -> float:
+    """Fraction of poses with translation error < 5 cm and rotation error < 5 deg.
+
+    Args:
+        trans_err_m: Translation errors |t_est - t_gt| [m], (N,).
+        rot_err_deg: Rotation errors [deg], (N,).
+
+    Returns:
+        The recall in [0, 1].
+    """
+    t = np.nan_to_num(_values(trans_err_m, "trans_err_m"), nan=np.inf)
+    r = np.nan_to_num(_values(rot_err_deg, "rot_err_deg"), nan=np.inf)
+    if t.shape != r.shape:
+        raise ValueError(f"trans_err_m and rot_err_deg differ in length: {t.size} vs {r.size}")
+    return float(np.mean((t < 0.05) & (r < 5.0)))
+
+
+def summary_stats(values: np.ndarray | Sequence[float]) -> dict[str, float]:
+    """Mean, population std (ddof=0), median and 90th percentile (linear interpolation).
+
+    Args:
+        values: Non-empty finite values, any unit.
+
+    Returns:
+        ``{"mean", "std", "median", "p90"}`` in the unit of ``values``.
+    """
+    v = _values(values, "values")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("values must be finite")
+    return {
+        "mean": float(np.mean(v)),
+        "std": float(np.std(v)),
+        "median": float(np.median(v)),
+        "p90": float(np.percentile(v, 90.0)),
+    }
+
+
+def outlier_rate(rot_err_deg: np.ndarray | Sequence[float], threshold: float = 15.0) -> float:
+    """Fraction of rotation errors above ``threshold`` [deg] (SPEC 7; NaN counts as outlier)."""
+    r = np.nan_to_num(_values(rot_err_deg, "rot_err_deg"), nan=np.inf)
+    return float(np.mean(r > threshold))
+
+
+def diameter(pts: np.ndarray) -> float:
+    """Largest distance between two model points [m] (the d of the ADD(-S) < 0.1 d test).
+
+    Args:
+        pts: Model points (N, 3) [m].
+
+    Returns:
+        The diameter [m] (exact over the points, via their convex hull when N is large).
+    """
+    pts = _points(pts)
+    if pts.shape[0] > 64:
+        from scipy.spatial import ConvexHull, QhullError
+
+        try:
+            pts = pts[ConvexHull(pts).vertices]
+        except QhullError:  # degenerate (flat or collinear) point sets: use all points
+            pass
+    best = 0.0
+    for start in range(0, pts.shape[0], 1024):
+        diff = pts[start : start + 1024, None, :] - pts[None, :, :]
+        best = max(best, float((diff * diff).sum(axis=-1).max()))
+    return math.sqrt(best)
