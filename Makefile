@@ -12,7 +12,7 @@ EGL_PACKAGES := libegl1 libgl1 libgl1-mesa-dri libegl-mesa0 libglvnd0 libglx-mes
 .PHONY: run test lint bench system-deps setup clean
 
 run: setup
-	$(PY) -m sim.run_episode --object phone
+	$(PY) -m sim.render_scene --object phone --seed 0 --out out/head.png --external
 
 test: setup
 	$(PY) -m pytest -q -m "not slow"

@@ -1,0 +1,279 @@
+"""The six known objects: one JSON definition each (`scenes/objects/`) drives both the MuJoCo
+bodies and a trimesh mesh in the object's own frame.
+
+The object frame O has its origin at the centre of the object's 3D bounding box, z up in its
+canonical resting pose and x along its length (SPEC section 2). Definitions may be authored in any
+frame with z up; loading shifts every part so that the bounding-box centre is the origin.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+import trimesh
+
+from sim.errors import AssetError, UnknownNameError
+from sim.robot import WORLD_CONAFFINITY, WORLD_CONTYPE
+
+OBJECT_NAMES: tuple[str, ...] = ("car", "faucet", "chair", "phone", "screen", "pistol")
+OBJECTS_DIR = Path(__file__).resolve().parent.parent / "scenes" / "objects"
+
+#: Geom groups (MuJoCo Menagerie convention): visual 2, collision 3.
+VISUAL_GROUP = 2
+COLLISION_GROUP = 3
+
+
+def _quat_to_mat(q: np.ndarray) -> np.ndarray:
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, np.asarray(q, dtype=float) / np.linalg.norm(q))
+    return mat.reshape(3, 3)
+
+
+@dataclass(frozen=True)
+class Part:
+    """One primitive of an object, in the object frame O.
+
+    Attributes:
+        name: part name, unique within its object.
+        type: "box", "cylinder" or "sphere".
+        pos: centre in O [m], shape (3,).
+        quat: orientation in O, wxyz, shape (4,).
+        size: box half-extents (3,), cylinder (radius, half-length) or sphere (radius,) [m].
+        rgba: colour, shape (4,).
+        collision: whether the part also gets a collision geom.
+    """
+
+    name: str
+    type: str
+    pos: np.ndarray
+    quat: np.ndarray
+    size: np.ndarray
+    rgba: np.ndarray
+    collision: bool = True
+
+    @property
+    def volume(self) -> float:
+        """Volume [m^3]."""
+        if self.type == "box":
+            return float(8 * np.prod(self.size))
+        if self.type == "cylinder":
+            return float(np.pi * self.size[0] ** 2 * 2 * self.size[1])
+        return float(4 / 3 * np.pi * self.size[0] ** 3)
+
+    def transform(self) -> np.ndarray:
+        """T_O_part, shape (4, 4)."""
+        T = np.eye(4)
+        T[:3, :3] = _quat_to_mat(self.quat)
+        T[:3, 3] = self.pos
+        return T
+
+    def mesh(self) -> trimesh.Trimesh:
+        """The part as a triangle mesh in O."""
+        if self.type == "box":
+            m = trimesh.creation.box(extents=2 * self.size)
+        elif self.type == "cylinder":
+            m = trimesh.creation.cylinder(radius=self.size[0], height=2 * self.size[1], sections=32)
+        else:
+            m = trimesh.creation.icosphere(subdivisions=2, radius=self.size[0])
+        m.apply_transform(self.transform())
+        return m
+
+
+def _parse_part(raw: dict[str, Any], obj: str) -> Part:
+    kind = raw.get("type")
+    name = raw.get("name", "?")
+    where = f"object {obj!r} part {name!r}"
+    quat = np.array(raw.get("quat", [1.0, 0.0, 0.0, 0.0]), dtype=float)
+    if kind == "box":
+        pos, size = np.array(raw["pos"], float), np.array(raw["size"], float)
+    elif kind == "cylinder":
+        a, b = np.split(np.array(raw["fromto"], float), 2)
+        axis = b - a
+        length = float(np.linalg.norm(axis))
+        if length <= 0:
+            raise AssetError(f"{where}: zero-length cylinder")
+        pos, size = (a + b) / 2, np.array([raw["radius"], length / 2], float)
+        quat = np.zeros(4)
+        mujoco.mju_quatZ2Vec(quat, axis / length)
+    elif kind == "sphere":
+        pos, size = np.array(raw["pos"], float), np.array([raw["radius"]], float)
+    else:
+        raise AssetError(f"{where}: unknown type {kind!r}; valid types: box, cylinder, sphere")
+    return Part(
+        name=name,
+        type=kind,
+        pos=pos,
+        quat=quat / np.linalg.norm(quat),
+        size=size,
+        rgba=np.array(raw.get("rgba", [0.5, 0.5, 0.5, 1.0]), float),
+        collision=bool(raw.get("collision", True)),
+    )
+
+
+@dataclass(frozen=True)
+class ObjectModel:
+    """A known object: parts in its own frame, physical properties, symmetries, resting poses.
+
+    Attributes:
+        name: class name, one of `OBJECT_NAMES`.
+        description: what it looks like, and which features make its pose observable.
+        parts: primitives in O (origin at the bounding-box centre).
+        mass: total mass [kg].
+        friction: MuJoCo friction (sliding, torsional, rolling).
+        symmetries: proper rotational symmetries besides the identity, each a 4x4 T_O_O'
+            (appearance included; every object here is designed to have none).
+        resting_poses: name -> orientation of O on a horizontal support, wxyz.
+    """
+
+    name: str
+    description: str
+    parts: tuple[Part, ...]
+    mass: float
+    friction: tuple[float, float, float]
+    symmetries: tuple[np.ndarray, ...] = ()
+    resting_poses: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @functools.cached_property
+    def mesh(self) -> trimesh.Trimesh:
+        """All parts as one triangle mesh in O [m] (parts are concatenated, not fused)."""
+        return trimesh.util.concatenate([p.mesh() for p in self.parts])
+
+    @property
+    def extents(self) -> np.ndarray:
+        """Bounding-box size along x, y, z of O [m], shape (3,)."""
+        return np.asarray(self.mesh.bounds[1] - self.mesh.bounds[0])
+
+    @functools.cached_property
+    def diameter(self) -> float:
+        """Largest distance between two mesh vertices [m] (BOP's object diameter)."""
+        v = np.asarray(self.mesh.convex_hull.vertices)
+        d = np.linalg.norm(v[:, None, :] - v[None, :, :], axis=-1)
+        return float(d.max())
+
+    def sample_points(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """n points drawn uniformly on the surface, in O [m], shape (n, 3)."""
+        areas = self.mesh.area_faces
+        faces = rng.choice(len(areas), size=n, p=areas / areas.sum())
+        tri = self.mesh.triangles[faces]
+        r1, r2 = rng.random(n), rng.random(n)
+        s = np.sqrt(r1)
+        w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+        return np.einsum("nk,nkd->nd", w, tri)
+
+    def bop_symmetries(self) -> list[dict[str, np.ndarray]]:
+        """Symmetries as the BOP toolkit lists them: the identity first, t in metres (3, 1)."""
+        out = [{"R": np.eye(3), "t": np.zeros((3, 1))}]
+        for T in self.symmetries:
+            out.append({"R": T[:3, :3].copy(), "t": T[:3, 3:4].copy()})
+        return out
+
+    def resting_height(self, quat: np.ndarray) -> float:
+        """Height of O's origin above a support plane when resting with orientation quat [m]."""
+        R = _quat_to_mat(quat)
+        return float(-(np.asarray(self.mesh.vertices) @ R.T)[:, 2].min())
+
+    def add_to_spec(
+        self, spec: mujoco.MjSpec, instance: str, pos: np.ndarray, quat: np.ndarray
+    ) -> mujoco.MjsBody:
+        """Add the object as a free body to spec's worldbody.
+
+        Visual geoms (group 2, no contact, no mass) carry the colours; collision geoms
+        (group 3, hidden) carry mass and friction.
+
+        Args:
+            spec: the scene spec.
+            instance: body name, unique in the scene.
+            pos: initial position of O in the world [m].
+            quat: initial orientation of O in the world, wxyz.
+
+        Returns:
+            The new body.
+        """
+        body = spec.worldbody.add_body()
+        body.name = instance
+        body.pos = list(map(float, pos))
+        body.quat = list(map(float, quat))
+        joint = body.add_freejoint()
+        joint.name = instance + "/free"
+        volume = sum(p.volume for p in self.parts if p.collision)
+        density = self.mass / volume
+        gtype = {
+            "box": mujoco.mjtGeom.mjGEOM_BOX,
+            "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER,
+            "sphere": mujoco.mjtGeom.mjGEOM_SPHERE,
+        }
+        for part in self.parts:
+            size = np.zeros(3)
+            size[: len(part.size)] = part.size
+            vis = body.add_geom()
+            vis.name = f"{instance}/{part.name}"
+            vis.type = gtype[part.type]
+            vis.size, vis.pos, vis.quat = size, part.pos, part.quat
+            vis.rgba = part.rgba
+            vis.group, vis.contype, vis.conaffinity = VISUAL_GROUP, 0, 0
+            vis.density = 0.0
+            if part.collision:
+                col = body.add_geom()
+                col.name = f"{instance}/{part.name}_col"
+                col.type = gtype[part.type]
+                col.size, col.pos, col.quat = size, part.pos, part.quat
+                col.rgba = [0.5, 0.5, 0.5, 0.0]
+                col.group = COLLISION_GROUP
+                col.contype, col.conaffinity = WORLD_CONTYPE, WORLD_CONAFFINITY
+                col.density = density
+                col.friction = list(self.friction)
+                col.condim = 4
+        return body
+
+
+def _centred(parts: list[Part]) -> list[Part]:
+    lo = np.min([p.mesh().bounds[0] for p in parts], axis=0)
+    hi = np.max([p.mesh().bounds[1] for p in parts], axis=0)
+    c = (lo + hi) / 2
+    return [Part(p.name, p.type, p.pos - c, p.quat, p.size, p.rgba, p.collision) for p in parts]
+
+
+@functools.cache
+def load_object(name: str) -> ObjectModel:
+    """The object called name, read from `scenes/objects/<name>.json`.
+
+    Raises:
+        UnknownNameError: name is not one of `OBJECT_NAMES`.
+        AssetError: the definition file is missing or malformed.
+    """
+    if name not in OBJECT_NAMES:
+        raise UnknownNameError("object", name, OBJECT_NAMES)
+    path = OBJECTS_DIR / f"{name}.json"
+    try:
+        raw = json.loads(path.read_text())
+        parts = _centred([_parse_part(p, name) for p in raw["parts"]])
+        syms = []
+        for s in raw.get("symmetries", []):
+            T = np.eye(4)
+            axis = np.asarray(s["axis"], float)
+            mujoco.mju_axisAngle2Quat(q := np.zeros(4), axis / np.linalg.norm(axis), s["angle"])
+            T[:3, :3] = _quat_to_mat(q)
+            syms.append(T)
+        rest = {r["name"]: np.asarray(r["quat"], float) for r in raw["resting_poses"]}
+        return ObjectModel(
+            name=name,
+            description=raw.get("description", ""),
+            parts=tuple(parts),
+            mass=float(raw["mass"]),
+            friction=tuple(raw.get("friction", [1.0, 0.01, 0.0005])),
+            symmetries=tuple(syms),
+            resting_poses=rest,
+        )
+    except (OSError, KeyError, TypeError, ValueError) as exc:
+        raise AssetError(f"cannot read object definition {path}: {exc}") from exc
+
+
+def all_objects() -> list[ObjectModel]:
+    """Every known object, in `OBJECT_NAMES` order."""
+    return [load_object(n) for n in OBJECT_NAMES]

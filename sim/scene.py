@@ -1,0 +1,258 @@
+"""Scene assembly: the world of `scenes/world.xml`, the converted Fetch and the objects, from a seed.
+
+`build_scene(["phone"], seed=0)` puts the target object (the first name) and any distractors on
+the table at random positions and yaws within the arm's reach, places the robot's base at a random
+pose facing the table, aims the head camera at the target and lets physics settle.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from sim import constants as C
+from sim.errors import InvalidArgumentError, UnknownNameError
+from sim.objects import OBJECT_NAMES, ObjectModel, load_object
+from sim.robot import RobotConfig, fetch_spec, home_qpos_ctrl
+
+WORLD_XML = Path(__file__).resolve().parent.parent / "scenes" / "world.xml"
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """How scenes are sampled. Lengths in [m], angles in [rad], world frame.
+
+    Attributes:
+        n_distractors: extra objects of other classes on the table.
+        base_x, base_y, base_yaw: ranges of the robot base pose.
+        target_x, target_y: region of the table where the target object is placed.
+        distractor_x, distractor_y: region for distractors.
+        aim_jitter: half-range of a random offset of the head's aim point around the target.
+        settle_time: physics time run after placing everything [s].
+        resting_pose: which resting pose to use; None samples among the object's resting poses.
+        randomize_appearance: randomise lights and surface colours (for data generation).
+    """
+
+    n_distractors: int = 0
+    base_x: tuple[float, float] = (-0.02, 0.06)
+    base_y: tuple[float, float] = (-0.08, 0.08)
+    base_yaw: tuple[float, float] = (-0.15, 0.15)
+    target_x: tuple[float, float] = (0.55, 0.68)
+    target_y: tuple[float, float] = (-0.2, 0.2)
+    distractor_x: tuple[float, float] = (0.5, 0.95)
+    distractor_y: tuple[float, float] = (-0.4, 0.4)
+    aim_jitter: float = 0.05
+    settle_time: float = 0.5
+    resting_pose: str | None = "canonical"
+    randomize_appearance: bool = False
+    robot: RobotConfig = field(default_factory=RobotConfig)
+
+
+@dataclass
+class PlacedObject:
+    """An object instance in a scene: its class, body name and model."""
+
+    name: str
+    body: str
+    model: ObjectModel
+
+
+@dataclass
+class Scene:
+    """A compiled scene with its state.
+
+    Attributes:
+        model, data: the MuJoCo model and state.
+        seed: the seed it was built from.
+        objects: placed objects, the target first.
+        table_top_z: height of the table's top surface [m].
+        ctrl_home: the control vector that holds the robot's posture.
+    """
+
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    seed: int
+    objects: list[PlacedObject]
+    table_top_z: float
+    ctrl_home: np.ndarray
+
+    @property
+    def target(self) -> PlacedObject:
+        """The object the episode is about."""
+        return self.objects[0]
+
+    def object_pose(self, body: str | None = None) -> np.ndarray:
+        """T_world_O of an object body (the target by default), shape (4, 4)."""
+        b = self.data.body(body or self.target.body)
+        T = np.eye(4)
+        T[:3, :3] = b.xmat.reshape(3, 3)
+        T[:3, 3] = b.xpos
+        return T
+
+    def object_lowest_z(self, body: str | None = None) -> float:
+        """World height of the lowest mesh vertex of an object [m]."""
+        placed = next(o for o in self.objects if o.body == (body or self.target.body))
+        T = self.object_pose(placed.body)
+        v = np.asarray(placed.model.mesh.vertices) @ T[:3, :3].T + T[:3, 3]
+        return float(v[:, 2].min())
+
+    def step(self, seconds: float) -> None:
+        """Advance physics by seconds with the current controls."""
+        n = round(seconds / self.model.opt.timestep)
+        mujoco.mj_step(self.model, self.data, nstep=n) if n else None
+
+
+def _yaw_quat(yaw: float) -> np.ndarray:
+    return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    out = np.zeros(4)
+    mujoco.mju_mulQuat(out, a, b)
+    return out
+
+
+def _footprint_radius(obj: ObjectModel) -> float:
+    return float(np.hypot(*obj.extents[:2]) / 2)
+
+
+def _sample_positions(
+    objs: list[ObjectModel], cfg: SceneConfig, rng: np.random.Generator
+) -> list[np.ndarray]:
+    placed: list[tuple[np.ndarray, float]] = []
+    for i, obj in enumerate(objs):
+        xr, yr = (cfg.target_x, cfg.target_y) if i == 0 else (cfg.distractor_x, cfg.distractor_y)
+        r = _footprint_radius(obj)
+        for _ in range(200):
+            xy = np.array([rng.uniform(*xr), rng.uniform(*yr)])
+            if all(np.linalg.norm(xy - q) > r + rq + 0.02 for q, rq in placed):
+                placed.append((xy, r))
+                break
+        else:
+            raise InvalidArgumentError(
+                f"cannot place {len(objs)} objects on the table without overlap; "
+                f"use fewer distractors (at most {len(OBJECT_NAMES) - 1})"
+            )
+    return [p for p, _ in placed]
+
+
+def aim_head(model: mujoco.MjModel, data: mujoco.MjData, point: np.ndarray) -> tuple[float, float]:
+    """Head pan and tilt that put a world point on the head camera's optical axis.
+
+    Sets the head joints in data.qpos (and runs kinematics); returns (pan, tilt) [rad], clipped
+    to the joint ranges.
+    """
+    pan_j, tilt_j = (model.joint(n) for n in C.HEAD_JOINTS)
+    cam = model.camera(C.HEAD_CAMERA).id
+    for _ in range(6):
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_camlight(model, data)
+        # Camera frame, MuJoCo convention: optical axis is -z.
+        R = data.cam_xmat[cam].reshape(3, 3)
+        d = R.T @ (point - data.cam_xpos[cam])
+        # Pan turns about world z (the head is level); tilt pitches the camera down.
+        pan_err = np.arctan2(-d[0], -d[2])
+        tilt_err = np.arctan2(-d[1], np.hypot(d[0], d[2]))
+        data.qpos[pan_j.qposadr[0]] += pan_err
+        data.qpos[tilt_j.qposadr[0]] += tilt_err
+        for j in (pan_j, tilt_j):
+            data.qpos[j.qposadr[0]] = np.clip(data.qpos[j.qposadr[0]], *j.range)
+    mujoco.mj_kinematics(model, data)
+    return float(data.qpos[pan_j.qposadr[0]]), float(data.qpos[tilt_j.qposadr[0]])
+
+
+def randomize_appearance(model: mujoco.MjModel, rng: np.random.Generator) -> None:
+    """Randomise lights and the colours of the room's surfaces in place (domain randomisation)."""
+    for i in range(model.nlight):
+        model.light_diffuse[i] = rng.uniform(0.2, 0.8) * np.ones(3) + rng.uniform(-0.05, 0.05, 3)
+        model.light_pos[i] += rng.uniform(-0.5, 0.5, 3)
+    for i in range(model.nmat):
+        if model.material(i).name.startswith("room_"):
+            model.mat_rgba[i, :3] = rng.uniform(0.3, 1.0, 3)
+    model.vis.headlight.ambient[:] = rng.uniform(0.1, 0.4)
+
+
+def build_scene(
+    objects: str | Sequence[str],
+    seed: int,
+    config: SceneConfig | None = None,
+    distractors: Sequence[str] | None = None,
+) -> Scene:
+    """Build and settle a seeded scene.
+
+    Args:
+        objects: the target object's class, or several classes (the first is the target).
+        seed: seed of every random choice; the same seed gives the same scene.
+        config: sampling ranges; `SceneConfig()` by default.
+        distractors: explicit distractor classes; None draws `config.n_distractors` classes
+            other than the requested ones.
+
+    Returns:
+        The settled scene, robot holding its home posture with the head aimed at the target.
+
+    Raises:
+        UnknownNameError: an unknown object class.
+        InvalidArgumentError: the objects do not fit on the table.
+    """
+    cfg = config or SceneConfig()
+    names = [objects] if isinstance(objects, str) else list(objects)
+    if not names:
+        raise InvalidArgumentError(f"no object given; valid objects: {', '.join(OBJECT_NAMES)}")
+    for n in [*names, *(distractors or [])]:
+        if n not in OBJECT_NAMES:
+            raise UnknownNameError("object", n, OBJECT_NAMES)
+    rng = np.random.default_rng(seed)
+    if distractors is None:
+        pool = [n for n in OBJECT_NAMES if n not in names]
+        k = min(cfg.n_distractors, len(pool))
+        distractors = [pool[i] for i in rng.permutation(len(pool))[:k]]
+    names = [*names, *distractors]
+    models = [load_object(n) for n in names]
+
+    spec = fetch_spec(cfg.robot, world=WORLD_XML)
+    table_top = spec.geom("table_top")
+    table_top_z = float(spec.body("table").pos[2] + table_top.pos[2] + table_top.size[2])
+
+    positions = _sample_positions(models, cfg, rng)
+    placed: list[PlacedObject] = []
+    counts: dict[str, int] = {}
+    for obj, xy in zip(models, positions, strict=True):
+        k = counts.get(obj.name, 0)
+        counts[obj.name] = k + 1
+        body = f"{obj.name}_{k}"
+        rest_names = list(obj.resting_poses)
+        if cfg.resting_pose is None:
+            rest = obj.resting_poses[rest_names[rng.integers(len(rest_names))]]
+        else:
+            rest = obj.resting_poses[rest_names[0]]
+        quat = _quat_mul(_yaw_quat(rng.uniform(-np.pi, np.pi)), rest)
+        z = table_top_z + obj.resting_height(rest) + 0.001
+        obj.add_to_spec(spec, body, np.array([xy[0], xy[1], z]), quat)
+        placed.append(PlacedObject(obj.name, body, obj))
+
+    model = spec.compile()
+    if cfg.randomize_appearance:
+        randomize_appearance(model, rng)
+    data = mujoco.MjData(model)
+    qpos, ctrl = home_qpos_ctrl(model)
+    for adr, v in qpos.items():
+        data.qpos[adr] = v
+    base = (rng.uniform(*cfg.base_x), rng.uniform(*cfg.base_y), rng.uniform(*cfg.base_yaw))
+    for name, v in zip(C.BASE_JOINTS, base, strict=True):
+        data.qpos[model.joint(name).qposadr[0]] = v
+        ctrl[model.actuator("act_" + name).id] = v
+    mujoco.mj_kinematics(model, data)
+    aim = data.body(placed[0].body).xpos + rng.uniform(-cfg.aim_jitter, cfg.aim_jitter, 3)
+    pan, tilt = aim_head(model, data, aim)
+    ctrl[model.actuator("act_head_pan_joint").id] = pan
+    ctrl[model.actuator("act_head_tilt_joint").id] = tilt
+    data.ctrl[:] = ctrl
+    mujoco.mj_forward(model, data)
+    scene = Scene(model, data, seed, placed, table_top_z, ctrl.copy())
+    scene.step(cfg.settle_time)
+    mujoco.mj_forward(model, data)
+    return scene
