@@ -33,7 +33,9 @@ def _check_square_box(square_box: object) -> tuple[float, float, float]:
     """Validate a square box (x0, y0, side) [px] with side > 0."""
     box = np.asarray(square_box, dtype=np.float64)
     if box.shape != (3,) or not np.all(np.isfinite(box)) or box[2] <= 0.0:
-        raise ValueError(f"square_box must be finite (x0, y0, side) with side > 0, got {square_box!r}")
+        raise ValueError(
+            f"square_box must be finite (x0, y0, side) with side > 0, got {square_box!r}"
+        )
     return float(box[0]), float(box[1]), float(box[2])
 
 
@@ -112,7 +114,7 @@ def crop_affine(square_box: SquareBox, size: int) -> np.ndarray:
     """The 2x3 affine map from crop pixel coordinates to image pixel coordinates."""
     x0, y0, side = _check_square_box(square_box)
     s = side / _check_size(size)
-    return np.array([[s, 0.0, x0 + 0.5 * s - 0.5], [0.0, s, y0 + 0.5 * s - 0.5]])
+    return np.array([[s, 0.0, x0 + 0.5 * s], [0.0, s, y0 + 0.5 * s]])
 
 
 def crop_and_resize(image: np.ndarray, square_box: SquareBox, size: int = 64) -> np.ndarray:

@@ -47,7 +47,7 @@ def _check_intrinsics(K: object) -> np.ndarray:
     K = _as_array(K, (3, 3), "K")
     if K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
         raise ValueError(f"K must have positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
-    if not np.allclose(K[2], (0.0, 0.0, 1.0)) or K[1, 0] != 0.0:
+    if K[2, 0] != 0.0 or K[2, 1] != 0.0 or K[2, 2] != 1.0 or K[1, 0] != 0.0:
         raise ValueError(f"K must be upper triangular with last row (0, 0, 1), got\n{K}")
     return K
 
@@ -55,10 +55,10 @@ def _check_intrinsics(K: object) -> np.ndarray:
 def _check_transform(T: object, name: str) -> np.ndarray:
     """Validate a 4x4 rigid transform (orthonormal rotation, last row (0, 0, 0, 1))."""
     T = _as_array(T, (4, 4), name)
-    if not np.allclose(T[3], (0.0, 0.0, 0.0, 1.0)):
+    if np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
         raise ValueError(f"{name} must have last row (0, 0, 0, 1), got {T[3]}")
     R = T[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0.0:
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) <= 0.0:
         raise ValueError(f"{name} must have a proper rotation (orthonormal, det +1) block")
     return T
 
@@ -119,9 +119,7 @@ def intrinsics(fovy: float, width: int, height: int) -> np.ndarray:
     if int(width) != width or int(height) != height or width <= 0 or height <= 0:
         raise ValueError(f"width and height must be positive integers, got {width}x{height}")
     fy = (height / 2.0) / math.tan(fovy / 2.0)
-    return np.array(
-        [[fy, 0.0, (width - 1) / 2.0], [0.0, fy, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
-    )
+    return np.array([[fy, 0.0, (width - 1) / 2.0], [0.0, fy, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
 def project(K: np.ndarray, pts_C: np.ndarray) -> np.ndarray:
@@ -175,7 +173,7 @@ def r_corr(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     K = _check_intrinsics(K)
     x_n, y_n, _ = np.linalg.solve(K, np.array([uv[0], uv[1], 1.0]))
     alpha = math.atan(x_n)
-    beta = -math.asin(y_n / math.sqrt(x_n * x_n + y_n * y_n + 1.0))
+    beta = math.asin(y_n / math.sqrt(x_n * x_n + y_n * y_n + 1.0))
     return rot_y(alpha) @ rot_x(beta)
 
 

@@ -222,9 +222,7 @@ def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, max(-1.0, float(cos)))))
 
 
-def rotation_error_sym_deg(
-    R_est: np.ndarray, R_gt: np.ndarray, syms: Sequence[Symmetry]
-) -> float:
+def rotation_error_sym_deg(R_est: np.ndarray, R_gt: np.ndarray, syms: Sequence[Symmetry]) -> float:
     """Symmetry-aware rotation error [deg]: ``min_S rotation_error_deg(R_est, R_gt R_S)``.
 
     Args:
@@ -268,7 +266,9 @@ def center_error_px(uv_est: np.ndarray, uv_gt: np.ndarray) -> float | np.ndarray
     """
     a, b = np.asarray(uv_est, dtype=np.float64), np.asarray(uv_gt, dtype=np.float64)
     if a.shape != b.shape or a.ndim not in (1, 2) or a.shape[-1] != 2:
-        raise ValueError(f"uv_est and uv_gt must share a shape (2,) or (N, 2): {a.shape}, {b.shape}")
+        raise ValueError(
+            f"uv_est and uv_gt must share a shape (2,) or (N, 2): {a.shape}, {b.shape}"
+        )
     d = np.linalg.norm(a - b, axis=-1)
     return float(d) if d.ndim == 0 else d
 

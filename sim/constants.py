@@ -51,7 +51,7 @@ FINGER_TRAVEL = 0.05
 #: Half-length of a finger pad along the approach axis [m].
 FINGER_PAD_HALF_LENGTH = 0.0385
 
-#: A posture with the arm tucked to the side, the torso half up, the head level and the gripper open.
+#: Arm tucked to the side, torso part way up, head level, gripper open.
 HOME_POSTURE: dict[str, float] = {
     "base_x": 0.0,
     "base_y": 0.0,

@@ -1,4 +1,4 @@
-"""Scene assembly: the world of `scenes/world.xml`, the converted Fetch and the objects, from a seed.
+"""Scene assembly from a seed: the world of `scenes/world.xml`, the converted Fetch, the objects.
 
 `build_scene(["phone"], seed=0)` puts the target object (the first name) and any distractors on
 the table at random positions and yaws within the arm's reach, places the robot's base at a random
