@@ -173,7 +173,7 @@ def r_corr(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     K = _check_intrinsics(K)
     x_n, y_n, _ = np.linalg.solve(K, np.array([uv[0], uv[1], 1.0]))
     alpha = math.atan(x_n)
-    beta = math.asin(y_n / math.sqrt(x_n * x_n + y_n * y_n + 1.0))
+    beta = -math.asin(y_n / math.sqrt(x_n * x_n + y_n * y_n + 1.0))
     return rot_y(alpha) @ rot_x(beta)
 
 

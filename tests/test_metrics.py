@@ -1,0 +1,268 @@
+"""Tests of the pose metrics against hand-computed values and invariants."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from perception import metrics as m
+from perception.geometry import intrinsics, rot_z
+
+
+def box_points(rng: np.random.Generator, n: int = 300) -> np.ndarray:
+    """Random points on the surface-ish of a 0.2 x 0.1 x 0.05 m box."""
+    return rng.uniform(-1.0, 1.0, size=(n, 3)) * np.array([0.1, 0.05, 0.025])
+
+
+def random_pose(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    R = Rotation.random(random_state=rng).as_matrix()
+    t = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(0.5, 1.5)])
+    return R, t
+
+
+def z_symmetries(n: int) -> list[dict[str, np.ndarray]]:
+    """The n-fold rotational symmetry set about the object's z axis (identity included)."""
+    return [{"R": rot_z(2.0 * math.pi * k / n), "t": np.zeros((3, 1))} for k in range(n)]
+
+
+# --------------------------------------------------------------------------- ADD / ADI
+
+
+def test_add_and_adi_of_identical_poses_are_zero() -> None:
+    rng = np.random.default_rng(0)
+    pts = box_points(rng)
+    R, t = random_pose(rng)
+    assert m.add(R, t, R, t, pts) == pytest.approx(0.0, abs=1e-15)
+    assert m.adi(R, t, R, t, pts) == pytest.approx(0.0, abs=1e-15)
+
+
+def test_add_of_pure_translation_and_of_rotation_by_hand() -> None:
+    pts = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 2.0]])
+    R = np.eye(3)
+    # Every point moves by the same offset of length 0.5.
+    assert m.add(R, [0.3, 0.4, 1.0], R, [0.0, 0.0, 1.0], pts) == pytest.approx(0.5)
+    # 90 deg about z: (1,0,0) -> (0,1,0) moves sqrt(2); (0,1,0) moves sqrt(2); (0,0,2) stays.
+    e = m.add(rot_z(math.pi / 2.0), np.zeros((3, 1)), R, np.zeros((3, 1)), pts)
+    assert e == pytest.approx(2.0 * math.sqrt(2.0) / 3.0)
+    # ADI: the estimated points are (0,1,0), (-1,0,0), (0,0,2); the nearest one to gt (1,0,0)
+    # is (0,1,0) at sqrt(2), gt (0,1,0) and (0,0,2) have an exact match.
+    e_adi = m.adi(rot_z(math.pi / 2.0), np.zeros(3), R, np.zeros(3), pts)
+    assert e_adi == pytest.approx(math.sqrt(2.0) / 3.0)
+
+
+def test_adi_against_brute_force_and_below_add() -> None:
+    rng = np.random.default_rng(1)
+    pts = box_points(rng, 200)
+    for _ in range(20):
+        (R_e, t_e), (R_g, t_g) = random_pose(rng), random_pose(rng)
+        est = pts @ R_e.T + t_e
+        gt = pts @ R_g.T + t_g
+        brute = np.linalg.norm(gt[:, None, :] - est[None, :, :], axis=2).min(axis=1).mean()
+        adi = m.adi(R_e, t_e, R_g, t_g, pts)
+        assert adi == pytest.approx(brute, rel=1e-12)
+        assert adi <= m.add(R_e, t_e, R_g, t_g, pts) + 1e-15
+
+
+def test_adi_is_zero_for_a_symmetric_pose_of_a_symmetric_object() -> None:
+    # A square of points is 4-fold symmetric about z: ADI ignores the 90 deg flip, ADD does not.
+    pts = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    t = np.array([0.0, 0.0, 3.0])
+    assert m.adi(rot_z(math.pi / 2.0), t, np.eye(3), t, pts) == pytest.approx(0.0, abs=1e-12)
+    assert m.add(rot_z(math.pi / 2.0), t, np.eye(3), t, pts) == pytest.approx(math.sqrt(2.0))
+
+
+# --------------------------------------------------------------------------- MSSD / MSPD
+
+
+def test_mssd_by_hand_and_with_symmetries() -> None:
+    pts = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    t = np.array([0.0, 0.0, 3.0])
+    R_est = rot_z(math.pi / 2.0 + 0.1)
+    # Without symmetries: every point moves by the chord of (pi/2 + 0.1).
+    chord = 2.0 * math.sin((math.pi / 2.0 + 0.1) / 2.0)
+    assert m.mssd(R_est, t, np.eye(3), t, pts, m.identity_symmetry()) == pytest.approx(chord)
+    # With the 4-fold symmetry, only the 0.1 rad residual is left.
+    residual = 2.0 * math.sin(0.05)
+    assert m.mssd(R_est, t, np.eye(3), t, pts, z_symmetries(4)) == pytest.approx(residual)
+
+
+def test_mssd_unchanged_by_a_symmetry_of_the_estimate() -> None:
+    rng = np.random.default_rng(2)
+    half = box_points(rng, 150)
+    # A point set with the 2-fold symmetry about z (as the sampled surface of a box has).
+    pts = np.concatenate([half, half @ rot_z(math.pi).T])
+    syms = z_symmetries(2)
+    for _ in range(20):
+        (R_e, t_e), (R_g, t_g) = random_pose(rng), random_pose(rng)
+        for sym in syms:
+            R_flip = R_e @ sym["R"]
+            t_flip = R_e @ sym["t"].reshape(3) + t_e
+            before = m.mssd(R_e, t_e, R_g, t_g, pts, syms)
+            assert m.mssd(R_flip, t_flip, R_g, t_g, pts, syms) == pytest.approx(before, rel=1e-9)
+            before_px = m.mspd(R_e, t_e, R_g, t_g, intrinsics(1.0, 64, 64), pts, syms)
+            after_px = m.mspd(R_flip, t_flip, R_g, t_g, intrinsics(1.0, 64, 64), pts, syms)
+            assert after_px == pytest.approx(before_px, rel=1e-9)
+        assert m.mssd(R_e, t_e, R_g, t_g, pts, syms) <= m.mssd(
+            R_e, t_e, R_g, t_g, pts, m.identity_symmetry()
+        )
+
+
+def test_mssd_uses_symmetry_translation() -> None:
+    # Two points; the symmetry swaps them (a half turn about z through (0.5, 0, 0)).
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    sym = {"R": rot_z(math.pi), "t": np.array([[1.0], [0.0], [0.0]])}
+    R_gt = Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix()
+    t_gt = np.array([0.1, 0.0, 2.0])
+    # The swapped pose, gt composed with the symmetry: the same point set, points exchanged.
+    R_est = R_gt @ sym["R"]
+    t_est = R_gt @ sym["t"].reshape(3) + t_gt
+    syms = [*m.identity_symmetry(), sym]
+    assert m.mssd(R_est, t_est, R_gt, t_gt, pts, syms) == pytest.approx(0.0, abs=1e-12)
+    assert m.mssd(R_est, t_est, R_gt, t_gt, pts, m.identity_symmetry()) == pytest.approx(1.0)
+    K = intrinsics(1.0, 64, 64)
+    assert m.mspd(R_est, t_est, R_gt, t_gt, K, pts, syms) == pytest.approx(0.0, abs=1e-9)
+    assert m.mspd(R_est, t_est, R_gt, t_gt, K, pts, m.identity_symmetry()) > 1.0
+
+
+def test_mspd_by_hand() -> None:
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    pts = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    R = np.eye(3)
+    # Shift by 1 cm sideways at 1 m depth: 5 px for every point.
+    e = m.mspd(R, [0.01, 0.0, 1.0], R, [0.0, 0.0, 1.0], K, pts, m.identity_symmetry())
+    assert e == pytest.approx(5.0)
+    # Move 1 m -> 2 m along the axis: (0,0,0) stays at the centre, (0.1,0,0) goes from
+    # u = 320 + 50 to u = 320 + 25: the maximum is 25 px.
+    e = m.mspd(R, [0.0, 0.0, 2.0], R, [0.0, 0.0, 1.0], K, pts, m.identity_symmetry())
+    assert e == pytest.approx(25.0)
+    # An estimate behind the camera is an infinite error.
+    e = m.mspd(R, [0.0, 0.0, -1.0], R, [0.0, 0.0, 1.0], K, pts, m.identity_symmetry())
+    assert e == math.inf
+
+
+# --------------------------------------------------------------------------- paper errors
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    angle=st.floats(0.0, math.pi - 1e-6, allow_nan=False),
+    axis=st.tuples(*[st.floats(-1.0, 1.0, allow_nan=False)] * 3).filter(
+        lambda a: sum(c * c for c in a) > 1e-2
+    ),
+)
+def test_rotation_error_of_known_rotation_is_its_angle(
+    angle: float, axis: tuple[float, float, float]
+) -> None:
+    rng = np.random.default_rng(3)
+    R_gt = Rotation.random(random_state=rng).as_matrix()
+    a = np.array(axis) / np.linalg.norm(axis)
+    R_est = R_gt @ Rotation.from_rotvec(angle * a).as_matrix()
+    # arccos loses precision near 0 and pi: about sqrt(machine eps) rad there.
+    assert m.rotation_error_deg(R_est, R_gt) == pytest.approx(math.degrees(angle), abs=1e-5)
+    assert m.rotation_error_deg(R_gt, R_est) == pytest.approx(math.degrees(angle), abs=1e-5)
+
+
+def test_rotation_error_sym_by_hand() -> None:
+    R_est = rot_z(math.radians(100.0))
+    assert m.rotation_error_deg(R_est, np.eye(3)) == pytest.approx(100.0)
+    assert m.rotation_error_sym_deg(R_est, np.eye(3), z_symmetries(4)) == pytest.approx(10.0)
+    assert m.rotation_error_sym_deg(R_est, np.eye(3), m.identity_symmetry()) == pytest.approx(100.0)
+
+
+def test_translation_error_pct_by_hand() -> None:
+    assert m.translation_error_pct([0.0, 0.0, 1.1], [0.0, 0.0, 1.0]) == pytest.approx(10.0)
+    assert m.translation_error_pct(
+        np.array([[0.3], [0.4], [1.0]]), [0.0, 0.0, 1.0]
+    ) == pytest.approx(50.0)
+    with pytest.raises(ValueError, match="t_gt must be non-zero"):
+        m.translation_error_pct([1.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+
+
+def test_center_error_px_by_hand() -> None:
+    assert m.center_error_px([3.0, 4.0], [0.0, 0.0]) == pytest.approx(5.0)
+    out = m.center_error_px(np.array([[1.0, 1.0], [6.0, 8.0]]), np.array([[1.0, 0.0], [0.0, 0.0]]))
+    np.testing.assert_allclose(out, [1.0, 10.0])
+
+
+def test_mask_iou_by_hand() -> None:
+    a = np.zeros((4, 4), dtype=bool)
+    b = np.zeros((4, 4), dtype=np.uint8)
+    a[0:2, 0:2] = True  # 4 pixels
+    b[1:3, 1:3] = 1  # 4 pixels, overlapping a in 1
+    assert m.mask_iou(a, b) == pytest.approx(1.0 / 7.0)
+    assert m.mask_iou(a, a) == 1.0
+    assert m.mask_iou(a, np.zeros((4, 4))) == 0.0
+    assert m.mask_iou(np.zeros((4, 4)), np.zeros((4, 4))) == 1.0
+    with pytest.raises(ValueError, match="same shape"):
+        m.mask_iou(a, np.zeros((4, 5)))
+
+
+# --------------------------------------------------------------------------- aggregates
+
+
+def test_recall_and_5cm5deg_by_hand() -> None:
+    assert m.recall([0.01, 0.05, 0.2, np.nan], 0.05) == pytest.approx(0.25)  # strict <
+    assert m.recall([0.01, 0.05, 0.2, 0.02], 0.1) == pytest.approx(0.75)
+    t = [0.01, 0.04, 0.06, 0.01]
+    r = [1.0, 6.0, 1.0, 4.9]
+    assert m.recall_5cm5deg(t, r) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="differ in length"):
+        m.recall_5cm5deg([0.0], [0.0, 1.0])
+    with pytest.raises(ValueError, match="errors must not be empty"):
+        m.recall([], 1.0)
+
+
+def test_add_auc_by_hand() -> None:
+    # Each error e < 10 cm is correct over the thresholds (e, 0.1]: a fraction 1 - e / 0.1.
+    assert m.add_auc([0.0, 0.05, 0.2]) == pytest.approx((1.0 + 0.5 + 0.0) / 3.0)
+    assert m.add_auc([0.025], max_threshold=0.05) == pytest.approx(0.5)
+    assert m.add_auc([np.nan, 0.0]) == pytest.approx(0.5)
+
+
+def test_add_auc_matches_a_fine_threshold_grid() -> None:
+    rng = np.random.default_rng(4)
+    errors = rng.exponential(0.04, size=50)
+    thresholds = np.linspace(0.0, 0.1, 100001)
+    curve = np.array([m.recall(errors, th) for th in thresholds[::100]])
+    numeric = np.trapezoid(curve, thresholds[::100]) / 0.1
+    assert m.add_auc(errors) == pytest.approx(numeric, abs=2e-3)
+
+
+def test_summary_stats_and_outlier_rate_by_hand() -> None:
+    stats = m.summary_stats([1.0, 2.0, 3.0, 4.0, 10.0])
+    assert stats["mean"] == pytest.approx(4.0)
+    assert stats["std"] == pytest.approx(math.sqrt((9 + 4 + 1 + 0 + 36) / 5.0))
+    assert stats["median"] == pytest.approx(3.0)
+    assert stats["p90"] == pytest.approx(4.0 + 0.6 * 6.0)  # index 3.6 between 4 and 10
+    assert m.outlier_rate([1.0, 16.0, 15.0, 90.0]) == pytest.approx(0.5)  # strict >
+    assert m.outlier_rate([1.0, 16.0], threshold=20.0) == 0.0
+
+
+def test_diameter_by_hand() -> None:
+    rng = np.random.default_rng(5)
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-2, 2) for z in (-0.5, 0.5)]) * 0.1
+    inner = rng.uniform(-1.0, 1.0, size=(500, 3)) * np.array([0.1, 0.2, 0.05])
+    pts = np.concatenate([inner, corners])
+    expected = 2.0 * math.sqrt(0.1**2 + 0.2**2 + 0.05**2)
+    assert m.diameter(pts) == pytest.approx(expected)
+    # A flat (degenerate) point set takes the fallback path.
+    flat = pts.copy()
+    flat[:, 2] = 0.0
+    assert m.diameter(flat) == pytest.approx(2.0 * math.sqrt(0.1**2 + 0.2**2))
+
+
+def test_input_validation() -> None:
+    pts = np.zeros((3, 3))
+    with pytest.raises(ValueError, match="t_est must be a finite vector"):
+        m.add(np.eye(3), np.zeros(4), np.eye(3), np.zeros(3), pts)
+    with pytest.raises(ValueError, match=r"pts must be a finite \(N, 3\)"):
+        m.add(np.eye(3), np.zeros(3), np.eye(3), np.zeros(3), np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="keys 'R' and 't'"):
+        m.mssd(np.eye(3), np.zeros(3), np.eye(3), np.zeros(3), pts, [{"R": np.eye(3)}])
+    with pytest.raises(ValueError, match="at least one"):
+        m.mssd(np.eye(3), np.zeros(3), np.eye(3), np.zeros(3), pts, [])
