@@ -191,9 +191,11 @@ def fetch_spec(config: RobotConfig | None = None, world: Path | None = None) -> 
     for names, gains in groups:
         for name in names:
             joint = spec.joint(name)
-            lo, hi = joint.range if joint.limited == 1 else (-2 * np.pi, 2 * np.pi)
             if name in (C.ARM_JOINTS[2], C.ARM_JOINTS[4], C.ARM_JOINTS[6]):
-                lo, hi = -np.pi, np.pi  # continuous rolls: limit the servo to one turn
+                # Continuous rolls: limit joint and servo to one turn so planning and control agree.
+                joint.limited = 1
+                joint.range = [-np.pi, np.pi]
+            lo, hi = joint.range
             _add_position_actuator(spec, joint, gains, (float(lo), float(hi)))
     # Shipped forearm roll has a spring; the servo holds it instead.
     spec.joint(C.ARM_JOINTS[4]).stiffness = [0.0, 0.0, 0.0]

@@ -1,0 +1,127 @@
+"""Grasp candidates per object, in the object's own frame O.
+
+A candidate is the pose T_O_G of the gripper's grasp site G (x: approach direction, out of the
+gripper; y: closing direction of the fingers; z = x cross y) when the fingers close on the part,
+plus the opening the part needs. Candidates come from graspable segments of each object: the grasp
+centre slides along a part, the fingers close across it, the gripper approaches from above; each
+position is taken with both finger orders (the gripper is symmetric under a half turn about its
+approach axis), and every object symmetry maps the set onto itself.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.errors import UnknownNameError
+from sim.objects import OBJECT_NAMES, ObjectModel, load_object
+
+
+@dataclass(frozen=True)
+class GraspCandidate:
+    """One grasp in the object frame O.
+
+    Attributes:
+        T_O_G: pose of the grasp site in O, shape (4, 4), translations in [m].
+        width: extent of the part between the finger pads [m].
+        part: name of the grasped part.
+    """
+
+    T_O_G: np.ndarray
+    width: float
+    part: str
+
+
+@dataclass(frozen=True)
+class GraspSegment:
+    """Where an object can be grasped from above.
+
+    Attributes:
+        part: the part the fingers close on.
+        slide: offsets of the grasp centre along `slide_axis` from the part's centre [m].
+        slide_axis: axis of the part's own frame along which the grasp centre slides (0, 1, 2).
+        close_axis: axis of the part's own frame the fingers close along.
+        depth: how far below the part's top the grasp site sits [m].
+    """
+
+    part: str
+    slide: tuple[float, ...]
+    slide_axis: int
+    close_axis: int
+    depth: float
+
+
+#: Graspable segments, designed against the geometry in scenes/objects/*.json: the finger pads
+#: (27 mm wide along the slide, reaching 13.5 mm below the grasp site) clear every other part and
+#: the table.
+SEGMENTS: dict[str, tuple[GraspSegment, ...]] = {
+    "phone": (GraspSegment("handset", (-0.024, -0.008, 0.008, 0.024), 1, 0, 0.012),),
+    "car": (GraspSegment("cabin", (-0.03, -0.01, 0.01, 0.03), 0, 1, 0.018),),
+    "faucet": (GraspSegment("spout", (-0.03, -0.01, 0.01, 0.03), 2, 1, 0.011),),
+    "chair": (GraspSegment("backrest", (-0.018, -0.006, 0.006, 0.018), 1, 0, 0.012),),
+    "screen": (GraspSegment("panel", (-0.075, -0.025, 0.025, 0.075), 0, 1, 0.015),),
+    "pistol": (
+        GraspSegment("slide", (0.038, 0.052), 0, 1, 0.015),
+        GraspSegment("grip", (-0.022, -0.008, 0.006), 1, 0, 0.013),
+    ),
+}
+
+
+def _part_frame(obj: ObjectModel, part: str) -> tuple[np.ndarray, np.ndarray]:
+    p = next((q for q in obj.parts if q.name == part), None)
+    if p is None:
+        raise UnknownNameError("part", part, [q.name for q in obj.parts])
+    T = p.transform()
+    return T, p.size
+
+
+def _candidates_for(obj: ObjectModel) -> list[GraspCandidate]:
+    out: list[GraspCandidate] = []
+    for seg in SEGMENTS[obj.name]:
+        T_part, size = _part_frame(obj, seg.part)
+        R = T_part[:3, :3]
+        if len(size) == 2:  # cylinder: local z is its axis, half-length size[1], radius size[0]
+            half = np.array([size[0], size[0], size[1]])
+        else:
+            half = np.asarray(size, float)
+        slide_dir = R[:, seg.slide_axis]
+        close_dir = R[:, seg.close_axis]
+        # Projected onto the horizontal plane of O: the approach is straight down (-z of O).
+        close_dir = close_dir - close_dir[2] * np.array([0, 0, 1.0])
+        close_dir /= np.linalg.norm(close_dir)
+        approach = np.array([0.0, 0.0, -1.0])
+        # Top of the part at its centre line.
+        top = T_part[:3, 3].copy()
+        top[2] = max(
+            (T_part[:3, :3] @ (np.array(s) * half) + T_part[:3, 3])[2]
+            for s in np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).T.reshape(-1, 3)
+        )
+        width = float(2 * half[seg.close_axis])
+        for off in seg.slide:
+            centre = top + off * slide_dir
+            centre[2] -= seg.depth
+            for sign in (1.0, -1.0):
+                y = sign * close_dir
+                z = np.cross(approach, y)
+                T = np.eye(4)
+                T[:3, :3] = np.column_stack([approach, y, z])
+                T[:3, 3] = centre
+                out.append(GraspCandidate(T, width, seg.part))
+    # Close the set under the object's symmetries.
+    sym = [T for T in obj.symmetries]
+    extra = [GraspCandidate(S @ c.T_O_G, c.width, c.part) for S in sym for c in out]
+    return out + extra
+
+
+@functools.cache
+def grasp_candidates(name: str) -> tuple[GraspCandidate, ...]:
+    """The grasp candidates of an object class, in its frame O.
+
+    Raises:
+        UnknownNameError: name is not a known object.
+    """
+    if name not in OBJECT_NAMES:
+        raise UnknownNameError("object", name, OBJECT_NAMES)
+    return tuple(_candidates_for(load_object(name)))

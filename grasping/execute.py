@@ -1,0 +1,213 @@
+"""Executing a grasp plan in MuJoCo physics through the position actuators, and the success check.
+
+Stages: pre-grasp (gripper open), approach, close (until the fingers stop on the object), lift,
+hold. Success (SPEC section 8): after the hold the object's lowest point is at least 0.10 m above
+the table top and the object touches both fingers.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from grasping.planner import PLANNED_JOINTS, GraspPlan
+from sim import constants as C
+from sim.scene import Scene
+
+#: Failure reasons an episode can end with.
+FAILURE_REASONS: tuple[str, ...] = (
+    "no_estimate",
+    "unreachable",
+    "ik_infeasible",
+    "collision",
+    "missed",
+    "slipped",
+)
+
+
+@dataclass(frozen=True)
+class ExecutionConfig:
+    """Execution settings.
+
+    Attributes:
+        control_dt: period of control updates [s].
+        max_speed: joint speed limits for (base xy [m/s], base yaw, torso [m/s], arm [rad/s]).
+        approach_speed: grasp-site speed on the approach [m/s].
+        close_time: maximum time for the fingers to close [s].
+        hold_time: hold after the lift [s].
+        success_height: required clearance of the object's lowest point over the table [m].
+        knock_tolerance: object displacement before closing that counts as a collision [m].
+    """
+
+    control_dt: float = 0.01
+    max_speed: tuple[float, float, float, float] = (0.4, 0.8, 0.15, 1.2)
+    approach_speed: float = 0.08
+    close_time: float = 0.8
+    hold_time: float = 2.0
+    success_height: float = 0.10
+    knock_tolerance: float = 0.02
+
+
+@dataclass
+class GraspOutcome:
+    """What happened when a plan was executed.
+
+    Attributes:
+        success: the object is lifted and held.
+        failure_reason: one of FAILURE_REASONS, or None on success.
+        lift_height: final clearance of the object's lowest point over the table [m].
+        timings_ms: wall time per stage [ms].
+        frames: external-camera frames if recording was requested.
+    """
+
+    success: bool
+    failure_reason: str | None
+    lift_height: float
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    frames: list[np.ndarray] = field(default_factory=list)
+
+
+def _smoothstep(s: float) -> float:
+    return s * s * s * (10 - 15 * s + 6 * s * s)
+
+
+class Executor:
+    """Runs plans in a scene; `recorder(scene)` is called at ~`record_fps` if given."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        config: ExecutionConfig | None = None,
+        recorder=None,
+        record_fps: float = 10.0,
+    ) -> None:
+        self.scene = scene
+        self.cfg = config or ExecutionConfig()
+        m = scene.model
+        self.act = np.array(
+            [m.actuator("act_" + j.removeprefix(C.PREFIX)).id for j in PLANNED_JOINTS]
+        )
+        self.fingers = np.array(
+            [m.actuator("act_" + j.removeprefix(C.PREFIX)).id for j in C.FINGER_JOINTS]
+        )
+        self.finger_qadr = np.array([m.joint(j).qposadr[0] for j in C.FINGER_JOINTS])
+        self.finger_geoms = [
+            set(np.flatnonzero(m.geom_bodyid == m.body(b).id).tolist()) for b in C.FINGER_BODIES
+        ]
+        target = m.body(scene.target.body).id
+        self.object_geoms = set(np.flatnonzero(m.geom_bodyid == target).tolist())
+        robot_bodies = [i for i in range(m.nbody) if m.body(i).name.startswith(C.PREFIX)]
+        self.robot_geoms = set(np.flatnonzero(np.isin(m.geom_bodyid, robot_bodies)).tolist())
+        table = m.body("table").id
+        self.table_geoms = set(np.flatnonzero(m.geom_bodyid == table).tolist())
+        self.recorder = recorder
+        self.record_every = max(1, round(1.0 / (record_fps * self.cfg.control_dt)))
+        self._tick = 0
+        self.frames: list[np.ndarray] = []
+        self.table_hit = False
+        self.events: list[str] = []
+
+    # -- low level ---------------------------------------------------------------------------
+    def _advance(self, seconds: float) -> None:
+        m, d = self.scene.model, self.scene.data
+        n = max(1, round(self.cfg.control_dt / m.opt.timestep))
+        for _ in range(max(1, round(seconds / self.cfg.control_dt))):
+            mujoco.mj_step(m, d, nstep=n)
+            if not self.table_hit and self._touching(self.robot_geoms, self.table_geoms):
+                self.table_hit = True
+                self.events.append(f"robot touched the table at t={d.time:.2f} s")
+            self._tick += 1
+            if self.recorder is not None and self._tick % self.record_every == 0:
+                self.frames.append(self.recorder(self.scene))
+
+    def _duration(self, q0: np.ndarray, q1: np.ndarray) -> float:
+        s = self.cfg.max_speed
+        speeds = np.array([s[0], s[0], s[1], s[2], *[s[3]] * 7])
+        return float(max(0.3, np.max(np.abs(q1 - q0) / speeds)))
+
+    def move(self, q_target: np.ndarray, duration: float | None = None) -> None:
+        """Drive the planned joints to q_target along a minimum-jerk profile."""
+        d = self.scene.data
+        q0 = d.ctrl[self.act].copy()
+        T = duration if duration is not None else self._duration(q0, q_target)
+        steps = max(1, round(T / self.cfg.control_dt))
+        for k in range(1, steps + 1):
+            d.ctrl[self.act] = q0 + _smoothstep(k / steps) * (q_target - q0)
+            self._advance(self.cfg.control_dt)
+
+    def set_fingers(self, opening: float) -> None:
+        """Command each finger to `opening` [m] (0 closed, FINGER_TRAVEL open)."""
+        self.scene.data.ctrl[self.fingers] = opening
+
+    def _touching(self, a: set[int], b: set[int]) -> bool:
+        d = self.scene.data
+        for i in range(d.ncon):
+            g1, g2 = int(d.contact.geom1[i]), int(d.contact.geom2[i])
+            if (g1 in a and g2 in b) or (g1 in b and g2 in a):
+                return True
+        return False
+
+    def held(self) -> bool:
+        """Both fingers touch the target object."""
+        return all(self._touching(f, self.object_geoms) for f in self.finger_geoms)
+
+    def lift_height(self) -> float:
+        """Clearance of the target's lowest point over the table top [m]."""
+        return self.scene.object_lowest_z() - self.scene.table_top_z
+
+    # -- the grasp ---------------------------------------------------------------------------
+    def execute(self, plan: GraspPlan) -> GraspOutcome:
+        """Run pre-grasp, approach, close, lift and hold; score the result."""
+        cfg = self.cfg
+        d = self.scene.data
+        timings: dict[str, float] = {}
+        obj0 = self.scene.object_pose()[:3, 3].copy()
+
+        def fail(reason: str) -> GraspOutcome:
+            return GraspOutcome(False, reason, self.lift_height(), timings, self.frames)
+
+        t = time.perf_counter()
+        self.set_fingers(C.FINGER_TRAVEL)
+        self.move(plan.hover)
+        self.move(plan.pregrasp)
+        self._advance(0.2)
+        timings["pregrasp"] = (time.perf_counter() - t) * 1000
+        t = time.perf_counter()
+        seg = 0.0 if not plan.approach else 1.0
+        step_len = seg * 0.10 / max(1, len(plan.approach))
+        for q in plan.approach:
+            self.move(q, duration=max(0.15, step_len / cfg.approach_speed))
+        self._advance(0.3)
+        timings["approach"] = (time.perf_counter() - t) * 1000
+        moved = float(np.linalg.norm(self.scene.object_pose()[:3, 3] - obj0))
+        if self.table_hit or moved > cfg.knock_tolerance:
+            return fail("collision")
+
+        t = time.perf_counter()
+        self.set_fingers(0.0)
+        elapsed = 0.0
+        prev = d.qpos[self.finger_qadr].copy()
+        while elapsed < cfg.close_time:
+            self._advance(0.05)
+            elapsed += 0.05
+            now = d.qpos[self.finger_qadr].copy()
+            if elapsed > 0.2 and np.max(np.abs(now - prev)) < 2e-4:
+                break
+            prev = now
+        timings["close"] = (time.perf_counter() - t) * 1000
+        if not self.held():
+            return fail("missed")
+
+        t = time.perf_counter()
+        self.move(plan.lift, duration=max(1.0, self._duration(d.ctrl[self.act], plan.lift)))
+        timings["lift"] = (time.perf_counter() - t) * 1000
+        t = time.perf_counter()
+        self._advance(cfg.hold_time)
+        timings["hold"] = (time.perf_counter() - t) * 1000
+        h = self.lift_height()
+        if h >= cfg.success_height and self.held():
+            return GraspOutcome(True, None, h, timings, self.frames)
+        return fail("slipped")

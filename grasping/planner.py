@@ -1,0 +1,293 @@
+"""Grasp planning with mink: base, torso and arm together, on an *estimated* object pose.
+
+For each candidate (best first) the planner solves differential IK for the pre-grasp pose
+(backed off along the approach), a few waypoints down the approach line to the grasp pose, and
+the lift pose, with a `FrameTask` on the grasp site, a `PostureTask` that keeps the robot near its
+start (so the base moves only when the arm alone cannot reach), configuration limits and
+collision avoidance between the gripper/forearm and the table. Head, fingers and every object's
+free joint are frozen with a `DofFreezingTask` constraint.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import mink
+import mujoco
+import numpy as np
+
+from grasping.candidates import GraspCandidate, grasp_candidates
+from sim import constants as C
+from sim.errors import InvalidArgumentError, PosegraspError
+
+#: Joints the planner moves, in this order.
+PLANNED_JOINTS: tuple[str, ...] = (*C.BASE_JOINTS, C.TORSO_JOINT, *C.ARM_JOINTS)
+#: Robot geoms kept away from the table by the collision-avoidance limit.
+GUARDED_BODIES: tuple[str, ...] = (
+    C.GRIPPER_BODY,
+    *C.FINGER_BODIES,
+    C.PREFIX + "wrist_roll_link",
+    C.PREFIX + "wrist_flex_link",
+    C.PREFIX + "forearm_roll_link",
+)
+
+
+#: Torso and arm posture the IK starts from and is pulled toward: torso up, upper arm forward,
+#: forearm and gripper pointing down over the table.
+READY_POSTURE = np.array([0.3, 0.0, -0.3, 0.0, 1.6, 0.0, 1.3, 0.0])
+
+
+class PlanningError(PosegraspError):
+    """No plan: `reason` is "unreachable" or "ik_infeasible"."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Planner settings. Lengths [m], angles [rad].
+
+    Attributes:
+        pregrasp_offset: distance backed off along the approach before the final approach.
+        approach_waypoints: IK waypoints on the approach line (excluding the pre-grasp).
+        lift_height: how far the grasp site rises for the lift.
+        max_iters: IK iterations per target.
+        pos_tol, rot_tol: IK convergence tolerances.
+        dt: integration step of the differential IK [s].
+        max_step: velocity limits of the IK iterations for (base xy [m/s], base yaw, torso [m/s],
+            arm [rad/s]); with dt they bound each iteration's step so the solver stays near its
+            seed instead of jumping to a distant solution.
+        max_candidates: candidates tried before giving up.
+        max_reach: horizontal distance from the base beyond which a grasp is unreachable.
+        posture_cost: PostureTask cost per planned joint group (base xy, base yaw, torso, arm).
+    """
+
+    pregrasp_offset: float = 0.10
+    approach_waypoints: int = 3
+    lift_height: float = 0.18
+    max_iters: int = 80
+    hover_height: float = 0.15
+    pos_tol: float = 2e-3
+    rot_tol: float = 1.5e-2
+    dt: float = 0.1
+    max_step: tuple[float, float, float, float] = (0.5, 1.0, 0.5, 3.0)
+    max_candidates: int = 4
+    max_reach: float = 1.3
+    posture_cost: tuple[float, float, float, float] = (0.05, 0.05, 0.01, 0.002)
+
+
+@dataclass
+class GraspPlan:
+    """A planned grasp.
+
+    Attributes:
+        candidate: the chosen candidate.
+        T_world_G: grasp-site pose at the grasp, shape (4, 4).
+        hover: planned joint values above the pre-grasp, reached first (PLANNED_JOINTS order).
+        pregrasp: planned joint values at the pre-grasp.
+        approach: joint values along the approach, ending at the grasp.
+        lift: joint values after lifting.
+        ik_ms: time spent in IK [ms].
+        tried: how many candidates were tried.
+    """
+
+    candidate: GraspCandidate
+    T_world_G: np.ndarray
+    hover: np.ndarray
+    pregrasp: np.ndarray
+    approach: list[np.ndarray]
+    lift: np.ndarray
+    ik_ms: float
+    tried: int
+    notes: list[str] = field(default_factory=list)
+
+
+def check_pose(T: np.ndarray, what: str = "pose") -> None:
+    """Raise InvalidArgumentError unless T is a finite 4x4 rigid transform."""
+    T = np.asarray(T)
+    if T.shape != (4, 4):
+        raise InvalidArgumentError(f"{what} must be a 4x4 transform, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise InvalidArgumentError(f"{what} contains NaN or infinite values")
+    R = T[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+        raise InvalidArgumentError(f"{what} rotation is not orthonormal with det +1")
+    if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise InvalidArgumentError(f"{what} last row must be [0, 0, 0, 1]")
+
+
+def _se3(T: np.ndarray) -> mink.SE3:
+    return mink.SE3.from_matrix(T)
+
+
+class GraspPlanner:
+    """Plans grasps in one scene model (built once per scene)."""
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        table_geom: str = "table_top",
+        config: PlannerConfig | None = None,
+    ) -> None:
+        self.model = model
+        self.cfg = config or PlannerConfig()
+        self.configuration = mink.Configuration(model)
+        self.qadr = np.array([model.joint(j).qposadr[0] for j in PLANNED_JOINTS])
+        planned_dofs = {int(model.joint(j).dofadr[0]) for j in PLANNED_JOINTS}
+        frozen = [i for i in range(model.nv) if i not in planned_dofs]
+        self.freeze = mink.DofFreezingTask(model, dof_indices=frozen)
+        self.frame_task = mink.FrameTask(
+            C.GRASP_SITE, "site", position_cost=1.0, orientation_cost=0.5, lm_damping=1e-3
+        )
+        self.posture = mink.PostureTask(model, cost=1e-3)
+        cost = np.full(model.nv, 1e-3)
+        pc = self.cfg.posture_cost
+        for j, c in zip(PLANNED_JOINTS, (pc[0], pc[0], pc[1], pc[2], *[pc[3]] * 7), strict=True):
+            cost[model.joint(j).dofadr[0]] = c
+        self.posture.set_cost(cost)
+        guarded = [
+            model.geom(g).name
+            for g in range(model.ngeom)
+            if model.body(model.geom_bodyid[g]).name in GUARDED_BODIES
+            and model.geom_contype[g] != 0
+        ]
+        ms = self.cfg.max_step
+        vel = dict(zip(PLANNED_JOINTS, (ms[0], ms[0], ms[1], ms[2], *[ms[3]] * 7), strict=True))
+        self.limits: list[mink.Limit] = [
+            mink.ConfigurationLimit(model),
+            mink.VelocityLimit(model, vel),
+            mink.CollisionAvoidanceLimit(
+                model,
+                [(guarded, [table_geom])],
+                minimum_distance_from_collisions=0.005,
+                collision_detection_distance=0.05,
+            ),
+        ]
+
+    def _solve(self, T_target: np.ndarray) -> tuple[bool, float, float]:
+        self.frame_task.set_target(_se3(T_target))
+        cfg = self.cfg
+        pe = re = np.inf
+        for _ in range(cfg.max_iters):
+            err = self.frame_task.compute_error(self.configuration)
+            pe, re = float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:]))
+            if pe < cfg.pos_tol and re < cfg.rot_tol:
+                return True, pe, re
+            try:
+                v = mink.solve_ik(
+                    self.configuration,
+                    [self.frame_task, self.posture],
+                    cfg.dt,
+                    "daqp",
+                    damping=1e-4,
+                    limits=self.limits,
+                    constraints=[self.freeze],
+                )
+            except mink.exceptions.NoSolutionFound:
+                return False, pe, re
+            self.configuration.integrate_inplace(v, cfg.dt)
+        return pe < cfg.pos_tol and re < cfg.rot_tol, pe, re
+
+    def order_candidates(
+        self, T_world_O: np.ndarray, candidates: tuple[GraspCandidate, ...], q: np.ndarray
+    ) -> list[tuple[GraspCandidate, np.ndarray]]:
+        """Candidates in world frame, best first: the gripper's z axis pointing away from the
+        robot (no wrist flip needed), then the grasp point nearest the robot."""
+        base_xy = q[self.qadr[:2]]
+        scored = []
+        for c in candidates:
+            T = T_world_O @ c.T_O_G
+            radial = T[:2, 3] - base_xy
+            dist = float(np.linalg.norm(radial))
+            radial = radial / max(dist, 1e-9)
+            align = float(T[:2, 2] @ radial)
+            down = float(-T[2, 0])  # approach pointing down
+            scored.append((-(align + 2 * down) + 0.5 * dist, c, T))
+        scored.sort(key=lambda s: s[0])
+        return [(c, T) for _, c, T in scored]
+
+    def plan(self, name: str, T_world_O: np.ndarray, q_start: np.ndarray) -> GraspPlan:
+        """Plan a grasp of object class `name` at the (estimated) pose T_world_O.
+
+        Args:
+            name: object class.
+            T_world_O: estimated object pose in the world, shape (4, 4).
+            q_start: current full qpos of the scene model.
+
+        Returns:
+            The plan.
+
+        Raises:
+            InvalidArgumentError: T_world_O is not a finite rigid transform.
+            PlanningError: "unreachable" when the object is beyond reach even with base motion;
+                "ik_infeasible" when no candidate's IK converges.
+        """
+        check_pose(T_world_O, "estimated object pose")
+        t0 = time.perf_counter()
+        base_xy = q_start[self.qadr[:2]]
+        horiz = float(np.linalg.norm(T_world_O[:2, 3] - base_xy))
+        if horiz > self.cfg.max_reach:
+            raise PlanningError(
+                "unreachable",
+                f"object is {horiz:.2f} m from the base; reach limit is {self.cfg.max_reach} m",
+            )
+        seed = q_start.copy()
+        seed[self.qadr[3:]] = READY_POSTURE
+        self.posture.set_target(seed)
+        tried = 0
+        last = ""
+        for cand, T_grasp in self.order_candidates(T_world_O, grasp_candidates(name), q_start):
+            if tried >= self.cfg.max_candidates:
+                break
+            tried += 1
+            self.configuration.update(seed.copy())
+            approach_dir = T_grasp[:3, 0]
+            T_pre = T_grasp.copy()
+            T_pre[:3, 3] -= self.cfg.pregrasp_offset * approach_dir
+            T_hover = T_pre.copy()
+            T_hover[2, 3] += self.cfg.hover_height
+            ok, pe, re = self._solve(T_hover)
+            if not ok:
+                last = f"hover IK did not converge ({pe * 1000:.1f} mm, {np.rad2deg(re):.1f} deg)"
+                continue
+            q_hover = self.configuration.q[self.qadr].copy()
+            ok, pe, re = self._solve(T_pre)
+            if not ok:
+                last = (
+                    f"pre-grasp IK did not converge ({pe * 1000:.1f} mm, {np.rad2deg(re):.1f} deg)"
+                )
+                continue
+            q_pre = self.configuration.q[self.qadr].copy()
+            waypoints = []
+            n = self.cfg.approach_waypoints
+            for k in range(1, n + 1):
+                T_k = T_grasp.copy()
+                T_k[:3, 3] -= (1 - k / n) * self.cfg.pregrasp_offset * approach_dir
+                ok, pe, re = self._solve(T_k)
+                if not ok:
+                    break
+                waypoints.append(self.configuration.q[self.qadr].copy())
+            if not ok:
+                last = f"approach IK did not converge ({pe * 1000:.1f} mm)"
+                continue
+            T_lift = T_grasp.copy()
+            T_lift[2, 3] += self.cfg.lift_height
+            ok, pe, re = self._solve(T_lift)
+            if not ok:
+                last = f"lift IK did not converge ({pe * 1000:.1f} mm)"
+                continue
+            q_lift = self.configuration.q[self.qadr].copy()
+            return GraspPlan(
+                cand,
+                T_grasp,
+                q_hover,
+                q_pre,
+                waypoints,
+                q_lift,
+                (time.perf_counter() - t0) * 1000,
+                tried,
+            )
+        raise PlanningError("ik_infeasible", f"no grasp candidate is feasible: {last}")
