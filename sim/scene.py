@@ -123,21 +123,29 @@ def _footprint_radius(obj: ObjectModel) -> float:
 def _sample_positions(
     objs: list[ObjectModel], cfg: SceneConfig, rng: np.random.Generator
 ) -> list[np.ndarray]:
-    placed: list[tuple[np.ndarray, float]] = []
-    for i, obj in enumerate(objs):
-        xr, yr = (cfg.target_x, cfg.target_y) if i == 0 else (cfg.distractor_x, cfg.distractor_y)
-        r = _footprint_radius(obj)
-        for _ in range(200):
-            xy = np.array([rng.uniform(*xr), rng.uniform(*yr)])
-            if all(np.linalg.norm(xy - q) > r + rq + 0.02 for q, rq in placed):
-                placed.append((xy, r))
+    # Greedy placement; when an object finds no free spot, start the whole layout again (the
+    # first attempt draws exactly what a single pass would, so seeds that fit keep their scene).
+    for _attempt in range(50):
+        placed: list[tuple[np.ndarray, float]] = []
+        for i, obj in enumerate(objs):
+            xr, yr = (
+                (cfg.target_x, cfg.target_y) if i == 0 else (cfg.distractor_x, cfg.distractor_y)
+            )
+            r = _footprint_radius(obj)
+            for _ in range(200):
+                xy = np.array([rng.uniform(*xr), rng.uniform(*yr)])
+                if all(np.linalg.norm(xy - q) > r + rq + 0.02 for q, rq in placed):
+                    placed.append((xy, r))
+                    break
+            else:
                 break
         else:
-            raise InvalidArgumentError(
-                f"cannot place {len(objs)} objects on the table without overlap; "
-                f"use fewer distractors (at most {len(OBJECT_NAMES) - 1})"
-            )
-    return [p for p, _ in placed]
+            return [p for p, _ in placed]
+    raise InvalidArgumentError(
+        f"cannot place {len(objs)} objects on the table without overlap; "
+        f"use fewer distractors (valid: 0..{len(OBJECT_NAMES) - 1}; the most crowded "
+        "layouts do not always fit)"
+    )
 
 
 def aim_head(model: mujoco.MjModel, data: mujoco.MjData, point: np.ndarray) -> tuple[float, float]:
