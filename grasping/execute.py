@@ -171,6 +171,8 @@ class Executor:
 
         t = time.perf_counter()
         self.set_fingers(C.FINGER_TRAVEL)
+        for q in plan.transit:
+            self.move(q)
         self.move(plan.hover)
         self.move(plan.pregrasp)
         self._advance(0.2)

@@ -33,9 +33,17 @@ GUARDED_BODIES: tuple[str, ...] = (
 )
 
 
-#: Torso and arm posture the IK starts from and is pulled toward: torso up, upper arm forward,
-#: forearm and gripper pointing down over the table.
+#: Torso and arm posture the IK is pulled toward: torso up, upper arm forward, forearm and
+#: gripper pointing down over the table.
 READY_POSTURE = np.array([0.3, 0.0, -0.3, 0.0, 1.6, 0.0, 1.3, 0.0])
+#: Transit from the tucked arm to above the table without sweeping through the objects: raise
+#: the torso, lift the upper arm while it is still beside the robot, then swing it forward high
+#: above the table (torso and arm joints; the IK starts from the last one).
+TRANSIT_POSTURES = (
+    np.array([0.38, 1.32, 1.40, -0.2, 1.72, 0.0, 1.66, 0.0]),
+    np.array([0.38, 1.32, -0.9, -0.2, 1.72, 0.0, 1.66, 0.0]),
+    np.array([0.38, 0.0, -0.9, 0.0, 1.8, 0.0, 0.7, 0.0]),
+)
 
 
 class PlanningError(PosegraspError):
@@ -86,7 +94,8 @@ class GraspPlan:
     Attributes:
         candidate: the chosen candidate.
         T_world_G: grasp-site pose at the grasp, shape (4, 4).
-        hover: planned joint values above the pre-grasp, reached first (PLANNED_JOINTS order).
+        transit: joint values that bring the arm from its tucked start to above the table.
+        hover: planned joint values above the pre-grasp (PLANNED_JOINTS order).
         pregrasp: planned joint values at the pre-grasp.
         approach: joint values along the approach, ending at the grasp.
         lift: joint values after lifting.
@@ -96,6 +105,7 @@ class GraspPlan:
 
     candidate: GraspCandidate
     T_world_G: np.ndarray
+    transit: list[np.ndarray]
     hover: np.ndarray
     pregrasp: np.ndarray
     approach: list[np.ndarray]
@@ -234,9 +244,16 @@ class GraspPlanner:
                 "unreachable",
                 f"object is {horiz:.2f} m from the base; reach limit is {self.cfg.max_reach} m",
             )
+        transit = []
+        for posture in TRANSIT_POSTURES:
+            q = q_start[self.qadr].copy()
+            q[3:] = posture
+            transit.append(q)
         seed = q_start.copy()
-        seed[self.qadr[3:]] = READY_POSTURE
-        self.posture.set_target(seed)
+        seed[self.qadr] = transit[-1]
+        target = q_start.copy()
+        target[self.qadr[3:]] = READY_POSTURE
+        self.posture.set_target(target)
         tried = 0
         last = ""
         for cand, T_grasp in self.order_candidates(T_world_O, grasp_candidates(name), q_start):
@@ -283,6 +300,7 @@ class GraspPlanner:
             return GraspPlan(
                 cand,
                 T_grasp,
+                transit,
                 q_hover,
                 q_pre,
                 waypoints,

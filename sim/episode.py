@@ -1,0 +1,202 @@
+"""One grasp episode, written once: build a seeded scene, look, ask an estimator, grasp, score.
+
+`Episode(object, seed)` builds the scene; `observe()` renders the head camera; `act(T_C_O)`
+plans and executes a grasp on that *estimated* pose and returns an `EpisodeResult`. The
+gymnasium env and the CLIs wrap this class.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from grasping.execute import ExecutionConfig, Executor
+from grasping.planner import GraspPlanner, PlannerConfig, PlanningError, check_pose
+from perception import metrics
+from sim import constants as C
+from sim.camera import CameraRenderer, RenderOptions, T_world_cam, intrinsics
+from sim.estimators import Observation, PoseEstimator
+from sim.scene import Scene, SceneConfig, build_scene
+
+
+@dataclass(frozen=True)
+class EpisodeConfig:
+    """Everything that defines an episode besides object, seed and estimator."""
+
+    width: int = 640
+    height: int = 480
+    shadows: bool = False
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    execution: ExecutionConfig = field(default_factory=ExecutionConfig)
+
+
+@dataclass
+class EpisodeResult:
+    """The outcome of one episode (all lengths [m], angles in the error dict in [deg])."""
+
+    object: str
+    seed: int
+    estimator: str
+    success: bool
+    failure_reason: str | None
+    T_C_O_true: np.ndarray
+    T_C_O_est: np.ndarray | None
+    pose_error: dict[str, float] | None
+    lift_height: float
+    grasp_part: str | None
+    timings_ms: dict[str, float]
+    notes: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-serialisable dict."""
+        d = asdict(self)
+        d["T_C_O_true"] = self.T_C_O_true.tolist()
+        d["T_C_O_est"] = None if self.T_C_O_est is None else self.T_C_O_est.tolist()
+        return d
+
+
+def pose_errors(T_est: np.ndarray, T_true: np.ndarray, pts: np.ndarray, diameter: float) -> dict:
+    """Pose errors of an estimate: translation [m] and [%], rotation [deg], ADD and ADD-S [m]."""
+    R_e, t_e, R_g, t_g = T_est[:3, :3], T_est[:3, 3], T_true[:3, :3], T_true[:3, 3]
+    return {
+        "translation_m": float(np.linalg.norm(t_e - t_g)),
+        "translation_pct": float(metrics.translation_error_pct(t_e, t_g)),
+        "rotation_deg": float(metrics.rotation_error_deg(R_e, R_g)),
+        "add_m": float(metrics.add(R_e, t_e, R_g, t_g, pts)),
+        "adi_m": float(metrics.adi(R_e, t_e, R_g, t_g, pts)),
+        "add_rel_diameter": float(metrics.add(R_e, t_e, R_g, t_g, pts) / diameter),
+    }
+
+
+class Episode:
+    """A seeded grasp episode of one target object."""
+
+    def __init__(self, obj: str, seed: int, config: EpisodeConfig | None = None) -> None:
+        self.cfg = config or EpisodeConfig()
+        self.object = obj
+        self.seed = seed
+        self.timings_ms: dict[str, float] = {}
+        t = time.perf_counter()
+        self.scene: Scene = build_scene(obj, seed, self.cfg.scene)
+        self.timings_ms["scene"] = (time.perf_counter() - t) * 1000
+        self.renderer = CameraRenderer(
+            self.scene.model,
+            self.cfg.width,
+            self.cfg.height,
+            RenderOptions(shadows=self.cfg.shadows),
+        )
+        m, d = self.scene.model, self.scene.data
+        self.K = intrinsics(m, C.HEAD_CAMERA, self.cfg.width, self.cfg.height)
+        self.T_world_cam = T_world_cam(m, d, C.HEAD_CAMERA)
+        self.T_C_O_true = np.linalg.inv(self.T_world_cam) @ self.scene.object_pose()
+        self._done = False
+
+    def observe(self) -> Observation:
+        """Render the head camera and return what an estimator may see."""
+        t = time.perf_counter()
+        rgb = self.renderer.rgb(self.scene.data, C.HEAD_CAMERA)
+        self.timings_ms["render"] = (time.perf_counter() - t) * 1000
+        return Observation(
+            rgb,
+            self.K.copy(),
+            self.T_world_cam.copy(),
+            self.object,
+            self.seed,
+            self.T_C_O_true.copy(),
+        )
+
+    def act(
+        self,
+        T_C_O_est: np.ndarray | None,
+        estimator: str = "external",
+        recorder=None,
+    ) -> EpisodeResult:
+        """Grasp on an estimated pose (camera frame) and score it.
+
+        Args:
+            T_C_O_est: estimated pose of the target in the camera frame, or None (no estimate).
+            estimator: name recorded in the result.
+            recorder: optional callable(scene) -> frame, called during execution.
+
+        Raises:
+            InvalidArgumentError: the estimate is not a finite rigid transform.
+            RuntimeError: the episode was already acted on.
+        """
+        if self._done:
+            raise RuntimeError("this episode is over; build a new one")
+        if T_C_O_est is not None:
+            check_pose(T_C_O_est, "estimated pose T_C_O")
+        self._done = True
+        timings = self.timings_ms
+        notes: list[str] = []
+        errors = None
+        if T_C_O_est is not None:
+            obj = self.scene.target.model
+            pts = np.asarray(obj.mesh.vertices)
+            errors = pose_errors(T_C_O_est, self.T_C_O_true, pts, obj.diameter)
+
+        def result(success: bool, reason: str | None, part: str | None = None) -> EpisodeResult:
+            lift = self.scene.object_lowest_z() - self.scene.table_top_z
+            timings["total"] = sum(v for k, v in timings.items() if k != "total")
+            return EpisodeResult(
+                self.object,
+                self.seed,
+                estimator,
+                success,
+                reason,
+                self.T_C_O_true,
+                None if T_C_O_est is None else np.asarray(T_C_O_est, float),
+                errors,
+                float(lift),
+                part,
+                dict(timings),
+                notes,
+            )
+
+        if T_C_O_est is None:
+            return result(False, "no_estimate")
+        T_world_O = self.T_world_cam @ np.asarray(T_C_O_est, float)
+        t = time.perf_counter()
+        try:
+            planner = GraspPlanner(self.scene.model, config=self.cfg.planner)
+            plan = planner.plan(self.object, T_world_O, self.scene.data.qpos.copy())
+        except PlanningError as exc:
+            timings["plan"] = (time.perf_counter() - t) * 1000
+            notes.append(str(exc))
+            return result(False, exc.reason)
+        timings["plan"] = (time.perf_counter() - t) * 1000
+        timings["ik"] = plan.ik_ms
+        executor = Executor(self.scene, self.cfg.execution, recorder=recorder)
+        outcome = executor.execute(plan)
+        for k, v in outcome.timings_ms.items():
+            timings[f"exec_{k}"] = v
+        notes.extend(executor.events)
+        self.frames = outcome.frames
+        return result(outcome.success, outcome.failure_reason, plan.candidate.part)
+
+    def close(self) -> None:
+        """Free the renderer."""
+        self.renderer.close()
+
+
+def run_episode(
+    obj: str,
+    seed: int,
+    estimator: PoseEstimator,
+    config: EpisodeConfig | None = None,
+    recorder=None,
+) -> EpisodeResult:
+    """Build, observe, estimate, grasp and score one episode."""
+    ep = Episode(obj, seed, config)
+    try:
+        obs = ep.observe()
+        t = time.perf_counter()
+        est = estimator.estimate(obs)
+        ep.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
+        return ep.act(est, estimator.name, recorder=recorder)
+    finally:
+        ep.close()
