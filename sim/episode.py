@@ -141,7 +141,7 @@ class Episode:
 
         def result(success: bool, reason: str | None, part: str | None = None) -> EpisodeResult:
             lift = self.scene.object_lowest_z() - self.scene.table_top_z
-            timings["total"] = sum(v for k, v in timings.items() if k != "total")
+            timings["total"] = sum(v for k, v in timings.items() if k not in ("total", "ik"))
             return EpisodeResult(
                 self.object,
                 self.seed,

@@ -1,0 +1,175 @@
+"""Evaluate an estimator by grasp success over many seeded episodes.
+
+    python -m sim.evaluate --objects all --episodes 50 --estimator oracle --seed-start 0 \
+        --workers 2 --json out.json
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from sim.cli import ArgumentParser, check_writable_file, fail
+from sim.errors import PosegraspError
+from sim.estimators import ESTIMATORS, make_estimator
+from sim.objects import OBJECT_NAMES
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (95 % for the default z).
+
+    Returns:
+        (low, high); (0, 1) when n == 0.
+    """
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
+
+
+def _run_one(job: tuple[str, int, str]) -> dict:
+    obj, seed, estimator = job
+    from sim.episode import run_episode
+
+    t = time.perf_counter()
+    try:
+        r = run_episode(obj, seed, make_estimator(estimator))
+        d = r.to_json()
+    except PosegraspError as exc:  # an episode never takes the evaluation down
+        d = {
+            "object": obj,
+            "seed": seed,
+            "estimator": estimator,
+            "success": False,
+            "failure_reason": "error",
+            "notes": [str(exc)],
+            "pose_error": None,
+            "timings_ms": {},
+        }
+    d["wall_ms"] = (time.perf_counter() - t) * 1000
+    return d
+
+
+def _group(episodes: list[dict]) -> dict:
+    n = len(episodes)
+    k = sum(bool(e["success"]) for e in episodes)
+    lo, hi = wilson_interval(k, n)
+    reasons = Counter(e["failure_reason"] for e in episodes if not e["success"])
+    out = {
+        "episodes": n,
+        "successes": k,
+        "success_rate": k / n if n else 0.0,
+        "wilson_low": lo,
+        "wilson_high": hi,
+        "failure_reasons": dict(sorted(reasons.items())),
+    }
+    errs = [e["pose_error"] for e in episodes if e.get("pose_error")]
+    if errs:
+        for key in ("translation_m", "rotation_deg"):
+            v = np.array([x[key] for x in errs])
+            out[f"{key}_median"] = float(np.median(v))
+            out[f"{key}_p90"] = float(np.percentile(v, 90))
+    walls = [e["wall_ms"] for e in episodes]
+    plans = [e["timings_ms"]["ik"] for e in episodes if "ik" in e.get("timings_ms", {})]
+    out["episode_wall_ms_median"] = float(np.median(walls)) if walls else None
+    out["planning_ms_median"] = float(np.median(plans)) if plans else None
+    return out
+
+
+def evaluate(
+    objects: list[str], episodes: int, estimator: str, seed_start: int, workers: int
+) -> dict:
+    """Run episodes (objects x seeds) and aggregate per object and overall."""
+    jobs = [(o, seed_start + i, estimator) for o in objects for i in range(episodes)]
+    t = time.perf_counter()
+    if workers > 1:
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(workers) as pool:
+            results = list(tqdm(pool.imap(_run_one, jobs), total=len(jobs), desc="episodes"))
+    else:
+        results = [_run_one(j) for j in tqdm(jobs, desc="episodes")]
+    wall = time.perf_counter() - t
+    per_object = {o: _group([r for r in results if r["object"] == o]) for o in objects}
+    return {
+        "estimator": estimator,
+        "seed_start": seed_start,
+        "episodes_per_object": episodes,
+        "workers": workers,
+        "wall_s": wall,
+        "per_object": per_object,
+        "overall": _group(results),
+        "episodes": results,
+    }
+
+
+def format_report(report: dict) -> str:
+    """The report as a table."""
+    rows = [
+        f"estimator {report['estimator']}: {report['episodes_per_object']} episodes per object, "
+        f"seeds from {report['seed_start']}, {report['workers']} worker(s), "
+        f"{report['wall_s']:.1f} s wall",
+        f"{'object':<8} {'success':>8} {'rate':>6} {'wilson 95%':>15} {'t med mm':>9} "
+        f"{'r med deg':>9} {'plan ms':>8} {'ep ms':>7}  failures",
+    ]
+    items = [*report["per_object"].items(), ("overall", report["overall"])]
+    for name, g in items:
+        tm = g.get("translation_m_median")
+        rm = g.get("rotation_deg_median")
+        rows.append(
+            f"{name:<8} {g['successes']:>4}/{g['episodes']:<3} {g['success_rate']:>6.1%} "
+            f"[{g['wilson_low']:.3f}, {g['wilson_high']:.3f}] "
+            f"{'-' if tm is None else f'{tm * 1000:.1f}':>9} "
+            f"{'-' if rm is None else f'{rm:.2f}':>9} "
+            f"{g['planning_ms_median'] or 0:>8.1f} {g['episode_wall_ms_median'] or 0:>7.0f}  "
+            + ", ".join(f"{k}: {v}" for k, v in g["failure_reasons"].items())
+        )
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python -m sim.evaluate", description=__doc__.split("\n")[0])
+    p.add_argument(
+        "--objects", default="all", help=f"'all' or a comma list of {', '.join(OBJECT_NAMES)}"
+    )
+    p.add_argument("--episodes", type=int, default=50, help="episodes per object")
+    p.add_argument("--estimator", default="oracle", help=f"one of: {', '.join(ESTIMATORS)}")
+    p.add_argument("--seed-start", type=int, default=0)
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--json", type=Path, default=None, help="write the full report here")
+    args = p.parse_args(argv)
+    objects = list(OBJECT_NAMES) if args.objects == "all" else args.objects.split(",")
+    bad = [o for o in objects if o not in OBJECT_NAMES]
+    if bad:
+        return fail(f"unknown object {bad[0]!r}; valid objects: all, {', '.join(OBJECT_NAMES)}")
+    if args.estimator not in ESTIMATORS:
+        return fail(
+            f"unknown estimator {args.estimator!r}; valid estimators: {', '.join(ESTIMATORS)}"
+        )
+    if args.episodes < 1 or args.workers < 1:
+        return fail("--episodes and --workers must be at least 1")
+    try:
+        if args.json is not None:
+            check_writable_file(args.json)
+        report = evaluate(objects, args.episodes, args.estimator, args.seed_start, args.workers)
+    except PosegraspError as exc:
+        return fail(str(exc))
+    print(format_report(report))
+    if args.json is not None:
+        args.json.write_text(json.dumps(report, indent=1, sort_keys=True))
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

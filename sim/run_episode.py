@@ -1,0 +1,89 @@
+"""Run one grasp episode and print what happened.
+
+python -m sim.run_episode --object phone --seed 0 --estimator oracle [--json] [--save DIR]
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+
+from sim.cli import ArgumentParser, fail
+from sim.errors import PosegraspError
+from sim.estimators import ESTIMATORS, make_estimator
+from sim.objects import OBJECT_NAMES
+
+
+def _rpy_deg(R: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (XYZ extrinsic) in degrees, for printing only."""
+    pitch = np.arcsin(-np.clip(R[2, 0], -1, 1))
+    roll = np.arctan2(R[2, 1], R[2, 2])
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    return np.rad2deg([roll, pitch, yaw])
+
+
+def _fmt_pose(T: np.ndarray | None) -> str:
+    if T is None:
+        return "none"
+    t = T[:3, 3] * 1000
+    r = _rpy_deg(T[:3, :3])
+    return (
+        f"t = ({t[0]:7.1f}, {t[1]:7.1f}, {t[2]:7.1f}) mm   "
+        f"rpy = ({r[0]:6.1f}, {r[1]:6.1f}, {r[2]:6.1f}) deg"
+    )
+
+
+def summary(result) -> str:
+    """A readable multi-line summary of an EpisodeResult."""
+    lines = [
+        f"episode  object={result.object}  seed={result.seed}  estimator={result.estimator}",
+        f"  true pose (camera frame)      {_fmt_pose(result.T_C_O_true)}",
+        f"  estimated pose (camera frame) {_fmt_pose(result.T_C_O_est)}",
+    ]
+    e = result.pose_error
+    if e is not None:
+        lines.append(
+            f"  pose error  translation {e['translation_m'] * 1000:.1f} mm "
+            f"({e['translation_pct']:.2f} %)  rotation {e['rotation_deg']:.2f} deg  "
+            f"ADD {e['add_m'] * 1000:.1f} mm ({e['add_rel_diameter']:.3f} d)  "
+            f"ADD-S {e['adi_m'] * 1000:.1f} mm"
+        )
+    outcome = "SUCCESS" if result.success else f"FAILURE ({result.failure_reason})"
+    lines.append(
+        f"  outcome     {outcome}   object lifted {result.lift_height * 1000:.0f} mm"
+        + (f"   grasped part: {result.grasp_part}" if result.grasp_part else "")
+    )
+    for note in result.notes:
+        lines.append(f"  note        {note}")
+    t = result.timings_ms
+    lines.append("  timings     " + "  ".join(f"{k} {v:.0f} ms" for k, v in t.items()))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python -m sim.run_episode", description=__doc__.split("\n")[0])
+    p.add_argument("--object", default="phone", help=f"one of: {', '.join(OBJECT_NAMES)}")
+    p.add_argument("--seed", type=int, default=0, help="scene seed")
+    p.add_argument("--estimator", default="oracle", help=f"one of: {', '.join(ESTIMATORS)}")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead")
+    args = p.parse_args(argv)
+    if args.object not in OBJECT_NAMES:
+        return fail(f"unknown object {args.object!r}; valid objects: {', '.join(OBJECT_NAMES)}")
+    try:
+        from sim.episode import run_episode
+
+        result = run_episode(args.object, args.seed, make_estimator(args.estimator))
+    except PosegraspError as exc:
+        return fail(str(exc))
+    if args.json:
+        print(json.dumps(result.to_json(), sort_keys=True))
+    else:
+        print(summary(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
