@@ -1,0 +1,92 @@
+"""Grasp candidates, planner reachability and input checks, execution and the success check."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from grasping.candidates import grasp_candidates
+from grasping.execute import Executor
+from grasping.planner import GraspPlanner, PlanningError
+from sim import constants as C
+from sim.errors import InvalidArgumentError, UnknownNameError
+from sim.objects import OBJECT_NAMES
+from sim.scene import build_scene
+
+
+@pytest.mark.parametrize("name", OBJECT_NAMES)
+def test_candidates_are_valid_top_grasps(name: str) -> None:
+    cands = grasp_candidates(name)
+    assert len(cands) >= 8
+    for c in cands:
+        R = c.T_O_G[:3, :3]
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        np.testing.assert_allclose(R[:, 0], [0, 0, -1], atol=1e-9)  # approach straight down
+        assert 0.0 < c.width < 2 * C.FINGER_TRAVEL - 0.01  # the gripper opens wide enough
+    # Each position comes with both finger orders.
+    pos = {tuple(np.round(c.T_O_G[:3, 3], 6)) for c in cands}
+    assert len(pos) * 2 == len(cands)
+
+
+def test_unknown_object_candidates() -> None:
+    with pytest.raises(UnknownNameError, match="valid objects"):
+        grasp_candidates("teapot")
+
+
+@pytest.fixture(scope="module")
+def phone_scene():
+    return build_scene("phone", 11)
+
+
+def test_planner_reaches_true_pose(phone_scene) -> None:
+    s = phone_scene
+    plan = GraspPlanner(s.model).plan("phone", s.object_pose(), s.data.qpos.copy())
+    assert plan.approach and plan.tried >= 1
+    # Pre-grasp sits 10 cm back along the approach from the grasp.
+    assert plan.T_world_G[:3, 0] @ np.array([0, 0, -1.0]) > 0.99
+
+
+def test_planner_far_object_is_unreachable(phone_scene) -> None:
+    s = phone_scene
+    T = s.object_pose()
+    T[0, 3] += 3.0
+    with pytest.raises(PlanningError) as err:
+        GraspPlanner(s.model).plan("phone", T, s.data.qpos.copy())
+    assert err.value.reason == "unreachable"
+
+
+def test_planner_out_of_arm_workspace_is_ik_infeasible(phone_scene) -> None:
+    s = phone_scene
+    T = s.object_pose()
+    T[2, 3] += 1.5  # far above anything the gripper can reach
+    with pytest.raises(PlanningError) as err:
+        GraspPlanner(s.model).plan("phone", T, s.data.qpos.copy())
+    assert err.value.reason == "ik_infeasible"
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda T: T.__setitem__((0, 3), np.nan), "NaN"),
+        (lambda T: T.__setitem__((0, 0), 2.0), "orthonormal"),
+    ],
+)
+def test_planner_rejects_bad_poses(phone_scene, mutate, message) -> None:
+    s = phone_scene
+    T = s.object_pose()
+    mutate(T)
+    with pytest.raises(InvalidArgumentError, match=message):
+        GraspPlanner(s.model).plan("phone", T, s.data.qpos.copy())
+
+
+def test_dropped_object_is_not_a_success() -> None:
+    s = build_scene("car", 5)
+    plan = GraspPlanner(s.model).plan("car", s.object_pose(), s.data.qpos.copy())
+    ex = Executor(s)
+    outcome = ex.execute(plan)
+    assert outcome.success and ex.held() and ex.lift_height() >= 0.10
+    ex.set_fingers(C.FINGER_TRAVEL)  # let go
+    ex._advance(1.5)
+    assert not ex.held()
+    assert ex.lift_height() < 0.10
