@@ -15,7 +15,6 @@ import numpy as np
 
 from grasping.execute import ExecutionConfig, Executor
 from grasping.planner import GraspPlanner, PlannerConfig, PlanningError, check_pose
-from perception import metrics
 from sim import constants as C
 from sim.camera import CameraRenderer, RenderOptions, T_world_cam, intrinsics
 from sim.estimators import Observation, PoseEstimator
@@ -61,6 +60,8 @@ class EpisodeResult:
 
 def pose_errors(T_est: np.ndarray, T_true: np.ndarray, pts: np.ndarray, diameter: float) -> dict:
     """Pose errors of an estimate: translation [m] and [%], rotation [deg], ADD and ADD-S [m]."""
+    from perception import metrics  # noqa: PLC0415 (sim scores with perception's metrics)
+
     R_e, t_e, R_g, t_g = T_est[:3, :3], T_est[:3, 3], T_true[:3, :3], T_true[:3, 3]
     return {
         "translation_m": float(np.linalg.norm(t_e - t_g)),

@@ -1,0 +1,153 @@
+"""How much pose error a grasp tolerates: success rate against injected error.
+
+For each error kind (translation along the camera ray, lateral translation, in-plane rotation
+about the camera ray, out-of-plane rotation) and each magnitude, episodes grasp on the true pose
+perturbed by exactly that magnitude (random sign or direction, seeded). The tolerance of a kind
+is the largest magnitude up to which the success rate stays at or above 90 %.
+
+    python -m grasping.tolerance --object phone   (or --objects all) [--episodes 10] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import sys
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from sim.cli import ArgumentParser, check_writable_file, fail
+from sim.errors import PosegraspError
+from sim.objects import OBJECT_NAMES
+
+#: Error kinds and the magnitudes tried, in report units (mm or deg).
+LEVELS: dict[str, tuple[float, ...]] = {
+    "ray_mm": (0, 10, 20, 30, 40, 60),
+    "lateral_mm": (0, 10, 20, 30, 40, 60),
+    "inplane_deg": (0, 5, 10, 20, 30, 45),
+    "outplane_deg": (0, 5, 10, 15, 20, 30),
+}
+THRESHOLD = 0.9
+
+
+def _noise(kind: str, value: float):
+    from sim.estimators import PoseNoise
+
+    si = value / 1000 if kind.endswith("_mm") else np.deg2rad(value)
+    return PoseNoise(**{kind.split("_")[0]: si}, mode="fixed")
+
+
+def _job(args: tuple[str, str, float, int]) -> tuple[str, str, float, int, bool, str | None]:
+    obj, kind, value, seed = args
+    from sim.episode import Episode
+    from sim.estimators import perturb_pose
+
+    ep = Episode(obj, seed)
+    rng = np.random.default_rng([seed, 104729, int(value * 1000)])
+    T_est = perturb_pose(ep.T_C_O_true, _noise(kind, value), rng)
+    r = ep.act(T_est, "noisy-oracle")
+    return obj, kind, value, seed, r.success, r.failure_reason
+
+
+def tolerance_of(levels: list[float], rates: list[float], threshold: float = THRESHOLD) -> float:
+    """Largest level up to which every rate is >= threshold, linearly interpolated to the first
+    crossing; the last level if it never drops."""
+    for i, r in enumerate(rates):
+        if r < threshold:
+            if i == 0:
+                return 0.0
+            r0, l0, l1 = rates[i - 1], levels[i - 1], levels[i]
+            return float(l0 + (r0 - threshold) / (r0 - r) * (l1 - l0))
+    return float(levels[-1])
+
+
+def study(objects: list[str], episodes: int, seed_start: int, workers: int) -> dict:
+    """Run the study and return {object: {kind: {levels, rates, tolerance}}}."""
+    jobs = [
+        (o, k, float(v), seed_start + i)
+        for o in objects
+        for k, vals in LEVELS.items()
+        for v in vals
+        for i in range(episodes)
+    ]
+    if workers > 1:
+        with mp.get_context("spawn").Pool(workers) as pool:
+            results = list(tqdm(pool.imap(_job, jobs), total=len(jobs), desc="episodes"))
+    else:
+        results = [_job(j) for j in tqdm(jobs, desc="episodes")]
+    out: dict = {}
+    for o in objects:
+        out[o] = {}
+        for k, vals in LEVELS.items():
+            rates = []
+            for v in vals:
+                hits = [r[4] for r in results if r[0] == o and r[1] == k and r[2] == v]
+                rates.append(float(np.mean(hits)))
+            out[o][k] = {
+                "levels": list(vals),
+                "success_rate": rates,
+                "tolerance": tolerance_of(list(vals), rates),
+            }
+    return out
+
+
+def plot(result: dict, path: Path) -> None:
+    """Success rate against each error kind, one line per object."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 4, figsize=(16, 3.8), sharey=True)
+    for ax, kind in zip(axes, LEVELS, strict=True):
+        for obj, kinds in result.items():
+            ax.plot(kinds[kind]["levels"], kinds[kind]["success_rate"], marker="o", label=obj)
+        ax.axhline(THRESHOLD, color="grey", ls="--", lw=1)
+        name, unit = kind.rsplit("_", 1)
+        ax.set_xlabel(f"{name} error [{unit}]")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("grasp success rate")
+    axes[-1].legend(fontsize=8)
+    fig.suptitle("Grasp success against injected pose error")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python -m grasping.tolerance", description=__doc__.split("\n")[0])
+    p.add_argument("--object", default=None, help=f"one of: {', '.join(OBJECT_NAMES)}")
+    p.add_argument("--objects", default=None, help="'all' or a comma list")
+    p.add_argument("--episodes", type=int, default=10, help="episodes per level")
+    p.add_argument("--seed-start", type=int, default=1000)
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--out", type=Path, default=Path("out/tolerance"), help="output prefix")
+    args = p.parse_args(argv)
+    spec = args.objects or args.object or "phone"
+    objects = list(OBJECT_NAMES) if spec == "all" else spec.split(",")
+    bad = [o for o in objects if o not in OBJECT_NAMES]
+    if bad:
+        return fail(f"unknown object {bad[0]!r}; valid objects: all, {', '.join(OBJECT_NAMES)}")
+    if args.episodes < 1 or args.workers < 1:
+        return fail("--episodes and --workers must be at least 1")
+    json_path, png_path = args.out.with_suffix(".json"), args.out.with_suffix(".png")
+    try:
+        check_writable_file(json_path)
+        result = study(objects, args.episodes, args.seed_start, args.workers)
+    except PosegraspError as exc:
+        return fail(str(exc))
+    json_path.write_text(json.dumps(result, indent=1, sort_keys=True))
+    plot(result, png_path)
+    print(f"{'object':<8}" + "".join(f"{k:>14}" for k in LEVELS))
+    for o, kinds in result.items():
+        print(f"{o:<8}" + "".join(f"{kinds[k]['tolerance']:>14.1f}" for k in LEVELS))
+    print(f"tolerance = error where success drops below {THRESHOLD:.0%}")
+    print(f"wrote {json_path} and {png_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
