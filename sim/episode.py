@@ -60,7 +60,7 @@ class EpisodeResult:
 
 def pose_errors(T_est: np.ndarray, T_true: np.ndarray, pts: np.ndarray, diameter: float) -> dict:
     """Pose errors of an estimate: translation [m] and [%], rotation [deg], ADD and ADD-S [m]."""
-    from perception import metrics  # noqa: PLC0415 (sim scores with perception's metrics)
+    from perception import metrics
 
     R_e, t_e, R_g, t_g = T_est[:3, :3], T_est[:3, 3], T_true[:3, :3], T_true[:3, 3]
     return {
@@ -95,6 +95,7 @@ class Episode:
         self.T_world_cam = T_world_cam(m, d, C.HEAD_CAMERA)
         self.T_C_O_true = np.linalg.inv(self.T_world_cam) @ self.scene.object_pose()
         self._done = False
+        self.frames: list[np.ndarray] = []
 
     def observe(self) -> Observation:
         """Render the head camera and return what an estimator may see."""

@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import json
 import sys
+import time
+from pathlib import Path
 
 import numpy as np
 
-from sim.cli import ArgumentParser, fail
+from sim.camera import CameraRenderer, RenderOptions
+from sim.cli import ArgumentParser, check_writable_file, fail
 from sim.errors import PosegraspError
 from sim.estimators import ESTIMATORS, make_estimator
 from sim.objects import OBJECT_NAMES
@@ -62,6 +65,52 @@ def summary(result) -> str:
     return "\n".join(lines)
 
 
+def _run(obj: str, seed: int, estimator, save: Path | None):
+    from sim.episode import Episode
+
+    ep = Episode(obj, seed)
+    external = None
+    try:
+        obs = ep.observe()
+        t = time.perf_counter()
+        est = estimator.estimate(obs)
+        ep.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
+        recorder = None
+        if save is not None:
+            external = CameraRenderer(ep.scene.model, 480, 360, RenderOptions(shadows=False))
+            recorder = lambda scene: external.rgb(scene.data, "external")  # noqa: E731
+        result = ep.act(est, estimator.name, recorder=recorder)
+        if save is not None:
+            _save(save, obs, est, ep, result)
+        return result
+    finally:
+        ep.close()
+        if external is not None:
+            external.close()
+
+
+def _save(folder: Path, obs, est, ep, result) -> None:
+    import cv2
+    from PIL import Image
+
+    from perception.overlay import draw_pose
+
+    mesh = ep.scene.target.model.mesh
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    img = draw_pose(obs.rgb, result.T_C_O_true, obs.K, v, f, color=(255, 255, 255), label="true")
+    if est is not None:
+        img = draw_pose(
+            img, est, obs.K, v, f, color=(0, 255, 0), label="estimate", label_below=True
+        )
+    cv2.imwrite(str(folder / "head.png"), img[..., ::-1])
+    frames = [Image.fromarray(fr) for fr in ep.frames]
+    if frames:
+        frames[0].save(
+            folder / "grasp.gif", save_all=True, append_images=frames[1:], duration=100, loop=0
+        )
+    print(f"wrote {folder / 'head.png'} and {folder / 'grasp.gif'} ({len(frames)} frames)")
+
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.run_episode", description=__doc__.split("\n")[0])
@@ -69,13 +118,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="scene seed")
     p.add_argument("--estimator", default="oracle", help=f"one of: {', '.join(ESTIMATORS)}")
     p.add_argument("--json", action="store_true", help="print one JSON object instead")
+    p.add_argument(
+        "--save",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="write the head image with the estimated pose drawn on it and a GIF of the grasp",
+    )
     args = p.parse_args(argv)
     if args.object not in OBJECT_NAMES:
         return fail(f"unknown object {args.object!r}; valid objects: {', '.join(OBJECT_NAMES)}")
     try:
-        from sim.episode import run_episode
-
-        result = run_episode(args.object, args.seed, make_estimator(args.estimator))
+        if args.save is not None:
+            check_writable_file(args.save / "head.png")
+        result = _run(args.object, args.seed, make_estimator(args.estimator), args.save)
     except PosegraspError as exc:
         return fail(str(exc))
     if args.json:

@@ -1,0 +1,81 @@
+"""Pictures of poses: the projected model outline and axes drawn on an image."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def silhouette(
+    T_C_O: np.ndarray,
+    K: np.ndarray,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    shape: tuple[int, int],
+) -> np.ndarray:
+    """Binary mask of a mesh rendered at pose T_C_O with intrinsics K.
+
+    Args:
+        T_C_O: object pose in the camera frame, shape (4, 4).
+        K: intrinsics, shape (3, 3).
+        vertices: mesh vertices in O [m], shape (N, 3).
+        faces: triangle indices, shape (F, 3).
+        shape: (H, W) of the mask.
+
+    Returns:
+        Mask, shape (H, W), bool; triangles behind the camera are skipped.
+    """
+    import cv2
+
+    pc = vertices @ T_C_O[:3, :3].T + T_C_O[:3, 3]
+    mask = np.zeros(shape, np.uint8)
+    front = pc[:, 2] > 1e-6
+    uv = np.zeros((len(pc), 2))
+    uv[front] = (pc[front] @ K.T)[:, :2] / pc[front, 2:3]
+    keep = front[faces].all(axis=1)
+    tris = np.round(uv[faces[keep]] * 16).astype(np.int32)  # 4 bits of sub-pixel precision
+    for tri in tris:
+        cv2.fillConvexPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=4)
+    return mask.astype(bool)
+
+
+def draw_pose(
+    image: np.ndarray,
+    T_C_O: np.ndarray,
+    K: np.ndarray,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    color: tuple[int, int, int] = (0, 255, 0),
+    axis_length: float = 0.06,
+    label: str | None = None,
+    label_below: bool = False,
+) -> np.ndarray:
+    """A copy of an RGB image with the pose's model outline and axes drawn on it.
+
+    Axes: x red, y green, z blue, `axis_length` [m] long from the object's origin.
+    """
+    import cv2
+
+    out = np.ascontiguousarray(image.copy())
+    mask = silhouette(T_C_O, K, vertices, faces, out.shape[:2]).astype(np.uint8)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(out, contours, -1, color, 2, lineType=cv2.LINE_AA)
+    pts = np.array([[0, 0, 0], [axis_length, 0, 0], [0, axis_length, 0], [0, 0, axis_length]])
+    pc = pts @ T_C_O[:3, :3].T + T_C_O[:3, 3]
+    if np.all(pc[:, 2] > 1e-6):
+        uv = (pc @ K.T)[:, :2] / pc[:, 2:3]
+        o = tuple(np.round(uv[0]).astype(int))
+        for i, c in zip((1, 2, 3), ((255, 0, 0), (0, 255, 0), (0, 0, 255)), strict=True):
+            cv2.line(out, o, tuple(np.round(uv[i]).astype(int)), c, 2, lineType=cv2.LINE_AA)
+    if label:
+        x, y = contours[0][:, 0].min(axis=0) if contours else (5, 20)
+        cv2.putText(
+            out,
+            label,
+            (int(x), max(12, int(y) - 6)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.5,
+            color,
+            1,
+            cv2.LINE_AA,
+        )
+    return out
