@@ -1,0 +1,65 @@
+"""Grasp planning and whole-episode wall time with the oracle, in one process (2 cores).
+
+    python bench/episode_speed.py [--episodes 5] [--json]
+
+Targets (issue: grasping on a given pose): planning (all IK for one grasp) <= 100 ms median;
+a whole oracle episode <= 3 s wall median.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
+from sim.episode import run_episode
+from sim.estimators import OracleEstimator
+from sim.objects import OBJECT_NAMES
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--episodes", type=int, default=5, help="episodes per object")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args()
+    walls, stages = [], {}
+    successes = 0
+    for obj in OBJECT_NAMES:
+        for seed in range(100, 100 + args.episodes):
+            t = time.perf_counter()
+            r = run_episode(obj, seed, OracleEstimator())
+            walls.append((time.perf_counter() - t) * 1000)
+            successes += r.success
+            for k, v in r.timings_ms.items():
+                stages.setdefault(k, []).append(v)
+    med = {k: float(np.median(v)) for k, v in stages.items()}
+    out = {
+        "episodes": len(walls),
+        "successes": successes,
+        "planning_ms_median": med.get("ik"),
+        "episode_wall_ms_median": float(np.median(walls)),
+        "episode_wall_ms_p90": float(np.percentile(walls, 90)),
+        "stage_ms_median": med,
+    }
+    if args.json:
+        print(json.dumps(out, sort_keys=True))
+        return
+    ok = lambda good: "PASS" if good else "MISS"  # noqa: E731
+    print(f"oracle episodes: {out['episodes']} ({successes} successes)")
+    print(
+        f"planning (IK for one grasp), median: {out['planning_ms_median']:.1f} ms  "
+        f"[target <= 100 ms: {ok(out['planning_ms_median'] <= 100)}]"
+    )
+    print(
+        f"episode wall, median: {out['episode_wall_ms_median']:.0f} ms, "
+        f"p90 {out['episode_wall_ms_p90']:.0f} ms  "
+        f"[target <= 3000 ms: {ok(out['episode_wall_ms_median'] <= 3000)}]"
+    )
+    print("stages, median ms: " + "  ".join(f"{k} {v:.0f}" for k, v in med.items()))
+
+
+if __name__ == "__main__":
+    main()
