@@ -1,0 +1,212 @@
+"""Simulation and rendering speed of posegrasp scenes, against the project's targets.
+
+    python bench/sim_speed.py [--seeds 10] [--sim-seconds 5] [--frames 30] [--json]
+
+Measures, on this machine (software EGL rendering unless MUJOCO_GL says otherwise):
+- scene build time: `build_scene` (compile, place, aim the head, 0.5 s settle), median over seeds;
+- physics real-time factor (simulated s per wall-clock s) with the robot holding its posture,
+  with the target alone and with five distractors;
+- head-camera frames per second at 640x480 and 256x256, RGB and segmentation, shadows on and off
+  (each frame includes `update_scene`, the render and the read-back).
+
+Targets: scene build <= 0.5 s; RTF >= 10; RGB >= 30 fps at 640x480 without shadows.
+Other processes on the machine lower every figure: the report includes the load average.
+"""
+
+from __future__ import annotations
+
+import os
+
+# Before MuJoCo is imported: it picks its GL backend at import time (sim does the same, but
+# mujoco is imported first here).
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+
+import json
+import platform
+import statistics
+import sys
+import time
+from dataclasses import asdict, dataclass
+
+import mujoco
+
+from sim import constants as C
+from sim.camera import CameraRenderer, RenderOptions
+from sim.cli import ArgumentParser, fail
+from sim.errors import InvalidArgumentError, PosegraspError
+from sim.objects import OBJECT_NAMES
+from sim.scene import SceneConfig, build_scene
+
+TARGET_BUILD_S = 0.5
+TARGET_RTF = 10.0
+TARGET_RGB_FPS = 30.0  # 640x480, no shadows
+
+
+@dataclass(frozen=True)
+class RenderSpeed:
+    """Frames per second of one render configuration of the head camera."""
+
+    kind: str  # "rgb" or "segmentation"
+    width: int
+    height: int
+    shadows: bool
+    fps: float
+
+
+@dataclass(frozen=True)
+class SpeedReport:
+    """Every figure the benchmark measures (times in [s])."""
+
+    build_s_median: float
+    build_s_min: float
+    build_s_max: float
+    build_seeds: int
+    rtf_one_object: float
+    rtf_six_objects: float
+    render: list[RenderSpeed]
+    machine: dict[str, str]
+
+    def rgb_fps(self, width: int, height: int, shadows: bool) -> float:
+        return next(
+            r.fps
+            for r in self.render
+            if (r.kind, r.width, r.height, r.shadows) == ("rgb", width, height, shadows)
+        )
+
+    def checks(self) -> dict[str, bool]:
+        """Each target: met or not."""
+        return {
+            "build": self.build_s_median <= TARGET_BUILD_S,
+            "rtf": self.rtf_one_object >= TARGET_RTF,
+            "rgb_640x480_no_shadows": self.rgb_fps(640, 480, False) >= TARGET_RGB_FPS,
+        }
+
+
+def time_builds(seeds: int) -> list[float]:
+    """Wall-clock time of `build_scene` for seeds 0..seeds-1, cycling through the objects [s]."""
+    build_scene(OBJECT_NAMES[0], 0)  # warm-up: object meshes, the Fetch XML, imports
+    times = []
+    for seed in range(seeds):
+        t0 = time.perf_counter()
+        build_scene(OBJECT_NAMES[seed % len(OBJECT_NAMES)], seed)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def real_time_factor(n_distractors: int, sim_seconds: float) -> float:
+    """Simulated seconds per wall-clock second, robot holding its home posture."""
+    scene = build_scene("phone", 0, SceneConfig(n_distractors=n_distractors))
+    n = round(sim_seconds / scene.model.opt.timestep)
+    t0 = time.perf_counter()
+    mujoco.mj_step(scene.model, scene.data, nstep=n)
+    return n * scene.model.opt.timestep / (time.perf_counter() - t0)
+
+
+def render_speeds(frames: int) -> list[RenderSpeed]:
+    """Head-camera frames per second in every configuration."""
+    scene = build_scene("phone", 0)
+    out = []
+    for width, height in ((640, 480), (256, 256)):
+        for shadows in (False, True):
+            options = RenderOptions(shadows=shadows, reflections=False)
+            with CameraRenderer(scene.model, width, height, options) as renderer:
+                for kind, render in (
+                    ("rgb", renderer.rgb),
+                    ("segmentation", renderer.segmentation),
+                ):
+                    for _ in range(3):  # warm-up: context, textures, shadow maps
+                        render(scene.data, C.HEAD_CAMERA)
+                    t0 = time.perf_counter()
+                    for _ in range(frames):
+                        render(scene.data, C.HEAD_CAMERA)
+                    fps = frames / (time.perf_counter() - t0)
+                    out.append(RenderSpeed(kind, width, height, shadows, fps))
+    return out
+
+
+def machine_info() -> dict[str, str]:
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    return {
+        "cpus": str(os.cpu_count()),
+        "load_average_1min": f"{load[0]:.2f}",
+        "python": platform.python_version(),
+        "mujoco": mujoco.__version__,
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", ""),
+    }
+
+
+def measure(seeds: int, sim_seconds: float, frames: int) -> SpeedReport:
+    """Run every measurement."""
+    builds = time_builds(seeds)
+    return SpeedReport(
+        build_s_median=statistics.median(builds),
+        build_s_min=min(builds),
+        build_s_max=max(builds),
+        build_seeds=seeds,
+        rtf_one_object=real_time_factor(0, sim_seconds),
+        rtf_six_objects=real_time_factor(len(OBJECT_NAMES) - 1, sim_seconds),
+        render=render_speeds(frames),
+        machine=machine_info(),
+    )
+
+
+def _mark(ok: bool) -> str:
+    return "PASS" if ok else "MISS"
+
+
+def format_report(r: SpeedReport) -> str:
+    """The human-readable table."""
+    ok = r.checks()
+    lines = [
+        "posegrasp simulation speed  (" + ", ".join(f"{k} {v}" for k, v in r.machine.items()) + ")",
+        "",
+        f"{'measure':<54}{'value':>10}  {'target':<10}result",
+        f"{'scene build, median of ' + str(r.build_seeds) + ' seeds [s]':<54}"
+        f"{r.build_s_median:>10.3f}  {'<= 0.5':<10}{_mark(ok['build'])}",
+        f"{'  (min / max) [s]':<54}{r.build_s_min:>10.3f}  {r.build_s_max:.3f}",
+        f"{'physics real-time factor, 1 object':<54}{r.rtf_one_object:>10.1f}  "
+        f"{'>= 10':<10}{_mark(ok['rtf'])}",
+        f"{'physics real-time factor, 6 objects':<54}{r.rtf_six_objects:>10.1f}",
+    ]
+    for s in r.render:
+        label = f"head camera {s.kind} {s.width}x{s.height}, shadows {'on' if s.shadows else 'off'}"
+        line = f"{label + ' [fps]':<54}{s.fps:>10.1f}"
+        if (s.kind, s.width, s.height, s.shadows) == ("rgb", 640, 480, False):
+            line += f"  {'>= 30':<10}{_mark(ok['rgb_640x480_no_shadows'])}"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point; returns the exit status."""
+    parser = ArgumentParser(
+        prog="python bench/sim_speed.py",
+        description="Scene build time, physics real-time factor and render speed vs targets.",
+    )
+    parser.add_argument("--seeds", type=int, default=10, help="scenes to build (default: 10)")
+    parser.add_argument(
+        "--sim-seconds", type=float, default=5.0, help="simulated time per RTF run (default: 5)"
+    )
+    parser.add_argument("--frames", type=int, default=30, help="frames per render figure (30)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead")
+    try:
+        args = parser.parse_args(argv)
+        if args.seeds < 1 or args.frames < 1 or not args.sim_seconds > 0:
+            raise InvalidArgumentError(
+                "--seeds and --frames must be integers >= 1 and --sim-seconds a number > 0"
+            )
+        report = measure(args.seeds, args.sim_seconds, args.frames)
+    except SystemExit as exc:  # --help, or a bad argument already reported in one line
+        return exc.code if isinstance(exc.code, int) else 0
+    except PosegraspError as exc:
+        return fail(str(exc))
+    if args.json:
+        print(json.dumps({**asdict(report), "targets_met": report.checks()}))
+    else:
+        print(format_report(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,175 @@
+"""Render a seeded scene from the head camera (and optionally from the external camera).
+
+    python -m sim.render_scene --object phone --seed 0 --out head.png [--external]
+        [--width 640 --height 480] [--distractors N] [--no-shadows]
+
+writes the head camera's RGB image to `--out`; with `--external` also writes
+`<stem>_external.png` next to it, a view from the world camera "external" that shows the robot,
+the table and the objects. Every argument is checked before the scene is built; a bad one gives a
+single `error: ...` line on stderr that names the valid choices, and a non-zero exit status.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sim import constants as C  # importing sim defaults MUJOCO_GL to egl
+from sim.camera import CameraRenderer, RenderOptions, check_resolution
+from sim.cli import ArgumentParser, check_writable_file, fail
+from sim.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from sim.objects import OBJECT_NAMES
+from sim.scene import SceneConfig, build_scene
+
+EXTERNAL_CAMERA = "external"
+#: Exit status of bad arguments (argparse's convention) and of every other failure.
+EXIT_USAGE = 2
+EXIT_FAILURE = 1
+
+
+@dataclass(frozen=True)
+class RenderRequest:
+    """A checked command line.
+
+    Attributes:
+        object: target object class, one of `OBJECT_NAMES`.
+        seed: scene seed (>= 0).
+        out: path of the head-camera PNG.
+        external: also render the external camera to `external_path`.
+        width, height: image size [px], both cameras.
+        distractors: number of other objects on the table.
+        shadows: render shadows (about 3x slower on software rendering).
+    """
+
+    object: str
+    seed: int
+    out: Path
+    external: bool
+    width: int
+    height: int
+    distractors: int
+    shadows: bool
+
+    @property
+    def external_path(self) -> Path:
+        """`<stem>_external.png` next to `out`."""
+        return self.out.with_name(f"{self.out.stem}_external{self.out.suffix}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line parser (no validation beyond types; see `check_request`)."""
+    p = ArgumentParser(
+        prog="python -m sim.render_scene",
+        description="Render a seeded posegrasp scene from the robot's head camera.",
+    )
+    p.add_argument(
+        "--object",
+        default="phone",
+        metavar="NAME",
+        help=f"target object, one of: {', '.join(OBJECT_NAMES)} (default: phone)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="scene seed, >= 0 (default: 0)")
+    p.add_argument(
+        "--out", type=Path, default=Path("head.png"), help="output PNG (default: head.png)"
+    )
+    p.add_argument(
+        "--external",
+        action="store_true",
+        help="also write <stem>_external.png from the world camera 'external'",
+    )
+    p.add_argument("--width", type=int, default=640, help="image width [px] (default: 640)")
+    p.add_argument("--height", type=int, default=480, help="image height [px] (default: 480)")
+    p.add_argument(
+        "--distractors",
+        type=int,
+        default=0,
+        metavar="N",
+        help=f"other objects on the table, 0..{len(OBJECT_NAMES) - 1} (default: 0)",
+    )
+    p.add_argument("--no-shadows", action="store_true", help="render without shadows (faster)")
+    return p
+
+
+def check_request(args: argparse.Namespace) -> RenderRequest:
+    """Validate parsed arguments before anything is built.
+
+    Raises:
+        UnknownNameError: unknown object.
+        InvalidArgumentError: bad resolution, seed, distractor count or output path.
+    """
+    if args.object not in OBJECT_NAMES:
+        raise UnknownNameError("object", args.object, OBJECT_NAMES)
+    check_resolution(args.width, args.height)
+    if args.seed < 0:
+        raise InvalidArgumentError(f"invalid seed {args.seed}; seeds are integers >= 0")
+    n_max = len(OBJECT_NAMES) - 1
+    if not 0 <= args.distractors <= n_max:
+        raise InvalidArgumentError(
+            f"invalid number of distractors {args.distractors}; valid: 0..{n_max}"
+        )
+    out: Path = args.out
+    if out.suffix.lower() != ".png":
+        raise InvalidArgumentError(f"invalid output {str(out)!r}; the output must be a .png file")
+    req = RenderRequest(
+        object=args.object,
+        seed=args.seed,
+        out=out,
+        external=args.external,
+        width=args.width,
+        height=args.height,
+        distractors=args.distractors,
+        shadows=not args.no_shadows,
+    )
+    check_writable_file(req.out)
+    if req.external:
+        check_writable_file(req.external_path)
+    return req
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    if not cv2.imwrite(str(path), rgb[..., ::-1]):
+        raise PosegraspError(f"cannot write {str(path)!r}")
+
+
+def render(req: RenderRequest) -> list[Path]:
+    """Build the scene of req and write its images.
+
+    Returns:
+        The paths written, head camera first.
+    """
+    scene = build_scene(req.object, req.seed, SceneConfig(n_distractors=req.distractors))
+    written = [req.out]
+    cameras = [(C.HEAD_CAMERA, req.out)]
+    if req.external:
+        cameras.append((EXTERNAL_CAMERA, req.external_path))
+        written.append(req.external_path)
+    options = RenderOptions(shadows=req.shadows, reflections=False)
+    with CameraRenderer(scene.model, req.width, req.height, options) as renderer:
+        for camera, path in cameras:
+            _write_png(path, renderer.rgb(scene.data, camera))
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point; returns the exit status."""
+    try:
+        args = build_parser().parse_args(argv)
+        req = check_request(args)
+        for path in render(req):
+            print(path)
+    except SystemExit as exc:  # --help, or a bad argument already reported in one line
+        return exc.code if isinstance(exc.code, int) else 0
+    except (UnknownNameError, InvalidArgumentError) as exc:
+        return fail(str(exc), EXIT_USAGE)
+    except PosegraspError as exc:
+        return fail(str(exc), EXIT_FAILURE)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

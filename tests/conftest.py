@@ -1,0 +1,27 @@
+"""Shared test set-up: software EGL rendering and a MuJoCo-warning helper."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+
+from collections.abc import Callable
+
+import mujoco
+import pytest
+
+
+def _warnings(data: mujoco.MjData) -> dict[str, int]:
+    return {
+        mujoco.mjtWarning(i).name: int(w.number)
+        for i, w in enumerate(data.warning)
+        if w.number != 0
+    }
+
+
+@pytest.fixture
+def mj_warnings() -> Callable[[mujoco.MjData], dict[str, int]]:
+    """`mj_warnings(data)`: the MuJoCo warnings counted in data, by name ({} when none)."""
+    return _warnings
