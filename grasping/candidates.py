@@ -63,8 +63,8 @@ SEGMENTS: dict[str, tuple[GraspSegment, ...]] = {
     "chair": (GraspSegment("backrest", (-0.018, -0.006, 0.006, 0.018), 1, 0, 0.012),),
     "screen": (GraspSegment("panel", (-0.075, -0.025, 0.025, 0.075), 0, 1, 0.015),),
     "pistol": (
-        GraspSegment("slide", (0.038, 0.052), 0, 1, 0.015),
-        GraspSegment("grip", (-0.022, -0.008, 0.006), 1, 0, 0.013),
+        GraspSegment("slide", (0.038, 0.052), 0, 1, 0.010),
+        GraspSegment("grip", (-0.022, -0.008, 0.006), 1, 0, 0.009),
     ),
 }
 

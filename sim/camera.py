@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from sim.errors import InvalidArgumentError, UnknownNameError
+from sim.errors import AssetError, InvalidArgumentError, UnknownNameError
 
 R_CV_FROM_MJ = np.diag([1.0, -1.0, -1.0])
 MAX_RESOLUTION = (4096, 4096)
@@ -106,7 +106,14 @@ class CameraRenderer:
             off = self.model.vis.global_
             off.offwidth = max(off.offwidth, self.width)
             off.offheight = max(off.offheight, self.height)
-            self._renderer = mujoco.Renderer(self.model, self.height, self.width)
+            try:
+                self._renderer = mujoco.Renderer(self.model, self.height, self.width)
+            except mujoco.FatalError as exc:
+                raise AssetError(
+                    "MuJoCo cannot open an OpenGL context: set MUJOCO_GL=egl before mujoco is "
+                    "imported (import sim first, or export MUJOCO_GL=egl) and install Mesa's EGL "
+                    f"(libegl1, libgl1-mesa-dri); MuJoCo said: {exc}"
+                ) from exc
             flags = self._renderer.scene.flags
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.options.shadows
             flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = self.options.reflections

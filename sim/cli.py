@@ -27,6 +27,9 @@ def fail(message: str, status: int = 2) -> int:
 def check_writable_file(path: Path) -> None:
     """Raise InvalidArgumentError unless a file can be written at path."""
     parent = path.resolve().parent
+    blocker = next((q for q in (parent, *parent.parents) if q.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        raise InvalidArgumentError(f"cannot write {path}: {blocker} is a file, not a folder")
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -33,7 +33,9 @@ class SceneConfig:
         distractor_x, distractor_y: region for distractors.
         aim_jitter: half-range of a random offset of the head's aim point around the target.
         settle_time: physics time run after placing everything [s].
-        resting_pose: which resting pose to use; None samples among the object's resting poses.
+        resting_pose: "canonical" puts every object in its first (canonical) resting pose;
+            "random" samples among each object's resting poses. (Grasp candidates are defined
+            for the canonical pose.)
         randomize_appearance: randomise lights and surface colours (for data generation).
     """
 
@@ -47,7 +49,7 @@ class SceneConfig:
     distractor_y: tuple[float, float] = (-0.4, 0.4)
     aim_jitter: float = 0.05
     settle_time: float = 0.5
-    resting_pose: str | None = "canonical"
+    resting_pose: str = "canonical"
     randomize_appearance: bool = False
     robot: RobotConfig = field(default_factory=RobotConfig)
 
@@ -207,6 +209,8 @@ def build_scene(
         InvalidArgumentError: the objects do not fit on the table.
     """
     cfg = config or SceneConfig()
+    if cfg.resting_pose not in ("canonical", "random"):
+        raise UnknownNameError("resting pose mode", cfg.resting_pose, ("canonical", "random"))
     names = [objects] if isinstance(objects, str) else list(objects)
     if not names:
         raise InvalidArgumentError(f"no object given; valid objects: {', '.join(OBJECT_NAMES)}")
@@ -233,7 +237,7 @@ def build_scene(
         counts[obj.name] = k + 1
         body = f"{obj.name}_{k}"
         rest_names = list(obj.resting_poses)
-        if cfg.resting_pose is None:
+        if cfg.resting_pose == "random":
             rest = obj.resting_poses[rest_names[rng.integers(len(rest_names))]]
         else:
             rest = obj.resting_poses[rest_names[0]]

@@ -64,7 +64,7 @@ BAD_INPUTS = [
     ),
     (["--width", "-640"], ["-640x480", "1..4096"]),
     (["--height", "0"], ["640x0", "1..4096"]),
-    (["--out", "{file}/head.png"], ["cannot create folder"]),
+    (["--out", "{file}/head.png"], ["is a file, not a folder"]),
     (["--out", "{tmp}/dir.png"], ["is a folder"]),
     (["--out", "{tmp}/head.jpg"], [".png"]),
     (["--distractors", "9"], ["0..5"]),
