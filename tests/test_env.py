@@ -1,0 +1,106 @@
+"""The GraspEval-v0 gymnasium env: contract, determinism, vectorisation and bad actions."""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import posegrasp  # noqa: F401  (registers the env)
+from sim.env import GraspEvalEnv, pose_action
+from sim.errors import UnknownNameError
+
+
+def _truth(env: gym.Env) -> np.ndarray:
+    return env.unwrapped._episode.T_C_O_true
+
+
+def test_check_env_passes() -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # advisory warnings about unbounded Box spaces
+        check_env(gym.make("GraspEval-v0", object="chair", render_mode="rgb_array").unwrapped)
+
+
+def test_make_by_module_prefix_and_oracle_action_succeeds() -> None:
+    env = gym.make("posegrasp:GraspEval-v0", object="phone", timings=True)
+    obs, info = env.reset(seed=5)
+    assert obs["rgb"].shape == (480, 640, 3) and obs["rgb"].dtype == np.uint8
+    assert info["object"] == "phone"
+    _, reward, terminated, truncated, info = env.step(pose_action(_truth(env)))
+    assert reward == 1.0 and terminated and not truncated
+    assert info["success"] and info["failure_reason"] is None
+    assert info["pose_error"]["rotation_deg"] == pytest.approx(0.0, abs=1e-4)
+    assert "plan" in info["timings_ms"]
+    env.close()
+
+
+def test_same_seed_same_outcome() -> None:
+    outs = []
+    for _ in range(2):
+        env = GraspEvalEnv()
+        obs, info = env.reset(seed=123)
+        T = _truth(env).copy()
+        T[:3, 3] += [0.01, 0.0, 0.02]
+        _, r, *_, step_info = env.step(pose_action(T))
+        outs.append((obs["rgb"], info, r, step_info["lift_height"], step_info["failure_reason"]))
+        env.close()
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    assert outs[0][1:] == outs[1][1:]
+
+
+@pytest.mark.parametrize(
+    "mutate, reason",
+    [
+        (lambda a: a["position"].__setitem__(0, np.nan), "invalid_action"),
+        (lambda a: a.__setitem__("quaternion", np.array([0.5, 0.5, 0.0, 0.0])), "invalid_action"),
+        (lambda a: a.__setitem__("has_estimate", 0), "no_estimate"),
+    ],
+)
+def test_bad_or_missing_estimate_is_a_failed_grasp(mutate, reason) -> None:
+    env = GraspEvalEnv(object="faucet")
+    env.reset(seed=1)
+    action = pose_action(_truth(env))
+    mutate(action)
+    _, r, terminated, _, info = env.step(action)
+    assert r == 0.0 and terminated
+    assert info["failure_reason"] == reason
+    if reason == "invalid_action":
+        assert "error" in info
+    env.close()
+
+
+def test_wrong_action_shape_raises() -> None:
+    env = GraspEvalEnv(object="faucet")
+    env.reset(seed=1)
+    action = pose_action(_truth(env))
+    action["position"] = np.zeros(4)
+    with pytest.raises(ValueError, match=r"shape \(3,\)"):
+        env.step(action)
+    env.close()
+
+
+def test_unknown_object() -> None:
+    with pytest.raises(UnknownNameError, match="valid objects: car"):
+        GraspEvalEnv(object="teapot")
+
+
+def test_runs_in_async_vector_env() -> None:
+    envs = gym.vector.AsyncVectorEnv(
+        [lambda: gym.make("posegrasp:GraspEval-v0", object="screen")] * 2, context="spawn"
+    )
+    try:
+        obs, _ = envs.reset(seed=[7, 8])
+        assert obs["rgb"].shape == (2, 480, 640, 3)
+        actions = {
+            "has_estimate": np.array([0, 0]),
+            "position": np.zeros((2, 3)),
+            "quaternion": np.tile([1.0, 0, 0, 0], (2, 1)),
+        }
+        _, rewards, terminated, _, infos = envs.step(actions)
+        assert rewards.tolist() == [0.0, 0.0] and terminated.all()
+        assert list(infos["failure_reason"]) == ["no_estimate", "no_estimate"]
+    finally:
+        envs.close()
