@@ -1,0 +1,597 @@
+"""The paper protocol's renderer: one object alone in a randomised "studio" (SPEC section 6).
+
+One lightweight MuJoCo model holds every object (at the world origin, in its own frame: T_world_O
+is the identity), a box-shaped room of six textured walls, a pool of clutter primitives, a pool of
+lights and one camera. It is compiled once; each sample only changes model fields (which object is
+visible, camera pose, walls, clutter, lights, colours) and re-runs kinematics, so a sample costs
+two renders (RGB and segmentation) and no compilation.
+
+Domain randomisation per sample (every choice drawn from the sample's `rng`):
+
+- camera: direction uniform on the sphere (below the object too), distance uniform in
+  `distance` x the object's diameter, aimed at a point uniformly inside a ball of radius
+  `aim_offset` x diameter around the object's origin, roll uniform in [-pi, pi);
+- room: random orientation and size (the camera always inside), each wall a random texture from a
+  fixed bank (MuJoCo builtin checker / gradient / flat-with-noise textures and numpy-made smooth
+  noise, stripes and blobs, all in random colours), tint, scale and shininess;
+- clutter: 0..`max_clutter` boxes, spheres, cylinders, capsules and ellipsoids with random
+  textures, never in front of the object (the object is never occluded);
+- lights: 1..`max_lights` spot, point or directional lights of random position, colour and
+  intensity, and a random headlight;
+- object: a small jitter of every part's colour, random specular and shininess.
+
+Shadows and reflections are off. The texture bank is drawn from the fixed `bank_seed`, so a sample
+depends only on its own seed, not on which samples the process rendered before.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
+import cv2
+import mujoco
+import numpy as np
+
+from perception.geometry import invert_transform
+from sim.camera import R_CV_FROM_MJ, T_world_cam, intrinsics
+from sim.errors import UnknownNameError
+from sim.objects import OBJECT_NAMES, VISUAL_GROUP, ObjectModel, load_object
+
+CAMERA = "studio"
+#: Geom group of the room and the clutter (drawn by default, left out of the mask pass).
+BACKGROUND_GROUP = 1
+#: Geom group never drawn by the default visual options (hides inactive objects and clutter).
+HIDDEN_GROUP = 5
+_CLUTTER_TYPES = (
+    mujoco.mjtGeom.mjGEOM_BOX,
+    mujoco.mjtGeom.mjGEOM_SPHERE,
+    mujoco.mjtGeom.mjGEOM_CYLINDER,
+    mujoco.mjtGeom.mjGEOM_CAPSULE,
+    mujoco.mjtGeom.mjGEOM_ELLIPSOID,
+)
+_WALL_THICKNESS = 0.01
+
+
+@dataclass(frozen=True)
+class StudioConfig:
+    """How paper-protocol views are sampled. Lengths in [m], angles in [rad] unless stated.
+
+    Attributes:
+        width, height: image size [px].
+        fovy_deg: vertical field of view [deg] (the head camera's is 50).
+        distance: range of the camera's distance from the object origin, in object diameters.
+        aim_offset: radius of the ball around the object origin the camera aims into, in object
+            diameters (so the object is not always centred).
+        max_clutter: at most this many clutter primitives per sample.
+        max_lights: at most this many lights per sample (at least one).
+        room_margin: the walls lie this far beyond the camera's distance from the object.
+        n_textures: size of the background texture bank.
+        texture_size: side of each bank texture [px].
+        bank_seed: seed of the texture bank (fixed: part of the generator's definition).
+        msaa: multisampling anti-aliasing samples per pixel (0 = off; costs render time).
+    """
+
+    width: int = 256
+    height: int = 256
+    fovy_deg: float = 50.0
+    distance: tuple[float, float] = (1.6, 4.5)
+    aim_offset: float = 0.12
+    max_clutter: int = 8
+    max_lights: int = 4
+    room_margin: tuple[float, float] = (0.2, 3.0)
+    n_textures: int = 96
+    texture_size: int = 128
+    bank_seed: int = 20190226
+    msaa: int = 2
+
+
+@dataclass(frozen=True)
+class StudioView:
+    """One rendered paper-protocol sample.
+
+    Attributes:
+        rgb: image, shape (H, W, 3), uint8.
+        mask: pixels of the object, shape (H, W), bool (the object is never occluded, so this is
+            both its silhouette and its visible mask; it can be cut by the image border).
+        K: intrinsics, shape (3, 3) [px].
+        T_C_O: object pose in the camera (OpenCV convention), shape (4, 4) [m].
+        roll: the camera's in-plane rotation about its optical axis [rad], in [-pi, pi).
+        distance: camera-to-object-origin distance [m].
+    """
+
+    rgb: np.ndarray
+    mask: np.ndarray
+    K: np.ndarray
+    T_C_O: np.ndarray
+    roll: float
+    distance: float
+
+
+# --- texture bank ----------------------------------------------------------------------------
+
+
+def _random_colour(rng: np.random.Generator) -> np.ndarray:
+    """A random RGB colour in [0, 1]: saturated, pastel or grey with equal chance."""
+    kind = rng.integers(3)
+    if kind == 0:
+        return rng.uniform(0.0, 1.0, 3)
+    if kind == 1:
+        return rng.uniform(0.5, 1.0, 3)
+    return np.full(3, rng.uniform(0.05, 0.95))
+
+
+def _procedural_texture(rng: np.random.Generator, size: int) -> np.ndarray:
+    """A (size, size, 3) uint8 texture: smooth noise, stripes or blobs in random colours."""
+    c1, c2 = _random_colour(rng), _random_colour(rng)
+    kind = rng.integers(3)
+    if kind == 0:
+        cells = int(rng.integers(3, 17))
+        low = rng.random((cells, cells)).astype(np.float32)
+        w = cv2.resize(low, (size, size), interpolation=cv2.INTER_CUBIC)
+        w = np.clip(w, 0.0, 1.0)[..., None]
+    elif kind == 1:
+        v, u = np.mgrid[0:size, 0:size] / size
+        angle = rng.uniform(0.0, np.pi)
+        freq = float(rng.integers(1, 9))
+        phase = np.cos(angle) * u + np.sin(angle) * v
+        w = (0.5 + 0.5 * np.sin(2 * np.pi * freq * phase))[..., None]
+        if rng.random() < 0.5:
+            w = (w > 0.5).astype(np.float64)
+    else:
+        img = np.zeros((size, size), np.float32)
+        for _ in range(int(rng.integers(5, 40))):
+            centre = (int(rng.integers(size)), int(rng.integers(size)))
+            radius = int(rng.integers(2, size // 4))
+            cv2.circle(img, centre, radius, float(rng.uniform(0.3, 1.0)), -1)
+        w = img[..., None]
+    tex = (1.0 - w) * c1 + w * c2
+    return np.clip(np.round(255.0 * tex), 0, 255).astype(np.uint8)
+
+
+def _add_texture_bank(spec: mujoco.MjSpec, cfg: StudioConfig) -> list[str]:
+    """Add `cfg.n_textures` 2D textures to spec; returns their names."""
+    rng = np.random.default_rng(cfg.bank_seed)
+    names = []
+    builtins = (
+        mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+        mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+        mujoco.mjtBuiltin.mjBUILTIN_FLAT,
+    )
+    marks = (
+        mujoco.mjtMark.mjMARK_NONE,
+        mujoco.mjtMark.mjMARK_EDGE,
+        mujoco.mjtMark.mjMARK_CROSS,
+        mujoco.mjtMark.mjMARK_RANDOM,
+    )
+    for i in range(cfg.n_textures):
+        tex = spec.add_texture()
+        tex.name = f"bank_{i:03d}"
+        tex.type = mujoco.mjtTexture.mjTEXTURE_2D
+        tex.width = tex.height = cfg.texture_size
+        if i % 2 == 0:
+            tex.nchannel = 3
+            tex.data = _procedural_texture(rng, cfg.texture_size).tobytes()
+        else:
+            tex.builtin = builtins[rng.integers(len(builtins))]
+            tex.rgb1 = _random_colour(rng)
+            tex.rgb2 = _random_colour(rng)
+            mark = marks[rng.integers(len(marks))]
+            if tex.builtin == mujoco.mjtBuiltin.mjBUILTIN_FLAT:
+                mark = mujoco.mjtMark.mjMARK_RANDOM
+            tex.mark = mark
+            tex.markrgb = _random_colour(rng)
+            tex.random = float(rng.uniform(0.01, 0.3))
+        names.append(tex.name)
+    # Plain surfaces use a white texture rather than none: switching a material's texture off at
+    # run time (texid -1) leaves the previous frame's texture bound in MuJoCo's renderer.
+    tex = spec.add_texture()
+    tex.name = "plain"
+    tex.type = mujoco.mjtTexture.mjTEXTURE_2D
+    tex.builtin = mujoco.mjtBuiltin.mjBUILTIN_FLAT
+    tex.width = tex.height = 8
+    tex.rgb1 = tex.rgb2 = [1.0, 1.0, 1.0]
+    return names
+
+
+# --- the model -------------------------------------------------------------------------------
+
+
+def build_studio_spec(objects: Sequence[ObjectModel], cfg: StudioConfig) -> mujoco.MjSpec:
+    """The studio model: objects at the origin, room, clutter and light pools, one camera."""
+    spec = mujoco.MjSpec()
+    spec.modelname = "posegrasp_studio"
+    spec.stat.extent = 1.0
+    spec.stat.center = [0.0, 0.0, 0.0]
+    spec.visual.map.znear = 0.01
+    spec.visual.map.zfar = 50.0
+    spec.visual.global_.offwidth = max(cfg.width, 64)
+    spec.visual.global_.offheight = max(cfg.height, 64)
+    spec.visual.quality.offsamples = cfg.msaa
+    bank = _add_texture_bank(spec, cfg)
+
+    def slot_material(name: str) -> str:
+        mat = spec.add_material()
+        mat.name = name
+        mat.texuniform = True
+        mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = bank[0]
+        return name
+
+    room = spec.worldbody.add_body()
+    room.name = "room"
+    room.mocap = True
+    for i in range(6):
+        g = room.add_geom()
+        g.name = f"wall_{i}"
+        g.type = mujoco.mjtGeom.mjGEOM_BOX
+        g.size = [1.0, 1.0, _WALL_THICKNESS]
+        g.contype = g.conaffinity = 0
+        g.group = BACKGROUND_GROUP
+        g.material = slot_material(f"wall_{i}")
+    for i in range(cfg.max_clutter):
+        g = spec.worldbody.add_geom()
+        g.name = f"clutter_{i}"
+        g.type = mujoco.mjtGeom.mjGEOM_BOX
+        g.size = [0.05, 0.05, 0.05]
+        g.contype = g.conaffinity = 0
+        g.group = HIDDEN_GROUP
+        g.material = slot_material(f"clutter_{i}")
+    for i in range(cfg.max_lights):
+        light = spec.worldbody.add_light()
+        light.name = f"light_{i}"
+        light.castshadow = False
+    cam = spec.worldbody.add_camera()
+    cam.name = CAMERA
+    cam.fovy = cfg.fovy_deg
+    for obj in objects:
+        obj.add_to_spec(spec, obj.name, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+        for part in obj.parts:
+            mat = spec.add_material()
+            mat.name = f"{obj.name}/{part.name}"
+            spec.geom(f"{obj.name}/{part.name}").material = mat.name
+    return spec
+
+
+def _look_at(position: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
+    """R_world_cv of a camera at position looking at target, rolled by roll about its axis.
+
+    With roll = 0 the image's x axis is horizontal (perpendicular to world z; world y when the
+    camera looks straight up or down).
+    """
+    z = target - position
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    if np.linalg.norm(x) < 1e-6:
+        x = np.cross(z, [0.0, 1.0, 0.0])
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    c, s = np.cos(roll), np.sin(roll)
+    rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return np.stack([x, y, z], axis=1) @ rz
+
+
+def _mat_to_quat(R: np.ndarray) -> np.ndarray:
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=float).reshape(-1))
+    return q
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    return q / np.linalg.norm(q)
+
+
+def _unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+class OffscreenRenderer:
+    """Offscreen RGB and segmentation renders of fixed cameras, for one model at a time.
+
+    One GL context lives as long as the renderer; MuJoCo's render context (textures, meshes) is
+    rebuilt only when a different model is passed, so a stream of freshly compiled scenes costs
+    no new GL context each. Shadows, reflections and the skybox are off. The GL context is made
+    on first use; call `close()` to free it.
+    """
+
+    def __init__(self, width: int, height: int) -> None:
+        self.width, self.height = width, height
+        self._gl: mujoco.GLContext | None = None
+        self._model: mujoco.MjModel | None = None
+        self._ctx: mujoco.MjrContext | None = None
+        self._scene: mujoco.MjvScene | None = None
+        self._cam = mujoco.MjvCamera()
+        self._cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._pert = mujoco.MjvPerturb()
+        self._rect = mujoco.MjrRect(0, 0, width, height)
+        self._buf = np.empty((height, width, 3), np.uint8)
+
+    def _bind(self, model: mujoco.MjModel) -> tuple[mujoco.MjrContext, mujoco.MjvScene]:
+        if self._gl is None:
+            self._gl = mujoco.GLContext(self.width, self.height)
+        self._gl.make_current()
+        if model is not self._model or self._ctx is None or self._scene is None:
+            if self._ctx is not None:
+                self._ctx.free()
+            vis = model.vis.global_
+            vis.offwidth, vis.offheight = (
+                max(vis.offwidth, self.width),
+                max(vis.offheight, self.height),
+            )
+            self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
+            self._scene = mujoco.MjvScene(model, maxgeom=10000)
+            for flag in ("mjRND_SHADOW", "mjRND_REFLECTION", "mjRND_SKYBOX"):
+                self._scene.flags[getattr(mujoco.mjtRndFlag, flag)] = False
+            self._model = model
+        return self._ctx, self._scene
+
+    def render(
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        camera: int,
+        opt: mujoco.MjvOption | None = None,
+        segment: bool = False,
+    ) -> np.ndarray:
+        """RGB image, or segmentation id colours if segment (black where nothing is drawn).
+
+        Needs up-to-date kinematics and camera poses in data. Returns shape (H, W, 3), uint8.
+        """
+        ctx, scene = self._bind(model)
+        self._cam.fixedcamid = camera
+        mujoco.mjv_updateScene(
+            model,
+            data,
+            opt or mujoco.MjvOption(),
+            self._pert,
+            self._cam,
+            mujoco.mjtCatBit.mjCAT_ALL,
+            scene,
+        )
+        scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = segment
+        scene.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = segment
+        mujoco.mjr_render(self._rect, scene, ctx)
+        mujoco.mjr_readPixels(self._buf, None, self._rect, ctx)
+        return np.flipud(self._buf).copy()
+
+    def geom_ids(
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        camera: int,
+        opt: mujoco.MjvOption | None = None,
+    ) -> np.ndarray:
+        """Geom id per pixel (-1 where no geom is drawn), shape (H, W), int32."""
+        raw = self.render(model, data, camera, opt, segment=True).astype(np.int32)
+        segid = raw[..., 0] + (raw[..., 1] << 8) + (raw[..., 2] << 16) - 1
+        scene = self._bind(model)[1]
+        # Index ngeom (the last entry) stands for "nothing drawn" (segid -1).
+        lut = np.full(scene.ngeom + 1, -1, np.int32)
+        for i in range(scene.ngeom):
+            g = scene.geoms[i]
+            if g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
+                lut[i] = g.objid
+        return lut[np.where((segid >= 0) & (segid < scene.ngeom), segid, scene.ngeom)]
+
+    def close(self) -> None:
+        """Free the render and GL contexts."""
+        if self._ctx is not None:
+            self._ctx.free()
+            self._ctx = None
+        if self._gl is not None:
+            self._gl.free()
+            self._gl = None
+        self._model = self._scene = None
+
+
+class Studio:
+    """The compiled paper-protocol model with its renderer; render samples with `render`.
+
+    The GL context is created on the first render. Call `close()` (or use as a context manager).
+    """
+
+    def __init__(
+        self, config: StudioConfig | None = None, objects: Sequence[str] = OBJECT_NAMES
+    ) -> None:
+        self.config = cfg = config or StudioConfig()
+        for n in objects:
+            if n not in OBJECT_NAMES:
+                raise UnknownNameError("object", n, OBJECT_NAMES)
+        self.objects = {n: load_object(n) for n in objects}
+        self.model = build_studio_spec(list(self.objects.values()), cfg).compile()
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self._cam = m.camera(CAMERA).id
+        self._room = m.body("room").mocapid[0]
+        self._walls = [m.geom(f"wall_{i}").id for i in range(6)]
+        self._clutter = [m.geom(f"clutter_{i}").id for i in range(cfg.max_clutter)]
+        self._bank = [m.texture(f"bank_{i:03d}").id for i in range(cfg.n_textures)]
+        self._plain = m.texture("plain").id
+        self._geoms: dict[str, np.ndarray] = {}
+        self._mats: dict[str, np.ndarray] = {}
+        for name, obj in self.objects.items():
+            self._geoms[name] = np.array([m.geom(f"{name}/{p.name}").id for p in obj.parts])
+            self._mats[name] = np.array([m.material(f"{name}/{p.name}").id for p in obj.parts])
+        # The compiler marks geoms built at their body's origin as "same frame" and then ignores
+        # geom_pos/geom_quat; these geoms are moved per sample.
+        m.geom_sameframe[self._walls + self._clutter] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE
+        self._base_rgba = m.geom_rgba.copy()
+        self.K = intrinsics(m, CAMERA, cfg.width, cfg.height)
+        self._renderer = OffscreenRenderer(cfg.width, cfg.height)
+        self._opt_all = mujoco.MjvOption()
+        self._opt_object = mujoco.MjvOption()
+        self._opt_object.geomgroup[:] = 0
+        self._opt_object.geomgroup[VISUAL_GROUP] = 1
+
+    # -- randomisation ------------------------------------------------------------------------
+
+    def _show_only(self, name: str) -> None:
+        m = self.model
+        for other, geoms in self._geoms.items():
+            m.geom_group[geoms] = VISUAL_GROUP if other == name else HIDDEN_GROUP
+
+    def _set_material(self, mat: int, rng: np.random.Generator) -> None:
+        m = self.model
+        m.mat_texid[mat, mujoco.mjtTextureRole.mjTEXROLE_RGB] = (
+            self._bank[rng.integers(len(self._bank))] if rng.random() < 0.85 else self._plain
+        )
+        tint = rng.uniform(0.5, 1.0, 3) if rng.random() < 0.5 else np.full(3, rng.uniform(0.5, 1))
+        m.mat_rgba[mat] = [*tint, 1.0]
+        m.mat_texrepeat[mat] = rng.uniform(0.5, 8.0, 2)
+        m.mat_specular[mat] = rng.uniform(0.0, 0.5)
+        m.mat_shininess[mat] = rng.uniform(0.0, 1.0)
+
+    def _place_camera(self, diameter: float, rng: np.random.Generator) -> tuple[float, float]:
+        cfg, m = self.config, self.model
+        distance = rng.uniform(*cfg.distance) * diameter
+        position = _unit(rng) * distance
+        aim = _unit(rng) * cfg.aim_offset * diameter * rng.random() ** (1 / 3)
+        roll = rng.uniform(-np.pi, np.pi)
+        R_world_mj = _look_at(position, aim, roll) @ R_CV_FROM_MJ
+        m.cam_pos[self._cam] = position
+        m.cam_quat[self._cam] = _mat_to_quat(R_world_mj)
+        return float(roll), float(distance)
+
+    def _place_room(self, distance: float, rng: np.random.Generator) -> None:
+        m, d = self.model, self.data
+        d.mocap_quat[self._room] = _random_rotation(rng)
+        d.mocap_pos[self._room] = 0.0
+        half = distance + rng.uniform(*self.config.room_margin, 3)
+        for i, g in enumerate(self._walls):
+            axis, sign = i // 2, 1.0 if i % 2 else -1.0
+            pos = np.zeros(3)
+            pos[axis] = sign * (half[axis] + _WALL_THICKNESS)
+            m.geom_pos[g] = pos
+            others = [k for k in range(3) if k != axis]
+            # A wall normal to axis: a box whose local z is that axis.
+            R = np.eye(3)[:, [*others, axis]]
+            if np.linalg.det(R) < 0:
+                R[:, 0] *= -1
+            m.geom_quat[g] = _mat_to_quat(R)
+            m.geom_size[g] = [half[others[0]] + 0.05, half[others[1]] + 0.05, _WALL_THICKNESS]
+            self._set_material(m.geom_matid[g], rng)
+
+    def _place_clutter(self, radius: float, rng: np.random.Generator) -> None:
+        """Clutter anywhere in view except in front of the object's bounding sphere."""
+        m, cfg = self.model, self.config
+        cam_pos = m.cam_pos[self._cam].copy()
+        R_world_cv = np.zeros(9)
+        mujoco.mju_quat2Mat(R_world_cv, m.cam_quat[self._cam])
+        R_world_cv = R_world_cv.reshape(3, 3) @ R_CV_FROM_MJ
+        to_obj = -cam_pos
+        d_obj = float(np.linalg.norm(to_obj))
+        half_angle_obj = np.arcsin(min(1.0, radius / d_obj))
+        Kinv = np.linalg.inv(self.K)
+        n = int(rng.integers(cfg.max_clutter + 1))
+        for i, g in enumerate(self._clutter):
+            if i >= n:
+                m.geom_group[g] = HIDDEN_GROUP
+                continue
+            gtype = _CLUTTER_TYPES[rng.integers(len(_CLUTTER_TYPES))]
+            size = rng.uniform(0.02, 0.25, 3)
+            r = {
+                mujoco.mjtGeom.mjGEOM_BOX: float(np.linalg.norm(size)),
+                mujoco.mjtGeom.mjGEOM_SPHERE: float(size[0]),
+                mujoco.mjtGeom.mjGEOM_CYLINDER: float(np.hypot(size[0], size[1])),
+                mujoco.mjtGeom.mjGEOM_CAPSULE: float(size[0] + size[1]),
+                mujoco.mjtGeom.mjGEOM_ELLIPSOID: float(size.max()),
+            }[gtype]
+            uv = rng.uniform(-0.2, 1.2, 2) * [cfg.width, cfg.height]
+            ray = R_world_cv @ (Kinv @ np.array([uv[0], uv[1], 1.0]))
+            ray = ray / np.linalg.norm(ray)
+            depth = rng.uniform(0.1, 3.0)
+            q = cam_pos + depth * ray
+            quat = _random_rotation(rng)
+            # Occlusion test: does the clutter's bounding sphere overlap the object's image disc
+            # while being nearer than the object's far side?
+            angle = np.arccos(np.clip(ray @ to_obj / d_obj, -1.0, 1.0))
+            half_angle = np.arcsin(min(1.0, r / depth))
+            overlaps = angle < half_angle_obj + half_angle
+            nearer = depth - r < d_obj + radius
+            touches = np.linalg.norm(q) < r + radius or depth < r + 0.02
+            if (overlaps and nearer) or touches:
+                m.geom_group[g] = HIDDEN_GROUP
+                continue
+            m.geom_group[g] = BACKGROUND_GROUP
+            m.geom_type[g] = gtype
+            m.geom_size[g] = size
+            m.geom_pos[g] = q
+            m.geom_quat[g] = quat
+            self._set_material(m.geom_matid[g], rng)
+
+    def _place_lights(self, rng: np.random.Generator) -> None:
+        m, cfg = self.model, self.config
+        n = int(rng.integers(1, cfg.max_lights + 1))
+        total = rng.uniform(0.6, 1.5)
+        kinds = (
+            mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+            mujoco.mjtLightType.mjLIGHT_POINT,
+            mujoco.mjtLightType.mjLIGHT_SPOT,
+        )
+        for i in range(cfg.max_lights):
+            m.light_active[i] = i < n
+            m.light_type[i] = kinds[rng.choice(3, p=[0.4, 0.35, 0.25])]
+            pos = _unit(rng) * rng.uniform(0.5, 3.0)
+            m.light_pos[i] = pos
+            direction = -pos / np.linalg.norm(pos) + rng.normal(0.0, 0.15, 3)
+            m.light_dir[i] = direction / np.linalg.norm(direction)
+            m.light_cutoff[i] = rng.uniform(30.0, 80.0)
+            m.light_exponent[i] = rng.uniform(0.0, 10.0)
+            m.light_attenuation[i] = [1.0, 0.0, 0.0]
+            colour = np.clip(1.0 + rng.normal(0.0, 0.12, 3), 0.6, 1.2)
+            m.light_diffuse[i] = colour * total / n * rng.uniform(0.7, 1.3)
+            m.light_specular[i] = rng.uniform(0.0, 0.5)
+            m.light_ambient[i] = 0.0
+        hl = m.vis.headlight
+        hl.ambient[:] = rng.uniform(0.1, 0.4)
+        hl.diffuse[:] = rng.uniform(0.05, 0.4)
+        hl.specular[:] = rng.uniform(0.0, 0.2)
+
+    def _jitter_object(self, name: str, rng: np.random.Generator) -> None:
+        m = self.model
+        geoms, mats = self._geoms[name], self._mats[name]
+        gain = rng.uniform(0.85, 1.15)
+        rgb = self._base_rgba[geoms, :3] * gain + rng.normal(0.0, 0.03, (len(geoms), 3))
+        m.geom_rgba[geoms, :3] = np.clip(rgb, 0.0, 1.0)
+        m.mat_specular[mats] = rng.uniform(0.0, 0.7)
+        m.mat_shininess[mats] = rng.uniform(0.0, 1.0)
+        m.mat_emission[mats] = rng.uniform(0.0, 0.1)
+
+    # -- rendering ----------------------------------------------------------------------------
+
+    def render(self, name: str, rng: np.random.Generator) -> StudioView:
+        """Render object name from a random view with a random background and lighting."""
+        if name not in self.objects:
+            raise UnknownNameError("object", name, list(self.objects))
+        obj = self.objects[name]
+        radius = float(np.linalg.norm(obj.extents) / 2)
+        self._show_only(name)
+        roll, distance = self._place_camera(obj.diameter, rng)
+        self._place_room(distance, rng)
+        self._place_clutter(radius, rng)
+        self._place_lights(rng)
+        self._jitter_object(name, rng)
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_camlight(self.model, self.data)
+        r, m, d = self._renderer, self.model, self.data
+        rgb = r.render(m, d, self._cam, self._opt_all)
+        # The object is never occluded, so its mask is the segmentation of the object alone.
+        # Segmentation colours encode (scene geom index + 1) in R, G, B; black is background.
+        # The object alone has fewer than 256 geoms, so R alone tells object from background.
+        mask = r.render(m, d, self._cam, self._opt_object, segment=True)[..., 0] > 0
+        T_world_C = T_world_cam(self.model, self.data, CAMERA)
+        T_C_O = invert_transform(T_world_C)  # T_world_O is the identity
+        return StudioView(rgb, mask, self.K.copy(), T_C_O, roll, distance)
+
+    def close(self) -> None:
+        """Free the GL context."""
+        self._renderer.close()
+
+    def __enter__(self) -> Studio:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

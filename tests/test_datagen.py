@@ -1,0 +1,330 @@
+"""Tests of the dataset generator (`python -m perception.datagen`) and the dataset loader."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
+import cv2
+import numpy as np
+import pytest
+
+from perception import dataset as ds
+from perception.datagen import SEED_BASES, main
+from perception.geometry import invert_transform, project
+from sim import constants as C
+from sim.camera import T_world_cam, intrinsics
+from sim.errors import AssetError
+from sim.objects import OBJECT_NAMES, load_object
+from sim.scene import SceneConfig, build_scene
+
+N_PAPER = 8
+N_HEADCAM = 3
+
+
+def _run(*args: str) -> int:
+    return main([*args, "--quiet"])
+
+
+@pytest.fixture(scope="module")
+def paper(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("paper")
+    assert (
+        _run("--dist", "paper", "--split", "val", "--count", str(N_PAPER), "--out", str(out)) == 0
+    )
+    return out
+
+
+@pytest.fixture(scope="module")
+def headcam(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("headcam")
+    args = ["--dist", "headcam", "--split", "test", "--count", str(N_HEADCAM), "--out", str(out)]
+    assert _run(*args) == 0
+    return out
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+
+
+def _silhouette(
+    name: str, T_C_O: np.ndarray, K: np.ndarray, shape: tuple[int, int], ss: int = 4
+) -> np.ndarray:
+    """The mesh's silhouette, rasterised triangle by triangle (independent of MuJoCo).
+
+    Rasterised at ss x ss samples per pixel; a pixel is inside if most of its samples are.
+    """
+    mesh = load_object(name).mesh
+    pts = np.asarray(mesh.vertices) @ T_C_O[:3, :3].T + T_C_O[:3, 3]
+    uv = (project(K, pts) + 0.5) * ss - 0.5  # pixel centres of the finer grid
+    img = np.zeros((shape[0] * ss, shape[1] * ss), np.uint8)
+    fixed = np.round(uv * 16).astype(np.int32)
+    for tri in np.asarray(mesh.faces):
+        cv2.fillConvexPoly(img, fixed[tri], 1, cv2.LINE_8, 4)
+    return img.reshape(shape[0], ss, shape[1], ss).mean(axis=(1, 3)) > 0.5
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / (a | b).sum())
+
+
+# --- layout ----------------------------------------------------------------------------------
+
+
+def test_bop_layout_and_units(paper: Path) -> None:
+    sdir = paper / "val" / "000000"
+    for im_id in range(N_PAPER):
+        assert (sdir / "rgb" / f"{im_id:06d}.png").is_file()
+        assert (sdir / "mask" / f"{im_id:06d}_000000.png").is_file()
+        assert (sdir / "mask_visib" / f"{im_id:06d}_000000.png").is_file()
+    gt = json.loads((sdir / "scene_gt.json").read_text())
+    cam = json.loads((sdir / "scene_camera.json").read_text())
+    info = json.loads((sdir / "scene_gt_info.json").read_text())
+    pg = json.loads((sdir / "scene_posegrasp.json").read_text())
+    assert sorted(gt, key=int) == [str(i) for i in range(N_PAPER)]
+    for key in gt:
+        (entry,) = gt[key]
+        (extra,) = pg[key]["objects"]
+        T = np.asarray(extra["T_C_O"])
+        # BOP stores millimetres, our sidecar metres.
+        np.testing.assert_allclose(entry["cam_t_m2c"], T[:3, 3] * 1000.0, rtol=1e-12)
+        np.testing.assert_allclose(np.reshape(entry["cam_R_m2c"], (3, 3)), T[:3, :3])
+        assert entry["obj_id"] == OBJECT_NAMES.index(extra["class"]) + 1
+        assert extra["class"] == OBJECT_NAMES[int(key) % 6]
+        assert pg[key]["seed"] == SEED_BASES["val"] + int(key)
+        assert cam[key]["depth_scale"] == 1.0 and len(cam[key]["cam_K"]) == 9
+        (gi,) = info[key]
+        assert set(gi) >= {"bbox_obj", "bbox_visib", "px_count_all", "px_count_visib"}
+        assert 0.0 < gi["visib_fract"] <= 1.0
+    top = json.loads((paper / "info.json").read_text())
+    assert top["splits"]["val"]["seed_range"] == [SEED_BASES["val"], SEED_BASES["val"] + N_PAPER]
+    assert top["splits"]["val"]["count"] == N_PAPER
+    models = json.loads((paper / "models" / "models_info.json").read_text())
+    for oid, name in enumerate(OBJECT_NAMES, start=1):
+        assert (paper / "models" / f"obj_{oid:06d}.ply").read_bytes().startswith(b"ply\n")
+        m = models[str(oid)]
+        assert m["diameter"] == pytest.approx(load_object(name).diameter * 1000.0)
+        assert m["size_x"] == pytest.approx(load_object(name).extents[0] * 1000.0, rel=1e-5)
+        assert "symmetries_discrete" not in m  # no object has a symmetry
+
+
+def test_split_seed_ranges_are_disjoint() -> None:
+    bases = sorted(SEED_BASES.values())
+    assert all(b - a >= 100_000_000 for a, b in itertools.pairwise(bases))
+
+
+# --- the annotations are right ---------------------------------------------------------------
+
+
+def test_paper_pose_projects_onto_mask(paper: Path) -> None:
+    data = ds.PoseDataset(paper, "val")
+    assert len(data) == N_PAPER
+    for sample in data:
+        (obj,) = sample.objects
+        assert sample.rgb.shape == (256, 256, 3)
+        np.testing.assert_array_equal(obj.mask, obj.mask_visib)  # nothing occludes the object
+        x0, y0, x1, y1 = obj.box_xyxy
+        assert x0 < obj.uv[0] < x1 and y0 < obj.uv[1] < y1
+        np.testing.assert_allclose(obj.uv, project(sample.K, obj.T_C_O[:3, 3]))
+        sil = _silhouette(obj.name, obj.T_C_O, sample.K, obj.mask.shape)
+        assert _iou(sil, obj.mask) > 0.9, (sample.im_id, _iou(sil, obj.mask))
+        assert -np.pi <= sample.extra["roll"] < np.pi
+
+
+def test_paper_K_matches_sim_intrinsics(paper: Path) -> None:
+    from perception.backgrounds import CAMERA, Studio
+
+    studio = Studio()  # no GL context is created without rendering
+    K = intrinsics(studio.model, CAMERA, 256, 256)
+    np.testing.assert_array_equal(ds.load_sample(paper, "val", 0).K, K)
+    cam = json.loads((paper / "camera.json").read_text())
+    assert (cam["fx"], cam["cx"], cam["width"]) == (K[0, 0], K[0, 2], 256)
+
+
+def test_headcam_matches_the_seeded_scene(headcam: Path) -> None:
+    data = ds.PoseDataset(headcam, "test")
+    assert len(data) == N_HEADCAM
+    sample = data[0]
+    assert sample.rgb.shape == (480, 640, 3)
+    target = [o for o in sample.objects if o.extra["target"]]
+    assert len(target) == 1 and target[0].name == OBJECT_NAMES[0]
+    # The recorded seed rebuilds the same scene.
+    scene = build_scene(
+        OBJECT_NAMES[0],
+        sample.seed,
+        SceneConfig(n_distractors=sample.extra["n_distractors"], randomize_appearance=True),
+    )
+    np.testing.assert_allclose(sample.K, intrinsics(scene.model, C.HEAD_CAMERA, 640, 480))
+    T_C_W = invert_transform(T_world_cam(scene.model, scene.data, C.HEAD_CAMERA))
+    for obj in sample.objects:
+        np.testing.assert_allclose(
+            obj.T_C_O, T_C_W @ scene.object_pose(obj.extra["body"]), atol=1e-9
+        )
+
+
+def test_headcam_masks_and_poses(headcam: Path) -> None:
+    n_objects = 0
+    for sample in ds.PoseDataset(headcam, "test"):
+        for obj in sample.objects:
+            n_objects += 1
+            assert not (obj.mask_visib & ~obj.mask).any()
+            assert obj.mask_visib.any() and 0.0 < obj.visib_fract <= 1.0
+            full = _silhouette(obj.name, obj.T_C_O, sample.K, obj.mask.shape)
+            if obj.info["bbox_obj"] == obj.info["bbox_visib"]:  # inside the image
+                assert _iou(full, obj.mask) > 0.9
+    assert n_objects >= N_HEADCAM
+
+
+def test_truncated_silhouette_counts_pixels_outside_the_image() -> None:
+    from perception.datagen import _full_silhouette
+
+    obj = load_object("car")
+    K = np.array([[300.0, 0, 99.5], [0, 300.0, 99.5], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, 3] = [0.12, 0.0, 0.6]  # the car's front leaves the image on the right
+    cut = _silhouette("car", T, K, (200, 200))
+    # Ground truth: the same view on an image 200 px wider on the right.
+    wide = _silhouette("car", T, K, (200, 400))
+    assert wide[:, :200].sum() == cut.sum() and wide[:, 200:].sum() > 0.1 * wide.sum()
+    n, box = _full_silhouette(obj, T, K, cut)
+    assert n == pytest.approx(wide.sum(), rel=0.01)
+    assert box == pytest.approx(ds.bbox_xywh(wide), abs=1)
+
+
+# --- reproducible and resumable --------------------------------------------------------------
+
+
+def test_same_arguments_give_identical_bytes(paper: Path, tmp_path: Path) -> None:
+    out = tmp_path / "again"
+    args = ["--dist", "paper", "--split", "val", "--count", str(N_PAPER), "--out", str(out)]
+    assert _run(*args, "--workers", "2") == 0
+    assert _files(out) == _files(paper)
+
+
+def test_resume_skips_done_samples(paper: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "resume"
+    shutil.copytree(paper, out)
+    sdir = out / "val" / "000000"
+    # An interrupted run: image 5 has no record (and a stray temporary file), image 6 nothing.
+    ds.record_path(sdir, 5).unlink()
+    (sdir / "rgb" / "000005.png.tmp").write_bytes(b"partial")
+    for p in [ds.record_path(sdir, 6), ds.rgb_path(sdir, 6), *sdir.glob("mask*/000006_*")]:
+        p.unlink()
+    kept = ds.rgb_path(sdir, 0)
+    kept.write_bytes(kept.read_bytes())  # same bytes, new mtime
+    stamp = kept.stat().st_mtime_ns
+    capsys.readouterr()
+    args = ["--dist", "paper", "--split", "val", "--count", str(N_PAPER), "--out", str(out)]
+    assert _run(*args) == 0
+    assert f"rendered 2, {N_PAPER - 2} already done" in capsys.readouterr().out
+    assert kept.stat().st_mtime_ns == stamp  # done samples are not rewritten
+    assert not (sdir / "rgb" / "000005.png.tmp").exists()  # reused and renamed
+    assert _files(out) == _files(paper)
+
+
+def test_extending_a_split_keeps_its_samples(paper: Path, tmp_path: Path) -> None:
+    out = tmp_path / "extend"
+    args = ["--dist", "paper", "--split", "val", "--out", str(out)]
+    assert _run(*args, "--count", "3") == 0
+    assert _run(*args, "--count", str(N_PAPER)) == 0
+    assert _files(out) == _files(paper)
+
+
+# --- corrupt files are detected --------------------------------------------------------------
+
+
+def test_corrupt_png_is_detected(paper: Path, tmp_path: Path) -> None:
+    out = tmp_path / "corrupt"
+    shutil.copytree(paper, out)
+    png = ds.rgb_path(out / "val" / "000000", 2)
+    png.write_bytes(png.read_bytes()[:-100])
+    with pytest.raises(AssetError, match=r"corrupt PNG .*000002\.png.*python -m perception"):
+        ds.load_sample(out, "val", 2)
+    ds.load_sample(out, "val", 1)  # the others still load
+    mask = ds.mask_path(out / "val" / "000000", 3, 0, visib=True)
+    mask.write_bytes(b"not a png")
+    with pytest.raises(AssetError, match=r"mask_visib"):
+        ds.load_sample(out, "val", 3)
+    mask.unlink()
+    with pytest.raises(AssetError, match=r"missing dataset file"):
+        ds.load_sample(out, "val", 3)
+
+
+def test_corrupt_json_is_detected(paper: Path, tmp_path: Path) -> None:
+    out = tmp_path / "corrupt_json"
+    shutil.copytree(paper, out)
+    gt = out / "val" / "000000" / "scene_gt.json"
+    gt.write_text(gt.read_text()[:50])
+    with pytest.raises(AssetError) as err:
+        ds.load_sample(out, "val", 0)
+    msg = str(err.value)
+    assert "scene_gt.json" in msg and "--dist paper --split val --count 8" in msg
+    assert "\n" not in msg
+
+
+# --- command line ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--dist", "paper", "--split", "val", "--count", "2", "--objects", "cat"], "car, faucet"),
+        (["--dist", "paper", "--split", "val", "--count", "0"], "valid: 1.."),
+        (["--dist", "photo", "--split", "val", "--count", "1"], "paper, headcam"),
+        (["--dist", "paper", "--split", "dev", "--count", "1"], "train, val, test"),
+        (["--dist", "paper", "--split", "val", "--count", "x"], "invalid int value"),
+        (["--dist", "paper", "--split", "val", "--count", "1", "--width", "0"], "1..4096"),
+    ],
+)
+def test_cli_bad_arguments_give_one_line(args, needle, tmp_path: Path, capsys) -> None:
+    assert main([*args, "--out", str(tmp_path / "x")]) != 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ") and needle in err
+
+
+def test_cli_unwritable_output(tmp_path: Path, capsys) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["--dist", "paper", "--split", "val", "--count", "1", "--out", str(blocker)]) != 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot write to output folder" in err
+
+
+def test_cli_refuses_to_mix_arguments(paper: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "mix"
+    shutil.copytree(paper, out)
+    args = ["--dist", "paper", "--split", "val", "--count", "2", "--out", str(out)]
+    assert main([*args, "--width", "128", "--height", "128"]) != 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "use another --out" in err
+    assert main([*args, "--objects", "phone"]) != 0
+    assert "--objects" in capsys.readouterr().err
+
+
+def test_cli_help(capsys) -> None:
+    assert main(["--help"]) == 0
+    assert "--dist" in capsys.readouterr().out
+
+
+def test_preview_contact_sheet(paper: Path, tmp_path: Path) -> None:
+    sheet = tmp_path / "sheet.png"
+    args = ["--dist", "paper", "--split", "val", "--count", str(N_PAPER), "--out", str(paper)]
+    assert _run(*args, "--preview", str(sheet)) == 0
+    img = cv2.imread(str(sheet))
+    assert img.shape == (2 * 256, 6 * 256, 3)
+    # The axes are drawn: pure red, green and blue-ish strokes appear on the sheet.
+    drawn = ds.draw_annotations(ds.load_sample(paper, "val", 0))
+    assert (drawn != ds.load_sample(paper, "val", 0).rgb).any()
+
+
+def test_datagen_does_not_import_torch() -> None:
+    code = "import sys, perception.datagen, perception.dataset; print('torch' in sys.modules)"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert res.stdout.strip() == "False"
