@@ -1,0 +1,202 @@
+"""Evaluation of the pose nets on the held-out test splits (`python -m perception.evaluate`).
+
+For each data distribution (`headcam`, `paper`) the test images' boxes are perturbed as
+detections are (random shift and scale, seeded), the nets predict, the exact geometry decodes,
+and the paper's Table 1 (centre error) and Table 2 (distance and rotation error, IoU accuracy)
+are printed per object beside the paper's numbers, with ADD-S recall at 0.1 d, 5 cm 5 deg
+recall, medians, 90th percentiles and the outlier rate (rotation > 15 deg).
+
+    python -m perception.evaluate [--weights perception/weights/posenet_ours.pt] --json out.json
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from perception import metrics
+from perception.nets import NetConfig, PoseNet
+from perception.overlay import silhouette
+from perception.train import (
+    DISTS,
+    WEIGHTS_DIR,
+    CropConfig,
+    build_crops,
+    data_root,
+    decode_predictions,
+    pose_metrics,
+    predict,
+)
+from sim.cli import ArgumentParser, check_writable_file, fail
+from sim.errors import AssetError, PosegraspError
+from sim.objects import OBJECT_NAMES, load_object
+
+#: The paper's Tables 1 and 2 (Staszak & Belter 2019), per object and average.
+PAPER = {
+    "center_px_mean": {"car": 1.89, "chair": 1.77, "faucet": 1.07, "screen": 1.75, "phone": 1.64,
+                       "pistol": 2.17, "average": 1.72},
+    "center_px_std": {"car": 1.53, "chair": 1.45, "faucet": 1.06, "screen": 1.60, "phone": 1.55,
+                      "pistol": 2.10, "average": 1.55},
+    "distance_pct_mean": {"car": 5.43, "chair": 6.19, "faucet": 5.87, "screen": 6.59,
+                          "phone": 7.12, "pistol": 5.57, "average": 6.12},
+    "distance_pct_std": {"car": 5.12, "chair": 5.79, "faucet": 6.27, "screen": 7.04,
+                         "phone": 7.53, "pistol": 5.23, "average": 6.16},
+    "rotation_deg_mean": {"car": 2.83, "chair": 3.19, "faucet": 3.03, "screen": 3.76,
+                          "phone": 4.22, "pistol": 3.58, "average": 3.43},
+    "rotation_deg_std": {"car": 3.21, "chair": 3.68, "faucet": 3.46, "screen": 4.15,
+                         "phone": 4.59, "pistol": 4.01, "average": 3.85},
+    "iou_acc": {"car": 0.972, "chair": 0.956, "faucet": 0.964, "screen": 0.961, "phone": 0.958,
+                "pistol": 0.961, "average": 0.964},
+}  # fmt: skip
+#: Test boxes are perturbed like detections, with this seed.
+TEST_CROPS = CropConfig(per_object=1, max_shift=0.05, scale_range=(1.0, 1.2), seed=12345)
+
+
+def load_model(path: Path) -> PoseNet:
+    """A trained PoseNet from a checkpoint or shipped weights file.
+
+    Raises:
+        AssetError: the file is missing or corrupt (the message says how to rebuild it).
+    """
+    hint = "rebuild it with `make weights` (or python -m perception.train)"
+    if not path.is_file():
+        raise AssetError(f"weights file {path} is missing; {hint}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        model = PoseNet(NetConfig(**state["model_config"]))
+        model.load_state_dict({k: v.float() for k, v in state["model"].items()})
+    except Exception as exc:  # any unpickling or shape error means a bad file
+        raise AssetError(f"weights file {path} is corrupt ({exc}); {hint}") from exc
+    model.eval()
+    return model
+
+
+def _iou(T_est: np.ndarray, T_gt: np.ndarray, K: np.ndarray, name: str) -> float:
+    mesh = load_object(name).mesh
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    # Render both silhouettes in a window around the true projection.
+    h, w = int(2 * K[1, 2] + 1), int(2 * K[0, 2] + 1)
+    a = silhouette(T_est, K, v, f, (h, w))
+    b = silhouette(T_gt, K, v, f, (h, w))
+    return metrics.mask_iou(a, b)
+
+
+def _summary(m: dict[str, np.ndarray], extra: dict[str, np.ndarray]) -> dict[str, float]:
+    out: dict[str, float] = {"count": len(m["center_px"])}
+    for key, arr in (
+        ("center_px", m["center_px"]),
+        ("center_crop_px", m["center_crop_px"]),
+        ("distance_pct", m["distance_pct"]),
+        ("rotation_deg", m["rotation_deg"]),
+    ):
+        s = metrics.summary_stats(arr)
+        out |= {f"{key}_mean": s["mean"], f"{key}_std": s["std"],
+                f"{key}_median": s["median"], f"{key}_p90": s["p90"]}  # fmt: skip
+    out["iou_acc"] = float(np.mean(extra["iou"]))
+    out["outlier_rate"] = metrics.outlier_rate(m["rotation_deg"])
+    out["add_s_recall"] = float(np.mean(extra["adi_rel"] < 0.1))
+    out["recall_5cm5deg"] = metrics.recall_5cm5deg(extra["trans_m"], m["rotation_deg"])
+    return out
+
+
+def evaluate_split(model: PoseNet, root: Path, limit: int | None = None) -> dict:
+    """Metrics on one distribution's test split, per object and averaged over objects."""
+    data = build_crops(root, "test", TEST_CROPS, limit)
+    if len(data["crops"]) == 0:
+        raise AssetError(f"no test crops under {root}")
+    pred = predict(model, data["crops"], data["cls"], data["scale"])
+    dec = decode_predictions(pred, data)
+    m = pose_metrics(dec, data)
+    n = len(data["cls"])
+    iou, adi_rel, trans = np.zeros(n), np.zeros(n), np.zeros(n)
+    pts = {o: np.asarray(load_object(o).mesh.vertices) for o in OBJECT_NAMES}
+    for i in range(n):
+        name = OBJECT_NAMES[int(data["cls"][i])]
+        Te, Tg = dec["T_C_O"][i], data["T_C_O"][i]
+        iou[i] = _iou(Te, Tg, data["K"][i], name)
+        adi = metrics.adi(Te[:3, :3], Te[:3, 3], Tg[:3, :3], Tg[:3, 3], pts[name])
+        adi_rel[i] = adi / load_object(name).diameter
+        trans[i] = np.linalg.norm(Te[:3, 3] - Tg[:3, 3])
+    extra = {"iou": iou, "adi_rel": adi_rel, "trans_m": trans}
+    per_object = {}
+    for c, name in enumerate(OBJECT_NAMES):
+        sel = data["cls"] == c
+        if sel.any():
+            per_object[name] = _summary({k: v[sel] for k, v in m.items()},
+                                        {k: v[sel] for k, v in extra.items()})  # fmt: skip
+    keys = [k for k in next(iter(per_object.values())) if k != "count"]
+    average = {k: float(np.mean([po[k] for po in per_object.values()])) for k in keys}
+    average["count"] = n
+    return {"per_object": per_object, "average": average}
+
+
+def format_tables(name: str, res: dict) -> str:
+    """The paper's Table 1 and 2 layout, ours beside the paper's."""
+    cols = [*OBJECT_NAMES, "average"]
+    rows = [f"== {name} test split ({res['average']['count']} crops) ==",
+            f"{'metric':<26}" + "".join(f"{c:>16}" for c in cols)]  # fmt: skip
+
+    def row(label: str, key: str, scale: float = 1.0, paper: bool = True) -> None:
+        vals = []
+        for c in cols:
+            src = res["average"] if c == "average" else res["per_object"].get(c)
+            ours = "-" if src is None else f"{src[key] * scale:.2f}"
+            ref = PAPER.get(key, {}).get(c)
+            cell = f"{ours} ({ref * scale:.2f})" if paper and ref is not None else ours
+            vals.append(f"{cell:>16}")
+        rows.append(f"{label:<26}" + "".join(vals))
+
+    rows.append("Table 1: centre (ours (paper))")
+    row("e_centre [px]", "center_px_mean")
+    row("e_centre std [px]", "center_px_std")
+    row("e_centre [64x64 crop px]", "center_crop_px_mean", paper=False)
+    rows.append("Table 2: pose (ours (paper))")
+    row("e_distance [%]", "distance_pct_mean")
+    row("e_distance std [%]", "distance_pct_std")
+    row("e_rotation [deg]", "rotation_deg_mean")
+    row("e_rotation std [deg]", "rotation_deg_std")
+    row("acc_IoU [%]", "iou_acc", 100)
+    rows.append("Beyond the paper")
+    row("e_distance median [%]", "distance_pct_median", paper=False)
+    row("e_distance p90 [%]", "distance_pct_p90", paper=False)
+    row("e_rotation median [deg]", "rotation_deg_median", paper=False)
+    row("e_rotation p90 [deg]", "rotation_deg_p90", paper=False)
+    row("outliers (>15 deg) [%]", "outlier_rate", 100, paper=False)
+    row("ADD-S < 0.1d recall [%]", "add_s_recall", 100, paper=False)
+    row("5cm 5deg recall [%]", "recall_5cm5deg", 100, paper=False)
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python -m perception.evaluate", description=__doc__.split("\n")[0])
+    p.add_argument("--weights", type=Path, default=WEIGHTS_DIR / "posenet_ours.pt")
+    p.add_argument("--dists", default="headcam,paper", help="comma list of: headcam, paper")
+    p.add_argument("--limit", type=int, default=None, help="at most this many test images")
+    p.add_argument("--json", type=Path, default=None)
+    args = p.parse_args(argv)
+    dists = args.dists.split(",")
+    if any(d not in DISTS for d in dists):
+        return fail(f"unknown distribution in {args.dists!r}; valid: {', '.join(DISTS)}")
+    try:
+        if args.json is not None:
+            check_writable_file(args.json)
+        model = load_model(args.weights)
+        report = {}
+        for d in dists:
+            report[d] = evaluate_split(model, data_root() / d, args.limit)
+            print(format_tables(d, report[d]))
+    except PosegraspError as exc:
+        return fail(str(exc))
+    if args.json is not None:
+        args.json.write_text(json.dumps(report, indent=1, sort_keys=True))
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

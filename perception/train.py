@@ -1,0 +1,405 @@
+"""Training of the 2D/4D pose nets on our renders (`python -m perception.train`).
+
+Crops are cut once per split with the paper's imprecise boxes (random shift and scale of the
+visible box), several per object instance, and cached next to the data (`crops_*.npz`). Training
+is seeded, checkpoints every epoch and every few minutes with everything needed to resume or
+rebuild the model (weights, model config, optimiser, step, RNG states, data seeds, commit), and
+validates each epoch.
+
+    python -m perception.train --variant ours --epochs 12
+    python -m perception.train --smoke            # seconds, on whatever small data exists
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from perception.crops import (
+    crop_and_resize,
+    crop_to_image,
+    from_unit,
+    image_to_crop,
+    random_square_box,
+    to_unit,
+)
+from perception.dataset import PoseDataset, load_info
+from perception.geometry import decode, encode
+from perception.nets import CROP, VARIANTS, NetConfig, PoseNet, loss_fn, normalise
+from sim.cli import ArgumentParser, fail
+from sim.errors import AssetError, PosegraspError
+from sim.objects import OBJECT_NAMES
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+WEIGHTS_DIR = REPO_ROOT / "perception" / "weights"
+DISTS = ("paper", "headcam")
+
+
+def data_root() -> Path:
+    """Folder holding one dataset per distribution: $POSEGRASP_DATA, else data/ in the repo."""
+    env = os.environ.get("POSEGRASP_DATA")
+    return Path(env) if env else REPO_ROOT / "data"
+
+
+def git_commit() -> str:
+    """The repository's HEAD commit, or "unknown"."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=5
+        )
+        return out.stdout.strip() or "unknown"
+    except OSError:
+        return "unknown"
+
+
+# --- crops -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CropConfig:
+    """How crops are cut from a split.
+
+    Attributes:
+        per_object: crops per annotated object instance (each with its own random box).
+        max_shift: random shift of the box centre, as a fraction of its side.
+        scale_range: random scale of the square box side relative to the box's longer side.
+        min_visib: instances less visible than this are skipped.
+        seed: seed of the random boxes.
+    """
+
+    per_object: int = 2
+    max_shift: float = 0.1
+    scale_range: tuple[float, float] = (0.95, 1.35)
+    min_visib: float = 0.5
+    seed: int = 0
+
+
+def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = None) -> dict:
+    """Cut (or load cached) training crops and labels of one split of one dataset.
+
+    Returns:
+        dict of arrays: crops (N, 64, 64, 3) uint8, cls (N,), uv_unit (N, 2), p (N, 3),
+        theta (N,), scale (N,) = side / f, box (N, 3) square boxes (x0, y0, side), K (N, 3, 3),
+        T_C_O (N, 4, 4), uv (N, 2) true origin pixel.
+    """
+    tag = f"crops_{split}_{cfg.per_object}_{cfg.seed}_{limit or 'all'}.npz"
+    cache = root / tag
+    if cache.is_file():
+        try:
+            with np.load(cache) as z:
+                return {k: z[k] for k in z.files}
+        except (OSError, ValueError) as exc:
+            raise AssetError(f"corrupt crop cache {cache}: {exc}; delete it to rebuild") from exc
+    ds = PoseDataset(root, split)
+    n = len(ds) if limit is None else min(limit, len(ds))
+    rng = np.random.default_rng([cfg.seed, ("train", "val", "test").index(split)])
+    out: dict[str, list] = {k: [] for k in ("crops", "cls", "uv_unit", "p", "theta", "scale",
+                                            "box", "K", "T_C_O", "uv")}  # fmt: skip
+    for i in tqdm(range(n), desc=f"crops {root.name}/{split}", leave=False):
+        s = ds[i]
+        for obj in s.objects:
+            if obj.visib_fract < cfg.min_visib or obj.T_C_O[2, 3] <= 0:
+                continue
+            p, theta, uv = encode(obj.T_C_O, s.K)
+            for _ in range(cfg.per_object):
+                box = random_square_box(obj.box_xyxy, rng, cfg.max_shift, cfg.scale_range)
+                out["crops"].append(crop_and_resize(s.rgb, box, CROP))
+                out["cls"].append(obj.obj_id - 1)
+                out["uv_unit"].append(to_unit(image_to_crop(uv, box, CROP), CROP))
+                out["p"].append(p)
+                out["theta"].append(theta)
+                out["scale"].append(box[2] / s.K[0, 0])
+                out["box"].append(np.asarray(box, float))
+                out["K"].append(s.K)
+                out["T_C_O"].append(obj.T_C_O)
+                out["uv"].append(uv)
+    arrays = {
+        "crops": np.asarray(out["crops"], np.uint8).reshape(-1, CROP, CROP, 3),
+        "cls": np.asarray(out["cls"], np.int64),
+        "uv_unit": np.asarray(out["uv_unit"], np.float32).reshape(-1, 2),
+        "p": np.asarray(out["p"], np.float32).reshape(-1, 3),
+        "theta": np.asarray(out["theta"], np.float32),
+        "scale": np.asarray(out["scale"], np.float32),
+        "box": np.asarray(out["box"], np.float64).reshape(-1, 3),
+        "K": np.asarray(out["K"], np.float64).reshape(-1, 3, 3),
+        "T_C_O": np.asarray(out["T_C_O"], np.float64).reshape(-1, 4, 4),
+        "uv": np.asarray(out["uv"], np.float64).reshape(-1, 2),
+    }
+    tmp = cache.with_suffix(".tmp.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(cache)
+    return arrays
+
+
+def concat(parts: list[dict]) -> dict:
+    """Concatenate crop dicts."""
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+# --- prediction and metrics -------------------------------------------------------------------
+
+
+@torch.no_grad()
+def predict(model: PoseNet, crops: np.ndarray, cls: np.ndarray, scale: np.ndarray,
+            batch: int = 512) -> dict[str, np.ndarray]:  # fmt: skip
+    """Network outputs for arrays of crops: uv_unit (N, 2), p (N, 3), theta (N,)."""
+    model.eval()
+    uv, p, th = [], [], []
+    for i in range(0, len(crops), batch):
+        out = model(
+            normalise(torch.from_numpy(crops[i : i + batch])),
+            torch.from_numpy(cls[i : i + batch]),
+            torch.from_numpy(scale[i : i + batch]).float(),
+        )
+        uv.append(out.uv_unit.numpy())
+        p.append(out.p.numpy())
+        th.append(out.theta.numpy())
+    if not uv:
+        return {"uv_unit": np.zeros((0, 2)), "p": np.zeros((0, 3)), "theta": np.zeros(0)}
+    return {"uv_unit": np.concatenate(uv), "p": np.concatenate(p), "theta": np.concatenate(th)}
+
+
+def decode_predictions(pred: dict, data: dict) -> dict[str, np.ndarray]:
+    """Full-image origin pixels (N, 2) and poses T_C_O (N, 4, 4) from network outputs."""
+    n = len(pred["p"])
+    uv_img = np.zeros((n, 2))
+    T = np.zeros((n, 4, 4))
+    for i in range(n):
+        box = tuple(data["box"][i])
+        uv_img[i] = crop_to_image(from_unit(pred["uv_unit"][i].astype(float), CROP), box, CROP)
+        T[i] = decode(pred["p"][i].astype(float), float(pred["theta"][i]), uv_img[i], data["K"][i])
+    return {"uv": uv_img, "T_C_O": T}
+
+
+def pose_metrics(dec: dict, data: dict) -> dict[str, np.ndarray]:
+    """Per-crop errors: centre [px] in the full image and in the 64x64 crop, distance [%],
+    rotation [deg]."""
+    T, Tg = dec["T_C_O"], data["T_C_O"]
+    centre = np.linalg.norm(dec["uv"] - data["uv"], axis=1)
+    dist = np.linalg.norm(T[:, :3, 3] - Tg[:, :3, 3], axis=1) / np.linalg.norm(Tg[:, :3, 3], axis=1)
+    Rrel = np.einsum("nji,njk->nik", T[:, :3, :3], Tg[:, :3, :3])
+    cosang = np.clip((np.trace(Rrel, axis1=1, axis2=2) - 1) / 2, -1, 1)
+    return {
+        "center_px": centre,
+        "center_crop_px": centre * CROP / data["box"][:, 2],
+        "distance_pct": 100 * dist,
+        "rotation_deg": np.rad2deg(np.arccos(cosang)),
+    }
+
+
+# --- training ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A training run.
+
+    Attributes:
+        variant: "paper" or "ours".
+        dists: which data distributions to train on.
+        epochs, batch, lr, weight_decay, lam: optimisation (lam weighs the rotation loss).
+        width: backbone width.
+        crops: how crops are cut.
+        limit: use at most this many images per split (None: all).
+        seed: seed of initialisation and batching.
+        out: checkpoint folder.
+        checkpoint_minutes: save a resumable checkpoint at least this often.
+        max_theta_deg: "paper" trains only on rolls within this range, as published.
+    """
+
+    variant: str = "ours"
+    dists: tuple[str, ...] = DISTS
+    epochs: int = 12
+    batch: int = 128
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    lam: float = 1.0
+    width: int = 16
+    crops: CropConfig = field(default_factory=CropConfig)
+    limit: int | None = None
+    seed: int = 0
+    out: Path = WEIGHTS_DIR / "checkpoints"
+    checkpoint_minutes: float = 5.0
+    max_theta_deg: float = 60.0
+
+
+SMOKE = TrainConfig(epochs=1, batch=16, limit=12, out=Path("out/smoke"), width=4)
+
+
+def _load_split(cfg: TrainConfig, split: str) -> dict:
+    parts = []
+    for d in cfg.dists:
+        root = data_root() / d
+        if not (root / split).is_dir():
+            raise AssetError(
+                f"no {d} {split} data under {root}; build it with "
+                f"`python -m perception.datagen --dist {d} --split {split} --count N` "
+                "(or `make data`)"
+            )
+        parts.append(build_crops(root, split, cfg.crops, cfg.limit))
+    return concat(parts)
+
+
+def _augment(x: torch.Tensor, g: torch.Generator) -> torch.Tensor:
+    """Photometric jitter: brightness, contrast, per-channel gain and pixel noise."""
+    b = x.shape[0]
+    bright = (torch.rand(b, 1, 1, 1, generator=g) - 0.5) * 0.3
+    contrast = 0.75 + 0.5 * torch.rand(b, 1, 1, 1, generator=g)
+    gain = 0.9 + 0.2 * torch.rand(b, 3, 1, 1, generator=g)
+    noise = torch.randn(x.shape, generator=g) * 0.02
+    return (x * contrast * gain + bright + noise).clamp(-0.5, 0.5)
+
+
+def evaluate_arrays(model: PoseNet, data: dict) -> dict[str, float]:
+    """Mean errors over a crop set."""
+    pred = predict(model, data["crops"], data["cls"], data["scale"])
+    m = pose_metrics(decode_predictions(pred, data), data)
+    return {k: float(np.mean(v)) for k, v in m.items()} | {
+        "outlier_rate": float(np.mean(m["rotation_deg"] > 15))
+    }
+
+
+def learning_rate(step: int, total_steps: int, peak: float, warmup: float = 0.05) -> float:
+    """Linear warm-up to `peak` over the first `warmup` fraction of steps, then cosine to 1 %."""
+    w = max(1, int(warmup * total_steps))
+    if step < w:
+        return peak * (step + 1) / w
+    frac = min(1.0, (step - w) / max(1, total_steps - w))
+    return peak * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * frac)))
+
+
+def _checkpoint(path: Path, model, opt, cfg, step, epoch, history, data_seeds) -> None:
+    state = {
+        "model": model.state_dict(),
+        "model_config": model.cfg.to_dict(),
+        "optimizer": opt.state_dict(),
+        "train_config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
+        "step": step,
+        "epoch": epoch,
+        "history": history,
+        "rng": {"torch": torch.get_rng_state()},
+        "data_seeds": data_seeds,
+        "commit": git_commit(),
+    }
+    tmp = path.with_suffix(".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+
+
+def train(cfg: TrainConfig, resume: bool = True) -> dict:
+    """Train (resuming from the run's checkpoint when present) and return the history."""
+    torch.manual_seed(cfg.seed)
+    torch.set_num_threads(max(1, os.cpu_count() or 1))
+    tr = _load_split(cfg, "train")
+    va = _load_split(cfg, "val")
+    if cfg.variant == "paper":
+        keep = np.abs(np.rad2deg(tr["theta"])) <= cfg.max_theta_deg
+        tr = {k: v[keep] for k, v in tr.items()}
+    if len(tr["crops"]) == 0:
+        raise AssetError("no training crops; generate data first (`make data`)")
+    data_seeds = {d: load_info(data_root() / d).get("seed_ranges", {}) for d in cfg.dists}
+    model = PoseNet(NetConfig(variant=cfg.variant, n_classes=len(OBJECT_NAMES), width=cfg.width))
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    steps_per_epoch = max(1, len(tr["crops"]) // cfg.batch)
+    total_steps = cfg.epochs * steps_per_epoch
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    ckpt = cfg.out / f"posenet_{cfg.variant}.pt"
+    step, epoch0, history = 0, 0, []
+    if resume and ckpt.is_file():
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        torch.set_rng_state(state["rng"]["torch"])
+        step, epoch0, history = state["step"], state["epoch"], state["history"]
+        print(f"resuming {ckpt} at epoch {epoch0}, step {step}")
+    g = torch.Generator().manual_seed(cfg.seed)
+    last_save = time.monotonic()
+    for epoch in range(epoch0, cfg.epochs):
+        g.manual_seed(cfg.seed * 1000 + epoch)
+        order = torch.randperm(len(tr["crops"]), generator=g).numpy()
+        skip = step - epoch * steps_per_epoch  # batches of this epoch already done (resume)
+        model.train()
+        bar = tqdm(range(steps_per_epoch), desc=f"{cfg.variant} epoch {epoch + 1}/{cfg.epochs}")
+        for b in bar:
+            if b < skip:
+                continue
+            idx = order[b * cfg.batch : (b + 1) * cfg.batch]
+            x = _augment(normalise(torch.from_numpy(tr["crops"][idx])), g)
+            out = model(x, torch.from_numpy(tr["cls"][idx]), torch.from_numpy(tr["scale"][idx]))
+            loss, parts = loss_fn(
+                out,
+                torch.from_numpy(tr["uv_unit"][idx]),
+                torch.from_numpy(tr["p"][idx]),
+                torch.from_numpy(tr["theta"][idx]),
+                cfg.variant,
+                cfg.lam,
+            )
+            for group in opt.param_groups:
+                group["lr"] = learning_rate(step, total_steps, cfg.lr)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+            opt.step()
+            step += 1
+            if b % 20 == 0:
+                bar.set_postfix({k: f"{v:.3f}" for k, v in parts.items()})
+            if time.monotonic() - last_save > 60 * cfg.checkpoint_minutes:
+                _checkpoint(ckpt, model, opt, cfg, step, epoch, history, data_seeds)
+                last_save = time.monotonic()
+        val = evaluate_arrays(model, va)
+        history.append({"epoch": epoch + 1, "step": step, **val})
+        print(
+            f"epoch {epoch + 1}: val centre {val['center_px']:.2f} px, distance "
+            f"{val['distance_pct']:.2f} %, rotation {val['rotation_deg']:.2f} deg, "
+            f"outliers {val['outlier_rate']:.1%}"
+        )
+        _checkpoint(ckpt, model, opt, cfg, step, epoch + 1, history, data_seeds)
+        last_save = time.monotonic()
+    return {"checkpoint": str(ckpt), "history": history}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python -m perception.train", description=__doc__.split("\n")[0])
+    p.add_argument("--variant", default="ours", help=f"one of: {', '.join(VARIANTS)}")
+    p.add_argument("--epochs", type=int, default=TrainConfig.epochs)
+    p.add_argument("--batch", type=int, default=TrainConfig.batch)
+    p.add_argument("--lr", type=float, default=TrainConfig.lr)
+    p.add_argument("--limit", type=int, default=None, help="at most this many images per split")
+    p.add_argument("--dists", default=",".join(DISTS), help="comma list of: paper, headcam")
+    p.add_argument("--out", type=Path, default=TrainConfig.out, help="checkpoint folder")
+    p.add_argument("--smoke", action="store_true", help="a tiny run that takes seconds")
+    p.add_argument("--no-resume", action="store_true", help="start over")
+    args = p.parse_args(argv)
+    if args.variant not in VARIANTS:
+        return fail(f"unknown variant {args.variant!r}; valid variants: {', '.join(VARIANTS)}")
+    dists = tuple(args.dists.split(","))
+    if any(d not in DISTS for d in dists):
+        return fail(f"unknown distribution in {args.dists!r}; valid: {', '.join(DISTS)}")
+    if args.epochs < 1 or args.batch < 1:
+        return fail("--epochs and --batch must be at least 1")
+    cfg = TrainConfig(
+        variant=args.variant, dists=dists, epochs=args.epochs, batch=args.batch, lr=args.lr,
+        limit=args.limit, out=args.out,
+    )  # fmt: skip
+    if args.smoke:
+        cfg = replace(SMOKE, variant=args.variant, dists=dists, out=args.out)
+    try:
+        result = train(cfg, resume=not args.no_resume)
+    except PosegraspError as exc:
+        return fail(str(exc))
+    print(json.dumps(result["history"][-1] if result["history"] else {}, sort_keys=True))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
