@@ -9,10 +9,10 @@ export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 EGL_PACKAGES := libegl1 libgl1 libgl1-mesa-dri libegl-mesa0 libglvnd0 libglx-mesa0
 
-.PHONY: run test lint bench system-deps setup clean
+.PHONY: run test lint bench data weights system-deps setup clean
 
 run: setup
-	$(PY) -m sim.render_scene --object phone --seed 0 --out out/head.png --external
+	$(PY) -m sim.run_episode --object phone
 
 test: setup
 	$(PY) -m pytest -q -m "not slow"
@@ -22,6 +22,19 @@ lint: setup
 
 bench: setup
 	$(PY) bench/sim_speed.py
+
+# Training data (outside git: $$POSEGRASP_DATA, else data/) and the shipped weights, from scratch.
+DATA_COUNTS := paper:train:20000 paper:val:1000 paper:test:1000 \
+	headcam:train:5000 headcam:val:500 headcam:test:500
+data: setup
+	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
+	  $(PY) -m perception.datagen --dist $$dist --split $$split --count $$count --workers 2 \
+	  || exit 1; done
+
+weights: data
+	$(PY) -m perception.train --variant ours
+	$(PY) -m perception.train --variant paper
+	$(PY) -m perception.export_weights
 
 setup: system-deps $(STAMP)
 

@@ -50,6 +50,11 @@ def data_root() -> Path:
     return Path(env) if env else REPO_ROOT / "data"
 
 
+def checkpoint_dir() -> Path:
+    """Where training checkpoints live by default: <data root>/checkpoints."""
+    return data_root() / "checkpoints"
+
+
 def git_commit() -> str:
     """The repository's HEAD commit, or "unknown"."""
     try:
@@ -211,7 +216,7 @@ class TrainConfig:
         crops: how crops are cut.
         limit: use at most this many images per split (None: all).
         seed: seed of initialisation and batching.
-        out: checkpoint folder.
+        out: checkpoint folder; None means `checkpoint_dir()` (next to the data, outside git).
         checkpoint_minutes: save a resumable checkpoint at least this often.
         max_theta_deg: "paper" trains only on rolls within this range, as published.
     """
@@ -227,7 +232,7 @@ class TrainConfig:
     crops: CropConfig = field(default_factory=CropConfig)
     limit: int | None = None
     seed: int = 0
-    out: Path = WEIGHTS_DIR / "checkpoints"
+    out: Path | None = None
     checkpoint_minutes: float = 5.0
     max_theta_deg: float = 60.0
 
@@ -311,8 +316,9 @@ def train(cfg: TrainConfig, resume: bool = True) -> dict:
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = max(1, len(tr["crops"]) // cfg.batch)
     total_steps = cfg.epochs * steps_per_epoch
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    ckpt = cfg.out / f"posenet_{cfg.variant}.pt"
+    out = cfg.out or checkpoint_dir()
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = out / f"posenet_{cfg.variant}.pt"
     step, epoch0, history = 0, 0, []
     if resume and ckpt.is_file():
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
@@ -376,7 +382,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lr", type=float, default=TrainConfig.lr)
     p.add_argument("--limit", type=int, default=None, help="at most this many images per split")
     p.add_argument("--dists", default=",".join(DISTS), help="comma list of: paper, headcam")
-    p.add_argument("--out", type=Path, default=TrainConfig.out, help="checkpoint folder")
+    p.add_argument(
+        "--out", type=Path, default=None, help="checkpoint folder (default: <data>/checkpoints)"
+    )
     p.add_argument("--smoke", action="store_true", help="a tiny run that takes seconds")
     p.add_argument("--no-resume", action="store_true", help="start over")
     args = p.parse_args(argv)

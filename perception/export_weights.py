@@ -1,0 +1,85 @@
+"""Turn training checkpoints into the shipped weights and their manifest.
+
+    python -m perception.export_weights [--checkpoints DIR (default: <data>/checkpoints)]
+
+Writes `perception/weights/posenet_<variant>.pt` (float16 weights and the model config, no
+optimiser state) and `perception/weights/manifest.json` (command, data seed ranges, sizes,
+validation metrics, commit) for every variant that has a checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from perception.nets import VARIANTS
+from perception.train import WEIGHTS_DIR, checkpoint_dir, git_commit
+from sim.cli import ArgumentParser, fail
+
+MANIFEST = WEIGHTS_DIR / "manifest.json"
+
+
+def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
+    """Export every variant found under `checkpoints`; returns the manifest."""
+    manifest = json.loads(MANIFEST.read_text()) if MANIFEST.is_file() else {}
+    nets = manifest.setdefault("pose_nets", {})
+    found = False
+    for variant in VARIANTS:
+        ckpt = checkpoints / f"posenet_{variant}.pt"
+        if not ckpt.is_file():
+            continue
+        found = True
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        shipped = {
+            "model": {
+                k: (v.half() if v.is_floating_point() else v) for k, v in state["model"].items()
+            },
+            "model_config": state["model_config"],
+            "step": state["step"],
+            "epoch": state["epoch"],
+            "commit": state["commit"],
+        }
+        path = out / f"posenet_{variant}.pt"
+        torch.save(shipped, path)
+        tc = state["train_config"]
+        nets[variant] = {
+            "file": path.name,
+            "bytes": path.stat().st_size,
+            "command": f"python -m perception.train --variant {variant} --epochs {tc['epochs']}",
+            "train_config": tc,
+            "data_seeds": state["data_seeds"],
+            "epochs_done": state["epoch"],
+            "validation": state["history"][-1] if state["history"] else None,
+            "trained_at_commit": state["commit"],
+        }
+    if not found:
+        raise FileNotFoundError(
+            f"no checkpoints under {checkpoints}; run python -m perception.train"
+        )
+    manifest["rebuild"] = "make weights"
+    manifest["exported_at_commit"] = git_commit()
+    MANIFEST.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+    return manifest
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(
+        prog="python -m perception.export_weights", description=__doc__.split("\n")[0]
+    )
+    p.add_argument("--checkpoints", type=Path, default=None)
+    args = p.parse_args(argv)
+    try:
+        m = export(args.checkpoints or checkpoint_dir())
+    except FileNotFoundError as exc:
+        return fail(str(exc))
+    for v, e in m["pose_nets"].items():
+        print(f"{v}: {e['file']} ({e['bytes'] / 1e6:.1f} MB), epochs {e['epochs_done']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
