@@ -7,6 +7,12 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
+# torch (with torchvision and torch._dynamo, which loads triton) must be imported before any
+# MuJoCo GL context exists: importing triton afterwards crashes the process (SPEC section 9).
+import torch  # noqa: I001
+import torch._dynamo  # noqa: F401
+import torchvision  # noqa: F401
+
 from collections.abc import Callable
 
 import mujoco
