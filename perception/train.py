@@ -6,7 +6,7 @@ is seeded, checkpoints every epoch and every few minutes with everything needed 
 rebuild the model (weights, model config, optimiser, step, RNG states, data seeds, commit), and
 validates each epoch.
 
-    python -m perception.train --variant ours --epochs 12
+    python -m perception.train --variant ours --epochs 7
     python -m perception.train --smoke            # seconds, on whatever small data exists
 """
 
@@ -219,11 +219,12 @@ class TrainConfig:
         out: checkpoint folder; None means `checkpoint_dir()` (next to the data, outside git).
         checkpoint_minutes: save a resumable checkpoint at least this often.
         max_theta_deg: "paper" trains only on rolls within this range, as published.
+        threads: torch CPU threads (None: all cores).
     """
 
     variant: str = "ours"
     dists: tuple[str, ...] = DISTS
-    epochs: int = 12
+    epochs: int = 7
     batch: int = 128
     lr: float = 2e-3
     weight_decay: float = 1e-4
@@ -235,6 +236,7 @@ class TrainConfig:
     out: Path | None = None
     checkpoint_minutes: float = 5.0
     max_theta_deg: float = 60.0
+    threads: int | None = None
 
 
 SMOKE = TrainConfig(epochs=1, batch=16, limit=12, out=Path("out/smoke"), width=4)
@@ -303,7 +305,7 @@ def _checkpoint(path: Path, model, opt, cfg, step, epoch, history, data_seeds) -
 def train(cfg: TrainConfig, resume: bool = True) -> dict:
     """Train (resuming from the run's checkpoint when present) and return the history."""
     torch.manual_seed(cfg.seed)
-    torch.set_num_threads(max(1, os.cpu_count() or 1))
+    torch.set_num_threads(cfg.threads or max(1, os.cpu_count() or 1))
     tr = _load_split(cfg, "train")
     va = _load_split(cfg, "val")
     if cfg.variant == "paper":
@@ -385,6 +387,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--out", type=Path, default=None, help="checkpoint folder (default: <data>/checkpoints)"
     )
+    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
     p.add_argument("--smoke", action="store_true", help="a tiny run that takes seconds")
     p.add_argument("--no-resume", action="store_true", help="start over")
     args = p.parse_args(argv)
@@ -397,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
         return fail("--epochs and --batch must be at least 1")
     cfg = TrainConfig(
         variant=args.variant, dists=dists, epochs=args.epochs, batch=args.batch, lr=args.lr,
-        limit=args.limit, out=args.out,
+        limit=args.limit, out=args.out, threads=args.threads,
     )  # fmt: skip
     if args.smoke:
         cfg = replace(SMOKE, variant=args.variant, dists=dists, out=args.out)
