@@ -54,6 +54,10 @@ class PlanningError(PosegraspError):
         self.reason = reason
 
 
+class _NoConvergence(Exception):
+    """One IK target of a candidate was not reached."""
+
+
 @dataclass(frozen=True)
 class PlannerConfig:
     """Planner settings. Lengths [m], angles [rad].
@@ -201,6 +205,15 @@ class GraspPlanner:
             self.configuration.integrate_inplace(v, cfg.dt)
         return pe < cfg.pos_tol and re < cfg.rot_tol, pe, re
 
+    def _reach(self, T_target: np.ndarray, stage: str) -> np.ndarray:
+        """Solve IK for a grasp-site pose from the current configuration; planned joints."""
+        ok, pe, re = self._solve(T_target)
+        if not ok:
+            raise _NoConvergence(
+                f"{stage} IK did not converge ({pe * 1000:.1f} mm, {np.rad2deg(re):.1f} deg)"
+            )
+        return self.configuration.q[self.qadr].copy()
+
     def order_candidates(
         self, T_world_O: np.ndarray, candidates: tuple[GraspCandidate, ...], q: np.ndarray
     ) -> list[tuple[GraspCandidate, np.ndarray]]:
@@ -266,37 +279,22 @@ class GraspPlanner:
             T_pre[:3, 3] -= self.cfg.pregrasp_offset * approach_dir
             T_hover = T_pre.copy()
             T_hover[2, 3] += self.cfg.hover_height
-            ok, pe, re = self._solve(T_hover)
-            if not ok:
-                last = f"hover IK did not converge ({pe * 1000:.1f} mm, {np.rad2deg(re):.1f} deg)"
-                continue
-            q_hover = self.configuration.q[self.qadr].copy()
-            ok, pe, re = self._solve(T_pre)
-            if not ok:
-                last = (
-                    f"pre-grasp IK did not converge ({pe * 1000:.1f} mm, {np.rad2deg(re):.1f} deg)"
-                )
-                continue
-            q_pre = self.configuration.q[self.qadr].copy()
-            waypoints = []
             n = self.cfg.approach_waypoints
+            T_approach = []
             for k in range(1, n + 1):
                 T_k = T_grasp.copy()
                 T_k[:3, 3] -= (1 - k / n) * self.cfg.pregrasp_offset * approach_dir
-                ok, pe, re = self._solve(T_k)
-                if not ok:
-                    break
-                waypoints.append(self.configuration.q[self.qadr].copy())
-            if not ok:
-                last = f"approach IK did not converge ({pe * 1000:.1f} mm)"
-                continue
+                T_approach.append(T_k)
             T_lift = T_grasp.copy()
             T_lift[2, 3] += self.cfg.lift_height
-            ok, pe, re = self._solve(T_lift)
-            if not ok:
-                last = f"lift IK did not converge ({pe * 1000:.1f} mm)"
+            try:
+                q_hover = self._reach(T_hover, "hover")
+                q_pre = self._reach(T_pre, "pre-grasp")
+                waypoints = [self._reach(T_k, "approach") for T_k in T_approach]
+                q_lift = self._reach(T_lift, "lift")
+            except _NoConvergence as exc:
+                last = str(exc)
                 continue
-            q_lift = self.configuration.q[self.qadr].copy()
             return GraspPlan(
                 cand,
                 T_grasp,

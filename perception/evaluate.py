@@ -11,7 +11,6 @@ recall, medians, 90th percentiles and the outlier rate (rotation > 15 deg).
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from perception.train import (
     pose_metrics,
     predict,
 )
-from sim.cli import ArgumentParser, check_writable_file, fail
+from sim.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.errors import AssetError, PosegraspError
 from sim.objects import OBJECT_NAMES, load_object
 
@@ -193,8 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     except PosegraspError as exc:
         return fail(str(exc))
     if args.json is not None:
-        args.json.write_text(json.dumps(report, indent=1, sort_keys=True))
-        print(f"wrote {args.json}")
+        write_json(args.json, report)
     return 0
 
 

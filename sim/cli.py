@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import NoReturn
@@ -42,3 +43,9 @@ def check_writable_file(path: Path) -> None:
         probe.unlink()
     except OSError as exc:
         raise InvalidArgumentError(f"cannot write to {parent}: {exc.strerror}") from exc
+
+
+def write_json(path: Path, report: dict) -> None:
+    """Write a report as indented JSON with sorted keys and say where."""
+    path.write_text(json.dumps(report, indent=1, sort_keys=True))
+    print(f"wrote {path}")

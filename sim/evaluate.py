@@ -6,7 +6,6 @@
 
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
 import sys
 import time
@@ -16,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from sim.cli import ArgumentParser, check_writable_file, fail
+from sim.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.errors import PosegraspError
 from sim.estimators import ESTIMATORS, make_estimator
 from sim.objects import OBJECT_NAMES
@@ -166,8 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         return fail(str(exc))
     print(format_report(report))
     if args.json is not None:
-        args.json.write_text(json.dumps(report, indent=1, sort_keys=True))
-        print(f"wrote {args.json}")
+        write_json(args.json, report)
     return 0
 
 
