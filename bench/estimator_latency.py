@@ -1,0 +1,146 @@
+"""Latency of the hybrid pose estimator per stage on 640x480 head-camera images (2 threads).
+
+    python bench/estimator_latency.py [--images 50] [--threads 2] [--json] [--random-weights]
+
+Renders head-camera images of seeded table scenes with 1 object and with 3 objects (the target
+and 2 distractors), then times `HybridPoseEstimator.estimate_timed` on each (after a warm-up):
+median and 90th percentile of every stage (detect, crop, nets, decode) and of the total.
+Target (issue 6): total <= 66 ms median for 3 objects. `--json` prints one JSON object whose
+``total_ms_median`` is the 3-object median.
+
+Without shipped weights (`make weights`), `--random-weights` times the architecture with random
+weights: the detector then keeps its top-scoring boxes, as many as the scene has objects, so
+every stage sees the work a trained model would do; the poses are meaningless.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# torch, torchvision and torch._dynamo (which loads triton) must be imported before any MuJoCo
+# GL context exists: importing them afterwards crashes the process (SPEC section 9).
+import torch
+import torch._dynamo
+import torchvision  # noqa: F401
+
+import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
+from perception.detector import DEFAULT_WEIGHTS
+from perception.estimator import DEFAULT_POSENET, STAGES, HybridPoseEstimator
+from sim import constants as C
+from sim.camera import CameraRenderer, intrinsics
+from sim.cli import ArgumentParser, fail
+from sim.errors import PosegraspError
+from sim.objects import OBJECT_NAMES
+from sim.scene import SceneConfig, build_scene
+
+WIDTH, HEIGHT = 640, 480
+TARGET_MS = 66.0
+WARMUP = 3
+
+
+def render_images(n_objects: int, count: int, seed0: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """`count` head-camera images (rgb, K) of scenes with `n_objects` objects, seeds seed0...."""
+    out = []
+    for i in range(count):
+        obj = OBJECT_NAMES[i % len(OBJECT_NAMES)]
+        scene = build_scene(obj, seed0 + i, SceneConfig(n_distractors=n_objects - 1))
+        with CameraRenderer(scene.model, WIDTH, HEIGHT) as r:
+            rgb = r.rgb(scene.data, C.HEAD_CAMERA)
+        out.append((rgb, intrinsics(scene.model, C.HEAD_CAMERA, WIDTH, HEIGHT)))
+    return out
+
+
+def time_estimator(
+    est: HybridPoseEstimator, images: list[tuple[np.ndarray, np.ndarray]]
+) -> dict[str, Any]:
+    """Median and p90 [ms] of every stage and the total, and the mean detections per image."""
+    for rgb, K in images[:WARMUP]:
+        est.estimate_timed(rgb, K)
+    rows, counts = [], []
+    for rgb, K in images:
+        dets, t = est.estimate_timed(rgb, K)
+        rows.append(t)
+        counts.append(len(dets))
+    stats = {
+        k: {
+            "median": float(np.median([r[k] for r in rows])),
+            "p90": float(np.percentile([r[k] for r in rows], 90)),
+        }
+        for k in (*STAGES, "total")
+    }
+    return {"stages_ms": stats, "detections_per_image": float(np.mean(counts))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/estimator_latency.py", description=__doc__.split("\n")[0])
+    p.add_argument("--images", type=int, default=50, help="images per scene type (>= 1)")
+    p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--seed", type=int, default=5000, help="seed of the first scene")
+    p.add_argument("--detector", type=Path, default=DEFAULT_WEIGHTS)
+    p.add_argument("--posenet", type=Path, default=DEFAULT_POSENET)
+    p.add_argument(
+        "--random-weights",
+        action="store_true",
+        help="time the architecture with random weights (no training needed)",
+    )
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    args = p.parse_args(argv)  # fmt: skip
+    if args.images < 1 or args.threads < 1:
+        return fail("--images and --threads must be at least 1")
+    torch.set_num_threads(args.threads)
+    results = {}
+    try:
+        for n in (1, 3):
+            if args.random_weights:
+                est = HybridPoseEstimator.with_random_weights(max_detections=n)
+            else:
+                est = HybridPoseEstimator.from_weights(args.detector, args.posenet)
+            images = render_images(n, args.images, args.seed + 1000 * n)
+            results[n] = time_estimator(est, images)
+    except PosegraspError as exc:
+        hint = "" if args.random_weights else " (or pass --random-weights to time the architecture)"
+        return fail(f"{exc}{hint}")
+    three = results[3]["stages_ms"]["total"]
+    out = {
+        "weights": "random" if args.random_weights else "shipped",
+        "threads": args.threads,
+        "images": args.images,
+        "image_size": [WIDTH, HEIGHT],
+        "one_object": results[1],
+        "three_objects": results[3],
+        "total_ms_median": three["median"],
+        "total_ms_p90": three["p90"],
+        "target_ms": TARGET_MS,
+        "load_average_1min": os.getloadavg()[0],
+    }
+    if args.json:
+        print(json.dumps(out, sort_keys=True))
+        return 0
+    label = "RANDOM WEIGHTS (architecture only)" if args.random_weights else "shipped weights"
+    print(f"hybrid estimator, {label}, {WIDTH}x{HEIGHT}, {args.threads} threads, "
+          f"{args.images} images per row, load average {out['load_average_1min']:.1f}")  # fmt: skip
+    print(f"{'objects':<9}{'dets':>6}" + "".join(f"{s:>18}" for s in (*STAGES, "total")))
+    for n in (1, 3):
+        r = results[n]
+        cells = "".join(
+            f"{r['stages_ms'][s]['median']:>9.1f} /{r['stages_ms'][s]['p90']:>6.1f}"
+            for s in (*STAGES, "total")
+        )
+        print(f"{n:<9}{r['detections_per_image']:>6.1f}{cells}")
+    print("(median / p90 ms)")
+    verdict = "PASS" if three["median"] <= TARGET_MS else "MISS"
+    print(
+        f"3-object total median {three['median']:.1f} ms [target <= {TARGET_MS:.0f} ms: {verdict}]"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,253 @@
+"""The hybrid pose estimator (SPEC 1): Mask R-CNN detections, 64x64 square crops, the 2D/4D
+pose nets, and the exact geometry that turns their outputs into T_C_O.
+
+    est = HybridPoseEstimator.from_weights()  # perception/weights/{detector,posenet_ours}.pt
+    for d in est.estimate(rgb, K):  # rgb (H, W, 3) uint8, K (3, 3) [px]
+        print(d.name, d.score, d.T_C_O, d.timings_ms)
+
+Stages (each timed, in milliseconds, per image): ``detect`` (Mask R-CNN), ``crop`` (square boxes
+around the detected boxes, resampled to 64x64), ``nets`` (one batched pose-net pass over every
+detection) and ``decode`` (crop -> image pixel of the origin, then `perception.geometry.decode`).
+
+Crops match the pose nets' training: those crops were random squares of 0.95..1.35 times the
+visible box's longer side, shifted by up to 0.1 of the side; here the square is centred on the
+detected box with the mean scale, `DEFAULT_CROP_SCALE` = 1.15.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Collection
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from perception.crops import crop_and_resize, crop_to_image, from_unit, square_box
+from perception.detector import DEFAULT_WEIGHTS, Detection, Detector, DetectorConfig, check_rgb
+from perception.geometry import decode
+from perception.nets import CROP, NetConfig, PoseNet, normalise
+from sim.errors import InvalidArgumentError, UnknownNameError
+from sim.estimators import Observation
+from sim.objects import OBJECT_NAMES
+
+WEIGHTS_DIR = DEFAULT_WEIGHTS.parent
+DEFAULT_POSENET = WEIGHTS_DIR / "posenet_ours.pt"
+#: Square crop side / longer side of the detected box: the mean of the training range 0.95..1.35.
+DEFAULT_CROP_SCALE = 1.15
+STAGES: tuple[str, ...] = ("detect", "crop", "nets", "decode")
+
+
+@dataclass
+class PoseDetection:
+    """One detected object with its estimated pose.
+
+    Attributes:
+        name: object class.
+        score: detection score in [0, 1].
+        box_xyxy: detected box (x0, y0, x1, y1) [px], SPEC 2 pixel convention, shape (4,).
+        mask: visible-part mask, shape (H, W), bool.
+        T_C_O: pose of the object in the camera (OpenCV) frame, metres, shape (4, 4).
+        uv: pixel where the object's origin projects (2D-NET's output in the image) [px], (2,).
+        crop_box: the square crop (x0, y0, side) [px] the pose nets saw.
+        timings_ms: the image's per-stage wall times [ms] (`STAGES` and ``total``), shared by
+            every detection of the image.
+    """
+
+    name: str
+    score: float
+    box_xyxy: np.ndarray
+    mask: np.ndarray = field(repr=False)
+    T_C_O: np.ndarray
+    uv: np.ndarray
+    crop_box: tuple[float, float, float]
+    timings_ms: dict[str, float] = field(repr=False)
+
+
+def check_intrinsics(K: object) -> np.ndarray:
+    """Validate a pinhole K: (3, 3), finite, positive focal lengths, last row (0, 0, 1).
+
+    Raises:
+        InvalidArgumentError: otherwise.
+    """
+    arr = np.asarray(K, dtype=np.float64) if isinstance(K, (np.ndarray, list, tuple)) else None
+    if arr is None or arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
+        raise InvalidArgumentError(f"K must be a finite (3, 3) matrix, got {K!r}")
+    if arr[0, 0] <= 0 or arr[1, 1] <= 0 or not np.allclose(arr[2], (0.0, 0.0, 1.0)):
+        raise InvalidArgumentError(
+            f"K must have positive focal lengths and last row (0, 0, 1), got {arr.tolist()}"
+        )
+    return arr
+
+
+def _is_rigid(T: np.ndarray) -> bool:
+    R = T[:3, :3]
+    return bool(
+        np.all(np.isfinite(T))
+        and np.abs(R.T @ R - np.eye(3)).max() < 1e-6
+        and np.linalg.det(R) > 0
+        and T[2, 3] > 0
+    )
+
+
+class HybridPoseEstimator:
+    """Detector + pose nets + geometry, weights loaded once.
+
+    Args:
+        detector: the object extractor.
+        posenet: the 2D/4D pose nets (one class slice per object, index = obj_id - 1).
+        crop_scale: square crop side as a multiple of the detected box's longer side.
+    """
+
+    def __init__(
+        self, detector: Detector, posenet: PoseNet, crop_scale: float = DEFAULT_CROP_SCALE
+    ) -> None:
+        if not np.isfinite(crop_scale) or crop_scale <= 0:
+            raise InvalidArgumentError(f"crop_scale must be positive, got {crop_scale}")
+        if posenet.cfg.n_classes != len(OBJECT_NAMES):
+            raise InvalidArgumentError(
+                f"the pose nets have {posenet.cfg.n_classes} classes, need {len(OBJECT_NAMES)}"
+            )
+        self.detector = detector
+        self.posenet = posenet.eval()
+        self.crop_scale = float(crop_scale)
+
+    @classmethod
+    def from_weights(
+        cls,
+        detector_path: Path | str = DEFAULT_WEIGHTS,
+        posenet_path: Path | str = DEFAULT_POSENET,
+        score_threshold: float = 0.5,
+        crop_scale: float = DEFAULT_CROP_SCALE,
+        max_detections: int | None = None,
+    ) -> HybridPoseEstimator:
+        """Load the shipped weights (defaults under perception/weights/).
+
+        Raises:
+            AssetError: missing or corrupt weights, saying how to rebuild them.
+        """
+        from perception.evaluate import load_model  # deferred: it pulls in the training code
+
+        detector = Detector.from_weights(
+            Path(detector_path), score_threshold=score_threshold, max_detections=max_detections
+        )
+        return cls(detector, load_model(Path(posenet_path)), crop_scale)
+
+    @classmethod
+    def with_random_weights(
+        cls,
+        seed: int = 0,
+        score_threshold: float = 0.0,
+        max_detections: int | None = None,
+        detector_config: DetectorConfig | None = None,
+        posenet_config: NetConfig | None = None,
+    ) -> HybridPoseEstimator:
+        """Both networks with seeded random weights: for tests and for timing the architecture
+        before any training (its poses are meaningless)."""
+        detector = Detector.random(
+            detector_config, seed, score_threshold=score_threshold, max_detections=max_detections
+        )
+        with torch.random.fork_rng():
+            torch.manual_seed(seed + 1)
+            posenet = PoseNet(posenet_config or NetConfig())
+        return cls(detector, posenet)
+
+    def estimate_timed(
+        self, rgb: np.ndarray, K: np.ndarray, classes: Collection[str] | None = None
+    ) -> tuple[list[PoseDetection], dict[str, float]]:
+        """`estimate`, also returning the image's per-stage times [ms] (also when nothing is
+        detected)."""
+        rgb = check_rgb(rgb)
+        K = check_intrinsics(K)
+        if classes is not None:
+            for c in classes:
+                if c not in OBJECT_NAMES:
+                    raise UnknownNameError("object", c, OBJECT_NAMES)
+        t0 = time.perf_counter()
+        dets = self.detector.detect(rgb)
+        if classes is not None:
+            dets = [d for d in dets if d.name in classes]
+        t1 = time.perf_counter()
+        kept: list[tuple[Detection, tuple[float, float, float]]] = []
+        crops = []
+        for d in dets:
+            x0, y0, x1, y1 = d.box_xyxy
+            if not (np.all(np.isfinite(d.box_xyxy)) and x1 > x0 and y1 > y0):
+                continue
+            box = square_box(d.box_xyxy, scale=self.crop_scale)
+            kept.append((d, box))
+            crops.append(crop_and_resize(rgb, box, CROP))
+        t2 = time.perf_counter()
+        if kept:
+            with torch.inference_mode():
+                out = self.posenet(
+                    normalise(torch.from_numpy(np.stack(crops))),
+                    torch.tensor([d.obj_id - 1 for d, _ in kept]),
+                    torch.tensor([box[2] / K[0, 0] for _, box in kept], dtype=torch.float32),
+                )
+            uv_unit = out.uv_unit.double().numpy()
+            p = out.p.double().numpy()
+            theta = out.theta.double().numpy()
+        t3 = time.perf_counter()
+        results = []
+        timings: dict[str, float] = {}
+        for i, (d, box) in enumerate(kept):
+            uv = crop_to_image(from_unit(uv_unit[i], CROP), box, CROP)
+            if not np.all(np.isfinite(p[i])) or np.linalg.norm(p[i]) < 1e-9:
+                continue
+            T = decode(p[i], float(theta[i]), uv, K)
+            if not _is_rigid(T):
+                continue
+            results.append(PoseDetection(d.name, d.score, d.box_xyxy, d.mask, T, uv, box, timings))
+        t4 = time.perf_counter()
+        times = np.diff([t0, t1, t2, t3, t4]) * 1000.0
+        timings.update(zip(STAGES, (float(t) for t in times), strict=True))
+        timings["total"] = float(times.sum())
+        return results, timings
+
+    def estimate(
+        self, rgb: np.ndarray, K: np.ndarray, classes: Collection[str] | None = None
+    ) -> list[PoseDetection]:
+        """Detect every object in an image and estimate its pose.
+
+        Args:
+            rgb: image, shape (H, W, 3), uint8.
+            K: intrinsics of the image, shape (3, 3) [px].
+            classes: only these classes (None: all); the others skip the crop and nets stages.
+
+        Returns:
+            One `PoseDetection` per detection with a valid pose, highest score first; empty
+            when nothing is detected. A pose that does not decode to a proper rigid transform
+            in front of the camera is left out.
+
+        Raises:
+            InvalidArgumentError: rgb is not (H, W, 3) uint8 with H, W >= 1, or K is not a
+                valid pinhole matrix.
+            UnknownNameError: an unknown class in `classes`.
+        """
+        return self.estimate_timed(rgb, K, classes)[0]
+
+    def as_episode_estimator(self) -> HybridEpisodeEstimator:
+        """This estimator behind the episode interface (`sim.estimators.PoseEstimator`)."""
+        return HybridEpisodeEstimator(self)
+
+
+class HybridEpisodeEstimator:
+    """`sim.estimators.PoseEstimator` for episodes: the pose of the highest-scoring detection of
+    the requested class, or None when it is not detected. Ignores the privileged ground truth.
+    """
+
+    name = "hybrid"
+
+    def __init__(self, estimator: HybridPoseEstimator) -> None:
+        self.estimator = estimator
+
+    def estimate(self, obs: Observation) -> np.ndarray | None:
+        """T_C_O (4, 4) of obs.object in obs.rgb, or None."""
+        if obs.object not in OBJECT_NAMES:
+            raise UnknownNameError("object", obs.object, OBJECT_NAMES)
+        found = self.estimator.estimate(obs.rgb, obs.K, classes=(obs.object,))
+        if not found:
+            return None
+        return max(found, key=lambda d: d.score).T_C_O.copy()
