@@ -35,6 +35,7 @@ weights: data
 	$(PY) -m perception.train --variant ours
 	$(PY) -m perception.train --variant paper
 	$(PY) -m perception.export_weights
+	$(PY) -m perception.train_detector --export
 
 setup: system-deps $(STAMP)
 

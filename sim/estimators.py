@@ -132,10 +132,18 @@ class NoisyOracleEstimator:
         return perturb_pose(truth, self.noise, rng)
 
 
+def _hybrid() -> PoseEstimator:
+    """The hybrid estimator with the shipped weights (imports torch: call before rendering)."""
+    from perception.estimator import HybridPoseEstimator
+
+    return HybridPoseEstimator.from_weights().as_episode_estimator()
+
+
 #: Estimator factories by name.
 ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
     "oracle": OracleEstimator,
     "noisy-oracle": NoisyOracleEstimator,
+    "hybrid": _hybrid,
 }
 
 

@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import functools
 import multiprocessing as mp
 import sys
 import time
@@ -36,13 +37,19 @@ def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float,
     return float(max(0.0, centre - half)), float(min(1.0, centre + half))
 
 
+@functools.cache
+def _estimator(name: str):
+    """One estimator per worker process (the hybrid one loads its weights once)."""
+    return make_estimator(name)
+
+
 def _run_one(job: tuple[str, int, str]) -> dict:
     obj, seed, estimator = job
     from sim.episode import run_episode
 
     t = time.perf_counter()
     try:
-        r = run_episode(obj, seed, make_estimator(estimator))
+        r = run_episode(obj, seed, _estimator(estimator))
         d = r.to_json()
     except PosegraspError as exc:  # an episode never takes the evaluation down
         d = {
@@ -160,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.json is not None:
             check_writable_file(args.json)
+        _estimator(args.estimator)  # fails fast (e.g. missing weights) before any episode runs
         report = evaluate(objects, args.episodes, args.estimator, args.seed_start, args.workers)
     except PosegraspError as exc:
         return fail(str(exc))
