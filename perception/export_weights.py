@@ -24,6 +24,7 @@ MANIFEST = WEIGHTS_DIR / "manifest.json"
 
 def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
     """Export every variant found under `checkpoints`; returns the manifest."""
+    out.mkdir(parents=True, exist_ok=True)
     manifest = json.loads(MANIFEST.read_text()) if MANIFEST.is_file() else {}
     nets = manifest.setdefault("pose_nets", {})
     found = False
