@@ -10,7 +10,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 # torch (with torchvision and torch._dynamo, which loads triton) must be imported before any
 # MuJoCo GL context exists: importing triton afterwards crashes the process (SPEC section 9).
 import torch  # noqa: I001
-import torch._dynamo  # noqa: F401
+import torch._dynamo
 import torchvision  # noqa: F401
 
 from collections.abc import Callable
@@ -31,3 +31,12 @@ def _warnings(data: mujoco.MjData) -> dict[str, int]:
 def mj_warnings() -> Callable[[mujoco.MjData], dict[str, int]]:
     """`mj_warnings(data)`: the MuJoCo warnings counted in data, by name ({} when none)."""
     return _warnings
+
+
+@pytest.fixture(scope="module")
+def torch_one_thread():
+    """Two torch threads on a busy 2-core machine are far slower than one; restore afterwards."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
