@@ -28,9 +28,10 @@ from perception.crops import crop_and_resize, crop_to_image, from_unit, square_b
 from perception.detector import DEFAULT_WEIGHTS, Detection, Detector, DetectorConfig, check_rgb
 from perception.geometry import decode
 from perception.nets import CROP, NetConfig, PoseNet, normalise
+from perception.support import refine_on_support
 from sim.errors import InvalidArgumentError, UnknownNameError
 from sim.estimators import Observation
-from sim.objects import OBJECT_NAMES
+from sim.objects import OBJECT_NAMES, load_object
 
 WEIGHTS_DIR = DEFAULT_WEIGHTS.parent
 DEFAULT_POSENET = WEIGHTS_DIR / "posenet_ours.pt"
@@ -228,26 +229,58 @@ class HybridPoseEstimator:
         """
         return self.estimate_timed(rgb, K, classes)[0]
 
-    def as_episode_estimator(self) -> HybridEpisodeEstimator:
-        """This estimator behind the episode interface (`sim.estimators.PoseEstimator`)."""
-        return HybridEpisodeEstimator(self)
+    def as_episode_estimator(self, support: bool = False) -> HybridEpisodeEstimator:
+        """This estimator behind the episode interface (`sim.estimators.PoseEstimator`);
+        `support` puts each pose onto the observation's table (`perception.support`)."""
+        return HybridEpisodeEstimator(self, support)
 
 
 class HybridEpisodeEstimator:
     """`sim.estimators.PoseEstimator` for episodes: the pose of the highest-scoring detection of
     the requested class, or None when it is not detected. Ignores the privileged ground truth.
+
+    With `support` (name ``hybrid-table``) the pose is then moved onto the known table top
+    (`perception.support.refine_on_support`): nearest resting pose, and the distance along the
+    origin's ray at which the object touches the table. Without a known table
+    (``obs.support_z`` None) the network pose is kept.
+
+    After each call `last_info` describes the estimate: ``detected``, ``class``, ``score``,
+    ``box_xyxy``, ``uv``, ``timings_ms`` (per stage) and, with `support`, ``support``
+    (resting pose, tilt removed [deg], shift along the ray [m], what was applied).
     """
 
-    name = "hybrid"
-
-    def __init__(self, estimator: HybridPoseEstimator) -> None:
+    def __init__(self, estimator: HybridPoseEstimator, support: bool = False) -> None:
         self.estimator = estimator
+        self.support = bool(support)
+        self.name = "hybrid-table" if self.support else "hybrid"
+        self.last_info: dict = {}
 
     def estimate(self, obs: Observation) -> np.ndarray | None:
         """T_C_O (4, 4) of obs.object in obs.rgb, or None."""
         if obs.object not in OBJECT_NAMES:
             raise UnknownNameError("object", obs.object, OBJECT_NAMES)
-        found = self.estimator.estimate(obs.rgb, obs.K, classes=(obs.object,))
+        found, timings = self.estimator.estimate_timed(obs.rgb, obs.K, classes=(obs.object,))
+        self.last_info = {"detected": bool(found), "timings_ms": dict(timings)}
         if not found:
             return None
-        return max(found, key=lambda d: d.score).T_C_O.copy()
+        best = max(found, key=lambda d: d.score)
+        self.last_info |= {
+            "class": best.name,
+            "score": float(best.score),
+            "box_xyxy": [float(v) for v in best.box_xyxy],
+            "uv": [float(v) for v in best.uv],
+            "detections": len(found),
+        }
+        T = best.T_C_O.copy()
+        if self.support and obs.support_z is not None:
+            t0 = time.perf_counter()
+            ref = refine_on_support(T, obs.T_world_cam, load_object(best.name), obs.support_z)
+            self.last_info["timings_ms"]["support"] = (time.perf_counter() - t0) * 1000
+            self.last_info["support"] = {
+                "resting_pose": ref.resting_pose,
+                "tilt_deg": ref.tilt_deg,
+                "shift_m": ref.shift_m,
+                "applied": list(ref.applied),
+            }
+            T = ref.T_C_O
+        return T

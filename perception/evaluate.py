@@ -16,9 +16,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from perception import metrics
-from perception.nets import NetConfig, PoseNet
+from perception.crops import crop_and_resize, image_to_crop, square_box, to_unit
+from perception.dataset import PoseDataset
+from perception.detector import DEFAULT_WEIGHTS, Detector
+from perception.estimator import DEFAULT_CROP_SCALE
+from perception.geometry import encode
+from perception.metrics import box_iou
+from perception.nets import CROP, NetConfig, PoseNet
 from perception.overlay import silhouette
 from perception.train import (
     DISTS,
@@ -30,6 +37,7 @@ from perception.train import (
     pose_metrics,
     predict,
 )
+from perception.train_detector import coco_ap
 from sim.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.errors import AssetError, PosegraspError
 from sim.objects import OBJECT_NAMES, load_object
@@ -53,6 +61,11 @@ PAPER = {
 }  # fmt: skip
 #: Test boxes are perturbed like detections, with this seed.
 TEST_CROPS = CropConfig(per_object=1, max_shift=0.05, scale_range=(1.0, 1.2), seed=12345)
+BOXES: tuple[str, ...] = ("gt", "detector")
+#: A detection used for a pose must score at least this (the estimator's default threshold).
+MATCH_SCORE = 0.5
+#: Objects with fewer visible pixels count neither as misses nor as false positives in AP.
+MIN_VISIBLE_PX = 100
 
 
 def load_model(path: Path) -> PoseNet:
@@ -102,9 +115,79 @@ def _summary(m: dict[str, np.ndarray], extra: dict[str, np.ndarray]) -> dict[str
     return out
 
 
-def evaluate_split(model: PoseNet, root: Path, limit: int | None = None) -> dict:
-    """Metrics on one distribution's test split, per object and averaged over objects."""
-    data = build_crops(root, "test", TEST_CROPS, limit)
+def detector_crops(
+    root: Path, detector: Detector, limit: int | None = None, min_visib: float = 0.5
+) -> tuple[dict, dict]:
+    """Crops of a test split cut around detector boxes, as an end-to-end system would see them.
+
+    Every annotated object at least `min_visib` visible is matched with the highest-scoring
+    detection of its class whose box overlaps its visible box by IoU >= 0.5 and whose score is
+    at least `MATCH_SCORE`; the crop is the square `perception.estimator` cuts around that box.
+
+    Returns:
+        The crop arrays in `perception.train.build_crops`' layout (matched objects only), and a
+        detection report: ``detection`` (class name -> COCO ``box_ap``, ``box_ap50``,
+        ``mask_ap``, ``mask_ap50`` over every object of the images), ``overall`` (the same over
+        all classes), ``objects`` and ``missed`` (per class: objects to match and objects
+        without a matching detection).
+    """
+    ds = PoseDataset(root, "test")
+    n = len(ds) if limit is None else min(limit, len(ds))
+    keys = ("crops", "cls", "uv_unit", "p", "theta", "scale", "box", "K", "T_C_O", "uv")
+    out: dict[str, list] = {k: [] for k in keys}
+    gts, dets = [], []
+    objects = dict.fromkeys(OBJECT_NAMES, 0)
+    missed = dict.fromkeys(OBJECT_NAMES, 0)
+    for i in tqdm(range(n), desc=f"detector {root.name}/test", leave=False):
+        s = ds[i]
+        found = detector.detect(s.rgb)
+        gts.append([(o.obj_id, o.mask_visib) for o in s.objects if o.mask_visib.any()])
+        dets.append(found)
+        for obj in s.objects:
+            if obj.visib_fract < min_visib or obj.T_C_O[2, 3] <= 0:
+                continue
+            objects[obj.name] += 1
+            cands = [d for d in found if d.name == obj.name and d.score >= MATCH_SCORE
+                     and box_iou(d.box_xyxy, obj.box_xyxy) >= 0.5]  # fmt: skip
+            if not cands:
+                missed[obj.name] += 1
+                continue
+            d = max(cands, key=lambda d: d.score)
+            box = square_box(d.box_xyxy, scale=DEFAULT_CROP_SCALE)
+            p, theta, uv = encode(obj.T_C_O, s.K)
+            out["crops"].append(crop_and_resize(s.rgb, box, CROP))
+            out["cls"].append(obj.obj_id - 1)
+            out["uv_unit"].append(to_unit(image_to_crop(uv, box, CROP), CROP))
+            out["p"].append(p)
+            out["theta"].append(theta)
+            out["scale"].append(box[2] / s.K[0, 0])
+            out["box"].append(np.asarray(box, float))
+            out["K"].append(s.K)
+            out["T_C_O"].append(obj.T_C_O)
+            out["uv"].append(uv)
+    shapes = {"crops": (CROP, CROP, 3), "uv_unit": (2,), "p": (3,), "box": (3,), "K": (3, 3),
+              "T_C_O": (4, 4), "uv": (2,)}  # fmt: skip
+    dtypes = {"crops": np.uint8, "cls": np.int64, "box": np.float64, "K": np.float64,
+              "T_C_O": np.float64, "uv": np.float64}  # fmt: skip
+    arrays = {
+        k: np.asarray(out[k], dtypes.get(k, np.float32)).reshape(-1, *shapes.get(k, ()))
+        for k in keys
+    }
+    per_class: dict[str, dict[str, float]] = {}
+    overall = coco_ap(gts, dets, MIN_VISIBLE_PX, per_class)
+    return arrays, {"detection": per_class, "overall": overall, "objects": objects,
+                    "missed": missed, "images": n}  # fmt: skip
+
+
+def evaluate_split(
+    model: PoseNet, root: Path, limit: int | None = None, data: dict | None = None
+) -> dict:
+    """Metrics on one distribution's test split, per object and averaged over objects.
+
+    `data` gives the crops (e.g. from `detector_crops`); by default the ground-truth boxes are
+    perturbed like detections (`TEST_CROPS`)."""
+    if data is None:
+        data = build_crops(root, "test", TEST_CROPS, limit)
     if len(data["crops"]) == 0:
         raise AssetError(f"no test crops under {root}")
     pred = predict(model, data["crops"], data["cls"], data["scale"])
@@ -170,6 +253,25 @@ def format_tables(name: str, res: dict) -> str:
     return "\n".join(rows)
 
 
+def format_detection(det: dict) -> str:
+    """Per-class COCO AP and match counts of `detector_crops`' report."""
+    rows = [f"== detection on {det['images']} test images (COCO AP, pycocotools) ==",
+            f"{'class':<10}{'box AP':>9}{'box AP50':>10}{'mask AP':>9}{'mask AP50':>11}"
+            f"{'objects':>9}{'missed':>8}"]  # fmt: skip
+    for name in OBJECT_NAMES:
+        a = det["detection"].get(name, {})
+        rows.append(
+            f"{name:<10}{a.get('box_ap', -1):>9.3f}{a.get('box_ap50', -1):>10.3f}"
+            f"{a.get('mask_ap', -1):>9.3f}{a.get('mask_ap50', -1):>11.3f}"
+            f"{det['objects'][name]:>9}{det['missed'][name]:>8}"
+        )
+    o = det["overall"]
+    rows.append(f"{'all':<10}{o['box_ap']:>9.3f}{o['box_ap50']:>10.3f}{o['mask_ap']:>9.3f}"
+                f"{o['mask_ap50']:>11.3f}{sum(det['objects'].values()):>9}"
+                f"{sum(det['missed'].values()):>8}")  # fmt: skip
+    return "\n".join(rows)
+
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m perception.evaluate", description=__doc__.split("\n")[0])
@@ -177,18 +279,41 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dists", default="headcam,paper", help="comma list of: headcam, paper")
     p.add_argument("--limit", type=int, default=None, help="at most this many test images")
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument(
+        "--boxes",
+        default="gt",
+        help="crop boxes: gt (ground truth perturbed like detections) or detector (the shipped "
+        "Mask R-CNN, head-camera split only, adds COCO detection AP)",
+    )
+    p.add_argument("--detector", type=Path, default=DEFAULT_WEIGHTS, help="detector weights")
     args = p.parse_args(argv)
+    if args.boxes not in BOXES:
+        return fail(f"unknown --boxes {args.boxes!r}; valid: {', '.join(BOXES)}")
     dists = args.dists.split(",")
     if any(d not in DISTS for d in dists):
         return fail(f"unknown distribution in {args.dists!r}; valid: {', '.join(DISTS)}")
+    if args.boxes == "detector":
+        if "--dists" not in " ".join(argv if argv is not None else sys.argv):
+            dists = ["headcam"]
+        if dists != ["headcam"]:
+            return fail("--boxes detector works on the head-camera split only; valid: headcam")
     try:
         if args.json is not None:
             check_writable_file(args.json)
         model = load_model(args.weights)
-        report = {}
+        report: dict = {}
         for d in dists:
-            report[d] = evaluate_split(model, data_root() / d, args.limit)
-            print(format_tables(d, report[d]))
+            data = None
+            if args.boxes == "detector":
+                detector = Detector.from_weights(args.detector, score_threshold=0.05)
+                data, det = detector_crops(data_root() / d, detector, args.limit)
+                report["detection"] = det["detection"]
+                report["detection_summary"] = {k: v for k, v in det.items() if k != "detection"}
+                print(format_detection(det))
+            report[d] = evaluate_split(model, data_root() / d, args.limit, data)
+            if args.boxes == "detector":
+                report[d]["boxes"] = "detector"
+            print(format_tables(d if args.boxes == "gt" else f"{d} (detector boxes)", report[d]))
     except PosegraspError as exc:
         return fail(str(exc))
     if args.json is not None:

@@ -292,6 +292,24 @@ def mask_iou(mask_a: np.ndarray, mask_b: np.ndarray) -> float:
     return int(np.count_nonzero(a & b)) / union
 
 
+def box_iou(box_a: np.ndarray | Sequence[float], box_b: np.ndarray | Sequence[float]) -> float:
+    """Intersection over union of two axis-aligned boxes (x0, y0, x1, y1) [px].
+
+    Returns:
+        Area of the intersection over the area of the union, in [0, 1]; 0.0 when the union is
+        empty.
+    """
+    a, b = np.asarray(box_a, np.float64), np.asarray(box_b, np.float64)
+    if a.shape != (4,) or b.shape != (4,):
+        raise ValueError(f"boxes must have shape (4,), got {a.shape} and {b.shape}")
+    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = iw * ih
+    area = lambda x: max(0.0, x[2] - x[0]) * max(0.0, x[3] - x[1])  # noqa: E731
+    union = area(a) + area(b) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
 def recall(errors: np.ndarray | Sequence[float], threshold: float) -> float:
     """Fraction of errors strictly below ``threshold`` (BOP: a pose is correct if e < th).
 

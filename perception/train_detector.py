@@ -206,6 +206,7 @@ def coco_ap(
     gts: list[list[tuple[int, np.ndarray]]],
     dets: list[list[Detection]],
     min_visible_px: int,
+    per_class: dict[str, dict[str, float]] | None = None,
 ) -> dict[str, float]:
     """COCO box and mask AP of detections against ground truth, by pycocotools' COCOeval.
 
@@ -215,6 +216,8 @@ def coco_ap(
             nor (when detected) as false positives.
         dets: per image, the detections (scores from low thresholds give the full curve).
         min_visible_px: see gts.
+        per_class: when given, filled with class name -> ``box_ap``, ``box_ap50``, ``mask_ap``,
+            ``mask_ap50`` of that class alone.
 
     Returns:
         ``box_ap50``, ``box_ap`` (IoU 0.5:0.95), ``mask_ap50``, ``mask_ap`` in [0, 1]; 0 when
@@ -258,6 +261,25 @@ def coco_ap(
             ev.summarize()
             out[f"{kind}_ap"] = float(ev.stats[0])
             out[f"{kind}_ap50"] = float(ev.stats[1])
+            if per_class is not None:
+                for name, (ap, ap50) in _per_class_ap(ev).items():
+                    per_class.setdefault(name, {})[f"{kind}_ap"] = ap
+                    per_class[name][f"{kind}_ap50"] = ap50
+    return out
+
+
+def _per_class_ap(ev: Any) -> dict[str, tuple[float, float]]:
+    """(AP at IoU 0.5:0.95, AP50) per class from an accumulated COCOeval: the mean of its
+    precision table over IoU thresholds and recall points, all areas, at most 100 detections;
+    -1 for a class without ground truth (pycocotools' convention)."""
+    prec = ev.eval["precision"]  # (IoU thresholds, recall points, classes, areas, max dets)
+    out = {}
+    for k, cat in enumerate(ev.params.catIds):
+        pk = prec[:, :, k, 0, -1]
+        valid = pk > -1
+        ap = float(pk[valid].mean()) if valid.any() else -1.0
+        p50 = pk[0][pk[0] > -1]
+        out[OBJECT_NAMES[cat - 1]] = (ap, float(p50.mean()) if p50.size else -1.0)
     return out
 
 

@@ -1,7 +1,8 @@
 """`GraspEval-v0`: a gymnasium env in which one step is one grasp episode.
 
 Any pose estimator can be scored through it: the observation is the head-camera image with its
-intrinsics and pose and the requested object class; the action is the estimated pose of that
+intrinsics and pose, the requested object class and the height of the table top the object rests
+on (known scene geometry, in the world frame); the action is the estimated pose of that
 object in the camera frame (or "no estimate"); the step executes the grasp on that pose.
 """
 
@@ -125,6 +126,7 @@ class GraspEvalEnv(gym.Env):
                 "K": spaces.Box(-np.inf, np.inf, (3, 3), np.float64),
                 "T_world_cam": spaces.Box(-np.inf, np.inf, (4, 4), np.float64),
                 "object": spaces.Discrete(len(OBJECT_NAMES)),
+                "table_top_z": spaces.Box(-np.inf, np.inf, (1,), np.float64),
             }
         )
         self.action_space = spaces.Dict(
@@ -166,6 +168,7 @@ class GraspEvalEnv(gym.Env):
             "K": o.K,
             "T_world_cam": o.T_world_cam,
             "object": OBJECT_NAMES.index(obj),
+            "table_top_z": np.array([o.support_z], np.float64),
         }
         self._obs = obs
         return obs, {"object": obj, "episode_seed": ep_seed}

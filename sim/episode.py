@@ -17,7 +17,7 @@ from grasping.execute import ExecutionConfig, Executor
 from grasping.planner import GraspPlanner, PlannerConfig, PlanningError, check_pose
 from sim import constants as C
 from sim.camera import CameraRenderer, RenderOptions, T_world_cam, intrinsics
-from sim.estimators import Observation, PoseEstimator
+from sim.estimators import Observation, PoseEstimator, error_components
 from sim.scene import Scene, SceneConfig, build_scene
 
 
@@ -49,6 +49,7 @@ class EpisodeResult:
     grasp_part: str | None
     timings_ms: dict[str, float]
     notes: list[str] = field(default_factory=list)
+    estimate_info: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serialisable dict."""
@@ -70,6 +71,7 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray, pts: np.ndarray, diameter
         "add_m": float(metrics.add(R_e, t_e, R_g, t_g, pts)),
         "adi_m": float(metrics.adi(R_e, t_e, R_g, t_g, pts)),
         "add_rel_diameter": float(metrics.add(R_e, t_e, R_g, t_g, pts) / diameter),
+        **error_components(T_est, T_true),
     }
 
 
@@ -109,6 +111,7 @@ class Episode:
             self.object,
             self.seed,
             self.T_C_O_true.copy(),
+            support_z=float(self.scene.table_top_z),
         )
 
     def act(
@@ -180,6 +183,17 @@ class Episode:
         self.frames = outcome.frames
         return result(outcome.success, outcome.failure_reason, plan.candidate.part)
 
+    def run(self, estimator: PoseEstimator, recorder=None) -> tuple[Observation, EpisodeResult]:
+        """Observe, ask the estimator (timed as ``estimate``), act; the result carries the
+        estimator's `last_info` (when it has one) as ``estimate_info``."""
+        obs = self.observe()
+        t = time.perf_counter()
+        est = estimator.estimate(obs)
+        self.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
+        res = self.act(est, estimator.name, recorder=recorder)
+        res.estimate_info = dict(getattr(estimator, "last_info", None) or {})
+        return obs, res
+
     def close(self) -> None:
         """Free the renderer."""
         self.renderer.close()
@@ -195,10 +209,6 @@ def run_episode(
     """Build, observe, estimate, grasp and score one episode."""
     ep = Episode(obj, seed, config)
     try:
-        obs = ep.observe()
-        t = time.perf_counter()
-        est = estimator.estimate(obs)
-        ep.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
-        return ep.act(est, estimator.name, recorder=recorder)
+        return ep.run(estimator, recorder)[1]
     finally:
         ep.close()

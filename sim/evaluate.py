@@ -7,6 +7,8 @@
 from __future__ import annotations
 
 import functools
+import itertools
+import json
 import multiprocessing as mp
 import sys
 import time
@@ -142,6 +144,73 @@ def format_report(report: dict) -> str:
     return "\n".join(rows)
 
 
+#: The error components of `sim.estimators.error_components`, as the tolerance study names them
+#: (``grasping.tolerance``: key, unit scale from the episode's SI value, bin edges).
+COMPONENTS: dict[str, tuple[str, float, tuple[float, ...]]] = {
+    "ray_mm": ("ray_m", 1000.0, (0, 5, 10, 15, 20, 30, 45, 70)),
+    "lateral_mm": ("lateral_m", 1000.0, (0, 5, 10, 15, 20, 30, 45, 70)),
+    "inplane_deg": ("inplane_deg", 1.0, (0, 2.5, 5, 7.5, 10, 15, 20, 30, 45)),
+    "outplane_deg": ("outplane_deg", 1.0, (0, 2.5, 5, 7.5, 10, 15, 20, 30, 45)),
+}
+DEFAULT_TOLERANCE = Path(__file__).resolve().parent.parent / "docs" / "tolerance.json"
+
+
+def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = None) -> None:
+    """PNG of grasp success against each component of the estimated pose's error.
+
+    One panel per component (ray, lateral, in-plane, out-of-plane): the episodes binned by that
+    component's error, success rate per bin with its Wilson 95 % interval and count, each
+    episode as a tick (top: success, bottom: failure), and, when given, the tolerance curves of
+    `grasping.tolerance` (success against that error alone, one line per object). The episodes
+    carry all components at once, so a bin's rate is a marginal, not a single-factor curve.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    eps = [e for e in report["episodes"] if e.get("pose_error")]
+    fig, axes = plt.subplots(1, 4, figsize=(17, 4.2), sharey=True)
+    for ax, (kind, (key, scale, edges)) in zip(axes, COMPONENTS.items(), strict=True):
+        if tolerance:
+            for obj, kinds in sorted(tolerance.items()):
+                if kind in kinds:
+                    c = kinds[kind]
+                    ax.plot(c["levels"], c["success_rate"], lw=1, alpha=0.6, label=f"{obj} (alone)")
+        x = np.array([e["pose_error"][key] * scale for e in eps if key in e["pose_error"]])
+        ok = np.array([bool(e["success"]) for e in eps if key in e["pose_error"]])
+        if len(x):
+            top = max(edges[-1], float(x.max()) * 1.05)
+            bins = [*edges, top]
+            ax.plot(x, np.where(ok, 1.04, -0.04), "|", color="k", alpha=0.3, ms=8)
+            for lo, hi in itertools.pairwise(bins):
+                sel = (x >= lo) & (x < hi) if hi < top else (x >= lo)
+                n = int(sel.sum())
+                if n == 0:
+                    continue
+                k = int(ok[sel].sum())
+                wlo, whi = wilson_interval(k, n)
+                mid = (lo + min(hi, edges[-1] * 1.3)) / 2
+                err = [[max(0.0, k / n - wlo)], [max(0.0, whi - k / n)]]
+                ax.errorbar(mid, k / n, yerr=err, fmt="o", color="k",
+                            ms=4 + 6 * min(1.0, n / 50), capsize=3)  # fmt: skip
+                ax.annotate(str(n), (mid, k / n), textcoords="offset points", xytext=(4, -12),
+                            fontsize=7)  # fmt: skip
+        name, unit = kind.rsplit("_", 1)
+        ax.set_xlabel(f"{name} error [{unit}]")
+        ax.set_ylim(-0.1, 1.1)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("grasp success rate")
+    axes[-1].legend(fontsize=7, loc="lower left")
+    fig.suptitle(
+        f"{report['estimator']}: grasp success against pose error "
+        f"(black: binned episodes with Wilson 95 %, n beside; lines: tolerance to that error alone)"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.evaluate", description=__doc__.split("\n")[0])
@@ -153,6 +222,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed-start", type=int, default=0)
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--json", type=Path, default=None, help="write the full report here")
+    p.add_argument("--plot", type=Path, default=None, help="PNG of success against pose error")
+    p.add_argument(
+        "--tolerance",
+        type=Path,
+        default=DEFAULT_TOLERANCE,
+        help="tolerance curves to overlay (JSON of python -m grasping.tolerance)",
+    )
     args = p.parse_args(argv)
     objects = list(OBJECT_NAMES) if args.objects == "all" else args.objects.split(",")
     bad = [o for o in objects if o not in OBJECT_NAMES]
@@ -165,8 +241,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.episodes < 1 or args.workers < 1:
         return fail("--episodes and --workers must be at least 1")
     try:
-        if args.json is not None:
-            check_writable_file(args.json)
+        for out in (args.json, args.plot):
+            if out is not None:
+                check_writable_file(out)
+        tolerance = None
+        if args.plot is not None and args.tolerance.is_file():
+            tolerance = json.loads(args.tolerance.read_text())
         _estimator(args.estimator)  # fails fast (e.g. missing weights) before any episode runs
         report = evaluate(objects, args.episodes, args.estimator, args.seed_start, args.workers)
     except PosegraspError as exc:
@@ -174,6 +254,9 @@ def main(argv: list[str] | None = None) -> int:
     print(format_report(report))
     if args.json is not None:
         write_json(args.json, report)
+    if args.plot is not None:
+        plot_success_vs_error(report, args.plot, tolerance)
+        print(f"wrote {args.plot}")
     return 0
 
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +44,23 @@ def summary(result) -> str:
         f"  true pose (camera frame)      {_fmt_pose(result.T_C_O_true)}",
         f"  estimated pose (camera frame) {_fmt_pose(result.T_C_O_est)}",
     ]
+    info = result.estimate_info
+    if info:
+        if info.get("detected"):
+            lines.append(
+                f"  detection   {info['class']}  score {info['score']:.3f}  box ("
+                + ", ".join(f"{v:.0f}" for v in info["box_xyxy"])
+                + f") px  {info['detections']} detection(s) of the class"
+            )
+        elif "detected" in info:
+            lines.append(f"  detection   no {result.object} detected")
+        sup = info.get("support")
+        if sup:
+            lines.append(
+                f"  table prior resting pose {sup['resting_pose']}  tilt removed "
+                f"{sup['tilt_deg']:.1f} deg  moved {sup['shift_m'] * 1000:+.1f} mm along the ray  "
+                f"(applied: {', '.join(sup['applied']) or 'nothing'})"
+            )
     e = result.pose_error
     if e is not None:
         lines.append(
@@ -53,6 +69,12 @@ def summary(result) -> str:
             f"ADD {e['add_m'] * 1000:.1f} mm ({e['add_rel_diameter']:.3f} d)  "
             f"ADD-S {e['adi_m'] * 1000:.1f} mm"
         )
+        if "ray_m" in e:
+            lines.append(
+                f"  components  along ray {e['ray_m'] * 1000:.1f} mm  across "
+                f"{e['lateral_m'] * 1000:.1f} mm  in-plane {e['inplane_deg']:.2f} deg  "
+                f"out-of-plane {e['outplane_deg']:.2f} deg"
+            )
     outcome = "SUCCESS" if result.success else f"FAILURE ({result.failure_reason})"
     lines.append(
         f"  outcome     {outcome}   object lifted {result.lift_height * 1000:.0f} mm"
@@ -62,6 +84,9 @@ def summary(result) -> str:
         lines.append(f"  note        {note}")
     t = result.timings_ms
     lines.append("  timings     " + "  ".join(f"{k} {v:.0f} ms" for k, v in t.items()))
+    st = info.get("timings_ms") if info else None
+    if st:
+        lines.append("  estimator   " + "  ".join(f"{k} {v:.1f} ms" for k, v in st.items()))
     return "\n".join(lines)
 
 
@@ -71,17 +96,13 @@ def _run(obj: str, seed: int, estimator, save: Path | None):
     ep = Episode(obj, seed)
     external = None
     try:
-        obs = ep.observe()
-        t = time.perf_counter()
-        est = estimator.estimate(obs)
-        ep.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
         recorder = None
         if save is not None:
             external = CameraRenderer(ep.scene.model, 480, 360, RenderOptions(shadows=False))
             recorder = lambda scene: external.rgb(scene.data, "external")  # noqa: E731
-        result = ep.act(est, estimator.name, recorder=recorder)
+        obs, result = ep.run(estimator, recorder)
         if save is not None:
-            _save(save, obs, est, ep, result)
+            _save(save, obs, result.T_C_O_est, ep, result)
         return result
     finally:
         ep.close()
