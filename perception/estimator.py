@@ -28,7 +28,7 @@ from perception.crops import crop_and_resize, crop_to_image, from_unit, square_b
 from perception.detector import DEFAULT_WEIGHTS, Detection, Detector, DetectorConfig, check_rgb
 from perception.geometry import decode
 from perception.nets import CROP, NetConfig, PoseNet, normalise
-from perception.support import refine_on_support
+from perception.support import refine_on_support, refine_with_mask
 from sim.errors import InvalidArgumentError, UnknownNameError
 from sim.estimators import Observation
 from sim.objects import OBJECT_NAMES, load_object
@@ -229,10 +229,13 @@ class HybridPoseEstimator:
         """
         return self.estimate_timed(rgb, K, classes)[0]
 
-    def as_episode_estimator(self, support: bool = False) -> HybridEpisodeEstimator:
+    def as_episode_estimator(
+        self, support: bool = False, mask_fit: bool = True
+    ) -> HybridEpisodeEstimator:
         """This estimator behind the episode interface (`sim.estimators.PoseEstimator`);
-        `support` puts each pose onto the observation's table (`perception.support`)."""
-        return HybridEpisodeEstimator(self, support)
+        `support` puts each pose onto the observation's table and, with `mask_fit`, fits its yaw
+        and position on the table to the detected mask (`perception.support`)."""
+        return HybridEpisodeEstimator(self, support, mask_fit)
 
 
 class HybridEpisodeEstimator:
@@ -241,17 +244,21 @@ class HybridEpisodeEstimator:
 
     With `support` (name ``hybrid-table``) the pose is then moved onto the known table top
     (`perception.support.refine_on_support`): nearest resting pose, and the distance along the
-    origin's ray at which the object touches the table. Without a known table
-    (``obs.support_z`` None) the network pose is kept.
+    origin's ray at which the object touches the table; with `mask_fit` its yaw and position on
+    the table are then fitted to the detected mask (`perception.support.refine_with_mask`).
+    Without a known table (``obs.support_z`` None) the network pose is kept.
 
     After each call `last_info` describes the estimate: ``detected``, ``class``, ``score``,
     ``box_xyxy``, ``uv``, ``timings_ms`` (per stage) and, with `support`, ``support``
     (resting pose, tilt removed [deg], shift along the ray [m], what was applied).
     """
 
-    def __init__(self, estimator: HybridPoseEstimator, support: bool = False) -> None:
+    def __init__(
+        self, estimator: HybridPoseEstimator, support: bool = False, mask_fit: bool = True
+    ) -> None:
         self.estimator = estimator
         self.support = bool(support)
+        self.mask_fit = bool(mask_fit)
         self.name = "hybrid-table" if self.support else "hybrid"
         self.last_info: dict = {}
 
@@ -274,13 +281,25 @@ class HybridEpisodeEstimator:
         T = best.T_C_O.copy()
         if self.support and obs.support_z is not None:
             t0 = time.perf_counter()
-            ref = refine_on_support(T, obs.T_world_cam, load_object(best.name), obs.support_z)
-            self.last_info["timings_ms"]["support"] = (time.perf_counter() - t0) * 1000
-            self.last_info["support"] = {
+            model = load_object(best.name)
+            ref = refine_on_support(T, obs.T_world_cam, model, obs.support_z)
+            info = {
                 "resting_pose": ref.resting_pose,
                 "tilt_deg": ref.tilt_deg,
                 "shift_m": ref.shift_m,
                 "applied": list(ref.applied),
             }
             T = ref.T_C_O
+            if self.mask_fit and "translation" in ref.applied:
+                fit = refine_with_mask(T, obs.T_world_cam, obs.K, model, best.mask)
+                T = fit.T_C_O
+                info |= {
+                    "mask_iou_before": fit.iou_before,
+                    "mask_iou_after": fit.iou_after,
+                    "mask_yaw_deg": fit.yaw_deg,
+                    "mask_shift_m": list(fit.shift_m),
+                }
+                info["applied"].append("mask_fit")
+            self.last_info["timings_ms"]["support"] = (time.perf_counter() - t0) * 1000
+            self.last_info["support"] = info
         return T

@@ -117,3 +117,114 @@ def refine_on_support(
             shift = lam - dist
             applied = ("rotation", "translation")
     return SupportRefinement(out, name, tilt, shift, applied)
+
+
+@dataclass(frozen=True)
+class MaskRefinement:
+    """Result of `refine_with_mask`.
+
+    Attributes:
+        T_C_O: refined pose in the camera frame, shape (4, 4).
+        iou_before: silhouette IoU of the input pose with the mask.
+        iou_after: the same for the refined pose (>= iou_before).
+        yaw_deg: yaw change about the support normal [deg].
+        shift_m: (dx, dy) change of the origin on the support plane [m].
+        renders: silhouettes rendered.
+    """
+
+    T_C_O: np.ndarray
+    iou_before: float
+    iou_after: float
+    yaw_deg: float
+    shift_m: tuple[float, float]
+    renders: int
+
+
+def _rz(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def refine_with_mask(
+    T_C_O: np.ndarray,
+    T_world_cam: np.ndarray,
+    K: np.ndarray,
+    model: ObjectModel,
+    mask: np.ndarray,
+    yaw_range_deg: float = 24.0,
+    shift_range_m: float = 0.01,
+) -> MaskRefinement:
+    """Adjust the yaw and the position on the support of a resting pose so that the model's
+    silhouette best overlaps a segmentation mask (intersection over union).
+
+    The pose must already rest on the support (`refine_on_support`): yaw turns it about the
+    world's vertical through its origin and the shifts move it in the horizontal plane, so it
+    keeps resting. Coarse-to-fine search: yaw in 3 degree steps over +-`yaw_range_deg`, then the
+    origin on a 3x3 grid of `shift_range_m` / 2 steps, then yaw in 1 degree steps over +-3
+    degrees. Silhouettes are rasterised in a window around the mask.
+
+    Args:
+        T_C_O: resting pose estimate in the camera frame, (4, 4).
+        T_world_cam: camera pose in the world (z up), (4, 4).
+        K: intrinsics, (3, 3).
+        model: the object (its mesh).
+        mask: the object's segmentation in the image, (H, W) bool (e.g. the detector's).
+    """
+    from perception.metrics import mask_iou
+    from perception.overlay import silhouette
+
+    mask = np.asarray(mask, bool)
+    ys, xs = np.nonzero(mask)
+    T_C_O = np.asarray(T_C_O, np.float64)
+    if len(xs) == 0:
+        return MaskRefinement(T_C_O.copy(), 0.0, 0.0, 0.0, (0.0, 0.0), 0)
+    h, w = mask.shape
+    bw, bh = xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
+    x0 = max(0, int(xs.min() - 0.4 * bw))
+    y0 = max(0, int(ys.min() - 0.4 * bh))
+    x1 = min(w, int(xs.max() + 0.4 * bw) + 1)
+    y1 = min(h, int(ys.max() + 0.4 * bh) + 1)
+    window = mask[y0:y1, x0:x1]
+    Kw = np.asarray(K, np.float64).copy()
+    Kw[0, 2] -= x0
+    Kw[1, 2] -= y0
+    mesh = model.mesh
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    T_cam_world = np.linalg.inv(T_world_cam)
+    T_W_O = T_world_cam @ T_C_O
+    R0, p0 = T_W_O[:3, :3], T_W_O[:3, 3]
+    renders = 0
+
+    def pose(yaw: float, dx: float, dy: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = _rz(yaw) @ R0
+        T[:3, 3] = p0 + np.array([dx, dy, 0.0])
+        return T_cam_world @ T
+
+    def score(yaw: float, dx: float, dy: float) -> float:
+        nonlocal renders
+        renders += 1
+        return mask_iou(silhouette(pose(yaw, dx, dy), Kw, v, f, window.shape), window)
+
+    before = score(0.0, 0.0, 0.0)
+    best = (before, 0.0, 0.0, 0.0)
+    for yaw in np.radians(np.arange(-yaw_range_deg, yaw_range_deg + 1e-9, 3.0)):
+        s = score(yaw, 0.0, 0.0)
+        if s > best[0]:
+            best = (s, yaw, 0.0, 0.0)
+    step = shift_range_m / 2
+    yaw_b = best[1]
+    for dx in (-step, 0.0, step):
+        for dy in (-step, 0.0, step):
+            if dx == 0.0 and dy == 0.0:
+                continue
+            s = score(yaw_b, dx, dy)
+            if s > best[0]:
+                best = (s, yaw_b, dx, dy)
+    _, yaw_b, dx_b, dy_b = best
+    for d in np.radians((-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)):
+        s = score(yaw_b + d, dx_b, dy_b)
+        if s > best[0]:
+            best = (s, yaw_b + d, dx_b, dy_b)
+    s, yaw, dx, dy = best
+    return MaskRefinement(pose(yaw, dx, dy), before, s, float(np.degrees(yaw)), (dx, dy), renders)

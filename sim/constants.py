@@ -69,3 +69,9 @@ HOME_POSTURE: dict[str, float] = {
     FINGER_JOINTS[0]: FINGER_TRAVEL,
     FINGER_JOINTS[1]: FINGER_TRAVEL,
 }
+
+#: The data generator (`perception.datagen.SEED_BASES`) draws its scenes from seeds below this.
+DATA_SEED_LIMIT = 300_000_000
+#: Episodes that score a learned estimator start at this seed, so that no evaluated scene was a
+#: training, validation or test image of the networks.
+EVAL_SEED_BASE = 1_000_000_000

@@ -193,6 +193,10 @@ ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
 }
 
 
+#: What the CLIs use unless told otherwise.
+DEFAULT_ESTIMATOR = "hybrid"
+
+
 def make_estimator(name: str) -> PoseEstimator:
     """The estimator called name.
 

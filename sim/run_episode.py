@@ -1,6 +1,6 @@
 """Run one grasp episode and print what happened.
 
-python -m sim.run_episode --object phone --seed 0 --estimator oracle [--json] [--save DIR]
+python -m sim.run_episode --object phone [--seed N] [--estimator hybrid] [--json] [--save DIR]
 """
 
 from __future__ import annotations
@@ -11,10 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
+from sim import constants as C
 from sim.camera import CameraRenderer, RenderOptions
 from sim.cli import ArgumentParser, check_writable_file, fail
 from sim.errors import PosegraspError
-from sim.estimators import ESTIMATORS, make_estimator
+from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
 from sim.objects import OBJECT_NAMES
 
 
@@ -61,6 +62,13 @@ def summary(result) -> str:
                 f"{sup['tilt_deg']:.1f} deg  moved {sup['shift_m'] * 1000:+.1f} mm along the ray  "
                 f"(applied: {', '.join(sup['applied']) or 'nothing'})"
             )
+            if "mask_iou_after" in sup:
+                lines.append(
+                    f"  mask fit    yaw {sup['mask_yaw_deg']:+.1f} deg, shift "
+                    + ", ".join(f"{v * 1000:+.0f}" for v in sup["mask_shift_m"])
+                    + f" mm  silhouette IoU {sup['mask_iou_before']:.3f} -> "
+                    f"{sup['mask_iou_after']:.3f}"
+                )
     e = result.pose_error
     if e is not None:
         lines.append(
@@ -136,8 +144,16 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.run_episode", description=__doc__.split("\n")[0])
     p.add_argument("--object", default="phone", help=f"one of: {', '.join(OBJECT_NAMES)}")
-    p.add_argument("--seed", type=int, default=0, help="scene seed")
-    p.add_argument("--estimator", default="oracle", help=f"one of: {', '.join(ESTIMATORS)}")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=C.EVAL_SEED_BASE,
+        help=f"scene seed (default {C.EVAL_SEED_BASE}: seeds below {C.DATA_SEED_LIMIT} are the "
+        "data generator's, i.e. scenes the networks may have been trained on)",
+    )
+    p.add_argument(
+        "--estimator", default=DEFAULT_ESTIMATOR, help=f"one of: {', '.join(ESTIMATORS)}"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead")
     p.add_argument(
         "--save",
@@ -155,6 +171,12 @@ def main(argv: list[str] | None = None) -> int:
         result = _run(args.object, args.seed, make_estimator(args.estimator), args.save)
     except PosegraspError as exc:
         return fail(str(exc))
+    if args.seed < C.DATA_SEED_LIMIT and args.estimator.startswith("hybrid"):
+        print(
+            f"note: seed {args.seed} is in the data generator's range (< {C.DATA_SEED_LIMIT}); "
+            "the networks may have seen this scene in training",
+            file=sys.stderr,
+        )
     if args.json:
         print(json.dumps(result.to_json(), sort_keys=True))
     else:

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from sim import constants as C
 from sim import evaluate, run_episode
 from sim.episode import Episode
 from sim.episode import run_episode as run
@@ -95,7 +96,8 @@ def test_unknown_estimator() -> None:
 
 
 def test_run_episode_cli_json(capsys) -> None:
-    assert run_episode.main(["--object", "faucet", "--seed", "2", "--json"]) == 0
+    argv = ["--object", "faucet", "--seed", "2", "--json", "--estimator", "oracle"]
+    assert run_episode.main(argv) == 0
     d = json.loads(capsys.readouterr().out)
     for key in (
         "object",
@@ -107,7 +109,15 @@ def test_run_episode_cli_json(capsys) -> None:
         "timings_ms",
     ):
         assert key in d
-    assert set(d["pose_error"]) >= {"translation_m", "translation_pct", "rotation_deg"}
+    assert set(d["pose_error"]) >= {
+        "translation_m",
+        "translation_pct",
+        "rotation_deg",
+        "ray_m",
+        "lateral_m",
+        "inplane_deg",
+        "outplane_deg",
+    }
 
 
 @pytest.mark.parametrize(
@@ -129,10 +139,12 @@ def test_run_episode_cli_bad_input(argv, needle, capsys) -> None:
 
 
 def test_evaluate_cli(tmp_path, capsys) -> None:
-    out = tmp_path / "r.json"
-    argv = ["--objects", "chair", "--episodes", "2", "--json", str(out)]
-    assert evaluate.main(argv) == 0
+    out, png = tmp_path / "r.json", tmp_path / "r.png"
+    argv = ["--objects", "chair", "--episodes", "2", "--json", str(out), "--plot", str(png)]
+    assert evaluate.main([*argv, "--estimator", "noisy-oracle"]) == 0
+    assert png.stat().st_size > 10_000  # a real figure, not an empty file
     d = json.loads(out.read_text())
+    assert d["seed_start"] == C.EVAL_SEED_BASE
     g = d["per_object"]["chair"]
     for key in (
         "episodes",
