@@ -168,6 +168,23 @@ def test_coco_ap_with_pycocotools() -> None:
     assert coco_ap(gts, [[], []], min_visible_px=100)["mask_ap50"] == 0.0
 
 
+def test_coco_ap_per_class() -> None:
+    a = np.zeros((H, W), bool)
+    a[100:180, 200:260] = True
+    b = np.zeros((H, W), bool)
+    b[300:340, 400:500] = True
+    gts = [[(1, a), (4, b)], [(6, b)]]
+    # car found, phone labelled as pistol, pistol found in the second image.
+    dets = [[_det(1, a, 0.9), _det(6, b, 0.8)], [_det(6, b, 0.95)]]
+    per_class: dict = {}
+    coco_ap(gts, dets, min_visible_px=100, per_class=per_class)
+    assert per_class["car"]["box_ap"] == pytest.approx(1.0)
+    assert per_class["car"]["mask_ap50"] == pytest.approx(1.0)
+    assert per_class["phone"]["box_ap50"] == pytest.approx(0.0)
+    assert 0.0 < per_class["pistol"]["box_ap50"] < 1.0  # one true and one false positive
+    assert per_class["chair"]["box_ap"] == -1.0  # no ground truth
+
+
 def test_training_smoke_checkpoint_resume_and_export(tiny_headcam: Path, tmp_path: Path) -> None:
     cfg = replace(SMOKE, data=tiny_headcam, out=tmp_path / "ckpt")
     first = train(cfg, max_steps=1)

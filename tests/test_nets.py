@@ -11,8 +11,9 @@ import torch
 from perception import datagen
 from perception.evaluate import evaluate_split, load_model
 from perception.nets import NetConfig, PoseNet, loss_fn, normalise
-from perception.train import SMOKE, train
+from perception.train import SMOKE, WEIGHTS_DIR, train
 from sim.errors import AssetError
+from sim.objects import OBJECT_NAMES
 
 
 @pytest.fixture(scope="module")
@@ -103,3 +104,39 @@ def test_missing_and_corrupt_weights(tmp_path) -> None:
     bad.write_bytes(b"not a checkpoint")
     with pytest.raises(AssetError, match="corrupt"):
         load_model(bad)
+
+
+def test_detector_boxes_evaluation(tiny_data) -> None:
+    """End-to-end crops from the shipped detector: matched objects, COCO AP per class."""
+    from perception.detector import DEFAULT_WEIGHTS, Detector
+    from perception.evaluate import detector_crops
+
+    detector = Detector.from_weights(DEFAULT_WEIGHTS, score_threshold=0.05)
+    data, det = detector_crops(tiny_data / "headcam", detector)
+    n_obj = sum(det["objects"].values())
+    assert n_obj >= 2 and len(data["crops"]) == n_obj - sum(det["missed"].values())
+    assert data["crops"].shape[1:] == (64, 64, 3) and data["crops"].dtype == np.uint8
+    assert set(det["detection"]) == set(OBJECT_NAMES)
+    for a in det["detection"].values():
+        assert {"box_ap", "mask_ap50"} <= set(a)
+    if len(data["crops"]):
+        report = evaluate_split(
+            load_model(WEIGHTS_DIR / "posenet_ours.pt"), tiny_data / "headcam", data=data
+        )
+        assert np.isfinite(report["average"]["center_px_mean"])
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--boxes", "magic"], "valid: gt, detector"),
+        (["--boxes", "detector", "--dists", "paper"], "valid: headcam"),
+        (["--dists", "mars"], "valid: paper, headcam"),
+    ],
+)
+def test_evaluate_cli_bad_input(argv, needle, capsys) -> None:
+    from perception import evaluate
+
+    assert evaluate.main(argv) == 2
+    err = capsys.readouterr().err
+    assert needle in err and len(err.strip().splitlines()) == 1
