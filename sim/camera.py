@@ -80,6 +80,29 @@ class RenderOptions:
     reflections: bool = False
 
 
+def _preload_torch() -> None:
+    """Import torch, torch._dynamo and torchvision, when installed, before the first GL context.
+
+    Importing them once a MuJoCo GL context exists crashes the process (inside triton). A user
+    who renders first (e.g. `GraspEval-v0.reset`) and loads a network afterwards would hit that;
+    importing them here, once per process, makes the order irrelevant.
+    """
+    global _TORCH_PRELOADED
+    if _TORCH_PRELOADED:
+        return
+    _TORCH_PRELOADED = True
+    import importlib.util
+
+    if importlib.util.find_spec("torchvision") is None:
+        return
+    import torch
+    import torch._dynamo  # noqa: F401
+    import torchvision  # noqa: F401
+
+
+_TORCH_PRELOADED = False
+
+
 class CameraRenderer:
     """RGB, depth and segmentation of one model at one resolution.
 
@@ -106,6 +129,7 @@ class CameraRenderer:
             off = self.model.vis.global_
             off.offwidth = max(off.offwidth, self.width)
             off.offheight = max(off.offheight, self.height)
+            _preload_torch()
             try:
                 self._renderer = mujoco.Renderer(self.model, self.height, self.width)
             except mujoco.FatalError as exc:
