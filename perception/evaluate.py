@@ -19,18 +19,18 @@ import torch
 from tqdm import tqdm
 
 from perception import metrics
-from perception.crops import crop_and_resize, image_to_crop, square_box, to_unit
+from perception.crops import square_box
 from perception.dataset import PoseDataset
 from perception.detector import DEFAULT_WEIGHTS, Detector
 from perception.estimator import DEFAULT_CROP_SCALE
-from perception.geometry import encode
 from perception.metrics import box_iou
-from perception.nets import CROP, NetConfig, PoseNet
+from perception.nets import NetConfig, PoseNet
 from perception.overlay import silhouette
 from perception.train import (
     DISTS,
     WEIGHTS_DIR,
     CropConfig,
+    CropSet,
     build_crops,
     data_root,
     decode_predictions,
@@ -133,8 +133,7 @@ def detector_crops(
     """
     ds = PoseDataset(root, "test")
     n = len(ds) if limit is None else min(limit, len(ds))
-    keys = ("crops", "cls", "uv_unit", "p", "theta", "scale", "box", "K", "T_C_O", "uv")
-    out: dict[str, list] = {k: [] for k in keys}
+    out = CropSet()
     gts, dets = [], []
     objects = dict.fromkeys(OBJECT_NAMES, 0)
     missed = dict.fromkeys(OBJECT_NAMES, 0)
@@ -153,26 +152,8 @@ def detector_crops(
                 missed[obj.name] += 1
                 continue
             d = max(cands, key=lambda d: d.score)
-            box = square_box(d.box_xyxy, scale=DEFAULT_CROP_SCALE)
-            p, theta, uv = encode(obj.T_C_O, s.K)
-            out["crops"].append(crop_and_resize(s.rgb, box, CROP))
-            out["cls"].append(obj.obj_id - 1)
-            out["uv_unit"].append(to_unit(image_to_crop(uv, box, CROP), CROP))
-            out["p"].append(p)
-            out["theta"].append(theta)
-            out["scale"].append(box[2] / s.K[0, 0])
-            out["box"].append(np.asarray(box, float))
-            out["K"].append(s.K)
-            out["T_C_O"].append(obj.T_C_O)
-            out["uv"].append(uv)
-    shapes = {"crops": (CROP, CROP, 3), "uv_unit": (2,), "p": (3,), "box": (3,), "K": (3, 3),
-              "T_C_O": (4, 4), "uv": (2,)}  # fmt: skip
-    dtypes = {"crops": np.uint8, "cls": np.int64, "box": np.float64, "K": np.float64,
-              "T_C_O": np.float64, "uv": np.float64}  # fmt: skip
-    arrays = {
-        k: np.asarray(out[k], dtypes.get(k, np.float32)).reshape(-1, *shapes.get(k, ()))
-        for k in keys
-    }
+            out.add(s.rgb, s.K, obj, square_box(d.box_xyxy, scale=DEFAULT_CROP_SCALE))
+    arrays = out.arrays()
     per_class: dict[str, dict[str, float]] = {}
     overall = coco_ap(gts, dets, MIN_VISIBLE_PX, per_class)
     return arrays, {"detection": per_class, "overall": overall, "objects": objects,

@@ -88,6 +88,46 @@ class CropConfig:
     seed: int = 0
 
 
+class CropSet:
+    """Crops of annotated objects and their labels, collected one at a time."""
+
+    KEYS = ("crops", "cls", "uv_unit", "p", "theta", "scale", "box", "K", "T_C_O", "uv")
+
+    def __init__(self) -> None:
+        self.rows: dict[str, list] = {k: [] for k in self.KEYS}
+
+    def add(self, rgb: np.ndarray, K: np.ndarray, obj, box: tuple[float, float, float]) -> None:
+        """Cut the square `box` (x0, y0, side) of `rgb` around annotated object `obj`."""
+        p, theta, uv = encode(obj.T_C_O, K)
+        r = self.rows
+        r["crops"].append(crop_and_resize(rgb, box, CROP))
+        r["cls"].append(obj.obj_id - 1)
+        r["uv_unit"].append(to_unit(image_to_crop(uv, box, CROP), CROP))
+        r["p"].append(p)
+        r["theta"].append(theta)
+        r["scale"].append(box[2] / K[0, 0])
+        r["box"].append(np.asarray(box, float))
+        r["K"].append(K)
+        r["T_C_O"].append(obj.T_C_O)
+        r["uv"].append(uv)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The layout `build_crops` returns (empty arrays of the right shapes when no crop)."""
+        r = self.rows
+        return {
+            "crops": np.asarray(r["crops"], np.uint8).reshape(-1, CROP, CROP, 3),
+            "cls": np.asarray(r["cls"], np.int64),
+            "uv_unit": np.asarray(r["uv_unit"], np.float32).reshape(-1, 2),
+            "p": np.asarray(r["p"], np.float32).reshape(-1, 3),
+            "theta": np.asarray(r["theta"], np.float32),
+            "scale": np.asarray(r["scale"], np.float32),
+            "box": np.asarray(r["box"], np.float64).reshape(-1, 3),
+            "K": np.asarray(r["K"], np.float64).reshape(-1, 3, 3),
+            "T_C_O": np.asarray(r["T_C_O"], np.float64).reshape(-1, 4, 4),
+            "uv": np.asarray(r["uv"], np.float64).reshape(-1, 2),
+        }
+
+
 def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = None) -> dict:
     """Cut (or load cached) training crops and labels of one split of one dataset.
 
@@ -107,38 +147,16 @@ def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = Non
     ds = PoseDataset(root, split)
     n = len(ds) if limit is None else min(limit, len(ds))
     rng = np.random.default_rng([cfg.seed, ("train", "val", "test").index(split)])
-    out: dict[str, list] = {k: [] for k in ("crops", "cls", "uv_unit", "p", "theta", "scale",
-                                            "box", "K", "T_C_O", "uv")}  # fmt: skip
+    out = CropSet()
     for i in tqdm(range(n), desc=f"crops {root.name}/{split}", leave=False):
         s = ds[i]
         for obj in s.objects:
             if obj.visib_fract < cfg.min_visib or obj.T_C_O[2, 3] <= 0:
                 continue
-            p, theta, uv = encode(obj.T_C_O, s.K)
             for _ in range(cfg.per_object):
                 box = random_square_box(obj.box_xyxy, rng, cfg.max_shift, cfg.scale_range)
-                out["crops"].append(crop_and_resize(s.rgb, box, CROP))
-                out["cls"].append(obj.obj_id - 1)
-                out["uv_unit"].append(to_unit(image_to_crop(uv, box, CROP), CROP))
-                out["p"].append(p)
-                out["theta"].append(theta)
-                out["scale"].append(box[2] / s.K[0, 0])
-                out["box"].append(np.asarray(box, float))
-                out["K"].append(s.K)
-                out["T_C_O"].append(obj.T_C_O)
-                out["uv"].append(uv)
-    arrays = {
-        "crops": np.asarray(out["crops"], np.uint8).reshape(-1, CROP, CROP, 3),
-        "cls": np.asarray(out["cls"], np.int64),
-        "uv_unit": np.asarray(out["uv_unit"], np.float32).reshape(-1, 2),
-        "p": np.asarray(out["p"], np.float32).reshape(-1, 3),
-        "theta": np.asarray(out["theta"], np.float32),
-        "scale": np.asarray(out["scale"], np.float32),
-        "box": np.asarray(out["box"], np.float64).reshape(-1, 3),
-        "K": np.asarray(out["K"], np.float64).reshape(-1, 3, 3),
-        "T_C_O": np.asarray(out["T_C_O"], np.float64).reshape(-1, 4, 4),
-        "uv": np.asarray(out["uv"], np.float64).reshape(-1, 2),
-    }
+                out.add(s.rgb, s.K, obj, box)
+    arrays = out.arrays()
     tmp = cache.with_suffix(".tmp.npz")
     np.savez(tmp, **arrays)
     tmp.replace(cache)
