@@ -6,8 +6,8 @@ Renders head-camera images of seeded table scenes with 1 object and with 3 objec
 and 2 distractors), then times `HybridPoseEstimator.estimate_timed` on each (after a warm-up):
 median and 90th percentile of every stage (detect, crop, nets, decode) and of the total.
 Targets: total <= 66 ms median for 3 objects; both pose nets <= 7 ms per object (the batched
-nets stage of the 3-object images divided by their detections). `--json` prints one JSON object whose
-``total_ms_median`` is the 3-object median.
+nets stage of the 3-object images divided by their detections). `--json` prints one JSON
+object whose ``total_ms_median`` is the 3-object median.
 
 Without shipped weights (`make weights`), `--random-weights` times the architecture with random
 weights: the detector then keeps its top-scoring boxes, as many as the scene has objects, so
