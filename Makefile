@@ -31,11 +31,12 @@ data: setup
 	  $(PY) -m perception.datagen --dist $$dist --split $$split --count $$count --workers 2 \
 	  || exit 1; done
 
+# The shipped weights were trained with exactly these commands (see perception/weights/manifest.json).
 weights: data
-	$(PY) -m perception.train --variant ours
-	$(PY) -m perception.train --variant paper
+	$(PY) -m perception.train --variant ours --epochs 16
+	$(PY) -m perception.train --variant paper --epochs 10
 	$(PY) -m perception.export_weights
-	$(PY) -m perception.train_detector --export
+	$(PY) -m perception.train_detector --epochs 8 --export
 
 setup: system-deps $(STAMP)
 

@@ -16,8 +16,9 @@ from pathlib import Path
 import torch
 
 from perception.nets import VARIANTS
-from perception.train import WEIGHTS_DIR, checkpoint_dir, git_commit
+from perception.train import DISTS, WEIGHTS_DIR, checkpoint_dir, data_seed_ranges, git_commit
 from sim.cli import ArgumentParser, fail
+from sim.errors import PosegraspError
 
 MANIFEST = WEIGHTS_DIR / "manifest.json"
 
@@ -51,7 +52,7 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
             "bytes": path.stat().st_size,
             "command": f"python -m perception.train --variant {variant} --epochs {tc['epochs']}",
             "train_config": tc,
-            "data_seeds": state["data_seeds"],
+            "data_seeds": _seeds(state["data_seeds"], tc.get("dists", DISTS)),
             "epochs_done": state["epoch"],
             "validation": state["history"][-1] if state["history"] else None,
             "trained_at_commit": state["commit"],
@@ -64,6 +65,16 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
     manifest["exported_at_commit"] = git_commit()
     MANIFEST.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
     return manifest
+
+
+def _seeds(recorded: dict, dists) -> dict:
+    """The checkpoint's data seed ranges; read from the datasets when it has none."""
+    if any(recorded.get(d) for d in recorded):
+        return recorded
+    try:
+        return data_seed_ranges(dists)
+    except (OSError, PosegraspError):  # the data may be gone; the manifest then says so
+        return {d: "unknown (dataset not found at export time)" for d in dists}
 
 
 def main(argv: list[str] | None = None) -> int:

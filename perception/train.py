@@ -88,6 +88,16 @@ class CropConfig:
     seed: int = 0
 
 
+def data_seed_ranges(dists: tuple[str, ...] | list[str]) -> dict[str, dict[str, list[int]]]:
+    """Seed range [first, end) of every generated split of each distribution, from its
+    info.json: dist -> split -> range."""
+    out = {}
+    for d in dists:
+        splits = load_info(data_root() / d).get("splits", {})
+        out[d] = {s: list(v["seed_range"]) for s, v in splits.items() if "seed_range" in v}
+    return out
+
+
 class CropSet:
     """Crops of annotated objects and their labels, collected one at a time."""
 
@@ -331,7 +341,7 @@ def train(cfg: TrainConfig, resume: bool = True) -> dict:
         tr = {k: v[keep] for k, v in tr.items()}
     if len(tr["crops"]) == 0:
         raise AssetError("no training crops; generate data first (`make data`)")
-    data_seeds = {d: load_info(data_root() / d).get("seed_ranges", {}) for d in cfg.dists}
+    data_seeds = data_seed_ranges(cfg.dists)
     model = PoseNet(NetConfig(variant=cfg.variant, n_classes=len(OBJECT_NAMES), width=cfg.width))
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = max(1, len(tr["crops"]) // cfg.batch)

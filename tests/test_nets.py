@@ -87,6 +87,8 @@ def test_smoke_training_checkpoints_and_resumes(tiny_data, tmp_path, monkeypatch
     ):
         assert key in ckpt
     assert ckpt["epoch"] == 1 and len(result["history"]) == 1
+    assert ckpt["data_seeds"]["paper"]["train"] == [0, 12]
+    assert ckpt["data_seeds"]["headcam"]["test"] == [200_000_000, 200_000_002]
     # A longer run resumes from the checkpoint instead of starting over.
     more = train(replace(cfg, epochs=2))
     assert [h["epoch"] for h in more["history"]] == [1, 2]
