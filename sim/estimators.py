@@ -194,7 +194,7 @@ ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
 
 
 #: What the CLIs use unless told otherwise.
-DEFAULT_ESTIMATOR = "hybrid"
+DEFAULT_ESTIMATOR = "hybrid-table"
 
 
 def make_estimator(name: str) -> PoseEstimator:
