@@ -51,7 +51,8 @@ def draw_pose(
 ) -> np.ndarray:
     """A copy of an RGB image with the pose's model outline and axes drawn on it.
 
-    Axes: x red, y green, z blue, `axis_length` [m] long from the object's origin.
+    Axes: x red, y green, z blue, `axis_length` [m] long from the object's origin. The label goes
+    above the outline, or below it with `label_below`.
     """
     import cv2
 
@@ -67,11 +68,16 @@ def draw_pose(
         for i, c in zip((1, 2, 3), ((255, 0, 0), (0, 255, 0), (0, 0, 255)), strict=True):
             cv2.line(out, o, tuple(np.round(uv[i]).astype(int)), c, 2, lineType=cv2.LINE_AA)
     if label:
-        x, y = contours[0][:, 0].min(axis=0) if contours else (5, 20)
+        if contours:
+            pts2 = np.concatenate([c[:, 0] for c in contours])
+            x = pts2[:, 0].min()
+            y = pts2[:, 1].max() + 16 if label_below else pts2[:, 1].min() - 6
+        else:
+            x, y = 5, 20
         cv2.putText(
             out,
             label,
-            (int(x), max(12, int(y) - 6)),
+            (int(x), min(out.shape[0] - 4, max(12, int(y)))),
             cv2.FONT_HERSHEY_SIMPLEX,
             0.5,
             color,

@@ -137,7 +137,16 @@ def _save(folder: Path, obs, est, ep, result) -> None:
         frames[0].save(
             folder / "grasp.gif", save_all=True, append_images=frames[1:], duration=100, loop=0
         )
-    print(f"wrote {folder / 'head.png'} and {folder / 'grasp.gif'} ({len(frames)} frames)")
+        # Five frames from approach to hold, side by side.
+        pick = np.linspace(0, len(ep.frames) - 1, 5).round().astype(int)
+        cv2.imwrite(
+            str(folder / "grasp_strip.png"),
+            np.concatenate([ep.frames[i] for i in pick], axis=1)[..., ::-1],
+        )
+    print(
+        f"wrote {folder / 'head.png'}, {folder / 'grasp.gif'} ({len(frames)} frames) and "
+        f"{folder / 'grasp_strip.png'}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
