@@ -124,7 +124,6 @@ def main(argv: list[str] | None = None) -> int:
     print(format_report(report))
     if args.write:
         write_json(args.baseline, baseline_of(report))
-        print(f"wrote {args.baseline}")
         return 0
     ok, verdict = compare(report, baseline)
     if baseline.get("weights") != weights_fingerprint():
