@@ -1,6 +1,6 @@
 """Hybrid episode wall time and the speed-up of `sim.evaluate` with 2 worker processes over 1.
 
-    python bench/evaluate_speed.py [--estimator hybrid] [--episodes 4] [--json]
+    python bench/evaluate_speed.py [--estimator hybrid] [--episodes 10] [--json]
 
 Runs the same held-out episodes (`--episodes` per object) with 1 and with 2 workers through
 `sim.evaluate.evaluate`, prints the median episode wall time (one process, estimator loaded) and
@@ -27,7 +27,7 @@ SEED_START = 1_200_000_000  # held out (sim.constants.EVAL_SEED_BASE and above)
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--estimator", default=DEFAULT_ESTIMATOR)
-    p.add_argument("--episodes", type=int, default=4, help="episodes per object")
+    p.add_argument("--episodes", type=int, default=10, help="episodes per object")
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
     objs = list(OBJECT_NAMES)
