@@ -265,7 +265,11 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m perception.evaluate", description=__doc__.split("\n")[0])
     p.add_argument("--weights", type=Path, default=WEIGHTS_DIR / "posenet_ours.pt")
-    p.add_argument("--dists", default="headcam,paper", help="comma list of: headcam, paper")
+    p.add_argument(
+        "--dists",
+        default=None,
+        help="comma list of: headcam, paper (default: both; headcam with --boxes detector)",
+    )
     p.add_argument("--limit", type=int, default=None, help="at most this many test images")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument(
@@ -279,14 +283,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.boxes not in BOXES:
         return fail(f"unknown --boxes {args.boxes!r}; valid: {', '.join(BOXES)}")
-    dists = args.dists.split(",")
+    spec = args.dists or ("headcam" if args.boxes == "detector" else "headcam,paper")
+    dists = spec.split(",")
     if any(d not in DISTS for d in dists):
-        return fail(f"unknown distribution in {args.dists!r}; valid: {', '.join(DISTS)}")
-    if args.boxes == "detector":
-        if "--dists" not in " ".join(argv if argv is not None else sys.argv):
-            dists = ["headcam"]
-        if dists != ["headcam"]:
-            return fail("--boxes detector works on the head-camera split only; valid: headcam")
+        return fail(f"unknown distribution in {spec!r}; valid: {', '.join(DISTS)}")
+    if args.boxes == "detector" and dists != ["headcam"]:
+        return fail("--boxes detector works on the head-camera split only; valid: headcam")
     try:
         if args.json is not None:
             check_writable_file(args.json)

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from perception.geometry import rot_z
+from perception.metrics import rotation_error_deg
 from sim.objects import ObjectModel, _quat_to_mat
 
 
@@ -46,11 +48,6 @@ class SupportRefinement:
     applied: tuple[str, ...]
 
 
-def _geodesic_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
 def snap_to_resting(R_W_O: np.ndarray, model: ObjectModel) -> tuple[np.ndarray, str, float, float]:
     """The resting orientation (any yaw) nearest to a world-frame orientation.
 
@@ -62,10 +59,8 @@ def snap_to_resting(R_W_O: np.ndarray, model: ObjectModel) -> tuple[np.ndarray, 
     for name, quat in model.resting_poses.items():
         R_k = _quat_to_mat(np.asarray(quat, float))
         M = R_k @ R_W_O.T
-        psi = np.arctan2(M[0, 1] - M[1, 0], M[0, 0] + M[1, 1])
-        c, s = np.cos(psi), np.sin(psi)
-        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R_k
-        ang = _geodesic_deg(R, R_W_O)
+        R = rot_z(float(np.arctan2(M[0, 1] - M[1, 0], M[0, 0] + M[1, 1]))) @ R_k
+        ang = rotation_error_deg(R, R_W_O)
         if best is None or ang < best[2]:
             best = (R, name, ang, model.resting_height(quat))
     if best is None:
@@ -140,11 +135,6 @@ class MaskRefinement:
     renders: int
 
 
-def _rz(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def refine_with_mask(
     T_C_O: np.ndarray,
     T_world_cam: np.ndarray,
@@ -197,7 +187,7 @@ def refine_with_mask(
 
     def pose(yaw: float, dx: float, dy: float) -> np.ndarray:
         T = np.eye(4)
-        T[:3, :3] = _rz(yaw) @ R0
+        T[:3, :3] = rot_z(yaw) @ R0
         T[:3, 3] = p0 + np.array([dx, dy, 0.0])
         return T_cam_world @ T
 
