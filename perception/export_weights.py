@@ -47,10 +47,14 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
         path = out / f"posenet_{variant}.pt"
         torch.save(shipped, path)
         tc = state["train_config"]
+        command = state.get("command") or (
+            f"python -m perception.train --variant {variant} --epochs {tc['epochs']}"
+        )
         nets[variant] = {
             "file": path.name,
             "bytes": path.stat().st_size,
-            "command": f"python -m perception.train --variant {variant} --epochs {tc['epochs']}",
+            "command": command,
+            "stages": _stages(state, command),
             "train_config": tc,
             "data_seeds": _seeds(state["data_seeds"], tc.get("dists", DISTS)),
             "epochs_done": state["epoch"],
@@ -65,6 +69,22 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
     manifest["exported_at_commit"] = git_commit()
     MANIFEST.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
     return manifest
+
+
+def _stages(state: dict, command: str) -> list[dict]:
+    """The training runs that led to a checkpoint, first to last: each stage's command, epochs,
+    data seed ranges and final validation metrics."""
+    chain, node = [], {**state, "command": command}
+    while node:
+        hist = node.get("history")
+        chain.append({
+            "command": node.get("command"),
+            "epochs": node.get("epoch"),
+            "data_seeds": node.get("data_seeds"),
+            "validation": node.get("validation") or (hist[-1] if hist else None),
+        })  # fmt: skip
+        node = node.get("init_from")
+    return chain[::-1]
 
 
 def _seeds(recorded: dict, dists) -> dict:

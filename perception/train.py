@@ -88,13 +88,23 @@ class CropConfig:
     seed: int = 0
 
 
-def data_seed_ranges(dists: tuple[str, ...] | list[str]) -> dict[str, dict[str, list[int]]]:
+def data_seed_ranges(
+    dists: tuple[str, ...] | list[str], limits: dict[str, int] | None = None
+) -> dict[str, dict[str, list[int]]]:
     """Seed range [first, end) of every generated split of each distribution, from its
-    info.json: dist -> split -> range."""
+    info.json: dist -> split -> range. `limits` (dist -> images) shortens the ranges to the first
+    images of each split, as training with that limit uses them."""
     out = {}
     for d in dists:
         splits = load_info(data_root() / d).get("splits", {})
-        out[d] = {s: list(v["seed_range"]) for s, v in splits.items() if "seed_range" in v}
+        out[d] = {}
+        for s, v in splits.items():
+            if "seed_range" not in v:
+                continue
+            first, end = v["seed_range"]
+            if limits and d in limits:
+                end = min(end, first + limits[d])
+            out[d][s] = [first, end]
     return out
 
 
@@ -146,16 +156,15 @@ def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = Non
         theta (N,), scale (N,) = side / f, box (N, 3) square boxes (x0, y0, side), K (N, 3, 3),
         T_C_O (N, 4, 4), uv (N, 2) true origin pixel.
     """
-    tag = f"crops_{split}_{cfg.per_object}_{cfg.seed}_{limit or 'all'}.npz"
-    cache = root / tag
+    ds = PoseDataset(root, split)
+    n = len(ds) if limit is None else min(limit, len(ds))
+    cache = root / f"crops_{split}_{cfg.per_object}_{cfg.seed}_{n}.npz"  # n: images used
     if cache.is_file():
         try:
             with np.load(cache) as z:
                 return {k: z[k] for k in z.files}
         except (OSError, ValueError) as exc:
             raise AssetError(f"corrupt crop cache {cache}: {exc}; delete it to rebuild") from exc
-    ds = PoseDataset(root, split)
-    n = len(ds) if limit is None else min(limit, len(ds))
     rng = np.random.default_rng([cfg.seed, ("train", "val", "test").index(split)])
     out = CropSet()
     for i in tqdm(range(n), desc=f"crops {root.name}/{split}", leave=False):
@@ -243,6 +252,10 @@ class TrainConfig:
         width: backbone width.
         crops: how crops are cut.
         limit: use at most this many images per split (None: all).
+        dist_limits: per-distribution image limits, ((dist, images), ...), on top of `limit`.
+        init: checkpoint whose weights start this run (fine-tuning: fresh optimiser and
+            schedule); its record is kept in this run's checkpoint.
+        name: checkpoint file stem (default "posenet_<variant>").
         seed: seed of initialisation and batching.
         out: checkpoint folder; None means `checkpoint_dir()` (next to the data, outside git).
         checkpoint_minutes: save a resumable checkpoint at least this often.
@@ -260,6 +273,9 @@ class TrainConfig:
     width: int = 16
     crops: CropConfig = field(default_factory=CropConfig)
     limit: int | None = None
+    dist_limits: tuple[tuple[str, int], ...] = ()
+    init: str | None = None
+    name: str | None = None
     seed: int = 0
     out: Path | None = None
     checkpoint_minutes: float = 5.0
@@ -280,8 +296,29 @@ def _load_split(cfg: TrainConfig, split: str) -> dict:
                 f"`python -m perception.datagen --dist {d} --split {split} --count N` "
                 "(or `make data`)"
             )
-        parts.append(build_crops(root, split, cfg.crops, cfg.limit))
+        parts.append(build_crops(root, split, cfg.crops, _limit(cfg, d)))
     return concat(parts)
+
+
+def _limit(cfg: TrainConfig, dist: str) -> int | None:
+    """Images per split of `dist` that a run uses (None: all)."""
+    lims = [n for d, n in cfg.dist_limits if d == dist] + ([cfg.limit] if cfg.limit else [])
+    return min(lims) if lims else None
+
+
+def checkpoint_path(cfg: TrainConfig) -> Path:
+    """Where a run keeps its checkpoint."""
+    return (cfg.out or checkpoint_dir()) / f"{cfg.name or 'posenet_' + cfg.variant}.pt"
+
+
+def _resolve_init(init: str, out: Path) -> Path:
+    """`init` as a path, or as a checkpoint name in the checkpoint folder."""
+    for cand in (Path(init), out / init, out / f"{init}.pt"):
+        if cand.is_file():
+            return cand
+    raise AssetError(
+        f"no checkpoint {init!r} (looked for it as a path and in {out}); train it first"
+    )
 
 
 def _augment(x: torch.Tensor, g: torch.Generator) -> torch.Tensor:
@@ -312,8 +349,9 @@ def learning_rate(step: int, total_steps: int, peak: float, warmup: float = 0.05
     return peak * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * frac)))
 
 
-def _checkpoint(path: Path, model, opt, cfg, step, epoch, history, data_seeds) -> None:
+def _checkpoint(path: Path, model, opt, cfg, step, epoch, history, data_seeds, lineage) -> None:
     state = {
+        **lineage,
         "model": model.state_dict(),
         "model_config": model.cfg.to_dict(),
         "optimizer": opt.state_dict(),
@@ -330,8 +368,30 @@ def _checkpoint(path: Path, model, opt, cfg, step, epoch, history, data_seeds) -
     tmp.replace(path)
 
 
-def train(cfg: TrainConfig, resume: bool = True) -> dict:
-    """Train (resuming from the run's checkpoint when present) and return the history."""
+def _command(cfg: TrainConfig) -> str:
+    """The CLI command that runs `cfg` (as far as the CLI exposes it)."""
+    parts = ["python -m perception.train", f"--variant {cfg.variant}", f"--epochs {cfg.epochs}"]
+    if tuple(cfg.dists) != DISTS:
+        parts.append(f"--dists {','.join(cfg.dists)}")
+    if cfg.lr != TrainConfig.lr:
+        parts.append(f"--lr {cfg.lr:g}")
+    if cfg.batch != TrainConfig.batch:
+        parts.append(f"--batch {cfg.batch}")
+    lims = [f"{d}={n}" for d, n in cfg.dist_limits] + ([str(cfg.limit)] if cfg.limit else [])
+    if lims:
+        parts.append(f"--limit {','.join(lims)}")
+    if cfg.init:
+        parts.append(f"--init {cfg.init}")
+    if cfg.name:
+        parts.append(f"--name {cfg.name}")
+    return " ".join(parts)
+
+
+def train(cfg: TrainConfig, resume: bool = True, command: str | None = None) -> dict:
+    """Train (resuming from the run's checkpoint when present) and return the history.
+
+    With `cfg.init`, the model starts from that checkpoint's weights; a resumed run ignores it
+    and continues from its own checkpoint."""
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads or max(1, os.cpu_count() or 1))
     tr = _load_split(cfg, "train")
@@ -341,17 +401,33 @@ def train(cfg: TrainConfig, resume: bool = True) -> dict:
         tr = {k: v[keep] for k, v in tr.items()}
     if len(tr["crops"]) == 0:
         raise AssetError("no training crops; generate data first (`make data`)")
-    data_seeds = data_seed_ranges(cfg.dists)
+    data_seeds = data_seed_ranges(cfg.dists, {d: n for d in cfg.dists if (n := _limit(cfg, d))})
     model = PoseNet(NetConfig(variant=cfg.variant, n_classes=len(OBJECT_NAMES), width=cfg.width))
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = max(1, len(tr["crops"]) // cfg.batch)
     total_steps = cfg.epochs * steps_per_epoch
-    out = cfg.out or checkpoint_dir()
-    out.mkdir(parents=True, exist_ok=True)
-    ckpt = out / f"posenet_{cfg.variant}.pt"
+    ckpt = checkpoint_path(cfg)
+    ckpt.parent.mkdir(parents=True, exist_ok=True)
+    lineage = {"command": command or _command(cfg), "init_from": None}
+    resuming = resume and ckpt.is_file()
+    if cfg.init and not resuming:
+        src = _resolve_init(cfg.init, ckpt.parent)
+        parent = torch.load(src, map_location="cpu", weights_only=False)
+        if parent["model_config"] != model.cfg.to_dict():
+            raise AssetError(
+                f"{src} holds a {parent['model_config']} model, not {model.cfg.to_dict()}"
+            )
+        model.load_state_dict(parent["model"])
+        lineage["init_from"] = {
+            "checkpoint": src.name,
+            **{k: parent.get(k) for k in ("command", "init_from", "train_config", "epoch")},
+            **{k: parent.get(k) for k in ("data_seeds", "commit")},
+            "validation": parent["history"][-1] if parent.get("history") else None,
+        }
     step, epoch0, history = 0, 0, []
-    if resume and ckpt.is_file():
+    if resuming:
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        lineage = {k: state.get(k, v) for k, v in lineage.items()}
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         torch.set_rng_state(state["rng"]["torch"])
@@ -389,7 +465,7 @@ def train(cfg: TrainConfig, resume: bool = True) -> dict:
             if b % 20 == 0:
                 bar.set_postfix({k: f"{v:.3f}" for k, v in parts.items()})
             if time.monotonic() - last_save > 60 * cfg.checkpoint_minutes:
-                _checkpoint(ckpt, model, opt, cfg, step, epoch, history, data_seeds)
+                _checkpoint(ckpt, model, opt, cfg, step, epoch, history, data_seeds, lineage)
                 last_save = time.monotonic()
         val = evaluate_arrays(model, va)
         history.append({"epoch": epoch + 1, "step": step, **val})
@@ -398,9 +474,27 @@ def train(cfg: TrainConfig, resume: bool = True) -> dict:
             f"{val['distance_pct']:.2f} %, rotation {val['rotation_deg']:.2f} deg, "
             f"outliers {val['outlier_rate']:.1%}"
         )
-        _checkpoint(ckpt, model, opt, cfg, step, epoch + 1, history, data_seeds)
+        _checkpoint(ckpt, model, opt, cfg, step, epoch + 1, history, data_seeds, lineage)
         last_save = time.monotonic()
     return {"checkpoint": str(ckpt), "history": history}
+
+
+def parse_limit(text: str | None) -> tuple[int | None, tuple[tuple[str, int], ...]]:
+    """`--limit`: "N" (every distribution) or "dist=N,..." -> (limit, dist_limits)."""
+    if text is None:
+        return None, ()
+    limit, per = None, []
+    for item in text.split(","):
+        name, _, num = item.rpartition("=")
+        if name and name not in DISTS:
+            raise ValueError(f"unknown distribution {name!r} in --limit; valid: {', '.join(DISTS)}")
+        if not num.isdigit() or int(num) < 1:
+            raise ValueError(f"--limit wants N or dist=N with N >= 1, got {item!r}")
+        if name:
+            per.append((name, int(num)))
+        else:
+            limit = int(num)
+    return limit, tuple(per)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -410,8 +504,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--epochs", type=int, default=TrainConfig.epochs)
     p.add_argument("--batch", type=int, default=TrainConfig.batch)
     p.add_argument("--lr", type=float, default=TrainConfig.lr)
-    p.add_argument("--limit", type=int, default=None, help="at most this many images per split")
+    p.add_argument(
+        "--limit",
+        default=None,
+        help="at most this many images per split: N for every distribution, or dist=N,...",
+    )
     p.add_argument("--dists", default=",".join(DISTS), help="comma list of: paper, headcam")
+    p.add_argument(
+        "--init", default=None, help="start from this checkpoint's weights (name or path)"
+    )
+    p.add_argument("--name", default=None, help="checkpoint name (default: posenet_<variant>)")
     p.add_argument(
         "--out", type=Path, default=None, help="checkpoint folder (default: <data>/checkpoints)"
     )
@@ -426,9 +528,16 @@ def main(argv: list[str] | None = None) -> int:
         return fail(f"unknown distribution in {args.dists!r}; valid: {', '.join(DISTS)}")
     if args.epochs < 1 or args.batch < 1:
         return fail("--epochs and --batch must be at least 1")
+    try:
+        limit, dist_limits = parse_limit(args.limit)
+    except ValueError as exc:
+        return fail(str(exc))
+    if args.name is not None and (not args.name or "/" in args.name or args.name.endswith(".pt")):
+        return fail(f"--name must be a plain name such as posenet_ours, got {args.name!r}")
     cfg = TrainConfig(
         variant=args.variant, dists=dists, epochs=args.epochs, batch=args.batch, lr=args.lr,
-        limit=args.limit, out=args.out, threads=args.threads,
+        limit=limit, dist_limits=dist_limits, init=args.init, name=args.name, out=args.out,
+        threads=args.threads,
     )  # fmt: skip
     if args.smoke:
         cfg = replace(SMOKE, variant=args.variant, dists=dists, out=args.out)

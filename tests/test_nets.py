@@ -11,7 +11,9 @@ import torch
 from perception import datagen
 from perception.evaluate import evaluate_split, load_model
 from perception.nets import NetConfig, PoseNet, loss_fn, normalise
-from perception.train import SMOKE, WEIGHTS_DIR, train
+from perception import export_weights
+from perception import train as train_mod
+from perception.train import SMOKE, WEIGHTS_DIR, parse_limit, train
 from sim.errors import AssetError
 from sim.objects import OBJECT_NAMES
 
@@ -97,6 +99,73 @@ def test_smoke_training_checkpoints_and_resumes(tiny_data, tmp_path, monkeypatch
     assert {"center_px_mean", "distance_pct_mean", "rotation_deg_mean", "iou_acc",
             "outlier_rate", "add_s_recall"} <= set(report["average"])  # fmt: skip
     assert np.isfinite(report["average"]["distance_pct_mean"])
+
+
+def test_fine_tune_records_its_lineage_and_exports_stages(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
+    base = replace(SMOKE, out=tmp_path, name="posenet_ours_mixed")
+    first = train(base, command="stage one")
+    parent = torch.load(first["checkpoint"], weights_only=False)
+    ft = replace(
+        SMOKE, out=tmp_path, dists=("headcam",), dist_limits=(("headcam", 3),),
+        init="posenet_ours_mixed", epochs=2,
+    )  # fmt: skip
+    result = train(ft)
+    ckpt = torch.load(result["checkpoint"], weights_only=False)
+    assert result["checkpoint"].endswith("posenet_ours.pt")
+    assert ckpt["init_from"]["checkpoint"] == "posenet_ours_mixed.pt"
+    assert ckpt["init_from"]["command"] == "stage one"
+    assert ckpt["init_from"]["data_seeds"] == parent["data_seeds"]
+    assert ckpt["command"] == (
+        "python -m perception.train --variant ours --epochs 2 --dists headcam --batch 16 "
+        "--limit headcam=3,12 --init posenet_ours_mixed"
+    )
+    assert ckpt["data_seeds"] == {
+        "headcam": {"train": [0, 3], "val": [100_000_000, 100_000_002],
+                    "test": [200_000_000, 200_000_002]},
+    }  # fmt: skip
+    # The fine-tune starts from the parent's weights, not from a fresh initialisation.
+    fresh = train(replace(ft, init=None, name="fresh", epochs=1))
+    tuned = train(replace(ft, name="tuned", epochs=1))
+    assert tuned["history"][0]["rotation_deg"] != fresh["history"][0]["rotation_deg"]
+    out = tmp_path / "weights"
+    monkeypatch.setattr(export_weights, "MANIFEST", out / "manifest.json")
+    manifest = export_weights.export(tmp_path, out)
+    stages = manifest["pose_nets"]["ours"]["stages"]
+    assert [s["command"] for s in stages] == ["stage one", ckpt["command"]]
+    assert [s["epochs"] for s in stages] == [1, 2]
+    assert manifest["pose_nets"]["ours"]["command"] == ckpt["command"]
+
+
+def test_fine_tune_from_a_missing_checkpoint_is_a_clear_error(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
+    with pytest.raises(AssetError, match="no checkpoint 'nope'"):
+        train(replace(SMOKE, out=tmp_path, init="nope"))
+
+
+def test_parse_limit() -> None:
+    assert parse_limit(None) == (None, ())
+    assert parse_limit("50") == (50, ())
+    assert parse_limit("headcam=5000") == (None, (("headcam", 5000),))
+    assert parse_limit("headcam=5,paper=7,9") == (9, (("headcam", 5), ("paper", 7)))
+    with pytest.raises(ValueError, match="valid: paper, headcam"):
+        parse_limit("studio=5")
+    with pytest.raises(ValueError, match="N >= 1"):
+        parse_limit("headcam=0")
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["--limit", "lots"], "--limit wants N or dist=N"),
+        (["--limit", "studio=3"], "valid: paper, headcam"),
+        (["--name", "a/b"], "--name must be a plain name"),
+    ],
+)
+def test_train_cli_bad_input(argv, needle, capsys) -> None:
+    assert train_mod.main(argv) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err
 
 
 def test_missing_and_corrupt_weights(tmp_path) -> None:
