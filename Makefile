@@ -25,16 +25,19 @@ bench: setup
 
 # Training data (outside git: $$POSEGRASP_DATA, else data/) and the shipped weights, from scratch.
 DATA_COUNTS := paper:train:20000 paper:val:1000 paper:test:1000 \
-	headcam:train:5000 headcam:val:500 headcam:test:500
+	headcam:train:10000 headcam:val:500 headcam:test:500
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
 	  $(PY) -m perception.datagen --dist $$dist --split $$split --count $$count --workers 2 \
 	  || exit 1; done
 
-# The shipped weights were trained with exactly these commands (see perception/weights/manifest.json).
+# The shipped weights were trained with exactly these commands (see perception/weights/manifest.json):
+# both distributions (the first 5000 head-camera images), then "ours" is fine-tuned on all the
+# head-camera images, the distribution the robot sees.
 weights: data
-	$(PY) -m perception.train --variant ours --epochs 16
-	$(PY) -m perception.train --variant paper --epochs 10
+	$(PY) -m perception.train --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed
+	$(PY) -m perception.train --variant ours --epochs 14 --dists headcam --lr 0.001 --init posenet_ours_mixed
+	$(PY) -m perception.train --variant paper --epochs 10 --limit headcam=5000
 	$(PY) -m perception.export_weights
 	$(PY) -m perception.train_detector --epochs 8 --export
 

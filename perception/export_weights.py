@@ -87,6 +87,58 @@ def _stages(state: dict, command: str) -> list[dict]:
     return chain[::-1]
 
 
+def training_curves(checkpoints: Path) -> dict[str, list[list[dict]]]:
+    """Validation history of every stage of every exported variant: variant -> stages (first to
+    last) -> epochs; the chain stops at a stage whose checkpoint is gone."""
+    curves = {}
+    for variant in VARIANTS:
+        path = checkpoints / f"posenet_{variant}.pt"
+        stages = []
+        while path is not None and path.is_file():
+            state = torch.load(path, map_location="cpu", weights_only=False)
+            stages.append(state.get("history") or [])
+            parent = state.get("init_from")
+            path = checkpoints / parent["checkpoint"] if parent else None
+        if stages:
+            curves[variant] = stages[::-1]
+    return curves
+
+
+def plot_curves(curves: dict[str, list[list[dict]]], path: Path) -> None:
+    """Validation centre, distance, rotation and outlier rate against epoch, one line per
+    variant; a dashed line marks where a fine-tuning stage starts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = (("center_px", "centre [px]"), ("distance_pct", "distance [%]"),
+            ("rotation_deg", "rotation [deg]"), ("outlier_rate", "outliers > 15 deg"))  # fmt: skip
+    fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
+    for variant, stages in curves.items():
+        offset, xs, ys = 0, [], {k: [] for k, _ in keys}
+        for i, hist in enumerate(stages):
+            if i > 0:
+                for ax in axes:
+                    ax.axvline(offset + 0.5, ls="--", c="grey", lw=0.8)
+            for h in hist:
+                xs.append(offset + h["epoch"])
+                for k, _ in keys:
+                    ys[k].append(h[k])
+            offset += hist[-1]["epoch"] if hist else 0
+        for ax, (k, label) in zip(axes, keys, strict=True):
+            ax.plot(xs, ys[k], marker=".", label=variant)
+            ax.set_title(label)
+            ax.set_xlabel("epoch")
+            ax.grid(alpha=0.3)
+    axes[0].legend()
+    fig.suptitle("validation (each stage on its own validation split; dashed: fine-tuning starts)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def _seeds(recorded: dict, dists) -> dict:
     """The checkpoint's data seed ranges; read from the datasets when it has none."""
     if any(recorded.get(d) for d in recorded):
@@ -103,11 +155,16 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m perception.export_weights", description=__doc__.split("\n")[0]
     )
     p.add_argument("--checkpoints", type=Path, default=None)
+    p.add_argument("--plot", type=Path, default=None, help="write the training curves here (PNG)")
     args = p.parse_args(argv)
+    ckpts = args.checkpoints or checkpoint_dir()
     try:
-        m = export(args.checkpoints or checkpoint_dir())
+        m = export(ckpts)
     except FileNotFoundError as exc:
         return fail(str(exc))
+    if args.plot:
+        plot_curves(training_curves(ckpts), args.plot)
+        print(f"wrote {args.plot}")
     for v, e in m["pose_nets"].items():
         print(f"{v}: {e['file']} ({e['bytes'] / 1e6:.1f} MB), epochs {e['epochs_done']}")
     return 0

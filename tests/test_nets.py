@@ -135,6 +135,10 @@ def test_fine_tune_records_its_lineage_and_exports_stages(tiny_data, tmp_path, m
     assert [s["command"] for s in stages] == ["stage one", ckpt["command"]]
     assert [s["epochs"] for s in stages] == [1, 2]
     assert manifest["pose_nets"]["ours"]["command"] == ckpt["command"]
+    curves = export_weights.training_curves(tmp_path)
+    assert [[h["epoch"] for h in st] for st in curves["ours"]] == [[1], [1, 2]]
+    export_weights.plot_curves(curves, tmp_path / "curves.png")
+    assert (tmp_path / "curves.png").stat().st_size > 1000
 
 
 def test_fine_tune_from_a_missing_checkpoint_is_a_clear_error(tiny_data, tmp_path, monkeypatch):
