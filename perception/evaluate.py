@@ -17,6 +17,7 @@ those from ground-truth boxes.
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -261,6 +262,60 @@ def format_detection(det: dict) -> str:
     return "\n".join(rows)
 
 
+#: Averages the manifest keeps of each test split.
+RECORD_KEYS = ("count", "center_px_mean", "center_crop_px_mean", "distance_pct_mean",
+               "rotation_deg_mean", "rotation_deg_median", "outlier_rate", "iou_acc",
+               "add_s_recall")  # fmt: skip
+
+
+def record_in_manifest(report: dict, weights: Path, boxes: str, command: str,
+                       manifest_path: Path | None = None) -> str:  # fmt: skip
+    """Store a report's test averages in the manifest entry of the shipped `weights` (and, with
+    detector boxes, the detection AP in the detector's entry). Returns the variant's name.
+
+    Raises:
+        AssetError: `weights` is not a shipped file the manifest lists.
+    """
+    manifest_path = manifest_path or weights.parent / "manifest.json"
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise AssetError(f"cannot read {manifest_path} ({exc}); run export_weights") from exc
+    nets = manifest.get("pose_nets", {})
+    variant = next((v for v, e in nets.items() if e.get("file") == weights.name), None)
+    if variant is None:
+        raise AssetError(
+            f"{weights.name} is not listed in {manifest_path}; --record works on shipped weights: "
+            + ", ".join(e.get("file", "?") for e in nets.values())
+        )
+    splits = {d: {k: report[d]["average"][k] for k in RECORD_KEYS} for d in DISTS if d in report}
+    if boxes == "gt":
+        nets[variant]["test"] = {"command": command, **splits}
+    else:
+        nets[variant]["test_detector_boxes"] = {
+            "command": command, **splits, "ratio_to_gt_boxes": report["detector_to_gt_ratio"]
+        }  # fmt: skip
+        summary = report["detection_summary"]
+        manifest.setdefault("detector", {})["test"] = {
+            "command": command, "images": summary["images"], "overall": summary["overall"],
+            "per_class": report["detection"], "missed": summary["missed"],
+        }  # fmt: skip
+    manifest_path.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+    return variant
+
+
+def _command(args) -> str:
+    """The evaluation command, as the manifest records it."""
+    w = Path(args.weights).resolve()
+    root = Path(__file__).resolve().parent.parent
+    parts = ["python -m perception.evaluate",
+             f"--weights {w.relative_to(root) if w.is_relative_to(root) else w}"]  # fmt: skip
+    parts += [f"--boxes {args.boxes}"] if args.boxes != "gt" else []
+    parts += [f"--dists {args.dists}"] if args.dists else []
+    parts += [f"--limit {args.limit}"] if args.limit else []
+    return " ".join(parts)
+
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m perception.evaluate", description=__doc__.split("\n")[0])
@@ -280,6 +335,11 @@ def main(argv: list[str] | None = None) -> int:
         "to those from ground-truth boxes)",
     )
     p.add_argument("--detector", type=Path, default=DEFAULT_WEIGHTS, help="detector weights")
+    p.add_argument(
+        "--record",
+        action="store_true",
+        help="store the test averages in perception/weights/manifest.json (shipped weights only)",
+    )
     args = p.parse_args(argv)
     if args.boxes not in BOXES:
         return fail(f"unknown --boxes {args.boxes!r}; valid: {', '.join(BOXES)}")
@@ -316,6 +376,9 @@ def main(argv: list[str] | None = None) -> int:
                     "detector boxes / ground-truth boxes (average): "
                     + ", ".join(f"{k} {v:.2f}x" for k, v in report["detector_to_gt_ratio"].items())
                 )
+        if args.record:
+            variant = record_in_manifest(report, args.weights, args.boxes, _command(args))
+            print(f"recorded the test figures of {variant} in the manifest")
     except PosegraspError as exc:
         return fail(str(exc))
     if args.json is not None:

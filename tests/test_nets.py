@@ -201,6 +201,30 @@ def test_detector_boxes_evaluation(tiny_data) -> None:
         assert np.isfinite(report["average"]["center_px_mean"])
 
 
+def test_evaluate_records_test_figures_in_the_manifest(tiny_data, tmp_path, monkeypatch):
+    import json
+    import shutil
+
+    from perception import evaluate
+
+    monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
+    weights = tmp_path / "posenet_ours.pt"
+    shutil.copy(WEIGHTS_DIR / "posenet_ours.pt", weights)
+    (tmp_path / "manifest.json").write_text(
+        json.dumps({"pose_nets": {"ours": {"file": "posenet_ours.pt"}}})
+    )
+    argv = ["--weights", str(weights), "--dists", "headcam", "--json", str(tmp_path / "r.json")]
+    assert evaluate.main([*argv, "--record"]) == 0
+    test = json.loads((tmp_path / "manifest.json").read_text())["pose_nets"]["ours"]["test"]
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert test["headcam"]["rotation_deg_mean"] == report["headcam"]["average"]["rotation_deg_mean"]
+    assert test["command"].endswith("--dists headcam") and "paper" not in test
+    # Weights the manifest does not list cannot be recorded.
+    other = tmp_path / "posenet_other.pt"
+    shutil.copy(weights, other)
+    assert evaluate.main(["--weights", str(other), "--dists", "headcam", "--record"]) == 2
+
+
 @pytest.mark.parametrize(
     "argv, needle",
     [
