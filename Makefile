@@ -32,14 +32,18 @@ data: setup
 	  || exit 1; done
 
 # The shipped weights were trained with exactly these commands (see perception/weights/manifest.json):
-# both distributions (the first 5000 head-camera images), then "ours" is fine-tuned on all the
-# head-camera images, the distribution the robot sees.
+# each variant on both distributions (the first 5000 head-camera images), then fine-tuned on all
+# the head-camera images, the distribution the robot sees.
 weights: data
 	$(PY) -m perception.train --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed
 	$(PY) -m perception.train --variant ours --epochs 14 --dists headcam --lr 0.001 --init posenet_ours_mixed
-	$(PY) -m perception.train --variant paper --epochs 10 --limit headcam=5000
-	$(PY) -m perception.export_weights
+	$(PY) -m perception.train --variant paper --epochs 10 --limit headcam=5000 --name posenet_paper_mixed
+	$(PY) -m perception.train --variant paper --epochs 14 --dists headcam --lr 0.001 --init posenet_paper_mixed
+	$(PY) -m perception.export_weights --plot docs/training_curves.png
 	$(PY) -m perception.train_detector --epochs 8 --export
+	$(PY) -m perception.evaluate --weights perception/weights/posenet_ours.pt --record
+	$(PY) -m perception.evaluate --weights perception/weights/posenet_paper.pt --record
+	$(PY) -m perception.evaluate --boxes detector --record
 
 setup: system-deps $(STAMP)
 
