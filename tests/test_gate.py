@@ -39,10 +39,28 @@ def test_compare_rejects_a_different_protocol() -> None:
     assert not ok and "gate --write" in verdict
 
 
-def test_grasp_success_gate() -> None:
-    """The regression gate: the shipped estimator on 10 held-out episodes per object must not
-    fall below the committed baseline by more than the margin documented in `sim.gate`."""
-    base = json.loads(gate.BASELINE.read_text())
-    report = gate.run_gate(base["estimator"], base["episodes_per_object"], workers=2)
+def test_baseline_covers_the_gate_estimators() -> None:
+    assert set(gate.load_baselines()) == set(gate.GATE_ESTIMATORS)
+
+
+def test_a_single_record_baseline_is_read_by_its_estimator(tmp_path) -> None:
+    path = tmp_path / "b.json"
+    path.write_text(json.dumps(gate.baseline_of(_report(57))))
+    assert list(gate.load_baselines(path)) == ["hybrid"]
+
+
+def test_gate_cli_names_the_missing_baseline(tmp_path, capsys) -> None:
+    path = tmp_path / "b.json"
+    path.write_text(json.dumps({"hybrid": gate.baseline_of(_report(57))}))
+    assert gate.main(["--baseline", str(path), "--estimator", "oracle"]) == 2
+    assert "no baseline for oracle" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("estimator", gate.GATE_ESTIMATORS)
+def test_grasp_success_gate(estimator: str) -> None:
+    """The regression gate: each gate estimator on 10 held-out episodes per object must not
+    fall below its committed baseline by more than the margin documented in `sim.gate`."""
+    base = gate.load_baselines()[estimator]
+    report = gate.run_gate(estimator, base["episodes_per_object"], workers=2)
     ok, verdict = gate.compare(report, base)
     assert ok, verdict + "\n" + gate.format_report(report)
