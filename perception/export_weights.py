@@ -45,7 +45,12 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
             "commit": state["commit"],
         }
         path = out / f"posenet_{variant}.pt"
+        before = path.read_bytes() if path.is_file() else None
         torch.save(shipped, path)
+        # Test figures stay valid only for the very same weights.
+        kept = {k: v for k, v in nets.get(variant, {}).items() if k.startswith("test")}
+        if before != path.read_bytes():
+            kept = {}
         tc = state["train_config"]
         command = state.get("command") or (
             f"python -m perception.train --variant {variant} --epochs {tc['epochs']}"
@@ -60,6 +65,7 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
             "epochs_done": state["epoch"],
             "validation": state["history"][-1] if state["history"] else None,
             "trained_at_commit": state["commit"],
+            **kept,
         }
     if not found:
         raise FileNotFoundError(
