@@ -35,6 +35,7 @@ from perception.nets import NetConfig, PoseNet
 from perception.overlay import silhouette
 from perception.train import (
     DISTS,
+    REPO_ROOT,
     WEIGHTS_DIR,
     CropConfig,
     CropSet,
@@ -307,9 +308,8 @@ def record_in_manifest(report: dict, weights: Path, boxes: str, command: str,
 def _command(args) -> str:
     """The evaluation command, as the manifest records it."""
     w = Path(args.weights).resolve()
-    root = Path(__file__).resolve().parent.parent
-    parts = ["python -m perception.evaluate",
-             f"--weights {w.relative_to(root) if w.is_relative_to(root) else w}"]  # fmt: skip
+    w = w.relative_to(REPO_ROOT) if w.is_relative_to(REPO_ROOT) else w
+    parts = ["python -m perception.evaluate", f"--weights {w}"]
     parts += [f"--boxes {args.boxes}"] if args.boxes != "gt" else []
     parts += [f"--dists {args.dists}"] if args.dists else []
     parts += [f"--limit {args.limit}"] if args.limit else []

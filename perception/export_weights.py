@@ -48,9 +48,8 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
         before = path.read_bytes() if path.is_file() else None
         torch.save(shipped, path)
         # Test figures stay valid only for the very same weights.
-        kept = {k: v for k, v in nets.get(variant, {}).items() if k.startswith("test")}
-        if before != path.read_bytes():
-            kept = {}
+        same = before == path.read_bytes()
+        kept = {k: v for k, v in nets.get(variant, {}).items() if same and k.startswith("test")}
         tc = state["train_config"]
         command = state.get("command") or (
             f"python -m perception.train --variant {variant} --epochs {tc['epochs']}"
