@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from perception import datagen
+from perception import datagen, export_weights
+from perception import train as train_mod
 from perception.evaluate import evaluate_split, load_model
 from perception.nets import NetConfig, PoseNet, loss_fn, normalise
-from perception import export_weights
-from perception import train as train_mod
 from perception.train import SMOKE, WEIGHTS_DIR, parse_limit, train
 from sim.errors import AssetError
 from sim.objects import OBJECT_NAMES
