@@ -18,7 +18,7 @@ test: setup
 	$(PY) -m pytest -q -m "not slow"
 
 lint: setup
-	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
+	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check . && $(VENV)/bin/lint-imports
 
 bench: setup
 	$(PY) bench/sim_speed.py
@@ -28,22 +28,22 @@ DATA_COUNTS := paper:train:20000 paper:val:1000 paper:test:1000 \
 	headcam:train:10000 headcam:val:500 headcam:test:500
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
-	  $(PY) -m perception.datagen --dist $$dist --split $$split --count $$count --workers 2 \
+	  $(PY) -m perception.training.datagen --dist $$dist --split $$split --count $$count --workers 2 \
 	  || exit 1; done
 
 # The shipped weights were trained with exactly these commands (see perception/weights/manifest.json):
 # each variant on both distributions (the first 5000 head-camera images), then fine-tuned on all
 # the head-camera images, the distribution the robot sees.
 weights: data
-	$(PY) -m perception.train --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed
-	$(PY) -m perception.train --variant ours --epochs 14 --dists headcam --lr 0.001 --init posenet_ours_mixed
-	$(PY) -m perception.train --variant paper --epochs 10 --limit headcam=5000 --name posenet_paper_mixed
-	$(PY) -m perception.train --variant paper --epochs 14 --dists headcam --lr 0.001 --init posenet_paper_mixed
-	$(PY) -m perception.export_weights --plot docs/training_curves.png
-	$(PY) -m perception.train_detector --epochs 8 --export
-	$(PY) -m perception.evaluate --weights perception/weights/posenet_ours.pt --record
-	$(PY) -m perception.evaluate --weights perception/weights/posenet_paper.pt --record
-	$(PY) -m perception.evaluate --boxes detector --record
+	$(PY) -m perception.training.train_posenet --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed
+	$(PY) -m perception.training.train_posenet --variant ours --epochs 14 --dists headcam --lr 0.001 --init posenet_ours_mixed
+	$(PY) -m perception.training.train_posenet --variant paper --epochs 10 --limit headcam=5000 --name posenet_paper_mixed
+	$(PY) -m perception.training.train_posenet --variant paper --epochs 14 --dists headcam --lr 0.001 --init posenet_paper_mixed
+	$(PY) -m perception.training.export --plot docs/training_curves.png
+	$(PY) -m perception.training.train_detector --epochs 8 --export
+	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
+	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
+	$(PY) -m perception.training.tables --boxes detector --record
 
 setup: system-deps $(STAMP)
 

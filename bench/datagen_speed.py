@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from perception.datagen import GenConfig, generate
+from perception.training.datagen import GenConfig, generate
 
 
 def _cpu_seconds() -> float:

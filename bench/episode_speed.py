@@ -15,9 +15,9 @@ import time
 import numpy as np
 
 import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
-from sim.episode import run_episode
+from sim.episode import play_episode
 from sim.estimators import OracleEstimator
-from sim.objects import OBJECT_NAMES
+from sim.world.objects import OBJECT_NAMES
 
 
 def main() -> None:
@@ -30,7 +30,7 @@ def main() -> None:
     for obj in OBJECT_NAMES:
         for seed in range(100, 100 + args.episodes):
             t = time.perf_counter()
-            r = run_episode(obj, seed, OracleEstimator())
+            r = play_episode(obj, seed, OracleEstimator())
             walls.append((time.perf_counter() - t) * 1000)
             successes += r.success
             for k, v in r.timings_ms.items():

@@ -32,13 +32,13 @@ import torchvision  # noqa: F401
 
 import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
 from perception.detector import DEFAULT_WEIGHTS
-from perception.estimator import DEFAULT_POSENET, STAGES, HybridPoseEstimator
-from sim import constants as C
-from sim.camera import CameraRenderer, intrinsics
-from sim.cli import ArgumentParser, fail
-from sim.errors import PosegraspError
-from sim.objects import OBJECT_NAMES
-from sim.scene import SceneConfig, build_scene
+from perception.hybrid import DEFAULT_POSENET, STAGES, HybridPoseEstimator
+from sim.core.cli import ArgumentParser, fail
+from sim.core.errors import PosegraspError
+from sim.world import constants as C
+from sim.world.camera import CameraRenderer, camera_intrinsics
+from sim.world.objects import OBJECT_NAMES
+from sim.world.scene import SceneConfig, build_scene
 
 WIDTH, HEIGHT = 640, 480
 TARGET_MS = 66.0
@@ -54,7 +54,7 @@ def render_images(n_objects: int, count: int, seed0: int) -> list[tuple[np.ndarr
         scene = build_scene(obj, seed0 + i, SceneConfig(n_distractors=n_objects - 1))
         with CameraRenderer(scene.model, WIDTH, HEIGHT) as r:
             rgb = r.rgb(scene.data, C.HEAD_CAMERA)
-        out.append((rgb, intrinsics(scene.model, C.HEAD_CAMERA, WIDTH, HEIGHT)))
+        out.append((rgb, camera_intrinsics(scene.model, C.HEAD_CAMERA, WIDTH, HEIGHT)))
     return out
 
 

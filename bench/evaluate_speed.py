@@ -19,9 +19,9 @@ import numpy as np
 import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
 from sim.estimators import DEFAULT_ESTIMATOR
 from sim.evaluate import evaluate
-from sim.objects import OBJECT_NAMES
+from sim.world.objects import OBJECT_NAMES
 
-SEED_START = 1_200_000_000  # held out (sim.constants.EVAL_SEED_BASE and above)
+SEED_START = 1_200_000_000  # held out (sim.world.constants.EVAL_SEED_BASE and above)
 
 
 def main() -> None:

@@ -32,12 +32,12 @@ from dataclasses import asdict, dataclass
 
 import mujoco
 
-from sim import constants as C
-from sim.camera import CameraRenderer, RenderOptions
-from sim.cli import ArgumentParser, fail
-from sim.errors import InvalidArgumentError, PosegraspError
-from sim.objects import OBJECT_NAMES
-from sim.scene import SceneConfig, build_scene
+from sim.core.cli import ArgumentParser, fail
+from sim.core.errors import InvalidArgumentError, PosegraspError
+from sim.world import constants as C
+from sim.world.camera import CameraRenderer, RenderOptions
+from sim.world.objects import OBJECT_NAMES
+from sim.world.scene import SceneConfig, build_scene
 
 TARGET_BUILD_S = 0.5
 TARGET_RTF = 10.0

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.errors import UnknownNameError
-from sim.objects import OBJECT_NAMES, ObjectModel, load_object
+from sim.core.errors import UnknownNameError
+from sim.world.objects import OBJECT_NAMES, ObjectModel, load_object
 
 
 @dataclass(frozen=True)

@@ -14,8 +14,8 @@ import mujoco
 import numpy as np
 
 from grasping.planner import PLANNED_JOINTS, GraspPlan
-from sim import constants as C
-from sim.scene import Scene
+from sim.world import constants as C
+from sim.world.scene import Scene
 
 #: Failure reasons an episode can end with.
 FAILURE_REASONS: tuple[str, ...] = (

@@ -18,8 +18,12 @@ import mujoco
 import numpy as np
 
 from grasping.candidates import GraspCandidate, grasp_candidates
-from sim import constants as C
-from sim.errors import InvalidArgumentError, PosegraspError
+from sim.core.errors import PosegraspError
+from sim.core.transforms import check_rigid
+from sim.world import constants as C
+
+#: Accepted deviation of an estimated rotation from orthonormality (estimates come as float32).
+POSE_TOL = 1e-4
 
 #: Joints the planner moves, in this order.
 PLANNED_JOINTS: tuple[str, ...] = (*C.BASE_JOINTS, C.TORSO_JOINT, *C.ARM_JOINTS)
@@ -117,20 +121,6 @@ class GraspPlan:
     ik_ms: float
     tried: int
     notes: list[str] = field(default_factory=list)
-
-
-def check_pose(T: np.ndarray, what: str = "pose") -> None:
-    """Raise InvalidArgumentError unless T is a finite 4x4 rigid transform."""
-    T = np.asarray(T)
-    if T.shape != (4, 4):
-        raise InvalidArgumentError(f"{what} must be a 4x4 transform, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise InvalidArgumentError(f"{what} contains NaN or infinite values")
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
-        raise InvalidArgumentError(f"{what} rotation is not orthonormal with det +1")
-    if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
-        raise InvalidArgumentError(f"{what} last row must be [0, 0, 0, 1]")
 
 
 def _se3(T: np.ndarray) -> mink.SE3:
@@ -248,7 +238,7 @@ class GraspPlanner:
             PlanningError: "unreachable" when the object is beyond reach even with base motion;
                 "ik_infeasible" when no candidate's IK converges.
         """
-        check_pose(T_world_O, "estimated object pose")
+        check_rigid(T_world_O, "estimated object pose", tol=POSE_TOL)
         t0 = time.perf_counter()
         base_xy = q_start[self.qadr[:2]]
         horiz = float(np.linalg.norm(T_world_O[:2, 3] - base_xy))

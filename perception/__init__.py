@@ -1,8 +1,12 @@
-"""Perception: the 4D pose representation, crops and pose metrics (SPEC sections 2-7).
+"""Perception at run time: the 4D pose representation, crops, pose metrics and the hybrid
+estimator (docs/DESIGN.md, "The 4D representation" to "Metrics").
 
-Importing this package is cheap: it does not import torch (the differentiable versions live in
-:mod:`perception.geometry_torch`) and OpenCV is imported only when a crop is resampled.
+Importing this package is cheap: it does not import torch. `HybridPoseEstimator` and
+`PoseDetection` are loaded on first use (``from perception import HybridPoseEstimator`` imports
+torch and torchvision, never the training code under `perception.training`).
 """
+
+from typing import Any
 
 from perception.crops import (
     crop_affine,
@@ -18,20 +22,13 @@ from perception.geometry import (
     axes_from_p,
     decode,
     encode,
-    intrinsics,
-    invert_transform,
-    make_transform,
     pixel_ray,
     project,
     r_corr,
-    rot_x,
-    rot_y,
-    rot_z,
     rotation_from_p_theta,
 )
 from perception.metrics import (
     add,
-    add_auc,
     adi,
     box_iou,
     center_error_px,
@@ -40,16 +37,41 @@ from perception.metrics import (
     mask_iou,
     mspd,
     mssd,
+    rotation_error_deg,
+    rotation_error_sym_deg,
+    translation_error_pct,
+)
+from perception.summaries import (
+    add_auc,
     outlier_rate,
     recall,
     recall_5cm5deg,
-    rotation_error_deg,
-    rotation_error_sym_deg,
     summary_stats,
-    translation_error_pct,
+)
+from sim.core.transforms import (
+    intrinsics,
+    invert_transform,
+    make_transform,
+    rot_x,
+    rot_y,
+    rot_z,
 )
 
+#: Names loaded from `perception.hybrid` on first access (it imports torch).
+_LAZY = ("HybridPoseEstimator", "PoseDetection")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        from perception import hybrid
+
+        return getattr(hybrid, name)
+    raise AttributeError(f"module 'perception' has no attribute {name!r}")
+
+
 __all__ = [
+    "HybridPoseEstimator",
+    "PoseDetection",
     "add",
     "add_auc",
     "adi",

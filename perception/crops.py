@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim.core.errors import InvalidArgumentError
+
 SquareBox = tuple[float, float, float]
 
 
@@ -23,9 +25,11 @@ def _check_box_xyxy(box_xyxy: object) -> np.ndarray:
     """Validate a detection box (x0, y0, x1, y1) [px] with x1 > x0 and y1 > y0."""
     box = np.asarray(box_xyxy, dtype=np.float64)
     if box.shape != (4,) or not np.all(np.isfinite(box)):
-        raise ValueError(f"box_xyxy must be 4 finite numbers (x0, y0, x1, y1), got {box_xyxy!r}")
+        raise InvalidArgumentError(
+            f"box_xyxy must be 4 finite numbers (x0, y0, x1, y1), got {box_xyxy!r}"
+        )
     if box[2] <= box[0] or box[3] <= box[1]:
-        raise ValueError(f"box_xyxy must have x1 > x0 and y1 > y0, got {box.tolist()}")
+        raise InvalidArgumentError(f"box_xyxy must have x1 > x0 and y1 > y0, got {box.tolist()}")
     return box
 
 
@@ -33,7 +37,7 @@ def _check_square_box(square_box: object) -> tuple[float, float, float]:
     """Validate a square box (x0, y0, side) [px] with side > 0."""
     box = np.asarray(square_box, dtype=np.float64)
     if box.shape != (3,) or not np.all(np.isfinite(box)) or box[2] <= 0.0:
-        raise ValueError(
+        raise InvalidArgumentError(
             f"square_box must be finite (x0, y0, side) with side > 0, got {square_box!r}"
         )
     return float(box[0]), float(box[1]), float(box[2])
@@ -42,7 +46,7 @@ def _check_square_box(square_box: object) -> tuple[float, float, float]:
 def _check_size(size: int) -> int:
     """Validate a crop size in pixels."""
     if int(size) != size or size <= 0:
-        raise ValueError(f"size must be a positive integer, got {size!r}")
+        raise InvalidArgumentError(f"size must be a positive integer, got {size!r}")
     return int(size)
 
 
@@ -50,7 +54,7 @@ def _check_uv(uv: object, name: str) -> np.ndarray:
     """Validate pixel coordinates of shape (2,) or (N, 2)."""
     arr = np.asarray(uv, dtype=np.float64)
     if arr.ndim not in (1, 2) or arr.shape[-1] != 2:
-        raise ValueError(f"{name} must have shape (2,) or (N, 2), got {arr.shape}")
+        raise InvalidArgumentError(f"{name} must have shape (2,) or (N, 2), got {arr.shape}")
     return arr
 
 
@@ -72,10 +76,10 @@ def square_box(
     """
     box = _check_box_xyxy(box_xyxy)
     if not np.isfinite(scale) or scale <= 0.0:
-        raise ValueError(f"scale must be positive, got {scale}")
+        raise InvalidArgumentError(f"scale must be positive, got {scale}")
     shift_arr = np.asarray(shift, dtype=np.float64)
     if shift_arr.shape != (2,) or not np.all(np.isfinite(shift_arr)):
-        raise ValueError(f"shift must be 2 finite numbers, got {shift!r}")
+        raise InvalidArgumentError(f"shift must be 2 finite numbers, got {shift!r}")
     side = float(max(box[2] - box[0], box[3] - box[1]) * scale)
     cu = 0.5 * (box[0] + box[2]) + shift_arr[0] * side
     cv = 0.5 * (box[1] + box[3]) + shift_arr[1] * side
@@ -102,9 +106,9 @@ def random_square_box(
     """
     low, high = scale_range
     if not 0.0 < low <= high:
-        raise ValueError(f"scale_range must satisfy 0 < low <= high, got {scale_range}")
+        raise InvalidArgumentError(f"scale_range must satisfy 0 < low <= high, got {scale_range}")
     if max_shift < 0.0:
-        raise ValueError(f"max_shift must be >= 0, got {max_shift}")
+        raise InvalidArgumentError(f"max_shift must be >= 0, got {max_shift}")
     scale = float(rng.uniform(low, high))
     shift = rng.uniform(-max_shift, max_shift, size=2)
     return square_box(box_xyxy, scale=scale, shift=(float(shift[0]), float(shift[1])))
@@ -131,7 +135,7 @@ def crop_and_resize(image: np.ndarray, square_box: SquareBox, size: int = 64) ->
         (size, size, C) or (size, size) uint8 crop.
     """
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
-        raise ValueError("image must be a uint8 array of shape (H, W) or (H, W, C)")
+        raise InvalidArgumentError("image must be a uint8 array of shape (H, W) or (H, W, C)")
     import cv2  # deferred: keeps `import perception` light
 
     size = _check_size(size)

@@ -5,7 +5,7 @@ The model is torchvision's own `MaskRCNN` with a light backbone: a ResNet-style 
 blocks (widths `DetectorConfig.widths`, strides 8, 16 and 32 feed a feature pyramid, plus the
 usual max-pooled level at stride 64), narrow box and mask heads, few proposals, and a reduced
 input size (a 640x480 image is resized to 320x240 inside the model). Labels are BOP object ids:
-0 is background, 1..6 follow `sim.objects.OBJECT_NAMES`.
+0 is background, 1..6 follow `sim.world.objects.OBJECT_NAMES`.
 
 Boxes: `Detection.box_xyxy` uses SPEC 2's pixel convention (the centre of pixel (0, 0) is
 (0, 0)), like the dataset's ``box_xyxy``: a box that tightly encloses mask pixels x_min..x_max
@@ -13,7 +13,7 @@ is (x_min - 0.5, ..., x_max + 0.5). torchvision (and COCO) put pixel (0, 0)'s ce
 so ``box_torchvision = box_xyxy + 0.5``; `to_model_box` and `from_model_box` convert.
 
 Shipped weights: ``perception/weights/detector.pt`` (float16 state dict, the `DetectorConfig`),
-written by ``python -m perception.train_detector --export``.
+written by ``python -m perception.training.train_detector --export``.
 """
 
 from __future__ import annotations
@@ -34,12 +34,14 @@ from torchvision.models.detection.mask_rcnn import MaskRCNNHeads, MaskRCNNPredic
 from torchvision.models.detection.transform import GeneralizedRCNNTransform
 from torchvision.ops import MultiScaleRoIAlign
 
-from sim.errors import AssetError, InvalidArgumentError
-from sim.objects import OBJECT_NAMES
+from sim.core.errors import AssetError, InvalidArgumentError
+from sim.core.paths import WEIGHTS_DIR
+from sim.world.objects import OBJECT_NAMES
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_WEIGHTS = REPO_ROOT / "perception" / "weights" / "detector.pt"
-REBUILD_HINT = "rebuild it with `make weights` (or `python -m perception.train_detector --export`)"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
+REBUILD_HINT = (
+    "rebuild it with `make weights` (or `python -m perception.training.train_detector --export`)"
+)
 #: Offset from SPEC 2 pixel coordinates to torchvision's: box_torchvision = box_xyxy + 0.5.
 PIXEL_OFFSET = 0.5
 

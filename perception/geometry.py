@@ -17,109 +17,21 @@ import math
 
 import numpy as np
 
+from sim.core.errors import InvalidArgumentError
+from sim.core.transforms import (
+    as_array,
+    as_scalar,
+    check_intrinsics,
+    check_rigid,
+    invert_transform,
+    make_transform,
+    rot_x,
+    rot_y,
+    rot_z,
+)
+
 # Below this value of z_x^2 + z_y^2 the optical axis is treated as parallel to O's z (SPEC 3).
 SINGULAR_EPS = 1e-9
-
-
-def _as_array(x: object, shape: tuple[int, ...], name: str) -> np.ndarray:
-    """Return ``x`` as a finite float64 array of the given shape, or raise ValueError."""
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {arr!r}")
-    return arr
-
-
-def _as_scalar(x: object, name: str) -> float:
-    """Return ``x`` as a finite Python float, or raise ValueError."""
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.size != 1:
-        raise ValueError(f"{name} must be a scalar, got shape {arr.shape}")
-    value = float(arr.reshape(()))
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value}")
-    return value
-
-
-def _check_intrinsics(K: object) -> np.ndarray:
-    """Validate a 3x3 pinhole intrinsics matrix with positive focal lengths."""
-    K = _as_array(K, (3, 3), "K")
-    if K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
-        raise ValueError(f"K must have positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
-    if K[2, 0] != 0.0 or K[2, 1] != 0.0 or K[2, 2] != 1.0 or K[1, 0] != 0.0:
-        raise ValueError(f"K must be upper triangular with last row (0, 0, 1), got\n{K}")
-    return K
-
-
-def _check_transform(T: object, name: str) -> np.ndarray:
-    """Validate a 4x4 rigid transform (orthonormal rotation, last row (0, 0, 0, 1))."""
-    T = _as_array(T, (4, 4), name)
-    if np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
-        raise ValueError(f"{name} must have last row (0, 0, 0, 1), got {T[3]}")
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) <= 0.0:
-        raise ValueError(f"{name} must have a proper rotation (orthonormal, det +1) block")
-    return T
-
-
-def rot_x(angle: float) -> np.ndarray:
-    """Rotation about x by ``angle`` [rad]; returns (3, 3)."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def rot_y(angle: float) -> np.ndarray:
-    """Rotation about y by ``angle`` [rad]; returns (3, 3)."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def rot_z(angle: float) -> np.ndarray:
-    """Rotation about z by ``angle`` [rad]; returns (3, 3)."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Build a 4x4 transform from a rotation (3, 3) and a translation (3,) or (3, 1) [m]."""
-    R = _as_array(R, (3, 3), "R")
-    t = _as_array(np.asarray(t, dtype=np.float64).reshape(-1), (3,), "t")
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
-    return T
-
-
-def invert_transform(T_a_b: np.ndarray) -> np.ndarray:
-    """Invert a rigid transform: returns ``T_b_a`` (4, 4) from ``T_a_b`` (4, 4)."""
-    T_a_b = _as_array(T_a_b, (4, 4), "T_a_b")
-    R = T_a_b[:3, :3]
-    T_b_a = np.eye(4)
-    T_b_a[:3, :3] = R.T
-    T_b_a[:3, 3] = -R.T @ T_a_b[:3, 3]
-    return T_b_a
-
-
-def intrinsics(fovy: float, width: int, height: int) -> np.ndarray:
-    """Pinhole intrinsics of a MuJoCo camera (SPEC 2).
-
-    Args:
-        fovy: Vertical field of view [rad], in (0, pi).
-        width: Image width W [px].
-        height: Image height H [px].
-
-    Returns:
-        K (3, 3) with ``fy = (H/2) / tan(fovy/2)``, ``fx = fy``, ``cx = (W-1)/2``,
-        ``cy = (H-1)/2``.
-    """
-    fovy = _as_scalar(fovy, "fovy")
-    if not 0.0 < fovy < math.pi:
-        raise ValueError(f"fovy must be in (0, pi) radians, got {fovy}")
-    if int(width) != width or int(height) != height or width <= 0 or height <= 0:
-        raise ValueError(f"width and height must be positive integers, got {width}x{height}")
-    fy = (height / 2.0) / math.tan(fovy / 2.0)
-    return np.array([[fy, 0.0, (width - 1) / 2.0], [0.0, fy, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
 def project(K: np.ndarray, pts_C: np.ndarray) -> np.ndarray:
@@ -132,16 +44,16 @@ def project(K: np.ndarray, pts_C: np.ndarray) -> np.ndarray:
     Returns:
         Pixel coordinates (u, v) [px], shape (2,) or (N, 2) matching the input.
     """
-    K = _check_intrinsics(K)
+    K = check_intrinsics(K)
     pts = np.asarray(pts_C, dtype=np.float64)
     single = pts.shape == (3,)
     pts = np.atleast_2d(pts)
     if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"pts_C must have shape (3,) or (N, 3), got {np.shape(pts_C)}")
+        raise InvalidArgumentError(f"pts_C must have shape (3,) or (N, 3), got {np.shape(pts_C)}")
     if not np.all(np.isfinite(pts)):
-        raise ValueError("pts_C must be finite")
+        raise InvalidArgumentError("pts_C must be finite")
     if np.any(pts[:, 2] <= 0.0):
-        raise ValueError("pts_C must lie in front of the camera (z > 0)")
+        raise InvalidArgumentError("pts_C must lie in front of the camera (z > 0)")
     h = pts @ K.T
     uv = h[:, :2] / h[:, 2:3]
     return uv[0] if single else uv
@@ -149,8 +61,8 @@ def project(K: np.ndarray, pts_C: np.ndarray) -> np.ndarray:
 
 def pixel_ray(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Unit direction (3,) in C of the ray through pixel ``uv`` (2,) [px]."""
-    uv = _as_array(uv, (2,), "uv")
-    K = _check_intrinsics(K)
+    uv = as_array(uv, (2,), "uv")
+    K = check_intrinsics(K)
     d = np.linalg.solve(K, np.array([uv[0], uv[1], 1.0]))
     return d / np.linalg.norm(d)
 
@@ -169,8 +81,8 @@ def r_corr(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     Returns:
         R_C_C' (3, 3), mapping C' coordinates to C.
     """
-    uv = _as_array(uv, (2,), "uv")
-    K = _check_intrinsics(K)
+    uv = as_array(uv, (2,), "uv")
+    K = check_intrinsics(K)
     x_n, y_n, _ = np.linalg.solve(K, np.array([uv[0], uv[1], 1.0]))
     alpha = math.atan(x_n)
     beta = -math.asin(y_n / math.sqrt(x_n * x_n + y_n * y_n + 1.0))
@@ -190,10 +102,10 @@ def axes_from_p(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Returns:
         Unit vectors x, y, z (each (3,)) expressed in O; ``[x y z]`` is a proper rotation.
     """
-    p = _as_array(p, (3,), "p")
+    p = as_array(p, (3,), "p")
     norm = float(np.linalg.norm(p))
     if norm == 0.0:
-        raise ValueError("p must be non-zero (camera at the object origin)")
+        raise InvalidArgumentError("p must be non-zero (camera at the object origin)")
     z = -p / norm
     s2 = z[0] * z[0] + z[1] * z[1]
     if s2 < SINGULAR_EPS:
@@ -215,7 +127,7 @@ def rotation_from_p_theta(p: np.ndarray, theta: float) -> np.ndarray:
     Returns:
         R_O_C' (3, 3) = ``[x y z] @ Rz(theta)``.
     """
-    theta = _as_scalar(theta, "theta")
+    theta = as_scalar(theta, "theta")
     x, y, z = axes_from_p(p)
     return np.column_stack((x, y, z)) @ rot_z(theta)
 
@@ -232,8 +144,8 @@ def encode(T_C_O: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, float, np.ndar
         ``(p, theta, uv)``: p (3,) is the position of C' in O [m]; theta the roll [rad] in
         (-pi, pi]; uv (2,) the pixel [px] where the object origin projects.
     """
-    T_C_O = _check_transform(T_C_O, "T_C_O")
-    K = _check_intrinsics(K)
+    T_C_O = check_rigid(T_C_O, "T_C_O")
+    K = check_intrinsics(K)
     uv = project(K, T_C_O[:3, 3])
     R_C_Cv = r_corr(uv, K)
     T_Cv_O = T_C_O.copy()
@@ -258,7 +170,7 @@ def decode(p: np.ndarray, theta: float, uv: np.ndarray, K: np.ndarray) -> np.nda
     Returns:
         T_C_O (4, 4) = ``[[R_corr, 0], [0, 1]] @ inverse(T_O_C')``.
     """
-    p = _as_array(p, (3,), "p")
+    p = as_array(p, (3,), "p")
     T_O_Cv = make_transform(rotation_from_p_theta(p, theta), p)
     T_Cv_O = invert_transform(T_O_Cv)
     T_C_O = T_Cv_O.copy()

@@ -14,22 +14,23 @@ from __future__ import annotations
 import torch
 
 from perception.geometry import SINGULAR_EPS
+from sim.core.errors import InvalidArgumentError
 
 # Default margin that keeps the arccos argument away from +-1 (finite gradient).
 ARCCOS_EPS = 1e-7
 
 
-def _check_batch_shape(x: torch.Tensor, trailing: tuple[int, ...], name: str) -> int:
+def check_batch_shape(x: torch.Tensor, trailing: tuple[int, ...], name: str) -> int:
     """Check that ``x`` has shape (B, *trailing) and return B (clear message)."""
     if not isinstance(x, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+        raise InvalidArgumentError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     expected = "(B" + "".join(f", {d}" for d in trailing) + ")"
     if x.ndim != 1 + len(trailing) or tuple(x.shape[1:]) != trailing:
-        raise ValueError(f"{name} must have shape {expected}, got {tuple(x.shape)}")
+        raise InvalidArgumentError(f"{name} must have shape {expected}, got {tuple(x.shape)}")
     return int(x.shape[0])
 
 
-def _safe_norm(x: torch.Tensor, tiny: float = 1e-30) -> torch.Tensor:
+def safe_norm(x: torch.Tensor, tiny: float = 1e-30) -> torch.Tensor:
     """Euclidean norm over the last axis, (B, n) -> (B,), with a finite gradient at zero."""
     sq = (x * x).sum(dim=-1)
     return torch.sqrt(torch.clamp(sq, min=tiny))
@@ -44,8 +45,8 @@ def axes_from_p(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     Returns:
         x, y, z, each (B, 3), unit vectors expressed in O.
     """
-    _check_batch_shape(p, (3,), "p")
-    z = -p / _safe_norm(p).unsqueeze(-1)
+    check_batch_shape(p, (3,), "p")
+    z = -p / safe_norm(p).unsqueeze(-1)
     zx, zy = z[:, 0], z[:, 1]
     s2 = zx * zx + zy * zy
     singular = s2 < SINGULAR_EPS
@@ -57,7 +58,7 @@ def axes_from_p(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     # Singular branch: (1, 0, 0) made orthogonal to z; its norm is ~1 inside the band, so the
     # denominator is replaced by 1 outside it (where it could approach 0 for z ~ +-x).
     x_sing = torch.stack((one, zero, zero), dim=-1) - zx.unsqueeze(-1) * z
-    x_sing_norm = torch.where(singular, _safe_norm(x_sing), one)
+    x_sing_norm = torch.where(singular, safe_norm(x_sing), one)
     x_sing = x_sing / x_sing_norm.unsqueeze(-1)
     x = torch.where(singular.unsqueeze(-1), x_sing, x_reg)
     y = torch.linalg.cross(z, x, dim=-1)
@@ -87,9 +88,9 @@ def rotation_from_p_cs(p: torch.Tensor, cs: torch.Tensor, eps: float = 1e-12) ->
     Returns:
         R_O_C' (B, 3, 3) = ``[x y z] @ Rz(theta)``.
     """
-    b = _check_batch_shape(p, (3,), "p")
-    if _check_batch_shape(cs, (2,), "cs") != b:
-        raise ValueError(f"cs has batch {cs.shape[0]} but p has batch {b}")
+    b = check_batch_shape(p, (3,), "p")
+    if check_batch_shape(cs, (2,), "cs") != b:
+        raise InvalidArgumentError(f"cs has batch {cs.shape[0]} but p has batch {b}")
     n = torch.sqrt((cs * cs).sum(dim=-1) + eps)
     x, y, z = axes_from_p(p)
     base = torch.stack((x, y, z), dim=-1)
@@ -106,9 +107,9 @@ def rotation_from_p_theta(p: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     Returns:
         R_O_C' (B, 3, 3).
     """
-    b = _check_batch_shape(p, (3,), "p")
-    if _check_batch_shape(theta, (), "theta") != b:
-        raise ValueError(f"theta has batch {theta.shape[0]} but p has batch {b}")
+    b = check_batch_shape(p, (3,), "p")
+    if check_batch_shape(theta, (), "theta") != b:
+        raise InvalidArgumentError(f"theta has batch {theta.shape[0]} but p has batch {b}")
     x, y, z = axes_from_p(p)
     base = torch.stack((x, y, z), dim=-1)
     return base @ _rot_z_cs(torch.cos(theta), torch.sin(theta))
@@ -128,52 +129,25 @@ def geodesic_distance(R1: torch.Tensor, R2: torch.Tensor, eps: float = ARCCOS_EP
     Returns:
         Angles [rad], shape (B,), in [0, pi].
     """
-    b = _check_batch_shape(R1, (3, 3), "R1")
-    if _check_batch_shape(R2, (3, 3), "R2") != b:
-        raise ValueError(f"R2 has batch {R2.shape[0]} but R1 has batch {b}")
+    b = check_batch_shape(R1, (3, 3), "R1")
+    if check_batch_shape(R2, (3, 3), "R2") != b:
+        raise InvalidArgumentError(f"R2 has batch {R2.shape[0]} but R1 has batch {b}")
     trace = (R1 * R2).sum(dim=(-2, -1))  # trace(R1^T R2)
     cos = torch.clamp((trace - 1.0) / 2.0, -1.0 + eps, 1.0 - eps)
     return torch.arccos(cos)
 
 
-def _rotation_from_theta_or_cs(p: torch.Tensor, angle: torch.Tensor, name: str) -> torch.Tensor:
-    """Dispatch on the roll encoding: (B,) angles or (B, 2) (cos, sin)."""
+def rotation_from_p_angle(
+    p: torch.Tensor, angle: torch.Tensor, name: str = "theta"
+) -> torch.Tensor:
+    """``R_O_C'`` from p and a roll given as (B,) angles or (B, 2) (cos, sin)."""
     if angle.ndim == 1:
         return rotation_from_p_theta(p, angle)
     if angle.ndim == 2 and angle.shape[1] == 2:
         return rotation_from_p_cs(p, angle)
-    raise ValueError(f"{name} must have shape (B,) (theta) or (B, 2) (cos, sin), got {angle.shape}")
-
-
-def pose_loss_4d(
-    p_pred: torch.Tensor,
-    theta_or_cs_pred: torch.Tensor,
-    p_gt: torch.Tensor,
-    theta_gt: torch.Tensor,
-    lam: float,
-) -> torch.Tensor:
-    """4D-NET loss (SPEC 5, paper eq. 7), averaged over the batch.
-
-    ``|p - p^| / |p| + lam * G(R, R^)`` with p the target, p^ the prediction and R, R^ the
-    rotations ``R_O_C'`` built from (p, theta) and (p^, theta^) by SPEC 3.
-
-    Args:
-        p_pred: Predicted positions of C' in O [m], (B, 3).
-        theta_or_cs_pred: Predicted roll, (B,) [rad] or (B, 2) unnormalised (cos, sin).
-        p_gt: Target positions [m], (B, 3).
-        theta_gt: Target roll, (B,) [rad] or (B, 2) (cos, sin).
-        lam: Weight of the rotation term [1/rad].
-
-    Returns:
-        Scalar loss.
-    """
-    b = _check_batch_shape(p_pred, (3,), "p_pred")
-    if _check_batch_shape(p_gt, (3,), "p_gt") != b:
-        raise ValueError(f"p_gt has batch {p_gt.shape[0]} but p_pred has batch {b}")
-    dist = _safe_norm(p_pred - p_gt) / _safe_norm(p_gt)
-    R_pred = _rotation_from_theta_or_cs(p_pred, theta_or_cs_pred, "theta_or_cs_pred")
-    R_gt = _rotation_from_theta_or_cs(p_gt, theta_gt, "theta_gt")
-    return (dist + lam * geodesic_distance(R_gt, R_pred)).mean()
+    raise InvalidArgumentError(
+        f"{name} must have shape (B,) (theta) or (B, 2) (cos, sin), got {angle.shape}"
+    )
 
 
 def r_corr(uv: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
@@ -186,11 +160,11 @@ def r_corr(uv: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     Returns:
         R_C_C' (B, 3, 3).
     """
-    b = _check_batch_shape(uv, (2,), "uv")
+    b = check_batch_shape(uv, (2,), "uv")
     if K.shape == (3, 3):
         K = K.expand(b, 3, 3)
-    elif _check_batch_shape(K, (3, 3), "K") != b:
-        raise ValueError(f"K has batch {K.shape[0]} but uv has batch {b}")
+    elif check_batch_shape(K, (3, 3), "K") != b:
+        raise InvalidArgumentError(f"K has batch {K.shape[0]} but uv has batch {b}")
     fx, fy, cx, cy, skew = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 0, 1]
     y_n = (uv[:, 1] - cy) / fy
     x_n = (uv[:, 0] - cx - skew * y_n) / fx
@@ -221,7 +195,7 @@ def decode_torch(
     Returns:
         T_C_O (B, 4, 4).
     """
-    R_O_Cv = _rotation_from_theta_or_cs(p, theta, "theta")
+    R_O_Cv = rotation_from_p_angle(p, theta, "theta")
     R_C_Cv = r_corr(uv, K)
     # T_C'_O = [[R_O_C'^T, -R_O_C'^T p]], so T_C_O = [[R_corr R_O_C'^T, -R_corr R_O_C'^T p]].
     R_C_O = R_C_Cv @ R_O_Cv.transpose(-1, -2)

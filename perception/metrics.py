@@ -1,4 +1,6 @@
-"""Pose-error metrics and summary statistics (SPEC 7).
+"""Pose-error metrics of one estimate (docs/DESIGN.md, "9. Metrics").
+
+Summaries over many errors (recall, AUC, statistics) are in `perception.summaries`.
 
 Pure numpy functions with the BOP signature ``(R_est, t_est, R_gt, t_gt, ...)``. Units inside
 are SI: metres and radians, except where a name says otherwise (``_deg``, ``_px``, ``_pct``).
@@ -27,6 +29,8 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from sim.core.errors import InvalidArgumentError
+
 Symmetry = dict[str, np.ndarray]
 
 
@@ -34,7 +38,7 @@ def _rot(R: object, name: str) -> np.ndarray:
     """Validate a finite (3, 3) matrix."""
     arr = np.asarray(R, dtype=np.float64)
     if arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be a finite (3, 3) matrix, got shape {arr.shape}")
+        raise InvalidArgumentError(f"{name} must be a finite (3, 3) matrix, got shape {arr.shape}")
     return arr
 
 
@@ -42,7 +46,9 @@ def _vec3(t: object, name: str) -> np.ndarray:
     """Validate a finite translation of shape (3,) or (3, 1); returns (3,)."""
     arr = np.asarray(t, dtype=np.float64)
     if arr.shape not in ((3,), (3, 1)) or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be a finite vector of shape (3,) or (3, 1), got {arr.shape}")
+        raise InvalidArgumentError(
+            f"{name} must be a finite vector of shape (3,) or (3, 1), got {arr.shape}"
+        )
     return arr.reshape(3)
 
 
@@ -50,28 +56,24 @@ def _points(pts: object) -> np.ndarray:
     """Validate model points (N, 3) [m], N >= 1."""
     arr = np.asarray(pts, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] == 0 or not np.all(np.isfinite(arr)):
-        raise ValueError(f"pts must be a finite (N, 3) array with N >= 1, got shape {arr.shape}")
+        raise InvalidArgumentError(
+            f"pts must be a finite (N, 3) array with N >= 1, got shape {arr.shape}"
+        )
     return arr
 
 
 def _syms(syms: Sequence[Symmetry]) -> list[tuple[np.ndarray, np.ndarray]]:
     """Validate a symmetry list; returns [(R (3, 3), t (3,))]."""
     if len(syms) == 0:
-        raise ValueError("syms must hold at least one transform (include the identity)")
+        raise InvalidArgumentError("syms must hold at least one transform (include the identity)")
     out = []
     for i, sym in enumerate(syms):
         if "R" not in sym or "t" not in sym:
-            raise ValueError(f"syms[{i}] must be a dict with keys 'R' and 't', got {sorted(sym)}")
+            raise InvalidArgumentError(
+                f"syms[{i}] must be a dict with keys 'R' and 't', got {sorted(sym)}"
+            )
         out.append((_rot(sym["R"], f"syms[{i}]['R']"), _vec3(sym["t"], f"syms[{i}]['t']")))
     return out
-
-
-def _values(values: object, name: str) -> np.ndarray:
-    """Validate a non-empty 1D array of numbers."""
-    arr = np.asarray(values, dtype=np.float64).reshape(-1)
-    if arr.size == 0:
-        raise ValueError(f"{name} must not be empty")
-    return arr
 
 
 def _transform(pts: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -250,7 +252,7 @@ def translation_error_pct(t_est: np.ndarray, t_gt: np.ndarray) -> float:
     t_est, t_gt = _vec3(t_est, "t_est"), _vec3(t_gt, "t_gt")
     norm = float(np.linalg.norm(t_gt))
     if norm == 0.0:
-        raise ValueError("t_gt must be non-zero")
+        raise InvalidArgumentError("t_gt must be non-zero")
     return float(np.linalg.norm(t_gt - t_est)) / norm * 100.0
 
 
@@ -266,7 +268,7 @@ def center_error_px(uv_est: np.ndarray, uv_gt: np.ndarray) -> float | np.ndarray
     """
     a, b = np.asarray(uv_est, dtype=np.float64), np.asarray(uv_gt, dtype=np.float64)
     if a.shape != b.shape or a.ndim not in (1, 2) or a.shape[-1] != 2:
-        raise ValueError(
+        raise InvalidArgumentError(
             f"uv_est and uv_gt must share a shape (2,) or (N, 2): {a.shape}, {b.shape}"
         )
     d = np.linalg.norm(a - b, axis=-1)
@@ -285,7 +287,9 @@ def mask_iou(mask_a: np.ndarray, mask_b: np.ndarray) -> float:
     """
     a, b = np.asarray(mask_a).astype(bool), np.asarray(mask_b).astype(bool)
     if a.shape != b.shape or a.ndim != 2:
-        raise ValueError(f"masks must be 2D with the same shape, got {a.shape} and {b.shape}")
+        raise InvalidArgumentError(
+            f"masks must be 2D with the same shape, got {a.shape} and {b.shape}"
+        )
     union = int(np.count_nonzero(a | b))
     if union == 0:
         return 1.0
@@ -301,95 +305,13 @@ def box_iou(box_a: np.ndarray | Sequence[float], box_b: np.ndarray | Sequence[fl
     """
     a, b = np.asarray(box_a, np.float64), np.asarray(box_b, np.float64)
     if a.shape != (4,) or b.shape != (4,):
-        raise ValueError(f"boxes must have shape (4,), got {a.shape} and {b.shape}")
+        raise InvalidArgumentError(f"boxes must have shape (4,), got {a.shape} and {b.shape}")
     iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
     ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
     inter = iw * ih
     area = lambda x: max(0.0, x[2] - x[0]) * max(0.0, x[3] - x[1])  # noqa: E731
     union = area(a) + area(b) - inter
     return float(inter / union) if union > 0 else 0.0
-
-
-def recall(errors: np.ndarray | Sequence[float], threshold: float) -> float:
-    """Fraction of errors strictly below ``threshold`` (BOP: a pose is correct if e < th).
-
-    NaN errors count as failures. E.g. ADD(-S) recall: ``recall(errors_m, 0.1 * diameter)``.
-
-    Args:
-        errors: Errors, any shape, non-empty.
-        threshold: Threshold in the errors' unit.
-
-    Returns:
-        The recall in [0, 1].
-    """
-    e = _values(errors, "errors")
-    return float(np.mean(np.nan_to_num(e, nan=np.inf) < threshold))
-
-
-def add_auc(errors_m: np.ndarray | Sequence[float], max_threshold: float = 0.1) -> float:
-    """Area under the accuracy-threshold curve of ADD(-S) errors (Xiang et al., PoseCNN 2018).
-
-    ``(1 / max) * integral_0^max recall(errors, th) d th``, computed exactly (no
-    threshold grid): each error e contributes ``max(0, 1 - e / max)``.
-
-    Args:
-        errors_m: ADD or ADI errors [m], non-empty; NaN counts as a failure.
-        max_threshold: Upper end of the threshold range [m] (10 cm by default).
-
-    Returns:
-        The normalised area in [0, 1].
-    """
-    if not max_threshold > 0.0:
-        raise ValueError(f"max_threshold must be positive, got {max_threshold}")
-    e = np.nan_to_num(_values(errors_m, "errors_m"), nan=np.inf)
-    if np.any(e < 0.0):
-        raise ValueError("errors_m must be non-negative")
-    return float(np.mean(np.clip(1.0 - e / max_threshold, 0.0, 1.0)))
-
-
-def recall_5cm5deg(
-    trans_err_m: np.ndarray | Sequence[float], rot_err_deg: np.ndarray | Sequence[float]
-) -> float:
-    """Fraction of poses with translation error < 5 cm and rotation error < 5 deg.
-
-    Args:
-        trans_err_m: Translation errors |t_est - t_gt| [m], (N,).
-        rot_err_deg: Rotation errors [deg], (N,).
-
-    Returns:
-        The recall in [0, 1].
-    """
-    t = np.nan_to_num(_values(trans_err_m, "trans_err_m"), nan=np.inf)
-    r = np.nan_to_num(_values(rot_err_deg, "rot_err_deg"), nan=np.inf)
-    if t.shape != r.shape:
-        raise ValueError(f"trans_err_m and rot_err_deg differ in length: {t.size} vs {r.size}")
-    return float(np.mean((t < 0.05) & (r < 5.0)))
-
-
-def summary_stats(values: np.ndarray | Sequence[float]) -> dict[str, float]:
-    """Mean, population std (ddof=0), median and 90th percentile (linear interpolation).
-
-    Args:
-        values: Non-empty finite values, any unit.
-
-    Returns:
-        ``{"mean", "std", "median", "p90"}`` in the unit of ``values``.
-    """
-    v = _values(values, "values")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("values must be finite")
-    return {
-        "mean": float(np.mean(v)),
-        "std": float(np.std(v)),
-        "median": float(np.median(v)),
-        "p90": float(np.percentile(v, 90.0)),
-    }
-
-
-def outlier_rate(rot_err_deg: np.ndarray | Sequence[float], threshold: float = 15.0) -> float:
-    """Fraction of rotation errors above ``threshold`` [deg] (SPEC 7; NaN counts as outlier)."""
-    r = np.nan_to_num(_values(rot_err_deg, "rot_err_deg"), nan=np.inf)
-    return float(np.mean(r > threshold))
 
 
 def diameter(pts: np.ndarray) -> float:

@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import torch
 from torch import nn
 
-from perception.geometry_torch import geodesic_distance, rotation_from_p_cs, rotation_from_p_theta
+from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 
 VARIANTS: tuple[str, ...] = ("paper", "ours")
 CROP = 64
@@ -43,7 +44,7 @@ class NetConfig:
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
-            raise ValueError(f"unknown variant {self.variant!r}; valid variants: paper, ours")
+            raise UnknownNameError("variant", self.variant, VARIANTS)
 
     def to_dict(self) -> dict:
         """Plain dict (stored in checkpoints)."""
@@ -147,41 +148,27 @@ def normalise(crops_uint8: torch.Tensor) -> torch.Tensor:
         or crops_uint8.ndim != 4
         or crops_uint8.shape[1:] != (CROP, CROP, 3)
     ):
-        raise ValueError(
+        raise InvalidArgumentError(
             f"crops must be uint8 of shape (B, {CROP}, {CROP}, 3), got {crops_uint8.dtype} "
             f"{tuple(crops_uint8.shape)}"
         )
     return crops_uint8.permute(0, 3, 1, 2).float() / 255.0 - 0.5
 
 
-def loss_fn(
-    out: PoseOutput,
-    uv_unit: torch.Tensor,
-    p: torch.Tensor,
-    theta: torch.Tensor,
-    variant: str,
-    lam: float = 1.0,
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """2D loss (Euclidean distance in the unit crop) + 4D loss (SPEC eq. 7).
+def load_posenet(path: Path) -> PoseNet:
+    """A trained PoseNet from a checkpoint or shipped weights file.
 
-    For "paper" the roll term uses theta directly; for "ours" the (cos, sin) output, plus a
-    small penalty that keeps |(cos, sin)| near 1 and an absolute log-distance error.
+    Raises:
+        AssetError: the file is missing or corrupt (the message says how to rebuild it).
     """
-    l2d = torch.linalg.norm(out.uv_unit - uv_unit, dim=1).mean()
-    dist = (torch.linalg.norm(out.p - p, dim=1) / torch.linalg.norm(p, dim=1)).mean()
-    R_gt = rotation_from_p_theta(p, theta)
-    if variant == "ours":
-        R_pred = rotation_from_p_cs(out.p, out.cs)
-        norm_pen = (torch.linalg.norm(out.cs, dim=1) - 1).square().mean()
-        # The vector term above mixes distance with viewpoint: while the viewpoint is uncertain it
-        # pays to shrink |p|. A separate scale-free distance term keeps the range honest.
-        rng = torch.log(torch.linalg.norm(out.p, dim=1)) - torch.log(torch.linalg.norm(p, dim=1))
-        range_err = rng.abs().mean()
-    else:
-        R_pred = rotation_from_p_theta(out.p, out.theta)
-        norm_pen = torch.zeros((), device=p.device)
-        range_err = torch.zeros((), device=p.device)
-    rot = geodesic_distance(R_gt, R_pred).mean()
-    total = 10.0 * l2d + dist + lam * rot + 0.1 * norm_pen + range_err
-    parts = {"l2d": l2d, "dist": dist, "rot": rot, "range": range_err, "total": total}
-    return total, {k: float(v.detach()) for k, v in parts.items()}
+    hint = "rebuild it with `make weights` (or python -m perception.training.train_posenet)"
+    if not path.is_file():
+        raise AssetError(f"weights file {path} is missing; {hint}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        model = PoseNet(NetConfig(**state["model_config"]))
+        model.load_state_dict({k: v.float() for k, v in state["model"].items()})
+    except Exception as exc:  # any unpickling or shape error means a bad file
+        raise AssetError(f"weights file {path} is corrupt ({exc}); {hint}") from exc
+    model.eval()
+    return model

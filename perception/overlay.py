@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import numpy as np
+
+from sim.world.objects import load_object
 
 
 def silhouette(
@@ -85,3 +90,29 @@ def draw_pose(
             cv2.LINE_AA,
         )
     return out
+
+
+def draw_detections(rgb: np.ndarray, K: np.ndarray, found: Sequence[Any]) -> np.ndarray:
+    """The image with every detection's estimated pose drawn: projected model outline, axes
+    (x red, y green, z blue) and ``class score``.
+
+    Args:
+        rgb: image, shape (H, W, 3), uint8.
+        K: its intrinsics, shape (3, 3) [px].
+        found: detections with ``name``, ``score`` and ``T_C_O``
+            (`perception.hybrid.PoseDetection`).
+    """
+    img = rgb
+    colours = ((0, 255, 0), (255, 255, 0), (255, 0, 255), (0, 255, 255), (255, 128, 0))
+    for i, d in enumerate(found):
+        mesh = load_object(d.name).mesh
+        img = draw_pose(
+            img,
+            d.T_C_O,
+            K,
+            np.asarray(mesh.vertices),
+            np.asarray(mesh.faces),
+            color=colours[i % len(colours)],
+            label=f"{d.name} {d.score:.2f}",
+        )
+    return img

@@ -1,11 +1,11 @@
 """Support-plane refinement of an estimated pose: the object rests on a known horizontal plane.
 
 A tabletop robot knows where its table is. An object lying on it can only be in one of its
-resting poses (`sim.objects.ObjectModel.resting_poses`, free yaw about the plane's normal) with
-its lowest point on the plane. `refine_on_support` keeps what the image measures best, the ray
-through the object's origin (2D-NET) and the yaw about the plane normal (4D-NET), and replaces
-what it measures worst, the distance along that ray and the tilt, by the values the plane
-allows:
+resting poses (`sim.world.objects.ObjectModel.resting_poses`, free yaw about the plane's
+normal) with its lowest point on the plane. `refine_on_support` keeps what the image
+measures best, the ray through the object's origin (2D-NET) and the yaw about the plane
+normal (4D-NET), and replaces what it measures worst, the distance along that ray and the
+tilt, by the values the plane allows:
 
 1. Rotation: the resting pose R_k and yaw psi that bring ``Rz(psi) R_k`` nearest to the
    estimated world orientation. With ``M = R_k R_W^T`` the best yaw is
@@ -26,7 +26,9 @@ import numpy as np
 
 from perception.geometry import rot_z
 from perception.metrics import rotation_error_deg
-from sim.objects import ObjectModel, _quat_to_mat
+from sim.core.errors import InvalidArgumentError
+from sim.core.transforms import quat_to_mat
+from sim.world.objects import ObjectModel
 
 
 @dataclass(frozen=True)
@@ -57,14 +59,14 @@ def snap_to_resting(R_W_O: np.ndarray, model: ObjectModel) -> tuple[np.ndarray, 
     """
     best: tuple[np.ndarray, str, float, float] | None = None
     for name, quat in model.resting_poses.items():
-        R_k = _quat_to_mat(np.asarray(quat, float))
+        R_k = quat_to_mat(np.asarray(quat, float))
         M = R_k @ R_W_O.T
         R = rot_z(float(np.arctan2(M[0, 1] - M[1, 0], M[0, 0] + M[1, 1]))) @ R_k
         ang = rotation_error_deg(R, R_W_O)
         if best is None or ang < best[2]:
             best = (R, name, ang, model.resting_height(quat))
     if best is None:
-        raise ValueError(f"object {model.name!r} has no resting poses")
+        raise InvalidArgumentError(f"object {model.name!r} has no resting poses")
     return best
 
 

@@ -14,35 +14,15 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from sim.camera import CameraRenderer, RenderOptions
+from sim.core.errors import InvalidArgumentError, StateError, UnknownNameError
+from sim.core.transforms import mat_to_quat, quat_to_mat
 from sim.episode import Episode, EpisodeConfig
-from sim.errors import UnknownNameError
-from sim.objects import OBJECT_NAMES
+from sim.world.camera import CameraRenderer, RenderOptions
+from sim.world.objects import OBJECT_NAMES
 
 ENV_ID = "GraspEval-v0"
 #: Tolerance on the norm of the action's quaternion.
 UNIT_QUAT_TOL = 1e-3
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix."""
-    import mujoco
-
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, np.asarray(R, float).reshape(9))
-    return q if q[0] >= 0 else -q
 
 
 def pose_action(T_C_O: np.ndarray | None) -> dict[str, Any]:
@@ -52,7 +32,7 @@ def pose_action(T_C_O: np.ndarray | None) -> dict[str, Any]:
     return {
         "has_estimate": 1,
         "position": np.asarray(T_C_O[:3, 3], float).copy(),
-        "quaternion": matrix_to_quat(T_C_O[:3, :3]),
+        "quaternion": mat_to_quat(T_C_O[:3, :3]),
     }
 
 
@@ -72,7 +52,7 @@ class GraspEvalEnv(gym.Env):
     ## Observation Space
     `Dict`: `rgb` (`Box(H, W, 3)`, uint8), `K` (`Box(3, 3)`, intrinsics [px]), `T_world_cam`
     (`Box(4, 4)`, camera pose in the world, OpenCV convention), `object` (`Discrete(6)`, index
-    into `sim.objects.OBJECT_NAMES`).
+    into `sim.world.objects.OBJECT_NAMES`).
 
     ## Rewards
     1.0 when the object is lifted at least 0.10 m above the table and still held after a 2 s
@@ -168,7 +148,7 @@ class GraspEvalEnv(gym.Env):
             "K": o.K,
             "T_world_cam": o.T_world_cam,
             "object": OBJECT_NAMES.index(obj),
-            "table_top_z": np.array([o.support_z], np.float64),
+            "table_top_z": np.array([o.table_top_z], np.float64),
         }
         self._obs = obs
         return obs, {"object": obj, "episode_seed": ep_seed}
@@ -179,14 +159,14 @@ class GraspEvalEnv(gym.Env):
             "position",
             "quaternion",
         }:
-            raise ValueError(
+            raise InvalidArgumentError(
                 "action must be a dict with keys has_estimate, position, quaternion; "
                 "see GraspEvalEnv.action_space or sim.env.pose_action()"
             )
         pos = np.asarray(action["position"], dtype=float)
         quat = np.asarray(action["quaternion"], dtype=float)
         if pos.shape != (3,) or quat.shape != (4,):
-            raise ValueError(
+            raise InvalidArgumentError(
                 f"action position must have shape (3,) and quaternion (4,), got {pos.shape} "
                 f"and {quat.shape}"
             )
@@ -197,14 +177,14 @@ class GraspEvalEnv(gym.Env):
         if abs(np.linalg.norm(quat) - 1.0) > UNIT_QUAT_TOL:
             return None, f"action quaternion is not unit norm (|q| = {np.linalg.norm(quat):.4f})"
         T = np.eye(4)
-        T[:3, :3] = quat_to_matrix(quat / np.linalg.norm(quat))
+        T[:3, :3] = quat_to_mat(quat / np.linalg.norm(quat))
         T[:3, 3] = pos
         return T, None
 
     def step(self, action: dict[str, Any]):
         """Grasp on the estimated pose; the episode ends."""
         if self._episode is None:
-            raise RuntimeError("call reset() before step()")
+            raise StateError("call reset() before step()")
         T, error = self._parse_action(action)
         ep = self._episode
         if error is not None:

@@ -14,11 +14,15 @@ from typing import Any
 import numpy as np
 
 from grasping.execute import ExecutionConfig, Executor
-from grasping.planner import GraspPlanner, PlannerConfig, PlanningError, check_pose
-from sim import constants as C
-from sim.camera import CameraRenderer, RenderOptions, T_world_cam, intrinsics
-from sim.estimators import Observation, PoseEstimator, error_components
-from sim.scene import Scene, SceneConfig, build_scene
+from grasping.planner import POSE_TOL, GraspPlanner, PlannerConfig, PlanningError
+from sim.core.contract import Observation, PoseEstimator
+from sim.core.errors import StateError
+from sim.core.transforms import check_rigid
+from sim.estimators import PrivilegedEstimator
+from sim.pose_noise import error_components
+from sim.world import constants as C
+from sim.world.camera import CameraRenderer, RenderOptions, T_world_cam, camera_intrinsics
+from sim.world.scene import Scene, SceneConfig, build_scene
 
 
 @dataclass(frozen=True)
@@ -93,7 +97,7 @@ class Episode:
             RenderOptions(shadows=self.cfg.shadows),
         )
         m, d = self.scene.model, self.scene.data
-        self.K = intrinsics(m, C.HEAD_CAMERA, self.cfg.width, self.cfg.height)
+        self.K = camera_intrinsics(m, C.HEAD_CAMERA, self.cfg.width, self.cfg.height)
         self.T_world_cam = T_world_cam(m, d, C.HEAD_CAMERA)
         self.T_C_O_true = np.linalg.inv(self.T_world_cam) @ self.scene.object_pose()
         self._done = False
@@ -110,8 +114,7 @@ class Episode:
             self.T_world_cam.copy(),
             self.object,
             self.seed,
-            self.T_C_O_true.copy(),
-            support_z=float(self.scene.table_top_z),
+            table_top_z=float(self.scene.table_top_z),
         )
 
     def act(
@@ -129,12 +132,12 @@ class Episode:
 
         Raises:
             InvalidArgumentError: the estimate is not a finite rigid transform.
-            RuntimeError: the episode was already acted on.
+            StateError: the episode was already acted on.
         """
         if self._done:
-            raise RuntimeError("this episode is over; build a new one")
+            raise StateError("this episode is over; build a new one")
         if T_C_O_est is not None:
-            check_pose(T_C_O_est, "estimated pose T_C_O")
+            check_rigid(T_C_O_est, "estimated pose T_C_O", tol=POSE_TOL)
         self._done = True
         timings = self.timings_ms
         notes: list[str] = []
@@ -183,12 +186,18 @@ class Episode:
         self.frames = outcome.frames
         return result(outcome.success, outcome.failure_reason, plan.candidate.part)
 
-    def run(self, estimator: PoseEstimator, recorder=None) -> tuple[Observation, EpisodeResult]:
+    def run(
+        self, estimator: PoseEstimator | PrivilegedEstimator, recorder=None
+    ) -> tuple[Observation, EpisodeResult]:
         """Observe, ask the estimator (timed as ``estimate``), act; the result carries the
-        estimator's `last_info` (when it has one) as ``estimate_info``."""
+        estimator's `last_info` (when it has one) as ``estimate_info``. Only a
+        `PrivilegedEstimator` (an oracle) is handed the true pose."""
         obs = self.observe()
         t = time.perf_counter()
-        est = estimator.estimate(obs)
+        if isinstance(estimator, PrivilegedEstimator):
+            est = estimator.estimate_from_truth(obs, self.T_C_O_true.copy())
+        else:
+            est = estimator.estimate(obs)
         self.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
         res = self.act(est, estimator.name, recorder=recorder)
         res.estimate_info = dict(getattr(estimator, "last_info", None) or {})
@@ -199,10 +208,10 @@ class Episode:
         self.renderer.close()
 
 
-def run_episode(
+def play_episode(
     obj: str,
     seed: int,
-    estimator: PoseEstimator,
+    estimator: PoseEstimator | PrivilegedEstimator,
     config: EpisodeConfig | None = None,
     recorder=None,
 ) -> EpisodeResult:

@@ -1,146 +1,31 @@
-"""Pose estimators an episode can ask: the interface, the oracle and the noisy oracle.
+"""The estimator registry of the experiment: the oracles and the hybrid estimators by name.
 
-An estimator maps an `Observation` (head-camera RGB, K, T_world_cam, the requested class) to the
-requested object's pose in the camera frame, `T_C_O` (4x4, OpenCV camera frame, metres), or None
-when it has no estimate. The oracles read the privileged ground truth the episode attaches to the
-observation; real estimators must ignore it.
+Real estimators implement `sim.core.contract.PoseEstimator`. The oracles are the experiment's
+own instruments, not estimators a robot could run: they implement `PrivilegedEstimator` and are
+handed the true pose by the episode, which no other estimator ever sees.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from sim.errors import InvalidArgumentError, UnknownNameError
+from sim.core.contract import Observation, PoseEstimator
+from sim.core.errors import UnknownNameError
+from sim.pose_noise import PoseNoise, perturb_pose
 
 
-@dataclass
-class Observation:
-    """What an estimator sees.
-
-    Attributes:
-        rgb: head-camera image, shape (H, W, 3), uint8.
-        K: intrinsics, shape (3, 3) [px].
-        T_world_cam: camera pose in the world (OpenCV convention), shape (4, 4).
-        object: requested object class.
-        seed: the episode's seed (estimators that randomise seed themselves from it).
-        truth_T_C_O: privileged ground truth for the oracles; never part of the gym observation.
-        support_z: height of the table top the object rests on, in the world [m] (known scene
-            geometry, part of the gym observation as ``table_top_z``), or None when unknown.
-    """
-
-    rgb: np.ndarray
-    K: np.ndarray
-    T_world_cam: np.ndarray
-    object: str
-    seed: int
-    truth_T_C_O: np.ndarray | None = field(default=None, repr=False)
-    support_z: float | None = None
-
-
-class PoseEstimator(Protocol):
-    """Anything with `estimate(obs) -> T_C_O or None`."""
+@runtime_checkable
+class PrivilegedEstimator(Protocol):
+    """An instrument of the experiment that is given the true pose (the oracles)."""
 
     name: str
 
-    def estimate(self, obs: Observation) -> np.ndarray | None:
-        """The requested object's pose in the camera frame, or None."""
+    def estimate_from_truth(self, obs: Observation, T_C_O_true: np.ndarray) -> np.ndarray | None:
+        """The pose to grasp on, derived from the true pose T_C_O_true (4, 4)."""
         ...
-
-
-def axis_angle_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rotation matrix of `angle` [rad] about unit `axis` (Rodrigues)."""
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    Kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
-
-
-@dataclass(frozen=True)
-class PoseNoise:
-    """Controlled pose errors in the camera frame, magnitudes in [m] and [rad].
-
-    Attributes:
-        ray: translation along the camera ray through the object origin.
-        lateral: translation perpendicular to that ray, in a random direction.
-        inplane: rotation about the camera ray (in-plane).
-        outplane: rotation about a random axis perpendicular to the ray (out-of-plane).
-        mode: "gaussian" draws each error from N(0, magnitude^2); "fixed" applies exactly the
-            magnitude with a random sign (ray, in-plane) or direction (lateral, out-of-plane).
-    """
-
-    ray: float = 0.0
-    lateral: float = 0.0
-    inplane: float = 0.0
-    outplane: float = 0.0
-    mode: str = "gaussian"
-
-    def __post_init__(self) -> None:
-        if self.mode not in ("gaussian", "fixed"):
-            raise UnknownNameError("noise mode", self.mode, ("gaussian", "fixed"))
-        vals = (self.ray, self.lateral, self.inplane, self.outplane)
-        if not all(np.isfinite(v) and v >= 0 for v in vals):
-            raise InvalidArgumentError("noise magnitudes must be finite and non-negative")
-
-
-def perturb_pose(T_C_O: np.ndarray, noise: PoseNoise, rng: np.random.Generator) -> np.ndarray:
-    """T_C_O with the errors of `noise` applied (rotations about the object's origin)."""
-    T = np.array(T_C_O, dtype=float)
-    t = T[:3, 3]
-    u = t / np.linalg.norm(t)
-    # A random unit vector perpendicular to the ray.
-    w = np.cross(u, rng.normal(size=3))
-    w /= np.linalg.norm(w)
-    if noise.mode == "gaussian":
-        e_ray, e_lat = rng.normal(0, noise.ray), rng.normal(0, noise.lateral)
-        e_in, e_out = rng.normal(0, noise.inplane), rng.normal(0, noise.outplane)
-    else:
-        sign = rng.choice([-1.0, 1.0], size=2)
-        e_ray, e_lat = sign[0] * noise.ray, noise.lateral
-        e_in, e_out = sign[1] * noise.inplane, noise.outplane
-    w2 = np.cross(u, w)  # a second perpendicular direction for the out-of-plane axis
-    out = T.copy()
-    out[:3, 3] = t + e_ray * u + e_lat * w
-    R = axis_angle_matrix(u, e_in) @ axis_angle_matrix(w2, e_out) @ T[:3, :3]
-    out[:3, :3] = R
-    return out
-
-
-def error_components(T_est: np.ndarray, T_true: np.ndarray) -> dict[str, float]:
-    """A pose error split the way `PoseNoise` applies it, relative to the true camera ray u.
-
-    Returns:
-        ``ray_m``: |translation error along u| [m]; ``lateral_m``: its norm across u [m];
-        ``inplane_deg``: the rotation error's twist about u; ``outplane_deg``: its swing about an
-        axis perpendicular to u (swing-twist decomposition of R_est R_true^T) [deg].
-    """
-    T_est, T_true = np.asarray(T_est, float), np.asarray(T_true, float)
-    u = T_true[:3, 3] / np.linalg.norm(T_true[:3, 3])
-    dt = T_est[:3, 3] - T_true[:3, 3]
-    along = float(dt @ u)
-    R = T_est[:3, :3] @ T_true[:3, :3].T
-    # Unit quaternion (w, v) of R, w >= 0.
-    w = np.sqrt(max(0.0, 1.0 + np.trace(R))) / 2.0
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if w > 1e-6:
-        v = v / (4.0 * w)
-    else:  # a half turn: v is the axis
-        _vals, vecs = np.linalg.eigh((R + np.eye(3)) / 2.0)
-        v = vecs[:, -1]
-    twist = float(v @ u)
-    # Swing q_s = q_t^-1 q with the twist q_t = (w, twist u) / |.|; its angle by atan2 (stable).
-    n = np.hypot(w, twist)
-    tw, tv = (w / n, twist / n * u) if n > 1e-12 else (1.0, np.zeros(3))
-    sw = tw * w + tv @ v
-    sv = tw * v - w * tv - np.cross(tv, v)
-    return {
-        "ray_m": abs(along),
-        "lateral_m": float(np.linalg.norm(dt - along * u)),
-        "inplane_deg": float(np.degrees(2.0 * np.arctan2(abs(twist), w))),
-        "outplane_deg": float(np.degrees(2.0 * np.arctan2(np.linalg.norm(sv), abs(sw)))),
-    }
 
 
 class OracleEstimator:
@@ -148,10 +33,8 @@ class OracleEstimator:
 
     name = "oracle"
 
-    def estimate(self, obs: Observation) -> np.ndarray | None:
-        if obs.truth_T_C_O is None:
-            raise InvalidArgumentError("the oracle needs the observation's ground truth")
-        return obs.truth_T_C_O.copy()
+    def estimate_from_truth(self, obs: Observation, T_C_O_true: np.ndarray) -> np.ndarray | None:
+        return np.array(T_C_O_true, dtype=float)
 
 
 class NoisyOracleEstimator:
@@ -164,28 +47,27 @@ class NoisyOracleEstimator:
             ray=0.01, lateral=0.005, inplane=np.deg2rad(3), outplane=np.deg2rad(3)
         )
 
-    def estimate(self, obs: Observation) -> np.ndarray | None:
-        truth = OracleEstimator().estimate(obs)
+    def estimate_from_truth(self, obs: Observation, T_C_O_true: np.ndarray) -> np.ndarray | None:
         rng = np.random.default_rng([obs.seed, 7919])
-        return perturb_pose(truth, self.noise, rng)
+        return perturb_pose(np.array(T_C_O_true, dtype=float), self.noise, rng)
 
 
 def _hybrid() -> PoseEstimator:
     """The hybrid estimator with the shipped weights (imports torch: call before rendering)."""
-    from perception.estimator import HybridPoseEstimator
+    from perception import HybridPoseEstimator
 
     return HybridPoseEstimator.from_weights().as_episode_estimator()
 
 
 def _hybrid_table() -> PoseEstimator:
     """The hybrid estimator, its poses then put onto the known table (`perception.support`)."""
-    from perception.estimator import HybridPoseEstimator
+    from perception import HybridPoseEstimator
 
     return HybridPoseEstimator.from_weights().as_episode_estimator(support=True)
 
 
 #: Estimator factories by name.
-ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
+ESTIMATORS: dict[str, Callable[[], PoseEstimator | PrivilegedEstimator]] = {
     "oracle": OracleEstimator,
     "noisy-oracle": NoisyOracleEstimator,
     "hybrid": _hybrid,
@@ -197,7 +79,7 @@ ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
 DEFAULT_ESTIMATOR = "hybrid-table"
 
 
-def make_estimator(name: str) -> PoseEstimator:
+def make_estimator(name: str) -> PoseEstimator | PrivilegedEstimator:
     """The estimator called name.
 
     Raises:

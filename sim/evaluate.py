@@ -3,7 +3,7 @@
     python -m sim.evaluate --objects all --episodes 50 --estimator hybrid --workers 2 \
         --json out.json --plot success_vs_error.png
 
-Scene seeds start at `sim.constants.EVAL_SEED_BASE`, far from the seeds the data generator
+Scene seeds start at `sim.world.constants.EVAL_SEED_BASE`, far from the seeds the data generator
 renders training images from, so a learned estimator is never scored on a scene it was trained on.
 """
 
@@ -22,11 +22,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from sim import constants as C
-from sim.cli import ArgumentParser, check_writable_file, fail, write_json
-from sim.errors import PosegraspError
+from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
+from sim.core.errors import PosegraspError
+from sim.core.paths import DOCS_DIR
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
-from sim.objects import OBJECT_NAMES
+from sim.world import constants as C
+from sim.world.objects import OBJECT_NAMES
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -58,11 +59,11 @@ def _init_worker() -> None:
 
 def _run_one(job: tuple[str, int, str]) -> dict:
     obj, seed, estimator = job
-    from sim.episode import run_episode
+    from sim.episode import play_episode
 
     t = time.perf_counter()
     try:
-        r = run_episode(obj, seed, _estimator(estimator))
+        r = play_episode(obj, seed, _estimator(estimator))
         d = r.to_json()
     except PosegraspError as exc:  # an episode never takes the evaluation down
         d = {
@@ -156,14 +157,14 @@ def format_report(report: dict) -> str:
 
 
 #: The error components of `sim.estimators.error_components`, as the tolerance study names them
-#: (``grasping.tolerance``: key, unit scale from the episode's SI value, bin edges).
+#: (``sim.tolerance``: key, unit scale from the episode's SI value, bin edges).
 COMPONENTS: dict[str, tuple[str, float, tuple[float, ...]]] = {
     "ray_mm": ("ray_m", 1000.0, (0, 5, 10, 15, 20, 30, 45, 70)),
     "lateral_mm": ("lateral_m", 1000.0, (0, 5, 10, 15, 20, 30, 45, 70)),
     "inplane_deg": ("inplane_deg", 1.0, (0, 2.5, 5, 7.5, 10, 15, 20, 30, 45)),
     "outplane_deg": ("outplane_deg", 1.0, (0, 2.5, 5, 7.5, 10, 15, 20, 30, 45)),
 }
-DEFAULT_TOLERANCE = Path(__file__).resolve().parent.parent / "docs" / "tolerance.json"
+DEFAULT_TOLERANCE = DOCS_DIR / "tolerance.json"
 
 
 def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = None) -> None:
@@ -172,7 +173,7 @@ def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = Non
     One panel per component (ray, lateral, in-plane, out-of-plane): the episodes binned by that
     component's error, success rate per bin with its Wilson 95 % interval and count, each
     episode as a tick (top: success, bottom: failure), and, when given, the tolerance curves of
-    `grasping.tolerance` (success against that error alone, one line per object). The episodes
+    `sim.tolerance` (success against that error alone, one line per object). The episodes
     carry all components at once, so a bin's rate is a marginal, not a single-factor curve.
     """
     import matplotlib
@@ -245,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         "--tolerance",
         type=Path,
         default=DEFAULT_TOLERANCE,
-        help="tolerance curves to overlay (JSON of python -m grasping.tolerance)",
+        help="tolerance curves to overlay (JSON of python -m sim.tolerance)",
     )
     args = p.parse_args(argv)
     objects = list(OBJECT_NAMES) if args.objects == "all" else args.objects.split(",")

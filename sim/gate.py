@@ -24,16 +24,16 @@ import json
 import sys
 from pathlib import Path
 
-from sim.cli import ArgumentParser, fail, write_json
-from sim.errors import PosegraspError
+from sim.core.cli import ArgumentParser, fail, write_json
+from sim.core.errors import PosegraspError
+from sim.core.paths import REPO_ROOT
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS
 from sim.evaluate import evaluate, format_report, wilson_interval
-from sim.objects import OBJECT_NAMES
+from sim.world.objects import OBJECT_NAMES
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 BASELINE = Path(__file__).resolve().parent / "gate_baseline.json"
 GATE_EPISODES = 10
-#: Held-out scenes (see `sim.constants.EVAL_SEED_BASE`), apart from the default evaluation's.
+#: Held-out scenes (see `sim.world.constants.EVAL_SEED_BASE`), apart from the default evaluation's.
 GATE_SEED_START = 1_500_000_000
 WEIGHTS = ("perception/weights/detector.pt", "perception/weights/posenet_ours.pt")
 GATE_ESTIMATORS = (DEFAULT_ESTIMATOR, "hybrid")

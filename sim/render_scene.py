@@ -19,12 +19,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sim import constants as C  # importing sim defaults MUJOCO_GL to egl
-from sim.camera import CameraRenderer, RenderOptions, check_resolution
-from sim.cli import ArgumentParser, check_writable_file, fail
-from sim.errors import InvalidArgumentError, PosegraspError, UnknownNameError
-from sim.objects import OBJECT_NAMES
-from sim.scene import SceneConfig, build_scene
+from sim.core.cli import ArgumentParser, check_writable_file, fail
+from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from sim.world import constants as C  # importing sim defaults MUJOCO_GL to egl
+from sim.world.camera import CameraRenderer, RenderOptions, check_resolution
+from sim.world.objects import OBJECT_NAMES
+from sim.world.scene import SceneConfig, build_scene
 
 EXTERNAL_CAMERA = "external"
 #: Exit status of bad arguments (argparse's convention) and of every other failure.

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from sim import constants as C
-from sim.camera import CameraRenderer, RenderOptions
-from sim.cli import ArgumentParser, check_writable_file, fail
-from sim.errors import PosegraspError
+from sim.core.cli import ArgumentParser, check_writable_file, fail
+from sim.core.errors import PosegraspError
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
-from sim.objects import OBJECT_NAMES
+from sim.world import constants as C
+from sim.world.camera import CameraRenderer, RenderOptions
+from sim.world.objects import OBJECT_NAMES
 
 
 def _rpy_deg(R: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Camera model of `sim.camera`, checked against renders (SPEC section 2).
+"""Camera model of `sim.world.camera`, checked against renders (SPEC section 2).
 
 Small spheres are placed in front of a camera; the centroid of each sphere's rendered
 segmentation mask must agree with its centre projected by `intrinsics()` and `T_world_cam()`.
@@ -12,9 +12,15 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim import constants as C
-from sim.camera import CameraRenderer, RenderOptions, T_world_cam, check_resolution, intrinsics
-from sim.errors import InvalidArgumentError, UnknownNameError
+from sim.core.errors import InvalidArgumentError, UnknownNameError
+from sim.world import constants as C
+from sim.world.camera import (
+    CameraRenderer,
+    RenderOptions,
+    T_world_cam,
+    camera_intrinsics,
+    check_resolution,
+)
 
 FOVY_DEG = 50.0
 CAM_POS = np.array([0.3, -0.2, 1.1])
@@ -29,7 +35,7 @@ SPHERE_DEPTH = (1.0, 1.4, 0.9, 1.2, 1.1, 1.3)
 def _sphere_centres(aspect: float, radius_px: float, height: int) -> tuple[np.ndarray, float]:
     """World centres of the spheres for an image of the given aspect, and their radius [m].
 
-    Directions are built from the camera's own axes and fovy, not from `sim.camera`.
+    Directions are built from the camera's own axes and fovy, not from `sim.world.camera`.
     """
     z_mj = np.cross(CAM_X, CAM_Y)
     tan_y = np.tan(np.deg2rad(FOVY_DEG) / 2)
@@ -75,7 +81,7 @@ def test_sphere_centroids_match_projection(width: int, height: int) -> None:
     model = _sphere_scene(centres, radius)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
-    K = intrinsics(model, "cam", width, height)
+    K = camera_intrinsics(model, "cam", width, height)
     T = T_world_cam(model, data, "cam")
     with CameraRenderer(model, width, height, RenderOptions(shadows=False)) as renderer:
         seg = renderer.segmentation(data, "cam")
@@ -120,7 +126,7 @@ def test_depth_at_sphere_centres() -> None:
     model = _sphere_scene(centres, radius)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
-    K = intrinsics(model, "cam", width, height)
+    K = camera_intrinsics(model, "cam", width, height)
     T_c_w = np.linalg.inv(T_world_cam(model, data, "cam"))
     with CameraRenderer(model, width, height, RenderOptions(shadows=False)) as renderer:
         depth = renderer.depth(data, "cam")
@@ -151,17 +157,17 @@ def test_background_is_minus_one() -> None:
 def test_intrinsics_formula() -> None:
     centres, radius = _sphere_centres(1.0, radius_px=5.0, height=100)
     model = _sphere_scene(centres, radius)
-    K = intrinsics(model, "cam", 101, 60)
+    K = camera_intrinsics(model, "cam", 101, 60)
     f = 30 / np.tan(np.deg2rad(FOVY_DEG) / 2)
     np.testing.assert_allclose(K, [[f, 0, 50.0], [0, f, 29.5], [0, 0, 1]])
 
 
 def test_head_camera_intrinsics_use_its_fovy() -> None:
-    from sim.robot import fetch_spec
+    from sim.world.robot import fetch_spec
 
     model = fetch_spec().compile()
     fovy = model.cam_fovy[model.camera(C.HEAD_CAMERA).id]
-    K = intrinsics(model, C.HEAD_CAMERA, 640, 480)
+    K = camera_intrinsics(model, C.HEAD_CAMERA, 640, 480)
     assert K[1, 1] == pytest.approx(240 / np.tan(np.deg2rad(fovy) / 2))
 
 
@@ -169,7 +175,7 @@ def test_bad_camera_and_resolution() -> None:
     centres, radius = _sphere_centres(1.0, radius_px=5.0, height=64)
     model = _sphere_scene(centres, radius)
     with pytest.raises(UnknownNameError, match="valid cameras: cam"):
-        intrinsics(model, "nope", 64, 64)
+        camera_intrinsics(model, "nope", 64, 64)
     for w, h in ((0, 10), (10, -1), (5000, 10)):
         with pytest.raises(InvalidArgumentError, match=r"1\.\.4096"):
             check_resolution(w, h)

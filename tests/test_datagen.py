@@ -1,4 +1,4 @@
-"""Tests of the dataset generator (`python -m perception.datagen`) and the dataset loader."""
+"""Tests of the dataset generator (`python -m perception.training.datagen`) and loader."""
 
 from __future__ import annotations
 
@@ -14,14 +14,14 @@ import cv2
 import numpy as np
 import pytest
 
-from perception import dataset as ds
-from perception.datagen import SEED_BASES, main
 from perception.geometry import invert_transform, project
-from sim import constants as C
-from sim.camera import T_world_cam, intrinsics
-from sim.errors import AssetError
-from sim.objects import OBJECT_NAMES, load_object
-from sim.scene import SceneConfig, build_scene
+from perception.training import dataset as ds
+from perception.training.datagen import SEED_BASES, main
+from sim.core.errors import AssetError
+from sim.world import constants as C
+from sim.world.camera import T_world_cam, camera_intrinsics
+from sim.world.objects import OBJECT_NAMES, load_object
+from sim.world.scene import SceneConfig, build_scene
 
 N_PAPER = 8
 N_HEADCAM = 3
@@ -139,10 +139,10 @@ def test_paper_pose_projects_onto_mask(paper: Path) -> None:
 
 
 def test_paper_K_matches_sim_intrinsics(paper: Path) -> None:
-    from perception.backgrounds import CAMERA, Studio
+    from perception.training.studio import CAMERA, Studio
 
     studio = Studio()  # no GL context is created without rendering
-    K = intrinsics(studio.model, CAMERA, 256, 256)
+    K = camera_intrinsics(studio.model, CAMERA, 256, 256)
     np.testing.assert_array_equal(ds.load_sample(paper, "val", 0).K, K)
     cam = json.loads((paper / "camera.json").read_text())
     assert (cam["fx"], cam["cx"], cam["width"]) == (K[0, 0], K[0, 2], 256)
@@ -161,7 +161,7 @@ def test_headcam_matches_the_seeded_scene(headcam: Path) -> None:
         sample.seed,
         SceneConfig(n_distractors=sample.extra["n_distractors"], randomize_appearance=True),
     )
-    np.testing.assert_allclose(sample.K, intrinsics(scene.model, C.HEAD_CAMERA, 640, 480))
+    np.testing.assert_allclose(sample.K, camera_intrinsics(scene.model, C.HEAD_CAMERA, 640, 480))
     T_C_W = invert_transform(T_world_cam(scene.model, scene.data, C.HEAD_CAMERA))
     for obj in sample.objects:
         np.testing.assert_allclose(
@@ -183,7 +183,7 @@ def test_headcam_masks_and_poses(headcam: Path) -> None:
 
 
 def test_truncated_silhouette_counts_pixels_outside_the_image() -> None:
-    from perception.datagen import _full_silhouette
+    from perception.training.datagen import _full_silhouette
 
     obj = load_object("car")
     K = np.array([[300.0, 0, 99.5], [0, 300.0, 99.5], [0, 0, 1]])
@@ -325,6 +325,9 @@ def test_preview_contact_sheet(paper: Path, tmp_path: Path) -> None:
 
 
 def test_datagen_does_not_import_torch() -> None:
-    code = "import sys, perception.datagen, perception.dataset; print('torch' in sys.modules)"
+    code = (
+        "import sys, perception.training.datagen, perception.training.dataset; "
+        "print('torch' in sys.modules)"
+    )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert res.stdout.strip() == "False"

@@ -11,7 +11,6 @@ import pytest
 import torch
 from torchvision.models.detection import MaskRCNN
 
-from perception import datagen
 from perception.detector import (
     Detection,
     Detector,
@@ -23,9 +22,10 @@ from perception.detector import (
     state_dict_fp16,
     to_model_box,
 )
-from perception.train_detector import SMOKE, coco_ap, export, main, mask_box, train
-from sim.errors import AssetError, InvalidArgumentError
-from sim.objects import OBJECT_NAMES
+from perception.training import datagen
+from perception.training.train_detector import SMOKE, coco_ap, export, main, mask_box, train
+from sim.core.errors import AssetError, InvalidArgumentError
+from sim.world.objects import OBJECT_NAMES
 
 H, W = 480, 640
 
@@ -239,7 +239,7 @@ def test_cli_smoke_and_errors(
     assert main(["--data", str(tmp_path / "none"), "--out", str(tmp_path / "c2")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(line.startswith("error: ") for line in err)
-    assert "python -m perception.datagen" in err[1]
+    assert "python -m perception.training.datagen" in err[1]
     with pytest.raises(SystemExit) as exc:
         main(["--batch", "x"])
     assert exc.value.code == 2

@@ -10,8 +10,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import posegrasp  # noqa: F401  (registers the env)
+from sim.core.errors import UnknownNameError
 from sim.env import GraspEvalEnv, pose_action
-from sim.errors import UnknownNameError
 
 
 def _truth(env: gym.Env) -> np.ndarray:

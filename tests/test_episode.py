@@ -7,19 +7,14 @@ import json
 import numpy as np
 import pytest
 
-from sim import constants as C
 from sim import evaluate, run_episode
+from sim.core.errors import InvalidArgumentError
 from sim.episode import Episode
-from sim.episode import run_episode as run
-from sim.errors import InvalidArgumentError
-from sim.estimators import (
-    NoisyOracleEstimator,
-    OracleEstimator,
-    PoseNoise,
-    make_estimator,
-    perturb_pose,
-)
-from sim.objects import OBJECT_NAMES
+from sim.episode import play_episode as run
+from sim.estimators import NoisyOracleEstimator, OracleEstimator, make_estimator
+from sim.pose_noise import PoseNoise, perturb_pose
+from sim.world import constants as C
+from sim.world.objects import OBJECT_NAMES
 
 
 @pytest.mark.parametrize("name", OBJECT_NAMES)

@@ -11,21 +11,21 @@ import torch
 import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 from perception.crops import crop_and_resize, crop_to_image, from_unit, square_box
 from perception.detector import DetectorConfig, build_detector, state_dict_fp16
-from perception.estimator import (
+from perception.geometry import decode
+from perception.hybrid import (
     DEFAULT_CROP_SCALE,
     STAGES,
     HybridEpisodeEstimator,
     HybridPoseEstimator,
     PoseDetection,
 )
-from perception.geometry import decode
 from perception.nets import CROP, NetConfig, PoseNet, normalise
-from sim import constants as C
-from sim.camera import CameraRenderer, intrinsics
-from sim.errors import AssetError, InvalidArgumentError, UnknownNameError
-from sim.estimators import Observation
-from sim.objects import OBJECT_NAMES
-from sim.scene import SceneConfig, build_scene
+from sim.core.contract import Observation
+from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from sim.world import constants as C
+from sim.world.camera import CameraRenderer, camera_intrinsics
+from sim.world.objects import OBJECT_NAMES
+from sim.world.scene import SceneConfig, build_scene
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -36,7 +36,7 @@ def head_image() -> tuple[np.ndarray, np.ndarray]:
     scene = build_scene("phone", 3, SceneConfig(n_distractors=2))
     with CameraRenderer(scene.model, 640, 480) as r:
         rgb = r.rgb(scene.data, C.HEAD_CAMERA)
-    return rgb, intrinsics(scene.model, C.HEAD_CAMERA, 640, 480)
+    return rgb, camera_intrinsics(scene.model, C.HEAD_CAMERA, 640, 480)
 
 
 @pytest.fixture(scope="module")

@@ -16,9 +16,12 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 import perception
-from perception import crops, geometry, metrics
+from perception import crops, geometry, metrics, summaries
 from perception import geometry as g
 from perception import geometry_torch as gt
+from perception.training import losses
+from sim.core import transforms as tf
+from sim.core.transforms import intrinsics
 
 SQRT_EPS = math.sqrt(g.SINGULAR_EPS)
 
@@ -42,7 +45,7 @@ def random_pose_in_view(rng: np.random.Generator, K: np.ndarray, margin: float) 
     uv = np.array([rng.uniform(-margin, width + margin), rng.uniform(-margin, height + margin)])
     depth = rng.uniform(0.1, 5.0)
     t = depth * np.linalg.solve(K, np.array([uv[0], uv[1], 1.0]))
-    return g.make_transform(Rotation.random(random_state=rng).as_matrix(), t)
+    return tf.make_transform(Rotation.random(random_state=rng).as_matrix(), t)
 
 
 def singular_p(rng: np.random.Generator, above: bool, band_scale: float) -> np.ndarray:
@@ -57,7 +60,7 @@ def singular_p(rng: np.random.Generator, above: bool, band_scale: float) -> np.n
 
 
 def test_intrinsics_by_hand() -> None:
-    K = g.intrinsics(math.radians(90.0), 640, 480)
+    K = intrinsics(math.radians(90.0), 640, 480)
     # tan(45 deg) = 1, so fy = H / 2.
     np.testing.assert_allclose(K, [[240.0, 0.0, 319.5], [0.0, 240.0, 239.5], [0.0, 0.0, 1.0]])
 
@@ -67,11 +70,11 @@ def test_intrinsics_by_hand() -> None:
 )
 def test_intrinsics_rejects_bad_input(fovy: float, width: float, height: float) -> None:
     with pytest.raises(ValueError, match=r"fovy|width"):
-        g.intrinsics(fovy, width, height)
+        intrinsics(fovy, width, height)
 
 
 def test_project_by_hand_and_centre_pixel() -> None:
-    K = g.intrinsics(math.radians(60.0), 101, 51)
+    K = intrinsics(math.radians(60.0), 101, 51)
     # A point on the optical axis lands on the centre of the middle pixel (50, 25).
     np.testing.assert_allclose(g.project(K, [0.0, 0.0, 2.0]), [50.0, 25.0])
     f = K[0, 0]
@@ -83,16 +86,16 @@ def test_project_by_hand_and_centre_pixel() -> None:
 
 def test_elementary_rotations_rotate_the_right_way() -> None:
     a = 0.3
-    np.testing.assert_allclose(g.rot_z(a) @ [1.0, 0.0, 0.0], [math.cos(a), math.sin(a), 0.0])
-    np.testing.assert_allclose(g.rot_x(a) @ [0.0, 1.0, 0.0], [0.0, math.cos(a), math.sin(a)])
-    np.testing.assert_allclose(g.rot_y(a) @ [0.0, 0.0, 1.0], [math.sin(a), 0.0, math.cos(a)])
+    np.testing.assert_allclose(tf.rot_z(a) @ [1.0, 0.0, 0.0], [math.cos(a), math.sin(a), 0.0])
+    np.testing.assert_allclose(tf.rot_x(a) @ [0.0, 1.0, 0.0], [0.0, math.cos(a), math.sin(a)])
+    np.testing.assert_allclose(tf.rot_y(a) @ [0.0, 0.0, 1.0], [math.sin(a), 0.0, math.cos(a)])
 
 
 def test_invert_transform_against_matrix_inverse() -> None:
     rng = np.random.default_rng(1)
     for _ in range(20):
-        T = g.make_transform(Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3))
-        np.testing.assert_allclose(g.invert_transform(T), np.linalg.inv(T), atol=1e-12)
+        T = tf.make_transform(Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3))
+        np.testing.assert_allclose(tf.invert_transform(T), np.linalg.inv(T), atol=1e-12)
 
 
 # --------------------------------------------------------------------------- R_corr
@@ -111,7 +114,7 @@ def test_r_corr_maps_axis_onto_pixel_ray() -> None:
 
 
 def test_r_corr_is_identity_at_principal_point() -> None:
-    K = g.intrinsics(1.0, 64, 48)
+    K = intrinsics(1.0, 64, 48)
     np.testing.assert_allclose(g.r_corr(K[:2, 2], K), np.eye(3), atol=1e-15)
 
 
@@ -155,14 +158,14 @@ def test_singular_band_stays_orthonormal() -> None:
 
 def test_decode_puts_object_on_virtual_axis() -> None:
     rng = np.random.default_rng(5)
-    K = g.intrinsics(math.radians(45.0), 320, 240)
+    K = intrinsics(math.radians(45.0), 320, 240)
     p, theta, uv = rng.normal(size=3), 0.4, np.array([12.0, 200.0])
     T_C_O = g.decode(p, theta, uv, K)
-    T_Cv_O = g.invert_transform(g.make_transform(g.rotation_from_p_theta(p, theta), p))
+    T_Cv_O = tf.invert_transform(tf.make_transform(g.rotation_from_p_theta(p, theta), p))
     np.testing.assert_allclose(T_Cv_O[:3, 3], [0.0, 0.0, np.linalg.norm(p)], atol=1e-12)
     np.testing.assert_allclose(g.project(K, T_C_O[:3, 3]), uv, atol=1e-9)
     # C and C' share their origin, so the camera sits at p in the object frame.
-    np.testing.assert_allclose(g.invert_transform(T_C_O)[:3, 3], p, atol=1e-12)
+    np.testing.assert_allclose(tf.invert_transform(T_C_O)[:3, 3], p, atol=1e-12)
 
 
 def test_encode_decode_round_trip_many_random_cases() -> None:
@@ -170,12 +173,12 @@ def test_encode_decode_round_trip_many_random_cases() -> None:
     n = 2000
     err_T, err_uv, err_p, thetas = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     for i in range(n):
-        K = random_intrinsics(rng) if i % 2 else g.intrinsics(rng.uniform(0.3, 2.0), 640, 480)
+        K = random_intrinsics(rng) if i % 2 else intrinsics(rng.uniform(0.3, 2.0), 640, 480)
         T = random_pose_in_view(rng, K, margin=100.0 if i % 3 == 0 else 0.0)
         p, thetas[i], uv = g.encode(T, K)
         err_uv[i] = np.abs(uv - g.project(K, T[:3, 3])).max()
         # C and C' share their origin: p is the camera position in O.
-        err_p[i] = np.abs(p - g.invert_transform(T)[:3, 3]).max()
+        err_p[i] = np.abs(p - tf.invert_transform(T)[:3, 3]).max()
         err_T[i] = np.abs(g.decode(p, thetas[i], uv, K) - T).max()
     assert np.all(np.abs(thetas) <= math.pi)
     assert err_uv.max() < 1e-9
@@ -206,9 +209,9 @@ def test_round_trip_at_and_near_singularity(above: bool, band_scale: float) -> N
 
 def test_camera_straight_above_upright_object() -> None:
     """Camera 1 m above the object, looking down at it through the image centre."""
-    K = g.intrinsics(1.0, 64, 64)
-    R_C_O = np.diag([1.0, -1.0, -1.0]) @ g.rot_z(0.3)
-    T = g.make_transform(R_C_O, [0.0, 0.0, 1.0])
+    K = intrinsics(1.0, 64, 64)
+    R_C_O = np.diag([1.0, -1.0, -1.0]) @ tf.rot_z(0.3)
+    T = tf.make_transform(R_C_O, [0.0, 0.0, 1.0])
     p, theta, uv = g.encode(T, K)
     np.testing.assert_allclose(p, [0.0, 0.0, 1.0], atol=1e-15)
     np.testing.assert_allclose(uv, [31.5, 31.5])
@@ -240,10 +243,10 @@ def test_round_trip_property(
     width: int,
     height: int,
 ) -> None:
-    K = g.intrinsics(fovy, width, height)
+    K = intrinsics(fovy, width, height)
     uv = np.array([u * width, v * height])
     t = depth * np.linalg.solve(K, np.array([uv[0], uv[1], 1.0]))
-    T = g.make_transform(Rotation.from_quat(quat).as_matrix(), t)
+    T = tf.make_transform(Rotation.from_quat(quat).as_matrix(), t)
     p, theta, uv1 = g.encode(T, K)
     np.testing.assert_allclose(g.decode(p, theta, uv1, K), T, atol=1e-9, rtol=0.0)
 
@@ -260,7 +263,7 @@ def test_round_trip_property(
 def test_decode_encode_property(
     p: tuple[float, float, float], theta: float, u: float, v: float
 ) -> None:
-    K = g.intrinsics(0.8, 640, 480)
+    K = intrinsics(0.8, 640, 480)
     p0, uv0 = np.array(p), np.array([u, v])
     p1, theta1, uv1 = g.encode(g.decode(p0, theta, uv0, K), K)
     np.testing.assert_allclose(p1, p0, atol=1e-9)
@@ -269,7 +272,7 @@ def test_decode_encode_property(
 
 
 def test_validation_messages() -> None:
-    K = g.intrinsics(1.0, 64, 64)
+    K = intrinsics(1.0, 64, 64)
     with pytest.raises(ValueError, match="T_C_O must have shape"):
         g.encode(np.eye(3), K)
     with pytest.raises(ValueError, match="proper rotation"):
@@ -347,15 +350,15 @@ def test_pose_loss_by_hand() -> None:
     p_gt = t64([[0.0, 0.3, 0.4], [1.0, 2.0, 2.0]])
     theta = t64([0.2, -1.0])
     # Same position, rolls differing by 0.5 rad: only the rotation term, lam * 0.5.
-    loss = gt.pose_loss_4d(p_gt, theta + 0.5, p_gt, theta, lam=2.0)
+    loss = losses.pose_loss_4d(p_gt, theta + 0.5, p_gt, theta, lam=2.0)
     assert loss.item() == pytest.approx(1.0, abs=1e-6)
     # Position off by (0, 0, 0.1) and (0, 0, 0.3): |dp|/|p| = 0.1/0.5 and 0.3/3.
     p_pred = p_gt + t64([[0.0, 0.0, 0.1], [0.0, 0.0, 0.3]])
-    loss0 = gt.pose_loss_4d(p_pred, theta, p_gt, theta, lam=0.0)
+    loss0 = losses.pose_loss_4d(p_pred, theta, p_gt, theta, lam=0.0)
     assert loss0.item() == pytest.approx((0.2 + 0.1) / 2.0, abs=1e-9)
     # (cos, sin) predictions give the same loss as the angles.
     cs = torch.stack((torch.cos(theta + 0.5), torch.sin(theta + 0.5)), dim=1) * 3.0
-    loss_cs = gt.pose_loss_4d(p_gt, cs, p_gt, theta, lam=2.0)
+    loss_cs = losses.pose_loss_4d(p_gt, cs, p_gt, theta, lam=2.0)
     assert loss_cs.item() == pytest.approx(loss.item(), abs=1e-6)
 
 
@@ -374,7 +377,7 @@ def test_gradients_are_finite_everywhere() -> None:
         for angle in (theta_gt.clone(), torch.stack((theta_gt.cos(), theta_gt.sin()), dim=1)):
             p_pred = t64(p_pred_np).requires_grad_(True)
             angle.requires_grad_(True)
-            loss = gt.pose_loss_4d(p_pred, angle, t64(p_gt), theta_gt, lam=1.0)
+            loss = losses.pose_loss_4d(p_pred, angle, t64(p_gt), theta_gt, lam=1.0)
             loss.backward()
             assert torch.isfinite(loss)
             assert p_pred.grad is not None and angle.grad is not None
@@ -382,7 +385,7 @@ def test_gradients_are_finite_everywhere() -> None:
             assert torch.all(torch.isfinite(angle.grad))
     uv = t64(rng.uniform(0.0, 64.0, size=(n, 2))).requires_grad_(True)
     p = t64(p_gt).requires_grad_(True)
-    T = gt.decode_torch(p, theta_gt, uv, t64(g.intrinsics(1.0, 64, 64)))
+    T = gt.decode_torch(p, theta_gt, uv, t64(intrinsics(1.0, 64, 64)))
     T.sum().backward()
     assert p.grad is not None and torch.all(torch.isfinite(p.grad))
     assert uv.grad is not None and torch.all(torch.isfinite(uv.grad))
@@ -393,7 +396,7 @@ def test_gradients_match_finite_differences() -> None:
     p = t64(rng.normal(size=(3, 3))).requires_grad_(True)
     theta = t64(rng.uniform(-3.0, 3.0, size=3)).requires_grad_(True)
     uv = t64(rng.uniform(0.0, 64.0, size=(3, 2))).requires_grad_(True)
-    K = t64(g.intrinsics(1.0, 64, 64))
+    K = t64(intrinsics(1.0, 64, 64))
     assert torch.autograd.gradcheck(lambda a, b: gt.rotation_from_p_theta(a, b), (p, theta))
     assert torch.autograd.gradcheck(lambda a, b, c: gt.decode_torch(a, b, c, K), (p, theta, uv))
 
@@ -407,7 +410,7 @@ def test_torch_float32_and_shape_errors() -> None:
     with pytest.raises(ValueError, match="theta has batch"):
         gt.rotation_from_p_theta(p, torch.tensor([0.3, 0.1]))
     with pytest.raises(ValueError, match=r"\(B,\) \(theta\) or \(B, 2\)"):
-        gt.pose_loss_4d(p, torch.zeros(1, 3), p, torch.zeros(1), lam=1.0)
+        losses.pose_loss_4d(p, torch.zeros(1, 3), p, torch.zeros(1), lam=1.0)
 
 
 # --------------------------------------------------------------------------- package
@@ -418,13 +421,15 @@ def test_all_is_honest() -> None:
     assert all(hasattr(perception, name) for name in exported)
     public = {
         name
-        for module in (crops, geometry, metrics)
+        for module in (crops, geometry, metrics, summaries)
         for name, obj in vars(module).items()
         if inspect.isfunction(obj)
         and obj.__module__ == module.__name__
         and not name.startswith("_")
     }
-    assert exported == public
+    from_transforms = {"intrinsics", "invert_transform", "make_transform", "rot_x", "rot_y"}
+    lazy = {"HybridPoseEstimator", "PoseDetection"}
+    assert exported == public | from_transforms | {"rot_z"} | lazy
 
 
 def test_import_does_not_pull_torch_or_cv2() -> None:

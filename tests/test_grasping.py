@@ -8,10 +8,10 @@ import pytest
 from grasping.candidates import grasp_candidates
 from grasping.execute import Executor
 from grasping.planner import GraspPlanner, PlanningError
-from sim import constants as C
-from sim.errors import InvalidArgumentError, UnknownNameError
-from sim.objects import OBJECT_NAMES
-from sim.scene import build_scene
+from sim.core.errors import InvalidArgumentError, UnknownNameError
+from sim.world import constants as C
+from sim.world.objects import OBJECT_NAMES
+from sim.world.scene import build_scene
 
 
 @pytest.mark.parametrize("name", OBJECT_NAMES)

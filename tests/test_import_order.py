@@ -12,9 +12,9 @@ def test_render_then_import_torchvision_in_a_fresh_process() -> None:
         """
         import sys
         import sim
-        from sim.camera import CameraRenderer
-        from sim.scene import build_scene
-        from sim import constants as C
+        from sim.world.camera import CameraRenderer
+        from sim.world.scene import build_scene
+        from sim.world import constants as C
         scene = build_scene("phone", 0)
         with CameraRenderer(scene.model, 64, 48) as r:
             img = r.rgb(scene.data, C.HEAD_CAMERA)

@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from perception import metrics as m
-from perception.geometry import intrinsics, rot_z
+from perception import summaries
+from sim.core.transforms import intrinsics, rot_z
 
 
 def box_points(rng: np.random.Generator, n: int = 300) -> np.ndarray:
@@ -206,41 +207,41 @@ def test_mask_iou_by_hand() -> None:
 
 
 def test_recall_and_5cm5deg_by_hand() -> None:
-    assert m.recall([0.01, 0.05, 0.2, np.nan], 0.05) == pytest.approx(0.25)  # strict <
-    assert m.recall([0.01, 0.05, 0.2, 0.02], 0.1) == pytest.approx(0.75)
+    assert summaries.recall([0.01, 0.05, 0.2, np.nan], 0.05) == pytest.approx(0.25)  # strict <
+    assert summaries.recall([0.01, 0.05, 0.2, 0.02], 0.1) == pytest.approx(0.75)
     t = [0.01, 0.04, 0.06, 0.01]
     r = [1.0, 6.0, 1.0, 4.9]
-    assert m.recall_5cm5deg(t, r) == pytest.approx(0.5)
+    assert summaries.recall_5cm5deg(t, r) == pytest.approx(0.5)
     with pytest.raises(ValueError, match="differ in length"):
-        m.recall_5cm5deg([0.0], [0.0, 1.0])
+        summaries.recall_5cm5deg([0.0], [0.0, 1.0])
     with pytest.raises(ValueError, match="errors must not be empty"):
-        m.recall([], 1.0)
+        summaries.recall([], 1.0)
 
 
 def test_add_auc_by_hand() -> None:
     # Each error e < 10 cm is correct over the thresholds (e, 0.1]: a fraction 1 - e / 0.1.
-    assert m.add_auc([0.0, 0.05, 0.2]) == pytest.approx((1.0 + 0.5 + 0.0) / 3.0)
-    assert m.add_auc([0.025], max_threshold=0.05) == pytest.approx(0.5)
-    assert m.add_auc([np.nan, 0.0]) == pytest.approx(0.5)
+    assert summaries.add_auc([0.0, 0.05, 0.2]) == pytest.approx((1.0 + 0.5 + 0.0) / 3.0)
+    assert summaries.add_auc([0.025], max_threshold=0.05) == pytest.approx(0.5)
+    assert summaries.add_auc([np.nan, 0.0]) == pytest.approx(0.5)
 
 
 def test_add_auc_matches_a_fine_threshold_grid() -> None:
     rng = np.random.default_rng(4)
     errors = rng.exponential(0.04, size=50)
     thresholds = np.linspace(0.0, 0.1, 100001)
-    curve = np.array([m.recall(errors, th) for th in thresholds[::100]])
+    curve = np.array([summaries.recall(errors, th) for th in thresholds[::100]])
     numeric = np.trapezoid(curve, thresholds[::100]) / 0.1
-    assert m.add_auc(errors) == pytest.approx(numeric, abs=2e-3)
+    assert summaries.add_auc(errors) == pytest.approx(numeric, abs=2e-3)
 
 
 def test_summary_stats_and_outlier_rate_by_hand() -> None:
-    stats = m.summary_stats([1.0, 2.0, 3.0, 4.0, 10.0])
+    stats = summaries.summary_stats([1.0, 2.0, 3.0, 4.0, 10.0])
     assert stats["mean"] == pytest.approx(4.0)
     assert stats["std"] == pytest.approx(math.sqrt((9 + 4 + 1 + 0 + 36) / 5.0))
     assert stats["median"] == pytest.approx(3.0)
     assert stats["p90"] == pytest.approx(4.0 + 0.6 * 6.0)  # index 3.6 between 4 and 10
-    assert m.outlier_rate([1.0, 16.0, 15.0, 90.0]) == pytest.approx(0.5)  # strict >
-    assert m.outlier_rate([1.0, 16.0], threshold=20.0) == 0.0
+    assert summaries.outlier_rate([1.0, 16.0, 15.0, 90.0]) == pytest.approx(0.5)  # strict >
+    assert summaries.outlier_rate([1.0, 16.0], threshold=20.0) == 0.0
 
 
 def test_diameter_by_hand() -> None:

@@ -8,13 +8,16 @@ import numpy as np
 import pytest
 import torch
 
-from perception import datagen, export_weights
-from perception import train as train_mod
-from perception.evaluate import evaluate_split, load_model
-from perception.nets import NetConfig, PoseNet, loss_fn, normalise
-from perception.train import SMOKE, WEIGHTS_DIR, parse_limit, train
-from sim.errors import AssetError
-from sim.objects import OBJECT_NAMES
+from perception.nets import NetConfig, PoseNet, load_posenet, normalise
+from perception.training import datagen
+from perception.training import export as export_weights
+from perception.training import train_posenet as train_mod
+from perception.training.losses import posenet_loss
+from perception.training.tables import evaluate_split
+from perception.training.train_posenet import SMOKE, parse_limit, train
+from sim.core.errors import AssetError
+from sim.core.paths import WEIGHTS_DIR
+from sim.world.objects import OBJECT_NAMES
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +66,7 @@ def test_fits_a_small_batch(variant: str) -> None:
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
     first = None
     for _ in range(200):
-        loss, _ = loss_fn(net(x, cls, scale), uv, p, theta, variant)
+        loss, _ = posenet_loss(net(x, cls, scale), uv, p, theta, variant)
         first = float(loss.detach()) if first is None else first
         opt.zero_grad()
         loss.backward()
@@ -93,7 +96,7 @@ def test_smoke_training_checkpoints_and_resumes(tiny_data, tmp_path, monkeypatch
     # A longer run resumes from the checkpoint instead of starting over.
     more = train(replace(cfg, epochs=2))
     assert [h["epoch"] for h in more["history"]] == [1, 2]
-    model = load_model(tmp_path / "posenet_ours.pt")
+    model = load_posenet(tmp_path / "posenet_ours.pt")
     report = evaluate_split(model, tiny_data / "paper")
     assert {"center_px_mean", "distance_pct_mean", "rotation_deg_mean", "iou_acc",
             "outlier_rate", "add_s_recall"} <= set(report["average"])  # fmt: skip
@@ -116,7 +119,8 @@ def test_fine_tune_records_its_lineage_and_exports_stages(tiny_data, tmp_path, m
     assert ckpt["init_from"]["command"] == "stage one"
     assert ckpt["init_from"]["data_seeds"] == parent["data_seeds"]
     assert ckpt["command"] == (
-        "python -m perception.train --variant ours --epochs 2 --dists headcam --batch 16 "
+        "python -m perception.training.train_posenet --variant ours --epochs 2 --dists headcam "
+        "--batch 16 "
         "--limit headcam=3,12 --init posenet_ours_mixed"
     )
     assert ckpt["data_seeds"] == {
@@ -173,17 +177,17 @@ def test_train_cli_bad_input(argv, needle, capsys) -> None:
 
 def test_missing_and_corrupt_weights(tmp_path) -> None:
     with pytest.raises(AssetError, match="make weights"):
-        load_model(tmp_path / "nope.pt")
+        load_posenet(tmp_path / "nope.pt")
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
     with pytest.raises(AssetError, match="corrupt"):
-        load_model(bad)
+        load_posenet(bad)
 
 
 def test_detector_boxes_evaluation(tiny_data) -> None:
     """End-to-end crops from the shipped detector: matched objects, COCO AP per class."""
     from perception.detector import DEFAULT_WEIGHTS, Detector
-    from perception.evaluate import detector_crops
+    from perception.training.tables import detector_crops
 
     detector = Detector.from_weights(DEFAULT_WEIGHTS, score_threshold=0.05)
     data, det = detector_crops(tiny_data / "headcam", detector)
@@ -195,7 +199,7 @@ def test_detector_boxes_evaluation(tiny_data) -> None:
         assert {"box_ap", "mask_ap50"} <= set(a)
     if len(data["crops"]):
         report = evaluate_split(
-            load_model(WEIGHTS_DIR / "posenet_ours.pt"), tiny_data / "headcam", data=data
+            load_posenet(WEIGHTS_DIR / "posenet_ours.pt"), tiny_data / "headcam", data=data
         )
         assert np.isfinite(report["average"]["center_px_mean"])
 
@@ -204,7 +208,7 @@ def test_evaluate_records_test_figures_in_the_manifest(tiny_data, tmp_path, monk
     import json
     import shutil
 
-    from perception import evaluate
+    from perception.training import tables as evaluate
 
     monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
     weights = tmp_path / "posenet_ours.pt"
@@ -233,7 +237,7 @@ def test_evaluate_records_test_figures_in_the_manifest(tiny_data, tmp_path, monk
     ],
 )
 def test_evaluate_cli_bad_input(argv, needle, capsys) -> None:
-    from perception import evaluate
+    from perception.training import tables as evaluate
 
     assert evaluate.main(argv) == 2
     err = capsys.readouterr().err

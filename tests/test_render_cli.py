@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from sim.objects import OBJECT_NAMES
 from sim.render_scene import main
+from sim.world.objects import OBJECT_NAMES
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from perception.support import refine_on_support, snap_to_resting
-from sim.objects import _quat_to_mat, load_object
+from sim.core.transforms import quat_to_mat
+from sim.world.objects import load_object
 
 SUPPORT_Z = 0.72
 
@@ -35,7 +36,7 @@ def resting_truth(name: str, pose: str, yaw_deg: float, xy=(0.9, 0.1)):
     model = load_object(name)
     q = model.resting_poses[pose]
     T_w_o = np.eye(4)
-    T_w_o[:3, :3] = rot("z", yaw_deg) @ _quat_to_mat(q)
+    T_w_o[:3, :3] = rot("z", yaw_deg) @ quat_to_mat(q)
     T_w_o[:3, 3] = [xy[0], xy[1], SUPPORT_Z + model.resting_height(q)]
     T_w_c = look_at(np.array([0.1, 0.0, 1.4]), T_w_o[:3, 3])
     return model, T_w_c, np.linalg.inv(T_w_c) @ T_w_o
@@ -77,7 +78,7 @@ def test_tilt_and_range_errors_are_removed():
 def test_yaw_is_kept():
     model = load_object("car")
     pose = next(iter(model.resting_poses))
-    R_k = _quat_to_mat(model.resting_poses[pose])
+    R_k = quat_to_mat(model.resting_poses[pose])
     for yaw in (-170.0, -30.0, 0.0, 45.0, 179.0):
         R, name, ang, h = snap_to_resting(rot("z", yaw) @ R_k, model)
         assert name == pose and ang < 1e-4
@@ -98,7 +99,7 @@ def test_ray_parallel_to_the_table_keeps_the_distance():
     model = load_object("phone")
     pose = next(iter(model.resting_poses))
     T_w_o = np.eye(4)
-    T_w_o[:3, :3] = _quat_to_mat(model.resting_poses[pose])
+    T_w_o[:3, :3] = quat_to_mat(model.resting_poses[pose])
     T_w_o[:3, 3] = [1.0, 0.0, SUPPORT_Z + model.resting_height(model.resting_poses[pose])]
     T_w_c = look_at(np.array([0.0, 0.0, T_w_o[2, 3]]), T_w_o[:3, 3])  # level with the object
     est = np.linalg.inv(T_w_c) @ T_w_o
@@ -109,7 +110,7 @@ def test_ray_parallel_to_the_table_keeps_the_distance():
 
 
 def test_error_components_recover_applied_noise():
-    from sim.estimators import PoseNoise, error_components, perturb_pose
+    from sim.pose_noise import PoseNoise, error_components, perturb_pose
 
     _model, _T_w_c, T_c_o = resting_truth("car", next(iter(load_object("car").resting_poses)), 10)
     rng = np.random.default_rng(0)

@@ -1,7 +1,7 @@
 """The on-disk pose dataset: BOP layout, writers, validating loaders and contact sheets.
 
 Layout of a dataset folder ``<root>`` (one distribution, built by
-``python -m perception.datagen``)::
+``python -m perception.training.datagen``)::
 
     <root>/info.json                      generator, version, arguments, counts, seed ranges
     <root>/camera.json                    BOP camera (fx, fy, cx, cy, width, height, depth_scale)
@@ -17,7 +17,7 @@ Layout of a dataset folder ``<root>`` (one distribution, built by
     <root>/<split>/<scene_id:06d>/records/<im_id:06d>.json  one image's entries of all the above
 
 Sample ``index`` of a split is image ``im_id = index % 1000`` of scene ``index // 1000``. Object
-ids are 1..6 in `sim.objects.OBJECT_NAMES` order.
+ids are 1..6 in `sim.world.objects.OBJECT_NAMES` order.
 
 Units: BOP files use millimetres for translations, sizes and diameters (``cam_t_m2c``,
 ``cam_t_w2c``, ``models_info``, the PLY vertices), as the BOP toolkit expects. Everything else, and
@@ -44,8 +44,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sim.errors import AssetError, UnknownNameError
-from sim.objects import OBJECT_NAMES, load_object
+from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from sim.world.objects import OBJECT_NAMES, load_object
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 DISTS: tuple[str, ...] = ("paper", "headcam")
@@ -275,7 +275,10 @@ def rebuild_hint(root: Path, split: str | None = None) -> str:
         cmd = info["splits"][split]["command"]
         return f"rebuild with: {cmd} --out {root}"
     except (OSError, ValueError, KeyError, StopIteration):
-        return f"rebuild with: python -m perception.datagen --dist ... --split ... --out {root}"
+        return (
+            "rebuild with: python -m perception.training.datagen --dist ... --split ... "
+            f"--out {root}"
+        )
 
 
 def read_json(path: Path, root: Path, split: str | None) -> Any:
@@ -370,7 +373,7 @@ class PoseDataset:
             infos, pg = scene["scene_gt_info"][key], scene["scene_posegrasp"][key]
             K = np.asarray(cam["cam_K"], float).reshape(3, 3)
             if not len(gts) == len(infos) == len(pg["objects"]):
-                raise ValueError("entries of the scene files disagree")
+                raise InvalidArgumentError("entries of the scene files disagree")
         except (KeyError, TypeError, ValueError) as exc:
             raise AssetError(
                 f"corrupt annotations of image {im_id} in {sdir} ({exc!r}); "
@@ -449,7 +452,7 @@ def draw_annotations(
 def contact_sheet(images: Sequence[np.ndarray], cols: int = 6, tile: int = 256) -> np.ndarray:
     """Images in a grid, each scaled to fit tile x tile; returns RGB uint8."""
     if not images:
-        raise ValueError("contact_sheet needs at least one image")
+        raise InvalidArgumentError("contact_sheet needs at least one image")
     rows = -(-len(images) // cols)
     h, w = images[0].shape[:2]
     s = tile / max(h, w)

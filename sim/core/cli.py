@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import NoReturn
 
-from sim.errors import InvalidArgumentError
+from sim.core.errors import InvalidArgumentError
 
 
 class ArgumentParser(argparse.ArgumentParser):

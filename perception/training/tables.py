@@ -1,4 +1,4 @@
-"""Evaluation of the pose nets on the held-out test splits (`python -m perception.evaluate`).
+"""Evaluation of the pose nets on the held-out test splits (`python -m perception.training.tables`).
 
 For each data distribution (`headcam`, `paper`) the test images' boxes are perturbed as
 detections are (random shift and scale, seeded), the nets predict, the exact geometry decodes,
@@ -11,8 +11,9 @@ Mask R-CNN finds the objects, the crops are cut around its boxes as the estimato
 the report adds COCO box and mask AP per class (pycocotools) and the ratio of the pose errors to
 those from ground-truth boxes.
 
-    python -m perception.evaluate [--weights perception/weights/posenet_ours.pt] --json out.json
-    python -m perception.evaluate --boxes detector --json detector.json
+    python -m perception.training.tables [--weights perception/weights/posenet_ours.pt] \
+        --json out.json
+    python -m perception.training.tables --boxes detector --json detector.json
 """
 
 from __future__ import annotations
@@ -22,33 +23,29 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
-from perception import metrics
+from perception import metrics, summaries
 from perception.crops import square_box
-from perception.dataset import PoseDataset
 from perception.detector import DEFAULT_WEIGHTS, Detector
-from perception.estimator import DEFAULT_CROP_SCALE
+from perception.hybrid import DEFAULT_CROP_SCALE
 from perception.metrics import box_iou
-from perception.nets import NetConfig, PoseNet
+from perception.nets import PoseNet, load_posenet
 from perception.overlay import silhouette
-from perception.train import (
-    DISTS,
-    REPO_ROOT,
-    WEIGHTS_DIR,
+from perception.training.dataset import DISTS, PoseDataset
+from perception.training.train_detector import coco_ap
+from perception.training.train_posenet import (
     CropConfig,
     CropSet,
     build_crops,
-    data_root,
     decode_predictions,
     pose_metrics,
     predict,
 )
-from perception.train_detector import coco_ap
-from sim.cli import ArgumentParser, check_writable_file, fail, write_json
-from sim.errors import AssetError, PosegraspError
-from sim.objects import OBJECT_NAMES, load_object
+from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
+from sim.core.errors import AssetError, PosegraspError
+from sim.core.paths import REPO_ROOT, WEIGHTS_DIR, data_root
+from sim.world.objects import OBJECT_NAMES, load_object
 
 #: The paper's Tables 1 and 2 (Staszak & Belter 2019), per object and average.
 PAPER = {
@@ -78,25 +75,6 @@ MATCH_SCORE = 0.5
 MIN_VISIBLE_PX = 100
 
 
-def load_model(path: Path) -> PoseNet:
-    """A trained PoseNet from a checkpoint or shipped weights file.
-
-    Raises:
-        AssetError: the file is missing or corrupt (the message says how to rebuild it).
-    """
-    hint = "rebuild it with `make weights` (or python -m perception.train)"
-    if not path.is_file():
-        raise AssetError(f"weights file {path} is missing; {hint}")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-        model = PoseNet(NetConfig(**state["model_config"]))
-        model.load_state_dict({k: v.float() for k, v in state["model"].items()})
-    except Exception as exc:  # any unpickling or shape error means a bad file
-        raise AssetError(f"weights file {path} is corrupt ({exc}); {hint}") from exc
-    model.eval()
-    return model
-
-
 def _iou(T_est: np.ndarray, T_gt: np.ndarray, K: np.ndarray, name: str) -> float:
     mesh = load_object(name).mesh
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
@@ -115,13 +93,13 @@ def _summary(m: dict[str, np.ndarray], extra: dict[str, np.ndarray]) -> dict[str
         ("distance_pct", m["distance_pct"]),
         ("rotation_deg", m["rotation_deg"]),
     ):
-        s = metrics.summary_stats(arr)
+        s = summaries.summary_stats(arr)
         out |= {f"{key}_mean": s["mean"], f"{key}_std": s["std"],
                 f"{key}_median": s["median"], f"{key}_p90": s["p90"]}  # fmt: skip
     out["iou_acc"] = float(np.mean(extra["iou"]))
-    out["outlier_rate"] = metrics.outlier_rate(m["rotation_deg"])
+    out["outlier_rate"] = summaries.outlier_rate(m["rotation_deg"])
     out["add_s_recall"] = float(np.mean(extra["adi_rel"] < 0.1))
-    out["recall_5cm5deg"] = metrics.recall_5cm5deg(extra["trans_m"], m["rotation_deg"])
+    out["recall_5cm5deg"] = summaries.recall_5cm5deg(extra["trans_m"], m["rotation_deg"])
     return out
 
 
@@ -132,10 +110,11 @@ def detector_crops(
 
     Every annotated object at least `min_visib` visible is matched with the highest-scoring
     detection of its class whose box overlaps its visible box by IoU >= 0.5 and whose score is
-    at least `MATCH_SCORE`; the crop is the square `perception.estimator` cuts around that box.
+    at least `MATCH_SCORE`; the crop is the square `perception.hybrid` cuts around that box.
 
     Returns:
-        The crop arrays in `perception.train.build_crops`' layout (matched objects only), and a
+        The crop arrays in `perception.training.train_posenet.build_crops`' layout (matched
+        objects only), and a
         detection report: ``detection`` (class name -> COCO ``box_ap``, ``box_ap50``,
         ``mask_ap``, ``mask_ap50`` over every object of the images), ``overall`` (the same over
         all classes), ``objects`` and ``missed`` (per class: objects to match and objects
@@ -309,7 +288,7 @@ def _command(args) -> str:
     """The evaluation command, as the manifest records it."""
     w = Path(args.weights).resolve()
     w = w.relative_to(REPO_ROOT) if w.is_relative_to(REPO_ROOT) else w
-    parts = ["python -m perception.evaluate", f"--weights {w}"]
+    parts = ["python -m perception.training.tables", f"--weights {w}"]
     parts += [f"--boxes {args.boxes}"] if args.boxes != "gt" else []
     parts += [f"--dists {args.dists}"] if args.dists else []
     parts += [f"--limit {args.limit}"] if args.limit else []
@@ -318,7 +297,9 @@ def _command(args) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python -m perception.evaluate", description=__doc__.split("\n")[0])
+    p = ArgumentParser(
+        prog="python -m perception.training.tables", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--weights", type=Path, default=WEIGHTS_DIR / "posenet_ours.pt")
     p.add_argument(
         "--dists",
@@ -352,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.json is not None:
             check_writable_file(args.json)
-        model = load_model(args.weights)
+        model = load_posenet(args.weights)
         report: dict = {}
         for d in dists:
             data = None

@@ -26,3 +26,7 @@ class InvalidArgumentError(PosegraspError, ValueError):
 
 class AssetError(PosegraspError, RuntimeError):
     """A required asset (robot model, weights, data) is missing or corrupt."""
+
+
+class StateError(PosegraspError, RuntimeError):
+    """An object used out of order (a step before a reset, an episode acted on twice ...)."""

@@ -9,17 +9,18 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import mujoco
 import numpy as np
 
-from sim import constants as C
-from sim.errors import InvalidArgumentError, UnknownNameError
-from sim.objects import OBJECT_NAMES, ObjectModel, load_object
-from sim.robot import RobotConfig, fetch_spec, home_qpos_ctrl
+from sim.core.errors import InvalidArgumentError, UnknownNameError
+from sim.core.paths import SCENES_DIR
+from sim.core.transforms import quat_mul, yaw_quat
+from sim.world import constants as C
+from sim.world.objects import OBJECT_NAMES, ObjectModel, load_object
+from sim.world.robot import RobotConfig, fetch_spec, home_qpos_ctrl
 
-WORLD_XML = Path(__file__).resolve().parent.parent / "scenes" / "world.xml"
+WORLD_XML = SCENES_DIR / "world.xml"
 
 
 @dataclass(frozen=True)
@@ -106,16 +107,6 @@ class Scene:
         """Advance physics by seconds with the current controls."""
         n = round(seconds / self.model.opt.timestep)
         mujoco.mj_step(self.model, self.data, nstep=n) if n else None
-
-
-def _yaw_quat(yaw: float) -> np.ndarray:
-    return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    out = np.zeros(4)
-    mujoco.mju_mulQuat(out, a, b)
-    return out
 
 
 def _footprint_radius(obj: ObjectModel) -> float:
@@ -241,7 +232,7 @@ def build_scene(
             rest = obj.resting_poses[rest_names[rng.integers(len(rest_names))]]
         else:
             rest = obj.resting_poses[rest_names[0]]
-        quat = _quat_mul(_yaw_quat(rng.uniform(-np.pi, np.pi)), rest)
+        quat = quat_mul(yaw_quat(rng.uniform(-np.pi, np.pi)), rest)
         z = table_top_z + obj.resting_height(rest) + 0.001
         obj.add_to_spec(spec, body, np.array([xy[0], xy[1], z]), quat)
         placed.append(PlacedObject(obj.name, body, obj))

@@ -5,7 +5,7 @@ about the camera ray, out-of-plane rotation) and each magnitude, episodes grasp 
 perturbed by exactly that magnitude (random sign or direction, seeded). The tolerance of a kind
 is the largest magnitude up to which the success rate stays at or above 90 %.
 
-    python -m grasping.tolerance --object phone   (or --objects all) [--episodes 10] [--workers 2]
+    python -m sim.tolerance --object phone   (or --objects all) [--episodes 10] [--workers 2]
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from sim.cli import ArgumentParser, check_writable_file, fail
-from sim.errors import PosegraspError
-from sim.objects import OBJECT_NAMES
+from sim.core.cli import ArgumentParser, check_writable_file, fail
+from sim.core.errors import PosegraspError
+from sim.world.objects import OBJECT_NAMES
 
 #: Error kinds and the magnitudes tried, in report units (mm or deg).
 LEVELS: dict[str, tuple[float, ...]] = {
@@ -33,7 +33,7 @@ THRESHOLD = 0.9
 
 
 def _noise(kind: str, value: float):
-    from sim.estimators import PoseNoise
+    from sim.pose_noise import PoseNoise
 
     si = value / 1000 if kind.endswith("_mm") else np.deg2rad(value)
     return PoseNoise(**{kind.split("_")[0]: si}, mode="fixed")
@@ -42,7 +42,7 @@ def _noise(kind: str, value: float):
 def _job(args: tuple[str, str, float, int]) -> tuple[str, str, float, int, bool, str | None]:
     obj, kind, value, seed = args
     from sim.episode import Episode
-    from sim.estimators import perturb_pose
+    from sim.pose_noise import perturb_pose
 
     ep = Episode(obj, seed)
     rng = np.random.default_rng([seed, 104729, int(value * 1000)])
@@ -118,7 +118,7 @@ def plot(result: dict, path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python -m grasping.tolerance", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python -m sim.tolerance", description=__doc__.split("\n")[0])
     p.add_argument("--object", default=None, help=f"one of: {', '.join(OBJECT_NAMES)}")
     p.add_argument("--objects", default=None, help="'all' or a comma list")
     p.add_argument("--episodes", type=int, default=10, help="episodes per level")

@@ -34,10 +34,10 @@ import cv2
 import mujoco
 import numpy as np
 
-from perception.geometry import invert_transform
-from sim.camera import R_CV_FROM_MJ, T_world_cam, intrinsics
-from sim.errors import UnknownNameError
-from sim.objects import OBJECT_NAMES, VISUAL_GROUP, ObjectModel, load_object
+from sim.core.errors import UnknownNameError
+from sim.core.transforms import invert_transform, mat_to_quat, rot_z
+from sim.world.camera import R_CV_FROM_MJ, T_world_cam, camera_intrinsics
+from sim.world.objects import OBJECT_NAMES, VISUAL_GROUP, ObjectModel, load_object
 
 CAMERA = "studio"
 #: Geom group of the room and the clutter (drawn by default, left out of the mask pass).
@@ -266,15 +266,7 @@ def _look_at(position: np.ndarray, target: np.ndarray, roll: float) -> np.ndarra
         x = np.cross(z, [0.0, 1.0, 0.0])
     x = x / np.linalg.norm(x)
     y = np.cross(z, x)
-    c, s = np.cos(roll), np.sin(roll)
-    rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return np.stack([x, y, z], axis=1) @ rz
-
-
-def _mat_to_quat(R: np.ndarray) -> np.ndarray:
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=float).reshape(-1))
-    return q
+    return np.stack([x, y, z], axis=1) @ rot_z(roll)
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -419,7 +411,7 @@ class Studio:
         # geom_pos/geom_quat; these geoms are moved per sample.
         m.geom_sameframe[self._walls + self._clutter] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE
         self._base_rgba = m.geom_rgba.copy()
-        self.K = intrinsics(m, CAMERA, cfg.width, cfg.height)
+        self.K = camera_intrinsics(m, CAMERA, cfg.width, cfg.height)
         self._renderer = OffscreenRenderer(cfg.width, cfg.height)
         self._opt_all = mujoco.MjvOption()
         self._opt_object = mujoco.MjvOption()
@@ -452,7 +444,7 @@ class Studio:
         roll = rng.uniform(-np.pi, np.pi)
         R_world_mj = _look_at(position, aim, roll) @ R_CV_FROM_MJ
         m.cam_pos[self._cam] = position
-        m.cam_quat[self._cam] = _mat_to_quat(R_world_mj)
+        m.cam_quat[self._cam] = mat_to_quat(R_world_mj)
         return float(roll), float(distance)
 
     def _place_room(self, distance: float, rng: np.random.Generator) -> None:
@@ -470,7 +462,7 @@ class Studio:
             R = np.eye(3)[:, [*others, axis]]
             if np.linalg.det(R) < 0:
                 R[:, 0] *= -1
-            m.geom_quat[g] = _mat_to_quat(R)
+            m.geom_quat[g] = mat_to_quat(R)
             m.geom_size[g] = [half[others[0]] + 0.05, half[others[1]] + 0.05, _WALL_THICKNESS]
             self._set_material(m.geom_matid[g], rng)
 

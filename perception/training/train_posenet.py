@@ -1,4 +1,4 @@
-"""Training of the 2D/4D pose nets on our renders (`python -m perception.train`).
+"""Training of the 2D/4D pose nets on our renders (`python -m perception.training.train_posenet`).
 
 Crops are cut once per split with the paper's imprecise boxes (random shift and scale of the
 visible box), several per object instance, and cached next to the data (`crops_*.npz`). Training
@@ -6,15 +6,14 @@ is seeded, checkpoints every epoch and every few minutes with everything needed 
 rebuild the model (weights, model config, optimiser, step, RNG states, data seeds, commit), and
 validates each epoch.
 
-    python -m perception.train --variant ours --epochs 7
-    python -m perception.train --smoke            # seconds, on whatever small data exists
+    python -m perception.training.train_posenet --variant ours --epochs 7
+    python -m perception.training.train_posenet --smoke  # seconds, on whatever small data exists
 """
 
 from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -32,39 +31,14 @@ from perception.crops import (
     random_square_box,
     to_unit,
 )
-from perception.dataset import PoseDataset, load_info
 from perception.geometry import decode, encode
-from perception.nets import CROP, VARIANTS, NetConfig, PoseNet, loss_fn, normalise
-from sim.cli import ArgumentParser, fail
-from sim.errors import AssetError, PosegraspError
-from sim.objects import OBJECT_NAMES
-
-REPO_ROOT = Path(__file__).resolve().parent.parent
-WEIGHTS_DIR = REPO_ROOT / "perception" / "weights"
-DISTS = ("paper", "headcam")
-
-
-def data_root() -> Path:
-    """Folder holding one dataset per distribution: $POSEGRASP_DATA, else data/ in the repo."""
-    env = os.environ.get("POSEGRASP_DATA")
-    return Path(env) if env else REPO_ROOT / "data"
-
-
-def checkpoint_dir() -> Path:
-    """Where training checkpoints live by default: <data root>/checkpoints."""
-    return data_root() / "checkpoints"
-
-
-def git_commit() -> str:
-    """The repository's HEAD commit, or "unknown"."""
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=5
-        )
-        return out.stdout.strip() or "unknown"
-    except OSError:
-        return "unknown"
-
+from perception.nets import CROP, VARIANTS, NetConfig, PoseNet, normalise
+from perception.training.dataset import DISTS, PoseDataset, load_info
+from perception.training.losses import posenet_loss
+from sim.core.cli import ArgumentParser, fail
+from sim.core.errors import AssetError, InvalidArgumentError, PosegraspError
+from sim.core.paths import checkpoint_dir, data_root, git_commit
+from sim.world.objects import OBJECT_NAMES
 
 # --- crops -------------------------------------------------------------------------------------
 
@@ -293,7 +267,7 @@ def _load_split(cfg: TrainConfig, split: str) -> dict:
         if not (root / split).is_dir():
             raise AssetError(
                 f"no {d} {split} data under {root}; build it with "
-                f"`python -m perception.datagen --dist {d} --split {split} --count N` "
+                f"`python -m perception.training.datagen --dist {d} --split {split} --count N` "
                 "(or `make data`)"
             )
         parts.append(build_crops(root, split, cfg.crops, _limit(cfg, d)))
@@ -370,7 +344,11 @@ def _checkpoint(path: Path, model, opt, cfg, step, epoch, history, data_seeds, l
 
 def _command(cfg: TrainConfig) -> str:
     """The CLI command that runs `cfg` (as far as the CLI exposes it)."""
-    parts = ["python -m perception.train", f"--variant {cfg.variant}", f"--epochs {cfg.epochs}"]
+    parts = [
+        "python -m perception.training.train_posenet",
+        f"--variant {cfg.variant}",
+        f"--epochs {cfg.epochs}",
+    ]
     if tuple(cfg.dists) != DISTS:
         parts.append(f"--dists {','.join(cfg.dists)}")
     if cfg.lr != TrainConfig.lr:
@@ -447,7 +425,7 @@ def train(cfg: TrainConfig, resume: bool = True, command: str | None = None) -> 
             idx = order[b * cfg.batch : (b + 1) * cfg.batch]
             x = _augment(normalise(torch.from_numpy(tr["crops"][idx])), g)
             out = model(x, torch.from_numpy(tr["cls"][idx]), torch.from_numpy(tr["scale"][idx]))
-            loss, parts = loss_fn(
+            loss, parts = posenet_loss(
                 out,
                 torch.from_numpy(tr["uv_unit"][idx]),
                 torch.from_numpy(tr["p"][idx]),
@@ -487,9 +465,11 @@ def parse_limit(text: str | None) -> tuple[int | None, tuple[tuple[str, int], ..
     for item in text.split(","):
         name, _, num = item.rpartition("=")
         if name and name not in DISTS:
-            raise ValueError(f"unknown distribution {name!r} in --limit; valid: {', '.join(DISTS)}")
+            raise InvalidArgumentError(
+                f"unknown distribution {name!r} in --limit; valid: {', '.join(DISTS)}"
+            )
         if not num.isdigit() or int(num) < 1:
-            raise ValueError(f"--limit wants N or dist=N with N >= 1, got {item!r}")
+            raise InvalidArgumentError(f"--limit wants N or dist=N with N >= 1, got {item!r}")
         if name:
             per.append((name, int(num)))
         else:
@@ -499,7 +479,9 @@ def parse_limit(text: str | None) -> tuple[int | None, tuple[tuple[str, int], ..
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python -m perception.train", description=__doc__.split("\n")[0])
+    p = ArgumentParser(
+        prog="python -m perception.training.train_posenet", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--variant", default="ours", help=f"one of: {', '.join(VARIANTS)}")
     p.add_argument("--epochs", type=int, default=TrainConfig.epochs)
     p.add_argument("--batch", type=int, default=TrainConfig.batch)

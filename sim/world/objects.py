@@ -11,28 +11,23 @@ from __future__ import annotations
 import functools
 import json
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import mujoco
 import numpy as np
 import trimesh
 
-from sim.errors import AssetError, UnknownNameError
-from sim.robot import WORLD_CONAFFINITY, WORLD_CONTYPE
+from sim.core.errors import AssetError, UnknownNameError
+from sim.core.paths import SCENES_DIR
+from sim.core.transforms import quat_to_mat
+from sim.world.robot import WORLD_CONAFFINITY, WORLD_CONTYPE
 
 OBJECT_NAMES: tuple[str, ...] = ("car", "faucet", "chair", "phone", "screen", "pistol")
-OBJECTS_DIR = Path(__file__).resolve().parent.parent / "scenes" / "objects"
+OBJECTS_DIR = SCENES_DIR / "objects"
 
 #: Geom groups (MuJoCo Menagerie convention): visual 2, collision 3.
 VISUAL_GROUP = 2
 COLLISION_GROUP = 3
-
-
-def _quat_to_mat(q: np.ndarray) -> np.ndarray:
-    mat = np.zeros(9)
-    mujoco.mju_quat2Mat(mat, np.asarray(q, dtype=float) / np.linalg.norm(q))
-    return mat.reshape(3, 3)
 
 
 @dataclass(frozen=True)
@@ -69,7 +64,7 @@ class Part:
     def transform(self) -> np.ndarray:
         """T_O_part, shape (4, 4)."""
         T = np.eye(4)
-        T[:3, :3] = _quat_to_mat(self.quat)
+        T[:3, :3] = quat_to_mat(self.quat)
         T[:3, 3] = self.pos
         return T
 
@@ -156,26 +151,9 @@ class ObjectModel:
         d = np.linalg.norm(v[:, None, :] - v[None, :, :], axis=-1)
         return float(d.max())
 
-    def sample_points(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """n points drawn uniformly on the surface, in O [m], shape (n, 3)."""
-        areas = self.mesh.area_faces
-        faces = rng.choice(len(areas), size=n, p=areas / areas.sum())
-        tri = self.mesh.triangles[faces]
-        r1, r2 = rng.random(n), rng.random(n)
-        s = np.sqrt(r1)
-        w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
-        return np.einsum("nk,nkd->nd", w, tri)
-
-    def bop_symmetries(self) -> list[dict[str, np.ndarray]]:
-        """Symmetries as the BOP toolkit lists them: the identity first, t in metres (3, 1)."""
-        out = [{"R": np.eye(3), "t": np.zeros((3, 1))}]
-        for T in self.symmetries:
-            out.append({"R": T[:3, :3].copy(), "t": T[:3, 3:4].copy()})
-        return out
-
     def resting_height(self, quat: np.ndarray) -> float:
         """Height of O's origin above a support plane when resting with orientation quat [m]."""
-        R = _quat_to_mat(quat)
+        R = quat_to_mat(quat)
         return float(-(np.asarray(self.mesh.vertices) @ R.T)[:, 2].min())
 
     def add_to_spec(
@@ -258,7 +236,7 @@ def load_object(name: str) -> ObjectModel:
             T = np.eye(4)
             axis = np.asarray(s["axis"], float)
             mujoco.mju_axisAngle2Quat(q := np.zeros(4), axis / np.linalg.norm(axis), s["angle"])
-            T[:3, :3] = _quat_to_mat(q)
+            T[:3, :3] = quat_to_mat(q)
             syms.append(T)
         rest = {r["name"]: np.asarray(r["quat"], float) for r in raw["resting_poses"]}
         return ObjectModel(
@@ -272,8 +250,3 @@ def load_object(name: str) -> ObjectModel:
         )
     except (OSError, KeyError, TypeError, ValueError) as exc:
         raise AssetError(f"cannot read object definition {path}: {exc}") from exc
-
-
-def all_objects() -> list[ObjectModel]:
-    """Every known object, in `OBJECT_NAMES` order."""
-    return [load_object(n) for n in OBJECT_NAMES]

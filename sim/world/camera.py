@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from sim.errors import AssetError, InvalidArgumentError, UnknownNameError
+from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from sim.core.transforms import intrinsics
 
 R_CV_FROM_MJ = np.diag([1.0, -1.0, -1.0])
 MAX_RESOLUTION = (4096, 4096)
@@ -37,19 +38,19 @@ def check_resolution(width: int, height: int) -> None:
         )
 
 
-def intrinsics(model: mujoco.MjModel, camera: str, width: int, height: int) -> np.ndarray:
-    """Pinhole K of a MuJoCo camera rendered at width x height (SPEC section 2).
-
-    fy = (H/2) / tan(fovy/2), fx = fy, cx = (W-1)/2, cy = (H-1)/2; the centre of pixel (0, 0)
-    is (0, 0).
+def camera_intrinsics(model: mujoco.MjModel, camera: str, width: int, height: int) -> np.ndarray:
+    """Pinhole K of a MuJoCo camera rendered at width x height (`sim.core.transforms.intrinsics`
+    of the camera's fovy).
 
     Returns:
         K, shape (3, 3), in pixels.
+
+    Raises:
+        InvalidArgumentError: a resolution outside 1..4096.
+        UnknownNameError: no such camera.
     """
     check_resolution(width, height)
-    fovy = np.deg2rad(model.cam_fovy[_camera_id(model, camera)])
-    f = (height / 2) / np.tan(fovy / 2)
-    return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    return intrinsics(np.deg2rad(model.cam_fovy[_camera_id(model, camera)]), width, height)
 
 
 def T_world_cam(model: mujoco.MjModel, data: mujoco.MjData, camera: str) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Training of the object extractor (`python -m perception.train_detector`).
+"""Training of the object extractor (`python -m perception.training.train_detector`).
 
 Trains the Mask R-CNN of `perception.detector` from scratch on the head-camera distribution's
 train split (``$POSEGRASP_DATA/headcam``): targets come from the *visible* masks, boxes enclose
@@ -9,9 +9,9 @@ checkpoint (weights, model and training config, optimiser, step, RNG states, dat
 is written to ``<checkpoints>/detector.pt`` every few minutes and after every epoch, each of which
 ends with COCO box and mask AP (pycocotools) on the first val images.
 
-    python -m perception.train_detector                  # train (resumes when interrupted)
-    python -m perception.train_detector --export         # finish training, then ship the weights
-    python -m perception.train_detector --smoke --data DIR --out DIR   # seconds, tiny data
+    python -m perception.training.train_detector                  # train (resumes when interrupted)
+    python -m perception.training.train_detector --export  # finish training, ship the weights
+    python -m perception.training.train_detector --smoke --data DIR --out DIR   # seconds, tiny data
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from perception.dataset import PoseDataset, load_info
 from perception.detector import (
     Detection,
     Detector,
@@ -42,10 +41,12 @@ from perception.detector import (
     state_dict_fp16,
     to_model_box,
 )
-from perception.train import WEIGHTS_DIR, checkpoint_dir, data_root, git_commit, learning_rate
-from sim.cli import ArgumentParser, fail
-from sim.errors import AssetError, InvalidArgumentError, PosegraspError
-from sim.objects import OBJECT_NAMES
+from perception.training.dataset import PoseDataset, load_info
+from perception.training.train_posenet import learning_rate
+from sim.core.cli import ArgumentParser, fail
+from sim.core.errors import AssetError, InvalidArgumentError, PosegraspError
+from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root, git_commit
+from sim.world.objects import OBJECT_NAMES
 
 CHECKPOINT_NAME = "detector.pt"
 WEIGHTS_NAME = "detector.pt"
@@ -61,7 +62,8 @@ class TrainConfig:
             ``data_root() / "headcam"``.
         epochs, batch: passes over the train split and images per step.
         lr, weight_decay, warmup: AdamW peak learning rate, weight decay, and the fraction of
-            steps of linear warm-up before the cosine decay (`perception.train.learning_rate`).
+            steps of linear warm-up before the cosine decay
+            (`perception.training.train_posenet.learning_rate`).
         grad_clip: gradient norm clip.
         min_visible_px: instances with fewer visible pixels are not training targets (and are
             ignored by the AP evaluation).
@@ -341,7 +343,8 @@ def train(cfg: TrainConfig, resume: bool = True, max_steps: int | None = None) -
     for split in ("train", "val"):
         if not (root / split).is_dir():
             raise AssetError(
-                f"no {split} split under {root}; build it with `python -m perception.datagen "
+                f"no {split} split under {root}; build it with "
+                "`python -m perception.training.datagen "
                 f"--dist headcam --split {split} --count N --out {root}` (or `make data`)"
             )
     train_set = DetectionSet(root, "train", cfg.min_visible_px, cfg.detector, cfg.limit)
@@ -349,7 +352,8 @@ def train(cfg: TrainConfig, resume: bool = True, max_steps: int | None = None) -
     if len(train_set) < cfg.batch:
         raise AssetError(
             f"{len(train_set)} completed train images under {root}, fewer than one batch "
-            f"({cfg.batch}); generate more with `python -m perception.datagen --dist headcam`"
+            f"({cfg.batch}); generate more with "
+            "`python -m perception.training.datagen --dist headcam`"
         )
     if len(val_data) == 0:
         raise AssetError(f"no completed val images under {root}; generate them first")
@@ -485,7 +489,7 @@ def export(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict:
     """
     if not checkpoint.is_file():
         raise AssetError(f"no detector checkpoint {checkpoint}; run python -m "
-                         "perception.train_detector first")  # fmt: skip
+                         "perception.training.train_detector first")  # fmt: skip
     try:
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
         cfg = DetectorConfig.from_dict(state["model_config"])
@@ -513,7 +517,7 @@ def export(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict:
         "file": path.name,
         "bytes": path.stat().st_size,
         "parameters": count_parameters(model),
-        "command": f"python -m perception.train_detector --epochs {tc['epochs']} --export",
+        "command": f"python -m perception.training.train_detector --epochs {tc['epochs']} --export",
         "train_config": tc,
         "data_seeds": state["data_seeds"],
         "epochs_done": state["epoch"],
@@ -538,7 +542,7 @@ def export(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(
-        prog="python -m perception.train_detector", description=__doc__.split("\n")[0]
+        prog="python -m perception.training.train_detector", description=__doc__.split("\n")[0]
     )
     p.add_argument(
         "--data",

@@ -27,13 +27,14 @@ import torch
 from perception.crops import crop_and_resize, crop_to_image, from_unit, square_box
 from perception.detector import DEFAULT_WEIGHTS, Detection, Detector, DetectorConfig, check_rgb
 from perception.geometry import decode
-from perception.nets import CROP, NetConfig, PoseNet, normalise
+from perception.nets import CROP, NetConfig, PoseNet, load_posenet, normalise
 from perception.support import refine_on_support, refine_with_mask
-from sim.errors import InvalidArgumentError, UnknownNameError
-from sim.estimators import Observation
-from sim.objects import OBJECT_NAMES, load_object
+from sim.core.contract import Observation
+from sim.core.errors import InvalidArgumentError, UnknownNameError
+from sim.core.paths import WEIGHTS_DIR
+from sim.core.transforms import check_intrinsics, rigid_problem
+from sim.world.objects import OBJECT_NAMES, load_object
 
-WEIGHTS_DIR = DEFAULT_WEIGHTS.parent
 DEFAULT_POSENET = WEIGHTS_DIR / "posenet_ours.pt"
 #: Square crop side / longer side of the detected box: the mean of the training range 0.95..1.35.
 DEFAULT_CROP_SCALE = 1.15
@@ -66,30 +67,9 @@ class PoseDetection:
     timings_ms: dict[str, float] = field(repr=False)
 
 
-def check_intrinsics(K: object) -> np.ndarray:
-    """Validate a pinhole K: (3, 3), finite, positive focal lengths, last row (0, 0, 1).
-
-    Raises:
-        InvalidArgumentError: otherwise.
-    """
-    arr = np.asarray(K, dtype=np.float64) if isinstance(K, (np.ndarray, list, tuple)) else None
-    if arr is None or arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
-        raise InvalidArgumentError(f"K must be a finite (3, 3) matrix, got {K!r}")
-    if arr[0, 0] <= 0 or arr[1, 1] <= 0 or not np.allclose(arr[2], (0.0, 0.0, 1.0)):
-        raise InvalidArgumentError(
-            f"K must have positive focal lengths and last row (0, 0, 1), got {arr.tolist()}"
-        )
-    return arr
-
-
-def _is_rigid(T: np.ndarray) -> bool:
-    R = T[:3, :3]
-    return bool(
-        np.all(np.isfinite(T))
-        and np.abs(R.T @ R - np.eye(3)).max() < 1e-6
-        and np.linalg.det(R) > 0
-        and T[2, 3] > 0
-    )
+def _is_pose_in_front(T: np.ndarray) -> bool:
+    """A rigid transform whose origin lies in front of the camera."""
+    return rigid_problem(T) is None and bool(T[2, 3] > 0)
 
 
 class HybridPoseEstimator:
@@ -128,12 +108,10 @@ class HybridPoseEstimator:
         Raises:
             AssetError: missing or corrupt weights, saying how to rebuild them.
         """
-        from perception.evaluate import load_model  # deferred: it pulls in the training code
-
         detector = Detector.from_weights(
             Path(detector_path), score_threshold=score_threshold, max_detections=max_detections
         )
-        return cls(detector, load_model(Path(posenet_path)), crop_scale)
+        return cls(detector, load_posenet(Path(posenet_path)), crop_scale)
 
     @classmethod
     def with_random_weights(
@@ -198,7 +176,7 @@ class HybridPoseEstimator:
             if not np.all(np.isfinite(p[i])) or np.linalg.norm(p[i]) < 1e-9:
                 continue
             T = decode(p[i], float(theta[i]), uv, K)
-            if not _is_rigid(T):
+            if not _is_pose_in_front(T):
                 continue
             results.append(PoseDetection(d.name, d.score, d.box_xyxy, d.mask, T, uv, box, timings))
         t4 = time.perf_counter()
@@ -232,21 +210,21 @@ class HybridPoseEstimator:
     def as_episode_estimator(
         self, support: bool = False, mask_fit: bool = True
     ) -> HybridEpisodeEstimator:
-        """This estimator behind the episode interface (`sim.estimators.PoseEstimator`);
+        """This estimator behind the episode interface (`sim.core.contract.PoseEstimator`);
         `support` puts each pose onto the observation's table and, with `mask_fit`, fits its yaw
         and position on the table to the detected mask (`perception.support`)."""
         return HybridEpisodeEstimator(self, support, mask_fit)
 
 
 class HybridEpisodeEstimator:
-    """`sim.estimators.PoseEstimator` for episodes: the pose of the highest-scoring detection of
+    """`sim.core.contract.PoseEstimator` for episodes: the pose of the highest-scoring detection of
     the requested class, or None when it is not detected. Ignores the privileged ground truth.
 
     With `support` (name ``hybrid-table``) the pose is then moved onto the known table top
     (`perception.support.refine_on_support`): nearest resting pose, and the distance along the
     origin's ray at which the object touches the table; with `mask_fit` its yaw and position on
     the table are then fitted to the detected mask (`perception.support.refine_with_mask`).
-    Without a known table (``obs.support_z`` None) the network pose is kept.
+    Without a known table (``obs.table_top_z`` None) the network pose is kept.
 
     After each call `last_info` describes the estimate: ``detected``, ``class``, ``score``,
     ``box_xyxy``, ``uv``, ``timings_ms`` (per stage) and, with `support`, ``support``
@@ -279,10 +257,10 @@ class HybridEpisodeEstimator:
             "detections": len(found),
         }
         T = best.T_C_O.copy()
-        if self.support and obs.support_z is not None:
+        if self.support and obs.table_top_z is not None:
             t0 = time.perf_counter()
             model = load_object(best.name)
-            ref = refine_on_support(T, obs.T_world_cam, model, obs.support_z)
+            ref = refine_on_support(T, obs.T_world_cam, model, obs.table_top_z)
             info = {
                 "resting_pose": ref.resting_pose,
                 "tilt_deg": ref.tilt_deg,
@@ -303,102 +281,3 @@ class HybridEpisodeEstimator:
             self.last_info["timings_ms"]["support"] = (time.perf_counter() - t0) * 1000
             self.last_info["support"] = info
         return T
-
-
-def draw_detections(rgb: np.ndarray, K: np.ndarray, found: list[PoseDetection]) -> np.ndarray:
-    """The image with every detection's estimated pose drawn: projected model outline, axes
-    (x red, y green, z blue) and ``class score``."""
-    from perception.overlay import draw_pose
-
-    img = rgb
-    colours = ((0, 255, 0), (255, 255, 0), (255, 0, 255), (0, 255, 255), (255, 128, 0))
-    for i, d in enumerate(found):
-        mesh = load_object(d.name).mesh
-        img = draw_pose(
-            img,
-            d.T_C_O,
-            K,
-            np.asarray(mesh.vertices),
-            np.asarray(mesh.faces),
-            color=colours[i % len(colours)],
-            label=f"{d.name} {d.score:.2f}",
-        )
-    return img
-
-
-def main(argv: list[str] | None = None) -> int:
-    """CLI: estimate poses on rendered test images or on an image file and save overlays.
-
-    python -m perception.estimator --dist headcam --split test --images 12 --save out/overlays
-    python -m perception.estimator --image head.png --K 554.3,554.3,320,240 --save out/one
-    """
-
-    import cv2
-
-    from perception.dataset import PoseDataset, contact_sheet
-    from perception.train import data_root
-    from sim.cli import ArgumentParser, check_writable_file, fail
-    from sim.errors import PosegraspError
-
-    p = ArgumentParser(
-        prog="python -m perception.estimator", description=main.__doc__.split("\n")[0]
-    )
-    p.add_argument("--dist", default="headcam", help="dataset under $POSEGRASP_DATA: headcam")
-    p.add_argument("--split", default="test", help="one of: train, val, test")
-    p.add_argument("--images", type=int, default=12, help="how many images of the split")
-    p.add_argument("--image", type=Path, default=None, help="an RGB image file instead")
-    p.add_argument("--K", default=None, help="fx,fy,cx,cy of --image [px]")
-    p.add_argument("--save", type=Path, required=True, metavar="DIR", help="output folder")
-    args = p.parse_args(argv)
-    if args.split not in ("train", "val", "test"):
-        return fail(f"unknown split {args.split!r}; valid splits: train, val, test")
-    try:
-        check_writable_file(args.save / "overlays.png")
-        if args.image is not None:
-            if args.K is None:
-                return fail("--image needs --K fx,fy,cx,cy")
-            try:
-                fx, fy, cx, cy = (float(v) for v in args.K.split(","))
-            except ValueError:
-                return fail(f"--K must be four numbers fx,fy,cx,cy, got {args.K!r}")
-            bgr = cv2.imread(str(args.image), cv2.IMREAD_COLOR)
-            if bgr is None:
-                return fail(f"cannot read an image from {args.image}")
-            items = [
-                (
-                    args.image.stem,
-                    bgr[..., ::-1].copy(),
-                    np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]),
-                )
-            ]
-        else:
-            ds = PoseDataset(data_root() / args.dist, args.split)
-            items = []
-            for i in range(min(args.images, len(ds))):
-                s = ds[i]
-                items.append((f"{args.split}_{s.scene_id:06d}_{s.im_id:06d}", s.rgb, s.K))
-        est = HybridPoseEstimator.from_weights()
-        tiles = []
-        for name, rgb, K in items:
-            found, timings = est.estimate_timed(rgb, K)
-            img = draw_detections(rgb, K, found)
-            cv2.imwrite(str(args.save / f"{name}.png"), img[..., ::-1])
-            tiles.append(img)
-            print(
-                f"{name}: "
-                + (", ".join(f"{d.name} {d.score:.2f}" for d in found) or "no detection")
-                + f"  ({timings['total']:.0f} ms)"
-            )
-        if len(tiles) > 1:
-            sheet = contact_sheet(tiles, cols=4, tile=320)
-            cv2.imwrite(str(args.save / "overlays.png"), sheet[..., ::-1])
-            print(f"wrote {len(tiles)} overlays and {args.save / 'overlays.png'}")
-    except PosegraspError as exc:
-        return fail(str(exc))
-    return 0
-
-
-if __name__ == "__main__":
-    import sys
-
-    sys.exit(main())

@@ -1,4 +1,4 @@
-"""Names of the Fetch robot as posegrasp converts it (see `sim.robot`), in a fixed order."""
+"""Names of the Fetch robot as posegrasp converts it (see `sim.world.robot`), in a fixed order."""
 
 from __future__ import annotations
 
@@ -48,8 +48,6 @@ GRASP_SITE = "grasp_site"
 GRASP_SITE_OFFSET = (0.025, 0.0, 0.0)  # in the gripper_link frame [m]
 #: Finger travel of one finger [m]; the opening between the pads is twice this.
 FINGER_TRAVEL = 0.05
-#: Half-length of a finger pad along the approach axis [m].
-FINGER_PAD_HALF_LENGTH = 0.0385
 
 #: Arm tucked to the side, torso part way up, head level, gripper open.
 HOME_POSTURE: dict[str, float] = {
@@ -70,7 +68,8 @@ HOME_POSTURE: dict[str, float] = {
     FINGER_JOINTS[1]: FINGER_TRAVEL,
 }
 
-#: The data generator (`perception.datagen.SEED_BASES`) draws its scenes from seeds below this.
+#: The data generator (`perception.training.datagen.SEED_BASES`) draws its scenes from seeds
+#: below this.
 DATA_SEED_LIMIT = 300_000_000
 #: Episodes that score a learned estimator start at this seed, so that no evaluated scene was a
 #: training, validation or test image of the networks.

@@ -1,6 +1,6 @@
 """Turn training checkpoints into the shipped weights and their manifest.
 
-    python -m perception.export_weights [--checkpoints DIR (default: <data>/checkpoints)]
+    python -m perception.training.export [--checkpoints DIR (default: <data>/checkpoints)]
 
 Writes `perception/weights/posenet_<variant>.pt` (float16 weights and the model config, no
 optimiser state) and `perception/weights/manifest.json` (command, data seed ranges, sizes,
@@ -16,9 +16,11 @@ from pathlib import Path
 import torch
 
 from perception.nets import VARIANTS
-from perception.train import DISTS, WEIGHTS_DIR, checkpoint_dir, data_seed_ranges, git_commit
-from sim.cli import ArgumentParser, fail
-from sim.errors import PosegraspError
+from perception.training.dataset import DISTS
+from perception.training.train_posenet import data_seed_ranges
+from sim.core.cli import ArgumentParser, fail
+from sim.core.errors import AssetError, PosegraspError
+from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, git_commit
 
 MANIFEST = WEIGHTS_DIR / "manifest.json"
 
@@ -52,7 +54,8 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
         kept = {k: v for k, v in nets.get(variant, {}).items() if same and k.startswith("test")}
         tc = state["train_config"]
         command = state.get("command") or (
-            f"python -m perception.train --variant {variant} --epochs {tc['epochs']}"
+            "python -m perception.training.train_posenet "
+            f"--variant {variant} --epochs {tc['epochs']}"
         )
         nets[variant] = {
             "file": path.name,
@@ -67,8 +70,8 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
             **kept,
         }
     if not found:
-        raise FileNotFoundError(
-            f"no checkpoints under {checkpoints}; run python -m perception.train"
+        raise AssetError(
+            f"no checkpoints under {checkpoints}; run python -m perception.training.train_posenet"
         )
     manifest["rebuild"] = "make weights"
     manifest["exported_at_commit"] = git_commit()
@@ -157,7 +160,7 @@ def _seeds(recorded: dict, dists) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(
-        prog="python -m perception.export_weights", description=__doc__.split("\n")[0]
+        prog="python -m perception.training.export", description=__doc__.split("\n")[0]
     )
     p.add_argument("--checkpoints", type=Path, default=None)
     p.add_argument("--plot", type=Path, default=None, help="write the training curves here (PNG)")
@@ -165,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     ckpts = args.checkpoints or checkpoint_dir()
     try:
         m = export(ckpts)
-    except FileNotFoundError as exc:
+    except PosegraspError as exc:
         return fail(str(exc))
     if args.plot:
         plot_curves(training_curves(ckpts), args.plot)

@@ -1,21 +1,21 @@
-"""Build the pose datasets with MuJoCo: ``python -m perception.datagen`` (SPEC section 6).
+"""Build the pose datasets with MuJoCo: ``python -m perception.training.datagen`` (SPEC section 6).
 
-    python -m perception.datagen --dist {paper,headcam} --split {train,val,test} --count N
+    python -m perception.training.datagen --dist {paper,headcam} --split {train,val,test} --count N
         [--out DIR] [--objects all|phone,car] [--width W --height H] [--preview sheet.png]
         [--workers K]
 
 Two distributions:
 
 - ``paper``: the paper's protocol (section 2.8), one object alone in a randomised studio
-  (`perception.backgrounds`): camera uniform on the sphere at a random distance, random roll,
+  (`perception.training.studio`): camera uniform on the sphere at a random distance, random roll,
   procedural backgrounds, clutter, lights and colours; 256x256 by default.
 - ``headcam``: the deployment distribution: the Fetch head camera's view of a seeded
-  `sim.scene.build_scene` (target + 0-3 distractors on the table, randomised appearance), 640x480 by
-  default; every object with visible pixels is annotated.
+  `sim.world.scene.build_scene` (target + 0-3 distractors on the table, randomised
+  appearance), 640x480 by default; every object with visible pixels is annotated.
 
-Layout and units: see `perception.dataset` (BOP layout, BOP files in millimetres, everything else in
-metres). Default ``--out``: ``$POSEGRASP_DATA/<dist>`` if the variable is set, else
-``data/<dist>`` in the repository (git-ignored).
+Layout and units: see `perception.training.dataset` (BOP layout, BOP files in millimetres,
+everything else in metres). Default ``--out``: ``$POSEGRASP_DATA/<dist>`` if the variable is
+set, else ``data/<dist>`` in the repository (git-ignored).
 
 Seeds: sample ``index`` of a split has seed ``SEED_BASES[split] + index``; the bases are 10^8
 apart, so splits never share a seed (``--count`` is at most 10^8). ``paper`` draws everything from
@@ -45,14 +45,15 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from perception import dataset as ds
-from perception.backgrounds import HIDDEN_GROUP, OffscreenRenderer, Studio, StudioConfig
 from perception.geometry import invert_transform, project
-from sim import constants as C
-from sim.camera import T_world_cam, body_mask, check_resolution, intrinsics
-from sim.errors import AssetError, InvalidArgumentError, PosegraspError, UnknownNameError
-from sim.objects import OBJECT_NAMES, ObjectModel, load_object
-from sim.scene import SceneConfig, build_scene
+from perception.training import dataset as ds
+from perception.training.studio import HIDDEN_GROUP, OffscreenRenderer, Studio, StudioConfig
+from sim.core.errors import AssetError, InvalidArgumentError, PosegraspError, UnknownNameError
+from sim.core.paths import data_root
+from sim.world import constants as C
+from sim.world.camera import T_world_cam, body_mask, camera_intrinsics, check_resolution
+from sim.world.objects import OBJECT_NAMES, ObjectModel, load_object
+from sim.world.scene import SceneConfig, build_scene
 
 GENERATOR_VERSION = "1"
 SEED_BASES: dict[str, int] = {"train": 0, "val": 100_000_000, "test": 200_000_000}
@@ -62,7 +63,6 @@ DEFAULT_SIZE: dict[str, tuple[int, int]] = {"paper": (256, 256), "headcam": (640
 MAX_DISTRACTORS = 3
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
-REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
 @dataclass(frozen=True)
@@ -104,7 +104,7 @@ class GenConfig:
         """The command line that regenerates the split (without --out)."""
         objs = "all" if self.objects == OBJECT_NAMES else ",".join(self.objects)
         return (
-            f"python -m perception.datagen --dist {self.dist} --split {self.split} "
+            f"python -m perception.training.datagen --dist {self.dist} --split {self.split} "
             f"--count {self.count} --objects {objs} --width {self.width} --height {self.height}"
         )
 
@@ -186,7 +186,7 @@ class HeadcamGenerator:
                     raise
         model, data, r = scene.model, scene.data, self.renderer
         cam = model.camera(C.HEAD_CAMERA).id
-        K = intrinsics(model, C.HEAD_CAMERA, self.width, self.height)
+        K = camera_intrinsics(model, C.HEAD_CAMERA, self.width, self.height)
         T_C_W = invert_transform(T_world_cam(model, data, C.HEAD_CAMERA))
         rgb = r.render(model, data, cam)
         seg = r.geom_ids(model, data, cam)
@@ -403,7 +403,7 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
             )
     else:
         info = {
-            "generator": "perception.datagen",
+            "generator": "perception.training.datagen",
             "version": GENERATOR_VERSION,
             "dist": cfg.dist,
             "width": cfg.width,
@@ -571,7 +571,7 @@ class _Parser(argparse.ArgumentParser):
 
 def _parser() -> argparse.ArgumentParser:
     p = _Parser(
-        prog="python -m perception.datagen",
+        prog="python -m perception.training.datagen",
         description="Render a seeded, resumable pose dataset in the BOP layout.",
     )
     p.add_argument("--dist", required=True, help="paper (studio views) or headcam (table scenes)")
@@ -619,8 +619,7 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
     check_resolution(width, height)
     out = a.out
     if out is None:
-        env = os.environ.get("POSEGRASP_DATA")
-        out = (Path(env) if env else REPO_ROOT / "data") / a.dist
+        out = data_root() / a.dist
     return GenConfig(
         dist=a.dist,
         split=a.split,

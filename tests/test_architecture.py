@@ -1,0 +1,223 @@
+"""The layer rule and the house rules of the code (docs/DESIGN.md, "2. Layers"), checked."""
+
+from __future__ import annotations
+
+import ast
+import os
+import re
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import grimp
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+PACKAGES = ("sim", "perception", "grasping", "posegrasp")
+LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")
+#: Training, data generation and evaluation: never loaded by a user who only estimates poses.
+OFFLINE_MODULES = re.compile(
+    r"^(perception\.training(\..*)?|sim\.(evaluate|gate|tolerance|run_episode)|pycocotools(\..*)?)$"
+)
+#: Built-in exceptions a deliberate error must not be raised as (PosegraspError subclasses).
+BUILTIN_ERRORS = {
+    "Exception",
+    "ValueError",
+    "TypeError",
+    "RuntimeError",
+    "KeyError",
+    "IndexError",
+    "OSError",
+    "IOError",
+    "FileNotFoundError",
+    "AssertionError",
+}
+
+
+def _source_files() -> list[Path]:
+    out = []
+    for pkg in (*PACKAGES, "bench"):
+        out.extend(p for p in (REPO / pkg).rglob("*.py") if "__pycache__" not in p.parts)
+    return sorted(out)
+
+
+def _lint_imports(cwd: Path, pythonpath: Path | None = None) -> subprocess.CompletedProcess:
+    env = dict(os.environ)
+    if pythonpath is not None:
+        env["PYTHONPATH"] = str(pythonpath)
+    return subprocess.run(
+        [str(LINT_IMPORTS), "--no-cache"],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_import_contracts_hold() -> None:
+    res = _lint_imports(REPO)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
+    assert "0 broken" in res.stdout
+
+
+@pytest.mark.parametrize(
+    "module, bad_import",
+    [
+        ("sim/world/constants.py", "import sim.episode"),  # the world reaching up
+        ("grasping/candidates.py", "import perception.geometry"),  # siblings meeting
+        ("perception/hybrid.py", "import perception.training.dataset"),  # run time -> training
+    ],
+)
+def test_import_contracts_catch_a_back_edge(tmp_path: Path, module: str, bad_import: str) -> None:
+    """The same contracts fail on a copy of the tree with one forbidden import added."""
+    for pkg in PACKAGES:
+        shutil.copytree(REPO / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("*.pt"))
+    shutil.copy(REPO / "pyproject.toml", tmp_path / "pyproject.toml")
+    target = tmp_path / module
+    target.write_text(target.read_text() + f"\n{bad_import}  # noqa\n")
+    res = _lint_imports(tmp_path, pythonpath=tmp_path)
+    assert res.returncode != 0
+    assert "BROKEN" in res.stdout
+
+
+def _strongly_connected(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Tarjan's strongly connected components of a directed graph."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            out.append(comp)
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_strongly_connected_finds_a_cycle() -> None:
+    comps = _strongly_connected({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}})
+    assert sorted(map(sorted, comps)) == [["a", "b", "c"], ["d"]]
+
+
+def test_no_import_cycles_between_files() -> None:
+    g = grimp.build_graph(*PACKAGES)
+    graph = {m: set(g.find_modules_directly_imported_by(m)) & g.modules for m in g.modules}
+    # A package's __init__ importing its own children is not a cycle between files.
+    for m, deps in graph.items():
+        graph[m] = {d for d in deps if not d.startswith(m + ".")}
+    cycles = [sorted(c) for c in _strongly_connected(graph) if len(c) > 1]
+    assert cycles == []
+
+
+def _modules_loaded_by(code: str) -> set[str]:
+    prog = textwrap.dedent(code) + "\nimport sys\nprint('\\n'.join(sorted(sys.modules)))\n"
+    res = subprocess.run(
+        [sys.executable, "-c", prog], capture_output=True, text=True, cwd=REPO, timeout=300
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    return set(res.stdout.split())
+
+
+def test_the_runtime_estimator_loads_no_training_or_evaluation_code() -> None:
+    loaded = _modules_loaded_by(
+        """
+        from perception import HybridPoseEstimator
+        est = HybridPoseEstimator.from_weights()
+        """
+    )
+    assert "perception.hybrid" in loaded and "perception.nets" in loaded
+    assert sorted(m for m in loaded if OFFLINE_MODULES.match(m)) == []
+
+
+def test_making_the_env_loads_no_training_or_evaluation_code() -> None:
+    loaded = _modules_loaded_by(
+        """
+        import gymnasium
+        import posegrasp
+        env = gymnasium.make("posegrasp:GraspEval-v0", object="phone", width=64, height=48)
+        env.reset(seed=0)
+        env.close()
+        """
+    )
+    assert "sim.episode" in loaded
+    assert sorted(m for m in loaded if OFFLINE_MODULES.match(m)) == []
+
+
+def test_offline_pattern_matches_the_training_modules() -> None:
+    assert OFFLINE_MODULES.match("perception.training.train_posenet")
+    assert OFFLINE_MODULES.match("sim.evaluate")
+    assert not OFFLINE_MODULES.match("perception.hybrid")
+
+
+def test_no_source_file_over_400_lines() -> None:
+    long = {
+        str(p.relative_to(REPO)): n
+        for p in _source_files()
+        if (n := len(p.read_text().splitlines())) > 400
+    }
+    assert long == {}
+
+
+def test_no_citation_of_a_document_outside_the_repo() -> None:
+    pattern = re.compile(r"SPEC( section)?s? ?\d")
+    files = [*_source_files(), *REPO.glob("tests/*.py"), *REPO.glob("*.md"), REPO / "Makefile"]
+    hits = [
+        f"{p.relative_to(REPO)}:{i}"
+        for p in files
+        if p != Path(__file__).resolve()
+        for i, line in enumerate(p.read_text().splitlines(), 1)
+        if pattern.search(line)
+    ]
+    assert hits == []
+
+
+def _raised_builtins(path: Path, root: Path = REPO) -> list[str]:
+    tree = ast.parse(path.read_text())
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Raise) and node.exc is not None:
+            exc = node.exc.func if isinstance(node.exc, ast.Call) else node.exc
+            if isinstance(exc, ast.Name) and exc.id in BUILTIN_ERRORS:
+                out.append(f"{path.relative_to(root)}:{node.lineno} raises {exc.id}")
+    return out
+
+
+def test_every_deliberate_error_is_a_posegrasp_error() -> None:
+    hits = [h for p in _source_files() for h in _raised_builtins(p)]
+    assert hits == []
+
+
+def test_the_error_check_sees_a_builtin_raise(tmp_path: Path) -> None:
+    bad = tmp_path / "probe.py"
+    bad.write_text("def f():\n    raise ValueError('x')\n\ndef g():\n    raise SystemExit(2)\n")
+    assert _raised_builtins(bad, tmp_path) == ["probe.py:2 raises ValueError"]
+
+
+def test_perception_all_is_honest() -> None:
+    import perception
+
+    missing = [name for name in perception.__all__ if not hasattr(perception, name)]
+    assert missing == []
