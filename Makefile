@@ -19,6 +19,7 @@ test: setup
 
 lint: setup
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check . && $(VENV)/bin/lint-imports
+	$(VENV)/bin/vulture sim perception grasping posegrasp bench tests/vulture_whitelist.py
 
 bench: setup
 	$(PY) bench/sim_speed.py

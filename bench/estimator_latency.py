@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 # torch, torchvision and torch._dynamo (which loads triton) must be imported before any MuJoCo
-# GL context exists: importing them afterwards crashes the process (SPEC section 9).
+# GL context exists: importing them afterwards crashes the process (docs/DESIGN.md §11).
 import torch
 import torch._dynamo
 import torchvision  # noqa: F401

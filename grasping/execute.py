@@ -1,8 +1,8 @@
 """Executing a grasp plan in MuJoCo physics through the position actuators, and the success check.
 
 Stages: pre-grasp (gripper open), approach, close (until the fingers stop on the object), lift,
-hold. Success (SPEC section 8): after the hold the object's lowest point is at least 0.10 m above
-the table top and the object touches both fingers.
+hold. Success (docs/DESIGN.md §10): after the hold the object's lowest point is at least
+0.10 m above the table top and the object touches both fingers.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Perception at run time: the 4D pose representation, crops, pose metrics and the hybrid
-estimator (docs/DESIGN.md, "The 4D representation" to "Metrics").
+estimator (docs/DESIGN.md §5-§9).
 
 Importing this package is cheap: it does not import torch. `HybridPoseEstimator` and
 `PoseDetection` are loaded on first use (``from perception import HybridPoseEstimator`` imports

@@ -1,6 +1,8 @@
-"""Square crops around detections, and the pixel maps between image and crop (SPEC 2, 5).
+"""Square crops around detections, and the pixel maps between image and crop.
 
-Coordinates are continuous pixel coordinates with SPEC 2's convention: the centre of pixel
+docs/DESIGN.md §4, §7.
+
+Coordinates are continuous pixel coordinates (docs/DESIGN.md §4): the centre of pixel
 (0, 0) is (0, 0), so pixel (i, j) covers [i - 0.5, i + 0.5] x [j - 0.5, j + 0.5].
 
 A *square box* ``(x0, y0, side)`` is the image region [x0, x0 + side] x [y0, y0 + side] [px].
@@ -92,7 +94,7 @@ def random_square_box(
     max_shift: float = 0.1,
     scale_range: tuple[float, float] = (0.9, 1.3),
 ) -> SquareBox:
-    """An imprecise square box, as used for training crops (paper 2.8, SPEC 5).
+    """An imprecise square box, as used for training crops (paper 2.8, docs/DESIGN.md §7).
 
     Args:
         box_xyxy: Detection box (x0, y0, x1, y1) [px].

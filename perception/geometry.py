@@ -1,6 +1,6 @@
 """The 4D pose representation and the exact virtual-to-real camera correction (numpy).
 
-Implements SPEC sections 2-4 (Staszak & Belter 2019, eqs. 1-5, with the exact pinhole form of
+Implements docs/DESIGN.md §4-§6 (Staszak & Belter 2019, eqs. 1-5, with the exact pinhole form of
 eq. 5). Frames:
 
 - ``C``: the real camera, OpenCV convention (x right, y down, z forward).
@@ -30,7 +30,7 @@ from sim.core.transforms import (
     rot_z,
 )
 
-# Below this value of z_x^2 + z_y^2 the optical axis is treated as parallel to O's z (SPEC 3).
+# Below this value of z_x^2 + z_y^2 the optical axis is parallel to O's z (docs/DESIGN.md §5).
 SINGULAR_EPS = 1e-9
 
 
@@ -70,7 +70,7 @@ def pixel_ray(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
 def r_corr(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Rotation ``R_C_C'`` that turns the virtual camera's axis onto the ray through ``uv``.
 
-    SPEC 4 (exact form of paper eq. 5): with ``(x_n, y_n, 1) = K^-1 (u, v, 1)``,
+    docs/DESIGN.md §6 (exact form of paper eq. 5): with ``(x_n, y_n, 1) = K^-1 (u, v, 1)``,
     ``alpha = atan(x_n)``, ``beta = -asin(y_n / sqrt(x_n^2 + y_n^2 + 1))`` and
     ``R_corr = Ry(alpha) @ Rx(beta)``, so ``R_corr @ (0, 0, 1)`` is the unit ray through (u, v).
 
@@ -90,7 +90,7 @@ def r_corr(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 
 def axes_from_p(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The theta = 0 axes (x, y, z) of C' in O for a camera at ``p`` (SPEC 3, paper eqs. 1-3).
+    """The theta = 0 axes (x, y, z) of C' in O for a camera at ``p`` (docs/DESIGN.md §5, eqs. 1-3).
 
     ``z = -p/|p|``; ``x = (z_y, -z_x, 0)/sqrt(z_x^2 + z_y^2)``; ``y = z x x``. At the singularity
     (``z_x^2 + z_y^2 < 1e-9``) x is (1, 0, 0) made orthogonal to z (Gram-Schmidt), which equals
@@ -118,7 +118,7 @@ def axes_from_p(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def rotation_from_p_theta(p: np.ndarray, theta: float) -> np.ndarray:
-    """Rotation ``R_O_C'`` of the virtual camera from the 4D representation (SPEC 3).
+    """Rotation ``R_O_C'`` of the virtual camera from the 4D representation (docs/DESIGN.md §5).
 
     Args:
         p: Position of C' in O [m], shape (3,).
@@ -133,7 +133,7 @@ def rotation_from_p_theta(p: np.ndarray, theta: float) -> np.ndarray:
 
 
 def encode(T_C_O: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-    """Encode a ground-truth pose as the network targets (SPEC 3-4).
+    """Encode a ground-truth pose as the network targets (docs/DESIGN.md §5, §6).
 
     Args:
         T_C_O: Object pose in the real camera (4, 4); the object origin must be in front of

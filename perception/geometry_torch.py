@@ -1,4 +1,4 @@
-"""Batched, differentiable torch versions of the 4D representation (SPEC 3-5).
+"""Batched, differentiable torch versions of the 4D representation (docs/DESIGN.md §5, §6, §7).
 
 Mirrors :mod:`perception.geometry` for batches of shape (B, ...). Every function keeps the
 input dtype and device and has finite gradients everywhere, including at the singularity where
@@ -98,7 +98,7 @@ def rotation_from_p_cs(p: torch.Tensor, cs: torch.Tensor, eps: float = 1e-12) ->
 
 
 def rotation_from_p_theta(p: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-    """Rotations ``R_O_C'`` from positions and roll angles (SPEC 3).
+    """Rotations ``R_O_C'`` from positions and roll angles (docs/DESIGN.md §5).
 
     Args:
         p: Positions of C' in O [m], shape (B, 3).

@@ -1,4 +1,4 @@
-"""The hybrid pose estimator (SPEC 1): Mask R-CNN detections, 64x64 square crops, the 2D/4D
+"""The hybrid pose estimator (docs/DESIGN.md §1): Mask R-CNN detections, 64x64 square crops, 2D/4D
 pose nets, and the exact geometry that turns their outputs into T_C_O.
 
     est = HybridPoseEstimator.from_weights()  # perception/weights/{detector,posenet_ours}.pt
@@ -25,7 +25,8 @@ import numpy as np
 import torch
 
 from perception.crops import crop_and_resize, crop_to_image, from_unit, square_box
-from perception.detector import DEFAULT_WEIGHTS, Detection, Detector, DetectorConfig, check_rgb
+from perception.detector import DEFAULT_WEIGHTS, Detection, Detector, check_rgb
+from perception.detector_net import DetectorConfig
 from perception.geometry import decode
 from perception.nets import CROP, NetConfig, PoseNet, load_posenet, normalise
 from perception.support import refine_on_support, refine_with_mask
@@ -48,7 +49,7 @@ class PoseDetection:
     Attributes:
         name: object class.
         score: detection score in [0, 1].
-        box_xyxy: detected box (x0, y0, x1, y1) [px], SPEC 2 pixel convention, shape (4,).
+        box_xyxy: detected box (x0, y0, x1, y1) [px] (pixels as docs/DESIGN.md §4), shape (4,).
         mask: visible-part mask, shape (H, W), bool.
         T_C_O: pose of the object in the camera (OpenCV) frame, metres, shape (4, 4).
         uv: pixel where the object's origin projects (2D-NET's output in the image) [px], (2,).

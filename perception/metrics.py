@@ -1,4 +1,4 @@
-"""Pose-error metrics of one estimate (docs/DESIGN.md, "9. Metrics").
+"""Pose-error metrics of one estimate (docs/DESIGN.md §9).
 
 Summaries over many errors (recall, AUC, statistics) are in `perception.summaries`.
 

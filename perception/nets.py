@@ -1,4 +1,4 @@
-"""2D-NET and 4D-NET (SPEC section 5) as one model: a shared convolutional backbone on the
+"""2D-NET and 4D-NET (docs/DESIGN.md §7) as one model: a shared convolutional backbone on the
 64x64 crop, a 2D head for the object origin's position in the crop and a 4D head for the pose in
 the virtual camera C', each with one output slice per object class.
 

@@ -1,6 +1,6 @@
 """Summaries of many pose errors: recalls, the ADD AUC, statistics and the outlier rate.
 
-docs/DESIGN.md, "9. Metrics". Inputs are arrays of per-pose errors in the unit their names say;
+docs/DESIGN.md §9. Inputs are arrays of per-pose errors in the unit their names say;
 NaN counts as a failure.
 
 References:

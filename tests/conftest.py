@@ -8,7 +8,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 # torch (with torchvision and torch._dynamo, which loads triton) must be imported before any
-# MuJoCo GL context exists: importing triton afterwards crashes the process (SPEC section 9).
+# MuJoCo GL context exists: importing triton afterwards crashes the process (docs/DESIGN.md §11).
 import torch  # noqa: I001
 import torch._dynamo
 import torchvision  # noqa: F401

@@ -1,4 +1,4 @@
-"""The layer rule and the house rules of the code (docs/DESIGN.md, "2. Layers"), checked."""
+"""The layer rule and the house rules of the code (docs/DESIGN.md §2), checked."""
 
 from __future__ import annotations
 

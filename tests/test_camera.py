@@ -1,4 +1,4 @@
-"""Camera model of `sim.world.camera`, checked against renders (SPEC section 2).
+"""Camera model of `sim.world.camera`, checked against renders (docs/DESIGN.md §4).
 
 Small spheres are placed in front of a camera; the centroid of each sphere's rendered
 segmentation mask must agree with its centre projected by `intrinsics()` and `T_world_cam()`.

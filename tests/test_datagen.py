@@ -15,8 +15,11 @@ import numpy as np
 import pytest
 
 from perception.geometry import invert_transform, project
+from perception.training import bop
 from perception.training import dataset as ds
+from perception.training.annotations import full_silhouette
 from perception.training.datagen import SEED_BASES, main
+from perception.training.sheets import draw_annotations
 from sim.core.errors import AssetError
 from sim.world import constants as C
 from sim.world.camera import T_world_cam, camera_intrinsics
@@ -183,8 +186,6 @@ def test_headcam_masks_and_poses(headcam: Path) -> None:
 
 
 def test_truncated_silhouette_counts_pixels_outside_the_image() -> None:
-    from perception.training.datagen import _full_silhouette
-
     obj = load_object("car")
     K = np.array([[300.0, 0, 99.5], [0, 300.0, 99.5], [0, 0, 1]])
     T = np.eye(4)
@@ -193,9 +194,9 @@ def test_truncated_silhouette_counts_pixels_outside_the_image() -> None:
     # Ground truth: the same view on an image 200 px wider on the right.
     wide = _silhouette("car", T, K, (200, 400))
     assert wide[:, :200].sum() == cut.sum() and wide[:, 200:].sum() > 0.1 * wide.sum()
-    n, box = _full_silhouette(obj, T, K, cut)
+    n, box = full_silhouette(obj, T, K, cut)
     assert n == pytest.approx(wide.sum(), rel=0.01)
-    assert box == pytest.approx(ds.bbox_xywh(wide), abs=1)
+    assert box == pytest.approx(bop.bbox_xywh(wide), abs=1)
 
 
 # --- reproducible and resumable --------------------------------------------------------------
@@ -213,11 +214,11 @@ def test_resume_skips_done_samples(paper: Path, tmp_path: Path, capsys) -> None:
     shutil.copytree(paper, out)
     sdir = out / "val" / "000000"
     # An interrupted run: image 5 has no record (and a stray temporary file), image 6 nothing.
-    ds.record_path(sdir, 5).unlink()
+    bop.record_path(sdir, 5).unlink()
     (sdir / "rgb" / "000005.png.tmp").write_bytes(b"partial")
-    for p in [ds.record_path(sdir, 6), ds.rgb_path(sdir, 6), *sdir.glob("mask*/000006_*")]:
+    for p in [bop.record_path(sdir, 6), bop.rgb_path(sdir, 6), *sdir.glob("mask*/000006_*")]:
         p.unlink()
-    kept = ds.rgb_path(sdir, 0)
+    kept = bop.rgb_path(sdir, 0)
     kept.write_bytes(kept.read_bytes())  # same bytes, new mtime
     stamp = kept.stat().st_mtime_ns
     capsys.readouterr()
@@ -243,12 +244,12 @@ def test_extending_a_split_keeps_its_samples(paper: Path, tmp_path: Path) -> Non
 def test_corrupt_png_is_detected(paper: Path, tmp_path: Path) -> None:
     out = tmp_path / "corrupt"
     shutil.copytree(paper, out)
-    png = ds.rgb_path(out / "val" / "000000", 2)
+    png = bop.rgb_path(out / "val" / "000000", 2)
     png.write_bytes(png.read_bytes()[:-100])
     with pytest.raises(AssetError, match=r"corrupt PNG .*000002\.png.*python -m perception"):
         ds.load_sample(out, "val", 2)
     ds.load_sample(out, "val", 1)  # the others still load
-    mask = ds.mask_path(out / "val" / "000000", 3, 0, visib=True)
+    mask = bop.mask_path(out / "val" / "000000", 3, 0, visib=True)
     mask.write_bytes(b"not a png")
     with pytest.raises(AssetError, match=r"mask_visib"):
         ds.load_sample(out, "val", 3)
@@ -320,7 +321,7 @@ def test_preview_contact_sheet(paper: Path, tmp_path: Path) -> None:
     img = cv2.imread(str(sheet))
     assert img.shape == (2 * 256, 6 * 256, 3)
     # The axes are drawn: pure red, green and blue-ish strokes appear on the sheet.
-    drawn = ds.draw_annotations(ds.load_sample(paper, "val", 0))
+    drawn = draw_annotations(ds.load_sample(paper, "val", 0))
     assert (drawn != ds.load_sample(paper, "val", 0).rgb).any()
 
 

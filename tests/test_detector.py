@@ -11,19 +11,18 @@ import pytest
 import torch
 from torchvision.models.detection import MaskRCNN
 
-from perception.detector import (
-    Detection,
-    Detector,
+from perception.detector import Detection, Detector, from_model_box, image_tensor, to_model_box
+from perception.detector_net import (
     DetectorConfig,
     build_detector,
     count_parameters,
-    from_model_box,
-    image_tensor,
     state_dict_fp16,
-    to_model_box,
 )
 from perception.training import datagen
-from perception.training.train_detector import SMOKE, coco_ap, export, main, mask_box, train
+from perception.training.bop import box_xyxy
+from perception.training.detection_eval import coco_ap
+from perception.training.export_detector import export_detector
+from perception.training.train_detector import SMOKE, main, train
 from sim.core.errors import AssetError, InvalidArgumentError
 from sim.world.objects import OBJECT_NAMES
 
@@ -142,13 +141,13 @@ def test_fp16_weights_round_trip(tmp_path: Path, image: np.ndarray) -> None:
 def test_box_conventions() -> None:
     mask = np.zeros((10, 12), bool)
     mask[2:5, 3:9] = True  # rows 2..4, columns 3..8
-    np.testing.assert_array_equal(mask_box(mask), [2.5, 1.5, 8.5, 4.5])
-    np.testing.assert_array_equal(to_model_box(mask_box(mask)), [3, 2, 9, 5])
-    np.testing.assert_array_equal(from_model_box(to_model_box(mask_box(mask))), mask_box(mask))
+    np.testing.assert_array_equal(box_xyxy(mask), [2.5, 1.5, 8.5, 4.5])
+    np.testing.assert_array_equal(to_model_box(box_xyxy(mask)), [3, 2, 9, 5])
+    np.testing.assert_array_equal(from_model_box(to_model_box(box_xyxy(mask))), box_xyxy(mask))
 
 
 def _det(oid: int, mask: np.ndarray, score: float) -> Detection:
-    return Detection(OBJECT_NAMES[oid - 1], score, mask_box(mask), mask)
+    return Detection(OBJECT_NAMES[oid - 1], score, box_xyxy(mask), mask)
 
 
 def test_coco_ap_with_pycocotools() -> None:
@@ -214,7 +213,7 @@ def test_training_smoke_checkpoint_resume_and_export(tiny_headcam: Path, tmp_pat
     out = tmp_path / "weights"
     out.mkdir()
     (out / "manifest.json").write_text(json.dumps({"pose_nets": {"ours": {"file": "x.pt"}}}))
-    entry = export(Path(resumed["checkpoint"]), out)
+    entry = export_detector(Path(resumed["checkpoint"]), out)
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["pose_nets"] == {"ours": {"file": "x.pt"}}
     assert manifest["detector"] == json.loads(json.dumps(entry)) and entry["file"] == "detector.pt"

@@ -10,7 +10,7 @@ import torch
 
 import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 from perception.crops import crop_and_resize, crop_to_image, from_unit, square_box
-from perception.detector import DetectorConfig, build_detector, state_dict_fp16
+from perception.detector_net import DetectorConfig, build_detector, state_dict_fp16
 from perception.geometry import decode
 from perception.hybrid import (
     DEFAULT_CROP_SCALE,

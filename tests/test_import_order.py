@@ -1,4 +1,4 @@
-"""Rendering first and loading torch afterwards must not crash (SPEC section 9)."""
+"""Rendering first and loading torch afterwards must not crash (docs/DESIGN.md §11)."""
 
 from __future__ import annotations
 

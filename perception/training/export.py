@@ -4,31 +4,40 @@
 
 Writes `perception/weights/posenet_<variant>.pt` (float16 weights and the model config, no
 optimiser state) and `perception/weights/manifest.json` (command, data seed ranges, sizes,
-validation metrics, commit) for every variant that has a checkpoint.
+validation metrics, commit) for every variant that has a checkpoint. The detector is shipped by
+`perception.training.export_detector` (``python -m perception.training.train_detector --export``).
 """
 
 from __future__ import annotations
 
-import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
-import torch
-
 from perception.nets import VARIANTS
+from perception.training.checkpoints import read_checkpoint, save_atomically
+from perception.training.crop_sets import data_seed_ranges
 from perception.training.dataset import DISTS
-from perception.training.train_posenet import data_seed_ranges
+from perception.training.manifest import MANIFEST_NAME, read_manifest, write_manifest
+from perception.training.train_posenet import TRAIN_COMMAND
 from sim.core.cli import ArgumentParser, fail
 from sim.core.errors import AssetError, PosegraspError
 from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, git_commit
 
-MANIFEST = WEIGHTS_DIR / "manifest.json"
+MANIFEST = WEIGHTS_DIR / MANIFEST_NAME
 
 
 def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
-    """Export every variant found under `checkpoints`; returns the manifest."""
+    """Export every variant found under `checkpoints`; returns the manifest.
+
+    Writes ``<out>/posenet_<variant>.pt`` and updates the ``pose_nets`` key of `MANIFEST`; the
+    test figures of a variant are kept only when its weights are unchanged.
+
+    Raises:
+        AssetError: no checkpoint under `checkpoints`, or a manifest that is not valid JSON.
+    """
     out.mkdir(parents=True, exist_ok=True)
-    manifest = json.loads(MANIFEST.read_text()) if MANIFEST.is_file() else {}
+    manifest = read_manifest(MANIFEST)
     nets = manifest.setdefault("pose_nets", {})
     found = False
     for variant in VARIANTS:
@@ -36,7 +45,7 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
         if not ckpt.is_file():
             continue
         found = True
-        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        state = read_checkpoint(ckpt)
         shipped = {
             "model": {
                 k: (v.half() if v.is_floating_point() else v) for k, v in state["model"].items()
@@ -48,14 +57,13 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
         }
         path = out / f"posenet_{variant}.pt"
         before = path.read_bytes() if path.is_file() else None
-        torch.save(shipped, path)
+        save_atomically(shipped, path)
         # Test figures stay valid only for the very same weights.
         same = before == path.read_bytes()
         kept = {k: v for k, v in nets.get(variant, {}).items() if same and k.startswith("test")}
         tc = state["train_config"]
         command = state.get("command") or (
-            "python -m perception.training.train_posenet "
-            f"--variant {variant} --epochs {tc['epochs']}"
+            f"{TRAIN_COMMAND} --variant {variant} --epochs {tc['epochs']}"
         )
         nets[variant] = {
             "file": path.name,
@@ -70,12 +78,10 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
             **kept,
         }
     if not found:
-        raise AssetError(
-            f"no checkpoints under {checkpoints}; run python -m perception.training.train_posenet"
-        )
+        raise AssetError(f"no checkpoints under {checkpoints}; run {TRAIN_COMMAND}")
     manifest["rebuild"] = "make weights"
     manifest["exported_at_commit"] = git_commit()
-    MANIFEST.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+    write_manifest(MANIFEST, manifest)
     return manifest
 
 
@@ -103,7 +109,7 @@ def training_curves(checkpoints: Path) -> dict[str, list[list[dict]]]:
         path = checkpoints / f"posenet_{variant}.pt"
         stages = []
         while path is not None and path.is_file():
-            state = torch.load(path, map_location="cpu", weights_only=False)
+            state = read_checkpoint(path)
             stages.append(state.get("history") or [])
             parent = state.get("init_from")
             path = checkpoints / parent["checkpoint"] if parent else None
@@ -147,7 +153,7 @@ def plot_curves(curves: dict[str, list[list[dict]]], path: Path) -> None:
     plt.close(fig)
 
 
-def _seeds(recorded: dict, dists) -> dict:
+def _seeds(recorded: dict, dists: Sequence[str]) -> dict:
     """The checkpoint's data seed ranges; read from the datasets when it has none."""
     if any(recorded.get(d) for d in recorded):
         return recorded

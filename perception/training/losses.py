@@ -1,6 +1,6 @@
 """Training losses of the pose nets: the 4D-NET loss of the paper (eq. 7) and the full loss.
 
-docs/DESIGN.md, "Networks and losses": ``|p - p^| / |p| + lambda * G(R, R^)`` with p the target,
+docs/DESIGN.md §7: ``|p - p^| / |p| + lambda * G(R, R^)`` with p the target,
 p^ the prediction and R, R^ the rotations ``R_O_C'`` built from (p, theta) and (p^, theta^).
 """
 

@@ -14,7 +14,8 @@ import numpy as np
 
 from perception.hybrid import HybridPoseEstimator
 from perception.overlay import draw_detections
-from perception.training.dataset import PoseDataset, contact_sheet
+from perception.training.dataset import PoseDataset
+from perception.training.sheets import contact_sheet
 from sim.core.cli import ArgumentParser, check_writable_file, fail
 from sim.core.errors import PosegraspError
 from sim.core.paths import data_root

@@ -1,4 +1,4 @@
-"""The paper protocol's renderer: one object alone in a randomised "studio" (SPEC section 6).
+"""The paper protocol's renderer (docs/DESIGN.md §8): one object in a randomised studio.
 
 One lightweight MuJoCo model holds every object (at the world origin, in its own frame: T_world_O
 is the identity), a box-shaped room of six textured walls, a pool of clutter primitives, a pool of
@@ -12,8 +12,7 @@ Domain randomisation per sample (every choice drawn from the sample's `rng`):
   `distance` x the object's diameter, aimed at a point uniformly inside a ball of radius
   `aim_offset` x diameter around the object's origin, roll uniform in [-pi, pi);
 - room: random orientation and size (the camera always inside), each wall a random texture from a
-  fixed bank (MuJoCo builtin checker / gradient / flat-with-noise textures and numpy-made smooth
-  noise, stripes and blobs, all in random colours), tint, scale and shininess;
+  fixed bank (`perception.training.textures`), tint, scale and shininess;
 - clutter: 0..`max_clutter` boxes, spheres, cylinders, capsules and ellipsoids with random
   textures, never in front of the object (the object is never occluded);
 - lights: 1..`max_lights` spot, point or directional lights of random position, colour and
@@ -26,14 +25,15 @@ depends only on its own seed, not on which samples the process rendered before.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
-import cv2
 import mujoco
 import numpy as np
 
+from perception.training.rendering import OffscreenRenderer
+from perception.training.textures import PLAIN_TEXTURE, add_texture_bank, bank_texture_name
 from sim.core.errors import UnknownNameError
 from sim.core.transforms import invert_transform, mat_to_quat, rot_z
 from sim.world.camera import R_CV_FROM_MJ, T_world_cam, camera_intrinsics
@@ -44,13 +44,15 @@ CAMERA = "studio"
 BACKGROUND_GROUP = 1
 #: Geom group never drawn by the default visual options (hides inactive objects and clutter).
 HIDDEN_GROUP = 5
-_CLUTTER_TYPES = (
-    mujoco.mjtGeom.mjGEOM_BOX,
-    mujoco.mjtGeom.mjGEOM_SPHERE,
-    mujoco.mjtGeom.mjGEOM_CYLINDER,
-    mujoco.mjtGeom.mjGEOM_CAPSULE,
-    mujoco.mjtGeom.mjGEOM_ELLIPSOID,
-)
+#: Clutter geom types with the radius [m] of their bounding sphere given their size, shape (3,).
+_CLUTTER_RADIUS: dict[mujoco.mjtGeom, Callable[[np.ndarray], float]] = {
+    mujoco.mjtGeom.mjGEOM_BOX: lambda size: float(np.linalg.norm(size)),
+    mujoco.mjtGeom.mjGEOM_SPHERE: lambda size: float(size[0]),
+    mujoco.mjtGeom.mjGEOM_CYLINDER: lambda size: float(np.hypot(size[0], size[1])),
+    mujoco.mjtGeom.mjGEOM_CAPSULE: lambda size: float(size[0] + size[1]),
+    mujoco.mjtGeom.mjGEOM_ELLIPSOID: lambda size: float(size.max()),
+}
+_CLUTTER_TYPES = tuple(_CLUTTER_RADIUS)
 _WALL_THICKNESS = 0.01
 
 
@@ -109,92 +111,6 @@ class StudioView:
     distance: float
 
 
-# --- texture bank ----------------------------------------------------------------------------
-
-
-def _random_colour(rng: np.random.Generator) -> np.ndarray:
-    """A random RGB colour in [0, 1]: saturated, pastel or grey with equal chance."""
-    kind = rng.integers(3)
-    if kind == 0:
-        return rng.uniform(0.0, 1.0, 3)
-    if kind == 1:
-        return rng.uniform(0.5, 1.0, 3)
-    return np.full(3, rng.uniform(0.05, 0.95))
-
-
-def _procedural_texture(rng: np.random.Generator, size: int) -> np.ndarray:
-    """A (size, size, 3) uint8 texture: smooth noise, stripes or blobs in random colours."""
-    c1, c2 = _random_colour(rng), _random_colour(rng)
-    kind = rng.integers(3)
-    if kind == 0:
-        cells = int(rng.integers(3, 17))
-        low = rng.random((cells, cells)).astype(np.float32)
-        w = cv2.resize(low, (size, size), interpolation=cv2.INTER_CUBIC)
-        w = np.clip(w, 0.0, 1.0)[..., None]
-    elif kind == 1:
-        v, u = np.mgrid[0:size, 0:size] / size
-        angle = rng.uniform(0.0, np.pi)
-        freq = float(rng.integers(1, 9))
-        phase = np.cos(angle) * u + np.sin(angle) * v
-        w = (0.5 + 0.5 * np.sin(2 * np.pi * freq * phase))[..., None]
-        if rng.random() < 0.5:
-            w = (w > 0.5).astype(np.float64)
-    else:
-        img = np.zeros((size, size), np.float32)
-        for _ in range(int(rng.integers(5, 40))):
-            centre = (int(rng.integers(size)), int(rng.integers(size)))
-            radius = int(rng.integers(2, size // 4))
-            cv2.circle(img, centre, radius, float(rng.uniform(0.3, 1.0)), -1)
-        w = img[..., None]
-    tex = (1.0 - w) * c1 + w * c2
-    return np.clip(np.round(255.0 * tex), 0, 255).astype(np.uint8)
-
-
-def _add_texture_bank(spec: mujoco.MjSpec, cfg: StudioConfig) -> list[str]:
-    """Add `cfg.n_textures` 2D textures to spec; returns their names."""
-    rng = np.random.default_rng(cfg.bank_seed)
-    names = []
-    builtins = (
-        mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
-        mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
-        mujoco.mjtBuiltin.mjBUILTIN_FLAT,
-    )
-    marks = (
-        mujoco.mjtMark.mjMARK_NONE,
-        mujoco.mjtMark.mjMARK_EDGE,
-        mujoco.mjtMark.mjMARK_CROSS,
-        mujoco.mjtMark.mjMARK_RANDOM,
-    )
-    for i in range(cfg.n_textures):
-        tex = spec.add_texture()
-        tex.name = f"bank_{i:03d}"
-        tex.type = mujoco.mjtTexture.mjTEXTURE_2D
-        tex.width = tex.height = cfg.texture_size
-        if i % 2 == 0:
-            tex.nchannel = 3
-            tex.data = _procedural_texture(rng, cfg.texture_size).tobytes()
-        else:
-            tex.builtin = builtins[rng.integers(len(builtins))]
-            tex.rgb1 = _random_colour(rng)
-            tex.rgb2 = _random_colour(rng)
-            mark = marks[rng.integers(len(marks))]
-            if tex.builtin == mujoco.mjtBuiltin.mjBUILTIN_FLAT:
-                mark = mujoco.mjtMark.mjMARK_RANDOM
-            tex.mark = mark
-            tex.markrgb = _random_colour(rng)
-            tex.random = float(rng.uniform(0.01, 0.3))
-        names.append(tex.name)
-    # Plain surfaces use a white texture rather than none: switching a material's texture off at
-    # run time (texid -1) leaves the previous frame's texture bound in MuJoCo's renderer.
-    tex = spec.add_texture()
-    tex.name = "plain"
-    tex.type = mujoco.mjtTexture.mjTEXTURE_2D
-    tex.builtin = mujoco.mjtBuiltin.mjBUILTIN_FLAT
-    tex.width = tex.height = 8
-    tex.rgb1 = tex.rgb2 = [1.0, 1.0, 1.0]
-    return names
-
-
 # --- the model -------------------------------------------------------------------------------
 
 
@@ -209,7 +125,7 @@ def build_studio_spec(objects: Sequence[ObjectModel], cfg: StudioConfig) -> mujo
     spec.visual.global_.offwidth = max(cfg.width, 64)
     spec.visual.global_.offheight = max(cfg.height, 64)
     spec.visual.quality.offsamples = cfg.msaa
-    bank = _add_texture_bank(spec, cfg)
+    bank = add_texture_bank(spec, cfg.n_textures, cfg.texture_size, cfg.bank_seed)
 
     def slot_material(name: str) -> str:
         mat = spec.add_material()
@@ -269,114 +185,10 @@ def _look_at(position: np.ndarray, target: np.ndarray, roll: float) -> np.ndarra
     return np.stack([x, y, z], axis=1) @ rot_z(roll)
 
 
-def _random_rotation(rng: np.random.Generator) -> np.ndarray:
-    q = rng.normal(size=4)
-    return q / np.linalg.norm(q)
-
-
-def _unit(rng: np.random.Generator) -> np.ndarray:
-    v = rng.normal(size=3)
+def _unit(rng: np.random.Generator, dim: int = 3) -> np.ndarray:
+    """A direction uniform on the unit sphere of R^dim (dim 4: a uniform random quaternion)."""
+    v = rng.normal(size=dim)
     return v / np.linalg.norm(v)
-
-
-class OffscreenRenderer:
-    """Offscreen RGB and segmentation renders of fixed cameras, for one model at a time.
-
-    One GL context lives as long as the renderer; MuJoCo's render context (textures, meshes) is
-    rebuilt only when a different model is passed, so a stream of freshly compiled scenes costs
-    no new GL context each. Shadows, reflections and the skybox are off. The GL context is made
-    on first use; call `close()` to free it.
-    """
-
-    def __init__(self, width: int, height: int) -> None:
-        self.width, self.height = width, height
-        self._gl: mujoco.GLContext | None = None
-        self._model: mujoco.MjModel | None = None
-        self._ctx: mujoco.MjrContext | None = None
-        self._scene: mujoco.MjvScene | None = None
-        self._cam = mujoco.MjvCamera()
-        self._cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
-        self._pert = mujoco.MjvPerturb()
-        self._rect = mujoco.MjrRect(0, 0, width, height)
-        self._buf = np.empty((height, width, 3), np.uint8)
-
-    def _bind(self, model: mujoco.MjModel) -> tuple[mujoco.MjrContext, mujoco.MjvScene]:
-        if self._gl is None:
-            self._gl = mujoco.GLContext(self.width, self.height)
-        self._gl.make_current()
-        if model is not self._model or self._ctx is None or self._scene is None:
-            if self._ctx is not None:
-                self._ctx.free()
-            vis = model.vis.global_
-            vis.offwidth, vis.offheight = (
-                max(vis.offwidth, self.width),
-                max(vis.offheight, self.height),
-            )
-            self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50)
-            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
-            self._scene = mujoco.MjvScene(model, maxgeom=10000)
-            for flag in ("mjRND_SHADOW", "mjRND_REFLECTION", "mjRND_SKYBOX"):
-                self._scene.flags[getattr(mujoco.mjtRndFlag, flag)] = False
-            self._model = model
-        return self._ctx, self._scene
-
-    def render(
-        self,
-        model: mujoco.MjModel,
-        data: mujoco.MjData,
-        camera: int,
-        opt: mujoco.MjvOption | None = None,
-        segment: bool = False,
-    ) -> np.ndarray:
-        """RGB image, or segmentation id colours if segment (black where nothing is drawn).
-
-        Needs up-to-date kinematics and camera poses in data. Returns shape (H, W, 3), uint8.
-        """
-        ctx, scene = self._bind(model)
-        self._cam.fixedcamid = camera
-        mujoco.mjv_updateScene(
-            model,
-            data,
-            opt or mujoco.MjvOption(),
-            self._pert,
-            self._cam,
-            mujoco.mjtCatBit.mjCAT_ALL,
-            scene,
-        )
-        scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = segment
-        scene.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = segment
-        mujoco.mjr_render(self._rect, scene, ctx)
-        mujoco.mjr_readPixels(self._buf, None, self._rect, ctx)
-        return np.flipud(self._buf).copy()
-
-    def geom_ids(
-        self,
-        model: mujoco.MjModel,
-        data: mujoco.MjData,
-        camera: int,
-        opt: mujoco.MjvOption | None = None,
-    ) -> np.ndarray:
-        """Geom id per pixel (-1 where no geom is drawn), shape (H, W), int32."""
-        raw = self.render(model, data, camera, opt, segment=True).astype(np.int32)
-        segid = raw[..., 0] + (raw[..., 1] << 8) + (raw[..., 2] << 16) - 1
-        scene = self._bind(model)[1]
-        # Index ngeom (the last entry) stands for "nothing drawn" (segid -1).
-        lut = np.full(scene.ngeom + 1, -1, np.int32)
-        for i in range(scene.ngeom):
-            g = scene.geoms[i]
-            if g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
-                lut[i] = g.objid
-        return lut[np.where((segid >= 0) & (segid < scene.ngeom), segid, scene.ngeom)]
-
-    def close(self) -> None:
-        """Free the render and GL contexts."""
-        if self._ctx is not None:
-            self._ctx.free()
-            self._ctx = None
-        if self._gl is not None:
-            self._gl.free()
-            self._gl = None
-        self._model = self._scene = None
 
 
 class Studio:
@@ -400,8 +212,8 @@ class Studio:
         self._room = m.body("room").mocapid[0]
         self._walls = [m.geom(f"wall_{i}").id for i in range(6)]
         self._clutter = [m.geom(f"clutter_{i}").id for i in range(cfg.max_clutter)]
-        self._bank = [m.texture(f"bank_{i:03d}").id for i in range(cfg.n_textures)]
-        self._plain = m.texture("plain").id
+        self._bank = [m.texture(bank_texture_name(i)).id for i in range(cfg.n_textures)]
+        self._plain = m.texture(PLAIN_TEXTURE).id
         self._geoms: dict[str, np.ndarray] = {}
         self._mats: dict[str, np.ndarray] = {}
         for name, obj in self.objects.items():
@@ -449,7 +261,7 @@ class Studio:
 
     def _place_room(self, distance: float, rng: np.random.Generator) -> None:
         m, d = self.model, self.data
-        d.mocap_quat[self._room] = _random_rotation(rng)
+        d.mocap_quat[self._room] = _unit(rng, 4)
         d.mocap_pos[self._room] = 0.0
         half = distance + rng.uniform(*self.config.room_margin, 3)
         for i, g in enumerate(self._walls):
@@ -484,19 +296,13 @@ class Studio:
                 continue
             gtype = _CLUTTER_TYPES[rng.integers(len(_CLUTTER_TYPES))]
             size = rng.uniform(0.02, 0.25, 3)
-            r = {
-                mujoco.mjtGeom.mjGEOM_BOX: float(np.linalg.norm(size)),
-                mujoco.mjtGeom.mjGEOM_SPHERE: float(size[0]),
-                mujoco.mjtGeom.mjGEOM_CYLINDER: float(np.hypot(size[0], size[1])),
-                mujoco.mjtGeom.mjGEOM_CAPSULE: float(size[0] + size[1]),
-                mujoco.mjtGeom.mjGEOM_ELLIPSOID: float(size.max()),
-            }[gtype]
+            r = _CLUTTER_RADIUS[gtype](size)
             uv = rng.uniform(-0.2, 1.2, 2) * [cfg.width, cfg.height]
             ray = R_world_cv @ (Kinv @ np.array([uv[0], uv[1], 1.0]))
             ray = ray / np.linalg.norm(ray)
             depth = rng.uniform(0.1, 3.0)
             q = cam_pos + depth * ray
-            quat = _random_rotation(rng)
+            quat = _unit(rng, 4)
             # Occlusion test: does the clutter's bounding sphere overlap the object's image disc
             # while being nearer than the object's far side?
             angle = np.arccos(np.clip(ray @ to_obj / d_obj, -1.0, 1.0))

@@ -18,7 +18,6 @@ those from ground-truth boxes.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -32,16 +31,11 @@ from perception.hybrid import DEFAULT_CROP_SCALE
 from perception.metrics import box_iou
 from perception.nets import PoseNet, load_posenet
 from perception.overlay import silhouette
+from perception.training.crop_sets import CropConfig, CropSet, build_crops
 from perception.training.dataset import DISTS, PoseDataset
-from perception.training.train_detector import coco_ap
-from perception.training.train_posenet import (
-    CropConfig,
-    CropSet,
-    build_crops,
-    decode_predictions,
-    pose_metrics,
-    predict,
-)
+from perception.training.detection_eval import coco_ap, visible_objects
+from perception.training.manifest import MANIFEST_NAME, read_manifest, write_manifest
+from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
 from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.core.errors import AssetError, PosegraspError
 from sim.core.paths import REPO_ROOT, WEIGHTS_DIR, data_root
@@ -113,12 +107,11 @@ def detector_crops(
     at least `MATCH_SCORE`; the crop is the square `perception.hybrid` cuts around that box.
 
     Returns:
-        The crop arrays in `perception.training.train_posenet.build_crops`' layout (matched
-        objects only), and a
-        detection report: ``detection`` (class name -> COCO ``box_ap``, ``box_ap50``,
-        ``mask_ap``, ``mask_ap50`` over every object of the images), ``overall`` (the same over
-        all classes), ``objects`` and ``missed`` (per class: objects to match and objects
-        without a matching detection).
+        The crop arrays in `perception.training.crop_sets.build_crops`' layout (matched
+        objects only), and a detection report: ``detection`` (class name -> COCO ``box_ap``,
+        ``box_ap50``, ``mask_ap``, ``mask_ap50`` over every object of the images), ``overall``
+        (the same over all classes), ``objects`` and ``missed`` (per class: objects to match and
+        objects without a matching detection).
     """
     ds = PoseDataset(root, "test")
     n = len(ds) if limit is None else min(limit, len(ds))
@@ -129,7 +122,7 @@ def detector_crops(
     for i in tqdm(range(n), desc=f"detector {root.name}/test", leave=False):
         s = ds[i]
         found = detector.detect(s.rgb)
-        gts.append([(o.obj_id, o.mask_visib) for o in s.objects if o.mask_visib.any()])
+        gts.append(visible_objects(s))
         dets.append(found)
         for obj in s.objects:
             if obj.visib_fract < min_visib or obj.T_C_O[2, 3] <= 0:
@@ -254,13 +247,14 @@ def record_in_manifest(report: dict, weights: Path, boxes: str, command: str,
     detector boxes, the detection AP in the detector's entry). Returns the variant's name.
 
     Raises:
-        AssetError: `weights` is not a shipped file the manifest lists.
+        AssetError: no manifest, or `weights` is not a shipped file it lists.
     """
-    manifest_path = manifest_path or weights.parent / "manifest.json"
-    try:
-        manifest = json.loads(manifest_path.read_text())
-    except (OSError, ValueError) as exc:
-        raise AssetError(f"cannot read {manifest_path} ({exc}); run export_weights") from exc
+    manifest_path = manifest_path or weights.parent / MANIFEST_NAME
+    if not manifest_path.is_file():
+        raise AssetError(
+            f"no {manifest_path}; write it with `python -m perception.training.export`"
+        )
+    manifest = read_manifest(manifest_path)
     nets = manifest.get("pose_nets", {})
     variant = next((v for v, e in nets.items() if e.get("file") == weights.name), None)
     if variant is None:
@@ -280,7 +274,7 @@ def record_in_manifest(report: dict, weights: Path, boxes: str, command: str,
             "command": command, "images": summary["images"], "overall": summary["overall"],
             "per_class": report["detection"], "missed": summary["missed"],
         }  # fmt: skip
-    manifest_path.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+    write_manifest(manifest_path, manifest)
     return variant
 
 

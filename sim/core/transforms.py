@@ -1,6 +1,6 @@
 """Rigid transforms, rotations, quaternions and the pinhole intrinsics, written once.
 
-Conventions (docs/DESIGN.md, "Frames and conventions"): SI units; ``T_a_b`` is the 4x4 transform
+Conventions (docs/DESIGN.md §4): SI units; ``T_a_b`` is the 4x4 transform
 that maps coordinates in frame b to frame a; quaternions are ``wxyz`` (MuJoCo's order, through
 whose routines every quaternion here is converted); camera frames are OpenCV's (x right, y down,
 z forward) and pixel (0, 0) has its centre at (u, v) = (0, 0).
@@ -176,7 +176,7 @@ def check_rigid(T: object, name: str = "pose", tol: float = ORTHONORMAL_TOL) -> 
 
 
 def intrinsics(fovy: float, width: int, height: int) -> np.ndarray:
-    """Pinhole intrinsics of a MuJoCo camera (docs/DESIGN.md, "Frames and conventions").
+    """Pinhole intrinsics of a MuJoCo camera (docs/DESIGN.md §4).
 
     Args:
         fovy: Vertical field of view [rad], in (0, pi).

@@ -2,7 +2,7 @@
 bodies and a trimesh mesh in the object's own frame.
 
 The object frame O has its origin at the centre of the object's 3D bounding box, z up in its
-canonical resting pose and x along its length (SPEC section 2). Definitions may be authored in any
+canonical resting pose and x along its length (docs/DESIGN.md §4). Definitions may be written in any
 frame with z up; loading shifts every part so that the bounding-box centre is the origin.
 """
 

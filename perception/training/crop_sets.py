@@ -1,0 +1,140 @@
+"""The pose nets' crops of a split and their labels (docs/DESIGN.md §7).
+
+Crops are cut with the paper's imprecise boxes (random shift and scale of the visible box),
+several per object instance, and cached next to the data (``crops_*.npz``); the test evaluation
+cuts them the same way with its own `CropConfig`, or collects crops around detector boxes with a
+`CropSet`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from perception.crops import crop_and_resize, image_to_crop, random_square_box, to_unit
+from perception.geometry import encode
+from perception.nets import CROP
+from perception.training.dataset import PoseDataset, load_info
+from sim.core.errors import AssetError
+from sim.core.paths import data_root
+
+
+@dataclass(frozen=True)
+class CropConfig:
+    """How crops are cut from a split.
+
+    Attributes:
+        per_object: crops per annotated object instance (each with its own random box).
+        max_shift: random shift of the box centre, as a fraction of its side.
+        scale_range: random scale of the square box side relative to the box's longer side.
+        min_visib: instances less visible than this are skipped.
+        seed: seed of the random boxes.
+    """
+
+    per_object: int = 2
+    max_shift: float = 0.1
+    scale_range: tuple[float, float] = (0.95, 1.35)
+    min_visib: float = 0.5
+    seed: int = 0
+
+
+def data_seed_ranges(
+    dists: tuple[str, ...] | list[str], limits: dict[str, int] | None = None
+) -> dict[str, dict[str, list[int]]]:
+    """Seed range [first, end) of every generated split of each distribution, from its
+    info.json: dist -> split -> range. `limits` (dist -> images) shortens the ranges to the first
+    images of each split, as training with that limit uses them."""
+    out = {}
+    for d in dists:
+        splits = load_info(data_root() / d).get("splits", {})
+        out[d] = {}
+        for s, v in splits.items():
+            if "seed_range" not in v:
+                continue
+            first, end = v["seed_range"]
+            if limits and d in limits:
+                end = min(end, first + limits[d])
+            out[d][s] = [first, end]
+    return out
+
+
+class CropSet:
+    """Crops of annotated objects and their labels, collected one at a time."""
+
+    KEYS = ("crops", "cls", "uv_unit", "p", "theta", "scale", "box", "K", "T_C_O", "uv")
+
+    def __init__(self) -> None:
+        self.rows: dict[str, list] = {k: [] for k in self.KEYS}
+
+    def add(self, rgb: np.ndarray, K: np.ndarray, obj, box: tuple[float, float, float]) -> None:
+        """Cut the square `box` (x0, y0, side) of `rgb` around annotated object `obj`."""
+        p, theta, uv = encode(obj.T_C_O, K)
+        r = self.rows
+        r["crops"].append(crop_and_resize(rgb, box, CROP))
+        r["cls"].append(obj.obj_id - 1)
+        r["uv_unit"].append(to_unit(image_to_crop(uv, box, CROP), CROP))
+        r["p"].append(p)
+        r["theta"].append(theta)
+        r["scale"].append(box[2] / K[0, 0])
+        r["box"].append(np.asarray(box, float))
+        r["K"].append(K)
+        r["T_C_O"].append(obj.T_C_O)
+        r["uv"].append(uv)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The layout `build_crops` returns (empty arrays of the right shapes when no crop)."""
+        r = self.rows
+        return {
+            "crops": np.asarray(r["crops"], np.uint8).reshape(-1, CROP, CROP, 3),
+            "cls": np.asarray(r["cls"], np.int64),
+            "uv_unit": np.asarray(r["uv_unit"], np.float32).reshape(-1, 2),
+            "p": np.asarray(r["p"], np.float32).reshape(-1, 3),
+            "theta": np.asarray(r["theta"], np.float32),
+            "scale": np.asarray(r["scale"], np.float32),
+            "box": np.asarray(r["box"], np.float64).reshape(-1, 3),
+            "K": np.asarray(r["K"], np.float64).reshape(-1, 3, 3),
+            "T_C_O": np.asarray(r["T_C_O"], np.float64).reshape(-1, 4, 4),
+            "uv": np.asarray(r["uv"], np.float64).reshape(-1, 2),
+        }
+
+
+def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = None) -> dict:
+    """Cut (or load cached) training crops and labels of one split of one dataset.
+
+    Returns:
+        dict of arrays: crops (N, 64, 64, 3) uint8, cls (N,), uv_unit (N, 2), p (N, 3),
+        theta (N,), scale (N,) = side / f, box (N, 3) square boxes (x0, y0, side), K (N, 3, 3),
+        T_C_O (N, 4, 4), uv (N, 2) true origin pixel.
+    """
+    ds = PoseDataset(root, split)
+    n = len(ds) if limit is None else min(limit, len(ds))
+    cache = root / f"crops_{split}_{cfg.per_object}_{cfg.seed}_{n}.npz"  # n: images used
+    if cache.is_file():
+        try:
+            with np.load(cache) as z:
+                return {k: z[k] for k in z.files}
+        except (OSError, ValueError) as exc:
+            raise AssetError(f"corrupt crop cache {cache}: {exc}; delete it to rebuild") from exc
+    rng = np.random.default_rng([cfg.seed, ("train", "val", "test").index(split)])
+    out = CropSet()
+    for i in tqdm(range(n), desc=f"crops {root.name}/{split}", leave=False):
+        s = ds[i]
+        for obj in s.objects:
+            if obj.visib_fract < cfg.min_visib or obj.T_C_O[2, 3] <= 0:
+                continue
+            for _ in range(cfg.per_object):
+                box = random_square_box(obj.box_xyxy, rng, cfg.max_shift, cfg.scale_range)
+                out.add(s.rgb, s.K, obj, box)
+    arrays = out.arrays()
+    tmp = cache.with_suffix(".tmp.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(cache)
+    return arrays
+
+
+def concat(parts: list[dict]) -> dict:
+    """Concatenate crop dicts."""
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -1,0 +1,77 @@
+"""The detector's training images and targets, and their photometric augmentation.
+
+Targets come from the *visible* masks (docs/DESIGN.md §7): boxes enclose
+them (`perception.training.bop.box_xyxy`), labels are BOP object ids. Augmentation is
+photometric only: no flips, since some objects are chiral (the faucet's spout, the pistol's grip).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from perception.detector import image_tensor, to_model_box
+from perception.detector_net import DetectorConfig, input_transform
+from perception.training.bop import box_xyxy
+from perception.training.dataset import PoseDataset
+
+
+class DetectionSet(torch.utils.data.Dataset):
+    """Images of one split with Mask R-CNN targets from the visible masks.
+
+    An item is ``(image, target)`` already scaled to the model's input size as the model's own
+    transform would (`input_transform`), so that the work happens in the loading process:
+    image (3, h, w) float32 in [0, 1], target a dict with ``boxes`` (N, 4) float32 in
+    torchvision's pixel convention, ``labels`` (N,) int64 BOP object ids and ``masks``
+    (N, h, w) uint8. Instances with fewer than `min_visible_px` visible pixels (at full
+    resolution) are left out (N may be 0: a negative image).
+    """
+
+    def __init__(
+        self,
+        root: Path,
+        split: str,
+        min_visible_px: int,
+        cfg: DetectorConfig,
+        limit: int | None = None,
+    ) -> None:
+        self.data = PoseDataset(root, split)
+        self.n = len(self.data) if limit is None else min(limit, len(self.data))
+        self.min_visible_px = min_visible_px
+        self.transform = input_transform(cfg)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        s = self.data[i]
+        keep = [o for o in s.objects if int(o.mask_visib.sum()) >= self.min_visible_px]
+        h, w = s.rgb.shape[:2]
+        boxes = np.array([to_model_box(box_xyxy(o.mask_visib)) for o in keep]).reshape(-1, 4)
+        masks = np.array([o.mask_visib for o in keep], np.uint8).reshape(-1, h, w)
+        target = {
+            "boxes": torch.from_numpy(boxes).float(),
+            "labels": torch.tensor([o.obj_id for o in keep], dtype=torch.int64),
+            "masks": torch.from_numpy(masks),
+        }
+        return self.transform.resize(image_tensor(s.rgb), target)
+
+
+def collate_list(batch: list) -> list:
+    """A batch as the list of its ``(image, target)`` items (images differ in size)."""
+    return batch
+
+
+def augment(x: torch.Tensor, g: torch.Generator) -> torch.Tensor:
+    """Photometric jitter of one (3, H, W) image in [0, 1]: brightness, contrast, saturation,
+    per-channel gain and pixel noise. Geometry is untouched (no flips: some objects are chiral).
+    """
+    r = torch.rand(6, generator=g)
+    grey = x.mean(dim=0, keepdim=True)
+    x = grey + (x - grey) * (0.6 + 0.8 * r[0])  # saturation
+    x = (x - x.mean()) * (0.7 + 0.6 * r[1]) + x.mean()  # contrast
+    x = x * (0.9 + 0.2 * torch.rand(3, 1, 1, generator=g)) + (r[2] - 0.5) * 0.2  # gain, bright
+    x = x + torch.randn(x.shape, generator=g) * (0.03 * r[3])  # noise
+    return x.clamp(0.0, 1.0)

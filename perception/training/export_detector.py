@@ -1,0 +1,77 @@
+"""Ship the detector: a training checkpoint -> ``perception/weights/detector.pt`` (float16 state
+dict, model config, no optimiser state) and the ``detector`` entry of the weights' manifest.
+
+Run by ``python -m perception.training.train_detector --export``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from perception.detector_net import (
+    DetectorConfig,
+    build_detector,
+    count_parameters,
+    state_dict_fp16,
+)
+from perception.training.checkpoints import read_checkpoint, save_atomically
+from perception.training.manifest import MANIFEST_NAME, read_manifest, write_manifest
+from sim.core.errors import AssetError
+from sim.core.paths import WEIGHTS_DIR
+
+WEIGHTS_NAME = "detector.pt"
+TRAIN_COMMAND = "python -m perception.training.train_detector"
+
+
+def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, Any]:
+    """Write the shipped weights (float16 state dict, model config) and their manifest entry.
+
+    Writes ``<out_dir>/detector.pt`` and updates the ``detector`` key of
+    ``<out_dir>/manifest.json``, keeping every other key.
+
+    Returns:
+        The manifest entry.
+
+    Raises:
+        AssetError: missing or corrupt checkpoint, or a manifest that is not valid JSON.
+    """
+    if not checkpoint.is_file():
+        raise AssetError(f"no detector checkpoint {checkpoint}; run {TRAIN_COMMAND} first")
+    try:
+        state = read_checkpoint(checkpoint)
+        cfg = DetectorConfig.from_dict(state["model_config"])
+        model = build_detector(cfg)
+        model.load_state_dict(state["model"])
+    except Exception as exc:
+        raise AssetError(f"detector checkpoint {checkpoint} is corrupt ({exc})") from exc
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / WEIGHTS_NAME
+    validation = state["history"][-1] if state["history"] else None
+    shipped = {
+        "kind": "detector",
+        "model": state_dict_fp16(model),
+        "model_config": cfg.to_dict(),
+        "step": state["step"],
+        "epoch": state["epoch"],
+        "validation": validation,
+        "commit": state["commit"],
+    }
+    save_atomically(shipped, path)
+    tc = state["train_config"]
+    entry = {
+        "file": path.name,
+        "bytes": path.stat().st_size,
+        "parameters": count_parameters(model),
+        "command": f"{TRAIN_COMMAND} --epochs {tc['epochs']} --export",
+        "train_config": tc,
+        "data_seeds": state["data_seeds"],
+        "epochs_done": state["epoch"],
+        "validation": validation,
+        "trained_at_commit": state["commit"],
+    }
+    manifest_path = out_dir / MANIFEST_NAME
+    manifest = read_manifest(manifest_path)
+    manifest["detector"] = entry
+    write_manifest(manifest_path, manifest)
+    return entry

@@ -1,0 +1,156 @@
+"""The image generators of the two distributions: rendered images with their annotated instances.
+
+- `PaperGenerator`: the paper's protocol, one object alone in the randomised studio
+  (`perception.training.studio`).
+- `HeadcamGenerator`: the Fetch head camera's view of a seeded `sim.world.scene.build_scene`
+  (target + 0..`MAX_DISTRACTORS` distractors, randomised appearance); every object with visible
+  pixels is annotated.
+
+Each keeps one GL context for its whole life; `render(name, seed)` depends only on its arguments.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
+import numpy as np
+
+from perception.training.dataset import DISTS
+from perception.training.rendering import OffscreenRenderer
+from perception.training.studio import HIDDEN_GROUP, Studio, StudioConfig
+from sim.core.errors import InvalidArgumentError, UnknownNameError
+from sim.core.transforms import invert_transform
+from sim.world import constants as C
+from sim.world.camera import T_world_cam, body_mask, camera_intrinsics
+from sim.world.scene import SceneConfig, build_scene
+
+#: At most this many distractors in a headcam scene (drawn uniformly from 0..3).
+MAX_DISTRACTORS = 3
+
+
+@dataclass
+class RenderedObject:
+    """One annotated instance of a rendered image.
+
+    Attributes:
+        name: class.
+        T_C_O: pose in the camera (OpenCV convention), shape (4, 4) [m].
+        mask: full silhouette inside the image (occluders ignored), shape (H, W), bool.
+        mask_visib: visible pixels, shape (H, W), bool.
+        extra: fields for scene_posegrasp.json (body name, target flag ...).
+    """
+
+    name: str
+    T_C_O: np.ndarray
+    mask: np.ndarray
+    mask_visib: np.ndarray
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class RenderedImage:
+    """A rendered image with its camera and annotated instances.
+
+    Attributes:
+        rgb: image, shape (H, W, 3), uint8.
+        K: intrinsics, shape (3, 3) [px].
+        T_C_W: world-to-camera transform, shape (4, 4) [m] (paper: the world is the object).
+        objects: annotated instances.
+        extra: per-image fields for scene_posegrasp.json.
+    """
+
+    rgb: np.ndarray
+    K: np.ndarray
+    T_C_W: np.ndarray
+    objects: list[RenderedObject]
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class PaperGenerator:
+    """Paper-protocol images from one reusable `Studio` (one GL context per process).
+
+    Args:
+        width, height: image size [px].
+    """
+
+    def __init__(self, width: int, height: int) -> None:
+        self.studio = Studio(StudioConfig(width=width, height=height))
+
+    def render(self, name: str, seed: int) -> RenderedImage:
+        """Object name seen from the studio view drawn from ``default_rng(seed)``."""
+        view = self.studio.render(name, np.random.default_rng(seed))
+        obj = RenderedObject(name, view.T_C_O, view.mask, view.mask)
+        extra = {"roll": view.roll, "camera_distance": view.distance}
+        return RenderedImage(view.rgb, view.K, view.T_C_O.copy(), [obj], extra)
+
+    def close(self) -> None:
+        """Free the GL context."""
+        self.studio.close()
+
+
+class HeadcamGenerator:
+    """Head-camera images of seeded table scenes: a new scene per image, one GL context.
+
+    Args:
+        width, height: image size [px].
+    """
+
+    def __init__(self, width: int, height: int) -> None:
+        self.width, self.height = width, height
+        self.renderer = OffscreenRenderer(width, height)
+
+    def render(self, name: str, seed: int) -> RenderedImage:
+        """The head camera's view of ``build_scene(name, seed)`` with its visible objects.
+
+        The number of distractors is drawn from ``default_rng([seed, 1])``; when they do not fit
+        on the table, one fewer is tried until none is left.
+        """
+        wanted = int(np.random.default_rng([seed, 1]).integers(0, MAX_DISTRACTORS + 1))
+        for n in range(wanted, -1, -1):
+            try:
+                scene = build_scene(
+                    name, seed, SceneConfig(n_distractors=n, randomize_appearance=True)
+                )
+                break
+            except InvalidArgumentError:  # the objects did not fit on the table
+                if n == 0:
+                    raise
+        model, data, r = scene.model, scene.data, self.renderer
+        cam = model.camera(C.HEAD_CAMERA).id
+        K = camera_intrinsics(model, C.HEAD_CAMERA, self.width, self.height)
+        T_C_W = invert_transform(T_world_cam(model, data, C.HEAD_CAMERA))
+        rgb = r.render(model, data, cam)
+        seg = r.geom_ids(model, data, cam)
+        groups = model.geom_group.copy()
+        objects = []
+        for placed in scene.objects:
+            T_C_O = T_C_W @ scene.object_pose(placed.body)
+            visib = body_mask(model, seg, placed.body)
+            if T_C_O[2, 3] <= 0 or not visib.any():
+                continue
+            # The full silhouette: the same view with every other geom hidden.
+            bid = model.body(placed.body).id
+            model.geom_group[:] = np.where(model.geom_bodyid == bid, groups, HIDDEN_GROUP)
+            try:
+                full = body_mask(model, r.geom_ids(model, data, cam), placed.body)
+            finally:
+                model.geom_group[:] = groups
+            extra = {"body": placed.body, "target": placed is scene.target}
+            objects.append(RenderedObject(placed.name, T_C_O, full | visib, visib, extra))
+        extra = {"target": name, "n_distractors": len(scene.objects) - 1}
+        return RenderedImage(rgb, K, T_C_W, objects, extra)
+
+    def close(self) -> None:
+        """Free the GL context."""
+        self.renderer.close()
+
+
+def make_generator(dist: str, width: int, height: int) -> PaperGenerator | HeadcamGenerator:
+    """The generator of a distribution (one of `DISTS`) at width x height [px]."""
+    if dist == "paper":
+        return PaperGenerator(width, height)
+    if dist == "headcam":
+        return HeadcamGenerator(width, height)
+    raise UnknownNameError("distribution", dist, DISTS)

@@ -1,0 +1,138 @@
+"""Writing a dataset folder: one image's files, the merged scene files, the models and camera.
+
+Every file goes through the atomic writers of `perception.training.bop`. An image's record is
+written last, so an image is done once its record exists; a scene's four BOP files are merged
+from its records.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from perception.training.annotations import annotate
+from perception.training.bop import (
+    MM_PER_M,
+    SCENE_FILES,
+    mask_path,
+    obj_id,
+    png_bytes,
+    read_json,
+    record_path,
+    rgb_path,
+    scene_dir,
+    split_index,
+    write_bytes,
+    write_json,
+    write_ply,
+    write_png,
+)
+from perception.training.generators import RenderedImage
+from sim.world.objects import OBJECT_NAMES, load_object
+
+
+def write_sample(
+    root: Path, split: str, index: int, seed: int, image: RenderedImage, dist: str
+) -> None:
+    """Write one image's files; the record goes last and marks the image as done.
+
+    Args:
+        root: dataset folder.
+        split: its split.
+        index: sample index in the split.
+        seed: the seed it was rendered from.
+        image: the rendered image with its instances.
+        dist: its distribution.
+    """
+    scene_id, im_id = split_index(index)
+    sdir = scene_dir(root, split, scene_id)
+    record = annotate(image, seed, dist)
+    write_png(rgb_path(sdir, im_id), image.rgb)
+    for k, obj in enumerate(image.objects):
+        full = png_bytes(obj.mask.astype(np.uint8) * 255)
+        same = obj.mask_visib is obj.mask or np.array_equal(obj.mask_visib, obj.mask)
+        visib = full if same else png_bytes(obj.mask_visib.astype(np.uint8) * 255)
+        write_bytes(mask_path(sdir, im_id, k, False), full)
+        write_bytes(mask_path(sdir, im_id, k, True), visib)
+    write_json(record_path(sdir, im_id), record, indent=None)
+
+
+def merge_scene(root: Path, split: str, scene_id: int) -> int:
+    """Merge a scene's records into its four BOP scene files; returns the number of images."""
+    sdir = scene_dir(root, split, scene_id)
+    merged: dict[str, dict[str, Any]] = {k: {} for k in SCENE_FILES}
+    records = sorted((sdir / "records").glob("*.json"))
+    for path in records:
+        rec = read_json(path, root, split)
+        for k in SCENE_FILES:
+            merged[k][str(int(path.stem))] = rec[k]
+    for k in SCENE_FILES:
+        write_json(sdir / f"{k}.json", merged[k])
+    return len(records)
+
+
+def write_models(root: Path) -> None:
+    """BOP models (PLY in mm with vertex colours) and models_info.json for every object."""
+    info = {}
+    for name in OBJECT_NAMES:
+        obj = load_object(name)
+        verts, normals, colours, faces = [], [], [], []
+        offset = 0
+        for part in obj.parts:
+            m = part.mesh()
+            verts.append(np.asarray(m.vertices))
+            normals.append(np.asarray(m.vertex_normals))
+            rgb = np.clip(np.round(np.asarray(part.rgba[:3]) * 255), 0, 255).astype(np.uint8)
+            colours.append(np.tile(rgb, (len(m.vertices), 1)))
+            faces.append(np.asarray(m.faces) + offset)
+            offset += len(m.vertices)
+        v = np.vstack(verts) * MM_PER_M
+        write_ply(
+            root / "models" / f"obj_{obj_id(name):06d}.ply",
+            v,
+            np.vstack(normals),
+            np.vstack(colours),
+            np.vstack(faces),
+        )
+        lo, size = v.min(axis=0), v.max(axis=0) - v.min(axis=0)
+        entry: dict[str, Any] = {"diameter": obj.diameter * MM_PER_M}
+        for i, axis in enumerate("xyz"):
+            entry[f"min_{axis}"] = float(lo[i])
+            entry[f"size_{axis}"] = float(size[i])
+        syms = []
+        for T in obj.symmetries:
+            S = np.array(T, float)
+            S[:3, 3] *= MM_PER_M
+            syms.append([float(x) for x in S.reshape(-1)])
+        if syms:
+            entry["symmetries_discrete"] = syms
+        info[str(obj_id(name))] = entry
+    write_json(root / "models" / "models_info.json", info)
+
+
+def write_camera(root: Path, split: str, width: int, height: int) -> None:
+    """BOP camera.json, from the K of the split's first image (all images share it).
+
+    Nothing is written while the split has no image.
+
+    Args:
+        root: dataset folder.
+        split: the split whose first record gives K.
+        width, height: image size [px].
+    """
+    first = next(iter(sorted((root / split).glob("*/records/*.json"))), None)
+    if first is None:
+        return
+    K = np.asarray(read_json(first, root, split)["scene_camera"]["cam_K"]).reshape(3, 3)
+    camera = {
+        "cx": float(K[0, 2]),
+        "cy": float(K[1, 2]),
+        "fx": float(K[0, 0]),
+        "fy": float(K[1, 1]),
+        "width": width,
+        "height": height,
+        "depth_scale": 1.0,
+    }
+    write_json(root / "camera.json", camera)
