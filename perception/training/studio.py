@@ -137,22 +137,21 @@ def build_studio_spec(objects: Sequence[ObjectModel], cfg: StudioConfig) -> mujo
     room = spec.worldbody.add_body()
     room.name = "room"
     room.mocap = True
+
+    def add_box(parent: mujoco.MjsBody, name: str, size: list[float], group: int) -> None:
+        # A visual-only box with its own material slot.
+        g = parent.add_geom()
+        g.name = name
+        g.type = mujoco.mjtGeom.mjGEOM_BOX
+        g.size = size
+        g.contype = g.conaffinity = 0
+        g.group = group
+        g.material = slot_material(name)
+
     for i in range(6):
-        g = room.add_geom()
-        g.name = f"wall_{i}"
-        g.type = mujoco.mjtGeom.mjGEOM_BOX
-        g.size = [1.0, 1.0, _WALL_THICKNESS]
-        g.contype = g.conaffinity = 0
-        g.group = BACKGROUND_GROUP
-        g.material = slot_material(f"wall_{i}")
+        add_box(room, f"wall_{i}", [1.0, 1.0, _WALL_THICKNESS], BACKGROUND_GROUP)
     for i in range(cfg.max_clutter):
-        g = spec.worldbody.add_geom()
-        g.name = f"clutter_{i}"
-        g.type = mujoco.mjtGeom.mjGEOM_BOX
-        g.size = [0.05, 0.05, 0.05]
-        g.contype = g.conaffinity = 0
-        g.group = HIDDEN_GROUP
-        g.material = slot_material(f"clutter_{i}")
+        add_box(spec.worldbody, f"clutter_{i}", [0.05, 0.05, 0.05], HIDDEN_GROUP)
     for i in range(cfg.max_lights):
         light = spec.worldbody.add_light()
         light.name = f"light_{i}"
