@@ -25,6 +25,7 @@ FAILURE_REASONS: tuple[str, ...] = (
     "collision",
     "missed",
     "slipped",
+    "disturbed",
 )
 
 
@@ -40,6 +41,11 @@ class ExecutionConfig:
         hold_time: hold after the lift [s].
         success_height: required clearance of the object's lowest point over the table [m].
         knock_tolerance: object displacement before closing that counts as a collision [m].
+        disturb_tolerance: displacement of any other object that makes a grasp unclean [m].
+        knock_over_deg: tilt of any other object that counts as knocking it over [deg].
+        measure_margin: after a success, measure the grasp's friction margin
+            (`Executor.friction_margin`).
+        margin_steps: bisection steps of the margin (resolution: nominal friction / 2^steps).
     """
 
     control_dt: float = 0.01
@@ -49,6 +55,10 @@ class ExecutionConfig:
     hold_time: float = 2.0
     success_height: float = 0.10
     knock_tolerance: float = 0.02
+    disturb_tolerance: float = 0.03
+    knock_over_deg: float = 30.0
+    measure_margin: bool = False
+    margin_steps: int = 7
 
 
 @dataclass
@@ -60,6 +70,8 @@ class GraspOutcome:
         failure_reason: one of FAILURE_REASONS, or None on success.
         lift_height: final clearance of the object's lowest point over the table [m].
         timings_ms: wall time per stage [ms].
+        friction_margin: lowest sliding friction coefficient at which the same grasp still holds
+            (`Executor.friction_margin`), when measured; None otherwise.
         frames: external-camera frames if recording was requested.
     """
 
@@ -68,6 +80,7 @@ class GraspOutcome:
     lift_height: float
     timings_ms: dict[str, float] = field(default_factory=dict)
     frames: list[np.ndarray] = field(default_factory=list)
+    friction_margin: float | None = None
 
 
 def _smoothstep(s: float) -> float:
@@ -158,6 +171,58 @@ class Executor:
         """Clearance of the target's lowest point over the table top [m]."""
         return self.scene.object_lowest_z() - self.scene.table_top_z
 
+    def disturbed(self, poses0: dict[str, np.ndarray]) -> list[str]:
+        """The other objects moved more than `disturb_tolerance` or tilted more than
+        `knock_over_deg` since `poses0` (body -> T_world_O), each as "body (how much)"."""
+        out = []
+        for body, T0 in poses0.items():
+            T = self.scene.object_pose(body)
+            moved = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
+            # Tilt: the angle between the object's z axis before and after.
+            tilt = float(np.degrees(np.arccos(np.clip(T[:3, 2] @ T0[:3, 2], -1.0, 1.0))))
+            if moved > self.cfg.disturb_tolerance or tilt > self.cfg.knock_over_deg:
+                out.append(f"{body} ({moved * 1000:.0f} mm, {tilt:.0f} deg)")
+        return out
+
+    def _holds(self) -> bool:
+        return self.lift_height() >= self.cfg.success_height and self.held()
+
+    def friction_margin(self) -> float:
+        """The lowest sliding friction coefficient at which the current grasp still holds.
+
+        From the grasped state (object lifted and held), the hold is re-run with the friction of
+        the object's and the fingers' geoms scaled down (all three MuJoCo coefficients, in
+        proportion); bisection between 0 and the nominal coefficient finds where the object
+        stops being held after `hold_time` (GraspNet-1Billion's grading, measured in physics).
+        The scene's state and friction are restored afterwards.
+
+        Returns:
+            The margin, in the units of the sliding coefficient (lower: a firmer grasp).
+        """
+        m, d = self.scene.model, self.scene.data
+        geoms = sorted(self.object_geoms | set().union(*self.finger_geoms))
+        nominal = m.geom_friction[geoms].copy()
+        mu0 = float(nominal[:, 0].max())
+        start = mujoco.MjData(m)
+        mujoco.mj_copyData(start, m, d)
+        lo, hi = 0.0, mu0
+        recorder, self.recorder = self.recorder, None  # the re-runs are not part of the film
+        try:
+            for _ in range(self.cfg.margin_steps):
+                mid = (lo + hi) / 2
+                m.geom_friction[geoms] = nominal * (mid / mu0)
+                mujoco.mj_copyData(d, m, start)
+                self._advance(self.cfg.hold_time)
+                if self._holds():
+                    hi = mid
+                else:
+                    lo = mid
+        finally:
+            m.geom_friction[geoms] = nominal
+            mujoco.mj_copyData(d, m, start)
+            self.recorder = recorder
+        return hi
+
     # -- the grasp ---------------------------------------------------------------------------
     def execute(self, plan: GraspPlan) -> GraspOutcome:
         """Run pre-grasp, approach, close, lift and hold; score the result."""
@@ -165,6 +230,7 @@ class Executor:
         d = self.scene.data
         timings: dict[str, float] = {}
         obj0 = self.scene.object_pose()[:3, 3].copy()
+        others0 = {o.body: self.scene.object_pose(o.body) for o in self.scene.objects[1:]}
 
         def fail(reason: str) -> GraspOutcome:
             return GraspOutcome(False, reason, self.lift_height(), timings, self.frames)
@@ -210,6 +276,15 @@ class Executor:
         self._advance(cfg.hold_time)
         timings["hold"] = (time.perf_counter() - t) * 1000
         h = self.lift_height()
-        if h >= cfg.success_height and self.held():
-            return GraspOutcome(True, None, h, timings, self.frames)
+        if self._holds():
+            disturbed = self.disturbed(others0)
+            if disturbed:
+                self.events.append("disturbed: " + ", ".join(disturbed))
+                return fail("disturbed")
+            margin = None
+            if cfg.measure_margin:
+                t = time.perf_counter()
+                margin = self.friction_margin()
+                timings["margin"] = (time.perf_counter() - t) * 1000
+            return GraspOutcome(True, None, h, timings, self.frames, margin)
         return fail("slipped")

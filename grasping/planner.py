@@ -11,6 +11,7 @@ free joint are frozen with a `DofFreezingTask` constraint.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import mink
@@ -18,6 +19,7 @@ import mujoco
 import numpy as np
 
 from grasping.candidates import GraspCandidate, grasp_candidates
+from grasping.clearance import intrusion
 from sim.core.errors import PosegraspError
 from sim.core.transforms import check_rigid
 from sim.world import constants as C
@@ -78,6 +80,10 @@ class PlannerConfig:
             seed instead of jumping to a distant solution.
         max_candidates: candidates tried before giving up.
         max_reach: horizontal distance from the base beyond which a grasp is unreachable.
+        drive_beyond: horizontal distance from the base beyond which the base first drives
+            (arm tucked) to `standoff` from the object, facing it.
+        standoff: horizontal distance from the object at which a drive ends.
+        max_drive: longest drive [m]; farther objects are unreachable.
         posture_cost: PostureTask cost per planned joint group (base xy, base yaw, torso, arm).
     """
 
@@ -92,6 +98,9 @@ class PlannerConfig:
     max_step: tuple[float, float, float, float] = (0.5, 1.0, 0.5, 3.0)
     max_candidates: int = 4
     max_reach: float = 1.3
+    drive_beyond: float = 0.9
+    standoff: float = 0.62
+    max_drive: float = 2.0
     posture_cost: tuple[float, float, float, float] = (0.05, 0.05, 0.01, 0.002)
 
 
@@ -205,10 +214,16 @@ class GraspPlanner:
         return self.configuration.q[self.qadr].copy()
 
     def order_candidates(
-        self, T_world_O: np.ndarray, candidates: tuple[GraspCandidate, ...], q: np.ndarray
+        self,
+        T_world_O: np.ndarray,
+        candidates: tuple[GraspCandidate, ...],
+        q: np.ndarray,
+        neighbours: Sequence[tuple[str, np.ndarray]] = (),
     ) -> list[tuple[GraspCandidate, np.ndarray]]:
-        """Candidates in world frame, best first: the gripper's z axis pointing away from the
-        robot (no wrist flip needed), then the grasp point nearest the robot."""
+        """Candidates in world frame, best first: those clear of the known `neighbours`
+        ((class, T_world_N) pairs, `grasping.clearance`) before the others; among them the
+        gripper's z axis pointing away from the robot (no wrist flip needed), then the grasp
+        point nearest the robot."""
         base_xy = q[self.qadr[:2]]
         scored = []
         for c in candidates:
@@ -218,17 +233,48 @@ class GraspPlanner:
             radial = radial / max(dist, 1e-9)
             align = float(T[:2, 2] @ radial)
             down = float(-T[2, 0])  # approach pointing down
-            scored.append((-(align + 2 * down) + 0.5 * dist, c, T))
+            blocked = intrusion(T, neighbours) > 0
+            scored.append(((blocked, -(align + 2 * down) + 0.5 * dist), c, T))
         scored.sort(key=lambda s: s[0])
         return [(c, T) for _, c, T in scored]
 
-    def plan(self, name: str, T_world_O: np.ndarray, q_start: np.ndarray) -> GraspPlan:
+    def _drive(
+        self, T_world_O: np.ndarray, q_start: np.ndarray
+    ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The configuration to plan from and the drive that gets there (empty when the object is
+        within `drive_beyond`): the base moves, arm tucked, to `standoff` from the object."""
+        cfg = self.cfg
+        base_xy = q_start[self.qadr[:2]]
+        offset = T_world_O[:2, 3] - base_xy
+        horiz = float(np.linalg.norm(offset))
+        if horiz <= cfg.drive_beyond:
+            return q_start, []
+        if horiz - cfg.standoff > cfg.max_drive:
+            raise PlanningError(
+                "unreachable",
+                f"object is {horiz:.2f} m from the base; the base drives at most {cfg.max_drive} m",
+            )
+        u = offset / horiz
+        q = q_start.copy()
+        q[self.qadr[:2]] = T_world_O[:2, 3] - cfg.standoff * u
+        q[self.qadr[2]] = float(np.arctan2(u[1], u[0]))
+        return q, [q[self.qadr].copy()]
+
+    def plan(
+        self,
+        name: str,
+        T_world_O: np.ndarray,
+        q_start: np.ndarray,
+        neighbours: Sequence[tuple[str, np.ndarray]] = (),
+    ) -> GraspPlan:
         """Plan a grasp of object class `name` at the (estimated) pose T_world_O.
 
         Args:
             name: object class.
             T_world_O: estimated object pose in the world, shape (4, 4).
             q_start: current full qpos of the scene model.
+            neighbours: the other objects the robot knows of, (class, T_world_N) pairs; grasps
+                clear of them are tried first.
 
         Returns:
             The plan.
@@ -240,6 +286,7 @@ class GraspPlanner:
         """
         check_rigid(T_world_O, "estimated object pose", tol=POSE_TOL)
         t0 = time.perf_counter()
+        q_start, transit = self._drive(T_world_O, q_start)
         base_xy = q_start[self.qadr[:2]]
         horiz = float(np.linalg.norm(T_world_O[:2, 3] - base_xy))
         if horiz > self.cfg.max_reach:
@@ -247,7 +294,6 @@ class GraspPlanner:
                 "unreachable",
                 f"object is {horiz:.2f} m from the base; reach limit is {self.cfg.max_reach} m",
             )
-        transit = []
         for posture in TRANSIT_POSTURES:
             q = q_start[self.qadr].copy()
             q[3:] = posture
@@ -259,7 +305,9 @@ class GraspPlanner:
         self.posture.set_target(target)
         tried = 0
         last = ""
-        for cand, T_grasp in self.order_candidates(T_world_O, grasp_candidates(name), q_start):
+        for cand, T_grasp in self.order_candidates(
+            T_world_O, grasp_candidates(name), q_start, neighbours
+        ):
             if tried >= self.cfg.max_candidates:
                 break
             tried += 1

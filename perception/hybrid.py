@@ -138,16 +138,48 @@ class HybridPoseEstimator:
     ) -> tuple[list[PoseDetection], dict[str, float]]:
         """`estimate`, also returning the image's per-stage times [ms] (also when nothing is
         detected)."""
+        found, _others, timings = self.estimate_split(rgb, K, classes)
+        return found, timings
+
+    def estimate_split(
+        self,
+        rgb: np.ndarray,
+        K: np.ndarray,
+        classes: Collection[str] | None = None,
+        others: bool = False,
+    ) -> tuple[list[PoseDetection], list[PoseDetection], dict[str, float]]:
+        """Detect once; poses of the detections of `classes` (all when None) and, with `others`,
+        of the remaining detections in a second pass of the nets.
+
+        Returns:
+            (poses of `classes`, poses of the other detections (empty without `others`),
+            per-stage times [ms] shared by both lists).
+        """
         rgb = check_rgb(rgb)
         K = check_intrinsics(K)
         if classes is not None:
             for c in classes:
                 if c not in OBJECT_NAMES:
                     raise UnknownNameError("object", c, OBJECT_NAMES)
+        timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         t0 = time.perf_counter()
         dets = self.detector.detect(rgb)
-        if classes is not None:
-            dets = [d for d in dets if d.name in classes]
+        timings["detect"] = (time.perf_counter() - t0) * 1000.0
+        wanted = dets if classes is None else [d for d in dets if d.name in classes]
+        found = self._poses(rgb, K, wanted, timings)
+        rest = [d for d in dets if d not in wanted] if others else []
+        other = self._poses(rgb, K, rest, timings) if rest else []
+        timings["total"] = float(sum(timings[k] for k in STAGES))
+        return found, other, timings
+
+    def _poses(
+        self,
+        rgb: np.ndarray,
+        K: np.ndarray,
+        dets: list[Detection],
+        timings: dict[str, float],
+    ) -> list[PoseDetection]:
+        """Crop, nets and decode for some detections; adds each stage's time to `timings`."""
         t1 = time.perf_counter()
         kept: list[tuple[Detection, tuple[float, float, float]]] = []
         crops = []
@@ -171,7 +203,6 @@ class HybridPoseEstimator:
             theta = out.theta.double().numpy()
         t3 = time.perf_counter()
         results = []
-        timings: dict[str, float] = {}
         for i, (d, box) in enumerate(kept):
             uv = crop_to_image(from_unit(uv_unit[i], CROP), box, CROP)
             if not np.all(np.isfinite(p[i])) or np.linalg.norm(p[i]) < 1e-9:
@@ -181,10 +212,9 @@ class HybridPoseEstimator:
                 continue
             results.append(PoseDetection(d.name, d.score, d.box_xyxy, d.mask, T, uv, box, timings))
         t4 = time.perf_counter()
-        times = np.diff([t0, t1, t2, t3, t4]) * 1000.0
-        timings.update(zip(STAGES, (float(t) for t in times), strict=True))
-        timings["total"] = float(times.sum())
-        return results, timings
+        for stage, dt in zip(STAGES[1:], np.diff([t1, t2, t3, t4]) * 1000.0, strict=True):
+            timings[stage] += float(dt)
+        return results
 
     def estimate(
         self, rgb: np.ndarray, K: np.ndarray, classes: Collection[str] | None = None
@@ -229,7 +259,8 @@ class HybridEpisodeEstimator:
 
     After each call `last_info` describes the estimate: ``detected``, ``class``, ``score``,
     ``box_xyxy``, ``uv``, ``timings_ms`` (per stage) and, with `support`, ``support``
-    (resting pose, tilt removed [deg], shift along the ray [m], what was applied).
+    (resting pose, tilt removed [deg], shift along the ray [m], what was applied), and
+    `last_neighbours` lists the other detected objects as (class, T_C_N) pairs.
     """
 
     def __init__(
@@ -240,13 +271,17 @@ class HybridEpisodeEstimator:
         self.mask_fit = bool(mask_fit)
         self.name = "hybrid-table" if self.support else "hybrid"
         self.last_info: dict = {}
+        self.last_neighbours: list[tuple[str, np.ndarray]] = []
 
     def estimate(self, obs: Observation) -> np.ndarray | None:
         """T_C_O (4, 4) of obs.object in obs.rgb, or None."""
         if obs.object not in OBJECT_NAMES:
             raise UnknownNameError("object", obs.object, OBJECT_NAMES)
-        found, timings = self.estimator.estimate_timed(obs.rgb, obs.K, classes=(obs.object,))
+        found, others, timings = self.estimator.estimate_split(
+            obs.rgb, obs.K, classes=(obs.object,), others=True
+        )
         self.last_info = {"detected": bool(found), "timings_ms": dict(timings)}
+        self.last_neighbours = [(d.name, d.T_C_O.copy()) for d in others]
         if not found:
             return None
         best = max(found, key=lambda d: d.score)

@@ -8,6 +8,7 @@ object in the camera frame (or "no estimate"); the step executes the grasp on th
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -19,6 +20,7 @@ from sim.core.transforms import mat_to_quat, quat_to_mat
 from sim.episode import Episode, EpisodeConfig
 from sim.world.camera import CameraRenderer, RenderOptions
 from sim.world.objects import OBJECT_NAMES
+from sim.world.tiers import check_tier
 
 ENV_ID = "GraspEval-v0"
 #: Tolerance on the norm of the action's quaternion.
@@ -72,7 +74,8 @@ class GraspEvalEnv(gym.Env):
     ## Arguments
     `object`: a class name, or None to draw one per episode; `width`, `height`: head camera
     resolution; `render_mode`: None or "rgb_array" (external camera view); `config`: an
-    `EpisodeConfig`; `timings`: add per-stage wall-clock timings to `info`.
+    `EpisodeConfig`; `timings`: add per-stage wall-clock timings to `info`; `tier`: the scene
+    tier (`sim.world.tiers.TIERS`, default ``isolated``, or the config's).
 
     ## Version History
     * v0: first version.
@@ -88,6 +91,7 @@ class GraspEvalEnv(gym.Env):
         render_mode: str | None = None,
         config: EpisodeConfig | None = None,
         timings: bool = False,
+        tier: str | None = None,
     ) -> None:
         if object is not None and object not in OBJECT_NAMES:
             raise UnknownNameError("object", object, OBJECT_NAMES)
@@ -97,9 +101,8 @@ class GraspEvalEnv(gym.Env):
         self.timings = timings
         self.render_mode = render_mode
         base = config or EpisodeConfig()
-        self.config = EpisodeConfig(
-            width, height, base.shadows, base.scene, base.planner, base.execution
-        )
+        self.tier = check_tier(tier if tier is not None else base.tier)
+        self.config = replace(base, width=width, height=height, tier=self.tier)
         self.observation_space = spaces.Dict(
             {
                 "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
@@ -200,6 +203,7 @@ class GraspEvalEnv(gym.Env):
             "lift_height": result.lift_height,
             "object": result.object,
             "episode_seed": result.seed,
+            "tier": result.tier,
         }
         if self.timings:
             info["timings_ms"] = result.timings_ms

@@ -8,6 +8,7 @@ gymnasium env and the CLIs wrap this class.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -23,11 +24,13 @@ from sim.pose_noise import error_components
 from sim.world import constants as C
 from sim.world.camera import CameraRenderer, RenderOptions, T_world_cam, camera_intrinsics
 from sim.world.scene import Scene, SceneConfig, build_scene
+from sim.world.tiers import DEFAULT_TIER, tier_scene
 
 
 @dataclass(frozen=True)
 class EpisodeConfig:
-    """Everything that defines an episode besides object, seed and estimator."""
+    """Everything that defines an episode besides object, seed and estimator; `tier` names the
+    scene preset (`sim.world.tiers`) applied to `scene`."""
 
     width: int = 640
     height: int = 480
@@ -35,15 +38,19 @@ class EpisodeConfig:
     scene: SceneConfig = field(default_factory=SceneConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
+    tier: str = DEFAULT_TIER
 
 
 @dataclass
 class EpisodeResult:
-    """The outcome of one episode (all lengths [m], angles in the error dict in [deg])."""
+    """The outcome of one episode (all lengths [m], angles in the error dict in [deg]);
+    `friction_margin` is the lowest sliding friction at which the grasp still held, when
+    measured (`grasping.execute.Executor.friction_margin`)."""
 
     object: str
     seed: int
     estimator: str
+    tier: str
     success: bool
     failure_reason: str | None
     T_C_O_true: np.ndarray
@@ -54,6 +61,7 @@ class EpisodeResult:
     timings_ms: dict[str, float]
     notes: list[str] = field(default_factory=list)
     estimate_info: dict[str, Any] = field(default_factory=dict)
+    friction_margin: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serialisable dict."""
@@ -88,7 +96,7 @@ class Episode:
         self.seed = seed
         self.timings_ms: dict[str, float] = {}
         t = time.perf_counter()
-        self.scene: Scene = build_scene(obj, seed, self.cfg.scene)
+        self.scene: Scene = build_scene(obj, seed, tier_scene(self.cfg.tier, self.cfg.scene))
         self.timings_ms["scene"] = (time.perf_counter() - t) * 1000
         self.renderer = CameraRenderer(
             self.scene.model,
@@ -122,6 +130,7 @@ class Episode:
         T_C_O_est: np.ndarray | None,
         estimator: str = "external",
         recorder=None,
+        neighbours: Sequence[tuple[str, np.ndarray]] = (),
     ) -> EpisodeResult:
         """Grasp on an estimated pose (camera frame) and score it.
 
@@ -129,6 +138,8 @@ class Episode:
             T_C_O_est: estimated pose of the target in the camera frame, or None (no estimate).
             estimator: name recorded in the result.
             recorder: optional callable(scene) -> frame, called during execution.
+            neighbours: the other objects the estimator reports, (class, T_C_N) pairs in the
+                camera frame; the planner keeps the gripper clear of them.
 
         Raises:
             InvalidArgumentError: the estimate is not a finite rigid transform.
@@ -154,6 +165,7 @@ class Episode:
                 self.object,
                 self.seed,
                 estimator,
+                self.cfg.tier,
                 success,
                 reason,
                 self.T_C_O_true,
@@ -171,7 +183,8 @@ class Episode:
         t = time.perf_counter()
         try:
             planner = GraspPlanner(self.scene.model, config=self.cfg.planner)
-            plan = planner.plan(self.object, T_world_O, self.scene.data.qpos.copy())
+            told = [(n, self.T_world_cam @ np.asarray(T, float)) for n, T in neighbours]
+            plan = planner.plan(self.object, T_world_O, self.scene.data.qpos.copy(), told)
         except PlanningError as exc:
             timings["plan"] = (time.perf_counter() - t) * 1000
             notes.append(str(exc))
@@ -184,7 +197,9 @@ class Episode:
             timings[f"exec_{k}"] = v
         notes.extend(executor.events)
         self.frames = outcome.frames
-        return result(outcome.success, outcome.failure_reason, plan.candidate.part)
+        res = result(outcome.success, outcome.failure_reason, plan.candidate.part)
+        res.friction_margin = outcome.friction_margin
+        return res
 
     def run(
         self, estimator: PoseEstimator | PrivilegedEstimator, recorder=None
@@ -196,12 +211,22 @@ class Episode:
         t = time.perf_counter()
         if isinstance(estimator, PrivilegedEstimator):
             est = estimator.estimate_from_truth(obs, self.T_C_O_true.copy())
+            neighbours = self.true_neighbours()
         else:
             est = estimator.estimate(obs)
+            neighbours = list(getattr(estimator, "last_neighbours", None) or ())
         self.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
-        res = self.act(est, estimator.name, recorder=recorder)
+        res = self.act(est, estimator.name, recorder=recorder, neighbours=neighbours)
         res.estimate_info = dict(getattr(estimator, "last_info", None) or {})
         return obs, res
+
+    def true_neighbours(self) -> list[tuple[str, np.ndarray]]:
+        """The other objects' true poses in the camera frame, (class, T_C_N) pairs (what the
+        oracles report)."""
+        T_cam_world = np.linalg.inv(self.T_world_cam)
+        return [
+            (o.name, T_cam_world @ self.scene.object_pose(o.body)) for o in self.scene.objects[1:]
+        ]
 
     def close(self) -> None:
         """Free the renderer."""

@@ -13,7 +13,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from sim.core.contract import Observation, PoseEstimator
-from sim.core.errors import UnknownNameError
+from sim.core.errors import InvalidArgumentError, UnknownNameError
 from sim.pose_noise import PoseNoise, perturb_pose
 
 
@@ -38,7 +38,12 @@ class OracleEstimator:
 
 
 class NoisyOracleEstimator:
-    """The true pose with seeded, controlled errors (see `PoseNoise`)."""
+    """The true pose with seeded, controlled errors (see `PoseNoise`).
+
+    The errors of an episode come from its seed alone: at every noise level a seed draws the same
+    standard-normal numbers, scaled by the level's sigmas (common random numbers), so runs at
+    different levels are paired.
+    """
 
     name = "noisy-oracle"
 
@@ -76,15 +81,22 @@ ESTIMATORS: dict[str, Callable[[], PoseEstimator | PrivilegedEstimator]] = {
 
 
 #: What the CLIs use unless told otherwise.
-DEFAULT_ESTIMATOR = "hybrid-table"
+DEFAULT_ESTIMATOR = "hybrid"
 
 
-def make_estimator(name: str) -> PoseEstimator | PrivilegedEstimator:
-    """The estimator called name.
+def make_estimator(
+    name: str, noise: PoseNoise | None = None
+) -> PoseEstimator | PrivilegedEstimator:
+    """The estimator called name; `noise` sets the errors of ``noisy-oracle``.
 
     Raises:
         UnknownNameError: name is not registered.
+        InvalidArgumentError: `noise` given for another estimator.
     """
     if name not in ESTIMATORS:
         raise UnknownNameError("estimator", name, ESTIMATORS)
+    if noise is not None:
+        if name != "noisy-oracle":
+            raise InvalidArgumentError(f"--noise applies to noisy-oracle only, not to {name}")
+        return NoisyOracleEstimator(noise)
     return ESTIMATORS[name]()

@@ -26,8 +26,10 @@ from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.core.errors import PosegraspError
 from sim.core.paths import DOCS_DIR
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
+from sim.pose_noise import NOISE_FORMAT, parse_noise
 from sim.world import constants as C
 from sim.world.objects import OBJECT_NAMES
+from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -46,9 +48,9 @@ def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float,
 
 
 @functools.cache
-def _estimator(name: str):
+def _estimator(name: str, noise: str | None = None):
     """One estimator per worker process (the hybrid one loads its weights once)."""
-    return make_estimator(name)
+    return make_estimator(name, None if noise is None else parse_noise(noise))
 
 
 def _init_worker() -> None:
@@ -57,19 +59,22 @@ def _init_worker() -> None:
     os.environ["MKL_NUM_THREADS"] = "1"
 
 
-def _run_one(job: tuple[str, int, str]) -> dict:
-    obj, seed, estimator = job
-    from sim.episode import play_episode
+def _run_one(job: tuple[str, int, str, str, str | None, bool]) -> dict:
+    obj, seed, estimator, tier, noise, margin = job
+    from grasping.execute import ExecutionConfig
+    from sim.episode import EpisodeConfig, play_episode
 
     t = time.perf_counter()
     try:
-        r = play_episode(obj, seed, _estimator(estimator))
+        cfg = EpisodeConfig(tier=tier, execution=ExecutionConfig(measure_margin=margin))
+        r = play_episode(obj, seed, _estimator(estimator, noise), cfg)
         d = r.to_json()
     except PosegraspError as exc:  # an episode never takes the evaluation down
         d = {
             "object": obj,
             "seed": seed,
             "estimator": estimator,
+            "tier": tier,
             "success": False,
             "failure_reason": "error",
             "notes": [str(exc)],
@@ -99,6 +104,13 @@ def _group(episodes: list[dict]) -> dict:
             v = np.array([x[key] for x in errs])
             out[f"{key}_median"] = float(np.median(v))
             out[f"{key}_p90"] = float(np.percentile(v, 90))
+    margins = np.array([e["friction_margin"] for e in episodes if e.get("friction_margin")])
+    if margins.size:
+        boot = np.random.default_rng(0).choice(margins, (2000, margins.size)).mean(axis=1)
+        out["friction_margin_mean"] = float(margins.mean())
+        out["friction_margin_low"], out["friction_margin_high"] = (
+            float(v) for v in np.percentile(boot, [2.5, 97.5])
+        )
     walls = [e["wall_ms"] for e in episodes]
     plans = [e["timings_ms"]["ik"] for e in episodes if "ik" in e.get("timings_ms", {})]
     out["episode_wall_ms_median"] = float(np.median(walls)) if walls else None
@@ -107,10 +119,24 @@ def _group(episodes: list[dict]) -> dict:
 
 
 def evaluate(
-    objects: list[str], episodes: int, estimator: str, seed_start: int, workers: int
+    objects: list[str],
+    episodes: int,
+    estimator: str,
+    seed_start: int,
+    workers: int,
+    tier: str = DEFAULT_TIER,
+    noise: str | None = None,
+    margin: bool = False,
 ) -> dict:
-    """Run episodes (objects x seeds) and aggregate per object and overall."""
-    jobs = [(o, seed_start + i, estimator) for o in objects for i in range(episodes)]
+    """Run episodes (objects x seeds) of one tier and aggregate per object and overall; `noise`
+    (`sim.pose_noise.NOISE_FORMAT`) sets the errors of ``noisy-oracle``; `margin` measures each
+    successful grasp's friction margin."""
+    check_tier(tier)
+    jobs = [
+        (o, seed_start + i, estimator, tier, noise, margin)
+        for o in objects
+        for i in range(episodes)
+    ]
     t = time.perf_counter()
     if workers > 1:
         ctx = mp.get_context("spawn")
@@ -122,6 +148,8 @@ def evaluate(
     per_object = {o: _group([r for r in results if r["object"] == o]) for o in objects}
     return {
         "estimator": estimator,
+        "tier": tier,
+        "noise": noise,
         "seed_start": seed_start,
         "episodes_per_object": episodes,
         "workers": workers,
@@ -135,7 +163,8 @@ def evaluate(
 def format_report(report: dict) -> str:
     """The report as a table."""
     rows = [
-        f"estimator {report['estimator']}: {report['episodes_per_object']} episodes per object, "
+        f"estimator {report['estimator']}, tier {report.get('tier', DEFAULT_TIER)}: "
+        f"{report['episodes_per_object']} episodes per object, "
         f"seeds from {report['seed_start']}, {report['workers']} worker(s), "
         f"{report['wall_s']:.1f} s wall",
         f"{'object':<8} {'success':>8} {'rate':>6} {'wilson 95%':>15} {'t med mm':>9} "
@@ -153,10 +182,18 @@ def format_report(report: dict) -> str:
             f"{g['planning_ms_median'] or 0:>8.1f} {g['episode_wall_ms_median'] or 0:>7.0f}  "
             + ", ".join(f"{k}: {v}" for k, v in g["failure_reasons"].items())
         )
+    margins = [(n, g) for n, g in items if "friction_margin_mean" in g]
+    if margins:
+        rows.append("friction margin (lowest sliding friction that still holds; lower is firmer):")
+        rows.extend(
+            f"  {n:<8} {g['friction_margin_mean']:.3f} "
+            f"[{g['friction_margin_low']:.3f}, {g['friction_margin_high']:.3f}] (bootstrap 95 %)"
+            for n, g in margins
+        )
     return "\n".join(rows)
 
 
-#: The error components of `sim.estimators.error_components`, as the tolerance study names them
+#: The error components of `sim.pose_noise.error_components`, as the tolerance study names them
 #: (``sim.tolerance``: key, unit scale from the episode's SI value, bin edges).
 COMPONENTS: dict[str, tuple[str, float, tuple[float, ...]]] = {
     "ray_mm": ("ray_m", 1000.0, (0, 5, 10, 15, 20, 30, 45, 70)),
@@ -240,6 +277,11 @@ def main(argv: list[str] | None = None) -> int:
         help="first scene seed (default: held-out scenes, never rendered as training data)",
     )
     p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
+    p.add_argument("--noise", default=None, help=f"noisy-oracle's Gaussian sigmas: {NOISE_FORMAT}")
+    p.add_argument(
+        "--margin", action="store_true", help="measure each grasp's friction margin (slower)"
+    )
     p.add_argument("--json", type=Path, default=None, help="write the full report here")
     p.add_argument("--plot", type=Path, default=None, help="PNG of success against pose error")
     p.add_argument(
@@ -260,14 +302,26 @@ def main(argv: list[str] | None = None) -> int:
     if args.episodes < 1 or args.workers < 1:
         return fail("--episodes and --workers must be at least 1")
     try:
+        check_tier(args.tier)
+        if args.noise is not None:
+            make_estimator(args.estimator, parse_noise(args.noise))  # validates the pair
         for out in (args.json, args.plot):
             if out is not None:
                 check_writable_file(out)
         tolerance = None
         if args.plot is not None and args.tolerance.is_file():
             tolerance = json.loads(args.tolerance.read_text())
-        _estimator(args.estimator)  # fails fast (e.g. missing weights) before any episode runs
-        report = evaluate(objects, args.episodes, args.estimator, args.seed_start, args.workers)
+        _estimator(args.estimator, args.noise)  # fails fast (bad --noise, missing weights)
+        report = evaluate(
+            objects,
+            args.episodes,
+            args.estimator,
+            args.seed_start,
+            args.workers,
+            args.tier,
+            args.noise,
+            args.margin,
+        )
     except PosegraspError as exc:
         return fail(str(exc))
     print(format_report(report))

@@ -36,7 +36,7 @@ GATE_EPISODES = 10
 #: Held-out scenes (see `sim.world.constants.EVAL_SEED_BASE`), apart from the default evaluation's.
 GATE_SEED_START = 1_500_000_000
 WEIGHTS = ("perception/weights/detector.pt", "perception/weights/posenet_ours.pt")
-GATE_ESTIMATORS = (DEFAULT_ESTIMATOR, "hybrid")
+GATE_ESTIMATORS = (DEFAULT_ESTIMATOR, "hybrid-table")
 
 
 def load_baselines(path: Path = BASELINE) -> dict[str, dict]:

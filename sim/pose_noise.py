@@ -97,3 +97,29 @@ def error_components(T_est: np.ndarray, T_true: np.ndarray) -> dict[str, float]:
         "inplane_deg": float(np.degrees(2.0 * np.arctan2(abs(twist), w))),
         "outplane_deg": float(np.degrees(2.0 * np.arctan2(np.linalg.norm(sv), abs(sw)))),
     }
+
+
+#: What `--noise` takes: sigma along the ray and across it [mm], in-plane and out-of-plane [deg].
+NOISE_FORMAT = "RAY_MM,LATERAL_MM,INPLANE_DEG,OUTPLANE_DEG"
+
+
+def parse_noise(text: str) -> PoseNoise:
+    """Gaussian `PoseNoise` from ``"RAY_MM,LATERAL_MM,INPLANE_DEG,OUTPLANE_DEG"`` (each a finite
+    number >= 0, at most 1000 mm or 180 deg).
+
+    Raises:
+        InvalidArgumentError: anything else, with the expected format.
+    """
+    parts = str(text).split(",")
+    try:
+        values = [float(v) for v in parts]
+    except ValueError:
+        values = []
+    ok = len(values) == 4 and all(np.isfinite(v) and v >= 0 for v in values)
+    if not ok or max(values[:2]) > 1000 or max(values[2:]) > 180:
+        raise InvalidArgumentError(
+            f"--noise must be {NOISE_FORMAT}: four numbers >= 0 (mm up to 1000, deg up to 180), "
+            f"got {text!r}"
+        )
+    ray, lat, inp, outp = values
+    return PoseNoise(ray / 1000, lat / 1000, np.deg2rad(inp), np.deg2rad(outp))

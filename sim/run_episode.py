@@ -14,9 +14,11 @@ import numpy as np
 from sim.core.cli import ArgumentParser, check_writable_file, fail
 from sim.core.errors import PosegraspError
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
+from sim.pose_noise import NOISE_FORMAT, parse_noise
 from sim.world import constants as C
 from sim.world.camera import CameraRenderer, RenderOptions
 from sim.world.objects import OBJECT_NAMES
+from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
 
 
 def _rpy_deg(R: np.ndarray) -> np.ndarray:
@@ -41,7 +43,8 @@ def _fmt_pose(T: np.ndarray | None) -> str:
 def summary(result) -> str:
     """A readable multi-line summary of an EpisodeResult."""
     lines = [
-        f"episode  object={result.object}  seed={result.seed}  estimator={result.estimator}",
+        f"episode  object={result.object}  seed={result.seed}  estimator={result.estimator}  "
+        f"tier={result.tier}",
         f"  true pose (camera frame)      {_fmt_pose(result.T_C_O_true)}",
         f"  estimated pose (camera frame) {_fmt_pose(result.T_C_O_est)}",
     ]
@@ -98,10 +101,10 @@ def summary(result) -> str:
     return "\n".join(lines)
 
 
-def _run(obj: str, seed: int, estimator, save: Path | None):
-    from sim.episode import Episode
+def _run(obj: str, seed: int, estimator, save: Path | None, tier: str = DEFAULT_TIER):
+    from sim.episode import Episode, EpisodeConfig
 
-    ep = Episode(obj, seed)
+    ep = Episode(obj, seed, EpisodeConfig(tier=tier))
     external = None
     try:
         recorder = None
@@ -163,6 +166,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--estimator", default=DEFAULT_ESTIMATOR, help=f"one of: {', '.join(ESTIMATORS)}"
     )
+    p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
+    p.add_argument("--noise", default=None, help=f"noisy-oracle's Gaussian sigmas: {NOISE_FORMAT}")
     p.add_argument("--json", action="store_true", help="print one JSON object instead")
     p.add_argument(
         "--save",
@@ -175,9 +180,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.object not in OBJECT_NAMES:
         return fail(f"unknown object {args.object!r}; valid objects: {', '.join(OBJECT_NAMES)}")
     try:
+        check_tier(args.tier)
+        noise = None if args.noise is None else parse_noise(args.noise)
         if args.save is not None:
             check_writable_file(args.save / "head.png")
-        result = _run(args.object, args.seed, make_estimator(args.estimator), args.save)
+        estimator = make_estimator(args.estimator, noise)
+        result = _run(args.object, args.seed, estimator, args.save, args.tier)
     except PosegraspError as exc:
         return fail(str(exc))
     if args.seed < C.DATA_SEED_LIMIT and args.estimator.startswith("hybrid"):

@@ -21,6 +21,7 @@ from tqdm import tqdm
 from sim.core.cli import ArgumentParser, check_writable_file, fail
 from sim.core.errors import PosegraspError
 from sim.world.objects import OBJECT_NAMES
+from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
 
 #: Error kinds and the magnitudes tried, in report units (mm or deg).
 LEVELS: dict[str, tuple[float, ...]] = {
@@ -39,15 +40,18 @@ def _noise(kind: str, value: float):
     return PoseNoise(**{kind.split("_")[0]: si}, mode="fixed")
 
 
-def _job(args: tuple[str, str, float, int]) -> tuple[str, str, float, int, bool, str | None]:
-    obj, kind, value, seed = args
-    from sim.episode import Episode
+def _job(args: tuple[str, str, float, int, str]) -> tuple[str, str, float, int, bool, str | None]:
+    obj, kind, value, seed, tier = args
+    from sim.episode import Episode, EpisodeConfig
     from sim.pose_noise import perturb_pose
 
-    ep = Episode(obj, seed)
-    rng = np.random.default_rng([seed, 104729, int(value * 1000)])
-    T_est = perturb_pose(ep.T_C_O_true, _noise(kind, value), rng)
-    r = ep.act(T_est, "noisy-oracle")
+    ep = Episode(obj, seed, EpisodeConfig(tier=tier))
+    try:
+        rng = np.random.default_rng([seed, 104729, int(value * 1000)])
+        T_est = perturb_pose(ep.T_C_O_true, _noise(kind, value), rng)
+        r = ep.act(T_est, "noisy-oracle", neighbours=ep.true_neighbours())
+    finally:
+        ep.close()
     return obj, kind, value, seed, r.success, r.failure_reason
 
 
@@ -63,10 +67,13 @@ def tolerance_of(levels: list[float], rates: list[float], threshold: float = THR
     return float(levels[-1])
 
 
-def study(objects: list[str], episodes: int, seed_start: int, workers: int) -> dict:
-    """Run the study and return {object: {kind: {levels, rates, tolerance}}}."""
+def study(
+    objects: list[str], episodes: int, seed_start: int, workers: int, tier: str = DEFAULT_TIER
+) -> dict:
+    """Run the study on one tier and return {object: {kind: {levels, rates, tolerance}}}."""
+    check_tier(tier)
     jobs = [
-        (o, k, float(v), seed_start + i)
+        (o, k, float(v), seed_start + i, tier)
         for o in objects
         for k, vals in LEVELS.items()
         for v in vals
@@ -124,6 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=10, help="episodes per level")
     p.add_argument("--seed-start", type=int, default=1000)
     p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
     p.add_argument("--out", type=Path, default=Path("out/tolerance"), help="output prefix")
     args = p.parse_args(argv)
     spec = args.objects or args.object or "phone"
@@ -135,8 +143,9 @@ def main(argv: list[str] | None = None) -> int:
         return fail("--episodes and --workers must be at least 1")
     json_path, png_path = args.out.with_suffix(".json"), args.out.with_suffix(".png")
     try:
+        check_tier(args.tier)
         check_writable_file(json_path)
-        result = study(objects, args.episodes, args.seed_start, args.workers)
+        result = study(objects, args.episodes, args.seed_start, args.workers, args.tier)
     except PosegraspError as exc:
         return fail(str(exc))
     json_path.write_text(json.dumps(result, indent=1, sort_keys=True))

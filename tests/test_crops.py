@@ -89,7 +89,9 @@ def test_image_crop_maps_are_inverse(
     np.testing.assert_allclose(crops.from_unit(crops.to_unit(uv, size), size), uv, atol=1e-9)
     # The affine matrix used for resampling is the same map.
     M = crops.crop_affine(box, size)
-    np.testing.assert_allclose(M[:, :2] @ uv + M[:, 2], crops.crop_to_image(uv, box, size))
+    np.testing.assert_allclose(
+        M[:, :2] @ uv + M[:, 2], crops.crop_to_image(uv, box, size), rtol=1e-9, atol=1e-9
+    )
 
 
 def test_crop_edges_land_on_box_edges() -> None:

@@ -41,8 +41,10 @@ class PoseEstimator(Protocol):
     """Anything with a ``name`` and ``estimate(obs) -> T_C_O or None``.
 
     ``T_C_O`` is the requested object's pose in the camera frame: (4, 4), OpenCV camera
-    convention, metres. An estimator may also expose ``last_info`` (a JSON-serialisable dict
-    describing its last estimate), which episodes record.
+    convention, metres. An estimator may also expose, after each call, ``last_info`` (a
+    JSON-serialisable dict describing the estimate, which episodes record) and
+    ``last_neighbours``: the other objects it saw, as (class, T_C_N) pairs in the same frame;
+    the robot keeps its gripper clear of them and of nothing else.
     """
 
     name: str

@@ -17,6 +17,7 @@ from sim.core.errors import InvalidArgumentError, UnknownNameError
 from sim.core.paths import SCENES_DIR
 from sim.core.transforms import quat_mul, yaw_quat
 from sim.world import constants as C
+from sim.world.layout import sample_layout
 from sim.world.objects import OBJECT_NAMES, ObjectModel, load_object
 from sim.world.robot import RobotConfig, fetch_spec, home_qpos_ctrl
 
@@ -38,6 +39,13 @@ class SceneConfig:
             "random" samples among each object's resting poses. (Grasp candidates are defined
             for the canonical pose.)
         randomize_appearance: randomise lights and surface colours (for data generation).
+        distractor_count: when set, the number of distractors is drawn uniformly from this
+            inclusive range instead of `n_distractors`.
+        near_distractors: how many distractors stand next to the target, their footprints
+            `near_gap` apart from its footprint (edge to edge) [m].
+        camera_distance: when set, the base is placed so that the head camera is this far from
+            the target (drawn uniformly from the range) [m], facing it; `base_x`, `base_y` and
+            `base_yaw` then jitter that pose.
     """
 
     n_distractors: int = 0
@@ -52,6 +60,10 @@ class SceneConfig:
     settle_time: float = 0.5
     resting_pose: str = "canonical"
     randomize_appearance: bool = False
+    distractor_count: tuple[int, int] | None = None
+    near_distractors: int = 0
+    near_gap: tuple[float, float] = (0.03, 0.08)
+    camera_distance: tuple[float, float] | None = None
     robot: RobotConfig = field(default_factory=RobotConfig)
 
 
@@ -141,6 +153,62 @@ def _sample_positions(
     )
 
 
+def _resting(obj: ObjectModel, cfg: SceneConfig, rng: np.random.Generator) -> np.ndarray:
+    """The resting orientation (wxyz) an object is placed in."""
+    rest_names = list(obj.resting_poses)
+    if cfg.resting_pose == "random":
+        return obj.resting_poses[rest_names[rng.integers(len(rest_names))]]
+    return obj.resting_poses[rest_names[0]]
+
+
+def _near_layout(
+    objs: list[ObjectModel], cfg: SceneConfig, rng: np.random.Generator
+) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """(xy, resting orientation, yaw) per object with `cfg.near_distractors` neighbours beside
+    the target (`sim.world.layout`)."""
+    rests = [_resting(o, cfg, rng) for o in objs]
+    near = min(cfg.near_distractors, len(objs) - 1)
+    layout = sample_layout(objs, rests, near, cfg.near_gap, (cfg.target_x, cfg.target_y), rng)
+    if layout is None:
+        raise InvalidArgumentError(
+            f"cannot place {len(objs)} objects with {near} beside the target; use fewer distractors"
+        )
+    return [(xy, rest, yaw) for (xy, yaw), rest in zip(layout, rests, strict=True)]
+
+
+def _set_base(
+    model: mujoco.MjModel, data: mujoco.MjData, ctrl: np.ndarray, base: tuple[float, ...]
+) -> None:
+    """Put the base at (x, y, yaw) and hold it there; runs kinematics."""
+    for name, v in zip(C.BASE_JOINTS, base, strict=True):
+        data.qpos[model.joint(name).qposadr[0]] = v
+        ctrl[model.actuator("act_" + name).id] = v
+    mujoco.mj_kinematics(model, data)
+
+
+def _stand_back(
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    ctrl: np.ndarray,
+    aim: np.ndarray,
+    distance: float,
+    jitter: tuple[float, ...],
+) -> None:
+    """Move the base back from `aim` along -x until the head camera, aimed at it, is
+    `distance` [m] away; `jitter` = (x, y, yaw) of the sampled base pose, whose y and yaw are
+    kept as offsets (the base then faces the aim point up to that yaw)."""
+    cam = model.camera(C.HEAD_CAMERA).id
+    x = float(aim[0]) - distance
+    for _ in range(4):
+        dy = float(aim[1]) - jitter[1]
+        yaw = float(np.arctan2(dy, float(aim[0]) - x)) + jitter[2]
+        _set_base(model, data, ctrl, (x, jitter[1], yaw))
+        aim_head(model, data, aim)
+        mujoco.mj_camlight(model, data)
+        now = float(np.linalg.norm(data.cam_xpos[cam] - aim))
+        x -= (distance - now) * distance / max(np.hypot(aim[0] - x, dy), 1e-6)
+
+
 def aim_head(model: mujoco.MjModel, data: mujoco.MjData, point: np.ndarray) -> tuple[float, float]:
     """Head pan and tilt that put a world point on the head camera's optical axis.
 
@@ -211,7 +279,10 @@ def build_scene(
     rng = np.random.default_rng(seed)
     if distractors is None:
         pool = [n for n in OBJECT_NAMES if n not in names]
-        k = min(cfg.n_distractors, len(pool))
+        want = cfg.n_distractors
+        if cfg.distractor_count is not None:
+            want = int(rng.integers(cfg.distractor_count[0], cfg.distractor_count[1] + 1))
+        k = min(want, len(pool))
         distractors = [pool[i] for i in rng.permutation(len(pool))[:k]]
     names = [*names, *distractors]
     models = [load_object(n) for n in names]
@@ -220,19 +291,21 @@ def build_scene(
     table_top = spec.geom("table_top")
     table_top_z = float(spec.body("table").pos[2] + table_top.pos[2] + table_top.size[2])
 
-    positions = _sample_positions(models, cfg, rng)
+    if cfg.near_distractors > 0:
+        poses = _near_layout(models, cfg, rng)
+    else:  # the original sampling order: positions first, then resting pose and yaw per object
+        positions = _sample_positions(models, cfg, rng)
+        poses = []
+        for obj, xy in zip(models, positions, strict=True):
+            rest = _resting(obj, cfg, rng)
+            poses.append((xy, rest, float(rng.uniform(-np.pi, np.pi))))
     placed: list[PlacedObject] = []
     counts: dict[str, int] = {}
-    for obj, xy in zip(models, positions, strict=True):
+    for obj, (xy, rest, yaw) in zip(models, poses, strict=True):
         k = counts.get(obj.name, 0)
         counts[obj.name] = k + 1
         body = f"{obj.name}_{k}"
-        rest_names = list(obj.resting_poses)
-        if cfg.resting_pose == "random":
-            rest = obj.resting_poses[rest_names[rng.integers(len(rest_names))]]
-        else:
-            rest = obj.resting_poses[rest_names[0]]
-        quat = quat_mul(yaw_quat(rng.uniform(-np.pi, np.pi)), rest)
+        quat = quat_mul(yaw_quat(yaw), rest)
         z = table_top_z + obj.resting_height(rest) + 0.001
         obj.add_to_spec(spec, body, np.array([xy[0], xy[1], z]), quat)
         placed.append(PlacedObject(obj.name, body, obj))
@@ -245,11 +318,10 @@ def build_scene(
     for adr, v in qpos.items():
         data.qpos[adr] = v
     base = (rng.uniform(*cfg.base_x), rng.uniform(*cfg.base_y), rng.uniform(*cfg.base_yaw))
-    for name, v in zip(C.BASE_JOINTS, base, strict=True):
-        data.qpos[model.joint(name).qposadr[0]] = v
-        ctrl[model.actuator("act_" + name).id] = v
-    mujoco.mj_kinematics(model, data)
+    _set_base(model, data, ctrl, base)
     aim = data.body(placed[0].body).xpos + rng.uniform(-cfg.aim_jitter, cfg.aim_jitter, 3)
+    if cfg.camera_distance is not None:
+        _stand_back(model, data, ctrl, aim, float(rng.uniform(*cfg.camera_distance)), base)
     pan, tilt = aim_head(model, data, aim)
     ctrl[model.actuator("act_head_pan_joint").id] = pan
     ctrl[model.actuator("act_head_tilt_joint").id] = tilt

@@ -1,0 +1,152 @@
+"""Paired comparison of two evaluations on the seeds both ran.
+
+    python -m sim.compare A.json B.json [--json out.json] [--boot 2000]
+
+A and B are reports of `python -m sim.evaluate --json`. Episodes pair up by (object, tier, seed):
+the same scene, so the difference in success is measured without the scene-to-scene variance.
+The success difference B - A comes with the exact McNemar p-value (two-sided binomial test on
+the discordant pairs) and a paired bootstrap 95 % interval, overall and per object.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import binomtest
+
+from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
+from sim.core.errors import InvalidArgumentError, PosegraspError
+
+#: Bootstrap resamples unless told otherwise.
+BOOTSTRAP = 2000
+
+
+def load_report(path: Path) -> dict[tuple[str, str, int], bool]:
+    """Success by (object, tier, seed) of one evaluation report.
+
+    Raises:
+        InvalidArgumentError: unreadable, not an evaluation report, or a pair listed twice.
+    """
+    try:
+        report = json.loads(Path(path).read_text())
+        episodes = report["episodes"]
+        tier = report.get("tier", "isolated")
+        out: dict[tuple[str, str, int], bool] = {}
+        for e in episodes:
+            key = (str(e["object"]), str(e.get("tier", tier)), int(e["seed"]))
+            if key in out:
+                raise InvalidArgumentError(f"{path} lists episode {key} twice")
+            out[key] = bool(e["success"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InvalidArgumentError(
+            f"{path} is not a report of python -m sim.evaluate --json ({exc})"
+        ) from None
+    return out
+
+
+def mcnemar_exact(a_only: int, b_only: int) -> float:
+    """Two-sided exact McNemar p-value from the discordant pair counts (1.0 when there are
+    none)."""
+    n = a_only + b_only
+    if n == 0:
+        return 1.0
+    return float(binomtest(min(a_only, b_only), n, 0.5).pvalue)
+
+
+def paired(a: np.ndarray, b: np.ndarray, boot: int, rng: np.random.Generator) -> dict:
+    """Success of A and B on the same episodes (bool arrays) and their paired difference."""
+    n = len(a)
+    a_only, b_only = int(np.sum(a & ~b)), int(np.sum(~a & b))
+    diff = float(b.mean() - a.mean())
+    idx = rng.integers(0, n, size=(boot, n))
+    d = b[idx].mean(axis=1) - a[idx].mean(axis=1)
+    lo, hi = np.percentile(d, [2.5, 97.5])
+    return {
+        "episodes": n,
+        "success_a": int(a.sum()),
+        "success_b": int(b.sum()),
+        "difference": diff,
+        "bootstrap_low": float(lo),
+        "bootstrap_high": float(hi),
+        "a_only": a_only,
+        "b_only": b_only,
+        "mcnemar_p": mcnemar_exact(a_only, b_only),
+    }
+
+
+def compare(
+    a: dict[tuple[str, str, int], bool],
+    b: dict[tuple[str, str, int], bool],
+    boot: int = BOOTSTRAP,
+    seed: int = 0,
+) -> dict:
+    """Overall and per-object paired comparison of B against A on the pairs both ran.
+
+    Raises:
+        InvalidArgumentError: the two share no episode.
+    """
+    common = sorted(set(a) & set(b))
+    if not common:
+        raise InvalidArgumentError("the two reports share no (object, tier, seed) episode")
+    rng = np.random.default_rng(seed)
+    sa = np.array([a[k] for k in common])
+    sb = np.array([b[k] for k in common])
+    objects = sorted({k[0] for k in common})
+    per_object = {}
+    for o in objects:
+        m = np.array([k[0] == o for k in common])
+        per_object[o] = paired(sa[m], sb[m], boot, rng)
+    return {
+        "paired_episodes": len(common),
+        "only_in_a": len(set(a) - set(b)),
+        "only_in_b": len(set(b) - set(a)),
+        "overall": paired(sa, sb, boot, rng),
+        "per_object": per_object,
+    }
+
+
+def format_comparison(res: dict, name_a: str, name_b: str) -> str:
+    """The comparison as a table."""
+    rows = [
+        f"B = {name_b} against A = {name_a}: {res['paired_episodes']} paired episodes "
+        f"({res['only_in_a']} only in A, {res['only_in_b']} only in B)",
+        f"{'object':<8} {'n':>5} {'A':>6} {'B':>6} {'B - A':>7} {'bootstrap 95%':>17} "
+        f"{'A only':>7} {'B only':>7} {'McNemar p':>10}",
+    ]
+    for name, r in [*res["per_object"].items(), ("overall", res["overall"])]:
+        n = r["episodes"]
+        rows.append(
+            f"{name:<8} {n:>5} {r['success_a'] / n:>6.1%} {r['success_b'] / n:>6.1%} "
+            f"{r['difference']:>+7.1%} [{r['bootstrap_low']:>+6.1%}, {r['bootstrap_high']:>+6.1%}] "
+            f"{r['a_only']:>7} {r['b_only']:>7} {r['mcnemar_p']:>10.4f}"
+        )
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python -m sim.compare", description=__doc__.split("\n")[0])
+    p.add_argument("a", type=Path, help="report A (python -m sim.evaluate --json)")
+    p.add_argument("b", type=Path, help="report B")
+    p.add_argument("--json", type=Path, default=None, help="write the comparison here")
+    p.add_argument("--boot", type=int, default=BOOTSTRAP, help="bootstrap resamples (100..100000)")
+    args = p.parse_args(argv)
+    if not 100 <= args.boot <= 100_000:
+        return fail(f"--boot must be in 100..100000, got {args.boot}")
+    try:
+        if args.json is not None:
+            check_writable_file(args.json)
+        res = compare(load_report(args.a), load_report(args.b), args.boot)
+    except PosegraspError as exc:
+        return fail(str(exc))
+    print(format_comparison(res, str(args.a), str(args.b)))
+    if args.json is not None:
+        write_json(args.json, res)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,84 @@
+"""Paired comparison of two evaluation reports (`python -m sim.compare`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim import compare as cmp
+from sim.core.errors import InvalidArgumentError
+
+
+def _report(path: Path, successes: dict[tuple[str, int], bool], tier: str = "isolated") -> Path:
+    eps = [
+        {"object": o, "seed": s, "tier": tier, "success": ok, "failure_reason": None}
+        for (o, s), ok in successes.items()
+    ]
+    path.write_text(json.dumps({"tier": tier, "episodes": eps}))
+    return path
+
+
+def test_mcnemar_exact_by_hand() -> None:
+    assert cmp.mcnemar_exact(0, 0) == 1.0
+    assert cmp.mcnemar_exact(0, 6) == pytest.approx(2 * 0.5**6)
+    assert cmp.mcnemar_exact(6, 0) == pytest.approx(2 * 0.5**6)
+    # 2 vs 8 discordant: 2 * P(X <= 2), X ~ Bin(10, 1/2) = 2 * 56 / 1024
+    assert cmp.mcnemar_exact(2, 8) == pytest.approx(2 * 56 / 1024)
+
+
+def test_paired_difference_and_bootstrap() -> None:
+    rng = np.random.default_rng(0)
+    a = np.ones(50, bool)
+    same = cmp.paired(a, a.copy(), 500, rng)
+    assert same["difference"] == 0.0 and same["bootstrap_low"] == same["bootstrap_high"] == 0.0
+    b = a.copy()
+    b[:10] = False
+    r = cmp.paired(a, b, 2000, rng)
+    assert r["difference"] == pytest.approx(-0.2)
+    assert r["a_only"] == 10 and r["b_only"] == 0
+    assert r["bootstrap_low"] < -0.2 < r["bootstrap_high"] < 0.0
+    assert r["mcnemar_p"] == pytest.approx(2 * 0.5**10)
+
+
+def test_only_common_episodes_are_paired(tmp_path: Path) -> None:
+    a = _report(tmp_path / "a.json", {("phone", 1): True, ("phone", 2): True, ("car", 1): True})
+    b = _report(tmp_path / "b.json", {("phone", 1): False, ("phone", 2): True, ("car", 9): True})
+    res = cmp.compare(cmp.load_report(a), cmp.load_report(b), boot=200)
+    assert res["paired_episodes"] == 2 and res["only_in_a"] == 1 and res["only_in_b"] == 1
+    assert list(res["per_object"]) == ["phone"]
+    assert res["overall"]["difference"] == pytest.approx(-0.5)
+
+
+def test_reports_of_other_tiers_share_nothing(tmp_path: Path) -> None:
+    a = _report(tmp_path / "a.json", {("phone", 1): True})
+    b = _report(tmp_path / "b.json", {("phone", 1): True}, tier="clutter")
+    with pytest.raises(InvalidArgumentError, match="share no"):
+        cmp.compare(cmp.load_report(a), cmp.load_report(b))
+
+
+def test_cli_prints_a_table_and_writes_json(tmp_path: Path, capsys) -> None:
+    a = _report(tmp_path / "a.json", {("phone", s): True for s in range(10)})
+    b = _report(tmp_path / "b.json", {("phone", s): s % 2 == 0 for s in range(10)})
+    out = tmp_path / "cmp.json"
+    assert cmp.main([str(a), str(b), "--json", str(out), "--boot", "200"]) == 0
+    text = capsys.readouterr().out
+    assert "McNemar p" in text and "overall" in text
+    assert json.loads(out.read_text())["overall"]["b_only"] == 0
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["nope.json", "nope2.json"], "is not a report"),
+        (["{a}", "{a}", "--boot", "5"], "--boot must be in"),
+    ],
+)
+def test_cli_bad_input_is_one_line(tmp_path: Path, capsys, argv, message) -> None:
+    a = _report(tmp_path / "a.json", {("phone", 1): True})
+    argv = [x.replace("{a}", str(a)) for x in argv]
+    assert cmp.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1

@@ -1,0 +1,51 @@
+"""`--noise` for noisy-oracle: parsing, and common random numbers across noise levels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim.core.contract import Observation
+from sim.core.errors import InvalidArgumentError
+from sim.estimators import NoisyOracleEstimator, make_estimator
+from sim.pose_noise import error_components, parse_noise
+
+
+def test_parse_noise_units() -> None:
+    n = parse_noise("5,2.5,2,1")
+    assert (n.ray, n.lateral) == pytest.approx((0.005, 0.0025))
+    assert (n.inplane, n.outplane) == pytest.approx((np.deg2rad(2), np.deg2rad(1)))
+    assert n.mode == "gaussian"
+
+
+@pytest.mark.parametrize(
+    "text",
+    ["", "1,2,3", "1,2,3,4,5", "a,b,c,d", "-1,0,0,0", "nan,0,0,0", "2000,0,0,0", "0,0,200,0"],
+)
+def test_parse_noise_rejects_with_the_format(text: str) -> None:
+    with pytest.raises(InvalidArgumentError, match="RAY_MM,LATERAL_MM,INPLANE_DEG,OUTPLANE_DEG"):
+        parse_noise(text)
+
+
+def test_noise_only_for_the_noisy_oracle() -> None:
+    assert isinstance(make_estimator("noisy-oracle", parse_noise("1,1,1,1")), NoisyOracleEstimator)
+    with pytest.raises(InvalidArgumentError, match="noisy-oracle only"):
+        make_estimator("oracle", parse_noise("1,1,1,1"))
+
+
+def test_a_seed_draws_the_same_errors_at_every_level() -> None:
+    """Common random numbers: doubling every sigma doubles every error component."""
+    T = np.eye(4)
+    T[:3, 3] = [0.05, -0.02, 0.8]
+    obs = Observation(np.zeros((4, 4, 3), np.uint8), np.eye(3), np.eye(4), "phone", 1234)
+    small = NoisyOracleEstimator(parse_noise("2.5,2.5,1,1")).estimate_from_truth(obs, T)
+    large = NoisyOracleEstimator(parse_noise("5,5,2,2")).estimate_from_truth(obs, T)
+    zero = NoisyOracleEstimator(parse_noise("0,0,0,0")).estimate_from_truth(obs, T)
+    np.testing.assert_allclose(zero, T, atol=1e-12)
+    es, el = error_components(small, T), error_components(large, T)
+    for k in ("ray_m", "lateral_m", "inplane_deg", "outplane_deg"):
+        assert el[k] == pytest.approx(2 * es[k], rel=1e-6, abs=1e-9)
+    other = NoisyOracleEstimator(parse_noise("2.5,2.5,1,1")).estimate_from_truth(
+        Observation(obs.rgb, obs.K, obs.T_world_cam, "phone", 1235), T
+    )
+    assert not np.allclose(other, small)
