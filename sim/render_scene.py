@@ -25,6 +25,7 @@ from sim.world import constants as C  # importing sim defaults MUJOCO_GL to egl
 from sim.world.camera import CameraRenderer, RenderOptions, check_resolution
 from sim.world.objects import OBJECT_NAMES
 from sim.world.scene import SceneConfig, build_scene
+from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
 
 EXTERNAL_CAMERA = "external"
 #: Exit status of bad arguments (argparse's convention) and of every other failure.
@@ -44,6 +45,7 @@ class RenderRequest:
         width, height: image size [px], both cameras.
         distractors: number of other objects on the table.
         shadows: render shadows (about 3x slower on software rendering).
+        tier: the scene tier (`sim.world.tiers`); its presets override `distractors`.
     """
 
     object: str
@@ -54,6 +56,7 @@ class RenderRequest:
     height: int
     distractors: int
     shadows: bool
+    tier: str = DEFAULT_TIER
 
     @property
     def external_path(self) -> Path:
@@ -91,6 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help=f"other objects on the table, 0..{len(OBJECT_NAMES) - 1} (default: 0)",
     )
+    p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
     p.add_argument("--no-shadows", action="store_true", help="render without shadows (faster)")
     return p
 
@@ -99,11 +103,12 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
     """Validate parsed arguments before anything is built.
 
     Raises:
-        UnknownNameError: unknown object.
+        UnknownNameError: unknown object or tier.
         InvalidArgumentError: bad resolution, seed, distractor count or output path.
     """
     if args.object not in OBJECT_NAMES:
         raise UnknownNameError("object", args.object, OBJECT_NAMES)
+    check_tier(args.tier)
     check_resolution(args.width, args.height)
     if args.seed < 0:
         raise InvalidArgumentError(f"invalid seed {args.seed}; seeds are integers >= 0")
@@ -124,6 +129,7 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
         height=args.height,
         distractors=args.distractors,
         shadows=not args.no_shadows,
+        tier=args.tier,
     )
     check_writable_file(req.out)
     if req.external:
@@ -142,7 +148,9 @@ def render(req: RenderRequest) -> list[Path]:
     Returns:
         The paths written, head camera first.
     """
-    scene = build_scene(req.object, req.seed, SceneConfig(n_distractors=req.distractors))
+    scene = build_scene(
+        req.object, req.seed, tier_scene(req.tier, SceneConfig(n_distractors=req.distractors))
+    )
     written = [req.out]
     cameras = [(C.HEAD_CAMERA, req.out)]
     if req.external:

@@ -282,6 +282,8 @@ def test_corrupt_json_is_detected(paper: Path, tmp_path: Path) -> None:
         (["--dist", "paper", "--split", "dev", "--count", "1"], "train, val, test"),
         (["--dist", "paper", "--split", "val", "--count", "x"], "invalid int value"),
         (["--dist", "paper", "--split", "val", "--count", "1", "--width", "0"], "1..4096"),
+        (["--dist", "headcam", "--split", "val", "--count", "1", "--tier", "x"], "clutter, far"),
+        (["--dist", "paper", "--split", "val", "--count", "1", "--tier", "far"], "headcam"),
     ],
 )
 def test_cli_bad_arguments_give_one_line(args, needle, tmp_path: Path, capsys) -> None:
@@ -332,3 +334,16 @@ def test_datagen_does_not_import_torch() -> None:
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert res.stdout.strip() == "False"
+
+
+def test_headcam_tier_images_are_of_the_tier(tmp_path: Path) -> None:
+    out = tmp_path / "clutter"
+    args = ["--dist", "headcam", "--split", "val", "--count", "2", "--tier", "clutter"]
+    assert main([*args, "--width", "160", "--height", "120", "--out", str(out), "--quiet"]) == 0
+    assert ds.load_info(out)["tier"] == "clutter"
+    for i in range(2):
+        sample = ds.load_sample(out, "val", i)
+        assert 4 <= 1 + sample.extra["n_distractors"] <= 6
+    # A folder of one tier refuses another.
+    again = [*args[:-1], "far", "--width", "160", "--height", "120", "--out", str(out), "--quiet"]
+    assert main(again) != 0

@@ -104,3 +104,14 @@ def test_runs_in_async_vector_env() -> None:
         assert list(infos["failure_reason"]) == ["no_estimate", "no_estimate"]
     finally:
         envs.close()
+
+
+def test_tier_is_an_argument_and_reported() -> None:
+    env = GraspEvalEnv(object="phone", tier="clutter", width=64, height=48)
+    env.reset(seed=3)
+    assert len(env.unwrapped._episode.scene.objects) >= 4
+    _, reward, *_, info = env.step(pose_action(_truth(env)))
+    assert info["tier"] == "clutter" and reward in (0.0, 1.0)
+    env.close()
+    with pytest.raises(UnknownNameError, match="valid tiers"):
+        GraspEvalEnv(tier="banana")

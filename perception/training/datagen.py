@@ -43,19 +43,19 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
-import cv2
 from tqdm import tqdm
 
 from perception.training import bop
-from perception.training.dataset import DISTS, SPLITS, PoseDataset, load_info
+from perception.training.dataset import DISTS, SPLITS, load_info
 from perception.training.generators import HeadcamGenerator, PaperGenerator, make_generator
-from perception.training.sheets import contact_sheet, draw_annotations
+from perception.training.sheets import write_preview
 from perception.training.writer import merge_scene, write_camera, write_models, write_sample
 from sim.core.cli import fail
-from sim.core.errors import AssetError, InvalidArgumentError, PosegraspError, UnknownNameError
+from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
 from sim.core.paths import data_root
 from sim.world.camera import check_resolution
 from sim.world.objects import OBJECT_NAMES
+from sim.world.tiers import TIERS, check_tier
 
 GENERATOR_VERSION = "1"
 SEED_BASES: dict[str, int] = {"train": 0, "val": 100_000_000, "test": 200_000_000}
@@ -79,6 +79,8 @@ class GenConfig:
         workers: rendering processes.
         preview: where to write a contact sheet, or None.
         progress: show a tqdm bar.
+        tier: the scene tier of ``headcam`` images (`sim.world.tiers`); None is the mixed
+            table scenes of 0-3 distractors the shipped networks were trained on.
     """
 
     dist: str
@@ -91,6 +93,7 @@ class GenConfig:
     workers: int = 1
     preview: Path | None = None
     progress: bool = True
+    tier: str | None = None
 
     def seed(self, index: int) -> int:
         """Seed of sample index."""
@@ -103,9 +106,11 @@ class GenConfig:
     def command(self) -> str:
         """The command line that regenerates the split (without --out)."""
         objs = "all" if self.objects == OBJECT_NAMES else ",".join(self.objects)
+        tier = "" if self.tier is None else f" --tier {self.tier}"
         return (
             f"python -m perception.training.datagen --dist {self.dist} --split {self.split} "
             f"--count {self.count} --objects {objs} --width {self.width} --height {self.height}"
+            + tier
         )
 
 
@@ -119,11 +124,12 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
         info = load_info(cfg.out)
         have = (info.get("dist"), info.get("width"), info.get("height"), info.get("version"))
         want = (cfg.dist, cfg.width, cfg.height, GENERATOR_VERSION)
-        if have != want:
+        if have != want or info.get("tier") != cfg.tier:
             raise InvalidArgumentError(
                 f"{cfg.out} holds a {have[0]} dataset at {have[1]}x{have[2]} (generator "
-                f"version {have[3]}); this run asks for {cfg.dist} at {cfg.width}x{cfg.height} "
-                f"(version {GENERATOR_VERSION}); use another --out"
+                f"version {have[3]}, tier {info.get('tier')}); this run asks for {cfg.dist} at "
+                f"{cfg.width}x{cfg.height} (version {GENERATOR_VERSION}, tier {cfg.tier}); "
+                "use another --out"
             )
         old = info["splits"].get(cfg.split)
         if old is not None and tuple(old["objects"]) != cfg.objects:
@@ -148,6 +154,8 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
             "seed_bases": SEED_BASES,
             "splits": {},
         }
+        if cfg.tier is not None:
+            info["tier"] = cfg.tier
     return info
 
 
@@ -170,7 +178,7 @@ _WORKER: dict[str, Any] = {}
 def _init_worker(cfg: GenConfig) -> None:
     os.environ.setdefault("LP_NUM_THREADS", "1")
     _WORKER["cfg"] = cfg
-    _WORKER["gen"] = make_generator(cfg.dist, cfg.width, cfg.height)
+    _WORKER["gen"] = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier)
 
 
 def _work(index: int) -> int:
@@ -234,7 +242,7 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
 
     try:
         if cfg.workers <= 1 or len(todo) <= 1:
-            gen = make_generator(cfg.dist, cfg.width, cfg.height)
+            gen = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier)
             try:
                 for i in todo:
                     _generate_one(cfg, gen, i)
@@ -256,17 +264,6 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
     _write_info(cfg, load_info(cfg.out), total)
     write_camera(cfg.out, cfg.split, cfg.width, cfg.height)
     return len(todo)
-
-
-def write_preview(cfg: GenConfig, path: Path, n: int = 24) -> None:
-    """Contact sheet of the split's first n images with axes, boxes and origins drawn."""
-    data = PoseDataset(cfg.out, cfg.split)
-    images = [draw_annotations(data[i]) for i in range(min(n, len(data)))]
-    cols = 6 if cfg.dist == "paper" else 4
-    sheet = contact_sheet(images, cols=cols, tile=256 if cfg.dist == "paper" else 320)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), sheet[..., ::-1]):
-        raise AssetError(f"cannot write preview {path}")
 
 
 # --- command line ----------------------------------------------------------------------------
@@ -298,6 +295,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=int, default=None, help="image height (256 / 480)")
     p.add_argument("--preview", type=Path, default=None, help="write a contact sheet PNG here")
     p.add_argument("--workers", type=int, default=1, help="rendering processes (default 1)")
+    p.add_argument(
+        "--tier",
+        default=None,
+        help=f"headcam only: scene tier, one of: {', '.join(TIERS)} (default: the mixed table "
+        "scenes; the default folder is then <dist>_<tier>)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -329,12 +332,16 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
         for n in objects:
             if n not in OBJECT_NAMES:
                 raise UnknownNameError("object", n, OBJECT_NAMES)
+    if a.tier is not None:
+        check_tier(a.tier)
+        if a.dist != "headcam":
+            raise InvalidArgumentError(f"--tier applies to --dist headcam, not {a.dist}")
     width = a.width if a.width is not None else DEFAULT_SIZE[a.dist][0]
     height = a.height if a.height is not None else DEFAULT_SIZE[a.dist][1]
     check_resolution(width, height)
     out = a.out
     if out is None:
-        out = data_root() / a.dist
+        out = data_root() / (a.dist if a.tier is None else f"{a.dist}_{a.tier}")
     return GenConfig(
         dist=a.dist,
         split=a.split,
@@ -346,6 +353,7 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
         workers=a.workers,
         preview=a.preview,
         progress=not a.quiet,
+        tier=a.tier,
     )
 
 
@@ -375,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         n = generate(cfg)
         if cfg.preview is not None:
-            write_preview(cfg, cfg.preview)
+            write_preview(cfg.out, cfg.split, cfg.dist, cfg.preview)
     except KeyboardInterrupt:
         return fail("interrupted; run the same command again to resume", 130)
     except (PosegraspError, OSError) as exc:

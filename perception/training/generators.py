@@ -24,7 +24,8 @@ from sim.core.errors import InvalidArgumentError, UnknownNameError
 from sim.core.transforms import invert_transform
 from sim.world import constants as C
 from sim.world.camera import T_world_cam, body_mask, camera_intrinsics
-from sim.world.scene import SceneConfig, build_scene
+from sim.world.scene import Scene, SceneConfig, build_scene
+from sim.world.tiers import tier_scene
 
 #: At most this many distractors in a headcam scene (drawn uniformly from 0..3).
 MAX_DISTRACTORS = 3
@@ -97,26 +98,31 @@ class HeadcamGenerator:
         width, height: image size [px].
     """
 
-    def __init__(self, width: int, height: int) -> None:
+    def __init__(self, width: int, height: int, tier: str | None = None) -> None:
         self.width, self.height = width, height
+        self.tier = tier
         self.renderer = OffscreenRenderer(width, height)
 
-    def render(self, name: str, seed: int) -> RenderedImage:
-        """The head camera's view of ``build_scene(name, seed)`` with its visible objects.
-
-        The number of distractors is drawn from ``default_rng([seed, 1])``; when they do not fit
-        on the table, one fewer is tried until none is left.
-        """
+    def _scene(self, name: str, seed: int) -> Scene:
+        """``build_scene(name, seed)``: of the generator's tier, or without one, with a number of
+        distractors drawn from ``default_rng([seed, 1])`` (when they do not fit on the table, one
+        fewer is tried until none is left)."""
+        if self.tier is not None:
+            cfg = tier_scene(self.tier, SceneConfig(randomize_appearance=True))
+            return build_scene(name, seed, cfg)
         wanted = int(np.random.default_rng([seed, 1]).integers(0, MAX_DISTRACTORS + 1))
-        for n in range(wanted, -1, -1):
+        for n in range(wanted, 0, -1):
             try:
-                scene = build_scene(
+                return build_scene(
                     name, seed, SceneConfig(n_distractors=n, randomize_appearance=True)
                 )
-                break
             except InvalidArgumentError:  # the objects did not fit on the table
-                if n == 0:
-                    raise
+                pass
+        return build_scene(name, seed, SceneConfig(n_distractors=0, randomize_appearance=True))
+
+    def render(self, name: str, seed: int) -> RenderedImage:
+        """The head camera's view of `_scene` with its visible objects."""
+        scene = self._scene(name, seed)
         model, data, r = scene.model, scene.data, self.renderer
         cam = model.camera(C.HEAD_CAMERA).id
         K = camera_intrinsics(model, C.HEAD_CAMERA, self.width, self.height)
@@ -147,10 +153,13 @@ class HeadcamGenerator:
         self.renderer.close()
 
 
-def make_generator(dist: str, width: int, height: int) -> PaperGenerator | HeadcamGenerator:
-    """The generator of a distribution (one of `DISTS`) at width x height [px]."""
+def make_generator(
+    dist: str, width: int, height: int, tier: str | None = None
+) -> PaperGenerator | HeadcamGenerator:
+    """The generator of a distribution (one of `DISTS`) at width x height [px]; `tier` applies
+    to ``headcam``."""
     if dist == "paper":
         return PaperGenerator(width, height)
     if dist == "headcam":
-        return HeadcamGenerator(width, height)
+        return HeadcamGenerator(width, height, tier)
     raise UnknownNameError("distribution", dist, DISTS)

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from perception.training.dataset import Sample
-from sim.core.errors import InvalidArgumentError
+from perception.training.dataset import PoseDataset, Sample
+from sim.core.errors import AssetError, InvalidArgumentError
 from sim.world.objects import load_object
 
 
@@ -66,3 +67,18 @@ def contact_sheet(images: Sequence[np.ndarray], cols: int = 6, tile: int = 256) 
             img, (tw, th), interpolation=cv2.INTER_AREA
         )
     return sheet
+
+
+def write_preview(root: Path, split: str, dist: str, path: Path, n: int = 24) -> None:
+    """Contact sheet of a split's first n images with axes, boxes and origins drawn.
+
+    Raises:
+        AssetError: the PNG cannot be written.
+    """
+    data = PoseDataset(root, split)
+    images = [draw_annotations(data[i]) for i in range(min(n, len(data)))]
+    cols = 6 if dist == "paper" else 4
+    sheet = contact_sheet(images, cols=cols, tile=256 if dist == "paper" else 320)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), sheet[..., ::-1]):
+        raise AssetError(f"cannot write preview {path}")
