@@ -6,6 +6,7 @@ Frames: a MuJoCo camera looks along its -z with y up; posegrasp's camera frame i
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import mujoco
@@ -104,11 +105,38 @@ def _preload_torch() -> None:
 _TORCH_PRELOADED = False
 
 
+def shared_gl_context() -> mujoco.GLContext:
+    """This process's GL context, made current: one per process, created on first use.
+
+    Creating a context, and the first MuJoCo render context in it, costs about half a second on
+    software EGL; episodes build a new model each, so they share one GL context and only rebuild
+    MuJoCo's render context (`mujoco.MjrContext`, tens of milliseconds). A forked child makes
+    its own.
+    """
+    global _GL
+    if _GL is None or _GL[0] != os.getpid():
+        _preload_torch()
+        try:
+            _GL = (os.getpid(), mujoco.GLContext(MAX_RESOLUTION[0], MAX_RESOLUTION[1]))
+        except mujoco.FatalError as exc:
+            raise AssetError(
+                "MuJoCo cannot open an OpenGL context: set MUJOCO_GL=egl before mujoco is "
+                "imported (import sim first, or export MUJOCO_GL=egl) and install Mesa's EGL "
+                f"(libegl1, libgl1-mesa-dri); MuJoCo said: {exc}"
+            ) from exc
+    _GL[1].make_current()
+    return _GL[1]
+
+
+_GL: tuple[int, mujoco.GLContext] | None = None
+
+
 class CameraRenderer:
     """RGB, depth and segmentation of one model at one resolution.
 
-    The GL context is created on first use, never at construction or import. Call `close()` (or
-    use it as a context manager) to free it.
+    Renders on the process's shared GL context (`shared_gl_context`) into MuJoCo's offscreen
+    buffer; the render context is made on first use, never at construction or import. Call
+    `close()` (or use it as a context manager) to free it.
     """
 
     def __init__(
@@ -123,66 +151,85 @@ class CameraRenderer:
         self.width = width
         self.height = height
         self.options = options or RenderOptions()
-        self._renderer: mujoco.Renderer | None = None
+        self._ctx: mujoco.MjrContext | None = None
+        self._scene: mujoco.MjvScene | None = None
+        self._option = mujoco.MjvOption()
+        self._rect = mujoco.MjrRect(0, 0, width, height)
 
-    def _get(self) -> mujoco.Renderer:
-        if self._renderer is None:
+    def _bind(self) -> tuple[mujoco.MjrContext, mujoco.MjvScene]:
+        shared_gl_context()
+        if self._ctx is None or self._scene is None:
             off = self.model.vis.global_
             off.offwidth = max(off.offwidth, self.width)
             off.offheight = max(off.offheight, self.height)
-            _preload_torch()
-            try:
-                self._renderer = mujoco.Renderer(self.model, self.height, self.width)
-            except mujoco.FatalError as exc:
-                raise AssetError(
-                    "MuJoCo cannot open an OpenGL context: set MUJOCO_GL=egl before mujoco is "
-                    "imported (import sim first, or export MUJOCO_GL=egl) and install Mesa's EGL "
-                    f"(libegl1, libgl1-mesa-dri); MuJoCo said: {exc}"
-                ) from exc
-            flags = self._renderer.scene.flags
-            flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.options.shadows
-            flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = self.options.reflections
-        return self._renderer
+            self._scene = mujoco.MjvScene(self.model, maxgeom=10000)
+            self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.options.shadows
+            self._scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = self.options.reflections
+            self._ctx = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_150)
+            self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
+        return self._ctx, self._scene
 
-    def _update(self, data: mujoco.MjData, camera: str | int) -> mujoco.Renderer:
-        r = self._get()
-        cam = _camera_id(self.model, camera) if isinstance(camera, str) else camera
-        r.update_scene(data, camera=cam)
-        return r
+    def _render(self, data: mujoco.MjData, camera: str | int, ids: bool) -> mujoco.MjrContext:
+        """Update the scene from `data` and render it from a fixed camera (geom ids as colours
+        with `ids`)."""
+        ctx, scene = self._bind()
+        cam = mujoco.MjvCamera()
+        cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        cam.fixedcamid = _camera_id(self.model, camera) if isinstance(camera, str) else camera
+        mujoco.mjv_updateScene(
+            self.model, data, self._option, None, cam, mujoco.mjtCatBit.mjCAT_ALL, scene
+        )
+        flags = scene.flags.copy()
+        scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = ids
+        scene.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = ids
+        try:
+            mujoco.mjr_render(self._rect, scene, ctx)
+        finally:
+            scene.flags[:] = flags
+        return ctx
+
+    def _read_rgb(self, ctx: mujoco.MjrContext) -> np.ndarray:
+        rgb = np.empty((self.height, self.width, 3), np.uint8)
+        mujoco.mjr_readPixels(rgb, None, self._rect, ctx)
+        return np.flipud(rgb).copy()  # OpenGL rows run bottom to top
 
     def rgb(self, data: mujoco.MjData, camera: str | int) -> np.ndarray:
         """RGB image, shape (H, W, 3), uint8."""
-        r = self._update(data, camera)
-        return r.render().copy()
+        return self._read_rgb(self._render(data, camera, ids=False))
 
     def depth(self, data: mujoco.MjData, camera: str | int) -> np.ndarray:
         """Depth along the optical axis [m], shape (H, W), float32."""
-        r = self._get()
-        r.enable_depth_rendering()
-        try:
-            self._update(data, camera)
-            return r.render().astype(np.float32)
-        finally:
-            r.disable_depth_rendering()
+        ctx = self._render(data, camera, ids=True)  # no blending: exact depth at far range
+        z = np.empty((self.height, self.width), np.float32)
+        mujoco.mjr_readPixels(None, z, self._rect, ctx)
+        extent = self.model.stat.extent
+        near = np.float32(self.model.vis.map.znear * extent)
+        far = np.float32(self.model.vis.map.zfar * extent)
+        # Reverse-Z perspective depth back to metres (the float32 frustum of OpenGL).
+        c = np.float32(-0.5) * (-(far + near) / (far - near)) - np.float32(0.5)
+        d = np.float32(-0.5) * (-(np.float32(2) * far * near) / (far - near))
+        return np.flipud((d / (z.astype(np.float64) + c)).astype(np.float32)).copy()
 
     def segmentation(self, data: mujoco.MjData, camera: str | int) -> np.ndarray:
         """Geom id per pixel (-1 where no geom), shape (H, W), int32."""
-        r = self._get()
-        r.enable_segmentation_rendering()
-        try:
-            self._update(data, camera)
-            seg = r.render()
-        finally:
-            r.disable_segmentation_rendering()
-        ids = seg[..., 0].astype(np.int32)
-        ids[seg[..., 1] != int(mujoco.mjtObj.mjOBJ_GEOM)] = -1
-        return ids
+        ctx = self._render(data, camera, ids=True)
+        code = self._read_rgb(ctx).astype(np.int64)
+        segid = code[..., 0] + (code[..., 1] << 8) + (code[..., 2] << 16)  # 0: background
+        scene = self._scene
+        lut = np.full(scene.ngeom + 1, -1, np.int32)
+        for g in scene.geoms[: scene.ngeom]:
+            if g.segid != -1 and g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
+                lut[g.segid + 1] = g.objid
+        return lut[np.clip(segid, 0, scene.ngeom)]
 
     def close(self) -> None:
-        """Free the GL context."""
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        """Free the render context (the shared GL context stays for the next model)."""
+        if self._ctx is not None:
+            shared_gl_context()
+            self._ctx.free()
+            self._ctx = None
+            self._scene = None
 
     def __enter__(self) -> CameraRenderer:
         return self
