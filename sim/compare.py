@@ -5,7 +5,9 @@
 A and B are reports of `python -m sim.evaluate --json`. Episodes pair up by (object, tier, seed):
 the same scene, so the difference in success is measured without the scene-to-scene variance.
 The success difference B - A comes with the exact McNemar p-value (two-sided binomial test on
-the discordant pairs) and a paired bootstrap 95 % interval, overall and per object.
+the discordant pairs) and a paired bootstrap 95 % interval, overall and per object; when both
+reports measured friction margins (`sim.evaluate --margin`), the mean margin difference on the
+episodes both grasped comes with its paired bootstrap interval too.
 """
 
 from __future__ import annotations
@@ -24,8 +26,11 @@ from sim.core.errors import InvalidArgumentError, PosegraspError
 BOOTSTRAP = 2000
 
 
-def load_report(path: Path) -> dict[tuple[str, str, int], bool]:
-    """Success by (object, tier, seed) of one evaluation report.
+Outcome = tuple[bool, float | None]
+
+
+def load_report(path: Path) -> dict[tuple[str, str, int], Outcome]:
+    """(success, friction margin or None) by (object, tier, seed) of one evaluation report.
 
     Raises:
         InvalidArgumentError: unreadable, not an evaluation report, or a pair listed twice.
@@ -34,12 +39,13 @@ def load_report(path: Path) -> dict[tuple[str, str, int], bool]:
         report = json.loads(Path(path).read_text())
         episodes = report["episodes"]
         tier = report.get("tier", "isolated")
-        out: dict[tuple[str, str, int], bool] = {}
+        out: dict[tuple[str, str, int], Outcome] = {}
         for e in episodes:
             key = (str(e["object"]), str(e.get("tier", tier)), int(e["seed"]))
             if key in out:
                 raise InvalidArgumentError(f"{path} lists episode {key} twice")
-            out[key] = bool(e["success"])
+            margin = e.get("friction_margin")
+            out[key] = (bool(e["success"]), None if margin is None else float(margin))
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise InvalidArgumentError(
             f"{path} is not a report of python -m sim.evaluate --json ({exc})"
@@ -77,9 +83,33 @@ def paired(a: np.ndarray, b: np.ndarray, boot: int, rng: np.random.Generator) ->
     }
 
 
+def margin_difference(
+    a: list[Outcome], b: list[Outcome], boot: int, rng: np.random.Generator
+) -> dict | None:
+    """Mean friction-margin difference B - A on the pairs both grasped with a margin, with its
+    paired bootstrap 95 % interval; None when there is no such pair."""
+    d = np.array(
+        [
+            mb - ma
+            for (sa, ma), (sb, mb) in zip(a, b, strict=True)
+            if sa and sb and ma is not None and mb is not None
+        ]
+    )
+    if d.size == 0:
+        return None
+    means = rng.choice(d, (boot, d.size)).mean(axis=1)
+    lo, hi = np.percentile(means, [2.5, 97.5])
+    return {
+        "pairs": int(d.size),
+        "difference": float(d.mean()),
+        "bootstrap_low": float(lo),
+        "bootstrap_high": float(hi),
+    }
+
+
 def compare(
-    a: dict[tuple[str, str, int], bool],
-    b: dict[tuple[str, str, int], bool],
+    a: dict[tuple[str, str, int], Outcome],
+    b: dict[tuple[str, str, int], Outcome],
     boot: int = BOOTSTRAP,
     seed: int = 0,
 ) -> dict:
@@ -92,8 +122,8 @@ def compare(
     if not common:
         raise InvalidArgumentError("the two reports share no (object, tier, seed) episode")
     rng = np.random.default_rng(seed)
-    sa = np.array([a[k] for k in common])
-    sb = np.array([b[k] for k in common])
+    sa = np.array([a[k][0] for k in common])
+    sb = np.array([b[k][0] for k in common])
     objects = sorted({k[0] for k in common})
     per_object = {}
     for o in objects:
@@ -105,6 +135,9 @@ def compare(
         "only_in_b": len(set(b) - set(a)),
         "overall": paired(sa, sb, boot, rng),
         "per_object": per_object,
+        "friction_margin": margin_difference(
+            [a[k] for k in common], [b[k] for k in common], boot, rng
+        ),
     }
 
 
@@ -122,6 +155,13 @@ def format_comparison(res: dict, name_a: str, name_b: str) -> str:
             f"{name:<8} {n:>5} {r['success_a'] / n:>6.1%} {r['success_b'] / n:>6.1%} "
             f"{r['difference']:>+7.1%} [{r['bootstrap_low']:>+6.1%}, {r['bootstrap_high']:>+6.1%}] "
             f"{r['a_only']:>7} {r['b_only']:>7} {r['mcnemar_p']:>10.4f}"
+        )
+    m = res.get("friction_margin")
+    if m is not None:
+        rows.append(
+            f"friction margin B - A on {m['pairs']} episodes both grasped: "
+            f"{m['difference']:+.4f} [{m['bootstrap_low']:+.4f}, {m['bootstrap_high']:+.4f}] "
+            "(bootstrap 95 %; positive: B's grasps are looser)"
         )
     return "\n".join(rows)
 

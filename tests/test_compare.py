@@ -14,7 +14,14 @@ from sim.core.errors import InvalidArgumentError
 
 def _report(path: Path, successes: dict[tuple[str, int], bool], tier: str = "isolated") -> Path:
     eps = [
-        {"object": o, "seed": s, "tier": tier, "success": ok, "failure_reason": None}
+        {
+            "object": o,
+            "seed": s,
+            "tier": tier,
+            "success": ok,
+            "failure_reason": None,
+            "friction_margin": 0.2 + 0.01 * s if ok else None,
+        }
         for (o, s), ok in successes.items()
     ]
     path.write_text(json.dumps({"tier": tier, "episodes": eps}))
@@ -82,3 +89,13 @@ def test_cli_bad_input_is_one_line(tmp_path: Path, capsys, argv, message) -> Non
     assert cmp.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+
+
+def test_margin_difference_on_pairs_both_grasped() -> None:
+    rng = np.random.default_rng(0)
+    a = [(True, 0.20), (True, 0.30), (False, None), (True, 0.25)]
+    b = [(True, 0.25), (False, None), (True, 0.1), (True, 0.30)]
+    m = cmp.margin_difference(a, b, 500, rng)
+    assert m["pairs"] == 2 and m["difference"] == pytest.approx(0.05)
+    assert m["bootstrap_low"] == pytest.approx(0.05) and m["bootstrap_high"] == pytest.approx(0.05)
+    assert cmp.margin_difference([(False, None)], [(True, 0.2)], 100, rng) is None

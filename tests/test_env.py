@@ -18,10 +18,12 @@ def _truth(env: gym.Env) -> np.ndarray:
     return env.unwrapped._episode.T_C_O_true
 
 
-def test_check_env_passes() -> None:
+@pytest.mark.parametrize("tier", ["isolated", "clutter", "far"])
+def test_check_env_passes(tier: str) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # advisory warnings about unbounded Box spaces
-        check_env(gym.make("GraspEval-v0", object="chair", render_mode="rgb_array").unwrapped)
+        env = gym.make("GraspEval-v0", object="chair", render_mode="rgb_array", tier=tier)
+        check_env(env.unwrapped)
 
 
 def test_make_by_module_prefix_and_oracle_action_succeeds() -> None:
