@@ -40,6 +40,7 @@ _.znear
 _.action_space
 _.observation_space
 _.dataset  # torch DataLoader worker info
+_.readDepthMap  # MjrContext: depth read back as distance
 
 # Protocols: torch modules' forward, the module-level __getattr__ of perception (lazy names).
 _.forward
