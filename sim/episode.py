@@ -23,6 +23,7 @@ from sim.estimators import PrivilegedEstimator
 from sim.pose_noise import error_components
 from sim.world import constants as C
 from sim.world.camera import CameraRenderer, RenderOptions, T_world_cam, camera_intrinsics
+from sim.world.objects import check_object
 from sim.world.scene import Scene, SceneConfig, build_scene
 from sim.world.tiers import DEFAULT_TIER, tier_scene
 
@@ -142,13 +143,19 @@ class Episode:
                 camera frame; the planner keeps the gripper clear of them.
 
         Raises:
-            InvalidArgumentError: the estimate is not a finite rigid transform.
+            InvalidArgumentError: the estimate or a neighbour's pose is not a finite rigid
+                transform.
+            UnknownNameError: a neighbour of an unknown class.
             StateError: the episode was already acted on.
         """
         if self._done:
             raise StateError("this episode is over; build a new one")
         if T_C_O_est is not None:
             check_rigid(T_C_O_est, "estimated pose T_C_O", tol=POSE_TOL)
+        neighbours = [
+            (check_object(n), check_rigid(T, f"pose of neighbour {n!r}", tol=POSE_TOL))
+            for n, T in neighbours
+        ]
         self._done = True
         timings = self.timings_ms
         notes: list[str] = []
@@ -183,7 +190,7 @@ class Episode:
         t = time.perf_counter()
         try:
             planner = GraspPlanner(self.scene.model, config=self.cfg.planner)
-            told = [(n, self.T_world_cam @ np.asarray(T, float)) for n, T in neighbours]
+            told = [(n, self.T_world_cam @ T) for n, T in neighbours]
             plan = planner.plan(self.object, T_world_O, self.scene.data.qpos.copy(), told)
         except PlanningError as exc:
             timings["plan"] = (time.perf_counter() - t) * 1000

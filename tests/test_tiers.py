@@ -118,3 +118,20 @@ def test_a_moved_neighbour_makes_the_grasp_unclean() -> None:
 
     mujoco.mj_kinematics(scene.model, scene.data)
     assert [s.split(" ")[0] for s in ex.disturbed(poses0)] == [body]
+
+
+def test_neighbours_an_estimator_reports_are_validated() -> None:
+    from sim.core.errors import InvalidArgumentError
+    from sim.episode import Episode
+
+    cases = [
+        (("teapot", np.eye(4)), UnknownNameError),
+        (("car", np.ones((4, 4))), InvalidArgumentError),
+    ]
+    for bad, err in cases:
+        ep = Episode("phone", 1_000_000_000)
+        try:
+            with pytest.raises(err):
+                ep.act(ep.T_C_O_true, "test", neighbours=[bad])
+        finally:
+            ep.close()

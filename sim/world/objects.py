@@ -30,6 +30,17 @@ VISUAL_GROUP = 2
 COLLISION_GROUP = 3
 
 
+def check_object(name: str) -> str:
+    """`name` when it is a known object class.
+
+    Raises:
+        UnknownNameError: otherwise, listing the classes.
+    """
+    if name not in OBJECT_NAMES:
+        raise UnknownNameError("object", str(name), OBJECT_NAMES)
+    return name
+
+
 @dataclass(frozen=True)
 class Part:
     """One primitive of an object, in the object frame O.
