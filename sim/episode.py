@@ -16,11 +16,11 @@ import numpy as np
 
 from grasping.execute import ExecutionConfig, Executor
 from grasping.planner import POSE_TOL, GraspPlanner, PlannerConfig, PlanningError
+from perception.metrics import error_components
 from sim.core.contract import Observation, PoseEstimator
 from sim.core.errors import StateError
 from sim.core.transforms import check_rigid
 from sim.estimators import PrivilegedEstimator
-from sim.pose_noise import error_components
 from sim.world import constants as C
 from sim.world.camera import CameraRenderer, RenderOptions, T_world_cam, camera_intrinsics
 from sim.world.objects import check_object

@@ -193,7 +193,7 @@ def format_report(report: dict) -> str:
     return "\n".join(rows)
 
 
-#: The error components of `sim.pose_noise.error_components`, as the tolerance study names them
+#: The error components of `perception.metrics.error_components`, as the tolerance study names them
 #: (``sim.tolerance``: key, unit scale from the episode's SI value, bin edges).
 COMPONENTS: dict[str, tuple[str, float, tuple[float, ...]]] = {
     "ray_mm": ("ray_m", 1000.0, (0, 5, 10, 15, 20, 30, 45, 70)),

@@ -1,7 +1,6 @@
-"""Controlled pose errors and their measure, one decomposition both ways.
-
-`PoseNoise` and `perturb_pose` apply errors along the camera ray, across it, in-plane (about the
-ray) and out-of-plane; `error_components` splits any pose error into the same four components.
+"""Controlled pose errors: `PoseNoise` and `perturb_pose` apply errors along the camera ray,
+across it, in-plane (about the ray) and out-of-plane, the four components that
+`perception.metrics.error_components` measures.
 """
 
 from __future__ import annotations
@@ -62,41 +61,6 @@ def perturb_pose(T_C_O: np.ndarray, noise: PoseNoise, rng: np.random.Generator) 
     R = axis_angle(u, e_in) @ axis_angle(w2, e_out) @ T[:3, :3]
     out[:3, :3] = R
     return out
-
-
-def error_components(T_est: np.ndarray, T_true: np.ndarray) -> dict[str, float]:
-    """A pose error split the way `PoseNoise` applies it, relative to the true camera ray u.
-
-    Returns:
-        ``ray_m``: |translation error along u| [m]; ``lateral_m``: its norm across u [m];
-        ``inplane_deg``: the rotation error's twist about u; ``outplane_deg``: its swing about an
-        axis perpendicular to u (swing-twist decomposition of R_est R_true^T) [deg].
-    """
-    T_est, T_true = np.asarray(T_est, float), np.asarray(T_true, float)
-    u = T_true[:3, 3] / np.linalg.norm(T_true[:3, 3])
-    dt = T_est[:3, 3] - T_true[:3, 3]
-    along = float(dt @ u)
-    R = T_est[:3, :3] @ T_true[:3, :3].T
-    # Unit quaternion (w, v) of R, w >= 0.
-    w = np.sqrt(max(0.0, 1.0 + np.trace(R))) / 2.0
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if w > 1e-6:
-        v = v / (4.0 * w)
-    else:  # a half turn: v is the axis
-        _vals, vecs = np.linalg.eigh((R + np.eye(3)) / 2.0)
-        v = vecs[:, -1]
-    twist = float(v @ u)
-    # Swing q_s = q_t^-1 q with the twist q_t = (w, twist u) / |.|; its angle by atan2 (stable).
-    n = np.hypot(w, twist)
-    tw, tv = (w / n, twist / n * u) if n > 1e-12 else (1.0, np.zeros(3))
-    sw = tw * w + tv @ v
-    sv = tw * v - w * tv - np.cross(tv, v)
-    return {
-        "ray_m": abs(along),
-        "lateral_m": float(np.linalg.norm(dt - along * u)),
-        "inplane_deg": float(np.degrees(2.0 * np.arctan2(abs(twist), w))),
-        "outplane_deg": float(np.degrees(2.0 * np.arctan2(np.linalg.norm(sv), abs(sw)))),
-    }
 
 
 #: What `--noise` takes: sigma along the ray and across it [mm], in-plane and out-of-plane [deg].

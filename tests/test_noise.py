@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from perception.metrics import error_components
 from sim.core.contract import Observation
 from sim.core.errors import InvalidArgumentError
 from sim.estimators import NoisyOracleEstimator, make_estimator
-from sim.pose_noise import error_components, parse_noise
+from sim.pose_noise import parse_noise
 
 
 def test_parse_noise_units() -> None:

@@ -31,6 +31,7 @@ from perception.hybrid import DEFAULT_CROP_SCALE
 from perception.metrics import box_iou
 from perception.nets import PoseNet, load_posenet
 from perception.overlay import silhouette
+from perception.success_model import SuccessModel, components_of, load_models
 from perception.training.crop_sets import CropConfig, CropSet, build_crops
 from perception.training.dataset import DISTS, PoseDataset
 from perception.training.detection_eval import coco_ap, visible_objects
@@ -143,12 +144,18 @@ def detector_crops(
 
 
 def evaluate_split(
-    model: PoseNet, root: Path, limit: int | None = None, data: dict | None = None
+    model: PoseNet,
+    root: Path,
+    limit: int | None = None,
+    data: dict | None = None,
+    success: dict[str, SuccessModel] | None = None,
 ) -> dict:
     """Metrics on one distribution's test split, per object and averaged over objects.
 
     `data` gives the crops (e.g. from `detector_crops`); by default the ground-truth boxes are
-    perturbed like detections (`TEST_CROPS`)."""
+    perturbed like detections (`TEST_CROPS`). With `success` (models by object, see
+    `perception.success_model`), each object also gets ``expected_success``: the mean predicted
+    probability that a grasp planned on its test poses succeeds."""
     if data is None:
         data = build_crops(root, "test", TEST_CROPS, limit)
     if len(data["crops"]) == 0:
@@ -157,7 +164,7 @@ def evaluate_split(
     dec = decode_predictions(pred, data)
     m = pose_metrics(dec, data)
     n = len(data["cls"])
-    iou, adi_rel, trans = np.zeros(n), np.zeros(n), np.zeros(n)
+    iou, adi_rel, trans, p_success = np.zeros(n), np.zeros(n), np.zeros(n), np.full(n, np.nan)
     pts = {o: np.asarray(load_object(o).mesh.vertices) for o in OBJECT_NAMES}
     for i in range(n):
         name = OBJECT_NAMES[int(data["cls"][i])]
@@ -166,6 +173,8 @@ def evaluate_split(
         adi = metrics.adi(Te[:3, :3], Te[:3, 3], Tg[:3, :3], Tg[:3, 3], pts[name])
         adi_rel[i] = adi / load_object(name).diameter
         trans[i] = np.linalg.norm(Te[:3, 3] - Tg[:3, 3])
+        if success is not None and name in success:
+            p_success[i] = success[name].predict(components_of(metrics.error_components(Te, Tg)))
     extra = {"iou": iou, "adi_rel": adi_rel, "trans_m": trans}
     per_object = {}
     for c, name in enumerate(OBJECT_NAMES):
@@ -173,7 +182,10 @@ def evaluate_split(
         if sel.any():
             per_object[name] = _summary({k: v[sel] for k, v in m.items()},
                                         {k: v[sel] for k, v in extra.items()})  # fmt: skip
+            if not np.all(np.isnan(p_success[sel])):
+                per_object[name]["expected_success"] = float(np.nanmean(p_success[sel]))
     keys = [k for k in next(iter(per_object.values())) if k != "count"]
+    keys = [k for k in keys if all(k in po for po in per_object.values())]
     average = {k: float(np.mean([po[k] for po in per_object.values()])) for k in keys}
     average["count"] = n
     return {"per_object": per_object, "average": average}
@@ -189,7 +201,7 @@ def format_tables(name: str, res: dict) -> str:
         vals = []
         for c in cols:
             src = res["average"] if c == "average" else res["per_object"].get(c)
-            ours = "-" if src is None else f"{src[key] * scale:.2f}"
+            ours = "-" if src is None or key not in src else f"{src[key] * scale:.2f}"
             ref = PAPER.get(key, {}).get(c)
             cell = f"{ours} ({ref * scale:.2f})" if paper and ref is not None else ours
             vals.append(f"{cell:>16}")
@@ -213,6 +225,8 @@ def format_tables(name: str, res: dict) -> str:
     row("outliers (>15 deg) [%]", "outlier_rate", 100, paper=False)
     row("ADD-S < 0.1d recall [%]", "add_s_recall", 100, paper=False)
     row("5cm 5deg recall [%]", "recall_5cm5deg", 100, paper=False)
+    if "expected_success" in res["average"]:
+        row("expected grasp success [%]", "expected_success", 100, paper=False)
     return "\n".join(rows)
 
 
@@ -311,6 +325,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--detector", type=Path, default=DEFAULT_WEIGHTS, help="detector weights")
     p.add_argument(
+        "--success-model",
+        type=Path,
+        default=None,
+        help="models of python -m sim.fit_success: adds the expected grasp success of the "
+        "head-camera test poses (isolated-tier models)",
+    )
+    p.add_argument(
         "--record",
         action="store_true",
         help="store the test averages in perception/weights/manifest.json (shipped weights only)",
@@ -328,6 +349,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.json is not None:
             check_writable_file(args.json)
         model = load_posenet(args.weights)
+        success = None
+        if args.success_model is not None:
+            models = load_models(args.success_model)
+            success = {o: models[k] for o in OBJECT_NAMES if (k := f"{o}/isolated") in models}
         report: dict = {}
         for d in dists:
             data = None
@@ -337,7 +362,9 @@ def main(argv: list[str] | None = None) -> int:
                 report["detection"] = det["detection"]
                 report["detection_summary"] = {k: v for k, v in det.items() if k != "detection"}
                 print(format_detection(det))
-            report[d] = evaluate_split(model, data_root() / d, args.limit, data)
+            report[d] = evaluate_split(
+                model, data_root() / d, args.limit, data, success if d == "headcam" else None
+            )
             if args.boxes == "detector":
                 report[d]["boxes"] = "detector"
                 gt = evaluate_split(model, data_root() / d, args.limit)

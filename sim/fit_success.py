@@ -1,0 +1,110 @@
+"""Fit P(grasp success | pose error) per object and tier from noisy-oracle episodes.
+
+    python -m sim.fit_success --tier isolated --episodes 20 --out docs/success_model.json
+
+For every object, `--episodes` held-out episodes run at each of `LEVELS` (Gaussian noise on the
+true pose: sigma along and across the camera ray [mm], in-plane and out-of-plane [deg]); each
+episode's error components and outcome train a `perception.success_model.SuccessModel` whose
+bandwidths maximise the leave-one-out likelihood. The models of a tier replace that tier's in
+`--out` and keep the others. ``perception.training.tables --success-model`` then reports the
+grasp success the test-split poses should reach, without running a robot.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from perception.success_model import COMPONENTS, SuccessModel, components_of
+from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
+from sim.core.errors import AssetError, PosegraspError
+from sim.core.paths import DOCS_DIR
+from sim.evaluate import evaluate
+from sim.world.objects import OBJECT_NAMES
+from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
+
+#: Noise levels (`--noise` of noisy-oracle): the same figure along and across the ray [mm] and
+#: in and out of the image plane [deg].
+LEVELS: tuple[str, ...] = ("2,2,1,1", "5,5,2,2", "10,10,4,4", "20,20,8,8", "35,35,14,14")
+#: Held-out scenes of their own (see `sim.world.constants.EVAL_SEED_BASE`).
+SEED_START = 1_700_000_000
+DEFAULT_OUT = DOCS_DIR / "success_model.json"
+
+
+def sample(objects: list[str], episodes: int, tier: str, workers: int) -> list[dict]:
+    """Noisy-oracle episodes of every object at every level, each as its error components and
+    outcome: [{"object", "level", "seed", "x" (4,), "success"}]."""
+    out = []
+    for level in LEVELS:
+        report = evaluate(objects, episodes, "noisy-oracle", SEED_START, workers, tier, level)
+        for e in report["episodes"]:
+            if e.get("pose_error") is None:
+                continue
+            out.append(
+                {
+                    "object": e["object"],
+                    "level": level,
+                    "seed": e["seed"],
+                    "x": components_of(e["pose_error"]).tolist(),
+                    "success": bool(e["success"]),
+                }
+            )
+    return out
+
+
+def fit(samples: list[dict], objects: list[str], tier: str) -> dict[str, dict]:
+    """One model per object from its samples, by ``"<object>/<tier>"``."""
+    models = {}
+    for o in objects:
+        mine = [s for s in samples if s["object"] == o]
+        X = np.array([s["x"] for s in mine])
+        y = np.array([s["success"] for s in mine], float)
+        m = SuccessModel.fit(X, y)
+        models[f"{o}/{tier}"] = m.to_json() | {"episodes": len(mine), "success_rate": m.rate}
+    return models
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python -m sim.fit_success", description=__doc__.split("\n")[0])
+    p.add_argument("--objects", default="all", help=f"'all' or a comma list of {OBJECT_NAMES}")
+    p.add_argument("--episodes", type=int, default=20, help="episodes per object and level")
+    p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
+    p.add_argument("--workers", type=int, default=2, help="worker processes, 1..64")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="the models' JSON file")
+    args = p.parse_args(argv)
+    objects = list(OBJECT_NAMES) if args.objects == "all" else args.objects.split(",")
+    bad = [o for o in objects if o not in OBJECT_NAMES]
+    if bad:
+        return fail(f"unknown object {bad[0]!r}; valid objects: all, {', '.join(OBJECT_NAMES)}")
+    if not 3 <= args.episodes <= 10_000 or not 1 <= args.workers <= 64:
+        return fail("--episodes must be in 3..10000 and --workers in 1..64")
+    try:
+        check_tier(args.tier)
+        check_writable_file(args.out)
+        old: dict = {}
+        if args.out.is_file():
+            try:
+                old = json.loads(args.out.read_text())["models"]
+            except (ValueError, KeyError, TypeError) as exc:
+                raise AssetError(f"{args.out} is not a file of success models ({exc})") from None
+        samples = sample(objects, args.episodes, args.tier, args.workers)
+        models = {**old, **fit(samples, objects, args.tier)}
+    except PosegraspError as exc:
+        return fail(str(exc))
+    for key in sorted(k for k in models if k.endswith(f"/{args.tier}")):
+        m = models[key]
+        bw = ", ".join(f"{c} {h:g}" for c, h in zip(COMPONENTS, m["bandwidth"], strict=True))
+        print(
+            f"{key:<18} {m['episodes']:>4} episodes, success {m['success_rate']:.1%}, "
+            f"LOO log-likelihood {m['log_likelihood']:.3f}, bandwidths {bw}"
+        )
+    write_json(args.out, {"levels": list(LEVELS), "seed_start": SEED_START, "models": models})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,85 @@
+"""P(grasp success | pose error): the kernel model and its fitting CLI's input checks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from perception.success_model import PRIOR_WEIGHT, SuccessModel, components_of, load_models
+from sim import fit_success
+from sim.core.errors import AssetError, InvalidArgumentError
+
+
+def _step_data(n: int = 300, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Success exactly when the ray error is below 10 mm; the other components are noise."""
+    rng = np.random.default_rng(seed)
+    X = np.column_stack(
+        [rng.uniform(0, 30, n), rng.uniform(0, 30, n), rng.uniform(0, 10, n), rng.uniform(0, 10, n)]
+    )
+    return X, (X[:, 0] < 10).astype(float)
+
+
+def test_the_fit_finds_the_component_that_matters() -> None:
+    X, y = _step_data()
+    m = SuccessModel.fit(X, y)
+    assert m.bandwidth[0] < min(m.bandwidth[1:])
+    p = m.predict(np.array([[3.0, 15, 5, 5], [25.0, 15, 5, 5]]))
+    assert p[0] > 0.9 and p[1] < 0.1
+    # Better than the constant-rate model on its own data, by leave-one-out likelihood.
+    rate = y.mean()
+    constant = float(np.mean(y * np.log(rate) + (1 - y) * np.log(1 - rate)))
+    assert m.log_likelihood > constant
+
+
+def test_leave_one_out_likelihood_by_hand() -> None:
+    X = np.array([[0.0, 0, 0, 0], [1.0, 0, 0, 0], [100.0, 0, 0, 0]])
+    y = np.array([1.0, 1.0, 0.0])
+    h = np.array([1.0, 1.0, 1.0, 1.0])
+    w01 = np.exp(-0.5)  # between the first two; the third is too far to count
+    rate = 2 / 3
+    p0 = (w01 * 1 + PRIOR_WEIGHT * rate) / (w01 + PRIOR_WEIGHT)
+    p2 = (0 + PRIOR_WEIGHT * rate) / (0 + PRIOR_WEIGHT)
+    want = (2 * np.log(p0) + np.log(1 - p2)) / 3
+    assert SuccessModel.loo_log_likelihood(X, y, h) == pytest.approx(want, rel=1e-9)
+
+
+def test_json_round_trip_and_bad_files(tmp_path: Path) -> None:
+    X, y = _step_data(60)
+    m = SuccessModel.fit(X, y, sweeps=1)
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps({"models": {"phone/isolated": m.to_json()}}))
+    again = load_models(path)["phone/isolated"]
+    E = np.array([[5.0, 5, 2, 2]])
+    assert again.predict(E)[0] == pytest.approx(m.predict(E)[0], rel=1e-6)
+    path.write_text("{}")
+    with pytest.raises(AssetError, match=r"sim\.fit_success"):
+        load_models(path)
+
+
+def test_inputs_are_checked() -> None:
+    with pytest.raises(InvalidArgumentError):
+        SuccessModel.fit(np.zeros((3, 4)), np.zeros(3))
+    m = SuccessModel.fit(*_step_data(30), sweeps=1)
+    with pytest.raises(InvalidArgumentError):
+        m.predict(np.array([np.nan, 0, 0, 0]))
+    assert components_of(
+        {"ray_m": 0.002, "lateral_m": 0.001, "inplane_deg": 3.0, "outplane_deg": 4.0}
+    ) == pytest.approx([2.0, 1.0, 3.0, 4.0])
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--objects", "teapot"], "valid objects"),
+        (["--episodes", "1"], "--episodes must be in"),
+        (["--tier", "banana"], "valid tiers"),
+    ],
+)
+def test_fit_cli_rejects_bad_input_in_one_line(tmp_path: Path, capsys, argv, message) -> None:
+    assert fit_success.main([*argv, "--out", str(tmp_path / "m.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "m.json").exists()
