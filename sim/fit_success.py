@@ -1,13 +1,15 @@
 """Fit P(grasp success | pose error) per object and tier from noisy-oracle episodes.
 
-    python -m sim.fit_success --tier isolated --episodes 20 --out docs/success_model.json
+    python -m sim.fit_success --tier isolated --episodes 100 --out docs/success_model.json
 
-For every object, `--episodes` held-out episodes run at each of `LEVELS` (Gaussian noise on the
-true pose: sigma along and across the camera ray [mm], in-plane and out-of-plane [deg]); each
-episode's error components and outcome train a `perception.success_model.SuccessModel` whose
-bandwidths maximise the leave-one-out likelihood. The models of a tier replace that tier's in
-`--out` and keep the others. ``perception.training.tables --success-model`` then reports the
-grasp success the test-split poses should reach, without running a robot.
+For every object, `--episodes` held-out noisy-oracle episodes run with the noise `SPREAD`: each
+episode draws its own sigma for each component (along and across the camera ray [mm], in-plane
+and out-of-plane [deg]) uniformly up to the given figure, then Gaussian errors, so the sample
+covers every mix of the four components. Each episode's error components and outcome train a
+`perception.success_model.SuccessModel` whose bandwidths maximise the leave-one-out likelihood.
+The models of a tier replace that tier's in `--out` and keep the others.
+``perception.training.tables --success-model`` then reports the grasp success the test-split
+poses should reach, without running a robot.
 """
 
 from __future__ import annotations
@@ -26,33 +28,28 @@ from sim.evaluate import evaluate
 from sim.world.objects import OBJECT_NAMES
 from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
 
-#: Noise levels (`--noise` of noisy-oracle): the same figure along and across the ray [mm] and
-#: in and out of the image plane [deg].
-LEVELS: tuple[str, ...] = ("2,2,1,1", "5,5,2,2", "10,10,4,4", "20,20,8,8", "35,35,14,14")
+#: The noise of the sampled episodes (`--noise` of noisy-oracle): largest sigmas along and across
+#: the ray [mm] and in and out of the image plane [deg].
+SPREAD = "spread:40,40,16,16"
 #: Held-out scenes of their own (see `sim.world.constants.EVAL_SEED_BASE`).
 SEED_START = 1_700_000_000
 DEFAULT_OUT = DOCS_DIR / "success_model.json"
 
 
 def sample(objects: list[str], episodes: int, tier: str, workers: int) -> list[dict]:
-    """Noisy-oracle episodes of every object at every level, each as its error components and
-    outcome: [{"object", "level", "seed", "x" (4,), "success"}]."""
-    out = []
-    for level in LEVELS:
-        report = evaluate(objects, episodes, "noisy-oracle", SEED_START, workers, tier, level)
-        for e in report["episodes"]:
-            if e.get("pose_error") is None:
-                continue
-            out.append(
-                {
-                    "object": e["object"],
-                    "level": level,
-                    "seed": e["seed"],
-                    "x": components_of(e["pose_error"]).tolist(),
-                    "success": bool(e["success"]),
-                }
-            )
-    return out
+    """Noisy-oracle episodes of every object, each as its error components and outcome:
+    [{"object", "seed", "x" (4,), "success"}]."""
+    report = evaluate(objects, episodes, "noisy-oracle", SEED_START, workers, tier, SPREAD)
+    return [
+        {
+            "object": e["object"],
+            "seed": e["seed"],
+            "x": components_of(e["pose_error"]).tolist(),
+            "success": bool(e["success"]),
+        }
+        for e in report["episodes"]
+        if e.get("pose_error") is not None
+    ]
 
 
 def fit(samples: list[dict], objects: list[str], tier: str) -> dict[str, dict]:
@@ -71,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.fit_success", description=__doc__.split("\n")[0])
     p.add_argument("--objects", default="all", help=f"'all' or a comma list of {OBJECT_NAMES}")
-    p.add_argument("--episodes", type=int, default=20, help="episodes per object and level")
+    p.add_argument("--episodes", type=int, default=100, help="episodes per object")
     p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
     p.add_argument("--workers", type=int, default=2, help="worker processes, 1..64")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="the models' JSON file")
@@ -102,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{key:<18} {m['episodes']:>4} episodes, success {m['success_rate']:.1%}, "
             f"LOO log-likelihood {m['log_likelihood']:.3f}, bandwidths {bw}"
         )
-    write_json(args.out, {"levels": list(LEVELS), "seed_start": SEED_START, "models": models})
+    write_json(args.out, {"noise": SPREAD, "seed_start": SEED_START, "models": models})
     return 0
 
 

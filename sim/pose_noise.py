@@ -12,6 +12,9 @@ import numpy as np
 from sim.core.errors import InvalidArgumentError, UnknownNameError
 from sim.core.transforms import axis_angle
 
+#: How `PoseNoise` draws its errors.
+MODES: tuple[str, ...] = ("gaussian", "fixed", "spread")
+
 
 @dataclass(frozen=True)
 class PoseNoise:
@@ -23,7 +26,10 @@ class PoseNoise:
         inplane: rotation about the camera ray (in-plane).
         outplane: rotation about a random axis perpendicular to the ray (out-of-plane).
         mode: "gaussian" draws each error from N(0, magnitude^2); "fixed" applies exactly the
-            magnitude with a random sign (ray, in-plane) or direction (lateral, out-of-plane).
+            magnitude with a random sign (ray, in-plane) or direction (lateral, out-of-plane);
+            "spread" first draws each component's sigma uniformly in [0, magnitude], on its own,
+            then the error from N(0, sigma^2), so that a sample of episodes covers every mix of
+            the four components.
     """
 
     ray: float = 0.0
@@ -33,8 +39,8 @@ class PoseNoise:
     mode: str = "gaussian"
 
     def __post_init__(self) -> None:
-        if self.mode not in ("gaussian", "fixed"):
-            raise UnknownNameError("noise mode", self.mode, ("gaussian", "fixed"))
+        if self.mode not in MODES:
+            raise UnknownNameError("noise mode", self.mode, MODES)
         vals = (self.ray, self.lateral, self.inplane, self.outplane)
         if not all(np.isfinite(v) and v >= 0 for v in vals):
             raise InvalidArgumentError("noise magnitudes must be finite and non-negative")
@@ -51,6 +57,9 @@ def perturb_pose(T_C_O: np.ndarray, noise: PoseNoise, rng: np.random.Generator) 
     if noise.mode == "gaussian":
         e_ray, e_lat = rng.normal(0, noise.ray), rng.normal(0, noise.lateral)
         e_in, e_out = rng.normal(0, noise.inplane), rng.normal(0, noise.outplane)
+    elif noise.mode == "spread":
+        sigma = rng.uniform(0.0, 1.0, 4) * (noise.ray, noise.lateral, noise.inplane, noise.outplane)
+        e_ray, e_lat, e_in, e_out = rng.normal(0.0, 1.0, 4) * sigma
     else:
         sign = rng.choice([-1.0, 1.0], size=2)
         e_ray, e_lat = sign[0] * noise.ray, noise.lateral
@@ -63,18 +72,21 @@ def perturb_pose(T_C_O: np.ndarray, noise: PoseNoise, rng: np.random.Generator) 
     return out
 
 
-#: What `--noise` takes: sigma along the ray and across it [mm], in-plane and out-of-plane [deg].
-NOISE_FORMAT = "RAY_MM,LATERAL_MM,INPLANE_DEG,OUTPLANE_DEG"
+#: What `--noise` takes: sigma along the ray and across it [mm], in-plane and out-of-plane [deg];
+#: with the prefix ``spread:``, the largest sigmas of the "spread" mode.
+NOISE_FORMAT = "[spread:]RAY_MM,LATERAL_MM,INPLANE_DEG,OUTPLANE_DEG"
 
 
 def parse_noise(text: str) -> PoseNoise:
-    """Gaussian `PoseNoise` from ``"RAY_MM,LATERAL_MM,INPLANE_DEG,OUTPLANE_DEG"`` (each a finite
-    number >= 0, at most 1000 mm or 180 deg).
+    """`PoseNoise` from ``"RAY_MM,LATERAL_MM,INPLANE_DEG,OUTPLANE_DEG"`` (each a finite number
+    >= 0, at most 1000 mm or 180 deg): Gaussian, or "spread" with the prefix ``spread:``.
 
     Raises:
         InvalidArgumentError: anything else, with the expected format.
     """
-    parts = str(text).split(",")
+    raw = str(text)
+    mode = "spread" if raw.startswith("spread:") else "gaussian"
+    parts = raw.removeprefix("spread:").split(",")
     try:
         values = [float(v) for v in parts]
     except ValueError:
@@ -83,7 +95,7 @@ def parse_noise(text: str) -> PoseNoise:
     if not ok or max(values[:2]) > 1000 or max(values[2:]) > 180:
         raise InvalidArgumentError(
             f"--noise must be {NOISE_FORMAT}: four numbers >= 0 (mm up to 1000, deg up to 180), "
-            f"got {text!r}"
+            f"got {raw!r}"
         )
     ray, lat, inp, outp = values
-    return PoseNoise(ray / 1000, lat / 1000, np.deg2rad(inp), np.deg2rad(outp))
+    return PoseNoise(ray / 1000, lat / 1000, np.deg2rad(inp), np.deg2rad(outp), mode)

@@ -50,3 +50,20 @@ def test_a_seed_draws_the_same_errors_at_every_level() -> None:
         Observation(obs.rgb, obs.K, obs.T_world_cam, "phone", 1235), T
     )
     assert not np.allclose(other, small)
+
+
+def test_spread_noise_draws_each_sigma_on_its_own() -> None:
+    n = parse_noise("spread:40,40,16,16")
+    assert n.mode == "spread" and n.ray == pytest.approx(0.04)
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, 0.8]
+    errs = []
+    for seed in range(400):
+        obs = Observation(np.zeros((4, 4, 3), np.uint8), np.eye(3), np.eye(4), "phone", seed)
+        e = error_components(NoisyOracleEstimator(n).estimate_from_truth(obs, T), T)
+        errs.append([e["ray_m"] * 1000, e["lateral_m"] * 1000, e["inplane_deg"], e["outplane_deg"]])
+    E = np.array(errs)
+    assert E[:, 0].max() < 5 * 40 and E[:, 2].max() < 5 * 16
+    # The components are drawn independently: no correlation between them.
+    assert abs(np.corrcoef(E[:, 0], E[:, 2])[0, 1]) < 0.2
+    assert abs(np.corrcoef(E[:, 0], E[:, 1])[0, 1]) < 0.2
