@@ -53,6 +53,12 @@ def load_report(path: Path) -> dict[tuple[str, str, int], Outcome]:
     return out
 
 
+def bootstrap_means(values: np.ndarray, boot: int, rng: np.random.Generator) -> np.ndarray:
+    """Means of `boot` resamples (with replacement) of `values`, shape (boot,)."""
+    values = np.asarray(values, float)
+    return rng.choice(values, (boot, values.size)).mean(axis=1)
+
+
 def mcnemar_exact(a_only: int, b_only: int) -> float:
     """Two-sided exact McNemar p-value from the discordant pair counts (1.0 when there are
     none)."""
@@ -97,7 +103,7 @@ def margin_difference(
     )
     if d.size == 0:
         return None
-    means = rng.choice(d, (boot, d.size)).mean(axis=1)
+    means = bootstrap_means(d, boot, rng)
     lo, hi = np.percentile(means, [2.5, 97.5])
     return {
         "pairs": int(d.size),

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from sim.compare import bootstrap_means
 from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.core.errors import PosegraspError
 from sim.core.paths import DOCS_DIR
@@ -106,7 +107,7 @@ def _group(episodes: list[dict]) -> dict:
             out[f"{key}_p90"] = float(np.percentile(v, 90))
     margins = np.array([e["friction_margin"] for e in episodes if e.get("friction_margin")])
     if margins.size:
-        boot = np.random.default_rng(0).choice(margins, (2000, margins.size)).mean(axis=1)
+        boot = bootstrap_means(margins, 2000, np.random.default_rng(0))
         out["friction_margin_mean"] = float(margins.mean())
         out["friction_margin_low"], out["friction_margin_high"] = (
             float(v) for v in np.percentile(boot, [2.5, 97.5])

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.compare import mcnemar_exact
+from sim.compare import bootstrap_means, mcnemar_exact
 from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.core.errors import AssetError, PosegraspError
 from sim.core.paths import REPO_ROOT
@@ -145,7 +145,7 @@ def compare(
     if both:
         d = np.array([run[k][1] - base[k][1] for k in both])
         rise = float(d.mean())
-        boot = np.random.default_rng(0).choice(d, (BOOTSTRAP, d.size)).mean(axis=1)
+        boot = bootstrap_means(d, BOOTSTRAP, np.random.default_rng(0))
         lo = float(np.percentile(boot, 2.5))
     margin_bad = rise > MARGIN_RISE and lo > 0.0
     ok = not (success_bad or margin_bad)

@@ -6,6 +6,8 @@ import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is im
 import mujoco
 import numpy as np
 
+from sim.world.camera import geom_ids_from_colours
+
 
 class OffscreenRenderer:
     """Offscreen RGB and segmentation renders of fixed cameras, for one model at a time.
@@ -88,16 +90,8 @@ class OffscreenRenderer:
         opt: mujoco.MjvOption | None = None,
     ) -> np.ndarray:
         """Geom id per pixel (-1 where no geom is drawn), shape (H, W), int32."""
-        raw = self.render(model, data, camera, opt, segment=True).astype(np.int32)
-        segid = raw[..., 0] + (raw[..., 1] << 8) + (raw[..., 2] << 16) - 1
-        scene = self._bind(model)[1]
-        # Index ngeom (the last entry) stands for "nothing drawn" (segid -1).
-        lut = np.full(scene.ngeom + 1, -1, np.int32)
-        for i in range(scene.ngeom):
-            g = scene.geoms[i]
-            if g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
-                lut[i] = g.objid
-        return lut[np.where((segid >= 0) & (segid < scene.ngeom), segid, scene.ngeom)]
+        rgb = self.render(model, data, camera, opt, segment=True)
+        return geom_ids_from_colours(rgb, self._bind(model)[1])
 
     def close(self) -> None:
         """Free the render and GL contexts."""

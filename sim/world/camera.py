@@ -105,6 +105,21 @@ def _preload_torch() -> None:
 _TORCH_PRELOADED = False
 
 
+def geom_ids_from_colours(rgb: np.ndarray, scene: mujoco.MjvScene) -> np.ndarray:
+    """Geom id per pixel of a render with `mjRND_SEGMENT` and `mjRND_IDCOLOR` (scene object i
+    drawn in colour i + 1, black where nothing is drawn): shape (H, W), int32, -1 where no geom.
+    """
+    raw = rgb.astype(np.int32)
+    segid = raw[..., 0] + (raw[..., 1] << 8) + (raw[..., 2] << 16) - 1
+    # Index ngeom (the last entry) stands for "nothing drawn" (segid -1).
+    lut = np.full(scene.ngeom + 1, -1, np.int32)
+    for i in range(scene.ngeom):
+        g = scene.geoms[i]
+        if g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
+            lut[i] = g.objid
+    return lut[np.where((segid >= 0) & (segid < scene.ngeom), segid, scene.ngeom)]
+
+
 def shared_gl_context() -> mujoco.GLContext:
     """This process's GL context, made current: one per process, created on first use.
 
@@ -214,14 +229,7 @@ class CameraRenderer:
     def segmentation(self, data: mujoco.MjData, camera: str | int) -> np.ndarray:
         """Geom id per pixel (-1 where no geom), shape (H, W), int32."""
         ctx = self._render(data, camera, ids=True)
-        code = self._read_rgb(ctx).astype(np.int64)
-        segid = code[..., 0] + (code[..., 1] << 8) + (code[..., 2] << 16)  # 0: background
-        scene = self._scene
-        lut = np.full(scene.ngeom + 1, -1, np.int32)
-        for g in scene.geoms[: scene.ngeom]:
-            if g.segid != -1 and g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
-                lut[g.segid + 1] = g.objid
-        return lut[np.clip(segid, 0, scene.ngeom)]
+        return geom_ids_from_colours(self._read_rgb(ctx), self._scene)
 
     def close(self) -> None:
         """Free the render context (the shared GL context stays for the next model)."""
