@@ -167,7 +167,7 @@ class HybridPoseEstimator:
         timings["detect"] = (time.perf_counter() - t0) * 1000.0
         wanted = dets if classes is None else [d for d in dets if d.name in classes]
         found = self._poses(rgb, K, wanted, timings)
-        rest = [d for d in dets if d not in wanted] if others else []
+        rest = [d for d in dets if classes is not None and d.name not in classes] if others else []
         other = self._poses(rgb, K, rest, timings) if rest else []
         timings["total"] = float(sum(timings[k] for k in STAGES))
         return found, other, timings
