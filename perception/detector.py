@@ -22,6 +22,7 @@ import torch
 from torchvision.models.detection import MaskRCNN
 
 from perception.detector_net import DetectorConfig, build_detector
+from perception.integrity import verify_weights
 from sim.core.errors import AssetError, InvalidArgumentError
 from sim.core.paths import WEIGHTS_DIR
 from sim.world.objects import OBJECT_NAMES
@@ -91,18 +92,27 @@ def image_tensor(rgb: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float().div_(255.0)
 
 
-def load_detector_model(path: Path) -> tuple[MaskRCNN, DetectorConfig, dict[str, Any]]:
+def load_detector_model(
+    path: Path, verify: bool = True
+) -> tuple[MaskRCNN, DetectorConfig, dict[str, Any]]:
     """Rebuild the model stored in a weights file or a training checkpoint.
+
+    Args:
+        path: the weights file.
+        verify: check the file against the hash its folder's manifest records
+            (`perception.integrity.verify_weights`); False for weights you trained.
 
     Returns:
         (model in eval mode with float32 weights, its config, the file's other entries).
 
     Raises:
         AssetError: the file is missing or corrupt; the message says how to rebuild it.
+        WeightsMismatchError: the manifest next to it records another hash.
     """
     path = Path(path)
     if not path.is_file():
         raise AssetError(f"detector weights {path} are missing; {REBUILD_HINT}")
+    verify_weights(path, verify)
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
         cfg = DetectorConfig.from_dict(state["model_config"])
@@ -156,13 +166,18 @@ class Detector:
         )
 
     @classmethod
-    def from_weights(cls, path: Path | str = DEFAULT_WEIGHTS, **kwargs: Any) -> Detector:
+    def from_weights(
+        cls, path: Path | str = DEFAULT_WEIGHTS, verify: bool = True, **kwargs: Any
+    ) -> Detector:
         """Load shipped weights (or a training checkpoint); kwargs as in the constructor.
 
+        `verify` checks the file against its manifest's hash (False: weights you trained).
+
         Raises:
-            AssetError: missing or corrupt weights, with the command that rebuilds them.
+            AssetError: missing or corrupt weights, with the command that rebuilds them;
+                `WeightsMismatchError` when the manifest records another hash.
         """
-        model, cfg, _ = load_detector_model(Path(path))
+        model, cfg, _ = load_detector_model(Path(path), verify)
         return cls(model, cfg, **kwargs)
 
     @classmethod

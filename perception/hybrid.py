@@ -103,16 +103,24 @@ class HybridPoseEstimator:
         score_threshold: float = 0.5,
         crop_scale: float = DEFAULT_CROP_SCALE,
         max_detections: int | None = None,
+        verify: bool = True,
     ) -> HybridPoseEstimator:
         """Load the shipped weights (defaults under perception/weights/).
 
+        `verify` checks each file against the hash its folder's manifest records; pass False
+        (or set ``POSEGRASP_UNVERIFIED_WEIGHTS=1``) for weights you trained.
+
         Raises:
-            AssetError: missing or corrupt weights, saying how to rebuild them.
+            AssetError: missing or corrupt weights, saying how to rebuild them;
+                `WeightsMismatchError` when a manifest records another hash.
         """
         detector = Detector.from_weights(
-            Path(detector_path), score_threshold=score_threshold, max_detections=max_detections
+            Path(detector_path),
+            verify,
+            score_threshold=score_threshold,
+            max_detections=max_detections,
         )
-        return cls(detector, load_posenet(Path(posenet_path)), crop_scale)
+        return cls(detector, load_posenet(Path(posenet_path), verify), crop_scale)
 
     @classmethod
     def with_random_weights(

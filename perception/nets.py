@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from perception.integrity import verify_weights
 from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 
 VARIANTS: tuple[str, ...] = ("paper", "ours")
@@ -155,15 +156,23 @@ def normalise(crops_uint8: torch.Tensor) -> torch.Tensor:
     return crops_uint8.permute(0, 3, 1, 2).float() / 255.0 - 0.5
 
 
-def load_posenet(path: Path) -> PoseNet:
+def load_posenet(path: Path, verify: bool = True) -> PoseNet:
     """A trained PoseNet from a checkpoint or shipped weights file.
+
+    Args:
+        path: the weights file.
+        verify: check the file against the hash its folder's manifest records
+            (`perception.integrity.verify_weights`); False for weights you trained.
 
     Raises:
         AssetError: the file is missing or corrupt (the message says how to rebuild it).
+        WeightsMismatchError: the manifest next to it records another hash.
     """
     hint = "rebuild it with `make weights` (or python -m perception.training.train_posenet)"
+    path = Path(path)
     if not path.is_file():
         raise AssetError(f"weights file {path} is missing; {hint}")
+    verify_weights(path, verify)
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
         model = PoseNet(NetConfig(**state["model_config"]))

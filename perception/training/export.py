@@ -18,7 +18,7 @@ from perception.nets import VARIANTS
 from perception.training.checkpoints import read_checkpoint, save_atomically
 from perception.training.crop_sets import data_seed_ranges
 from perception.training.dataset import DISTS
-from perception.training.manifest import MANIFEST_NAME, read_manifest, write_manifest
+from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
 from perception.training.train_posenet import TRAIN_COMMAND
 from sim.core.cli import ArgumentParser, fail
 from sim.core.errors import AssetError, PosegraspError
@@ -66,8 +66,7 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
             f"{TRAIN_COMMAND} --variant {variant} --epochs {tc['epochs']}"
         )
         nets[variant] = {
-            "file": path.name,
-            "bytes": path.stat().st_size,
+            **weights_entry(path),
             "command": command,
             "stages": _stages(state, command),
             "train_config": tc,

@@ -16,7 +16,7 @@ from perception.detector_net import (
     state_dict_fp16,
 )
 from perception.training.checkpoints import read_checkpoint, save_atomically
-from perception.training.manifest import MANIFEST_NAME, read_manifest, write_manifest
+from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
 from sim.core.errors import AssetError
 from sim.core.paths import WEIGHTS_DIR
 
@@ -60,8 +60,7 @@ def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, 
     save_atomically(shipped, path)
     tc = state["train_config"]
     entry = {
-        "file": path.name,
-        "bytes": path.stat().st_size,
+        **weights_entry(path),
         "parameters": count_parameters(model),
         "command": f"{TRAIN_COMMAND} --epochs {tc['epochs']} --export",
         "train_config": tc,

@@ -7,9 +7,11 @@ import json
 from pathlib import Path
 from typing import Any
 
+from perception.integrity import MANIFEST_NAME
 from sim.core.errors import AssetError
+from sim.core.files import atomic_write_json, sha256_file
 
-MANIFEST_NAME = "manifest.json"
+__all__ = ["MANIFEST_NAME", "read_manifest", "weights_entry", "write_manifest"]
 
 
 def read_manifest(path: Path) -> dict[str, Any]:
@@ -26,8 +28,12 @@ def read_manifest(path: Path) -> dict[str, Any]:
         raise AssetError(f"{path} is not valid JSON ({exc}); fix or delete it") from exc
 
 
+def weights_entry(path: Path) -> dict[str, Any]:
+    """The identity of a shipped weights file as its manifest entry records it: ``file`` (name),
+    ``bytes`` and ``sha256`` (which `perception.integrity.verify_weights` checks at load)."""
+    return {"file": path.name, "bytes": path.stat().st_size, "sha256": sha256_file(path)}
+
+
 def write_manifest(path: Path, manifest: dict[str, Any]) -> None:
-    """Write the manifest (sorted keys, one-space indent) through a temporary file."""
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
-    tmp.replace(path)
+    """Write the manifest (sorted keys, one-space indent) atomically (`sim.core.files`)."""
+    atomic_write_json(path, manifest)

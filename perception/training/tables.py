@@ -35,11 +35,16 @@ from perception.success_model import SuccessModel, components_of, load_models
 from perception.training.crop_sets import CropConfig, CropSet, build_crops
 from perception.training.dataset import DISTS, PoseDataset
 from perception.training.detection_eval import coco_ap, visible_objects
-from perception.training.manifest import MANIFEST_NAME, read_manifest, write_manifest
 from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
+from perception.training.record import (
+    check_full_splits,
+    check_record_request,
+    record_command,
+    record_in_manifest,
+)
 from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.core.errors import AssetError, PosegraspError
-from sim.core.paths import REPO_ROOT, WEIGHTS_DIR, data_root
+from sim.core.paths import WEIGHTS_DIR, data_root
 from sim.world.objects import OBJECT_NAMES, load_object
 
 #: The paper's Tables 1 and 2 (Staszak & Belter 2019), per object and average.
@@ -249,60 +254,6 @@ def format_detection(det: dict) -> str:
     return "\n".join(rows)
 
 
-#: Averages the manifest keeps of each test split.
-RECORD_KEYS = ("count", "center_px_mean", "center_crop_px_mean", "distance_pct_mean",
-               "rotation_deg_mean", "rotation_deg_median", "outlier_rate", "iou_acc",
-               "add_s_recall")  # fmt: skip
-
-
-def record_in_manifest(report: dict, weights: Path, boxes: str, command: str,
-                       manifest_path: Path | None = None) -> str:  # fmt: skip
-    """Store a report's test averages in the manifest entry of the shipped `weights` (and, with
-    detector boxes, the detection AP in the detector's entry). Returns the variant's name.
-
-    Raises:
-        AssetError: no manifest, or `weights` is not a shipped file it lists.
-    """
-    manifest_path = manifest_path or weights.parent / MANIFEST_NAME
-    if not manifest_path.is_file():
-        raise AssetError(
-            f"no {manifest_path}; write it with `python -m perception.training.export`"
-        )
-    manifest = read_manifest(manifest_path)
-    nets = manifest.get("pose_nets", {})
-    variant = next((v for v, e in nets.items() if e.get("file") == weights.name), None)
-    if variant is None:
-        raise AssetError(
-            f"{weights.name} is not listed in {manifest_path}; --record works on shipped weights: "
-            + ", ".join(e.get("file", "?") for e in nets.values())
-        )
-    splits = {d: {k: report[d]["average"][k] for k in RECORD_KEYS} for d in DISTS if d in report}
-    if boxes == "gt":
-        nets[variant]["test"] = {"command": command, **splits}
-    else:
-        nets[variant]["test_detector_boxes"] = {
-            "command": command, **splits, "ratio_to_gt_boxes": report["detector_to_gt_ratio"]
-        }  # fmt: skip
-        summary = report["detection_summary"]
-        manifest.setdefault("detector", {})["test"] = {
-            "command": command, "images": summary["images"], "overall": summary["overall"],
-            "per_class": report["detection"], "missed": summary["missed"],
-        }  # fmt: skip
-    write_manifest(manifest_path, manifest)
-    return variant
-
-
-def _command(args) -> str:
-    """The evaluation command, as the manifest records it."""
-    w = Path(args.weights).resolve()
-    w = w.relative_to(REPO_ROOT) if w.is_relative_to(REPO_ROOT) else w
-    parts = ["python -m perception.training.tables", f"--weights {w}"]
-    parts += [f"--boxes {args.boxes}"] if args.boxes != "gt" else []
-    parts += [f"--dists {args.dists}"] if args.dists else []
-    parts += [f"--limit {args.limit}"] if args.limit else []
-    return " ".join(parts)
-
-
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(
@@ -334,7 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--record",
         action="store_true",
-        help="store the test averages in perception/weights/manifest.json (shipped weights only)",
+        help="store the test averages in perception/weights/manifest.json: only the shipped "
+        "weights on the full shipped test splits of the default data folder",
     )
     args = p.parse_args(argv)
     if args.boxes not in BOXES:
@@ -346,8 +298,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.boxes == "detector" and dists != ["headcam"]:
         return fail("--boxes detector works on the head-camera split only; valid: headcam")
     try:
+        if args.record:
+            check_record_request(args, dists)
         if args.json is not None:
             check_writable_file(args.json)
+        if args.record:
+            check_full_splits(dists)
         model = load_posenet(args.weights)
         success = None
         if args.success_model is not None:
@@ -379,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
                     + ", ".join(f"{k} {v:.2f}x" for k, v in report["detector_to_gt_ratio"].items())
                 )
         if args.record:
-            variant = record_in_manifest(report, args.weights, args.boxes, _command(args))
+            variant = record_in_manifest(report, args.weights, args.boxes, record_command(args))
             print(f"recorded the test figures of {variant} in the manifest")
     except PosegraspError as exc:
         return fail(str(exc))

@@ -1,0 +1,137 @@
+"""What guards the numbers cannot be fooled: recorded figures, weights hashes, atomic writes."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from perception import integrity
+from perception.detector import Detector
+from perception.hybrid import HybridPoseEstimator
+from perception.nets import load_posenet
+from perception.training import record, tables
+from sim.core import files
+from sim.core.errors import AssetError
+from sim.core.files import sha256_file
+from sim.core.paths import WEIGHTS_DIR
+
+MANIFEST = WEIGHTS_DIR / "manifest.json"
+
+
+@pytest.fixture
+def manifest_bytes() -> bytes:
+    """The shipped manifest's bytes, to check that a refused command leaves them alone."""
+    return MANIFEST.read_bytes()
+
+
+@pytest.mark.parametrize(
+    "argv, env, words",
+    [
+        (["--limit", "2"], {}, "--limit"),
+        (["--dists", "headcam"], {}, "not every split"),
+        (["--dists", "paper"], {}, "not every split"),
+        (["--boxes", "detector", "--limit", "5"], {}, "--limit"),
+        ([], {"POSEGRASP_DATA": "{tmp}"}, "POSEGRASP_DATA"),
+        (["--weights", "{tmp}/posenet_ours.pt"], {}, "not shipped"),
+        (["--boxes", "detector", "--detector", "{tmp}/detector.pt"], {}, "not the shipped"),
+        ([], {"POSEGRASP_UNVERIFIED_WEIGHTS": "1"}, "POSEGRASP_UNVERIFIED_WEIGHTS"),
+    ],
+)
+def test_record_refuses_anything_but_the_shipped_weights_on_full_splits(
+    argv, env, words, tmp_path, monkeypatch, capsys, manifest_bytes
+) -> None:
+    shutil.copy(WEIGHTS_DIR / "posenet_ours.pt", tmp_path / "posenet_ours.pt")
+    for k, v in env.items():
+        monkeypatch.setenv(k, v.format(tmp=tmp_path))
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    assert tables.main([*argv, "--record"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--record refused" in err[0] and words in err[0]
+    assert MANIFEST.read_bytes() == manifest_bytes
+
+
+def test_record_refuses_a_partial_test_split(monkeypatch) -> None:
+    class Partial:
+        def __init__(self, root, split) -> None:
+            pass
+
+        def __len__(self) -> int:
+            return 6
+
+    monkeypatch.setattr(record, "PoseDataset", Partial)
+    with pytest.raises(AssetError, match="headcam test split has 6 images"):
+        record.check_full_splits(["headcam"])
+
+
+def test_record_command_names_only_the_weights_and_boxes() -> None:
+    args = tables.ArgumentParser().parse_args([])
+    args.weights, args.boxes = WEIGHTS_DIR / "posenet_paper.pt", "detector"
+    assert record.record_command(args) == (
+        "python -m perception.training.tables --weights perception/weights/posenet_paper.pt "
+        "--boxes detector"
+    )
+
+
+@pytest.fixture
+def weights_copy(tmp_path: Path) -> Path:
+    """A copy of the shipped weights folder (weights and manifest)."""
+    out = tmp_path / "weights"
+    shutil.copytree(WEIGHTS_DIR, out)
+    return out
+
+
+def test_a_shipped_file_replaced_by_another_is_refused(weights_copy, monkeypatch) -> None:
+    monkeypatch.delenv(integrity.UNVERIFIED_ENV, raising=False)
+    load_posenet(weights_copy / "posenet_ours.pt")  # the copy matches its manifest
+    shutil.copy(weights_copy / "posenet_paper.pt", weights_copy / "posenet_ours.pt")
+    with pytest.raises(integrity.WeightsMismatchError) as exc:
+        load_posenet(weights_copy / "posenet_ours.pt")
+    msg = str(exc.value)
+    assert "posenet_ours.pt" in msg and "\n" not in msg
+    assert "verify=False" in msg and integrity.UNVERIFIED_ENV in msg
+    with pytest.raises(integrity.WeightsMismatchError):
+        HybridPoseEstimator.from_weights(
+            weights_copy / "detector.pt", weights_copy / "posenet_ours.pt"
+        )
+    # Weights the user trained: the explicit overrides.
+    assert load_posenet(weights_copy / "posenet_ours.pt", verify=False).cfg.variant == "paper"
+    monkeypatch.setenv(integrity.UNVERIFIED_ENV, "1")
+    assert load_posenet(weights_copy / "posenet_ours.pt").cfg.variant == "paper"
+
+
+def test_detector_weights_are_checked_too(weights_copy, monkeypatch) -> None:
+    monkeypatch.delenv(integrity.UNVERIFIED_ENV, raising=False)
+    shutil.copy(weights_copy / "posenet_ours.pt", weights_copy / "detector.pt")
+    with pytest.raises(integrity.WeightsMismatchError, match=r"detector\.pt"):
+        Detector.from_weights(weights_copy / "detector.pt")
+
+
+def test_unlisted_files_load_and_an_entry_without_hash_fails_closed(weights_copy) -> None:
+    shutil.copy(weights_copy / "posenet_ours.pt", weights_copy / "mine.pt")
+    assert load_posenet(weights_copy / "mine.pt").cfg.variant == "ours"
+    manifest = json.loads((weights_copy / "manifest.json").read_text())
+    del manifest["pose_nets"]["ours"]["sha256"]
+    (weights_copy / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(integrity.WeightsMismatchError, match="without a sha256"):
+        load_posenet(weights_copy / "posenet_ours.pt")
+    (weights_copy / "manifest.json").write_text("{not json")
+    with pytest.raises(AssetError, match="cannot read"):
+        load_posenet(weights_copy / "posenet_ours.pt")
+
+
+def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) -> None:
+    manifest = json.loads(MANIFEST.read_text())
+    entries = integrity.manifest_entries(manifest)
+    assert sorted(entries) == ["detector.pt", "posenet_ours.pt", "posenet_paper.pt"]
+    for name, e in entries.items():
+        assert sha256_file(WEIGHTS_DIR / name) == e["sha256"]
+    f = tmp_path / "w.bin"
+    f.write_bytes(b"abc")
+    before = files._sha256.cache_info().misses
+    first = sha256_file(f)
+    assert sha256_file(f) == first and files._sha256.cache_info().misses == before + 1
+    f.write_bytes(b"abcd")  # rewritten: hashed again
+    assert sha256_file(f) != first
