@@ -7,13 +7,17 @@ import shutil
 from pathlib import Path
 
 import pytest
+import torch
 
 from perception import integrity
 from perception.detector import Detector
 from perception.hybrid import HybridPoseEstimator
 from perception.nets import load_posenet
 from perception.training import record, tables
+from perception.training.checkpoints import save_atomically
+from perception.training.manifest import write_manifest
 from sim.core import files
+from sim.core.cli import write_json
 from sim.core.errors import AssetError
 from sim.core.files import sha256_file
 from sim.core.paths import WEIGHTS_DIR
@@ -135,3 +139,55 @@ def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) ->
     assert sha256_file(f) == first and files._sha256.cache_info().misses == before + 1
     f.write_bytes(b"abcd")  # rewritten: hashed again
     assert sha256_file(f) != first
+
+
+class _Boom:
+    """Pickles into an error, half way through a save."""
+
+    def __reduce__(self):
+        raise AssetError("disk full")
+
+
+def _no_temporaries(folder: Path) -> bool:
+    return not [p for p in folder.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_a_failed_write_leaves_the_old_record_intact(tmp_path: Path) -> None:
+    path = tmp_path / "report.json"
+    write_json(path, {"successes": 60})
+    old = path.read_bytes()
+
+    def half(f) -> None:
+        f.write(b'{"successes": 6')
+        raise AssetError("disk full")
+
+    with pytest.raises(AssetError):
+        files.atomic_write(path, half)
+    with pytest.raises(TypeError):
+        write_json(path, {"successes": object()})
+    assert path.read_bytes() == old and json.loads(old) == {"successes": 60}
+    assert _no_temporaries(tmp_path)
+
+
+def test_a_failed_checkpoint_save_leaves_the_old_checkpoint_intact(tmp_path: Path) -> None:
+    path = tmp_path / "ckpt.pt"
+    save_atomically({"step": 1, "w": torch.ones(3)}, path)
+    old = path.read_bytes()
+    with pytest.raises(AssetError):
+        save_atomically({"step": 2, "w": torch.zeros(100_000), "bad": _Boom()}, path)
+    assert path.read_bytes() == old and torch.load(path)["step"] == 1
+    assert _no_temporaries(tmp_path)
+
+
+def test_the_manifest_writer_is_atomic(tmp_path: Path, monkeypatch) -> None:
+    path = tmp_path / "manifest.json"
+    write_manifest(path, {"pose_nets": {}})
+    old = path.read_bytes()
+
+    def no_rename(*args) -> None:
+        raise OSError("rename failed")
+
+    monkeypatch.setattr(files.os, "replace", no_rename)
+    with pytest.raises(OSError):
+        write_manifest(path, {"pose_nets": {"ours": {}}})
+    assert path.read_bytes() == old and _no_temporaries(tmp_path)

@@ -16,6 +16,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from sim.core.files import atomic_write
 from sim.core.paths import git_commit
 
 
@@ -40,10 +41,9 @@ def rng_state(generator: torch.Generator | None = None) -> dict[str, torch.Tenso
 
 
 def save_atomically(obj: Any, path: Path) -> None:
-    """`torch.save` through a temporary file next to `path` (same stem), then a rename."""
-    tmp = path.with_suffix(".tmp")
-    torch.save(obj, tmp)
-    tmp.replace(path)
+    """`torch.save` through a temporary file in `path`'s folder, fsynced, then renamed over it
+    (`sim.core.files.atomic_write`): a failed save leaves the previous file intact."""
+    atomic_write(path, lambda f: torch.save(obj, f))
 
 
 def save_checkpoint(

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import NoReturn
 
 from sim.core.errors import InvalidArgumentError
+from sim.core.files import atomic_write_json
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -46,6 +46,7 @@ def check_writable_file(path: Path) -> None:
 
 
 def write_json(path: Path, report: dict) -> None:
-    """Write a report as indented JSON with sorted keys and say where."""
-    path.write_text(json.dumps(report, indent=1, sort_keys=True))
+    """Write a report as indented JSON with sorted keys, atomically (`sim.core.files`), and say
+    where."""
+    atomic_write_json(path, report)
     print(f"wrote {path}")
