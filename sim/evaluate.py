@@ -12,7 +12,6 @@ from __future__ import annotations
 import functools
 import itertools
 import json
-import multiprocessing as mp
 import os
 import sys
 import time
@@ -20,9 +19,9 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from sim.compare import bootstrap_means
+from sim.core.backends import add_backend_arguments, check_backend, run_map
 from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.core.errors import PosegraspError
 from sim.core.paths import DOCS_DIR
@@ -128,10 +127,13 @@ def evaluate(
     tier: str = DEFAULT_TIER,
     noise: str | None = None,
     margin: bool = False,
+    backend: str = "local",
+    address: str | None = None,
 ) -> dict:
     """Run episodes (objects x seeds) of one tier and aggregate per object and overall; `noise`
     (`sim.pose_noise.NOISE_FORMAT`) sets the errors of ``noisy-oracle``; `margin` measures each
-    successful grasp's friction margin."""
+    successful grasp's friction margin. `backend` and `address` say where the episodes run
+    (`sim.core.backends.run_map`); on Ray each episode records the ``node`` that ran it."""
     check_tier(tier)
     jobs = [
         (o, seed_start + i, estimator, tier, noise, margin)
@@ -139,12 +141,12 @@ def evaluate(
         for i in range(episodes)
     ]
     t = time.perf_counter()
-    if workers > 1:
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, initializer=_init_worker) as pool:
-            results = list(tqdm(pool.imap(_run_one, jobs), total=len(jobs), desc="episodes"))
-    else:
-        results = [_run_one(j) for j in tqdm(jobs, desc="episodes")]
+    results = []
+    for d, node in run_map(_run_one, jobs, backend=backend, workers=workers, address=address,
+                           desc="episodes", initializer=_init_worker, with_node=True):  # fmt: skip
+        if node is not None:
+            d["node"] = node
+        results.append(d)
     wall = time.perf_counter() - t
     per_object = {o: _group([r for r in results if r["object"] == o]) for o in objects}
     return {
@@ -291,6 +293,7 @@ def main(argv: list[str] | None = None) -> int:
         default=DEFAULT_TOLERANCE,
         help="tolerance curves to overlay (JSON of python -m sim.tolerance)",
     )
+    add_backend_arguments(p)
     args = p.parse_args(argv)
     objects = list(OBJECT_NAMES) if args.objects == "all" else args.objects.split(",")
     bad = [o for o in objects if o not in OBJECT_NAMES]
@@ -304,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
         return fail("--episodes and --workers must be at least 1")
     try:
         check_tier(args.tier)
+        check_backend(args.backend, args.address)
         if args.noise is not None:
             make_estimator(args.estimator, parse_noise(args.noise))  # validates the pair
         for out in (args.json, args.plot):
@@ -322,6 +326,8 @@ def main(argv: list[str] | None = None) -> int:
             args.tier,
             args.noise,
             args.margin,
+            args.backend,
+            args.address,
         )
     except PosegraspError as exc:
         return fail(str(exc))

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.compare import bootstrap_means, mcnemar_exact
+from sim.core.backends import add_backend_arguments, check_backend
 from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.core.errors import AssetError, PosegraspError
 from sim.core.paths import REPO_ROOT
@@ -96,13 +97,18 @@ def weights_fingerprint() -> dict[str, str]:
 
 
 def run_gate(
-    estimator: str = DEFAULT_ESTIMATOR, episodes: int = GATE_EPISODES, workers: int = 2
+    estimator: str = DEFAULT_ESTIMATOR,
+    episodes: int = GATE_EPISODES,
+    workers: int = 2,
+    backend: str = "local",
+    address: str | None = None,
 ) -> dict:
     """The gate's evaluation: `episodes` per object of `GATE_TIER` from `GATE_SEED_START`,
-    friction margins measured."""
+    friction margins measured, on `backend` (`sim.core.backends.run_map`)."""
     return evaluate(
-        list(OBJECT_NAMES), episodes, estimator, GATE_SEED_START, workers, GATE_TIER, margin=True
-    )
+        list(OBJECT_NAMES), episodes, estimator, GATE_SEED_START, workers, GATE_TIER,
+        margin=True, backend=backend, address=address,
+    )  # fmt: skip
 
 
 def _outcomes(episodes: list[dict]) -> dict[tuple[str, int], tuple[bool, float | None]]:
@@ -190,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--estimator", default=None, help=f"only this one; one of: {', '.join(ESTIMATORS)}"
     )
+    add_backend_arguments(p)
     args = p.parse_args(argv)
     if not 1 <= args.workers <= 64:
         return fail(f"--workers must be in 1..64, got {args.workers}")
@@ -197,6 +204,10 @@ def main(argv: list[str] | None = None) -> int:
         return fail(
             f"unknown estimator {args.estimator!r}; valid estimators: {', '.join(ESTIMATORS)}"
         )
+    try:
+        check_backend(args.backend, args.address)
+    except PosegraspError as exc:
+        return fail(str(exc))
     try:
         if args.write:
             check_writable_file(args.baseline)
@@ -219,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     failed = False
     for name in names:
         try:
-            report = run_gate(name, GATE_EPISODES, args.workers)
+            report = run_gate(name, GATE_EPISODES, args.workers, args.backend, args.address)
         except PosegraspError as exc:
             return fail(str(exc))
         print(format_report(report))

@@ -10,13 +10,12 @@ is the largest magnitude up to which the success rate stays at or above 90 %.
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import sys
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from sim.core.backends import add_backend_arguments, check_backend, run_map
 from sim.core.cli import ArgumentParser, check_writable_file, fail
 from sim.core.errors import PosegraspError
 from sim.core.files import atomic_write_json
@@ -68,9 +67,16 @@ def tolerance_of(levels: list[float], rates: list[float], threshold: float = THR
 
 
 def study(
-    objects: list[str], episodes: int, seed_start: int, workers: int, tier: str = DEFAULT_TIER
+    objects: list[str],
+    episodes: int,
+    seed_start: int,
+    workers: int,
+    tier: str = DEFAULT_TIER,
+    backend: str = "local",
+    address: str | None = None,
 ) -> dict:
-    """Run the study on one tier and return {object: {kind: {levels, rates, tolerance}}}."""
+    """Run the study on one tier and return {object: {kind: {levels, rates, tolerance}}};
+    `backend` and `address` say where the episodes run (`sim.core.backends.run_map`)."""
     check_tier(tier)
     jobs = [
         (o, k, float(v), seed_start + i, tier)
@@ -79,11 +85,9 @@ def study(
         for v in vals
         for i in range(episodes)
     ]
-    if workers > 1:
-        with mp.get_context("spawn").Pool(workers) as pool:
-            results = list(tqdm(pool.imap(_job, jobs), total=len(jobs), desc="episodes"))
-    else:
-        results = [_job(j) for j in tqdm(jobs, desc="episodes")]
+    results = list(
+        run_map(_job, jobs, backend=backend, workers=workers, address=address, desc="episodes")
+    )
     out: dict = {}
     for o in objects:
         out[o] = {}
@@ -133,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
     p.add_argument("--out", type=Path, default=Path("out/tolerance"), help="output prefix")
+    add_backend_arguments(p)
     args = p.parse_args(argv)
     spec = args.objects or args.object or "phone"
     objects = list(OBJECT_NAMES) if spec == "all" else spec.split(",")
@@ -144,8 +149,10 @@ def main(argv: list[str] | None = None) -> int:
     json_path, png_path = args.out.with_suffix(".json"), args.out.with_suffix(".png")
     try:
         check_tier(args.tier)
+        check_backend(args.backend, args.address)
         check_writable_file(json_path)
-        result = study(objects, args.episodes, args.seed_start, args.workers, args.tier)
+        result = study(objects, args.episodes, args.seed_start, args.workers, args.tier,
+                       args.backend, args.address)  # fmt: skip
     except PosegraspError as exc:
         return fail(str(exc))
     atomic_write_json(json_path, result)

@@ -2,7 +2,7 @@
 
     python -m perception.training.datagen --dist {paper,headcam} --split {train,val,test} --count N
         [--out DIR] [--objects all|phone,car] [--width W --height H] [--preview sheet.png]
-        [--workers K]
+        [--workers K] [--backend {local,ray} [--address ADDR]]
 
 Two distributions (docs/DESIGN.md §8; the generators are in
 `perception.training.generators`):
@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import multiprocessing
 import os
 import sys
 from collections.abc import Callable, Sequence
@@ -50,6 +49,7 @@ from perception.training.dataset import DISTS, SPLITS, load_info
 from perception.training.generators import HeadcamGenerator, PaperGenerator, make_generator
 from perception.training.sheets import write_preview
 from perception.training.writer import merge_scene, write_camera, write_models, write_sample
+from sim.core.backends import add_backend_arguments, check_backend, default_chunk, run_map
 from sim.core.cli import fail
 from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
 from sim.core.paths import data_root
@@ -76,7 +76,7 @@ class GenConfig:
         out: dataset folder.
         objects: classes cycled over by sample index.
         width, height: image size [px].
-        workers: rendering processes.
+        workers, backend, address: rendering processes and where they run (`sim.core.backends`).
         preview: where to write a contact sheet, or None.
         progress: show a tqdm bar.
         tier: the scene tier of ``headcam`` images (`sim.world.tiers`); None is the mixed
@@ -94,6 +94,8 @@ class GenConfig:
     preview: Path | None = None
     progress: bool = True
     tier: str | None = None
+    backend: str = "local"
+    address: str | None = None
 
     def seed(self, index: int) -> int:
         """Seed of sample index."""
@@ -221,14 +223,8 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
         for s in range(n_scenes)
         if not (bop.scene_dir(cfg.out, cfg.split, s) / "scene_gt.json").exists()
     }
-    bar = tqdm(
-        total=cfg.count,
-        initial=cfg.count - len(todo),
-        desc=f"{cfg.dist}/{cfg.split}",
-        unit="img",
-        disable=not cfg.progress,
-        dynamic_ncols=True,
-    )
+    bar = tqdm(total=cfg.count, initial=cfg.count - len(todo), desc=f"{cfg.dist}/{cfg.split}",
+               unit="img", disable=not cfg.progress, dynamic_ncols=True)  # fmt: skip
 
     def finished(index: int) -> None:
         bar.update(1)
@@ -241,7 +237,7 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
             stale.discard(s)
 
     try:
-        if cfg.workers <= 1 or len(todo) <= 1:
+        if len(todo) <= 1 or (cfg.workers <= 1 and cfg.backend == "local"):
             gen = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier)
             try:
                 for i in todo:
@@ -249,12 +245,12 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
                     finished(i)
             finally:
                 gen.close()
-        else:
-            ctx = multiprocessing.get_context("spawn")
-            with ctx.Pool(cfg.workers, initializer=_init_worker, initargs=(cfg,)) as pool:
-                chunk = max(1, min(16, len(todo) // (4 * cfg.workers)))
-                for i in pool.imap_unordered(_work, todo, chunksize=chunk):
-                    finished(i)
+        else:  # in the order the images come back; the Ray backend sizes its own chunks
+            chunk = default_chunk(len(todo), cfg.workers) if cfg.backend == "local" else None
+            for i in run_map(_work, todo, backend=cfg.backend, workers=cfg.workers,
+                             address=cfg.address, chunk=chunk, initializer=_init_worker,
+                             initargs=(cfg,), ordered=False):  # fmt: skip
+                finished(i)
     finally:
         bar.close()
     for s in sorted(stale):
@@ -302,6 +298,7 @@ def _parser() -> argparse.ArgumentParser:
         "scenes; the default folder is then <dist>_<tier>)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_backend_arguments(p)
     return p
 
 
@@ -321,6 +318,7 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
         raise InvalidArgumentError(f"invalid --count {a.count}; valid: 1..{MAX_COUNT}")
     if a.workers < 1:
         raise InvalidArgumentError(f"invalid --workers {a.workers}; valid: 1 or more")
+    check_backend(a.backend, a.address)
     if a.objects == "all":
         objects = OBJECT_NAMES
     else:
@@ -354,6 +352,8 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
         preview=a.preview,
         progress=not a.quiet,
         tier=a.tier,
+        backend=a.backend,
+        address=a.address,
     )
 
 
