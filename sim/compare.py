@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import binomtest
 
-from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
+from sim.core.cli import ArgumentParser, fail, write_json
 from sim.core.errors import InvalidArgumentError, PosegraspError
+from sim.core.validate import arg, check_int, check_output_file
 
 #: Bootstrap resamples unless told otherwise.
 BOOTSTRAP = 2000
@@ -177,14 +178,20 @@ def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="python -m sim.compare", description=__doc__.split("\n")[0])
     p.add_argument("a", type=Path, help="report A (python -m sim.evaluate --json)")
     p.add_argument("b", type=Path, help="report B")
-    p.add_argument("--json", type=Path, default=None, help="write the comparison here")
-    p.add_argument("--boot", type=int, default=BOOTSTRAP, help="bootstrap resamples (100..100000)")
+    p.add_argument(
+        "--json",
+        type=arg(check_output_file, "--json"),
+        default=None,
+        help="write the comparison here",
+    )
+    p.add_argument(
+        "--boot",
+        type=arg(check_int, 100, 100_000, "--boot", base=int),
+        default=BOOTSTRAP,
+        help="bootstrap resamples (100..100000)",
+    )
     args = p.parse_args(argv)
-    if not 100 <= args.boot <= 100_000:
-        return fail(f"--boot must be in 100..100000, got {args.boot}")
     try:
-        if args.json is not None:
-            check_writable_file(args.json)
         res = compare(load_report(args.a), load_report(args.b), args.boot)
     except PosegraspError as exc:
         return fail(str(exc))

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-import json
 import os
 import sys
 import time
@@ -22,9 +21,21 @@ import numpy as np
 
 from sim.compare import bootstrap_means
 from sim.core.backends import add_backend_arguments, check_backend, run_map
-from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
+from sim.core.cli import ArgumentParser, fail, write_json
 from sim.core.errors import PosegraspError
 from sim.core.paths import DOCS_DIR
+from sim.core.validate import (
+    arg,
+    check_choice,
+    check_int,
+    check_names,
+    check_output_file,
+    check_plot_path,
+    check_seed,
+    check_tolerance_file,
+    check_workers,
+    effective_workers,
+)
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
 from sim.pose_noise import NOISE_FORMAT, parse_noise
 from sim.world import constants as C
@@ -135,15 +146,18 @@ def evaluate(
     successful grasp's friction margin. `backend` and `address` say where the episodes run
     (`sim.core.backends.run_map`); on Ray each episode records the ``node`` that ran it."""
     check_tier(tier)
-    jobs = [
-        (o, seed_start + i, estimator, tier, noise, margin)
-        for o in objects
-        for i in range(episodes)
-    ]
+    n_jobs = len(objects) * episodes
+    workers, note = effective_workers(workers, n_jobs)
+    if note:
+        print(note, file=sys.stderr)
+    # Made as the workers take them, never all at once.
+    jobs = ((o, seed_start + i, estimator, tier, noise, margin)
+            for o in objects for i in range(episodes))  # fmt: skip
     t = time.perf_counter()
     results = []
     for d, node in run_map(_run_one, jobs, backend=backend, workers=workers, address=address,
-                           desc="episodes", initializer=_init_worker, with_node=True):  # fmt: skip
+                           desc="episodes", initializer=_init_worker, with_node=True,
+                           total=n_jobs):  # fmt: skip
         if node is not None:
             d["node"] = node
         results.append(d)
@@ -205,6 +219,8 @@ COMPONENTS: dict[str, tuple[str, float, tuple[float, ...]]] = {
     "outplane_deg": ("outplane_deg", 1.0, (0, 2.5, 5, 7.5, 10, 15, 20, 30, 45)),
 }
 DEFAULT_TOLERANCE = DOCS_DIR / "tolerance.json"
+#: Most episodes per object one evaluation runs.
+MAX_EPISODES = 100_000
 
 
 def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = None) -> None:
@@ -259,6 +275,7 @@ def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = Non
         f"(black: binned episodes with Wilson 95 %, n beside; lines: tolerance to that error alone)"
     )
     fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -267,55 +284,56 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.evaluate", description=__doc__.split("\n")[0])
     p.add_argument(
-        "--objects", default="all", help=f"'all' or a comma list of {', '.join(OBJECT_NAMES)}"
+        "--objects",
+        default=list(OBJECT_NAMES),
+        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
+        help=f"'all' or a comma list of {', '.join(OBJECT_NAMES)}",
     )
-    p.add_argument("--episodes", type=int, default=50, help="episodes per object")
+    p.add_argument("--episodes", type=arg(check_int, 1, MAX_EPISODES, "--episodes", base=int),
+                   default=50, help=f"episodes per object, 1..{MAX_EPISODES}")  # fmt: skip
     p.add_argument(
-        "--estimator", default=DEFAULT_ESTIMATOR, help=f"one of: {', '.join(ESTIMATORS)}"
+        "--estimator",
+        default=DEFAULT_ESTIMATOR,
+        type=arg(check_choice, list(ESTIMATORS), "estimator"),
+        help=f"one of: {', '.join(ESTIMATORS)}",
     )
     p.add_argument(
         "--seed-start",
-        type=int,
+        type=arg(check_seed, "--seed-start", base=int),
         default=C.EVAL_SEED_BASE,
         help="first scene seed (default: held-out scenes, never rendered as training data)",
     )
-    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--workers", type=arg(check_workers, base=int), default=1,
+                   help="worker processes, 1..64 (at most one per episode and core)")  # fmt: skip
     p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
     p.add_argument("--noise", default=None, help=f"noisy-oracle's Gaussian sigmas: {NOISE_FORMAT}")
     p.add_argument(
         "--margin", action="store_true", help="measure each grasp's friction margin (slower)"
     )
-    p.add_argument("--json", type=Path, default=None, help="write the full report here")
-    p.add_argument("--plot", type=Path, default=None, help="PNG of success against pose error")
+    p.add_argument("--json", type=arg(check_output_file, "--json"), default=None,
+                   help="write the full report here")  # fmt: skip
+    p.add_argument("--plot", type=arg(check_plot_path), default=None,
+                   help="plot of success against pose error (.png, .pdf or .svg)")  # fmt: skip
     p.add_argument(
         "--tolerance",
-        type=Path,
+        type=arg(check_tolerance_file),
         default=DEFAULT_TOLERANCE,
         help="tolerance curves to overlay (JSON of python -m sim.tolerance)",
     )
     add_backend_arguments(p)
     args = p.parse_args(argv)
-    objects = list(OBJECT_NAMES) if args.objects == "all" else args.objects.split(",")
-    bad = [o for o in objects if o not in OBJECT_NAMES]
-    if bad:
-        return fail(f"unknown object {bad[0]!r}; valid objects: all, {', '.join(OBJECT_NAMES)}")
-    if args.estimator not in ESTIMATORS:
-        return fail(
-            f"unknown estimator {args.estimator!r}; valid estimators: {', '.join(ESTIMATORS)}"
-        )
-    if args.episodes < 1 or args.workers < 1:
-        return fail("--episodes and --workers must be at least 1")
+    objects = args.objects
     try:
+        check_seed(args.seed_start, "--seed-start", args.episodes)
         check_tier(args.tier)
         check_backend(args.backend, args.address)
         if args.noise is not None:
             make_estimator(args.estimator, parse_noise(args.noise))  # validates the pair
-        for out in (args.json, args.plot):
-            if out is not None:
-                check_writable_file(out)
-        tolerance = None
-        if args.plot is not None and args.tolerance.is_file():
-            tolerance = json.loads(args.tolerance.read_text())
+        tolerance = args.tolerance  # the checked curves, or the default file's path
+        if isinstance(tolerance, Path):
+            tolerance = (
+                check_tolerance_file(tolerance) if args.plot and tolerance.is_file() else None
+            )
         _estimator(args.estimator, args.noise)  # fails fast (bad --noise, missing weights)
         report = evaluate(
             objects,

@@ -16,14 +16,14 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
 from perception.success_model import COMPONENTS, SuccessModel, components_of
-from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
+from sim.core.cli import ArgumentParser, fail, write_json
 from sim.core.errors import AssetError, PosegraspError
 from sim.core.paths import DOCS_DIR
+from sim.core.validate import arg, check_int, check_names, check_output_file, check_workers
 from sim.evaluate import evaluate
 from sim.world.objects import OBJECT_NAMES
 from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
@@ -67,21 +67,36 @@ def fit(samples: list[dict], objects: list[str], tier: str) -> dict[str, dict]:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.fit_success", description=__doc__.split("\n")[0])
-    p.add_argument("--objects", default="all", help=f"'all' or a comma list of {OBJECT_NAMES}")
-    p.add_argument("--episodes", type=int, default=100, help="episodes per object")
-    p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
-    p.add_argument("--workers", type=int, default=2, help="worker processes, 1..64")
-    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="the models' JSON file")
+    p.add_argument(
+        "--objects",
+        default=list(OBJECT_NAMES),
+        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
+        help=f"'all' or a comma list of {', '.join(OBJECT_NAMES)}",
+    )
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 3, 10_000, "--episodes", base=int),
+        default=100,
+        help="episodes per object, 3..10000",
+    )
+    p.add_argument(
+        "--tier",
+        default=DEFAULT_TIER,
+        type=arg(check_tier),
+        help=f"scene tier, one of: {', '.join(TIERS)}",
+    )
+    p.add_argument(
+        "--workers", type=arg(check_workers, base=int), default=2, help="worker processes, 1..64"
+    )
+    p.add_argument(
+        "--out",
+        type=arg(check_output_file, "--out"),
+        default=DEFAULT_OUT,
+        help="the models' JSON file",
+    )
     args = p.parse_args(argv)
-    objects = list(OBJECT_NAMES) if args.objects == "all" else args.objects.split(",")
-    bad = [o for o in objects if o not in OBJECT_NAMES]
-    if bad:
-        return fail(f"unknown object {bad[0]!r}; valid objects: all, {', '.join(OBJECT_NAMES)}")
-    if not 3 <= args.episodes <= 10_000 or not 1 <= args.workers <= 64:
-        return fail("--episodes must be in 3..10000 and --workers in 1..64")
+    objects = args.objects
     try:
-        check_tier(args.tier)
-        check_writable_file(args.out)
         old: dict = {}
         if args.out.is_file():
             try:

@@ -26,7 +26,6 @@ other seeds or other weights, is an error that says how to rewrite it.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import sys
 from pathlib import Path
@@ -37,7 +36,9 @@ from sim.compare import bootstrap_means, mcnemar_exact
 from sim.core.backends import add_backend_arguments, check_backend
 from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
 from sim.core.errors import AssetError, PosegraspError
+from sim.core.files import sha256_file
 from sim.core.paths import REPO_ROOT
+from sim.core.validate import arg, check_choice, check_workers
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS
 from sim.evaluate import evaluate, format_report
 from sim.world.objects import OBJECT_NAMES
@@ -92,7 +93,7 @@ def weights_fingerprint() -> dict[str, str]:
     out = {}
     for rel in WEIGHTS:
         p = REPO_ROOT / rel
-        out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()[:16] if p.is_file() else "missing"
+        out[rel] = sha256_file(p)[:16] if p.is_file() else "missing"
     return out
 
 
@@ -192,18 +193,17 @@ def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="python -m sim.gate", description=__doc__.split("\n")[0])
     p.add_argument("--write", action="store_true", help="write the baseline instead of comparing")
     p.add_argument("--baseline", type=Path, default=BASELINE)
-    p.add_argument("--workers", type=int, default=2, help="worker processes, 1..64")
     p.add_argument(
-        "--estimator", default=None, help=f"only this one; one of: {', '.join(ESTIMATORS)}"
+        "--workers", type=arg(check_workers, base=int), default=2, help="worker processes, 1..64"
+    )
+    p.add_argument(
+        "--estimator",
+        default=None,
+        type=arg(check_choice, list(ESTIMATORS), "estimator"),
+        help=f"only this one; one of: {', '.join(ESTIMATORS)}",
     )
     add_backend_arguments(p)
     args = p.parse_args(argv)
-    if not 1 <= args.workers <= 64:
-        return fail(f"--workers must be in 1..64, got {args.workers}")
-    if args.estimator is not None and args.estimator not in ESTIMATORS:
-        return fail(
-            f"unknown estimator {args.estimator!r}; valid estimators: {', '.join(ESTIMATORS)}"
-        )
     try:
         check_backend(args.backend, args.address)
     except PosegraspError as exc:

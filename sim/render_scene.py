@@ -19,8 +19,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sim.core.cli import ArgumentParser, check_writable_file, fail
+from sim.core.cli import ArgumentParser, fail
 from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from sim.core.validate import check_output_file, check_seed
 from sim.world import constants as C  # importing sim defaults MUJOCO_GL to egl
 from sim.world.camera import CameraRenderer, RenderOptions, check_resolution
 from sim.world.objects import OBJECT_NAMES
@@ -76,10 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="NAME",
         help=f"target object, one of: {', '.join(OBJECT_NAMES)} (default: phone)",
     )
-    p.add_argument("--seed", type=int, default=0, help="scene seed, >= 0 (default: 0)")
-    p.add_argument(
-        "--out", type=Path, default=Path("head.png"), help="output PNG (default: head.png)"
-    )
+    p.add_argument("--seed", type=int, default=0, help="scene seed in 0..2**32-1 (default: 0)")
+    p.add_argument("--out", type=str, default="head.png", help="output PNG (default: head.png)")
     p.add_argument(
         "--external",
         action="store_true",
@@ -110,16 +109,13 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
         raise UnknownNameError("object", args.object, OBJECT_NAMES)
     check_tier(args.tier)
     check_resolution(args.width, args.height)
-    if args.seed < 0:
-        raise InvalidArgumentError(f"invalid seed {args.seed}; seeds are integers >= 0")
+    check_seed(args.seed, "--seed")
     n_max = len(OBJECT_NAMES) - 1
     if not 0 <= args.distractors <= n_max:
         raise InvalidArgumentError(
             f"invalid number of distractors {args.distractors}; valid: 0..{n_max}"
         )
-    out: Path = args.out
-    if out.suffix.lower() != ".png":
-        raise InvalidArgumentError(f"invalid output {str(out)!r}; the output must be a .png file")
+    out = check_output_file(args.out, "--out", (".png",))
     req = RenderRequest(
         object=args.object,
         seed=args.seed,
@@ -131,13 +127,13 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
         shadows=not args.no_shadows,
         tier=args.tier,
     )
-    check_writable_file(req.out)
     if req.external:
-        check_writable_file(req.external_path)
+        check_output_file(req.external_path, "--out")
     return req
 
 
 def _write_png(path: Path, rgb: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(path), rgb[..., ::-1]):
         raise PosegraspError(f"cannot write {str(path)!r}")
 

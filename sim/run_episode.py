@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.core.cli import ArgumentParser, check_writable_file, fail
+from sim.core.cli import ArgumentParser, fail
 from sim.core.errors import PosegraspError
+from sim.core.validate import arg, check_choice, check_output_dir, check_seed
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
 from sim.pose_noise import NOISE_FORMAT, parse_noise
 from sim.world import constants as C
@@ -127,6 +128,7 @@ def _save(folder: Path, obs, est, ep, result) -> None:
 
     from perception.overlay import draw_pose
 
+    folder.mkdir(parents=True, exist_ok=True)
     mesh = ep.scene.target.model.mesh
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     img = draw_pose(obs.rgb, result.T_C_O_true, obs.K, v, f, color=(255, 255, 255), label="true")
@@ -155,35 +157,44 @@ def _save(folder: Path, obs, est, ep, result) -> None:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.run_episode", description=__doc__.split("\n")[0])
-    p.add_argument("--object", default="phone", help=f"one of: {', '.join(OBJECT_NAMES)}")
+    p.add_argument(
+        "--object",
+        default="phone",
+        type=arg(check_choice, OBJECT_NAMES, "object"),
+        help=f"one of: {', '.join(OBJECT_NAMES)}",
+    )
     p.add_argument(
         "--seed",
-        type=int,
+        type=arg(check_seed, "--seed", base=int),
         default=C.EVAL_SEED_BASE,
-        help=f"scene seed (default {C.EVAL_SEED_BASE}: seeds below {C.DATA_SEED_LIMIT} are the "
-        "data generator's, i.e. scenes the networks may have been trained on)",
+        help=f"scene seed in 0..2**32-1 (default {C.EVAL_SEED_BASE}: seeds below "
+        f"{C.DATA_SEED_LIMIT} are the data generator's, i.e. scenes the networks may have been "
+        "trained on)",
     )
     p.add_argument(
-        "--estimator", default=DEFAULT_ESTIMATOR, help=f"one of: {', '.join(ESTIMATORS)}"
+        "--estimator",
+        default=DEFAULT_ESTIMATOR,
+        type=arg(check_choice, list(ESTIMATORS), "estimator"),
+        help=f"one of: {', '.join(ESTIMATORS)}",
     )
-    p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
+    p.add_argument(
+        "--tier",
+        default=DEFAULT_TIER,
+        type=arg(check_tier),
+        help=f"scene tier, one of: {', '.join(TIERS)}",
+    )
     p.add_argument("--noise", default=None, help=f"noisy-oracle's Gaussian sigmas: {NOISE_FORMAT}")
     p.add_argument("--json", action="store_true", help="print one JSON object instead")
     p.add_argument(
         "--save",
-        type=Path,
+        type=arg(check_output_dir, "--save", base=Path),
         default=None,
         metavar="DIR",
         help="write the head image with the estimated pose drawn on it and a GIF of the grasp",
     )
     args = p.parse_args(argv)
-    if args.object not in OBJECT_NAMES:
-        return fail(f"unknown object {args.object!r}; valid objects: {', '.join(OBJECT_NAMES)}")
     try:
-        check_tier(args.tier)
         noise = None if args.noise is None else parse_noise(args.noise)
-        if args.save is not None:
-            check_writable_file(args.save / "head.png")
         estimator = make_estimator(args.estimator, noise)
         result = _run(args.object, args.seed, estimator, args.save, args.tier)
     except PosegraspError as exc:

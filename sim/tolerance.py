@@ -16,9 +16,19 @@ from pathlib import Path
 import numpy as np
 
 from sim.core.backends import add_backend_arguments, check_backend, run_map
-from sim.core.cli import ArgumentParser, check_writable_file, fail
+from sim.core.cli import ArgumentParser, fail
 from sim.core.errors import PosegraspError
 from sim.core.files import atomic_write_json
+from sim.core.validate import (
+    arg,
+    check_choice,
+    check_int,
+    check_names,
+    check_output_file,
+    check_seed,
+    check_workers,
+    effective_workers,
+)
 from sim.world.objects import OBJECT_NAMES
 from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
 
@@ -78,16 +88,21 @@ def study(
     """Run the study on one tier and return {object: {kind: {levels, rates, tolerance}}};
     `backend` and `address` say where the episodes run (`sim.core.backends.run_map`)."""
     check_tier(tier)
-    jobs = [
+    n_jobs = len(objects) * sum(map(len, LEVELS.values())) * episodes
+    workers, note = effective_workers(workers, n_jobs)
+    if note:
+        print(note, file=sys.stderr)
+    jobs = (  # made as the workers take them
         (o, k, float(v), seed_start + i, tier)
         for o in objects
         for k, vals in LEVELS.items()
         for v in vals
         for i in range(episodes)
-    ]
-    results = list(
-        run_map(_job, jobs, backend=backend, workers=workers, address=address, desc="episodes")
     )
+    results = list(
+        run_map(_job, jobs, backend=backend, workers=workers, address=address, desc="episodes",
+                total=n_jobs)
+    )  # fmt: skip
     out: dict = {}
     for o in objects:
         out[o] = {}
@@ -130,27 +145,28 @@ def plot(result: dict, path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.tolerance", description=__doc__.split("\n")[0])
-    p.add_argument("--object", default=None, help=f"one of: {', '.join(OBJECT_NAMES)}")
-    p.add_argument("--objects", default=None, help="'all' or a comma list")
-    p.add_argument("--episodes", type=int, default=10, help="episodes per level")
-    p.add_argument("--seed-start", type=int, default=1000)
-    p.add_argument("--workers", type=int, default=1)
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--object", type=arg(check_choice, OBJECT_NAMES, "object"),
+                       help=f"one of: {', '.join(OBJECT_NAMES)} (default: phone)")  # fmt: skip
+    which.add_argument("--objects", type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
+                       help="'all' or a comma list")  # fmt: skip
+    p.add_argument("--episodes", type=arg(check_int, 1, 10_000, "--episodes", base=int),
+                   default=10, help="episodes per level, 1..10000")  # fmt: skip
+    p.add_argument("--seed-start", type=arg(check_seed, "--seed-start", base=int), default=1000)
+    p.add_argument("--workers", type=arg(check_workers, base=int), default=1, help="1..64")
     p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
-    p.add_argument("--out", type=Path, default=Path("out/tolerance"), help="output prefix")
+    p.add_argument("--out", default="out/tolerance", help="output prefix (.json and .png)")
     add_backend_arguments(p)
     args = p.parse_args(argv)
-    spec = args.objects or args.object or "phone"
-    objects = list(OBJECT_NAMES) if spec == "all" else spec.split(",")
-    bad = [o for o in objects if o not in OBJECT_NAMES]
-    if bad:
-        return fail(f"unknown object {bad[0]!r}; valid objects: all, {', '.join(OBJECT_NAMES)}")
-    if args.episodes < 1 or args.workers < 1:
-        return fail("--episodes and --workers must be at least 1")
-    json_path, png_path = args.out.with_suffix(".json"), args.out.with_suffix(".png")
+    objects = args.objects or [args.object or "phone"]
     try:
+        check_seed(args.seed_start, "--seed-start", args.episodes)
+        out = check_output_file(args.out, "--out")
+        json_path, png_path = out.with_suffix(".json"), out.with_suffix(".png")
+        for path in (json_path, png_path):
+            check_output_file(path, "--out")
         check_tier(args.tier)
         check_backend(args.backend, args.address)
-        check_writable_file(json_path)
         result = study(objects, args.episodes, args.seed_start, args.workers, args.tier,
                        args.backend, args.address)  # fmt: skip
     except PosegraspError as exc:

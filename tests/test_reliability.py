@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib
+import itertools
 import json
 import shutil
 from pathlib import Path
@@ -17,10 +19,21 @@ from perception.training import record, tables
 from perception.training.checkpoints import save_atomically
 from perception.training.manifest import write_manifest
 from sim.core import files
+from sim.core.backends import run_map
 from sim.core.cli import write_json
-from sim.core.errors import AssetError
+from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 from sim.core.files import sha256_file
 from sim.core.paths import WEIGHTS_DIR
+from sim.core.validate import (
+    check_names,
+    check_output_file,
+    check_plot_path,
+    check_seed,
+    check_tolerance_curves,
+    effective_workers,
+    parse_intrinsics,
+)
+from sim.world.objects import OBJECT_NAMES
 
 MANIFEST = WEIGHTS_DIR / "manifest.json"
 
@@ -191,3 +204,93 @@ def test_the_manifest_writer_is_atomic(tmp_path: Path, monkeypatch) -> None:
     with pytest.raises(OSError):
         write_manifest(path, {"pose_nets": {"ours": {}}})
     assert path.read_bytes() == old and _no_temporaries(tmp_path)
+
+
+# --- bounded inputs, one validator per concept --------------------------------------------------
+
+
+def test_jobs_stream_lazily_into_the_pool() -> None:
+    """An endless job stream: the pool takes windows of it, so the first results come back."""
+    jobs = (-i for i in itertools.count())
+    out = run_map(abs, jobs, workers=2, total=10**12)
+    assert list(itertools.islice(out, 5)) == [0, 1, 2, 3, 4]
+    out.close()
+
+
+def test_workers_are_capped_by_jobs_and_cores_with_a_note() -> None:
+    n, note = effective_workers(1000, 1)
+    assert n == 1 and "using 1 worker(s), not 1000" in note
+    assert effective_workers(1, 50) == (1, None)
+
+
+@pytest.mark.parametrize(
+    "check, args, words",
+    [
+        (check_seed, (-1,), "0..4294967295"),
+        (check_seed, (2**32,), "0..4294967295"),
+        (check_seed, (True,), "integers"),
+        (check_seed, (2**32 - 5, "--seed-start", 10), "valid: 0..4294967286"),
+        (check_names, ("phone,phone", OBJECT_NAMES, "object", "--objects"), "phone twice"),
+        (check_names, ("", OBJECT_NAMES, "object", "--objects"), "comma list"),
+        (check_names, ("teapot", OBJECT_NAMES, "object", "--objects"), "valid objects"),
+        (check_output_file, ("out/", "--out"), "it is a folder"),
+        (check_plot_path, ("p.xyz",), ".png, .pdf, .svg"),
+        (parse_intrinsics, ("1e30,1e30,320,240",), "within +-100000"),
+        (parse_intrinsics, ("500,-500,320,240",), "positive focal lengths"),
+        (parse_intrinsics, ("500,500,320",), "four numbers"),
+        (check_tolerance_curves, ({"phone": {"ray_mm": {"levels": [0], "success_rate": [2]}}},),
+         "python -m sim.tolerance"),
+    ],
+)  # fmt: skip
+def test_shared_validators_name_the_valid_range(check, args, words) -> None:
+    with pytest.raises((InvalidArgumentError, UnknownNameError)) as exc:
+        check(*args)
+    assert words in str(exc.value) and "\n" not in str(exc.value)
+
+
+CLI_REJECTIONS = [
+    ("sim.run_episode", ["--seed", "-1"], "0..4294967295"),
+    ("sim.run_episode", ["--save", "{file}/sub"], "is a file, not a folder"),
+    ("sim.evaluate", ["--episodes", "99999999999"], "1..100000"),
+    ("sim.evaluate", ["--seed-start", "-5"], "0..4294967295"),
+    ("sim.evaluate", ["--objects", "phone,phone"], "phone twice"),
+    ("sim.evaluate", ["--plot", "p.xyz"], ".png, .pdf, .svg"),
+    ("sim.evaluate", ["--json", "out/"], "it is a folder"),
+    ("sim.evaluate", ["--tolerance", "{file}"], "not a JSON file"),
+    ("sim.evaluate", ["--workers", "1000"], "1..64"),
+    ("sim.tolerance", ["--object", "car", "--objects", "phone"], "not allowed with"),
+    ("sim.tolerance", ["--out", "dir/"], "it is a folder"),
+    ("sim.tolerance", ["--seed-start", "-1"], "0..4294967295"),
+    ("sim.render_scene", ["--seed", "-2"], "0..4294967295"),
+    ("sim.gate", ["--workers", "0"], "1..64"),
+    ("sim.compare", ["a.json", "b.json", "--boot", "5"], "100..100000"),
+    ("sim.fit_success", ["--objects", "car,car"], "car twice"),
+    ("perception.training.datagen", ["--dist", "paper", "--split", "val", "--count", "1",
+                                     "--preview", "sheet.xyz"], "valid suffixes: .png"),
+    ("perception.training.datagen", ["--dist", "paper", "--split", "val", "--count", "1",
+                                     "--objects", "car,car"], "car twice"),
+    ("perception.training.overlays", ["--save", "o", "--images", "0"], "1..1000"),
+    ("perception.training.overlays", ["--save", "o", "--image", "x.png", "--K", "1e30,1,1,1"],
+     "within +-100000"),
+    ("perception.training.tables", ["--dists", "paper,paper"], "paper twice"),
+    ("perception.training.tables", ["--limit", "0"], "1..100000000"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("module, argv, words", CLI_REJECTIONS)
+def test_every_cli_refuses_bad_input_in_one_line_before_any_work(
+    module, argv, words, tmp_path, monkeypatch, capsys
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "file").write_text("not json")
+    before = sorted(tmp_path.rglob("*"))
+    main = importlib.import_module(module).main
+    argv = [a.format(file=tmp_path / "file") for a in argv]
+    try:
+        status = main(argv)
+    except SystemExit as exc:
+        status = exc.code
+    err = capsys.readouterr().err
+    assert status == 2
+    assert err.count("\n") == 1 and err.startswith("error: ") and words in err, err
+    assert sorted(tmp_path.rglob("*")) == before  # nothing written

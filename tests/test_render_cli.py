@@ -68,7 +68,8 @@ BAD_INPUTS = [
     (["--out", "{tmp}/dir.png"], ["is a folder"]),
     (["--out", "{tmp}/head.jpg"], [".png"]),
     (["--distractors", "9"], ["0..5"]),
-    (["--seed", "-1"], [">= 0"]),
+    (["--seed", "-1"], ["0..4294967295"]),
+    (["--seed", str(2**32)], ["0..4294967295"]),
     (["--width", "wide"], ["--width", "invalid int value", "--help"]),
     (["--colour", "red"], ["unrecognized arguments: --colour", "--help"]),
 ]

@@ -74,12 +74,15 @@ def test_inputs_are_checked() -> None:
     "argv, message",
     [
         (["--objects", "teapot"], "valid objects"),
-        (["--episodes", "1"], "--episodes must be in"),
+        (["--episodes", "1"], "valid: integers 3..10000"),
+        (["--objects", "phone,phone"], "phone twice"),
         (["--tier", "banana"], "valid tiers"),
     ],
 )
 def test_fit_cli_rejects_bad_input_in_one_line(tmp_path: Path, capsys, argv, message) -> None:
-    assert fit_success.main([*argv, "--out", str(tmp_path / "m.json")]) == 2
+    with pytest.raises(SystemExit) as exc:  # refused while parsing, before any work
+        fit_success.main([*argv, "--out", str(tmp_path / "m.json")])
+    assert exc.value.code == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
     assert not (tmp_path / "m.json").exists()

@@ -53,6 +53,7 @@ from sim.core.backends import add_backend_arguments, check_backend, default_chun
 from sim.core.cli import fail
 from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
 from sim.core.paths import data_root
+from sim.core.validate import check_names, check_output_file, check_workers
 from sim.world.camera import check_resolution
 from sim.world.objects import OBJECT_NAMES
 from sim.world.tiers import TIERS, check_tier
@@ -289,8 +290,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--objects", default="all", help="'all' or a comma list, e.g. phone,car")
     p.add_argument("--width", type=int, default=None, help="image width (256 paper, 640 headcam)")
     p.add_argument("--height", type=int, default=None, help="image height (256 / 480)")
-    p.add_argument("--preview", type=Path, default=None, help="write a contact sheet PNG here")
-    p.add_argument("--workers", type=int, default=1, help="rendering processes (default 1)")
+    p.add_argument("--preview", default=None, help="write a contact sheet PNG here")
+    p.add_argument("--workers", type=int, default=1, help="rendering processes, 1..64 (default 1)")
     p.add_argument(
         "--tier",
         default=None,
@@ -316,20 +317,9 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
         raise UnknownNameError("split", a.split, SPLITS)
     if not 1 <= a.count <= MAX_COUNT:
         raise InvalidArgumentError(f"invalid --count {a.count}; valid: 1..{MAX_COUNT}")
-    if a.workers < 1:
-        raise InvalidArgumentError(f"invalid --workers {a.workers}; valid: 1 or more")
+    check_workers(a.workers)
     check_backend(a.backend, a.address)
-    if a.objects == "all":
-        objects = OBJECT_NAMES
-    else:
-        objects = tuple(s.strip() for s in a.objects.split(",") if s.strip())
-        if not objects:
-            raise InvalidArgumentError(
-                f"empty --objects; valid: all or a comma list of {', '.join(OBJECT_NAMES)}"
-            )
-        for n in objects:
-            if n not in OBJECT_NAMES:
-                raise UnknownNameError("object", n, OBJECT_NAMES)
+    objects = tuple(check_names(a.objects, OBJECT_NAMES, "object", "--objects"))
     if a.tier is not None:
         check_tier(a.tier)
         if a.dist != "headcam":
@@ -349,7 +339,7 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
         width=width,
         height=height,
         workers=a.workers,
-        preview=a.preview,
+        preview=None if a.preview is None else check_output_file(a.preview, "--preview", (".png",)),
         progress=not a.quiet,
         tier=a.tier,
         backend=a.backend,
@@ -383,6 +373,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         n = generate(cfg)
         if cfg.preview is not None:
+            cfg.preview.parent.mkdir(parents=True, exist_ok=True)
             write_preview(cfg.out, cfg.split, cfg.dist, cfg.preview)
     except KeyboardInterrupt:
         return fail("interrupted; run the same command again to resume", 130)

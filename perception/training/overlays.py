@@ -10,15 +10,18 @@ import sys
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 from perception.hybrid import HybridPoseEstimator
 from perception.overlay import draw_detections
-from perception.training.dataset import PoseDataset
+from perception.training.dataset import DISTS, SPLITS, PoseDataset
 from perception.training.sheets import contact_sheet
-from sim.core.cli import ArgumentParser, check_writable_file, fail
+from sim.core.cli import ArgumentParser, fail
 from sim.core.errors import PosegraspError
 from sim.core.paths import data_root
+from sim.core.validate import arg, check_choice, check_int, check_output_dir, parse_intrinsics
+
+#: Most images one command overlays.
+MAX_IMAGES = 1000
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,40 +34,58 @@ def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(
         prog="python -m perception.training.overlays", description=main.__doc__.split("\n")[0]
     )
-    p.add_argument("--dist", default="headcam", help="dataset under $POSEGRASP_DATA: headcam")
-    p.add_argument("--split", default="test", help="one of: train, val, test")
-    p.add_argument("--images", type=int, default=12, help="how many images of the split")
+    p.add_argument(
+        "--dist",
+        default="headcam",
+        type=arg(check_choice, DISTS, "distribution"),
+        help=f"dataset under $POSEGRASP_DATA, one of: {', '.join(DISTS)}",
+    )
+    p.add_argument(
+        "--split",
+        default="test",
+        type=arg(check_choice, SPLITS, "split"),
+        help=f"one of: {', '.join(SPLITS)}",
+    )
+    p.add_argument(
+        "--images",
+        type=arg(check_int, 1, MAX_IMAGES, "--images", base=int),
+        default=12,
+        help=f"how many images of the split, 1..{MAX_IMAGES}",
+    )
     p.add_argument("--image", type=Path, default=None, help="an RGB image file instead")
-    p.add_argument("--K", default=None, help="fx,fy,cx,cy of --image [px]")
-    p.add_argument("--save", type=Path, required=True, metavar="DIR", help="output folder")
+    p.add_argument(
+        "--K", type=arg(parse_intrinsics, "--K"), default=None, help="fx,fy,cx,cy of --image [px]"
+    )
+    p.add_argument(
+        "--save",
+        type=arg(check_output_dir, "--save", base=Path),
+        required=True,
+        metavar="DIR",
+        help="output folder",
+    )
     args = p.parse_args(argv)
-    if args.split not in ("train", "val", "test"):
-        return fail(f"unknown split {args.split!r}; valid splits: train, val, test")
+    if args.image is not None and args.K is None:
+        return fail("--image needs --K fx,fy,cx,cy")
     try:
-        check_writable_file(args.save / "overlays.png")
         if args.image is not None:
-            if args.K is None:
-                return fail("--image needs --K fx,fy,cx,cy")
-            try:
-                fx, fy, cx, cy = (float(v) for v in args.K.split(","))
-            except ValueError:
-                return fail(f"--K must be four numbers fx,fy,cx,cy, got {args.K!r}")
             bgr = cv2.imread(str(args.image), cv2.IMREAD_COLOR)
             if bgr is None:
                 return fail(f"cannot read an image from {args.image}")
-            items = [
-                (
-                    args.image.stem,
-                    bgr[..., ::-1].copy(),
-                    np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]),
+            h, w = bgr.shape[:2]
+            cx, cy = args.K[0, 2], args.K[1, 2]
+            if not (0 <= cx <= w - 1 and 0 <= cy <= h - 1):
+                return fail(
+                    f"invalid --K: principal point ({cx:g}, {cy:g}) outside the {w}x{h} image; "
+                    f"valid: cx in 0..{w - 1}, cy in 0..{h - 1}"
                 )
-            ]
+            items = [(args.image.stem, bgr[..., ::-1].copy(), args.K)]
         else:
             ds = PoseDataset(data_root() / args.dist, args.split)
             items = []
             for i in range(min(args.images, len(ds))):
                 s = ds[i]
                 items.append((f"{args.split}_{s.scene_id:06d}_{s.im_id:06d}", s.rgb, s.K))
+        args.save.mkdir(parents=True, exist_ok=True)
         est = HybridPoseEstimator.from_weights()
         tiles = []
         for name, rgb, K in items:

@@ -42,9 +42,10 @@ from perception.training.record import (
     record_command,
     record_in_manifest,
 )
-from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
+from sim.core.cli import ArgumentParser, fail, write_json
 from sim.core.errors import AssetError, PosegraspError
 from sim.core.paths import WEIGHTS_DIR, data_root
+from sim.core.validate import arg, check_choice, check_int, check_names, check_output_file
 from sim.world.objects import OBJECT_NAMES, load_object
 
 #: The paper's Tables 1 and 2 (Staszak & Belter 2019), per object and average.
@@ -71,6 +72,8 @@ BOXES: tuple[str, ...] = ("gt", "detector")
 RATIO_KEYS = ("center_px_mean", "distance_pct_mean", "rotation_deg_mean")
 #: A detection used for a pose must score at least this (the estimator's default threshold).
 MATCH_SCORE = 0.5
+#: Largest --limit (a split never holds more images).
+MAX_LIMIT = 100_000_000
 #: Objects with fewer visible pixels count neither as misses nor as false positives in AP.
 MIN_VISIBLE_PX = 100
 
@@ -265,8 +268,13 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="comma list of: headcam, paper (default: both; headcam with --boxes detector)",
     )
-    p.add_argument("--limit", type=int, default=None, help="at most this many test images")
-    p.add_argument("--json", type=Path, default=None)
+    p.add_argument(
+        "--limit",
+        type=arg(check_int, 1, MAX_LIMIT, "--limit", base=int),
+        default=None,
+        help=f"at most this many test images, 1..{MAX_LIMIT}",
+    )
+    p.add_argument("--json", type=arg(check_output_file, "--json"), default=None)
     p.add_argument(
         "--boxes",
         default="gt",
@@ -289,20 +297,14 @@ def main(argv: list[str] | None = None) -> int:
         "weights on the full shipped test splits of the default data folder",
     )
     args = p.parse_args(argv)
-    if args.boxes not in BOXES:
-        return fail(f"unknown --boxes {args.boxes!r}; valid: {', '.join(BOXES)}")
-    spec = args.dists or ("headcam" if args.boxes == "detector" else "headcam,paper")
-    dists = spec.split(",")
-    if any(d not in DISTS for d in dists):
-        return fail(f"unknown distribution in {spec!r}; valid: {', '.join(DISTS)}")
-    if args.boxes == "detector" and dists != ["headcam"]:
-        return fail("--boxes detector works on the head-camera split only; valid: headcam")
     try:
+        check_choice(args.boxes, BOXES, "box source")
+        spec = args.dists or ("headcam" if args.boxes == "detector" else "headcam,paper")
+        dists = check_names(spec, DISTS, "distribution", "--dists")
+        if args.boxes == "detector" and dists != ["headcam"]:
+            return fail("--boxes detector works on the head-camera split only; valid: headcam")
         if args.record:
             check_record_request(args, dists)
-        if args.json is not None:
-            check_writable_file(args.json)
-        if args.record:
             check_full_splits(dists)
         model = load_posenet(args.weights)
         success = None

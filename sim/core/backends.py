@@ -30,7 +30,7 @@ import socket
 import sys
 import threading
 import uuid
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sized
 from typing import Any
 
 from tqdm import tqdm
@@ -45,6 +45,8 @@ CONNECT_TIMEOUT_S = 20.0
 MAX_RETRIES = 3
 #: Largest chunk `default_chunk` makes (a retried chunk repeats at most this many jobs).
 MAX_CHUNK = 16
+#: Jobs handed to the local pool at a time, per worker.
+LOCAL_WINDOW = 32
 #: Object store of a Ray started here [bytes]: the jobs and results are small.
 OBJECT_STORE_BYTES = 100 * 2**20
 
@@ -88,7 +90,7 @@ def default_chunk(n_jobs: int, slots: int) -> int:
 
 def run_map(
     fn: Callable[[Any], Any],
-    jobs: Sequence[Any],
+    jobs: Iterable[Any],
     *,
     backend: str = "local",
     workers: int = 1,
@@ -100,12 +102,14 @@ def run_map(
     initargs: tuple = (),
     ordered: bool = True,
     with_node: bool = False,
+    total: int | None = None,
 ) -> Iterator[Any]:
     """Yield ``fn(job)`` for every job.
 
     Args:
         fn: a module-level function of one job.
-        jobs: the jobs.
+        jobs: the jobs; an iterator is consumed lazily on the local backend (the pool takes
+            jobs as workers free up), so a long run never holds them all.
         backend: one of `BACKENDS`.
         workers: local processes, or the CPUs of a Ray started here (ignored with `address`).
         address: an existing Ray cluster (``host:port``, ``ray://host:port`` or ``auto``).
@@ -117,20 +121,24 @@ def run_map(
         ordered: yield in job order (else as the results come back).
         with_node: yield ``(result, node)`` pairs, node the Ray node id that ran the job (None
             on the local backend).
+        total: the number of jobs, for the bar (default: ``len(jobs)`` when it has one).
 
     Raises:
         UnknownNameError, InvalidArgumentError: a bad backend or address.
         BackendError: Ray is not installed or its cluster cannot be reached.
     """
     check_backend(backend, address)
-    jobs = list(jobs)
+    if backend == "ray":  # cut into chunks up front
+        jobs = list(jobs)
+    if total is None:
+        total = len(jobs) if isinstance(jobs, Sized) else None
     ray, owned = None, False
     if backend == "ray":  # connect before the bar shows, so a failure is one line
         ray = _import_ray()
         owned = not ray.is_initialized()  # a caller's own Ray session is used and left running
         if owned:
             connect(ray, address, workers)
-    bar = tqdm(total=len(jobs), desc=desc, unit=unit, disable=desc is None, dynamic_ncols=True)
+    bar = tqdm(total=total, desc=desc, unit=unit, disable=desc is None, dynamic_ncols=True)
     try:
         if ray is not None:
             results = _ray_map(ray, fn, jobs, workers, chunk, initializer, initargs, ordered, bar)
@@ -153,7 +161,11 @@ def _local_map(fn, jobs, workers, chunk, initializer, initargs, ordered) -> Iter
         return
     with mp.get_context("spawn").Pool(workers, initializer, initargs) as pool:
         imap = pool.imap if ordered else pool.imap_unordered
-        yield from imap(fn, jobs, chunksize=chunk or 1)
+        # Pool.imap queues its whole input at once: fed in windows, a long stream of jobs is
+        # never held in memory.
+        it = iter(jobs)
+        while window := list(itertools.islice(it, LOCAL_WINDOW * workers)):
+            yield from imap(fn, window, chunksize=chunk or 1)
 
 
 # --- Ray -------------------------------------------------------------------------------------
