@@ -8,6 +8,7 @@ object in the camera frame (or "no estimate"); the step executes the grasp on th
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any, ClassVar
 
@@ -17,25 +18,84 @@ from gymnasium import spaces
 
 from sim.core.errors import InvalidArgumentError, StateError, UnknownNameError
 from sim.core.transforms import mat_to_quat, quat_to_mat
+from sim.core.validate import check_seed
 from sim.episode import Episode, EpisodeConfig
 from sim.world.camera import CameraRenderer, RenderOptions
-from sim.world.objects import OBJECT_NAMES
+from sim.world.objects import OBJECT_NAMES, check_object
 from sim.world.tiers import check_tier
 
 ENV_ID = "GraspEval-v0"
 #: Tolerance on the norm of the action's quaternion.
 UNIT_QUAT_TOL = 1e-3
+#: Most neighbour poses an action may report.
+MAX_NEIGHBOURS = 8
+#: Keys of `reset`'s options.
+OPTIONS = ("object", "episode_seed")
+#: Keys every action holds; ``neighbours`` is optional.
+ACTION_KEYS = ("has_estimate", "position", "quaternion")
 
 
-def pose_action(T_C_O: np.ndarray | None) -> dict[str, Any]:
-    """The action that reports pose T_C_O (4x4, camera frame, metres), or no estimate."""
-    if T_C_O is None:
-        return {"has_estimate": 0, "position": np.zeros(3), "quaternion": np.array([1.0, 0, 0, 0])}
-    return {
-        "has_estimate": 1,
-        "position": np.asarray(T_C_O[:3, 3], float).copy(),
-        "quaternion": mat_to_quat(T_C_O[:3, :3]),
+def pose_action(
+    T_C_O: np.ndarray | None, neighbours: Sequence[tuple[str, np.ndarray]] = ()
+) -> dict[str, Any]:
+    """The action that reports pose T_C_O (4x4, camera frame, metres), or no estimate, and,
+    when given, the other objects seen: (class, T_C_N) pairs, at most `MAX_NEIGHBOURS`."""
+    if len(neighbours) > MAX_NEIGHBOURS:
+        raise InvalidArgumentError(f"at most {MAX_NEIGHBOURS} neighbours, got {len(neighbours)}")
+    action: dict[str, Any] = {
+        "has_estimate": 0,
+        "position": np.zeros(3),
+        "quaternion": np.array([1.0, 0, 0, 0]),
     }
+    if T_C_O is not None:
+        action |= {
+            "has_estimate": 1,
+            "position": np.asarray(T_C_O[:3, 3], float).copy(),
+            "quaternion": mat_to_quat(T_C_O[:3, :3]),
+        }
+    if neighbours:
+        n = len(neighbours)
+        quats = np.tile([1.0, 0.0, 0.0, 0.0], (MAX_NEIGHBOURS, 1))
+        pos = np.zeros((MAX_NEIGHBOURS, 3))
+        ids = np.zeros(MAX_NEIGHBOURS, np.int64)
+        for i, (name, T) in enumerate(neighbours):
+            ids[i] = OBJECT_NAMES.index(check_object(name))
+            pos[i], quats[i] = np.asarray(T, float)[:3, 3], mat_to_quat(np.asarray(T)[:3, :3])
+        action["neighbours"] = {"count": n, "object": ids, "position": pos, "quaternion": quats}
+    return action
+
+
+def _real(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
+    a = np.asarray(value)
+    if a.dtype.kind not in "iuf" or a.shape != shape:
+        raise InvalidArgumentError(
+            f"action {name} must be a real array of shape {shape}, got {a.dtype} {a.shape}"
+        )
+    return a.astype(float)
+
+
+def _count(value: Any, hi: int, name: str) -> int:
+    """An int or bool (Python or numpy, or a 0-d array of one) in 0..hi."""
+    if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "biu":
+        value = value.item()
+    if isinstance(value, (bool, np.bool_)):
+        value = int(value)
+    if not isinstance(value, (int, np.integer)) or not 0 <= value <= hi:
+        raise InvalidArgumentError(
+            f"action {name} must be an int or bool in 0..{hi}, got {value!r}"
+        )
+    return int(value)
+
+
+def _pose(pos: np.ndarray, quat: np.ndarray, what: str) -> tuple[np.ndarray | None, str | None]:
+    if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))):
+        return None, f"{what} contains NaN or infinite values"
+    if abs(np.linalg.norm(quat) - 1.0) > UNIT_QUAT_TOL:
+        return None, f"{what} quaternion is not unit norm (|q| = {np.linalg.norm(quat):.4f})"
+    T = np.eye(4)
+    T[:3, :3] = quat_to_mat(quat / np.linalg.norm(quat))
+    T[:3, 3] = pos
+    return T, None
 
 
 class GraspEvalEnv(gym.Env):
@@ -49,7 +109,12 @@ class GraspEvalEnv(gym.Env):
     ## Action Space
     `Dict`: `has_estimate` (`Discrete(2)`, 0 = no estimate), `position` (`Box(3,)`, object
     origin in the OpenCV camera frame [m]), `quaternion` (`Box(4,)`, object orientation in the
-    camera frame, w x y z, unit norm).
+    camera frame, w x y z, unit norm) and, optionally, `neighbours`: the other objects the
+    estimator saw, which the planner keeps the gripper clear of: `Dict` of `count`
+    (`Discrete(MAX_NEIGHBOURS + 1)`), `object` (`MultiDiscrete`, class indices), `position`
+    (`Box(MAX_NEIGHBOURS, 3)`) and `quaternion` (`Box(MAX_NEIGHBOURS, 4)`); the first `count`
+    rows are used (`pose_action(T, neighbours)` builds it). `has_estimate` must be 0 or 1 (an int
+    or bool); positions and quaternions real arrays of their shapes.
 
     ## Observation Space
     `Dict`: `rgb` (`Box(H, W, 3)`, uint8), `K` (`Box(3, 3)`, intrinsics [px]), `T_world_cam`
@@ -69,7 +134,11 @@ class GraspEvalEnv(gym.Env):
     ## Episode End
     Terminated after the one step. An action that is not a finite pose with a unit quaternion
     ends the episode as a failed grasp with `failure_reason = "invalid_action"` (and the
-    problem in `info["error"]`); an action of the wrong structure or shape raises ValueError.
+    problem in `info["error"]`), as does a non-finite or non-unit neighbour pose; an action of
+    the wrong structure, shape or type (a string, NaN or 2 as `has_estimate`, complex numbers)
+    raises `InvalidArgumentError` (a ValueError). A bad `seed` (not in 0..2**32-1) or bad
+    `options` make `reset` raise before it builds anything; the env then has no episode and
+    `step` raises `StateError` until a reset succeeds.
 
     ## Arguments
     `object`: a class name, or None to draw one per episode; `width`, `height`: head camera
@@ -112,11 +181,19 @@ class GraspEvalEnv(gym.Env):
                 "table_top_z": spaces.Box(-np.inf, np.inf, (1,), np.float64),
             }
         )
+        m = MAX_NEIGHBOURS
+        neighbours = {
+            "count": spaces.Discrete(m + 1),
+            "object": spaces.MultiDiscrete([len(OBJECT_NAMES)] * m),
+            "position": spaces.Box(-10.0, 10.0, (m, 3), np.float64),
+            "quaternion": spaces.Box(-1.0, 1.0, (m, 4), np.float64),
+        }
         self.action_space = spaces.Dict(
             {
                 "has_estimate": spaces.Discrete(2),
                 "position": spaces.Box(-10.0, 10.0, (3,), np.float64),
                 "quaternion": spaces.Box(-1.0, 1.0, (4,), np.float64),
+                "neighbours": spaces.Dict(neighbours),
             }
         )
         self._episode: Episode | None = None
@@ -134,16 +211,29 @@ class GraspEvalEnv(gym.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, Any], dict[str, Any]]:
-        """Start an episode. `options` may set `object` and `episode_seed`."""
-        super().reset(seed=seed)
+        """Start an episode. `options` may set `object` and `episode_seed`.
+
+        Raises:
+            InvalidArgumentError, UnknownNameError: a bad seed or options, found before any state
+                changes; a later `step` then asks for a reset.
+        """
+        self._close_episode()
+        if seed is not None:
+            check_seed(seed, "seed")
+        if options is not None and not isinstance(options, dict):
+            raise InvalidArgumentError(f"options must be a dict or None, got {type(options)}")
         options = options or {}
+        if unknown := sorted(map(str, set(options) - set(OPTIONS))):
+            raise InvalidArgumentError(f"unknown options {unknown}; valid: {', '.join(OPTIONS)}")
         obj = options.get("object", self.object)
+        if obj is not None and (not isinstance(obj, str) or obj not in OBJECT_NAMES):
+            raise UnknownNameError("object", str(obj), OBJECT_NAMES)
+        if "episode_seed" in options:
+            check_seed(options["episode_seed"], "episode_seed")
+        super().reset(seed=seed)
         if obj is None:
             obj = OBJECT_NAMES[int(self.np_random.integers(len(OBJECT_NAMES)))]
-        if obj not in OBJECT_NAMES:
-            raise UnknownNameError("object", obj, OBJECT_NAMES)
         ep_seed = int(options.get("episode_seed", self.np_random.integers(2**31 - 1)))
-        self._close_episode()
         self._episode = Episode(obj, ep_seed, self.config)
         o = self._episode.observe()
         obs = {
@@ -156,46 +246,69 @@ class GraspEvalEnv(gym.Env):
         self._obs = obs
         return obs, {"object": obj, "episode_seed": ep_seed}
 
-    def _parse_action(self, action: dict[str, Any]) -> tuple[np.ndarray | None, str | None]:
-        if not isinstance(action, dict) or set(action) != {
-            "has_estimate",
-            "position",
-            "quaternion",
-        }:
+    def _parse_action(
+        self, action: dict[str, Any]
+    ) -> tuple[np.ndarray | None, list[tuple[str, np.ndarray]], str | None]:
+        if not isinstance(action, dict) or not (
+            set(ACTION_KEYS) <= set(action) <= {*ACTION_KEYS, "neighbours"}
+        ):
             raise InvalidArgumentError(
-                "action must be a dict with keys has_estimate, position, quaternion; "
-                "see GraspEvalEnv.action_space or sim.env.pose_action()"
+                "action must be a dict with keys has_estimate, position, quaternion and optionally "
+                "neighbours; see GraspEvalEnv.action_space or sim.env.pose_action()"
             )
-        pos = np.asarray(action["position"], dtype=float)
-        quat = np.asarray(action["quaternion"], dtype=float)
-        if pos.shape != (3,) or quat.shape != (4,):
+        has = _count(action["has_estimate"], 1, "has_estimate")
+        pos = _real(action["position"], (3,), "position")
+        quat = _real(action["quaternion"], (4,), "quaternion")
+        told = self._parse_neighbours(action.get("neighbours"))
+        if isinstance(told, str):
+            return None, [], told
+        if has == 0:
+            return None, told, None
+        T, error = _pose(pos, quat, "action")
+        return T, told, error
+
+    def _parse_neighbours(self, value: Any) -> list[tuple[str, np.ndarray]] | str:
+        """The neighbour poses of an action, or why they are invalid (a failed grasp)."""
+        if value is None:
+            return []
+        keys = {"count", "object", "position", "quaternion"}
+        if not isinstance(value, dict) or set(value) != keys:
+            raise InvalidArgumentError(f"action neighbours must be a dict with keys {sorted(keys)}")
+        m = MAX_NEIGHBOURS
+        n = _count(value["count"], m, "neighbours count")
+        ids = np.asarray(value["object"])
+        if ids.dtype.kind not in "iu" or ids.shape != (m,):
             raise InvalidArgumentError(
-                f"action position must have shape (3,) and quaternion (4,), got {pos.shape} "
-                f"and {quat.shape}"
+                f"action neighbours object must be integers of shape ({m},), got {ids.dtype} "
+                f"{ids.shape}"
             )
-        if int(action["has_estimate"]) == 0:
-            return None, None
-        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))):
-            return None, "action contains NaN or infinite values"
-        if abs(np.linalg.norm(quat) - 1.0) > UNIT_QUAT_TOL:
-            return None, f"action quaternion is not unit norm (|q| = {np.linalg.norm(quat):.4f})"
-        T = np.eye(4)
-        T[:3, :3] = quat_to_mat(quat / np.linalg.norm(quat))
-        T[:3, 3] = pos
-        return T, None
+        pos = _real(value["position"], (m, 3), "neighbours position")
+        quat = _real(value["quaternion"], (m, 4), "neighbours quaternion")
+        out = []
+        for i in range(n):
+            if not 0 <= ids[i] < len(OBJECT_NAMES):
+                raise InvalidArgumentError(
+                    f"action neighbours object {int(ids[i])} is not a class index "
+                    f"0..{len(OBJECT_NAMES) - 1}"
+                )
+            T, error = _pose(pos[i], quat[i], f"neighbour {i}")
+            if error is not None:
+                return error
+            out.append((OBJECT_NAMES[int(ids[i])], T))
+        return out
 
     def step(self, action: dict[str, Any]):
         """Grasp on the estimated pose; the episode ends."""
         if self._episode is None:
-            raise StateError("call reset() before step()")
-        T, error = self._parse_action(action)
+            raise StateError("no episode to act on: call reset() first")
+        T, neighbours, error = self._parse_action(action)
         ep = self._episode
         if error is not None:
             result = ep.act(None, "env")
             result.failure_reason = "invalid_action"
             result.notes.append(error)
         else:
-            result = ep.act(T, "env")
+            result = ep.act(T, "env", neighbours=neighbours)
         info = {
             "success": result.success,
             "failure_reason": result.failure_reason,

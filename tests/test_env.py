@@ -10,15 +10,16 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import posegrasp  # noqa: F401  (registers the env)
-from sim.core.errors import UnknownNameError
+from sim.core.errors import InvalidArgumentError, PosegraspError, StateError, UnknownNameError
 from sim.env import GraspEvalEnv, pose_action
+from sim.world.tiers import TIERS
 
 
 def _truth(env: gym.Env) -> np.ndarray:
     return env.unwrapped._episode.T_C_O_true
 
 
-@pytest.mark.parametrize("tier", ["isolated", "clutter", "far"])
+@pytest.mark.parametrize("tier", TIERS)
 def test_check_env_passes(tier: str) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # advisory warnings about unbounded Box spaces
@@ -117,3 +118,77 @@ def test_tier_is_an_argument_and_reported() -> None:
     env.close()
     with pytest.raises(UnknownNameError, match="valid tiers"):
         GraspEvalEnv(tier="banana")
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"seed": -1},
+        {"seed": 2**32},
+        {"options": {"episode_seed": -5}},
+        {"options": {"episode_seed": "7"}},
+        {"options": {"object": "teapot"}},
+        {"options": {"colour": "red"}},
+        {"options": ["object"]},
+    ],
+)
+def test_a_failed_reset_leaves_no_episode_and_step_asks_for_a_reset(kwargs) -> None:
+    env = GraspEvalEnv(object="phone", width=64, height=48)
+    with pytest.raises(PosegraspError):
+        env.reset(**kwargs)
+    with pytest.raises(StateError, match=r"call reset\(\) first"):
+        env.step(pose_action(None))
+    env.close()
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("has_estimate", np.nan),
+        ("has_estimate", "1"),
+        ("has_estimate", np.array([1, 0])),
+        ("has_estimate", 2),
+        ("has_estimate", 1.0),
+        ("position", np.array([0.1, 0.0, 0.5 + 1j])),
+        ("position", "abc"),
+        ("quaternion", [1, 0, 0]),
+    ],
+)
+def test_the_action_contract_is_exact(key, value) -> None:
+    env = GraspEvalEnv(object="phone", width=64, height=48)
+    env.reset(seed=2)
+    action = pose_action(_truth(env))
+    action[key] = value
+    with pytest.raises(InvalidArgumentError, match=key):
+        env.step(action)
+    env.close()
+
+
+def test_neighbours_in_the_action_reach_the_planner(monkeypatch) -> None:
+    env = GraspEvalEnv(object="phone", tier="clutter", width=64, height=48)
+    env.reset(seed=3)
+    ep = env.unwrapped._episode
+    true = ep.true_neighbours()
+    told = {}
+
+    def act(T, estimator, recorder=None, neighbours=()):
+        told["neighbours"] = list(neighbours)
+        return type(ep).act(ep, None, estimator)
+
+    monkeypatch.setattr(ep, "act", act)
+    env.step(pose_action(_truth(env), true))
+    assert [n for n, _ in told["neighbours"]] == [n for n, _ in true]
+    for (_, a), (_, b) in zip(told["neighbours"], true, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-9)
+    env.close()
+
+
+def test_a_non_unit_neighbour_quaternion_is_an_invalid_action() -> None:
+    env = GraspEvalEnv(object="phone", width=64, height=48)
+    env.reset(seed=2)
+    action = pose_action(_truth(env), [("car", np.eye(4))])
+    action["neighbours"]["quaternion"][0] = [0.5, 0.5, 0.0, 0.0]
+    _, reward, *_, info = env.step(action)
+    assert reward == 0.0 and info["failure_reason"] == "invalid_action"
+    assert "neighbour 0" in info["error"]
+    env.close()
