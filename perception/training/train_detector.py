@@ -13,6 +13,11 @@ ships the weights (`perception.training.export_detector`).
     python -m perception.training.train_detector                  # train (resumes when interrupted)
     python -m perception.training.train_detector --export  # finish training, ship the weights
     python -m perception.training.train_detector --smoke --data DIR --out DIR   # seconds, tiny data
+    torchrun --nproc-per-node 2 -m perception.training.train_detector --device cpu   # 2 processes
+
+Under torchrun the run is data-parallel (`perception.training.ddp`): the same global batch, each
+rank its shard, every rank drawing the augmentation stream of the whole batch (so an image is
+jittered as in one process), rank 0 evaluating and writing the checkpoint.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from perception.training.checkpoints import (
     seed_torch,
 )
 from perception.training.dataset import PoseDataset, load_info
+from perception.training.ddp import DEVICES, Ranks, resolve_device, start
 from perception.training.detection_data import DetectionSet, augment, collate_list
 from perception.training.detection_eval import evaluate_detector, pycocotools_api
 from perception.training.export_detector import TRAIN_COMMAND, export_detector
@@ -68,7 +74,10 @@ class DetectorTrainConfig:
         val_images: the AP evaluation after each epoch uses the first this many val images.
         seed: seed of initialisation, image order and augmentation.
         workers: data-loading processes (0: load in the training process).
-        threads: torch threads for the training process (None: one per core).
+        threads: torch threads per training process (None: the cores shared by the processes).
+        device: "auto", "cpu" or "cuda" (`perception.training.ddp.DEVICES`).
+        loss_log: append one JSON line per step here (step, epoch, loss averaged over the
+            processes, lr), or None.
         out: checkpoint folder; None means `checkpoint_dir()` (next to the data, outside git).
         checkpoint_minutes: save a resumable checkpoint at least this often.
         detector: the architecture.
@@ -90,6 +99,8 @@ class DetectorTrainConfig:
     out: Path | None = None
     checkpoint_minutes: float = 5.0
     detector: DetectorConfig = field(default_factory=DetectorConfig)
+    device: str = "auto"
+    loss_log: Path | None = None
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch < 1 or self.val_images < 1 or self.workers < 0:
@@ -118,8 +129,20 @@ def dataset_root(cfg: DetectorTrainConfig) -> Path:
     return Path(cfg.data) if cfg.data is not None else data_root() / "headcam"
 
 
+def _augment_shard(images: list[torch.Tensor], g: torch.Generator, ranks: Ranks) -> list:
+    """This rank's images jittered as in one process: the jitter of every image of the global
+    batch is drawn in order (those of other ranks' images, of the same size, are dropped)."""
+    out = []
+    for j in range(len(images) * ranks.world):
+        x = augment(images[j // ranks.world], g)
+        if j % ranks.world == ranks.rank:
+            out.append(x.to(ranks.device))
+    return out
+
+
 def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None = None) -> dict:
-    """Train, resuming from the run's checkpoint when present.
+    """Train, resuming from the run's checkpoint when present; under torchrun every process
+    calls this and the run is data-parallel (`perception.training.ddp`).
 
     Args:
         cfg: the run.
@@ -133,7 +156,16 @@ def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None =
 
     Raises:
         AssetError: no data, or a corrupt checkpoint.
+        InvalidArgumentError: a device that is not there, or a batch the processes cannot share.
     """
+    ranks = start(cfg.device, cfg.batch)
+    try:
+        return _train(cfg, ranks, resume, max_steps)
+    finally:
+        ranks.close()
+
+
+def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int | None) -> dict:
     root = dataset_root(cfg)
     for split in ("train", "val"):
         if not (root / split).is_dir():
@@ -153,7 +185,7 @@ def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None =
     if len(val_data) == 0:
         raise AssetError(f"no completed val images under {root}; generate them first")
     pycocotools_api()  # fail now, not after the first epoch, when pycocotools is missing
-    seed_torch(cfg.seed, cfg.threads)
+    seed_torch(cfg.seed, ranks.threads(cfg.threads))
     model = build_detector(cfg.detector)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     out = cfg.out or checkpoint_dir()
@@ -189,7 +221,9 @@ def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None =
             raise AssetError(
                 f"checkpoint {ckpt} is corrupt ({exc}); delete it or pass --no-resume"
             ) from exc
-        print(f"resuming {ckpt} at epoch {epoch0}, step {step}")
+        if ranks.main:
+            print(f"resuming {ckpt} at epoch {epoch0}, step {step}")
+    net = ranks.wrap(model)  # the model itself with one process
     steps_per_epoch = len(train_set) // cfg.batch
     total_steps = cfg.epochs * steps_per_epoch
     seeds = {
@@ -202,11 +236,12 @@ def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None =
     }
 
     def save(epoch: int) -> None:
-        save_checkpoint(
-            ckpt, model, opt, model_config=cfg.detector.to_dict(), train_config=cfg.to_dict(),
-            step=step, epoch=epoch, history=history, rng=rng_state(g), data_seeds=seeds,
-            header={"kind": "detector"},
-        )  # fmt: skip
+        if ranks.main:
+            save_checkpoint(
+                ckpt, model, opt, model_config=cfg.detector.to_dict(), train_config=cfg.to_dict(),
+                step=step, epoch=epoch, history=history, rng=rng_state(g), data_seeds=seeds,
+                header={"kind": "detector"},
+            )  # fmt: skip
 
     last_save = time.monotonic()
     for epoch in range(epoch0, cfg.epochs):
@@ -218,26 +253,29 @@ def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None =
         g_state = None
         loader = torch.utils.data.DataLoader(
             train_set,
-            batch_size=cfg.batch,
-            sampler=order[done * cfg.batch : steps_per_epoch * cfg.batch],
+            batch_size=cfg.batch // ranks.world,
+            sampler=ranks.shard(order[done * cfg.batch : steps_per_epoch * cfg.batch]),
             collate_fn=collate_list,
             num_workers=cfg.workers,
             generator=torch.Generator().manual_seed(cfg.seed),  # leaves the global RNG alone
         )
         model.train()
         bar = tqdm(loader, desc=f"detector epoch {epoch + 1}/{cfg.epochs}", initial=done,
-                   total=steps_per_epoch, mininterval=2.0)  # fmt: skip
+                   total=steps_per_epoch, mininterval=2.0, disable=not ranks.main)  # fmt: skip
         losses = []
         for batch in bar:
             if max_steps is not None and step >= max_steps:
                 break
-            images = [augment(image, g) for image, _ in batch]
-            parts = model(images, [t for _, t in batch])
+            images = _augment_shard([image for image, _ in batch], g, ranks)
+            targets = [{k: v.to(ranks.device) for k, v in t.items()} for _, t in batch]
+            parts = net(images, targets)
             loss = sum(parts.values())
             lr = learning_rate(step, total_steps, cfg.lr, cfg.warmup)
             optimiser_step(model, opt, loss, lr, cfg.grad_clip)
             step += 1
-            losses.append(float(loss.detach()))
+            losses.append(ranks.mean(loss))  # over the processes (every rank takes part)
+            if cfg.loss_log is not None:
+                ranks.log(cfg.loss_log, step=step, epoch=epoch + 1, loss=losses[-1], lr=lr)
             if step % 10 == 0:
                 bar.set_postfix({k.removeprefix("loss_"): f"{float(v):.3f}"
                                  for k, v in parts.items()})  # fmt: skip
@@ -248,7 +286,11 @@ def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None =
         if max_steps is not None and step >= max_steps and step < (epoch + 1) * steps_per_epoch:
             save(epoch)
             return {"checkpoint": str(ckpt), "history": history, "step": step, "finished": False}
-        det = Detector(model, cfg.detector, score_threshold=cfg.detector.box_score_thresh)
+        if not ranks.main:
+            continue  # rank 0 evaluates and saves; the others meet it at the next step
+        det = Detector(
+            ranks.on_cpu(model), cfg.detector, score_threshold=cfg.detector.box_score_thresh
+        )
         val = evaluate_detector(det, val_data, cfg.val_images, cfg.min_visible_px)
         model.train()
         mean_loss = float(np.mean(losses)) if losses else None
@@ -283,7 +325,13 @@ def main(argv: list[str] | None = None) -> int:
         default=DetectorTrainConfig.workers,
         help="data-loading processes (0: none)",
     )
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    p.add_argument(
+        "--threads", type=int, default=None, help="torch threads per process (default: all cores)"
+    )
+    p.add_argument("--device", default="auto", help=f"one of: {', '.join(DEVICES)}")
+    p.add_argument(
+        "--loss-log", type=Path, default=None, help="append one JSON line per step to this file"
+    )
     p.add_argument("--seed", type=int, default=DetectorTrainConfig.seed)
     p.add_argument(
         "--out",
@@ -313,14 +361,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = p.parse_args(argv)  # fmt: skip
     try:
+        resolve_device(args.device)
         if args.smoke:
             cfg = replace(SMOKE, data=args.data, out=args.out, seed=args.seed,
-                          threads=args.threads or SMOKE.threads)  # fmt: skip
+                          threads=args.threads or SMOKE.threads, device=args.device,
+                          loss_log=args.loss_log)  # fmt: skip
         else:
             cfg = DetectorTrainConfig(
                 data=args.data, epochs=args.epochs, batch=args.batch, lr=args.lr,
                 limit=args.limit, val_images=args.val_images, workers=args.workers,
-                seed=args.seed, out=args.out, threads=args.threads,
+                seed=args.seed, out=args.out, threads=args.threads, device=args.device,
+                loss_log=args.loss_log,
             )  # fmt: skip
         if args.max_steps is not None and args.max_steps < 1:
             raise InvalidArgumentError(f"--max-steps must be >= 1, got {args.max_steps}")

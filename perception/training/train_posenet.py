@@ -8,6 +8,10 @@ epoch (`perception.training.posenet_eval`).
 
     python -m perception.training.train_posenet --variant ours --epochs 7
     python -m perception.training.train_posenet --smoke  # seconds, on whatever small data exists
+    torchrun --nproc-per-node 2 -m perception.training.train_posenet --variant ours --device cpu
+
+Under torchrun the run is data-parallel over the processes (`perception.training.ddp`): same
+global batch, each rank its shard of it, rank 0 validating and writing the checkpoint.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from perception.training.checkpoints import (
 )
 from perception.training.crop_sets import CropConfig, build_crops, concat, data_seed_ranges
 from perception.training.dataset import DISTS
+from perception.training.ddp import DEVICES, ONE_PROCESS, Ranks, resolve_device, start
 from perception.training.losses import posenet_loss
 from perception.training.posenet_eval import evaluate_arrays
 from perception.training.schedule import learning_rate, optimiser_step
@@ -67,7 +72,10 @@ class PoseNetTrainConfig:
         out: checkpoint folder; None means `checkpoint_dir()` (next to the data, outside git).
         checkpoint_minutes: save a resumable checkpoint at least this often.
         max_theta_deg: "paper" trains only on rolls within this range, as published.
-        threads: torch CPU threads (None: all cores).
+        threads: torch CPU threads per process (None: the cores shared by the processes).
+        device: "auto", "cpu" or "cuda" (`perception.training.ddp.DEVICES`).
+        loss_log: append one JSON line per step here (step, epoch, loss averaged over the
+            processes, lr), or None.
     """
 
     variant: str = "ours"
@@ -88,6 +96,8 @@ class PoseNetTrainConfig:
     checkpoint_minutes: float = 5.0
     max_theta_deg: float = 60.0
     threads: int | None = None
+    device: str = "auto"
+    loss_log: Path | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for checkpoints (paths as strings)."""
@@ -133,13 +143,19 @@ def _resolve_init(init: str, out: Path) -> Path:
     )
 
 
-def _augment(x: torch.Tensor, g: torch.Generator) -> torch.Tensor:
-    """Photometric jitter: brightness, contrast, per-channel gain and pixel noise."""
-    b = x.shape[0]
+def _augment(x: torch.Tensor, g: torch.Generator, ranks: Ranks = ONE_PROCESS) -> torch.Tensor:
+    """Photometric jitter: brightness, contrast, per-channel gain and pixel noise.
+
+    The jitter is drawn for the whole global batch (`x` is this rank's shard of it) and this
+    rank's rows are taken, so a batch is jittered alike on any number of processes.
+    """
+    b = x.shape[0] * ranks.world
     bright = (torch.rand(b, 1, 1, 1, generator=g) - 0.5) * 0.3
     contrast = 0.75 + 0.5 * torch.rand(b, 1, 1, 1, generator=g)
     gain = 0.9 + 0.2 * torch.rand(b, 3, 1, 1, generator=g)
-    noise = torch.randn(x.shape, generator=g) * 0.02
+    noise = torch.randn((b, *x.shape[1:]), generator=g) * 0.02
+    jitter = [ranks.shard(t).to(x.device) for t in (bright, contrast, gain, noise)]
+    bright, contrast, gain, noise = jitter
     return (x * contrast * gain + bright + noise).clamp(-0.5, 0.5)
 
 
@@ -170,7 +186,8 @@ def train(cfg: PoseNetTrainConfig, resume: bool = True, command: str | None = No
     """Train (resuming from the run's checkpoint when present) and return the history.
 
     With `cfg.init`, the model starts from that checkpoint's weights; a resumed run ignores it
-    and continues from its own checkpoint.
+    and continues from its own checkpoint. Under torchrun every process calls this and the run
+    is data-parallel (`perception.training.ddp`).
 
     Args:
         cfg: the run.
@@ -183,10 +200,23 @@ def train(cfg: PoseNetTrainConfig, resume: bool = True, command: str | None = No
     Raises:
         AssetError: no data or no training crops, or an `init` checkpoint that is missing or
             holds another architecture.
+        InvalidArgumentError: a device that is not there, or a batch the processes cannot share.
     """
-    seed_torch(cfg.seed, cfg.threads)
+    ranks = start(cfg.device, cfg.batch)
+    try:
+        return _train(cfg, ranks, resume, command)
+    finally:
+        ranks.close()
+
+
+def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | None) -> dict:
+    seed_torch(cfg.seed, ranks.threads(cfg.threads))
+    if not ranks.main:
+        ranks.barrier()  # rank 0 cuts and caches the crops first
     tr = _load_split(cfg, "train")
     va = _load_split(cfg, "val")
+    if ranks.main:
+        ranks.barrier()
     if cfg.variant == "paper":
         keep = np.abs(np.rad2deg(tr["theta"])) <= cfg.max_theta_deg
         tr = {k: v[keep] for k, v in tr.items()}
@@ -220,14 +250,17 @@ def train(cfg: PoseNetTrainConfig, resume: bool = True, command: str | None = No
         state = read_checkpoint(ckpt)
         lineage = {k: state.get(k, v) for k, v in lineage.items()}
         step, epoch0, history = restore(state, model, opt)
-        print(f"resuming {ckpt} at epoch {epoch0}, step {step}")
+        if ranks.main:
+            print(f"resuming {ckpt} at epoch {epoch0}, step {step}")
+    net = ranks.wrap(model)  # the model itself with one process
 
     def save(epoch: int) -> None:
-        save_checkpoint(
-            ckpt, model, opt, model_config=model.cfg.to_dict(), train_config=cfg.to_dict(),
-            step=step, epoch=epoch, history=history, rng=rng_state(), data_seeds=data_seeds,
-            header=lineage,
-        )  # fmt: skip
+        if ranks.main:
+            save_checkpoint(
+                ckpt, model, opt, model_config=model.cfg.to_dict(), train_config=cfg.to_dict(),
+                step=step, epoch=epoch, history=history, rng=rng_state(), data_seeds=data_seeds,
+                header=lineage,
+            )  # fmt: skip
 
     g = torch.Generator().manual_seed(cfg.seed)
     last_save = time.monotonic()
@@ -236,29 +269,35 @@ def train(cfg: PoseNetTrainConfig, resume: bool = True, command: str | None = No
         order = torch.randperm(len(tr["crops"]), generator=g).numpy()
         skip = step - epoch * steps_per_epoch  # batches of this epoch already done (resume)
         model.train()
-        bar = tqdm(range(steps_per_epoch), desc=f"{cfg.variant} epoch {epoch + 1}/{cfg.epochs}")
+        bar = tqdm(range(steps_per_epoch), desc=f"{cfg.variant} epoch {epoch + 1}/{cfg.epochs}",
+                   disable=not ranks.main)  # fmt: skip
         for b in bar:
             if b < skip:
                 continue
-            idx = order[b * cfg.batch : (b + 1) * cfg.batch]
-            x = _augment(normalise(torch.from_numpy(tr["crops"][idx])), g)
-            out = model(x, torch.from_numpy(tr["cls"][idx]), torch.from_numpy(tr["scale"][idx]))
+            idx = ranks.shard(order[b * cfg.batch : (b + 1) * cfg.batch])  # this rank's shard
+
+            def batch(key: str, idx=idx) -> torch.Tensor:
+                return torch.from_numpy(tr[key][idx]).to(ranks.device)
+
+            x = _augment(normalise(batch("crops")), g, ranks)
+            out = net(x, batch("cls"), batch("scale"))
             loss, parts = posenet_loss(
-                out,
-                torch.from_numpy(tr["uv_unit"][idx]),
-                torch.from_numpy(tr["p"][idx]),
-                torch.from_numpy(tr["theta"][idx]),
-                cfg.variant,
-                cfg.lam,
+                out, batch("uv_unit"), batch("p"), batch("theta"), cfg.variant, cfg.lam
             )
-            optimiser_step(model, opt, loss, learning_rate(step, total_steps, cfg.lr), GRAD_CLIP)
+            lr = learning_rate(step, total_steps, cfg.lr)
+            optimiser_step(model, opt, loss, lr, GRAD_CLIP)
             step += 1
+            if cfg.loss_log is not None:
+                loss_all = ranks.mean(loss)  # every rank takes part
+                ranks.log(cfg.loss_log, step=step, epoch=epoch + 1, loss=loss_all, lr=lr)
             if b % 20 == 0:
                 bar.set_postfix({k: f"{v:.3f}" for k, v in parts.items()})
             if time.monotonic() - last_save > 60 * cfg.checkpoint_minutes:
                 save(epoch)
                 last_save = time.monotonic()
-        val = evaluate_arrays(model, va)
+        if not ranks.main:
+            continue  # rank 0 validates and saves; the others meet it at the next step
+        val = evaluate_arrays(ranks.on_cpu(model), va)  # posenet_eval works on the CPU
         history.append({"epoch": epoch + 1, "step": step, **val})
         print(
             f"epoch {epoch + 1}: val centre {val['center_px']:.2f} px, distance "
@@ -310,7 +349,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--out", type=Path, default=None, help="checkpoint folder (default: <data>/checkpoints)"
     )
-    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
+    p.add_argument(
+        "--threads", type=int, default=None, help="CPU threads per process (default: all cores)"
+    )
+    p.add_argument("--device", default="auto", help=f"one of: {', '.join(DEVICES)}")
+    p.add_argument(
+        "--loss-log", type=Path, default=None, help="append one JSON line per step to this file"
+    )
     p.add_argument("--smoke", action="store_true", help="a tiny run that takes seconds")
     p.add_argument("--no-resume", action="store_true", help="start over")
     args = p.parse_args(argv)
@@ -323,6 +368,7 @@ def main(argv: list[str] | None = None) -> int:
         return fail("--epochs and --batch must be at least 1")
     try:
         limit, dist_limits = parse_limit(args.limit)
+        resolve_device(args.device)
     except InvalidArgumentError as exc:
         return fail(str(exc))
     if args.name is not None and (not args.name or "/" in args.name or args.name.endswith(".pt")):
@@ -330,10 +376,11 @@ def main(argv: list[str] | None = None) -> int:
     cfg = PoseNetTrainConfig(
         variant=args.variant, dists=dists, epochs=args.epochs, batch=args.batch, lr=args.lr,
         limit=limit, dist_limits=dist_limits, init=args.init, name=args.name, out=args.out,
-        threads=args.threads,
+        threads=args.threads, device=args.device, loss_log=args.loss_log,
     )  # fmt: skip
     if args.smoke:
-        cfg = replace(SMOKE, variant=args.variant, dists=dists, out=args.out)
+        cfg = replace(SMOKE, variant=args.variant, dists=dists, out=args.out, device=args.device,
+                      loss_log=args.loss_log, threads=args.threads)  # fmt: skip
     try:
         result = train(cfg, resume=not args.no_resume)
     except PosegraspError as exc:
