@@ -1,0 +1,255 @@
+"""Soak: many episodes over every object, estimator and tier, with injected faults.
+
+    python bench/soak.py [--episodes 1000] [--workers 2] [--json summary.json]
+
+Episode i runs combination i of objects x estimators x tiers (cycled) on held-out seed
+`SEED_START` + i, in spawned worker processes. Faults injected on the way: a worker process is
+killed in the middle of an episode (its episode must be run again, none lost), the running
+record becomes unwritable half way (writes must fail cleanly and the run go on), and a shipped
+weights file is corrupted in a temporary copy (loading must be refused). The summary: crashes
+(exceptions other than PosegraspError, or a worker dying unasked), MuJoCo warnings, episodes
+lost, worker RSS and open file descriptors at the start and the end and their growth, the
+outcome counts and the wall time. Nothing is written into the repository: the running record
+lives in a temporary folder, removed at the end.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import os
+import resource
+import shutil
+import signal
+import sys
+import tempfile
+import time
+from collections import Counter
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from multiprocessing import get_context
+from pathlib import Path
+
+from tqdm import tqdm
+
+from sim.core.cli import ArgumentParser, fail, write_json
+from sim.core.errors import AssetError, PosegraspError
+from sim.core.files import atomic_write_json
+from sim.core.paths import WEIGHTS_DIR
+from sim.core.validate import arg, check_int, check_output_file, check_workers
+from sim.estimators import ESTIMATORS
+from sim.world.objects import OBJECT_NAMES
+from sim.world.tiers import TIERS
+
+#: Held-out seeds of the soak's own.
+SEED_START = 1_800_000_000
+#: Results between two writes of the running record (at most).
+RECORD_EVERY = 10
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * resource.getpagesize() / 2**20
+
+
+def _fds() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+def _init_worker() -> None:
+    os.environ["OMP_NUM_THREADS"] = "1"
+    os.environ["MKL_NUM_THREADS"] = "1"
+
+
+@functools.cache
+def _estimator(name: str):
+    from sim.estimators import make_estimator
+
+    return make_estimator(name)
+
+
+def _episode(job: tuple[int, str, str, str, int, bool]) -> dict:
+    """One episode in a worker: its outcome, MuJoCo warnings and the worker's RSS and fds."""
+    i, obj, estimator, tier, seed, kill = job
+    from sim.episode import Episode, EpisodeConfig
+
+    out = {"i": i, "pid": os.getpid(), "warnings": 0, "crash": None, "error": None}
+    try:
+        ep = Episode(obj, seed, EpisodeConfig(tier=tier))
+        try:
+            if kill:  # the injected fault: this worker dies in the middle of an episode
+                os.kill(os.getpid(), signal.SIGKILL)
+            _, res = ep.run(_estimator(estimator))
+            out["warnings"] = int(sum(w.number for w in ep.scene.data.warning))
+            out["outcome"] = "success" if res.success else res.failure_reason
+        finally:
+            ep.close()
+    except PosegraspError as exc:  # documented failures (a scene that cannot be placed ...)
+        out["outcome"], out["error"] = "error", str(exc)
+    except Exception as exc:
+        out["outcome"], out["crash"] = "crash", f"{type(exc).__name__}: {exc}"
+    out["rss_mb"], out["fds"] = _rss_mb(), _fds()
+    return out
+
+
+def corrupt_weights_refused() -> list[str]:
+    """Load weights corrupted in a temporary copy; returns what failed to be refused."""
+    from perception.detector import Detector
+    from perception.nets import load_posenet
+
+    missed = []
+    with tempfile.TemporaryDirectory() as d:
+        w = Path(shutil.copytree(WEIGHTS_DIR, Path(d) / "weights"))
+        shutil.copy(w / "posenet_paper.pt", w / "posenet_ours.pt")  # another shipped file
+        data = (w / "detector.pt").read_bytes()
+        (w / "detector.pt").write_bytes(data[: len(data) // 2])  # truncated
+        for load in (lambda: load_posenet(w / "posenet_ours.pt"),
+                     lambda: Detector.from_weights(w / "detector.pt"),
+                     lambda: Detector.from_weights(w / "detector.pt", verify=False)):  # fmt: skip
+            try:
+                load()
+                missed.append("loaded")
+            except AssetError:
+                pass
+    return missed
+
+
+def soak(episodes: int, workers: int, record: Path) -> dict:
+    """Run the soak; returns the summary."""
+    combos = list(itertools.product(OBJECT_NAMES, ESTIMATORS, TIERS))
+    kill_at, unwritable_at = episodes // 3, episodes // 2
+    every = max(1, min(RECORD_EVERY, episodes // 10))
+    # A stride coprime with the number of combinations: neighbouring episodes differ in object,
+    # estimator and tier, and every combination comes up once per len(combos) episodes.
+    stride = next(k for k in (7, 11, 13, 17, 19) if len(combos) % k)
+    jobs = ((i, *combos[i * stride % len(combos)], SEED_START + i, i == kill_at)
+            for i in range(episodes))  # fmt: skip
+    retry: list[tuple] = []
+    results: dict[int, dict] = {}
+    deaths, write_failures, writes_after_fault = 0, 0, 0
+    main_fds0, t0 = _fds(), time.perf_counter()
+    ctx = get_context("spawn")
+    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker)
+    pending: dict = {}
+    bar = tqdm(total=episodes, desc="soak", unit="episode")
+    try:
+        while True:
+            while len(pending) < 2 * workers and (
+                job := (retry.pop() if retry else next(jobs, None))
+            ):
+                pending[pool.submit(_episode, job)] = job
+            if not pending:
+                break
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            broken = False
+            for f in done:
+                job = pending.pop(f)
+                try:
+                    r = f.result()
+                except BrokenProcessPool:  # a worker died: every job in flight runs again
+                    broken = True
+                    retry.append((*job[:5], False))
+                    continue
+                results[r["i"]] = r
+                bar.update(1)
+                if len(results) == unwritable_at:  # the injected fault: the record's path
+                    record.unlink(missing_ok=True)  # becomes a folder for a while
+                    record.mkdir()
+                if len(results) % every == 0:
+                    try:
+                        atomic_write_json(record, {"done": len(results)})
+                        writes_after_fault += write_failures > 0
+                    except OSError:
+                        write_failures += 1
+                        if write_failures == 2:  # writable again: the next write must work
+                            record.rmdir()
+                            atomic_write_json(record, {"done": len(results)})
+                            writes_after_fault += 1
+            if broken:
+                deaths += 1
+                retry.extend((*j[:5], False) for j in pending.values())
+                pending.clear()
+                pool.shutdown(wait=False, cancel_futures=True)
+                pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker)
+    finally:
+        bar.close()
+        pool.shutdown(wait=True, cancel_futures=True)
+    return _summary(results, episodes, deaths, write_failures, writes_after_fault, main_fds0, t0)
+
+
+def _summary(results, episodes, deaths, write_failures, writes_after, main_fds0, t0) -> dict:
+    by_pid: dict[int, list[dict]] = {}
+    for i in sorted(results):
+        by_pid.setdefault(results[i]["pid"], []).append(results[i])
+    workers = {}
+    for pid, rs in by_pid.items():
+        warm = rs[min(len(rs) - 1, max(1, len(rs) // 10))]  # after the estimators loaded
+        workers[pid] = {"episodes": len(rs), "rss_start_mb": warm["rss_mb"],
+                        "rss_end_mb": rs[-1]["rss_mb"], "fds_start": warm["fds"],
+                        "fds_end": rs[-1]["fds"]}  # fmt: skip
+    longest = max(workers.values(), key=lambda w: w["episodes"], default=None)
+    crashes = [r["crash"] for r in results.values() if r["crash"]]
+    return {
+        "episodes": episodes,
+        "episodes_done": len(results),
+        "episodes_lost": episodes - len(results),
+        "crashes": len(crashes) + max(0, deaths - 1),
+        "crash_messages": crashes[:5],
+        "workers_killed_injected": 1 if deaths else 0,
+        "mujoco_warnings": sum(r["warnings"] for r in results.values()),
+        "outcomes": dict(Counter(r["outcome"] for r in results.values()).most_common()),
+        "errors": dict(Counter(r["error"] for r in results.values() if r["error"])),
+        "record_write_failures_injected": write_failures,
+        "record_writes_after_fault": writes_after,
+        "corrupt_weights_loaded": corrupt_weights_refused(),
+        "worker": longest,
+        "rss_growth_pct": None if longest is None else
+        100 * (longest["rss_end_mb"] / longest["rss_start_mb"] - 1),
+        "main_fds_start": main_fds0,
+        "main_fds_end": _fds(),
+        "wall_s": time.perf_counter() - t0,
+    }  # fmt: skip
+
+
+def format_summary(s: dict) -> str:
+    """The summary as lines."""
+    w = s["worker"] or {}
+    return "\n".join([
+        f"episodes {s['episodes_done']}/{s['episodes']} (lost {s['episodes_lost']}), "
+        f"crashes {s['crashes']}, MuJoCo warnings {s['mujoco_warnings']}, "
+        f"wall {s['wall_s']:.0f} s",
+        f"outcomes: {s['outcomes']}",
+        f"errors: {s['errors'] or 'none'}",
+        f"faults: worker killed {s['workers_killed_injected']} (its episode run again); record "
+        f"writes refused {s['record_write_failures_injected']}, written after "
+        f"{s['record_writes_after_fault']}; corrupt weights loaded: "
+        f"{', '.join(s['corrupt_weights_loaded']) or 'none (all refused)'}",
+        f"worker RSS {w.get('rss_start_mb', 0):.0f} -> {w.get('rss_end_mb', 0):.0f} MB "
+        f"({s['rss_growth_pct'] or 0:+.1f} % over {w.get('episodes', 0)} episodes), fds "
+        f"{w.get('fds_start')} -> {w.get('fds_end')}; main fds {s['main_fds_start']} -> "
+        f"{s['main_fds_end']}",
+    ])  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns 0, or 1 when the soak found a crash or lost an episode."""
+    p = ArgumentParser(prog="python bench/soak.py", description=__doc__.split("\n")[0])
+    p.add_argument("--episodes", type=arg(check_int, 1, 100_000, "--episodes", base=int),
+                   default=1000, help="episodes, 1..100000 (default 1000)")  # fmt: skip
+    p.add_argument("--workers", type=arg(check_workers, base=int), default=2, help="1..64")
+    p.add_argument("--json", type=arg(check_output_file, "--json"), default=None,
+                   help="write the summary here")  # fmt: skip
+    args = p.parse_args(argv)
+    with tempfile.TemporaryDirectory() as d:
+        try:
+            s = soak(args.episodes, args.workers, Path(d) / "record.json")
+        except PosegraspError as exc:
+            return fail(str(exc))
+    print(format_summary(s))
+    if args.json is not None:
+        write_json(args.json, s)
+    return 1 if s["crashes"] or s["episodes_lost"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
