@@ -1,22 +1,31 @@
 """Hybrid episode wall time and the speed-up of `sim.evaluate` with 2 worker processes over 1.
 
     python bench/evaluate_speed.py [--estimator hybrid] [--episodes 10] [--json]
+    python bench/evaluate_speed.py --backend ray [--workers 2] [--address ADDR]
 
 Runs the same held-out episodes (`--episodes` per object) with 1 and with 2 workers through
 `sim.evaluate.evaluate`, prints the median episode wall time (one process, estimator loaded) and
 the wall time of both runs. Targets: a hybrid episode <= 3 s wall median on 2 cores; 2 workers
 at least 1.6x faster than 1; at least 10 episodes/s with 2 workers. Both runs must agree episode
 by episode (they are seeded); the script says so.
+
+``--backend ray`` instead runs the episodes on the local pool and on Ray (`sim.core.backends`),
+both with `--workers` CPUs (or on the cluster at `--address`), and prints side by side their
+episodes/s (Ray's without its start-up, which is printed apart), Ray's per-task overhead (no-op
+tasks of one job each) and whether both backends agree episode by episode. Target: Ray within
+15 % of the local pool's throughput.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import time
 
 import numpy as np
 
 import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
+from sim.core.backends import BACKENDS, OBJECT_STORE_BYTES, run_map
 from sim.estimators import DEFAULT_ESTIMATOR
 from sim.evaluate import evaluate
 from sim.world.objects import OBJECT_NAMES
@@ -24,13 +33,72 @@ from sim.world.objects import OBJECT_NAMES
 SEED_START = 1_200_000_000  # held out (sim.world.constants.EVAL_SEED_BASE and above)
 
 
+def _outcomes(report: dict) -> list[tuple]:
+    return [(e["success"], e["failure_reason"], json.dumps(e["pose_error"], sort_keys=True))
+            for e in report["episodes"]]  # fmt: skip
+
+
+def ray_side_by_side(args: argparse.Namespace, objs: list[str]) -> dict:
+    """Episodes/s of the local pool and of Ray, Ray's start-up and per-task overhead."""
+    import ray
+
+    local = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=args.workers)
+    t = time.perf_counter()
+    if args.address is None:
+        ray.init(num_cpus=args.workers, include_dashboard=False,
+                 object_store_memory=OBJECT_STORE_BYTES, logging_level="ERROR")  # fmt: skip
+    else:
+        ray.init(address=args.address, logging_level="ERROR")
+    startup = time.perf_counter() - t
+    try:
+        t = time.perf_counter()
+        n_noop = 200
+        assert list(run_map(abs, range(n_noop), backend="ray", chunk=1)) == list(range(n_noop))
+        slots = int(ray.cluster_resources().get("CPU", 1))
+        overhead_ms = (time.perf_counter() - t) * 1000 * slots / n_noop
+        on_ray = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=args.workers,
+                          backend="ray")  # fmt: skip
+    finally:
+        ray.shutdown()
+    n = len(local["episodes"])
+    return {
+        "estimator": args.estimator,
+        "episodes": n,
+        "cpus": slots,
+        "episodes_per_s_local": n / local["wall_s"],
+        "episodes_per_s_ray": n / on_ray["wall_s"],
+        "ray_over_local": local["wall_s"] / on_ray["wall_s"],
+        "ray_startup_s": startup,
+        "ray_task_overhead_ms": overhead_ms,
+        "same_outcomes": _outcomes(local) == _outcomes(on_ray),
+    }
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--estimator", default=DEFAULT_ESTIMATOR)
     p.add_argument("--episodes", type=int, default=10, help="episodes per object")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--backend", default="local", choices=BACKENDS)
+    p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (--backend ray)")
+    p.add_argument("--address", default=None, help="an existing Ray cluster (--backend ray)")
     args = p.parse_args()
     objs = list(OBJECT_NAMES)
+    if args.backend == "ray":
+        out = ray_side_by_side(args, objs)
+        if args.json:
+            print(json.dumps(out, sort_keys=True))
+            return
+        rel = out["ray_over_local"]
+        print(f"{args.estimator}: {out['episodes']} episodes on {out['cpus']} CPUs per backend")
+        print(f"{'backend':<8} {'episodes/s':>10}")
+        print(f"{'local':<8} {out['episodes_per_s_local']:>10.2f}")
+        print(f"{'ray':<8} {out['episodes_per_s_ray']:>10.2f}  ({rel:.0%} of local, start-up "
+              f"apart)  [target >= 85 %: {'PASS' if rel >= 0.85 else 'MISS'}]")  # fmt: skip
+        print(f"Ray start-up {out['ray_startup_s']:.1f} s; per-task overhead "
+              f"{out['ray_task_overhead_ms']:.1f} ms (no-op tasks of one job)")  # fmt: skip
+        print(f"same outcomes on both backends: {out['same_outcomes']}")
+        return
     one = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=1)
     two = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=2)
     walls = [e["wall_ms"] for e in one["episodes"]]

@@ -239,8 +239,11 @@ def connect(ray, address: str | None, workers: int) -> None:
     thread.start()
     thread.join(CONNECT_TIMEOUT_S)
     if not outcome:
-        raise BackendError(f"no Ray cluster answered at {address} within "
-                           f"{CONNECT_TIMEOUT_S:.0f} s; {hint}")  # fmt: skip
+        raise BackendError(
+            f"no Ray cluster answered at {address} within {CONNECT_TIMEOUT_S:.0f} s; if its "
+            "`ray start` enabled token authentication, set RAY_AUTH_MODE=token here (the token "
+            "is ~/.ray/auth_token or $RAY_AUTH_TOKEN; `ray get-auth-token`); else " + hint
+        )
     if outcome[0] is not None:
         first = (str(outcome[0]).strip().splitlines() or [type(outcome[0]).__name__])[0]
         raise BackendError(f"cannot connect to a Ray cluster at {address}: {first}; {hint}")
