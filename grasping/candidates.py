@@ -6,6 +6,10 @@ plus the opening the part needs. Candidates come from graspable segments of each
 centre slides along a part, the fingers close across it, the gripper approaches from above; each
 position is taken with both finger orders (the gripper is symmetric under a half turn about its
 approach axis), and every object symmetry maps the set onto itself.
+
+Those hand-designed segments serve the canonical resting pose. Every other resting pose of the
+object (`sim.world.resting`) gets the grasps from above that `grasping.top_grasps` generates
+from the parts, so that every pose an object can lie in has candidates.
 """
 
 from __future__ import annotations
@@ -15,7 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from grasping.top_grasps import top_grasps
 from sim.core.errors import UnknownNameError
+from sim.core.transforms import quat_to_mat
 from sim.world.objects import OBJECT_NAMES, ObjectModel, load_object
 
 
@@ -27,11 +33,13 @@ class GraspCandidate:
         T_O_G: pose of the grasp site in O, shape (4, 4), translations in [m].
         width: extent of the part between the finger pads [m].
         part: name of the grasped part.
+        pose: the resting pose it was made for (`ObjectModel.resting_poses`).
     """
 
     T_O_G: np.ndarray
     width: float
     part: str
+    pose: str = ""
 
 
 @dataclass(frozen=True)
@@ -78,6 +86,19 @@ def _part_frame(obj: ObjectModel, part: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _candidates_for(obj: ObjectModel) -> list[GraspCandidate]:
+    poses = list(obj.resting_poses.items())
+    out: list[GraspCandidate] = _segment_candidates(obj, poses[0][0])
+    for pose, quat in poses[1:]:
+        up = quat_to_mat(quat)[2]
+        out += [GraspCandidate(T, w, part, pose) for part, T, w in top_grasps(obj, up)]
+    # Close the set under the object's symmetries.
+    extra = [
+        GraspCandidate(S @ c.T_O_G, c.width, c.part, c.pose) for S in obj.symmetries for c in out
+    ]
+    return out + extra
+
+
+def _segment_candidates(obj: ObjectModel, pose: str) -> list[GraspCandidate]:
     out: list[GraspCandidate] = []
     for seg in SEGMENTS[obj.name]:
         T_part, size = _part_frame(obj, seg.part)
@@ -108,11 +129,8 @@ def _candidates_for(obj: ObjectModel) -> list[GraspCandidate]:
                 T = np.eye(4)
                 T[:3, :3] = np.column_stack([approach, y, z])
                 T[:3, 3] = centre
-                out.append(GraspCandidate(T, width, seg.part))
-    # Close the set under the object's symmetries.
-    sym = [T for T in obj.symmetries]
-    extra = [GraspCandidate(S @ c.T_O_G, c.width, c.part) for S in sym for c in out]
-    return out + extra
+                out.append(GraspCandidate(T, width, seg.part, pose))
+    return out
 
 
 @functools.cache

@@ -21,6 +21,7 @@ from sim.world.scene import Scene
 FAILURE_REASONS: tuple[str, ...] = (
     "no_estimate",
     "unreachable",
+    "no_grasp",
     "ik_infeasible",
     "collision",
     "missed",

@@ -53,7 +53,7 @@ TRANSIT_POSTURES = (
 
 
 class PlanningError(PosegraspError):
-    """No plan: `reason` is "unreachable" or "ik_infeasible"."""
+    """No plan: `reason` is "unreachable", "no_grasp" or "ik_infeasible"."""
 
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)
@@ -85,6 +85,8 @@ class PlannerConfig:
         standoff: horizontal distance from the object at which a drive ends.
         max_drive: longest drive [m]; farther objects are unreachable.
         posture_cost: PostureTask cost per planned joint group (base xy, base yaw, torso, arm).
+        max_approach_tilt: candidates whose approach, at the estimated pose, leans more than
+            this from straight down are not tried [rad].
     """
 
     pregrasp_offset: float = 0.10
@@ -102,6 +104,7 @@ class PlannerConfig:
     standoff: float = 0.62
     max_drive: float = 2.0
     posture_cost: tuple[float, float, float, float] = (0.05, 0.05, 0.01, 0.002)
+    max_approach_tilt: float = float(np.deg2rad(30.0))
 
 
 @dataclass
@@ -220,14 +223,17 @@ class GraspPlanner:
         q: np.ndarray,
         neighbours: Sequence[tuple[str, np.ndarray]] = (),
     ) -> list[tuple[GraspCandidate, np.ndarray]]:
-        """Candidates in world frame, best first: those clear of the known `neighbours`
-        ((class, T_world_N) pairs, `grasping.clearance`) before the others; among them the
-        gripper's z axis pointing away from the robot (no wrist flip needed), then the grasp
-        point nearest the robot."""
+        """Candidates in world frame that approach from above (within `max_approach_tilt`), best
+        first: those clear of the known `neighbours` ((class, T_world_N) pairs,
+        `grasping.clearance`) before the others; among them the gripper's z axis pointing away
+        from the robot (no wrist flip needed), then the grasp point nearest the robot."""
         base_xy = q[self.qadr[:2]]
         scored = []
+        min_down = float(np.cos(self.cfg.max_approach_tilt))
         for c in candidates:
             T = T_world_O @ c.T_O_G
+            if -T[2, 0] < min_down:
+                continue
             radial = T[:2, 3] - base_xy
             dist = float(np.linalg.norm(radial))
             radial = radial / max(dist, 1e-9)
@@ -282,7 +288,9 @@ class GraspPlanner:
         Raises:
             InvalidArgumentError: T_world_O is not a finite rigid transform.
             PlanningError: "unreachable" when the object is beyond reach even with base motion;
-                "ik_infeasible" when no candidate's IK converges.
+                "no_grasp" when no candidate approaches from above at this pose (the object
+                lies in a pose the gripper cannot take it in); "ik_infeasible" when no
+                candidate's IK converges.
         """
         check_rigid(T_world_O, "estimated object pose", tol=POSE_TOL)
         t0 = time.perf_counter()
@@ -305,9 +313,12 @@ class GraspPlanner:
         self.posture.set_target(target)
         tried = 0
         last = ""
-        for cand, T_grasp in self.order_candidates(
-            T_world_O, grasp_candidates(name), q_start, neighbours
-        ):
+        ordered = self.order_candidates(T_world_O, grasp_candidates(name), q_start, neighbours)
+        if not ordered:
+            raise PlanningError(
+                "no_grasp", f"no grasp of the {name} approaches from above in this pose"
+            )
+        for cand, T_grasp in ordered:
             if tried >= self.cfg.max_candidates:
                 break
             tried += 1

@@ -63,6 +63,7 @@ class EpisodeResult:
     notes: list[str] = field(default_factory=list)
     estimate_info: dict[str, Any] = field(default_factory=dict)
     friction_margin: float | None = None
+    scene: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serialisable dict."""
@@ -111,6 +112,14 @@ class Episode:
         self.T_C_O_true = np.linalg.inv(self.T_world_cam) @ self.scene.object_pose()
         self._done = False
         self.frames: list[np.ndarray] = []
+
+    def scene_info(self) -> dict[str, Any]:
+        """What makes this scene hard: the target's resting pose and, when the tier bounds
+        it, the share of its silhouette hidden by other objects."""
+        info: dict[str, Any] = {"resting_pose": self.scene.target.resting}
+        if self.scene.occlusion is not None:
+            info["occlusion"] = round(self.scene.occlusion, 4)
+        return info
 
     def observe(self) -> Observation:
         """Render the head camera and return what an estimator may see."""
@@ -182,6 +191,7 @@ class Episode:
                 part,
                 dict(timings),
                 notes,
+                scene=self.scene_info(),
             )
 
         if T_C_O_est is None:

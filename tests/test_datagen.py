@@ -282,7 +282,7 @@ def test_corrupt_json_is_detected(paper: Path, tmp_path: Path) -> None:
         (["--dist", "paper", "--split", "dev", "--count", "1"], "train, val, test"),
         (["--dist", "paper", "--split", "val", "--count", "x"], "invalid int value"),
         (["--dist", "paper", "--split", "val", "--count", "1", "--width", "0"], "1..4096"),
-        (["--dist", "headcam", "--split", "val", "--count", "1", "--tier", "x"], "clutter, far"),
+        (["--dist", "headcam", "--split", "val", "--count", "1", "--tier", "x"], "any-pose, far"),
         (["--dist", "paper", "--split", "val", "--count", "1", "--tier", "far"], "headcam"),
     ],
 )

@@ -11,7 +11,7 @@ from gymnasium.utils.env_checker import check_env
 
 import posegrasp  # noqa: F401  (registers the env)
 from sim.core.errors import InvalidArgumentError, PosegraspError, StateError, UnknownNameError
-from sim.env import GraspEvalEnv, pose_action
+from sim.env import MAX_NEIGHBOURS, GraspEvalEnv, pose_action
 from sim.world.tiers import TIERS
 
 
@@ -101,6 +101,12 @@ def test_runs_in_async_vector_env() -> None:
             "has_estimate": np.array([0, 0]),
             "position": np.zeros((2, 3)),
             "quaternion": np.tile([1.0, 0, 0, 0], (2, 1)),
+            "neighbours": {
+                "count": np.array([0, 0]),
+                "object": np.zeros((2, MAX_NEIGHBOURS), int),
+                "position": np.zeros((2, MAX_NEIGHBOURS, 3)),
+                "quaternion": np.tile([1.0, 0, 0, 0], (2, MAX_NEIGHBOURS, 1)),
+            },
         }
         _, rewards, terminated, _, infos = envs.step(actions)
         assert rewards.tolist() == [0.0, 0.0] and terminated.all()

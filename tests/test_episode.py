@@ -120,7 +120,7 @@ def test_run_episode_cli_json(capsys) -> None:
     [
         (["--object", "teapot"], "valid objects: car, faucet"),
         (["--estimator", "magic"], "valid estimators: oracle"),
-        (["--seed", "x"], "invalid int value"),
+        (["--seed", "x"], "invalid --seed"),
     ],
 )
 def test_run_episode_cli_bad_input(argv, needle, capsys) -> None:
@@ -151,5 +151,7 @@ def test_evaluate_cli(tmp_path, capsys) -> None:
     ):
         assert key in g and key in d["overall"]
     assert g["episodes"] == 2
-    assert evaluate.main(["--objects", "teapot"]) == 2
-    assert "valid objects: all, car" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # refused while parsing, before any work
+        evaluate.main(["--objects", "teapot"])
+    assert exc.value.code == 2
+    assert "valid objects: car" in capsys.readouterr().err

@@ -2,31 +2,71 @@
 
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 import pytest
 
 from grasping.candidates import grasp_candidates
 from grasping.execute import Executor
 from grasping.planner import GraspPlanner, PlanningError
+from grasping.top_grasps import clear, top_grasp_points, top_grasps
 from sim.core.errors import InvalidArgumentError, UnknownNameError
+from sim.core.transforms import quat_to_mat
 from sim.world import constants as C
-from sim.world.objects import OBJECT_NAMES
+from sim.world.objects import OBJECT_NAMES, load_object
 from sim.world.scene import build_scene
 
 
 @pytest.mark.parametrize("name", OBJECT_NAMES)
 def test_candidates_are_valid_top_grasps(name: str) -> None:
+    obj = load_object(name)
     cands = grasp_candidates(name)
     assert len(cands) >= 8
     for c in cands:
         R = c.T_O_G[:3, :3]
         np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
         assert np.linalg.det(R) == pytest.approx(1.0)
-        np.testing.assert_allclose(R[:, 0], [0, 0, -1], atol=1e-9)  # approach straight down
+        # The approach is straight down in the resting pose the candidate was made for.
+        up = quat_to_mat(obj.resting_poses[c.pose])[2]
+        np.testing.assert_allclose(R[:, 0], -up, atol=1e-6)
         assert 0.0 < c.width < 2 * C.FINGER_TRAVEL - 0.01  # the gripper opens wide enough
-    # Each position comes with both finger orders.
-    pos = {tuple(np.round(c.T_O_G[:3, 3], 6)) for c in cands}
-    assert len(pos) * 2 == len(cands)
+    # Each position and closing line comes with both finger orders.
+    orders = Counter(
+        (tuple(np.round(c.T_O_G[:3, 3], 6)), tuple(np.round(c.T_O_G[:3, 1] * k, 6)))
+        for c in cands
+        for k in (1, -1)
+    )
+    assert set(orders.values()) == {2}
+
+
+@pytest.mark.parametrize("name", OBJECT_NAMES)
+def test_every_graspable_resting_pose_has_candidates(name: str) -> None:
+    obj = load_object(name)
+    per_pose = Counter(c.pose for c in grasp_candidates(name))
+    for pose in obj.resting_poses:
+        if pose in obj.ungraspable:
+            assert per_pose[pose] == 0, f"{name} {pose} is marked ungraspable but has grasps"
+        else:
+            assert per_pose[pose] >= 2, f"{name} {pose} has no grasp from above"
+
+
+def test_generated_grasps_keep_the_fingers_off_other_parts() -> None:
+    """A generated grasp of the pistol lying on its back closes on a part, and the finger sweep
+    of a grasp moved 2 cm sideways onto the neighbouring geometry is rejected."""
+    obj = load_object("pistol")
+    up = quat_to_mat(obj.resting_poses["up_-y"])[2]
+    grasps = top_grasps(obj, up)
+    assert grasps
+    pts = np.asarray(obj.mesh.vertices)
+    low = float((pts @ up).min())
+    for _part, T, width in grasps:
+        assert clear(T, width, top_grasp_points("pistol"), float(T[:3, 3] @ up) - low)
+    # The same grasp sunk 3 cm deeper puts the fingertips through the table or the body.
+    _part, T, width = grasps[0]
+    T = T.copy()
+    T[:3, 3] -= 0.03 * up
+    assert not clear(T, width, top_grasp_points("pistol"), float(T[:3, 3] @ up) - low)
 
 
 def test_unknown_object_candidates() -> None:

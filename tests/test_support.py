@@ -6,6 +6,7 @@ import pytest
 from perception.support import refine_on_support, snap_to_resting
 from sim.core.transforms import quat_to_mat
 from sim.world.objects import load_object
+from sim.world.resting import upright_quat
 
 SUPPORT_Z = 0.72
 
@@ -88,8 +89,14 @@ def test_yaw_is_kept():
 
 def test_far_from_every_resting_pose_is_left_alone():
     model, T_w_c, T_c_o = resting_truth("phone", next(iter(load_object("phone").resting_poses)), 0)
+    # Resting on a corner of its base: the body diagonal up, more than 45 degrees from the up
+    # direction of every resting pose the phone has.
+    up = np.array([1.0, 1.0, 1.0]) / np.sqrt(3.0)
+    assert all(
+        quat_to_mat(q)[2] @ up < np.cos(np.deg2rad(45.0)) for q in model.resting_poses.values()
+    )
     est = T_c_o.copy()
-    est[:3, :3] = T_w_c[:3, :3].T @ rot("x", 80.0) @ T_w_c[:3, :3] @ T_c_o[:3, :3]
+    est[:3, :3] = T_w_c[:3, :3].T @ quat_to_mat(upright_quat(up))
     ref = refine_on_support(est, T_w_c, model, SUPPORT_Z, max_tilt_deg=45.0)
     assert ref.applied == () and ref.resting_pose is None
     np.testing.assert_array_equal(ref.T_C_O, est)

@@ -27,21 +27,24 @@ def footprint(obj: ObjectModel, rest: np.ndarray, yaw: float) -> np.ndarray:
     return xy[ConvexHull(xy).vertices]
 
 
-def _point_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distances from points p (N, 2) to segment ab."""
-    ab = b - a
-    t = np.clip(((p - a) @ ab) / max(float(ab @ ab), 1e-18), 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
+def _point_segments(P: np.ndarray, Q: np.ndarray) -> float:
+    """Smallest distance from the points P (N, 2) to the edges of polygon Q (M, 2)."""
+    a = Q
+    ab = np.roll(Q, -1, axis=0) - Q  # (M, 2)
+    ap = P[:, None, :] - a[None, :, :]  # (N, M, 2)
+    t = np.clip(np.einsum("nmk,mk->nm", ap, ab) / np.maximum((ab * ab).sum(axis=1), 1e-18), 0, 1)
+    d = ap - t[..., None] * ab[None, :, :]
+    return float(np.sqrt((d * d).sum(axis=2).min()))
 
 
 def _separated(A: np.ndarray, B: np.ndarray) -> bool:
     """Separating-axis test of two convex polygons."""
     for P in (A, B):
         edges = np.roll(P, -1, axis=0) - P
-        for n in np.stack([edges[:, 1], -edges[:, 0]], axis=1):
-            a, b = A @ n, B @ n
-            if a.max() < b.min() or b.max() < a.min():
-                return True
+        normals = np.stack([edges[:, 1], -edges[:, 0]], axis=1)  # (E, 2)
+        a, b = A @ normals.T, B @ normals.T  # (N, E), (M, E)
+        if np.any((a.max(axis=0) < b.min(axis=0)) | (b.max(axis=0) < a.min(axis=0))):
+            return True
     return False
 
 
@@ -49,11 +52,11 @@ def gap(A: np.ndarray, B: np.ndarray) -> float:
     """Edge-to-edge distance of two convex polygons (N, 2) and (M, 2) [m]; 0 when they overlap."""
     if not _separated(A, B):
         return 0.0
-    best = np.inf
-    for P, Q in ((A, B), (B, A)):
-        for a, b in zip(Q, np.roll(Q, -1, axis=0), strict=True):
-            best = min(best, float(_point_segment(P, a, b).min()))
-    return best
+    return min(_point_segments(A, B), _point_segments(B, A))
+
+
+#: Half-range of the direction, about -x, from the target to a neighbour that occludes it [rad].
+OCCLUDER_SPREAD = 0.4
 
 
 def on_table(F: np.ndarray) -> bool:
@@ -68,11 +71,11 @@ def place_beside(
 ) -> np.ndarray:
     """Offset (2,) that puts footprint `shape` (centred on its origin) `distance` from the placed
     footprint `anchor`, edge to edge, along the horizontal `direction` [rad] from the anchor's
-    centroid (bisection on the centre distance)."""
+    centroid (bisection on the centre distance, to 1/2**17 m)."""
     u = np.array([np.cos(direction), np.sin(direction)])
     c = anchor.mean(axis=0)
     lo, hi = 0.0, 1.0
-    for _ in range(40):
+    for _ in range(17):
         mid = (lo + hi) / 2
         if gap(anchor, shape + c + mid * u) < distance:
             lo = mid
@@ -89,10 +92,13 @@ def sample_layout(
     target_xy: tuple[tuple[float, float], tuple[float, float]],
     rng: np.random.Generator,
     attempts: int = 50,
+    occluders: int = 0,
 ) -> list[tuple[np.ndarray, float]] | None:
     """Positions and yaws of objects on the table: the target (first) in its region, the next
     `near` objects beside it with gaps drawn from `near_gap`, the rest anywhere on the table at
-    least `near_gap[0]` from the target; no two footprints closer than `MIN_GAP`.
+    least `near_gap[0]` from the target; no two footprints closer than `MIN_GAP`. The first
+    `occluders` of the neighbours stand on the robot's side of the target (-x, within
+    `OCCLUDER_SPREAD`), between it and the head camera.
 
     Returns:
         [(xy (2,), yaw)] per object, or None when no layout was found in `attempts` tries.
@@ -107,9 +113,12 @@ def sample_layout(
                 if i == 0:
                     xy = np.array([rng.uniform(*target_xy[0]), rng.uniform(*target_xy[1])])
                 elif i <= near:
-                    xy = place_beside(
-                        placed[0], shape, rng.uniform(-np.pi, np.pi), rng.uniform(*near_gap)
+                    side = (
+                        np.pi + rng.uniform(-OCCLUDER_SPREAD, OCCLUDER_SPREAD)
+                        if i <= occluders
+                        else rng.uniform(-np.pi, np.pi)
                     )
+                    xy = place_beside(placed[0], shape, side, rng.uniform(*near_gap))
                 else:
                     (x0, x1), (y0, y1) = TABLE_XY
                     xy = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])

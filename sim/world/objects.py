@@ -134,7 +134,10 @@ class ObjectModel:
         friction: MuJoCo friction (sliding, torsional, rolling).
         symmetries: proper rotational symmetries besides the identity, each a 4x4 T_O_O'
             (appearance included; every object here is designed to have none).
-        resting_poses: name -> orientation of O on a horizontal support, wxyz.
+        resting_poses: name -> orientation of O on a horizontal support, wxyz; the first is
+            the canonical pose, the others were found by physics (`sim.world.resting`).
+        ungraspable: resting poses in which the Fetch gripper cannot take the object from above
+            (no grasp candidate fits; `grasping.candidates` is tested against this list).
     """
 
     name: str
@@ -144,6 +147,7 @@ class ObjectModel:
     friction: tuple[float, float, float]
     symmetries: tuple[np.ndarray, ...] = ()
     resting_poses: dict[str, np.ndarray] = field(default_factory=dict)
+    ungraspable: tuple[str, ...] = ()
 
     @functools.cached_property
     def mesh(self) -> trimesh.Trimesh:
@@ -250,6 +254,7 @@ def load_object(name: str) -> ObjectModel:
             T[:3, :3] = quat_to_mat(q)
             syms.append(T)
         rest = {r["name"]: np.asarray(r["quat"], float) for r in raw["resting_poses"]}
+        ungraspable = tuple(r["name"] for r in raw["resting_poses"] if not r.get("graspable", 1))
         return ObjectModel(
             name=name,
             description=raw.get("description", ""),
@@ -258,6 +263,7 @@ def load_object(name: str) -> ObjectModel:
             friction=tuple(raw.get("friction", [1.0, 0.01, 0.0005])),
             symmetries=tuple(syms),
             resting_poses=rest,
+            ungraspable=ungraspable,
         )
     except (OSError, KeyError, TypeError, ValueError) as exc:
         raise AssetError(f"cannot read object definition {path}: {exc}") from exc

@@ -19,9 +19,12 @@ from sim.core.transforms import quat_mul, yaw_quat
 from sim.world import constants as C
 from sim.world.layout import sample_layout
 from sim.world.objects import OBJECT_NAMES, ObjectModel, load_object
+from sim.world.occlusion import occlusion
 from sim.world.robot import RobotConfig, fetch_spec, home_qpos_ctrl
 
 WORLD_XML = SCENES_DIR / "world.xml"
+#: Layouts drawn at most for a scene whose occlusion is bounded.
+OCCLUSION_ATTEMPTS = 30
 
 
 @dataclass(frozen=True)
@@ -36,8 +39,9 @@ class SceneConfig:
         aim_jitter: half-range of a random offset of the head's aim point around the target.
         settle_time: physics time run after placing everything [s].
         resting_pose: "canonical" puts every object in its first (canonical) resting pose;
-            "random" samples among each object's resting poses. (Grasp candidates are defined
-            for the canonical pose.)
+            "random" draws each object's pose uniformly among its resting poses; "graspable"
+            does the same but draws the target's among the poses the gripper can take it in
+            (`ObjectModel.ungraspable` excluded).
         randomize_appearance: randomise lights and surface colours (for data generation).
         distractor_count: when set, the number of distractors is drawn uniformly from this
             inclusive range instead of `n_distractors`.
@@ -46,6 +50,11 @@ class SceneConfig:
         camera_distance: when set, the base is placed so that the head camera is this far from
             the target (drawn uniformly from the range) [m], facing it; `base_x`, `base_y` and
             `base_yaw` then jitter that pose.
+        occluders: how many of the near distractors stand on the robot's side of the target,
+            between it and the head camera.
+        occlusion: when set, the accepted range of the share of the target's silhouette that
+            the other objects hide from the head camera (`sim.world.occlusion`); layouts are
+            drawn again (from the same seed's stream) until one falls in it.
     """
 
     n_distractors: int = 0
@@ -64,16 +73,20 @@ class SceneConfig:
     near_distractors: int = 0
     near_gap: tuple[float, float] = (0.03, 0.08)
     camera_distance: tuple[float, float] | None = None
+    occluders: int = 0
+    occlusion: tuple[float, float] | None = None
     robot: RobotConfig = field(default_factory=RobotConfig)
 
 
 @dataclass
 class PlacedObject:
-    """An object instance in a scene: its class, body name and model."""
+    """An object instance in a scene: its class, body name, model and the resting pose it was
+    placed in."""
 
     name: str
     body: str
     model: ObjectModel
+    resting: str = ""
 
 
 @dataclass
@@ -86,6 +99,8 @@ class Scene:
         objects: placed objects, the target first.
         table_top_z: height of the table's top surface [m].
         ctrl_home: the control vector that holds the robot's posture.
+        occlusion: share of the target's silhouette the other objects hide from the head
+            camera, when the scene's config bounds it.
     """
 
     model: mujoco.MjModel
@@ -94,6 +109,7 @@ class Scene:
     objects: list[PlacedObject]
     table_top_z: float
     ctrl_home: np.ndarray
+    occlusion: float | None = None
 
     @property
     def target(self) -> PlacedObject:
@@ -153,22 +169,33 @@ def _sample_positions(
     )
 
 
-def _resting(obj: ObjectModel, cfg: SceneConfig, rng: np.random.Generator) -> np.ndarray:
-    """The resting orientation (wxyz) an object is placed in."""
-    rest_names = list(obj.resting_poses)
-    if cfg.resting_pose == "random":
-        return obj.resting_poses[rest_names[rng.integers(len(rest_names))]]
-    return obj.resting_poses[rest_names[0]]
+RESTING_MODES = ("canonical", "random", "graspable")
+
+
+def _resting(
+    obj: ObjectModel, cfg: SceneConfig, rng: np.random.Generator, target: bool
+) -> tuple[str, np.ndarray]:
+    """The resting pose (name, wxyz orientation) an object is placed in."""
+    names = list(obj.resting_poses)
+    if cfg.resting_pose == "graspable" and target:
+        names = [n for n in names if n not in obj.ungraspable]
+    if cfg.resting_pose != "canonical":
+        name = names[rng.integers(len(names))]
+        return name, obj.resting_poses[name]
+    return names[0], obj.resting_poses[names[0]]
 
 
 def _near_layout(
     objs: list[ObjectModel], cfg: SceneConfig, rng: np.random.Generator
-) -> list[tuple[np.ndarray, np.ndarray, float]]:
+) -> list[tuple[np.ndarray, tuple[str, np.ndarray], float]]:
     """(xy, resting orientation, yaw) per object with `cfg.near_distractors` neighbours beside
     the target (`sim.world.layout`)."""
-    rests = [_resting(o, cfg, rng) for o in objs]
+    rests = [_resting(o, cfg, rng, i == 0) for i, o in enumerate(objs)]
     near = min(cfg.near_distractors, len(objs) - 1)
-    layout = sample_layout(objs, rests, near, cfg.near_gap, (cfg.target_x, cfg.target_y), rng)
+    quats = [q for _, q in rests]
+    layout = sample_layout(
+        objs, quats, near, cfg.near_gap, (cfg.target_x, cfg.target_y), rng, occluders=cfg.occluders
+    )
     if layout is None:
         raise InvalidArgumentError(
             f"cannot place {len(objs)} objects with {near} beside the target; use fewer distractors"
@@ -268,8 +295,8 @@ def build_scene(
         InvalidArgumentError: the objects do not fit on the table.
     """
     cfg = config or SceneConfig()
-    if cfg.resting_pose not in ("canonical", "random"):
-        raise UnknownNameError("resting pose mode", cfg.resting_pose, ("canonical", "random"))
+    if cfg.resting_pose not in RESTING_MODES:
+        raise UnknownNameError("resting pose mode", cfg.resting_pose, RESTING_MODES)
     names = [objects] if isinstance(objects, str) else list(objects)
     if not names:
         raise InvalidArgumentError(f"no object given; valid objects: {', '.join(OBJECT_NAMES)}")
@@ -286,7 +313,26 @@ def build_scene(
         distractors = [pool[i] for i in rng.permutation(len(pool))[:k]]
     names = [*names, *distractors]
     models = [load_object(n) for n in names]
+    if cfg.occlusion is None:
+        return _assemble(models, cfg, rng, seed)
+    lo, hi = cfg.occlusion
+    for _attempt in range(OCCLUSION_ATTEMPTS):
+        scene = _assemble(models, cfg, rng, seed)
+        scene.occlusion = occlusion(
+            scene.model, scene.data, scene.target.body, [o.body for o in scene.objects[1:]]
+        )
+        if lo <= scene.occlusion <= hi:
+            return scene
+    raise InvalidArgumentError(
+        f"no layout of seed {seed} hides {lo:.0%}-{hi:.0%} of the {names[0]} in "
+        f"{OCCLUSION_ATTEMPTS} draws; widen the occlusion range"
+    )
 
+
+def _assemble(
+    models: list[ObjectModel], cfg: SceneConfig, rng: np.random.Generator, seed: int
+) -> Scene:
+    """Lay out the objects, compile the scene, place the robot and let physics settle."""
     spec = fetch_spec(cfg.robot, world=WORLD_XML)
     table_top = spec.geom("table_top")
     table_top_z = float(spec.body("table").pos[2] + table_top.pos[2] + table_top.size[2])
@@ -296,19 +342,19 @@ def build_scene(
     else:  # the original sampling order: positions first, then resting pose and yaw per object
         positions = _sample_positions(models, cfg, rng)
         poses = []
-        for obj, xy in zip(models, positions, strict=True):
-            rest = _resting(obj, cfg, rng)
+        for i, (obj, xy) in enumerate(zip(models, positions, strict=True)):
+            rest = _resting(obj, cfg, rng, i == 0)
             poses.append((xy, rest, float(rng.uniform(-np.pi, np.pi))))
     placed: list[PlacedObject] = []
     counts: dict[str, int] = {}
-    for obj, (xy, rest, yaw) in zip(models, poses, strict=True):
+    for obj, (xy, (rest_name, rest), yaw) in zip(models, poses, strict=True):
         k = counts.get(obj.name, 0)
         counts[obj.name] = k + 1
         body = f"{obj.name}_{k}"
         quat = quat_mul(yaw_quat(yaw), rest)
         z = table_top_z + obj.resting_height(rest) + 0.001
         obj.add_to_spec(spec, body, np.array([xy[0], xy[1], z]), quat)
-        placed.append(PlacedObject(obj.name, body, obj))
+        placed.append(PlacedObject(obj.name, body, obj, rest_name))
 
     model = spec.compile()
     if cfg.randomize_appearance:

@@ -3,13 +3,15 @@
 - ``isolated``: one upright object alone on the table, the base 0.7-0.9 m from it (the default).
 - ``clutter``: 3-5 objects of the other classes on the table, two of them 3-8 cm (edge to edge)
   from the target; lights and surface colours randomised.
+- ``any-pose``: the target alone, in any of its stable resting poses (found by physics,
+  `sim.world.resting`) that the gripper can take it in, drawn uniformly.
 - ``far``: the base stands back so that the head camera sees the target 0.9-1.6 m away; the
   robot drives before it grasps.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 from sim.core.errors import UnknownNameError
 from sim.world.scene import SceneConfig
@@ -32,6 +34,15 @@ class Tier:
 
 _CLUTTER = SceneConfig(distractor_count=(3, 5), near_distractors=2, randomize_appearance=True)
 _FAR = SceneConfig(camera_distance=(0.9, 1.6))
+_ANY_POSE = SceneConfig(resting_pose="graspable")
+_HARD = replace(
+    _CLUTTER,
+    camera_distance=_FAR.camera_distance,
+    resting_pose="graspable",
+    target_x=(0.8, 0.9),
+    occluders=1,
+    occlusion=(0.05, 0.4),
+)
 
 #: Tiers by name, easiest first.
 TIERS: dict[str, Tier] = {
@@ -39,7 +50,9 @@ TIERS: dict[str, Tier] = {
     for t in (
         Tier("isolated", SceneConfig(), "one upright object alone, 0.7-0.9 m from the camera"),
         Tier("clutter", _CLUTTER, "3-5 other objects, two of them 3-8 cm from the target"),
+        Tier("any-pose", _ANY_POSE, "the target in any stable resting pose it can be taken in"),
         Tier("far", _FAR, "the target 0.9-1.6 m from the camera; the base drives first"),
+        Tier("hard", _HARD, "all of the above, and a neighbour hides up to 40 % of the target"),
     )
 }
 DEFAULT_TIER = "isolated"
@@ -56,16 +69,11 @@ def tier_scene(name: str, base: SceneConfig | None = None) -> SceneConfig:
     preset = TIERS[name].scene
     if base is None:
         return preset
+    default = SceneConfig()
     changed = {
-        f: getattr(preset, f)
-        for f in (
-            "distractor_count",
-            "near_distractors",
-            "near_gap",
-            "camera_distance",
-            "randomize_appearance",
-            "resting_pose",
-        )
+        f.name: getattr(preset, f.name)
+        for f in fields(SceneConfig)
+        if getattr(preset, f.name) != getattr(default, f.name)
     }
     return replace(base, **changed)
 
