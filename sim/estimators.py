@@ -53,8 +53,7 @@ class NoisyOracleEstimator:
         )
 
     def estimate_from_truth(self, obs: Observation, T_C_O_true: np.ndarray) -> np.ndarray | None:
-        rng = np.random.default_rng([obs.seed, 7919])
-        return perturb_pose(np.array(T_C_O_true, dtype=float), self.noise, rng)
+        return perturb_pose(np.array(T_C_O_true, dtype=float), self.noise, self.noise.rng(obs.seed))
 
 
 def _hybrid() -> PoseEstimator:

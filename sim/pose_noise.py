@@ -30,6 +30,10 @@ class PoseNoise:
             "spread" first draws each component's sigma uniformly in [0, magnitude], on its own,
             then the error from N(0, sigma^2), so that a sample of episodes covers every mix of
             the four components.
+        draw: which stream of errors: 0 (the default) draws each episode's errors from its
+            scene seed alone, so every sigma scales the same standard-normal draws (common
+            random numbers); another number gives an independent set of errors for the same
+            scenes.
     """
 
     ray: float = 0.0
@@ -37,6 +41,7 @@ class PoseNoise:
     inplane: float = 0.0
     outplane: float = 0.0
     mode: str = "gaussian"
+    draw: int = 0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -44,6 +49,13 @@ class PoseNoise:
         vals = (self.ray, self.lateral, self.inplane, self.outplane)
         if not all(np.isfinite(v) and v >= 0 for v in vals):
             raise InvalidArgumentError("noise magnitudes must be finite and non-negative")
+        if not 0 <= int(self.draw) < 2**32 or int(self.draw) != self.draw:
+            raise InvalidArgumentError(f"noise draw must be an integer in 0..{2**32 - 1}")
+
+    def rng(self, seed: int) -> np.random.Generator:
+        """The generator of the errors of the episode with scene seed `seed`."""
+        key = [int(seed), 7919] if self.draw == 0 else [int(seed), 7919, int(self.draw)]
+        return np.random.default_rng(key)
 
 
 def perturb_pose(T_C_O: np.ndarray, noise: PoseNoise, rng: np.random.Generator) -> np.ndarray:
@@ -73,8 +85,9 @@ def perturb_pose(T_C_O: np.ndarray, noise: PoseNoise, rng: np.random.Generator) 
 
 
 #: What `--noise` takes: sigma along the ray and across it [mm], in-plane and out-of-plane [deg];
-#: with the prefix ``spread:``, the largest sigmas of the "spread" mode.
-NOISE_FORMAT = "[spread:]RAY_MM,LATERAL_MM,INPLANE_DEG,OUTPLANE_DEG"
+#: with the prefix ``spread:``, the largest sigmas of the "spread" mode; with the suffix ``@N``,
+#: the N-th independent draw of the errors (`PoseNoise.draw`).
+NOISE_FORMAT = "[spread:]RAY_MM,LATERAL_MM,INPLANE_DEG,OUTPLANE_DEG[@DRAW]"
 
 
 def parse_noise(text: str) -> PoseNoise:
@@ -86,16 +99,21 @@ def parse_noise(text: str) -> PoseNoise:
     """
     raw = str(text)
     mode = "spread" if raw.startswith("spread:") else "gaussian"
-    parts = raw.removeprefix("spread:").split(",")
+    body, at, draw_text = raw.removeprefix("spread:").partition("@")
+    draw = int(draw_text) if draw_text.isdigit() and len(draw_text) <= 10 else -1
+    if not at:
+        draw = 0
+    parts = body.split(",")
     try:
         values = [float(v) for v in parts]
     except ValueError:
         values = []
     ok = len(values) == 4 and all(np.isfinite(v) and v >= 0 for v in values)
+    ok = ok and 0 <= draw < 2**32
     if not ok or max(values[:2]) > 1000 or max(values[2:]) > 180:
         raise InvalidArgumentError(
-            f"--noise must be {NOISE_FORMAT}: four numbers >= 0 (mm up to 1000, deg up to 180), "
-            f"got {raw!r}"
+            f"--noise must be {NOISE_FORMAT}: four numbers >= 0 (mm up to 1000, deg up to 180) "
+            f"and a draw in 0..{2**32 - 1}, got {raw!r}"
         )
     ray, lat, inp, outp = values
-    return PoseNoise(ray / 1000, lat / 1000, np.deg2rad(inp), np.deg2rad(outp), mode)
+    return PoseNoise(ray / 1000, lat / 1000, np.deg2rad(inp), np.deg2rad(outp), mode, draw)

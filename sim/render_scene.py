@@ -3,7 +3,10 @@
     python -m sim.render_scene --object phone --seed 0 --out head.png [--external]
         [--width 640 --height 480] [--distractors N] [--no-shadows]
 
-writes the head camera's RGB image to `--out`; with `--external` also writes
+    python -m sim.render_scene --sheet docs/tiers.png [--object phone --seed 0]
+
+writes the head camera's RGB image to `--out`; with `--sheet` instead one picture of every tier
+(`sim.world.tiers`), head camera above the external view, labelled; with `--external` also writes
 `<stem>_external.png` next to it, a view from the world camera "external" that shows the robot,
 the table and the objects. Every argument is checked before the scene is built; a bad one gives a
 single `error: ...` line on stderr that names the valid choices, and a non-zero exit status.
@@ -95,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
     p.add_argument("--no-shadows", action="store_true", help="render without shadows (faster)")
+    p.add_argument("--sheet", help="write one labelled picture of every tier here (PNG)")
     return p
 
 
@@ -159,12 +163,33 @@ def render(req: RenderRequest) -> list[Path]:
     return written
 
 
+def render_sheet(req: RenderRequest, path: Path) -> Path:
+    """One column per tier (seed `req.seed`, target `req.object`): the head camera above the
+    external view, each at `req.width` x `req.height`, with the tier's name and summary."""
+    columns = []
+    options = RenderOptions(shadows=req.shadows, reflections=False)
+    for name, tier in TIERS.items():
+        scene = build_scene(req.object, req.seed, tier_scene(name))
+        with CameraRenderer(scene.model, req.width, req.height, options) as renderer:
+            views = [renderer.rgb(scene.data, cam) for cam in (C.HEAD_CAMERA, EXTERNAL_CAMERA)]
+        label = np.full((40, req.width, 3), 255, np.uint8)
+        hidden = f" ({scene.occlusion:.0%} of the target hidden)" if scene.occlusion else ""
+        for row, text in enumerate((name + hidden, tier.summary)):
+            cv2.putText(label, text[:70], (6, 16 + 18 * row), cv2.FONT_HERSHEY_SIMPLEX,
+                        0.45 if row else 0.55, (0, 0, 0), 1, cv2.LINE_AA)  # fmt: skip
+        columns.append(np.vstack([label, *views]))
+    _write_png(path, np.hstack(columns))
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
     try:
         args = build_parser().parse_args(argv)
+        if args.sheet is not None:
+            args.out = args.sheet
         req = check_request(args)
-        for path in render(req):
+        for path in [render_sheet(req, req.out)] if args.sheet is not None else render(req):
             print(path)
     except SystemExit as exc:  # --help, or a bad argument already reported in one line
         return exc.code if isinstance(exc.code, int) else 0

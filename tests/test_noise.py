@@ -67,3 +67,18 @@ def test_spread_noise_draws_each_sigma_on_its_own() -> None:
     # The components are drawn independently: no correlation between them.
     assert abs(np.corrcoef(E[:, 0], E[:, 2])[0, 1]) < 0.2
     assert abs(np.corrcoef(E[:, 0], E[:, 1])[0, 1]) < 0.2
+
+
+def test_a_draw_is_an_independent_set_of_errors_for_the_same_scenes() -> None:
+    base = parse_noise("5,5,2,2")
+    assert base.draw == 0 and parse_noise("5,5,2,2@0") == base
+    other = parse_noise("5,5,2,2@3")
+    assert other.draw == 3
+    a = base.rng(1_000_000_000).normal(size=4)
+    np.testing.assert_array_equal(a, base.rng(1_000_000_000).normal(size=4))  # reproducible
+    assert not np.allclose(a, other.rng(1_000_000_000).normal(size=4))
+    # Draw 0 is the stream every earlier report used.
+    np.testing.assert_array_equal(a, np.random.default_rng([1_000_000_000, 7919]).normal(size=4))
+    for bad in ("5,5,2,2@", "5,5,2,2@-1", "5,5,2,2@x", "5,5,2,2@99999999999"):
+        with pytest.raises(InvalidArgumentError, match="draw in 0.."):
+            parse_noise(bad)

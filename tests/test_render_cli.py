@@ -12,6 +12,7 @@ import pytest
 
 from sim.render_scene import main
 from sim.world.objects import OBJECT_NAMES
+from sim.world.tiers import TIERS
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -110,3 +111,13 @@ def test_bad_input_as_a_process(tmp_path: Path, args: list[str], expected: list[
     assert proc.returncode == 2
     _assert_one_line_error(proc.stderr, expected)
     assert proc.stdout == ""
+
+
+def test_sheet_shows_every_tier(tmp_path) -> None:
+    out = tmp_path / "tiers.png"
+    assert main(["--sheet", str(out), "--width", "64", "--height", "48", "--no-shadows"]) == 0
+    img = cv2.imread(str(out))
+    assert img.shape == (40 + 2 * 48, 64 * len(TIERS), 3)
+    # Every column holds two real renders (not blank).
+    for k in range(len(TIERS)):
+        assert img[40:, 64 * k : 64 * (k + 1)].std() > 5
