@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import binomtest
+from scipy.stats import binomtest, spearmanr
 
 from sim.core.cli import ArgumentParser, fail, write_json
 from sim.core.errors import InvalidArgumentError, PosegraspError
@@ -58,6 +58,28 @@ def bootstrap_means(values: np.ndarray, boot: int, rng: np.random.Generator) -> 
     """Means of `boot` resamples (with replacement) of `values`, shape (boot,)."""
     values = np.asarray(values, float)
     return rng.choice(values, (boot, values.size)).mean(axis=1)
+
+
+def margin_error_correlation(episodes: list[dict]) -> dict[str, float | int | None]:
+    """Spearman rank correlation of the friction margin with each pose error (translation [m],
+    rotation [deg], ADD [m]) over the episodes that have both, and their count; None where
+    fewer than 5 episodes have both or either side is constant. Positive: larger errors, looser
+    grasps."""
+    pairs = [
+        (e["friction_margin"], e["pose_error"])
+        for e in episodes
+        if e.get("friction_margin") is not None and e.get("pose_error")
+    ]
+    out: dict[str, float | int | None] = {"episodes": len(pairs)}
+    for key in ("translation_m", "rotation_deg", "add_m"):
+        m = np.array([p[0] for p in pairs], float)
+        err = np.array([p[1].get(key, np.nan) for p in pairs], float)
+        ok = np.isfinite(err)
+        rho = None
+        if ok.sum() >= 5 and np.ptp(m[ok]) > 0 and np.ptp(err[ok]) > 0:
+            rho = float(spearmanr(m[ok], err[ok]).statistic)
+        out[key] = rho
+    return out
 
 
 def mcnemar_exact(a_only: int, b_only: int) -> float:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.compare import bootstrap_means
+from sim.compare import bootstrap_means, margin_error_correlation
 from sim.core.backends import add_backend_arguments, check_backend, run_map
 from sim.core.cli import ArgumentParser, fail, write_json
 from sim.core.errors import PosegraspError
@@ -122,6 +122,7 @@ def _group(episodes: list[dict]) -> dict:
         out["friction_margin_low"], out["friction_margin_high"] = (
             float(v) for v in np.percentile(boot, [2.5, 97.5])
         )
+        out["margin_error_spearman"] = margin_error_correlation(episodes)
     walls = [e["wall_ms"] for e in episodes]
     plans = [e["timings_ms"]["ik"] for e in episodes if "ik" in e.get("timings_ms", {})]
     out["episode_wall_ms_median"] = float(np.median(walls)) if walls else None

@@ -102,3 +102,22 @@ def test_margin_difference_on_pairs_both_grasped() -> None:
     assert m["pairs"] == 2 and m["difference"] == pytest.approx(0.05)
     assert m["bootstrap_low"] == pytest.approx(0.05) and m["bootstrap_high"] == pytest.approx(0.05)
     assert cmp.margin_difference([(False, None)], [(True, 0.2)], 100, rng) is None
+
+
+def test_margin_error_correlation() -> None:
+    from sim.compare import margin_error_correlation
+
+    eps = [
+        {"friction_margin": 0.1 + 0.01 * i, "pose_error": {"translation_m": 0.001 * i,
+                                                          "rotation_deg": 10.0 - i}}
+        for i in range(10)
+    ]  # fmt: skip
+    rho = margin_error_correlation([*eps, {"friction_margin": None, "pose_error": None}])
+    assert rho["episodes"] == 10
+    assert rho["translation_m"] == pytest.approx(1.0)  # larger error, looser grasp
+    assert rho["rotation_deg"] == pytest.approx(-1.0)
+    assert rho["add_m"] is None  # not reported
+    # Too few episodes, or a constant side: no figure rather than a meaningless one.
+    assert margin_error_correlation(eps[:4])["translation_m"] is None
+    flat = [dict(e, friction_margin=0.2) for e in eps]
+    assert margin_error_correlation(flat)["translation_m"] is None
