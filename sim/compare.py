@@ -54,6 +54,21 @@ def load_report(path: Path) -> dict[tuple[str, str, int], Outcome]:
     return out
 
 
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (95 % for the default z).
+
+    Returns:
+        (low, high); (0, 1) when n == 0.
+    """
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
+
+
 def bootstrap_means(values: np.ndarray, boot: int, rng: np.random.Generator) -> np.ndarray:
     """Means of `boot` resamples (with replacement) of `values`, shape (boot,)."""
     values = np.asarray(values, float)
@@ -195,11 +210,93 @@ def format_comparison(res: dict, name_a: str, name_b: str) -> str:
     return "\n".join(rows)
 
 
+def curve(paths: list[Path], boot: int = BOOTSTRAP) -> list[dict]:
+    """A chain of reports run on the same scenes (e.g. noisy-oracle at growing sigma): per
+    report its label (noise or estimator), success and mean friction margin, and the paired
+    comparison of each report with the one before it.
+
+    Raises:
+        InvalidArgumentError: an unreadable report, or two neighbours that share no episode.
+    """
+    rows = []
+    prev = None
+    for path in paths:
+        outcomes = load_report(path)
+        report = json.loads(Path(path).read_text())
+        ok = sum(s for s, _ in outcomes.values())
+        margins = [m for s, m in outcomes.values() if s and m is not None]
+        row = {
+            "report": str(path),
+            "label": report.get("noise") or report.get("estimator", "?"),
+            "episodes": len(outcomes),
+            "successes": int(ok),
+            "friction_margin_mean": float(np.mean(margins)) if margins else None,
+            "against_previous": None if prev is None else compare(prev, outcomes, boot),
+        }
+        rows.append(row)
+        prev = outcomes
+    return rows
+
+
+def format_curve(rows: list[dict]) -> str:
+    """The chain as a table: success, margin, and the paired step from the report before."""
+    out = [f"{'report':<24} {'success':>13} {'margin':>7} {'lost':>5} {'won':>4} {'McNemar p':>10}"]
+    for r in rows:
+        m = r["friction_margin_mean"]
+        step = r["against_previous"]
+        lost = won = p = ""
+        if step is not None:
+            o = step["overall"]
+            lost, won, p = o["a_only"], o["b_only"], f"{o['mcnemar_p']:.3g}"
+        out.append(
+            f"{r['label']!s:<24} {r['successes']:>5}/{r['episodes']:<4} "
+            f"{r['successes'] / r['episodes']:>5.1%} {'' if m is None else f'{m:.3f}':>7} "
+            f"{lost:>5} {won:>4} {p:>10}"
+        )
+    return "\n".join(out)
+
+
+def plot_curve(rows: list[dict], path: Path, title: str) -> None:
+    """Success (Wilson 95 % bars) and mean friction margin along the chain."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = np.arange(len(rows))
+    rate = np.array([r["successes"] / r["episodes"] for r in rows])
+    ci = np.array([wilson_interval(r["successes"], r["episodes"]) for r in rows])
+    fig, ax = plt.subplots(figsize=(6.4, 3.6))
+    ax.errorbar(x, 100 * rate, yerr=100 * np.abs(ci.T - rate), fmt="o-", capsize=3)
+    ax.set_xticks(x, [str(r["label"]) for r in rows], rotation=15, fontsize=8)
+    ax.set_ylabel("grasp success [%]")
+    ax.set_title(title, fontsize=10)
+    ax2 = ax.twinx()
+    m = [np.nan if r["friction_margin_mean"] is None else r["friction_margin_mean"] for r in rows]
+    ax2.plot(x, m, "s--", color="tab:orange")
+    ax2.set_ylabel("mean friction margin", color="tab:orange")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.compare", description=__doc__.split("\n")[0])
     p.add_argument("a", type=Path, help="report A (python -m sim.evaluate --json)")
     p.add_argument("b", type=Path, help="report B")
+    p.add_argument("more", type=Path, nargs="*", help="with --curve: further reports")
+    p.add_argument(
+        "--curve",
+        action="store_true",
+        help="a chain of reports on the same scenes: each against the one before",
+    )
+    p.add_argument(
+        "--plot",
+        type=arg(check_output_file, "--plot", (".png", ".pdf", ".svg")),
+        default=None,
+        help="with --curve: plot success and margin along the chain here",
+    )
     p.add_argument(
         "--json",
         type=arg(check_output_file, "--json"),
@@ -213,11 +310,21 @@ def main(argv: list[str] | None = None) -> int:
         help="bootstrap resamples (100..100000)",
     )
     args = p.parse_args(argv)
+    if (args.more or args.plot) and not args.curve:
+        return fail("more than two reports, or --plot, need --curve")
     try:
-        res = compare(load_report(args.a), load_report(args.b), args.boot)
+        if args.curve:
+            rows = curve([args.a, args.b, *args.more], args.boot)
+            print(format_curve(rows))
+            if args.plot is not None:
+                tier = json.loads(Path(args.a).read_text()).get("tier", "?")
+                plot_curve(rows, args.plot, f"tier {tier}: paired runs on the same scenes")
+            res: dict | list = rows
+        else:
+            res = compare(load_report(args.a), load_report(args.b), args.boot)
+            print(format_comparison(res, str(args.a), str(args.b)))
     except PosegraspError as exc:
         return fail(str(exc))
-    print(format_comparison(res, str(args.a), str(args.b)))
     if args.json is not None:
         write_json(args.json, res)
     return 0

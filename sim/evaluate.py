@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.compare import bootstrap_means, margin_error_correlation
+from sim.compare import bootstrap_means, margin_error_correlation, wilson_interval
 from sim.core.backends import add_backend_arguments, check_backend, run_map
 from sim.core.cli import ArgumentParser, fail, write_json
 from sim.core.errors import PosegraspError
@@ -41,21 +41,6 @@ from sim.pose_noise import NOISE_FORMAT, parse_noise
 from sim.world import constants as C
 from sim.world.objects import OBJECT_NAMES
 from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (95 % for the default z).
-
-    Returns:
-        (low, high); (0, 1) when n == 0.
-    """
-    if n == 0:
-        return 0.0, 1.0
-    p = successes / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
 
 
 @functools.cache

@@ -105,7 +105,7 @@ def test_margin_difference_on_pairs_both_grasped() -> None:
 
 
 def test_margin_error_correlation() -> None:
-    from sim.compare import margin_error_correlation
+    margin_error_correlation = cmp.margin_error_correlation
 
     eps = [
         {"friction_margin": 0.1 + 0.01 * i, "pose_error": {"translation_m": 0.001 * i,
@@ -121,3 +121,25 @@ def test_margin_error_correlation() -> None:
     assert margin_error_correlation(eps[:4])["translation_m"] is None
     flat = [dict(e, friction_margin=0.2) for e in eps]
     assert margin_error_correlation(flat)["translation_m"] is None
+
+
+def test_curve_chains_paired_comparisons(tmp_path: Path, capsys) -> None:
+    """Three runs on the same scenes: each is compared with the one before; a plot is drawn."""
+    paths = []
+    for k, lost in enumerate((0, 1, 8)):
+        eps = [
+            {"object": "phone", "seed": s, "success": s >= lost, "friction_margin": 0.2}
+            for s in range(40)
+        ]
+        path = tmp_path / f"r{k}.json"
+        path.write_text(json.dumps({"tier": "hard", "noise": f"{k},{k},{k},{k}", "episodes": eps}))
+        paths.append(path)
+    png = tmp_path / "curve.png"
+    assert cmp.main(["--curve", *map(str, paths), "--plot", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "40/40" in out and "39/40" in out and "32/40" in out
+    assert "0.0156" in out  # 7 lost, 0 won: exact two-sided McNemar p = 2 * 0.5**7
+    assert png.stat().st_size > 5_000
+    # Three reports without --curve, or --plot alone, are refused.
+    assert cmp.main([*map(str, paths)]) == 2
+    assert cmp.main([str(paths[0]), str(paths[1]), "--plot", str(png)]) == 2
