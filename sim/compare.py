@@ -97,12 +97,15 @@ def margin_error_correlation(episodes: list[dict]) -> dict[str, float | int | No
     return out
 
 
-def mcnemar_exact(a_only: int, b_only: int) -> float:
-    """Two-sided exact McNemar p-value from the discordant pair counts (1.0 when there are
-    none)."""
+def mcnemar_exact(a_only: int, b_only: int, one_sided: bool = False) -> float:
+    """Exact McNemar p-value from the discordant pair counts (1.0 when there are none):
+    two-sided, or with `one_sided` the chance of at least `a_only` of the `a_only + b_only`
+    discordant pairs going A's way if neither is better (the test of a loss)."""
     n = a_only + b_only
     if n == 0:
         return 1.0
+    if one_sided:
+        return float(binomtest(a_only, n, 0.5, alternative="greater").pvalue)
     return float(binomtest(min(a_only, b_only), n, 0.5).pvalue)
 
 

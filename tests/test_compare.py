@@ -34,6 +34,10 @@ def test_mcnemar_exact_by_hand() -> None:
     assert cmp.mcnemar_exact(6, 0) == pytest.approx(2 * 0.5**6)
     # 2 vs 8 discordant: 2 * P(X <= 2), X ~ Bin(10, 1/2) = 2 * 56 / 1024
     assert cmp.mcnemar_exact(2, 8) == pytest.approx(2 * 56 / 1024)
+    # One-sided, the test of a loss: at least 5 of 5 discordant pairs go A's way.
+    assert cmp.mcnemar_exact(5, 0, one_sided=True) == pytest.approx(0.5**5)
+    assert cmp.mcnemar_exact(0, 5, one_sided=True) == pytest.approx(1.0)
+    assert cmp.mcnemar_exact(5, 2, one_sided=True) == pytest.approx(29 / 128)
 
 
 def test_paired_difference_and_bootstrap() -> None:

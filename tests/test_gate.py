@@ -52,8 +52,10 @@ def baseline(monkeypatch) -> dict:
     [
         (0, 0, 0.0, True),  # unchanged code and weights: identical episodes
         (2, 1, 0.0, True),  # a few flips either way: not significant
-        (5, 0, 0.0, True),  # 5 lost, none won: p = 0.0625
-        (6, 0, 0.0, False),  # 6 lost, none won: p = 0.031
+        (4, 0, 0.0, True),  # 4 lost, none won: one-sided p = 0.0625
+        (5, 0, 0.0, False),  # 5 lost, none won: p = 0.031
+        (5, 2, 0.0, True),  # 5 lost, 2 won: p = 0.23
+        (0, 2, 0.0, True),  # only gains: never a regression
         (0, 0, 0.01, True),  # a small margin rise
         (0, 0, 0.05, False),  # looser grasps everywhere
     ],
@@ -98,7 +100,7 @@ def test_baseline_covers_the_gate_estimators() -> None:
 
 @pytest.mark.parametrize("estimator", gate.GATE_ESTIMATORS)
 def test_grasp_success_gate(estimator: str) -> None:
-    """The regression gate: each gate estimator on 10 held-out cluttered episodes per object,
+    """The regression gate: each gate estimator on 10 held-out hard episodes per object,
     paired with its committed baseline by the rule documented in `sim.gate`."""
     base = gate.load_baselines()[estimator]
     report = gate.run_gate(estimator, base["episodes_per_object"], workers=2)

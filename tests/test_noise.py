@@ -80,5 +80,5 @@ def test_a_draw_is_an_independent_set_of_errors_for_the_same_scenes() -> None:
     # Draw 0 is the stream every earlier report used.
     np.testing.assert_array_equal(a, np.random.default_rng([1_000_000_000, 7919]).normal(size=4))
     for bad in ("5,5,2,2@", "5,5,2,2@-1", "5,5,2,2@x", "5,5,2,2@99999999999"):
-        with pytest.raises(InvalidArgumentError, match="draw in 0.."):
+        with pytest.raises(InvalidArgumentError, match=r"draw in 0\.\."):
             parse_noise(bad)
