@@ -63,11 +63,13 @@ def main() -> int:
     print(f"rerun of the baseline: {text}")
     verdicts["rerun"] = [ok, text]
     for r in range(1, args.runs + 1):
-        ok, text = gate.compare(_run(f"{WORSE_NOISE}@{r}", args.workers, margin), baseline, FINGERPRINT)
+        report = _run(f"{WORSE_NOISE}@{r}", args.workers, margin)
+        ok, text = gate.compare(report, baseline, FINGERPRINT)
         print(f"regressed run {r}: {text}")
         verdicts["regressed"].append([ok, text])
     for r in range(1, args.false_alarm_runs + 1):
-        ok, text = gate.compare(_run(f"{BASE_NOISE}@{r}", args.workers, margin), baseline, FINGERPRINT)
+        report = _run(f"{BASE_NOISE}@{r}", args.workers, margin)
+        ok, text = gate.compare(report, baseline, FINGERPRINT)
         print(f"redrawn run {r}: {text}")
         verdicts["redrawn"].append([ok, text])
     flagged = sum(not ok for ok, _ in verdicts["regressed"])
