@@ -216,16 +216,21 @@ def format_comparison(res: dict, name_a: str, name_b: str) -> str:
 def curve(paths: list[Path], boot: int = BOOTSTRAP) -> list[dict]:
     """A chain of reports run on the same scenes (e.g. noisy-oracle at growing sigma): per
     report its label (noise or estimator), success and mean friction margin, and the paired
-    comparison of each report with the one before it.
+    comparison of each report with the one before it. The last row also holds, per object,
+    the rank correlation of margin and pose error over the episodes of every report
+    (`pooled_margin_error_spearman`).
 
     Raises:
         InvalidArgumentError: an unreadable report, or two neighbours that share no episode.
     """
     rows = []
     prev = None
+    pooled: dict[str, list[dict]] = {}
     for path in paths:
         outcomes = load_report(path)
         report = json.loads(Path(path).read_text())
+        for e in report["episodes"]:
+            pooled.setdefault(str(e["object"]), []).append(e)
         ok = sum(s for s, _ in outcomes.values())
         margins = [m for s, m in outcomes.values() if s and m is not None]
         row = {
@@ -238,6 +243,9 @@ def curve(paths: list[Path], boot: int = BOOTSTRAP) -> list[dict]:
         }
         rows.append(row)
         prev = outcomes
+    rows[-1]["pooled_margin_error_spearman"] = {
+        o: margin_error_correlation(eps) for o, eps in sorted(pooled.items())
+    }
     return rows
 
 
@@ -256,6 +264,15 @@ def format_curve(rows: list[dict]) -> str:
             f"{r['successes'] / r['episodes']:>5.1%} {'' if m is None else f'{m:.3f}':>7} "
             f"{lost:>5} {won:>4} {p:>10}"
         )
+    pooled = rows[-1].get("pooled_margin_error_spearman") if rows else None
+    if pooled:
+        out.append("margin vs pose error over all these episodes, Spearman per object:")
+        for o, rho in pooled.items():
+            vals = ", ".join(
+                f"{k} {rho[k]:+.2f}" for k in ("translation_m", "rotation_deg", "add_m")
+                if rho.get(k) is not None
+            )  # fmt: skip
+            out.append(f"  {o:<8} {vals or 'too few'} ({rho['episodes']} grasped)")
     return "\n".join(out)
 
 

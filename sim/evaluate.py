@@ -193,6 +193,16 @@ def format_report(report: dict) -> str:
             f"[{g['friction_margin_low']:.3f}, {g['friction_margin_high']:.3f}] (bootstrap 95 %)"
             for n, g in margins
         )
+        rho = report["overall"].get("margin_error_spearman") or {}
+        if any(rho.get(k) is not None for k in ("translation_m", "rotation_deg", "add_m")):
+            rows.append(
+                f"margin vs pose error, Spearman over {rho['episodes']} grasped episodes: "
+                + ", ".join(
+                    f"{k} {rho[k]:+.2f}"
+                    for k in ("translation_m", "rotation_deg", "add_m")
+                    if rho.get(k) is not None
+                )
+            )
     return "\n".join(rows)
 
 
