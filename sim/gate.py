@@ -214,7 +214,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.write:
             check_writable_file(args.baseline)
-            baselines = load_baselines(args.baseline) if args.baseline.is_file() else {}
+            # All of the gate's estimators replace the whole file; one keeps the others.
+            keep = args.estimator and args.baseline.is_file()
+            baselines = load_baselines(args.baseline) if keep else {}
         else:
             baselines = load_baselines(args.baseline)
     except PosegraspError as exc:
