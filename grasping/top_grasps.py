@@ -95,7 +95,7 @@ def clear(T_O_G: np.ndarray, width: float, pts: np.ndarray, floor: float) -> boo
 
 
 def _part_grasps(
-    obj: ObjectModel, part: Part, up: np.ndarray, pts: np.ndarray, low: float
+    part: Part, up: np.ndarray, pts: np.ndarray, low: float
 ) -> list[tuple[np.ndarray, float]]:
     R, c, half = _frame(part)
     out = []
@@ -154,7 +154,7 @@ def top_grasps(
     for part in obj.parts:
         if not part.collision:
             continue
-        for T, width in _part_grasps(obj, part, u, pts, low):
+        for T, width in _part_grasps(part, u, pts, low):
             d = T[:3, 3] - com
             found.append((float(np.linalg.norm(d - (d @ u) * u)), part.name, T, width))
     found.sort(key=lambda f: f[0])
