@@ -58,7 +58,7 @@ from sim.world.camera import check_resolution
 from sim.world.objects import OBJECT_NAMES
 from sim.world.tiers import TIERS, check_tier
 
-GENERATOR_VERSION = "1"
+GENERATOR_VERSION = "2"
 SEED_BASES: dict[str, int] = {"train": 0, "val": 100_000_000, "test": 200_000_000}
 MAX_COUNT = 100_000_000
 DEFAULT_SIZE: dict[str, tuple[int, int]] = {"paper": (256, 256), "headcam": (640, 480)}

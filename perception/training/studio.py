@@ -10,7 +10,9 @@ Domain randomisation per sample (every choice drawn from the sample's `rng`):
 
 - camera: direction uniform on the sphere (below the object too), distance uniform in
   `distance` x the object's diameter, aimed at a point uniformly inside a ball of radius
-  `aim_offset` x diameter around the object's origin, roll uniform in [-pi, pi);
+  `aim_offset` x diameter around the object's origin; its roll is set so that the label's
+  in-plane angle theta (the roll of the virtual camera C', `perception.geometry.encode`) is drawn
+  uniformly from -60..60 deg in 3 deg steps, as the paper's dataset was made;
 - room: random orientation and size (the camera always inside), each wall a random texture from a
   fixed bank (`perception.training.textures`), tint, scale and shininess;
 - clutter: 0..`max_clutter` boxes, spheres, cylinders, capsules and ellipsoids with random
@@ -32,6 +34,7 @@ import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is im
 import mujoco
 import numpy as np
 
+from perception.geometry import encode
 from perception.training.rendering import OffscreenRenderer
 from perception.training.textures import PLAIN_TEXTURE, add_texture_bank, bank_texture_name
 from sim.core.errors import UnknownNameError
@@ -73,6 +76,8 @@ class StudioConfig:
         texture_size: side of each bank texture [px].
         bank_seed: seed of the texture bank (fixed: part of the generator's definition).
         msaa: multisampling anti-aliasing samples per pixel (0 = off; costs render time).
+        inplane_deg: range of the label's in-plane angle theta [deg], both ends included.
+        inplane_step_deg: grid step of theta [deg].
     """
 
     width: int = 256
@@ -87,6 +92,8 @@ class StudioConfig:
     texture_size: int = 128
     bank_seed: int = 20190226
     msaa: int = 2
+    inplane_deg: tuple[float, float] = (-60.0, 60.0)
+    inplane_step_deg: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -99,7 +106,7 @@ class StudioView:
             both its silhouette and its visible mask; it can be cut by the image border).
         K: intrinsics, shape (3, 3) [px].
         T_C_O: object pose in the camera (OpenCV convention), shape (4, 4) [m].
-        roll: the camera's in-plane rotation about its optical axis [rad], in [-pi, pi).
+        roll: the label's in-plane angle theta [rad], on the configured grid.
         distance: camera-to-object-origin distance [m].
     """
 
@@ -166,6 +173,28 @@ def build_studio_spec(objects: Sequence[ObjectModel], cfg: StudioConfig) -> mujo
             mat.name = f"{obj.name}/{part.name}"
             spec.geom(f"{obj.name}/{part.name}").material = mat.name
     return spec
+
+
+def _roll_to_theta(
+    position: np.ndarray, aim: np.ndarray, theta: float, K: np.ndarray
+) -> np.ndarray:
+    """R_world_cv of a camera at position aimed at aim whose view of the object (at the world
+    origin, canonical) has in-plane angle theta [rad].
+
+    theta grows one for one with the camera's roll, offset by a small term that depends on where
+    the object lies off the optical axis; a few fixed-point steps remove the offset to 1e-9 rad.
+    """
+    roll = theta
+    for _ in range(6):
+        R = _look_at(position, aim, roll)
+        T_C_O = np.eye(4)
+        T_C_O[:3, :3] = R.T
+        T_C_O[:3, 3] = -R.T @ position
+        err = np.angle(np.exp(1j * (theta - encode(T_C_O, K)[1])))
+        if abs(err) < 1e-10:
+            break
+        roll += err
+    return R
 
 
 def _look_at(position: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
@@ -252,11 +281,13 @@ class Studio:
         distance = rng.uniform(*cfg.distance) * diameter
         position = _unit(rng) * distance
         aim = _unit(rng) * cfg.aim_offset * diameter * rng.random() ** (1 / 3)
-        roll = rng.uniform(-np.pi, np.pi)
-        R_world_mj = _look_at(position, aim, roll) @ R_CV_FROM_MJ
+        lo, hi = cfg.inplane_deg
+        steps = int(round((hi - lo) / cfg.inplane_step_deg))
+        theta = np.radians(lo + cfg.inplane_step_deg * rng.integers(0, steps + 1))
+        R_world_cv = _roll_to_theta(position, aim, theta, self.K)
         m.cam_pos[self._cam] = position
-        m.cam_quat[self._cam] = mat_to_quat(R_world_mj)
-        return float(roll), float(distance)
+        m.cam_quat[self._cam] = mat_to_quat(R_world_cv @ R_CV_FROM_MJ)
+        return float(theta), float(distance)
 
     def _place_room(self, distance: float, rng: np.random.Generator) -> None:
         m, d = self.model, self.data
