@@ -18,8 +18,11 @@ from sim.world.camera import (
     CameraRenderer,
     RenderOptions,
     T_world_cam,
+    _shared_cache,
     camera_intrinsics,
     check_resolution,
+    render_assets_key,
+    scene_capacity,
 )
 
 FOVY_DEG = 50.0
@@ -181,3 +184,32 @@ def test_bad_camera_and_resolution() -> None:
             check_resolution(w, h)
         with pytest.raises(InvalidArgumentError):
             CameraRenderer(model, w, h)
+
+
+def test_render_context_shared_across_scenes_renders_what_a_fresh_one_does() -> None:
+    # Scenes rebuilt with other objects share the robot's meshes and the room's textures, so the
+    # second renderer reuses the first's render context; its images must be a fresh context's.
+    from sim.world.scene import SceneConfig, build_scene
+
+    cfg = SceneConfig(n_distractors=2, randomize_appearance=True)
+    first = build_scene("car", 3, cfg)
+    second = build_scene("phone", 4, cfg)
+    key = render_assets_key(first.model, mujoco.mjtFontScale.mjFONTSCALE_150)
+    assert key == render_assets_key(second.model, mujoco.mjtFontScale.mjFONTSCALE_150)
+    assert key != render_assets_key(first.model, mujoco.mjtFontScale.mjFONTSCALE_50)
+    with CameraRenderer(first.model, 160, 120) as r:
+        r.rgb(first.data, C.HEAD_CAMERA)
+    with CameraRenderer(second.model, 160, 120) as r:  # reuses the cached context
+        reused = (r.rgb(second.data, C.HEAD_CAMERA), r.segmentation(second.data, C.HEAD_CAMERA))
+    _shared_cache().free()
+    with CameraRenderer(second.model, 160, 120) as r:  # builds a new one
+        fresh = (r.rgb(second.data, C.HEAD_CAMERA), r.segmentation(second.data, C.HEAD_CAMERA))
+    assert np.array_equal(reused[0], fresh[0]) and np.array_equal(reused[1], fresh[1])
+    assert reused[0].std() > 0 and (reused[1] >= 0).any()
+
+
+def test_scene_capacity_covers_every_geom() -> None:
+    from sim.world.scene import SceneConfig, build_scene
+
+    model = build_scene("chair", 0, SceneConfig(n_distractors=3)).model
+    assert scene_capacity(model) > 2 * model.ngeom

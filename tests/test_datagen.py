@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from perception.geometry import invert_transform, project
+from perception.geometry import encode, invert_transform, project
 from perception.training import bop
 from perception.training import dataset as ds
 from perception.training.annotations import full_silhouette
@@ -138,7 +138,10 @@ def test_paper_pose_projects_onto_mask(paper: Path) -> None:
         np.testing.assert_allclose(obj.uv, project(sample.K, obj.T_C_O[:3, 3]))
         sil = _silhouette(obj.name, obj.T_C_O, sample.K, obj.mask.shape)
         assert _iou(sil, obj.mask) > 0.9, (sample.im_id, _iou(sil, obj.mask))
-        assert -np.pi <= sample.extra["roll"] < np.pi
+        # The paper's in-plane angles: -60..60 deg in 3 deg steps, and the label's theta is it.
+        theta = np.degrees(sample.extra["roll"])
+        assert -60 <= theta <= 60 and abs(theta / 3 - round(theta / 3)) < 1e-6
+        assert abs(np.degrees(encode(obj.T_C_O, sample.K)[1]) - theta) < 1e-6
 
 
 def test_paper_K_matches_sim_intrinsics(paper: Path) -> None:
@@ -200,6 +203,34 @@ def test_truncated_silhouette_counts_pixels_outside_the_image() -> None:
 
 
 # --- reproducible and resumable --------------------------------------------------------------
+
+
+def test_full_silhouette_read_inside_its_window_is_the_whole_one() -> None:
+    # The generator reads each object's full silhouette back only inside a projected box.
+    from perception.training.generators import HeadcamGenerator, _body_window
+    from perception.training.studio import HIDDEN_GROUP
+
+    gen = HeadcamGenerator(320, 240)
+    try:
+        scene = build_scene("chair", 5, SceneConfig(n_distractors=3))
+        model, data, r = scene.model, scene.data, gen.renderer
+        cam = model.camera(C.HEAD_CAMERA).id
+        K = camera_intrinsics(model, C.HEAD_CAMERA, 320, 240)
+        T_C_W = invert_transform(T_world_cam(model, data, C.HEAD_CAMERA))
+        groups = model.geom_group.copy()
+        seen = 0
+        for placed in scene.objects:
+            bid = model.body(placed.body).id
+            window = _body_window(model, data, bid, T_C_W, K, 320, 240)
+            model.geom_group[:] = np.where(model.geom_bodyid == bid, groups, HIDDEN_GROUP)
+            whole = r.geom_ids(model, data, cam)
+            part = r.geom_ids(model, data, cam, window=window)
+            model.geom_group[:] = groups
+            np.testing.assert_array_equal(part, whole)
+            seen += int((whole >= 0).any())
+        assert seen >= 2
+    finally:
+        gen.close()
 
 
 def test_same_arguments_give_identical_bytes(paper: Path, tmp_path: Path) -> None:

@@ -55,7 +55,9 @@ def full_silhouette(
     pts = np.round(((uv - [ox, oy] + 0.5) * ss - 0.5) * 16).astype(np.int32)
     for tri in np.asarray(obj.mesh.faces):
         cv2.fillConvexPoly(fine, pts[tri], 1, cv2.LINE_8, 4)
-    canvas = (fine.reshape(ch, ss, cw, ss).mean(axis=(1, 3)) > 0.5).astype(np.uint8)
+    rows = sum(fine[i::ss].astype(np.uint16) for i in range(ss))  # (ch, cw * ss)
+    covered = sum(rows[:, j::ss] for j in range(ss))  # (ch, cw): samples covered per pixel
+    canvas = (covered > ss * ss // 2).astype(np.uint8)
     canvas[-oy : -oy + h, -ox : -ox + w] = mask
     x, y, bw, bh = bbox_xywh(canvas)
     return int(canvas.sum()), [x + ox, y + oy, bw, bh]

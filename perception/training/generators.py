@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
+import mujoco
 import numpy as np
 
 from perception.training.dataset import DISTS
@@ -136,11 +137,13 @@ class HeadcamGenerator:
             visib = body_mask(model, seg, placed.body)
             if T_C_O[2, 3] <= 0 or not visib.any():
                 continue
-            # The full silhouette: the same view with every other geom hidden.
+            # The full silhouette: the same view with every other geom hidden, read back only
+            # inside a box that holds the body's projection.
             bid = model.body(placed.body).id
+            window = _body_window(model, data, bid, T_C_W, K, self.width, self.height)
             model.geom_group[:] = np.where(model.geom_bodyid == bid, groups, HIDDEN_GROUP)
             try:
-                full = body_mask(model, r.geom_ids(model, data, cam), placed.body)
+                full = body_mask(model, r.geom_ids(model, data, cam, window=window), placed.body)
             finally:
                 model.geom_group[:] = groups
             extra = {"body": placed.body, "target": placed is scene.target}
@@ -151,6 +154,37 @@ class HeadcamGenerator:
     def close(self) -> None:
         """Free the GL context."""
         self.renderer.close()
+
+
+def _body_window(
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    body: int,
+    T_C_W: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+) -> tuple[int, int, int, int] | None:
+    """A pixel box (x0, y0, x1, y1) [ends excluded] that holds every pixel of a body's geoms: the
+    projection of the corners of their bounding boxes, widened by 2 px and clipped to the image;
+    None (the whole image) when a corner lies near or behind the camera plane."""
+    geoms = np.flatnonzero(model.geom_bodyid == body)
+    if len(geoms) == 0:
+        return None
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+    aabb = model.geom_aabb[geoms]  # (G, 6): centre and half sizes in the geom frame
+    local = aabb[:, None, :3] + signs[None] * aabb[:, None, 3:]  # (G, 8, 3)
+    R = data.geom_xmat[geoms].reshape(-1, 3, 3)
+    world = np.einsum("gij,gkj->gki", R, local) + data.geom_xpos[geoms][:, None]
+    cam = world.reshape(-1, 3) @ T_C_W[:3, :3].T + T_C_W[:3, 3]
+    if np.any(cam[:, 2] < 1e-2):
+        return None
+    uv = cam[:, :2] / cam[:, 2:3] * [K[0, 0], K[1, 1]] + K[:2, 2]
+    lo = np.floor(uv.min(axis=0) - 2.0)
+    hi = np.ceil(uv.max(axis=0) + 3.0)
+    x0, x1 = (int(np.clip(v, 0, width)) for v in (lo[0], hi[0]))
+    y0, y1 = (int(np.clip(v, 0, height)) for v in (lo[1], hi[1]))
+    return x0, y0, x1, y1
 
 
 def make_generator(

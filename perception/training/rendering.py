@@ -6,16 +6,22 @@ import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is im
 import mujoco
 import numpy as np
 
-from sim.world.camera import geom_ids_from_colours
+from sim.world.camera import (
+    RenderContextCache,
+    geom_ids_from_colours,
+    render_assets_key,
+    scene_capacity,
+)
 
 
 class OffscreenRenderer:
     """Offscreen RGB and segmentation renders of fixed cameras, for one model at a time.
 
     One GL context lives as long as the renderer; MuJoCo's render context (textures, meshes) is
-    rebuilt only when a different model is passed, so a stream of freshly compiled scenes costs
-    no new GL context each. Shadows, reflections and the skybox are off. The GL context is made
-    on first use; call `close()` to free it.
+    kept across models with the same meshes and textures (`sim.world.camera.RenderContextCache`),
+    so a stream of freshly compiled scenes costs no new GL or render context each.
+    Shadows, reflections and the skybox are off. The GL context is made on first use; call
+    `close()` to free it.
 
     Args:
         width, height: image size [px].
@@ -24,8 +30,9 @@ class OffscreenRenderer:
     def __init__(self, width: int, height: int) -> None:
         self.width, self.height = width, height
         self._gl: mujoco.GLContext | None = None
+        self._contexts = RenderContextCache(mujoco.mjtFontScale.mjFONTSCALE_50)
         self._model: mujoco.MjModel | None = None
-        self._ctx: mujoco.MjrContext | None = None
+        self._key: bytes | None = None
         self._scene: mujoco.MjvScene | None = None
         self._cam = mujoco.MjvCamera()
         self._cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
@@ -37,21 +44,20 @@ class OffscreenRenderer:
         if self._gl is None:
             self._gl = mujoco.GLContext(self.width, self.height)
         self._gl.make_current()
-        if model is not self._model or self._ctx is None or self._scene is None:
-            if self._ctx is not None:
-                self._ctx.free()
+        if model is not self._model or self._scene is None:
             vis = model.vis.global_
             vis.offwidth, vis.offheight = (
                 max(vis.offwidth, self.width),
                 max(vis.offheight, self.height),
             )
-            self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50)
-            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._ctx)
-            self._scene = mujoco.MjvScene(model, maxgeom=10000)
+            self._scene = mujoco.MjvScene(model, maxgeom=scene_capacity(model))
             for flag in ("mjRND_SHADOW", "mjRND_REFLECTION", "mjRND_SKYBOX"):
                 self._scene.flags[getattr(mujoco.mjtRndFlag, flag)] = False
+            self._key = render_assets_key(model, mujoco.mjtFontScale.mjFONTSCALE_50)
             self._model = model
-        return self._ctx, self._scene
+        ctx = self._contexts.get(model, self._key)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, ctx)
+        return ctx, self._scene
 
     def render(
         self,
@@ -60,10 +66,14 @@ class OffscreenRenderer:
         camera: int,
         opt: mujoco.MjvOption | None = None,
         segment: bool = False,
+        window: tuple[int, int, int, int] | None = None,
     ) -> np.ndarray:
         """RGB image, or segmentation id colours if segment (black where nothing is drawn).
 
-        Needs up-to-date kinematics and camera poses in data. Returns shape (H, W, 3), uint8.
+        Needs up-to-date kinematics and camera poses in data. With a window (x0, y0, x1, y1)
+        [px, top-left origin, ends excluded] only those pixels are read back and the rest is
+        black, which costs less when little of the image is wanted. Returns shape (H, W, 3),
+        uint8.
         """
         ctx, scene = self._bind(model)
         self._cam.fixedcamid = camera
@@ -79,8 +89,19 @@ class OffscreenRenderer:
         scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = segment
         scene.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = segment
         mujoco.mjr_render(self._rect, scene, ctx)
-        mujoco.mjr_readPixels(self._buf, None, self._rect, ctx)
-        return np.flipud(self._buf).copy()
+        if window is None:
+            mujoco.mjr_readPixels(self._buf, None, self._rect, ctx)
+            return np.flipud(self._buf).copy()
+        x0, y0, x1, y1 = window
+        out = np.zeros((self.height, self.width, 3), np.uint8)
+        if x1 <= x0 or y1 <= y0:
+            return out
+        part = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
+        # OpenGL rows run bottom to top.
+        rect = mujoco.MjrRect(x0, self.height - y1, x1 - x0, y1 - y0)
+        mujoco.mjr_readPixels(part, None, rect, ctx)
+        out[y0:y1, x0:x1] = np.flipud(part)
+        return out
 
     def geom_ids(
         self,
@@ -88,17 +109,18 @@ class OffscreenRenderer:
         data: mujoco.MjData,
         camera: int,
         opt: mujoco.MjvOption | None = None,
+        window: tuple[int, int, int, int] | None = None,
     ) -> np.ndarray:
-        """Geom id per pixel (-1 where no geom is drawn), shape (H, W), int32."""
-        rgb = self.render(model, data, camera, opt, segment=True)
+        """Geom id per pixel (-1 where no geom is drawn, or outside the window of `render`),
+        shape (H, W), int32."""
+        rgb = self.render(model, data, camera, opt, segment=True, window=window)
         return geom_ids_from_colours(rgb, self._bind(model)[1])
 
     def close(self) -> None:
         """Free the render and GL contexts."""
-        if self._ctx is not None:
-            self._ctx.free()
-            self._ctx = None
         if self._gl is not None:
+            self._gl.make_current()
+            self._contexts.free()
             self._gl.free()
             self._gl = None
         self._model = self._scene = None

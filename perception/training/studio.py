@@ -282,7 +282,7 @@ class Studio:
         position = _unit(rng) * distance
         aim = _unit(rng) * cfg.aim_offset * diameter * rng.random() ** (1 / 3)
         lo, hi = cfg.inplane_deg
-        steps = int(round((hi - lo) / cfg.inplane_step_deg))
+        steps = round((hi - lo) / cfg.inplane_step_deg)
         theta = np.radians(lo + cfg.inplane_step_deg * rng.integers(0, steps + 1))
         R_world_cv = _roll_to_theta(position, aim, theta, self.K)
         m.cam_pos[self._cam] = position
