@@ -37,6 +37,8 @@ from sim.core.transforms import check_intrinsics, rigid_problem
 from sim.world.objects import OBJECT_NAMES, load_object
 
 DEFAULT_POSENET = WEIGHTS_DIR / "posenet_ours.pt"
+#: The `paper` variant's shipped nets (estimator ``hybrid-paper``).
+PAPER_POSENET = WEIGHTS_DIR / "posenet_paper.pt"
 #: Square crop side / longer side of the detected box: the mean of the training range 0.95..1.35.
 DEFAULT_CROP_SCALE = 1.15
 STAGES: tuple[str, ...] = ("detect", "crop", "nets", "decode")
@@ -247,12 +249,13 @@ class HybridPoseEstimator:
         return self.estimate_timed(rgb, K, classes)[0]
 
     def as_episode_estimator(
-        self, support: bool = False, mask_fit: bool = True
+        self, support: bool = False, mask_fit: bool = True, name: str | None = None
     ) -> HybridEpisodeEstimator:
         """This estimator behind the episode interface (`sim.core.contract.PoseEstimator`);
         `support` puts each pose onto the observation's table and, with `mask_fit`, fits its yaw
-        and position on the table to the detected mask (`perception.support`)."""
-        return HybridEpisodeEstimator(self, support, mask_fit)
+        and position on the table to the detected mask (`perception.support`). `name` names it
+        in results (default ``hybrid`` or ``hybrid-table``)."""
+        return HybridEpisodeEstimator(self, support, mask_fit, name)
 
 
 class HybridEpisodeEstimator:
@@ -272,12 +275,16 @@ class HybridEpisodeEstimator:
     """
 
     def __init__(
-        self, estimator: HybridPoseEstimator, support: bool = False, mask_fit: bool = True
+        self,
+        estimator: HybridPoseEstimator,
+        support: bool = False,
+        mask_fit: bool = True,
+        name: str | None = None,
     ) -> None:
         self.estimator = estimator
         self.support = bool(support)
         self.mask_fit = bool(mask_fit)
-        self.name = "hybrid-table" if self.support else "hybrid"
+        self.name = name or ("hybrid-table" if self.support else "hybrid")
         self.last_info: dict = {}
         self.last_neighbours: list[tuple[str, np.ndarray]] = []
 

@@ -70,12 +70,23 @@ def _hybrid_table() -> PoseEstimator:
     return HybridPoseEstimator.from_weights().as_episode_estimator(support=True)
 
 
+def _hybrid_paper() -> PoseEstimator:
+    """The hybrid estimator with the `paper` variant's nets (the published 4D output, trained on
+    the paper's protocol) in place of ours."""
+    from perception import HybridPoseEstimator
+    from perception.hybrid import PAPER_POSENET
+
+    est = HybridPoseEstimator.from_weights(posenet_path=PAPER_POSENET)
+    return est.as_episode_estimator(name="hybrid-paper")
+
+
 #: Estimator factories by name.
 ESTIMATORS: dict[str, Callable[[], PoseEstimator | PrivilegedEstimator]] = {
     "oracle": OracleEstimator,
     "noisy-oracle": NoisyOracleEstimator,
     "hybrid": _hybrid,
     "hybrid-table": _hybrid_table,
+    "hybrid-paper": _hybrid_paper,
 }
 
 
