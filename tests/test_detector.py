@@ -247,3 +247,33 @@ def test_cli_smoke_and_errors(
     bad = ["--smoke", "--data", str(tiny_headcam), "--out", str(tmp_path / "bad")]
     assert main(bad) == 2
     assert "corrupt" in capsys.readouterr().err
+
+
+def test_mixed_data_and_fine_tuning_start(
+    tiny_headcam: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from perception.training.detection_data import start_from, training_images
+
+    monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path / "data"))
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "headcam_hard").symlink_to(tiny_headcam)
+    cfg = replace(SMOKE, data=tiny_headcam, out=tmp_path / "ckpt", also=("headcam_hard",))
+    mix, parts = training_images(tiny_headcam, cfg.also, 100, cfg.detector, None)
+    assert len(parts) == 2 and len(mix) == 8
+    for i in (0, 5):  # item 5 of the mix is item 1 of the second set
+        a, b = mix[i], parts[i // 4][i % 4]
+        torch.testing.assert_close(a[0], b[0])
+    result = train(cfg, max_steps=1)
+    state = torch.load(result["checkpoint"], map_location="cpu", weights_only=False)
+    assert state["data_seeds"]["also"] == {"headcam_hard": 4}
+    assert state["data_seeds"]["train_images"] == 8
+    with pytest.raises(InvalidArgumentError, match="banana"):
+        replace(SMOKE, also=("banana",))
+    # A run started from weights begins from exactly those weights.
+    model = build_detector(cfg.detector)
+    start_from(model, Path(result["checkpoint"]), cfg.detector)
+    for k, v in model.state_dict().items():
+        torch.testing.assert_close(v, state["model"][k].to(v.dtype), msg=k)
+    with pytest.raises(AssetError, match="another detector architecture"):
+        start_from(build_detector(DetectorConfig(fpn_channels=32)), Path(result["checkpoint"]),
+                   DetectorConfig(fpn_channels=32))  # fmt: skip

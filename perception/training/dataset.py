@@ -32,9 +32,13 @@ from perception.training.bop import (
     split_index,
 )
 from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from sim.world.tiers import TIERS
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 DISTS: tuple[str, ...] = ("paper", "headcam")
+#: Dataset folders under the data root: each distribution's, and the head camera's per scene
+#: tier (``headcam_<tier>``, made by ``datagen --dist headcam --tier <tier>``).
+DATASETS: tuple[str, ...] = (*DISTS, *(f"headcam_{t}" for t in TIERS))
 
 
 @dataclass(frozen=True)

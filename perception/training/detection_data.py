@@ -12,10 +12,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from perception.detector import image_tensor, to_model_box
+from perception.detector import image_tensor, load_detector_model, to_model_box
 from perception.detector_net import DetectorConfig, input_transform
 from perception.training.bop import box_xyxy
 from perception.training.dataset import PoseDataset
+from perception.training.ddp import Ranks
+from sim.core.errors import AssetError
+from sim.core.paths import data_root
 
 
 class DetectionSet(torch.utils.data.Dataset):
@@ -59,6 +62,22 @@ class DetectionSet(torch.utils.data.Dataset):
         return self.transform.resize(image_tensor(s.rgb), target)
 
 
+class MixedSet(torch.utils.data.Dataset):
+    """Several `DetectionSet`s one after the other (item i of the mix is item i - offset of the
+    set it falls in)."""
+
+    def __init__(self, parts: list[DetectionSet]) -> None:
+        self.parts = parts
+        self.ends = np.cumsum([len(p) for p in parts])
+
+    def __len__(self) -> int:
+        return int(self.ends[-1]) if len(self.ends) else 0
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        k = int(np.searchsorted(self.ends, i, side="right"))
+        return self.parts[k][i - (int(self.ends[k - 1]) if k else 0)]
+
+
 def collate_list(batch: list) -> list:
     """A batch as the list of its ``(image, target)`` items (images differ in size)."""
     return batch
@@ -75,3 +94,49 @@ def augment(x: torch.Tensor, g: torch.Generator) -> torch.Tensor:
     x = x * (0.9 + 0.2 * torch.rand(3, 1, 1, generator=g)) + (r[2] - 0.5) * 0.2  # gain, bright
     x = x + torch.randn(x.shape, generator=g) * (0.03 * r[3])  # noise
     return x.clamp(0.0, 1.0)
+
+
+def augment_shard(images: list[torch.Tensor], g: torch.Generator, ranks: Ranks) -> list:
+    """This rank's images jittered as in one process: the jitter of every image of the global
+    batch is drawn in order (those of other ranks' images, of the same size, are dropped)."""
+    out = []
+    for j in range(len(images) * ranks.world):
+        x = augment(images[j // ranks.world], g)
+        if j % ranks.world == ranks.rank:
+            out.append(x.to(ranks.device))
+    return out
+
+
+def training_images(
+    root: Path,
+    also: tuple[str, ...],
+    min_visible_px: int,
+    cfg: DetectorConfig,
+    limit: int | None,
+) -> tuple[torch.utils.data.Dataset, list[DetectionSet]]:
+    """The train images of root and of the dataset folders `also` (under the data root), at
+    most `limit` of each: (the mix, its parts)."""
+    parts = [DetectionSet(root, "train", min_visible_px, cfg, limit)]
+    for name in also:
+        extra = data_root() / name
+        if not (extra / "train").is_dir():
+            raise AssetError(
+                f"no train split under {extra}; build it with `python -m "
+                "perception.training.datagen` (see its --dist and --tier)"
+            )
+        parts.append(DetectionSet(extra, "train", min_visible_px, cfg, limit))
+    return (parts[0] if len(parts) == 1 else MixedSet(parts)), parts
+
+
+def start_from(model: torch.nn.Module, path: Path, cfg: DetectorConfig) -> None:
+    """Load the weights of a shipped detector or a detector checkpoint into model (float32).
+
+    Raises:
+        AssetError: the file is missing or corrupt, or holds another architecture.
+    """
+    parent, parent_cfg, _ = load_detector_model(Path(path), verify=False)
+    if parent_cfg != cfg:
+        raise AssetError(f"{path} holds another detector architecture than this run's")
+    model.load_state_dict(
+        {k: v.float() if v.is_floating_point() else v for k, v in parent.state_dict().items()}
+    )

@@ -24,6 +24,19 @@ WEIGHTS_NAME = "detector.pt"
 TRAIN_COMMAND = "python -m perception.training.train_detector"
 
 
+def _command(tc: dict[str, Any]) -> str:
+    """The training command of a run's train config (the options it changed)."""
+    parts = [TRAIN_COMMAND]
+    if tc.get("also"):
+        parts.append(f"--also {','.join(tc['also'])}")
+    if tc.get("init"):
+        parts.append(f"--init {tc['init']}")
+    parts.append(f"--epochs {tc['epochs']}")
+    if tc.get("lr") not in (None, 1e-3):
+        parts.append(f"--lr {tc['lr']:g}")
+    return " ".join([*parts, "--export"])
+
+
 def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, Any]:
     """Write the shipped weights (float16 state dict, model config) and their manifest entry.
 
@@ -62,7 +75,7 @@ def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, 
     entry = {
         **weights_entry(path),
         "parameters": count_parameters(model),
-        "command": f"{TRAIN_COMMAND} --epochs {tc['epochs']} --export",
+        "command": _command(tc),
         "train_config": tc,
         "data_seeds": state["data_seeds"],
         "epochs_done": state["epoch"],

@@ -43,9 +43,14 @@ from perception.training.checkpoints import (
     save_checkpoint,
     seed_torch,
 )
-from perception.training.dataset import PoseDataset, load_info
+from perception.training.dataset import DATASETS, PoseDataset, load_info
 from perception.training.ddp import DEVICES, Ranks, resolve_device, start
-from perception.training.detection_data import DetectionSet, augment, collate_list
+from perception.training.detection_data import (
+    augment_shard,
+    collate_list,
+    start_from,
+    training_images,
+)
 from perception.training.detection_eval import evaluate_detector, pycocotools_api
 from perception.training.export_detector import TRAIN_COMMAND, export_detector
 from perception.training.schedule import learning_rate, optimiser_step
@@ -81,6 +86,11 @@ class DetectorTrainConfig:
         out: checkpoint folder; None means `checkpoint_dir()` (next to the data, outside git).
         checkpoint_minutes: save a resumable checkpoint at least this often.
         detector: the architecture.
+        also: further dataset folders under the data root (`perception.training.dataset.
+            DATASETS`, e.g. ``headcam_hard``, ``paper``) whose train images are added to the
+            run's; validation stays on ``data``'s val split.
+        init: shipped detector weights or a detector checkpoint whose weights start the run
+            (fine-tuning: fresh optimiser and schedule); None starts from random weights.
     """
 
     data: Path | None = None
@@ -101,8 +111,15 @@ class DetectorTrainConfig:
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     device: str = "auto"
     loss_log: Path | None = None
+    also: tuple[str, ...] = ()
+    init: Path | None = None
 
     def __post_init__(self) -> None:
+        bad = [d for d in self.also if d not in DATASETS]
+        if bad or len(set(self.also)) != len(self.also):
+            raise InvalidArgumentError(
+                f"invalid --also {','.join(self.also)!r}; a comma list of: {', '.join(DATASETS)}"
+            )
         if self.epochs < 1 or self.batch < 1 or self.val_images < 1 or self.workers < 0:
             raise InvalidArgumentError(
                 "epochs, batch and val_images must be >= 1 and workers >= 0, got "
@@ -127,17 +144,6 @@ SMOKE = DetectorTrainConfig(epochs=1, batch=2, limit=4, val_images=2, workers=0,
 def dataset_root(cfg: DetectorTrainConfig) -> Path:
     """The dataset folder the run trains on."""
     return Path(cfg.data) if cfg.data is not None else data_root() / "headcam"
-
-
-def _augment_shard(images: list[torch.Tensor], g: torch.Generator, ranks: Ranks) -> list:
-    """This rank's images jittered as in one process: the jitter of every image of the global
-    batch is drawn in order (those of other ranks' images, of the same size, are dropped)."""
-    out = []
-    for j in range(len(images) * ranks.world):
-        x = augment(images[j // ranks.world], g)
-        if j % ranks.world == ranks.rank:
-            out.append(x.to(ranks.device))
-    return out
 
 
 def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None = None) -> dict:
@@ -174,7 +180,7 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
                 "`python -m perception.training.datagen "
                 f"--dist headcam --split {split} --count N --out {root}` (or `make data`)"
             )
-    train_set = DetectionSet(root, "train", cfg.min_visible_px, cfg.detector, cfg.limit)
+    train_set, parts = training_images(root, cfg.also, cfg.min_visible_px, cfg.detector, cfg.limit)
     val_data = PoseDataset(root, "val")
     if len(train_set) < cfg.batch:
         raise AssetError(
@@ -187,6 +193,8 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
     pycocotools_api()  # fail now, not after the first epoch, when pycocotools is missing
     seed_torch(cfg.seed, ranks.threads(cfg.threads))
     model = build_detector(cfg.detector)
+    if cfg.init is not None:
+        start_from(model, cfg.init, cfg.detector)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     out = cfg.out or checkpoint_dir()
     out.mkdir(parents=True, exist_ok=True)
@@ -206,6 +214,11 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
             raise AssetError(
                 f"checkpoint {ckpt} has another architecture; pass --no-resume to start over "
                 "or --out to train elsewhere"
+            )
+        if len(parts) > 1 and n_saved != len(train_set):
+            raise AssetError(
+                f"checkpoint {ckpt} trained on {n_saved} images, the datasets now hold "
+                f"{len(train_set)}; pass --no-resume to start over"
             )
         if n_saved > len(train_set):
             raise AssetError(
@@ -230,6 +243,8 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
         "dataset": str(root),
         "dataset_seed_bases": load_info(root).get("seed_bases", {}),
         "train_images": len(train_set),
+        "also": {name: len(part) for name, part in zip(cfg.also, parts[1:], strict=True)},
+        "init": None if cfg.init is None else str(cfg.init),
         "val_images": min(cfg.val_images, len(val_data)),
         "order_seed": "seed * 1000 + epoch",
         "seed": cfg.seed,
@@ -266,7 +281,7 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
         for batch in bar:
             if max_steps is not None and step >= max_steps:
                 break
-            images = _augment_shard([image for image, _ in batch], g, ranks)
+            images = augment_shard([image for image, _ in batch], g, ranks)
             targets = [{k: v.to(ranks.device) for k, v in t.items()} for _, t in batch]
             parts = net(images, targets)
             loss = sum(parts.values())
@@ -314,17 +329,18 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="dataset folder with train and val (default: $POSEGRASP_DATA/headcam)",
     )
+    p.add_argument(
+        "--also",
+        default=None,
+        help=f"more train data: a comma list of dataset folders, of: {', '.join(DATASETS)}",
+    )
+    p.add_argument("--init", type=Path, help="start from these detector weights (fine-tune)")
     p.add_argument("--epochs", type=int, default=DetectorTrainConfig.epochs)
     p.add_argument("--batch", type=int, default=DetectorTrainConfig.batch)
     p.add_argument("--lr", type=float, default=DetectorTrainConfig.lr)
     p.add_argument("--limit", type=int, default=None, help="at most this many train images")
     p.add_argument("--val-images", type=int, default=DetectorTrainConfig.val_images)
-    p.add_argument(
-        "--workers",
-        type=int,
-        default=DetectorTrainConfig.workers,
-        help="data-loading processes (0: none)",
-    )
+    p.add_argument("--workers", type=int, default=1, help="data-loading processes (0: none)")
     p.add_argument(
         "--threads", type=int, default=None, help="torch threads per process (default: all cores)"
     )
@@ -333,18 +349,8 @@ def main(argv: list[str] | None = None) -> int:
         "--loss-log", type=Path, default=None, help="append one JSON line per step to this file"
     )
     p.add_argument("--seed", type=int, default=DetectorTrainConfig.seed)
-    p.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="checkpoint folder (default: <data root>/checkpoints)",
-    )
-    p.add_argument(
-        "--max-steps",
-        type=int,
-        default=None,
-        help="stop after this many steps in total (resumable)",
-    )
+    p.add_argument("--out", type=Path, help="checkpoint folder (default: <data>/checkpoints)")
+    p.add_argument("--max-steps", type=int, help="stop after this many steps (resumable)")
     p.add_argument("--smoke", action="store_true", help="a tiny run that takes seconds")
     p.add_argument("--no-resume", action="store_true", help="start over")
     p.add_argument(
@@ -353,13 +359,8 @@ def main(argv: list[str] | None = None) -> int:
         help="after training, write perception/weights/detector.pt and its manifest "
         "entry (a finished run is not trained further)",
     )
-    p.add_argument(
-        "--weights-out",
-        type=Path,
-        default=WEIGHTS_DIR,
-        help="folder of the exported weights and manifest.json",
-    )
-    args = p.parse_args(argv)  # fmt: skip
+    p.add_argument("--weights-out", type=Path, default=WEIGHTS_DIR, help="export folder")
+    args = p.parse_args(argv)
     try:
         resolve_device(args.device)
         if args.smoke:
@@ -371,7 +372,8 @@ def main(argv: list[str] | None = None) -> int:
                 data=args.data, epochs=args.epochs, batch=args.batch, lr=args.lr,
                 limit=args.limit, val_images=args.val_images, workers=args.workers,
                 seed=args.seed, out=args.out, threads=args.threads, device=args.device,
-                loss_log=args.loss_log,
+                loss_log=args.loss_log, init=args.init,
+                also=tuple(args.also.split(",")) if args.also else (),
             )  # fmt: skip
         if args.max_steps is not None and args.max_steps < 1:
             raise InvalidArgumentError(f"--max-steps must be >= 1, got {args.max_steps}")

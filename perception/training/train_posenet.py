@@ -37,7 +37,7 @@ from perception.training.checkpoints import (
     seed_torch,
 )
 from perception.training.crop_sets import CropConfig, build_crops, concat, data_seed_ranges
-from perception.training.dataset import DISTS
+from perception.training.dataset import DATASETS, DISTS
 from perception.training.ddp import DEVICES, ONE_PROCESS, Ranks, resolve_device, start
 from perception.training.losses import posenet_loss
 from perception.training.posenet_eval import evaluate_arrays
@@ -316,9 +316,9 @@ def parse_limit(text: str | None) -> tuple[int | None, tuple[tuple[str, int], ..
     limit, per = None, []
     for item in text.split(","):
         name, _, num = item.rpartition("=")
-        if name and name not in DISTS:
+        if name and name not in DATASETS:
             raise InvalidArgumentError(
-                f"unknown distribution {name!r} in --limit; valid: {', '.join(DISTS)}"
+                f"unknown dataset {name!r} in --limit; valid: {', '.join(DATASETS)}"
             )
         if not num.isdigit() or int(num) < 1:
             raise InvalidArgumentError(f"--limit wants N or dist=N with N >= 1, got {item!r}")
@@ -341,7 +341,11 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="at most this many images per split: N for every distribution, or dist=N,...",
     )
-    p.add_argument("--dists", default=",".join(DISTS), help="comma list of: paper, headcam")
+    p.add_argument(
+        "--dists",
+        default=",".join(DISTS),
+        help=f"comma list of datasets under the data root, of: {', '.join(DATASETS)}",
+    )
     p.add_argument(
         "--init", default=None, help="start from this checkpoint's weights (name or path)"
     )
@@ -362,8 +366,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.variant not in VARIANTS:
         return fail(f"unknown variant {args.variant!r}; valid variants: {', '.join(VARIANTS)}")
     dists = tuple(args.dists.split(","))
-    if any(d not in DISTS for d in dists):
-        return fail(f"unknown distribution in {args.dists!r}; valid: {', '.join(DISTS)}")
+    if any(d not in DATASETS for d in dists) or len(set(dists)) != len(dists):
+        return fail(f"invalid --dists {args.dists!r}; a comma list of: {', '.join(DATASETS)}")
     if args.epochs < 1 or args.batch < 1:
         return fail("--epochs and --batch must be at least 1")
     try:
