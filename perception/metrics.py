@@ -275,6 +275,16 @@ def center_error_px(uv_est: np.ndarray, uv_gt: np.ndarray) -> float | np.ndarray
     return float(d) if d.ndim == 0 else d
 
 
+def add_metric_name(syms: Sequence[Symmetry], atol: float = 1e-9) -> str:
+    """The ADD(-S) variant for an object: ``"ADD"`` when its symmetry set holds only the
+    identity, ``"ADD-S"`` (:func:`adi`) when it holds another transform (Hinterstoisser et al.
+    2012). ``atol`` bounds the entries of R [-] and t [m] that still count as the identity."""
+    eye = np.eye(3)
+    identity = [np.allclose(R, eye, atol=atol) and np.allclose(t, 0.0, atol=atol)
+                for R, t in _syms(syms)]  # fmt: skip
+    return "ADD" if all(identity) else "ADD-S"
+
+
 def mask_iou(mask_a: np.ndarray, mask_b: np.ndarray) -> float:
     """Intersection over union of two binary masks (paper Table 2's IoU).
 

@@ -1,4 +1,4 @@
-"""Summaries of many pose errors: recalls, the ADD AUC, statistics and the outlier rate.
+"""Summaries of many pose errors: recalls, the ADD AUC, statistics, outlier and IoU rates.
 
 docs/DESIGN.md §9. Inputs are arrays of per-pose errors in the unit their names say;
 NaN counts as a failure.
@@ -107,3 +107,39 @@ def outlier_rate(rot_err_deg: np.ndarray | Sequence[float], threshold: float = 1
     """Fraction of rotation errors above ``threshold`` [deg] (NaN counts as outlier)."""
     r = np.nan_to_num(_values_1d(rot_err_deg, "rot_err_deg"), nan=np.inf)
     return float(np.mean(r > threshold))
+
+
+def iou_accuracy(ious: np.ndarray | Sequence[float], threshold: float = 0.5) -> float:
+    """Fraction of silhouette IoUs strictly above ``threshold`` (NaN fails).
+
+    The reading of the paper's "acc IoU" (Table 2) that `perception.training.tables` compares
+    with; `invalid_rate` is its complement.
+
+    Args:
+        ious: Silhouette IoUs in [0, 1], non-empty.
+        threshold: IoU a pose must exceed, in [0, 1).
+
+    Returns:
+        The accuracy in [0, 1].
+    """
+    if not 0.0 <= threshold < 1.0:
+        raise InvalidArgumentError(f"threshold must be in [0, 1), got {threshold}")
+    v = np.nan_to_num(_values_1d(ious, "ious"), nan=-np.inf)
+    return float(np.mean(v > threshold))
+
+
+def invalid_rate(ious: np.ndarray | Sequence[float], threshold: float = 0.5) -> float:
+    """Fraction of invalid poses: silhouette IoU at most ``threshold`` (NaN counts as invalid).
+
+    The paper's invalid poses (section 3.2, Fig. 9) are those whose projected silhouette does not
+    match the object's; here that means IoU <= ``threshold``, so
+    ``invalid_rate(x, th) == 1 - iou_accuracy(x, th)``.
+
+    Args:
+        ious: Silhouette IoUs in [0, 1], non-empty.
+        threshold: Largest IoU of an invalid pose, in [0, 1).
+
+    Returns:
+        The rate in [0, 1].
+    """
+    return 1.0 - iou_accuracy(ious, threshold)

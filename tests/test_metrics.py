@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from perception import metrics as m
 from perception import summaries
+from sim.core.errors import InvalidArgumentError
 from sim.core.transforms import intrinsics, rot_z
 
 
@@ -242,6 +243,25 @@ def test_summary_stats_and_outlier_rate_by_hand() -> None:
     assert stats["p90"] == pytest.approx(4.0 + 0.6 * 6.0)  # index 3.6 between 4 and 10
     assert summaries.outlier_rate([1.0, 16.0, 15.0, 90.0]) == pytest.approx(0.5)  # strict >
     assert summaries.outlier_rate([1.0, 16.0], threshold=20.0) == 0.0
+
+
+def test_iou_accuracy_and_invalid_rate_by_hand() -> None:
+    ious = [1.0, 0.6, 0.5, 0.2, np.nan]
+    assert summaries.iou_accuracy(ious) == pytest.approx(0.4)  # strict >, NaN fails
+    assert summaries.invalid_rate(ious) == pytest.approx(0.6)  # <= 0.5 and NaN
+    assert summaries.iou_accuracy(ious, threshold=0.1) == pytest.approx(0.8)
+    with pytest.raises(InvalidArgumentError, match="threshold"):
+        summaries.iou_accuracy(ious, threshold=1.0)
+
+
+def test_add_metric_name_follows_the_symmetry_set() -> None:
+    assert m.add_metric_name(m.identity_symmetry()) == "ADD"
+    assert m.add_metric_name(z_symmetries(1)) == "ADD"
+    assert m.add_metric_name(z_symmetries(2)) == "ADD-S"
+    shifted = [{"R": np.eye(3), "t": np.array([[0.0], [0.0], [0.01]])}]
+    assert m.add_metric_name(m.identity_symmetry() + shifted) == "ADD-S"
+    with pytest.raises(InvalidArgumentError, match="at least one"):
+        m.add_metric_name([])
 
 
 def test_diameter_by_hand() -> None:

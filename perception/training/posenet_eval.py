@@ -13,6 +13,9 @@ from perception.crops import crop_to_image, from_unit
 from perception.geometry import decode
 from perception.nets import CROP, PoseNet, normalise
 
+#: (W, H) of the paper's images [px] (section 2.8), the frame of ``center_256_px``.
+PAPER_IMAGE = (256, 256)
+
 
 @torch.no_grad()
 def predict(model: PoseNet, crops: np.ndarray, cls: np.ndarray, scale: np.ndarray,
@@ -46,20 +49,32 @@ def decode_predictions(pred: dict, data: dict) -> dict[str, np.ndarray]:
     return {"uv": uv_img, "T_C_O": T}
 
 
-def pose_metrics(dec: dict, data: dict) -> dict[str, np.ndarray]:
+def pose_metrics(
+    dec: dict, data: dict, image_size: tuple[int, int] | None = None
+) -> dict[str, np.ndarray]:
     """Per-crop errors: centre [px] in the full image and in the 64x64 crop, distance [%],
-    rotation [deg]."""
+    rotation [deg].
+
+    With ``image_size`` = (W, H) [px] of the images, also ``center_256_px``: the centre error
+    in pixels of the image rescaled to the paper's `PAPER_IMAGE` (256x256), each axis on its own:
+    ``sqrt((du * 256 / W)^2 + (dv * 256 / H)^2)`` (x by 0.4 and y by 0.5333 for 640x480).
+    ``center_crop_px`` is ``center_px * 64 / side`` of the crop's square box."""
     T, Tg = dec["T_C_O"], data["T_C_O"]
-    centre = np.linalg.norm(dec["uv"] - data["uv"], axis=1)
+    duv = dec["uv"] - data["uv"]
+    centre = np.linalg.norm(duv, axis=1)
     dist = np.linalg.norm(T[:, :3, 3] - Tg[:, :3, 3], axis=1) / np.linalg.norm(Tg[:, :3, 3], axis=1)
     Rrel = np.einsum("nji,njk->nik", T[:, :3, :3], Tg[:, :3, :3])
     cosang = np.clip((np.trace(Rrel, axis1=1, axis2=2) - 1) / 2, -1, 1)
-    return {
+    out = {
         "center_px": centre,
         "center_crop_px": centre * CROP / data["box"][:, 2],
         "distance_pct": 100 * dist,
         "rotation_deg": np.rad2deg(np.arccos(cosang)),
     }
+    if image_size is not None:
+        scale = np.asarray(PAPER_IMAGE, float) / np.asarray(image_size, float)
+        out["center_256_px"] = np.linalg.norm(duv * scale, axis=1)
+    return out
 
 
 def evaluate_arrays(model: PoseNet, data: dict) -> dict[str, float]:

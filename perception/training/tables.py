@@ -1,10 +1,16 @@
 """Evaluation of the pose nets on the held-out test splits (`python -m perception.training.tables`).
 
-For each data distribution (`headcam`, `paper`) the test images' boxes are perturbed as
-detections are (random shift and scale, seeded), the nets predict, the exact geometry decodes,
-and the paper's Table 1 (centre error) and Table 2 (distance and rotation error, IoU accuracy)
-are printed per object beside the paper's numbers, with ADD-S recall at 0.1 d, 5 cm 5 deg
-recall, medians, 90th percentiles and the outlier rate (rotation > 15 deg).
+For each dataset folder (`paper`, `headcam`, or a head-camera tier's `headcam_<tier>`) the test
+images' boxes are perturbed as detections are (random shift and scale, seeded), the nets predict,
+the exact geometry decodes, and the paper's Table 1 (centre error) and Table 2 (distance and
+rotation error, IoU accuracy, invalid poses) are printed per object beside the paper's numbers,
+with ADD(-S) recall at 0.1 d, 5 cm 5 deg recall, medians, 90th percentiles and the rotation
+outlier rate. Which of our figures each paper figure is compared with, and why, is in
+`perception.training.paper_tables`: the centre error in 64x64 crop pixels (also given in
+full-image pixels as rendered, and rescaled to the paper's 256x256 images: du * 256 / W,
+dv * 256 / H, i.e. 0.4 and 0.5333 for the 640x480 head camera), "acc IoU" as the share of poses
+with silhouette IoU > 0.5, invalid poses as IoU <= 0.5; ADD for objects without symmetries and
+ADD-S for those with.
 
 With ``--boxes detector`` the head-camera test split is measured end to end instead: the shipped
 Mask R-CNN finds the objects, the crops are cut around its boxes as the estimator cuts them, and
@@ -13,6 +19,7 @@ those from ground-truth boxes.
 
     python -m perception.training.tables [--weights perception/weights/posenet_ours.pt] \
         --json out.json
+    python -m perception.training.tables --dists headcam,headcam_hard,headcam_far
     python -m perception.training.tables --boxes detector --json detector.json
 """
 
@@ -24,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from perception import metrics, summaries
+from perception import metrics
 from perception.crops import square_box
 from perception.detector import DEFAULT_WEIGHTS, Detector
 from perception.hybrid import DEFAULT_CROP_SCALE
@@ -33,9 +40,10 @@ from perception.nets import PoseNet, load_posenet
 from perception.overlay import silhouette
 from perception.success_model import SuccessModel, components_of, load_models
 from perception.training.crop_sets import CropConfig, CropSet, build_crops
-from perception.training.dataset import DISTS, PoseDataset
+from perception.training.dataset import DATASETS, PoseDataset, load_info
 from perception.training.detection_eval import coco_ap, visible_objects
-from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
+from perception.training.paper_tables import READINGS, average, format_tables, summarise
+from perception.training.posenet_eval import PAPER_IMAGE, decode_predictions, pose_metrics, predict
 from perception.training.record import (
     check_full_splits,
     check_record_request,
@@ -48,23 +56,6 @@ from sim.core.paths import WEIGHTS_DIR, data_root
 from sim.core.validate import arg, check_choice, check_int, check_names, check_output_file
 from sim.world.objects import OBJECT_NAMES, load_object
 
-#: The paper's Tables 1 and 2 (Staszak & Belter 2019), per object and average.
-PAPER = {
-    "center_px_mean": {"car": 1.89, "chair": 1.77, "faucet": 1.07, "screen": 1.75, "phone": 1.64,
-                       "pistol": 2.17, "average": 1.72},
-    "center_px_std": {"car": 1.53, "chair": 1.45, "faucet": 1.06, "screen": 1.60, "phone": 1.55,
-                      "pistol": 2.10, "average": 1.55},
-    "distance_pct_mean": {"car": 5.43, "chair": 6.19, "faucet": 5.87, "screen": 6.59,
-                          "phone": 7.12, "pistol": 5.57, "average": 6.12},
-    "distance_pct_std": {"car": 5.12, "chair": 5.79, "faucet": 6.27, "screen": 7.04,
-                         "phone": 7.53, "pistol": 5.23, "average": 6.16},
-    "rotation_deg_mean": {"car": 2.83, "chair": 3.19, "faucet": 3.03, "screen": 3.76,
-                          "phone": 4.22, "pistol": 3.58, "average": 3.43},
-    "rotation_deg_std": {"car": 3.21, "chair": 3.68, "faucet": 3.46, "screen": 4.15,
-                         "phone": 4.59, "pistol": 4.01, "average": 3.85},
-    "iou_acc": {"car": 0.972, "chair": 0.956, "faucet": 0.964, "screen": 0.961, "phone": 0.958,
-                "pistol": 0.961, "average": 0.964},
-}  # fmt: skip
 #: Test boxes are perturbed like detections, with this seed.
 TEST_CROPS = CropConfig(per_object=1, max_shift=0.05, scale_range=(1.0, 1.2), seed=12345)
 BOXES: tuple[str, ...] = ("gt", "detector")
@@ -86,24 +77,6 @@ def _iou(T_est: np.ndarray, T_gt: np.ndarray, K: np.ndarray, name: str) -> float
     a = silhouette(T_est, K, v, f, (h, w))
     b = silhouette(T_gt, K, v, f, (h, w))
     return metrics.mask_iou(a, b)
-
-
-def _summary(m: dict[str, np.ndarray], extra: dict[str, np.ndarray]) -> dict[str, float]:
-    out: dict[str, float] = {"count": len(m["center_px"])}
-    for key, arr in (
-        ("center_px", m["center_px"]),
-        ("center_crop_px", m["center_crop_px"]),
-        ("distance_pct", m["distance_pct"]),
-        ("rotation_deg", m["rotation_deg"]),
-    ):
-        s = summaries.summary_stats(arr)
-        out |= {f"{key}_mean": s["mean"], f"{key}_std": s["std"],
-                f"{key}_median": s["median"], f"{key}_p90": s["p90"]}  # fmt: skip
-    out["iou_acc"] = float(np.mean(extra["iou"]))
-    out["outlier_rate"] = summaries.outlier_rate(m["rotation_deg"])
-    out["add_s_recall"] = float(np.mean(extra["adi_rel"] < 0.1))
-    out["recall_5cm5deg"] = summaries.recall_5cm5deg(extra["trans_m"], m["rotation_deg"])
-    return out
 
 
 def detector_crops(
@@ -151,6 +124,42 @@ def detector_crops(
                     "missed": missed, "images": n}  # fmt: skip
 
 
+def _symmetry_set(name: str) -> list[metrics.Symmetry]:
+    """The object's symmetry set in `perception.metrics`' convention (identity included)."""
+    syms = metrics.identity_symmetry()
+    syms += [{"R": T[:3, :3], "t": T[:3, 3:4]} for T in load_object(name).symmetries]
+    return syms
+
+
+def datagen_command(dataset: str) -> str:
+    """The command that generates the test split of a dataset folder of `DATASETS`."""
+    dist, _, tier = dataset.partition("_")
+    tier_arg = f" --tier {tier}" if tier else ""
+    return f"python -m perception.training.datagen --dist {dist}{tier_arg} --split test --count N"
+
+
+def check_test_split(dataset: str) -> Path:
+    """The folder of a dataset's test split under the data root.
+
+    Raises:
+        AssetError: the folder has no test split; the message names the command making it.
+    """
+    root = data_root() / dataset
+    if not (root / "test").is_dir():
+        raise AssetError(
+            f"no test split of {dataset} in {root}; generate it with `{datagen_command(dataset)}`"
+        )
+    return root
+
+
+def _success_models(success: dict[str, SuccessModel], dataset: str) -> dict[str, SuccessModel]:
+    """The success models of a head-camera dataset's tier (isolated for the mixed `headcam`)."""
+    if not dataset.startswith("headcam"):
+        return {}
+    tier = dataset.partition("_")[2] or "isolated"
+    return {o: success[k] for o in OBJECT_NAMES if (k := f"{o}/{tier}") in success}
+
+
 def evaluate_split(
     model: PoseNet,
     root: Path,
@@ -158,84 +167,60 @@ def evaluate_split(
     data: dict | None = None,
     success: dict[str, SuccessModel] | None = None,
 ) -> dict:
-    """Metrics on one distribution's test split, per object and averaged over objects.
+    """Metrics on one dataset's test split, per object and averaged over objects.
 
     `data` gives the crops (e.g. from `detector_crops`); by default the ground-truth boxes are
     perturbed like detections (`TEST_CROPS`). With `success` (models by object, see
     `perception.success_model`), each object also gets ``expected_success``: the mean predicted
-    probability that a grasp planned on its test poses succeeds."""
+    probability that a grasp planned on its test poses succeeds.
+
+    Returns:
+        ``per_object`` (name -> `paper_tables.summarise`' figures), ``average`` (`average`),
+        ``image_size`` (W, H) [px] of the split's images, ``center_256_scale`` (256 / W,
+        256 / H), the factors of ``center_256_px``, and ``paper_readings`` (the paper's figure
+        -> the key of ours it is compared with).
+    """
     if data is None:
         data = build_crops(root, "test", TEST_CROPS, limit)
     if len(data["crops"]) == 0:
         raise AssetError(f"no test crops under {root}")
+    info = load_info(root)
+    size = (int(info["width"]), int(info["height"]))
     pred = predict(model, data["crops"], data["cls"], data["scale"])
     dec = decode_predictions(pred, data)
-    m = pose_metrics(dec, data)
+    m = pose_metrics(dec, data, size)
     n = len(data["cls"])
-    iou, adi_rel, trans, p_success = np.zeros(n), np.zeros(n), np.zeros(n), np.full(n, np.nan)
+    extra = {k: np.zeros(n) for k in ("iou", "add_rel", "adi_rel", "trans_m")}
+    p_success = np.full(n, np.nan)
     pts = {o: np.asarray(load_object(o).mesh.vertices) for o in OBJECT_NAMES}
+    add_metric = {o: metrics.add_metric_name(_symmetry_set(o)) for o in OBJECT_NAMES}
     for i in range(n):
         name = OBJECT_NAMES[int(data["cls"][i])]
         Te, Tg = dec["T_C_O"][i], data["T_C_O"][i]
-        iou[i] = _iou(Te, Tg, data["K"][i], name)
-        adi = metrics.adi(Te[:3, :3], Te[:3, 3], Tg[:3, :3], Tg[:3, 3], pts[name])
-        adi_rel[i] = adi / load_object(name).diameter
-        trans[i] = np.linalg.norm(Te[:3, 3] - Tg[:3, 3])
+        d = load_object(name).diameter
+        pose = (Te[:3, :3], Te[:3, 3], Tg[:3, :3], Tg[:3, 3], pts[name])
+        extra["iou"][i] = _iou(Te, Tg, data["K"][i], name)
+        extra["adi_rel"][i] = metrics.adi(*pose) / d
+        chosen = metrics.add(*pose) / d if add_metric[name] == "ADD" else extra["adi_rel"][i]
+        extra["add_rel"][i] = chosen
+        extra["trans_m"][i] = np.linalg.norm(Te[:3, 3] - Tg[:3, 3])
         if success is not None and name in success:
             p_success[i] = success[name].predict(components_of(metrics.error_components(Te, Tg)))
-    extra = {"iou": iou, "adi_rel": adi_rel, "trans_m": trans}
     per_object = {}
     for c, name in enumerate(OBJECT_NAMES):
         sel = data["cls"] == c
         if sel.any():
-            per_object[name] = _summary({k: v[sel] for k, v in m.items()},
-                                        {k: v[sel] for k, v in extra.items()})  # fmt: skip
+            errors = {k: v[sel] for k, v in (m | extra).items()}
+            per_object[name] = summarise(errors, add_metric[name])
             if not np.all(np.isnan(p_success[sel])):
                 per_object[name]["expected_success"] = float(np.nanmean(p_success[sel]))
-    keys = [k for k in next(iter(per_object.values())) if k != "count"]
-    keys = [k for k in keys if all(k in po for po in per_object.values())]
-    average = {k: float(np.mean([po[k] for po in per_object.values()])) for k in keys}
-    average["count"] = n
-    return {"per_object": per_object, "average": average}
-
-
-def format_tables(name: str, res: dict) -> str:
-    """The paper's Table 1 and 2 layout, ours beside the paper's."""
-    cols = [*OBJECT_NAMES, "average"]
-    rows = [f"== {name} test split ({res['average']['count']} crops) ==",
-            f"{'metric':<26}" + "".join(f"{c:>16}" for c in cols)]  # fmt: skip
-
-    def row(label: str, key: str, scale: float = 1.0, paper: bool = True) -> None:
-        vals = []
-        for c in cols:
-            src = res["average"] if c == "average" else res["per_object"].get(c)
-            ours = "-" if src is None or key not in src else f"{src[key] * scale:.2f}"
-            ref = PAPER.get(key, {}).get(c)
-            cell = f"{ours} ({ref * scale:.2f})" if paper and ref is not None else ours
-            vals.append(f"{cell:>16}")
-        rows.append(f"{label:<26}" + "".join(vals))
-
-    rows.append("Table 1: centre (ours (paper))")
-    row("e_centre [px]", "center_px_mean")
-    row("e_centre std [px]", "center_px_std")
-    row("e_centre [64x64 crop px]", "center_crop_px_mean", paper=False)
-    rows.append("Table 2: pose (ours (paper))")
-    row("e_distance [%]", "distance_pct_mean")
-    row("e_distance std [%]", "distance_pct_std")
-    row("e_rotation [deg]", "rotation_deg_mean")
-    row("e_rotation std [deg]", "rotation_deg_std")
-    row("acc_IoU [%]", "iou_acc", 100)
-    rows.append("Beyond the paper")
-    row("e_distance median [%]", "distance_pct_median", paper=False)
-    row("e_distance p90 [%]", "distance_pct_p90", paper=False)
-    row("e_rotation median [deg]", "rotation_deg_median", paper=False)
-    row("e_rotation p90 [deg]", "rotation_deg_p90", paper=False)
-    row("outliers (>15 deg) [%]", "outlier_rate", 100, paper=False)
-    row("ADD-S < 0.1d recall [%]", "add_s_recall", 100, paper=False)
-    row("5cm 5deg recall [%]", "recall_5cm5deg", 100, paper=False)
-    if "expected_success" in res["average"]:
-        row("expected grasp success [%]", "expected_success", 100, paper=False)
-    return "\n".join(rows)
+    return {
+        "per_object": per_object,
+        "average": average(per_object, n),
+        "image_size": list(size),
+        "center_256_scale": [PAPER_IMAGE[0] / size[0], PAPER_IMAGE[1] / size[1]],
+        "paper_readings": dict(READINGS),
+    }
 
 
 def format_detection(det: dict) -> str:
@@ -266,7 +251,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--dists",
         default=None,
-        help="comma list of: headcam, paper (default: both; headcam with --boxes detector)",
+        help=f"comma list of dataset folders under the data root, of: {', '.join(DATASETS)} "
+        "(default: headcam,paper; headcam with --boxes detector)",
     )
     p.add_argument(
         "--limit",
@@ -288,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
         type=Path,
         default=None,
         help="models of python -m sim.fit_success: adds the expected grasp success of the "
-        "head-camera test poses (isolated-tier models)",
+        "head-camera test poses (a tier's models for headcam_<tier>, isolated for headcam)",
     )
     p.add_argument(
         "--record",
@@ -300,32 +286,29 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_choice(args.boxes, BOXES, "box source")
         spec = args.dists or ("headcam" if args.boxes == "detector" else "headcam,paper")
-        dists = check_names(spec, DISTS, "distribution", "--dists")
+        dists = check_names(spec, DATASETS, "distribution", "--dists")
         if args.boxes == "detector" and dists != ["headcam"]:
             return fail("--boxes detector works on the head-camera split only; valid: headcam")
         if args.record:
             check_record_request(args, dists)
             check_full_splits(dists)
+        roots = {d: check_test_split(d) for d in dists}
         model = load_posenet(args.weights)
-        success = None
-        if args.success_model is not None:
-            models = load_models(args.success_model)
-            success = {o: models[k] for o in OBJECT_NAMES if (k := f"{o}/isolated") in models}
+        models = {} if args.success_model is None else load_models(args.success_model)
         report: dict = {}
         for d in dists:
             data = None
             if args.boxes == "detector":
                 detector = Detector.from_weights(args.detector, score_threshold=0.05)
-                data, det = detector_crops(data_root() / d, detector, args.limit)
+                data, det = detector_crops(roots[d], detector, args.limit)
                 report["detection"] = det["detection"]
                 report["detection_summary"] = {k: v for k, v in det.items() if k != "detection"}
                 print(format_detection(det))
-            report[d] = evaluate_split(
-                model, data_root() / d, args.limit, data, success if d == "headcam" else None
-            )
+            success = _success_models(models, d)
+            report[d] = evaluate_split(model, roots[d], args.limit, data, success)
             if args.boxes == "detector":
                 report[d]["boxes"] = "detector"
-                gt = evaluate_split(model, data_root() / d, args.limit)
+                gt = evaluate_split(model, roots[d], args.limit)
                 report[f"{d}_gt_boxes"] = gt
                 report["detector_to_gt_ratio"] = {
                     k: report[d]["average"][k] / gt["average"][k] for k in RATIO_KEYS
