@@ -29,6 +29,7 @@ from perception.detector import DEFAULT_WEIGHTS, Detection, Detector, check_rgb
 from perception.detector_net import DetectorConfig
 from perception.geometry import decode
 from perception.nets import CROP, NetConfig, PoseNet, load_posenet, normalise
+from perception.refine import PoseRefiner
 from perception.support import refine_on_support, refine_with_mask
 from sim.core.contract import Observation
 from sim.core.errors import InvalidArgumentError, UnknownNameError
@@ -249,13 +250,18 @@ class HybridPoseEstimator:
         return self.estimate_timed(rgb, K, classes)[0]
 
     def as_episode_estimator(
-        self, support: bool = False, mask_fit: bool = True, name: str | None = None
+        self,
+        support: bool = False,
+        mask_fit: bool = True,
+        name: str | None = None,
+        refine: bool = False,
     ) -> HybridEpisodeEstimator:
         """This estimator behind the episode interface (`sim.core.contract.PoseEstimator`);
         `support` puts each pose onto the observation's table and, with `mask_fit`, fits its yaw
-        and position on the table to the detected mask (`perception.support`). `name` names it
-        in results (default ``hybrid`` or ``hybrid-table``)."""
-        return HybridEpisodeEstimator(self, support, mask_fit, name)
+        and position on the table to the detected mask (`perception.support`); `refine` refines
+        it against the detected mask and the image (`perception.refine`). `name` names it in
+        results (default ``hybrid``, ``hybrid-table`` or ``hybrid-refine``)."""
+        return HybridEpisodeEstimator(self, support, mask_fit, name, refine)
 
 
 class HybridEpisodeEstimator:
@@ -268,9 +274,14 @@ class HybridEpisodeEstimator:
     the table are then fitted to the detected mask (`perception.support.refine_with_mask`).
     Without a known table (``obs.table_top_z`` None) the network pose is kept.
 
+    With `refine` (name ``hybrid-refine``) the pose is then refined by render-and-compare against
+    the detected mask and the image (`perception.refine.PoseRefiner`), with the other detections'
+    masks as possible occluders.
+
     After each call `last_info` describes the estimate: ``detected``, ``class``, ``score``,
-    ``box_xyxy``, ``uv``, ``timings_ms`` (per stage) and, with `support`, ``support``
-    (resting pose, tilt removed [deg], shift along the ray [m], what was applied), and
+    ``box_xyxy``, ``uv``, ``timings_ms`` (per stage), with `support`, ``support``
+    (resting pose, tilt removed [deg], shift along the ray [m], what was applied), with `refine`,
+    ``refine`` (the refiner's info) and the stage ``refine`` in ``timings_ms``, and
     `last_neighbours` lists the other detected objects as (class, T_C_N) pairs.
     """
 
@@ -280,11 +291,14 @@ class HybridEpisodeEstimator:
         support: bool = False,
         mask_fit: bool = True,
         name: str | None = None,
+        refine: bool = False,
     ) -> None:
         self.estimator = estimator
         self.support = bool(support)
         self.mask_fit = bool(mask_fit)
-        self.name = name or ("hybrid-table" if self.support else "hybrid")
+        self.refiner = PoseRefiner() if refine else None
+        default = "hybrid-table" if self.support else "hybrid-refine" if refine else "hybrid"
+        self.name = name or default
         self.last_info: dict = {}
         self.last_neighbours: list[tuple[str, np.ndarray]] = []
 
@@ -331,4 +345,11 @@ class HybridEpisodeEstimator:
                 info["applied"].append("mask_fit")
             self.last_info["timings_ms"]["support"] = (time.perf_counter() - t0) * 1000
             self.last_info["support"] = info
+        if self.refiner is not None:
+            t0 = time.perf_counter()
+            masks = [d.mask for d in (*found, *others) if d is not best]
+            occluder = np.logical_or.reduce(masks) if masks else None
+            T, info = self.refiner.refine(best.name, T, obs.K, best.mask, obs.rgb, occluder)
+            self.last_info["timings_ms"]["refine"] = (time.perf_counter() - t0) * 1000
+            self.last_info["refine"] = info
         return T

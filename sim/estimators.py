@@ -80,6 +80,14 @@ def _hybrid_paper() -> PoseEstimator:
     return est.as_episode_estimator(name="hybrid-paper")
 
 
+def _hybrid_refine() -> PoseEstimator:
+    """The hybrid estimator, its pose then refined by render-and-compare against the detected
+    mask and the image (`perception.refine`)."""
+    from perception import HybridPoseEstimator
+
+    return HybridPoseEstimator.from_weights().as_episode_estimator(refine=True)
+
+
 #: Estimator factories by name.
 ESTIMATORS: dict[str, Callable[[], PoseEstimator | PrivilegedEstimator]] = {
     "oracle": OracleEstimator,
@@ -87,6 +95,7 @@ ESTIMATORS: dict[str, Callable[[], PoseEstimator | PrivilegedEstimator]] = {
     "hybrid": _hybrid,
     "hybrid-table": _hybrid_table,
     "hybrid-paper": _hybrid_paper,
+    "hybrid-refine": _hybrid_refine,
 }
 
 

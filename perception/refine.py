@@ -1,0 +1,400 @@
+"""Render-and-compare refinement of a pose estimate against the detector's mask and the image.
+
+The hybrid estimate (`perception.hybrid`) is a few degrees and a few millimetres off. This module
+pulls it onto the evidence in the image (docs/DESIGN.md §7, "Render-and-compare refinement"):
+
+1. Every part is a convex primitive (box, cylinder, sphere), so its silhouette is the convex
+   hull of its projected vertices and the object's is the union of those hulls. Samples of the
+   hull edges on the union's outer contour are the contour points (3D point in O, image normal).
+2. Each contour point gets a residual [px]: the signed distance (positive outside) of its pixel to
+   the mask boundary and, with the image, the offset along its normal to the strongest colour
+   edge within `RefineConfig.edge_search_px` that lies near that boundary.
+3. Levenberg-Marquardt steps on the 6 DoF (rotation about the object's origin, translation, both
+   in the camera frame) minimise the Huber-weighted squares of those residuals.
+
+The detector's mask is the *visible* mask: contour points where the object could not be seen
+(under other detected objects, `occluder`, or beyond the image border) are left out. The refined
+pose is accepted only when the silhouette IoU with the mask, over the observable pixels, does not
+drop by more than `RefineConfig.accept_iou_drop`; otherwise the input pose is returned.
+
+    refiner = PoseRefiner()
+    T, info = refiner.refine("phone", T_C_O, K, mask, rgb=rgb, occluder=others)
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from perception.metrics import rotation_error_deg
+from sim.core.errors import InvalidArgumentError
+from sim.core.transforms import axis_angle, check_intrinsics, rigid_problem
+from sim.world.objects import load_object
+
+#: The refinement stops when a model vertex comes closer than this to the camera plane [m].
+MIN_DEPTH_M = 1e-3
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Settings of `PoseRefiner`.
+
+    Attributes:
+        iterations: Levenberg-Marquardt steps in all.
+        mask_only_iterations: the first steps that use the mask alone (wider basin).
+        spacing_px: spacing of the contour samples along hull edges [px].
+        edge_search_px: half-length of the search for an image edge along each normal [px].
+        edge_gate_px: an image edge counts only within this distance of the mask boundary [px].
+        edge_min: smallest accepted colour gradient (RGB vector norm) [levels / px].
+        mask_weight: weight of the mask residuals once image edges are used.
+        huber_px: Huber threshold of the residuals [px].
+        occluder_margin_px: the occluder mask is grown by this much [px].
+        margin: the working window is the mask's box grown by this fraction of its size.
+        accept_iou_drop: the refinement is kept unless the IoU with the mask drops by more.
+        max_rotation_deg: a refinement that turns the object further is rejected [deg].
+        max_shift: ... or moves it further than this fraction of its distance.
+    """
+
+    iterations: int = 6
+    mask_only_iterations: int = 3
+    spacing_px: float = 2.0
+    edge_search_px: float = 4.0
+    edge_gate_px: float = 3.0
+    edge_min: float = 8.0
+    mask_weight: float = 0.5
+    huber_px: float = 1.5
+    occluder_margin_px: int = 3
+    margin: float = 0.25
+    accept_iou_drop: float = 0.01
+    max_rotation_deg: float = 20.0
+    max_shift: float = 0.1
+
+    def __post_init__(self) -> None:
+        for key, value in vars(self).items():
+            if not (np.isfinite(value) and value >= 0) or (key == "iterations" and value < 1):
+                raise InvalidArgumentError(
+                    f"RefineConfig.{key} must be finite and >= 0 (iterations >= 1), got {value}"
+                )
+
+
+def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of an image (h, w[, C]) at pixel coordinates x, y (M, S) -> (M, S[, C]),
+    borders replicated."""
+    import cv2
+
+    out = cv2.remap(img, x.astype(np.float32), y.astype(np.float32), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
+    return out.reshape(x.shape + img.shape[2:])
+
+
+@dataclass
+class _Window:
+    """The working window around the mask, top-left pixel (x0, y0) in the image."""
+
+    x0: int
+    y0: int
+    mask: np.ndarray  # the detector's mask in the window, (h, w) bool
+    sdf: np.ndarray  # signed distance to its boundary [px], > 0 outside, (h, w) float32
+    hidden: np.ndarray  # pixels where the object could not be seen, (h, w) bool
+    rgb: np.ndarray | None  # the whole image, (H, W, 3) uint8
+
+
+def _window(
+    mask: np.ndarray,
+    rgb: np.ndarray | None,
+    occluder: np.ndarray | None,
+    cfg: RefineConfig,
+) -> _Window:
+    """Cut the window around the mask and compute its signed distance field."""
+    import cv2
+
+    bx, by, bw, bh = cv2.boundingRect(mask.view(np.uint8))
+    H, W = mask.shape
+    pad = int(8 + cfg.margin * max(bw, bh))
+    x0, y0 = max(0, bx - pad), max(0, by - pad)
+    x1, y1 = min(W, bx + bw + pad), min(H, by + bh + pad)
+    m = np.ascontiguousarray(mask[y0:y1, x0:x1])
+    m8 = m.view(np.uint8)
+    sdf = cv2.distanceTransform(1 - m8, cv2.DIST_L2, cv2.DIST_MASK_3)
+    sdf -= cv2.distanceTransform(m8, cv2.DIST_L2, cv2.DIST_MASK_3)
+    sdf -= 0.5 * np.sign(sdf)  # the boundary lies half-way between pixel centres
+    hidden = np.zeros(m.shape, bool)
+    if occluder is not None:
+        occ = np.ascontiguousarray(occluder[y0:y1, x0:x1]).view(np.uint8)
+        k = 2 * cfg.occluder_margin_px + 1
+        hidden = cv2.dilate(occ, np.ones((k, k), np.uint8)).astype(bool) & ~m
+    return _Window(int(x0), int(y0), m, sdf, hidden, rgb)
+
+
+class PoseRefiner:
+    """Refines pose estimates of the known objects against masks and images.
+
+    Args:
+        config: the settings (defaults: `RefineConfig()`).
+    """
+
+    def __init__(self, config: RefineConfig | None = None) -> None:
+        self.config = config or RefineConfig()
+        self._parts: dict[str, list[np.ndarray]] = {}
+
+    def part_vertices(self, name: str) -> list[np.ndarray]:
+        """The vertices of each convex part of an object in O [m], each (n_i, 3); loaded once.
+
+        Raises:
+            UnknownNameError: name is not a known object (the message lists them).
+        """
+        if name not in self._parts:
+            model = load_object(name)
+            self._parts[name] = [np.unique(p.mesh().vertices, axis=0) for p in model.parts]
+        return self._parts[name]
+
+    def refine(
+        self,
+        name: str,
+        T_C_O: np.ndarray,
+        K: np.ndarray,
+        mask: np.ndarray,
+        rgb: np.ndarray | None = None,
+        occluder: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, dict]:
+        """Refine one pose estimate.
+
+        Args:
+            name: object class, one of `sim.world.objects.OBJECT_NAMES`.
+            T_C_O: estimated pose in the camera (OpenCV) frame, shape (4, 4), metres.
+            K: intrinsics, shape (3, 3) [px].
+            mask: the object's visible mask (e.g. the detector's), shape (H, W), bool.
+            rgb: the image, shape (H, W, 3), uint8; None refines against the mask alone.
+            occluder: pixels where something else may hide the object (e.g. the other detected
+                objects' masks), shape (H, W), bool; None: nothing.
+
+        Returns:
+            (T_C_O (4, 4), info): the refined pose (the input when the refinement is rejected)
+            and ``iterations``, ``points`` (contour points in the last step), ``edge_points``,
+            ``iou_before``, ``iou_after`` (silhouette IoU with the mask over the observable
+            pixels), ``accepted``, ``rotation_deg`` and ``shift_m`` (the change applied) and
+            ``time_ms``.
+
+        Raises:
+            UnknownNameError: an unknown object name.
+            InvalidArgumentError: a pose that is not rigid or lies behind the camera, a bad K, or
+                a mask, image or occluder of the wrong shape or type.
+        """
+        t_start = time.perf_counter()
+        parts = self.part_vertices(name)
+        T0, K, mask, rgb, occluder = _check_inputs(T_C_O, K, mask, rgb, occluder)
+        info: dict = {"iterations": 0, "points": 0, "edge_points": 0, "accepted": False}
+        if not mask.any():
+            info |= {"iou_before": 0.0, "iou_after": 0.0, "reason": "empty mask"}
+            return T0.copy(), info | {"time_ms": (time.perf_counter() - t_start) * 1000}
+        win = _window(mask, rgb, occluder, cfg := self.config)
+        Kw = K - np.array([[0, 0, win.x0], [0, 0, win.y0], [0, 0, 0]])  # window pixels
+        verts = np.concatenate(parts)
+        slices = np.cumsum([0] + [len(p) for p in parts])
+        T, lam = T0.copy(), 1e-3
+        last: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
+        iou_before = None
+        for it in range(cfg.iterations):
+            c = _contour(T, Kw, verts, slices, win, cfg)
+            if c is None:
+                break
+            sil, X_O, p, n = c
+            if iou_before is None:
+                iou_before = _iou(sil, win)
+            use_edges = win.rgb is not None and it >= cfg.mask_only_iterations
+            r, J, n_edge = _residuals(T, Kw, X_O, p, n, win, cfg, use_edges)
+            info |= {"iterations": it + 1, "points": len(p), "edge_points": n_edge}
+            if len(r) < 12:
+                break
+            w = np.minimum(1.0, cfg.huber_px / np.maximum(np.abs(r), 1e-9))
+            cost = float(np.mean(w * r * r * (2 - w)))
+            if last is not None and cost > last[3] and not use_edges:
+                T, H, g, _ = last[0], last[1], last[2], last[3]
+                lam *= 4.0
+            else:
+                H = (J * w[:, None]).T @ J
+                g = (J * w[:, None]).T @ r
+                last = (T.copy(), H, g, cost)
+                lam = max(lam / 2, 1e-6)
+            step = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(6), g)
+            T = T.copy()
+            if (angle := float(np.linalg.norm(step[:3]))) > 0:
+                T[:3, :3] = axis_angle(step[:3], angle) @ T[:3, :3]
+            T[:3, 3] += step[3:]
+            if angle < 1e-5 and np.abs(step[3:]).max() < 1e-6:
+                break
+        final = _contour(T, Kw, verts, slices, win, cfg)
+        iou_after = _iou(final[0], win) if final is not None else 0.0
+        iou_before = iou_before if iou_before is not None else 0.0
+        rot = rotation_error_deg(T[:3, :3], T0[:3, :3])
+        shift = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
+        accepted = (
+            final is not None
+            and iou_after >= iou_before - cfg.accept_iou_drop
+            and rot <= cfg.max_rotation_deg
+            and shift <= cfg.max_shift * float(np.linalg.norm(T0[:3, 3]))
+        )
+        info |= {
+            "iou_before": float(iou_before),
+            "iou_after": float(iou_after if accepted else iou_before),
+            "accepted": bool(accepted),
+            "rotation_deg": rot if accepted else 0.0,
+            "shift_m": shift if accepted else 0.0,
+            "time_ms": (time.perf_counter() - t_start) * 1000,
+        }
+        return (T if accepted else T0.copy()), info
+
+
+def _check_inputs(
+    T_C_O: np.ndarray,
+    K: np.ndarray,
+    mask: np.ndarray,
+    rgb: np.ndarray | None,
+    occluder: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Validated float64 pose and K, bool mask and occluder, uint8 image."""
+    problem = rigid_problem(T_C_O, 1e-4)
+    if problem is not None:
+        raise InvalidArgumentError(f"T_C_O {problem}")
+    T = np.asarray(T_C_O, np.float64)
+    if T[2, 3] <= 0:
+        raise InvalidArgumentError(f"T_C_O must lie in front of the camera, got z = {T[2, 3]} m")
+    K = check_intrinsics(K)
+    mask = np.asarray(mask)
+    if mask.ndim != 2 or mask.dtype != bool or min(mask.shape) < 2:
+        raise InvalidArgumentError(
+            f"mask must be an (H, W) bool array, got shape {mask.shape} dtype {mask.dtype}"
+        )
+    rgb, occluder = (None if a is None else np.asarray(a) for a in (rgb, occluder))
+    for key, arr, shape, dtype in (
+        ("rgb", rgb, (*mask.shape, 3), np.uint8),
+        ("occluder", occluder, mask.shape, np.bool_),
+    ):
+        if arr is not None and (arr.shape != shape or arr.dtype != dtype):
+            raise InvalidArgumentError(
+                f"{key} must be a {np.dtype(dtype)} array of shape {shape} (the mask's H, W), "
+                f"got shape {arr.shape} dtype {arr.dtype}"
+            )
+    return T, K, mask, rgb, occluder
+
+
+def _iou(sil: np.ndarray, win: _Window) -> float:
+    """Silhouette IoU of a rendered window mask with the detector's over the observable pixels."""
+    seen = ~win.hidden
+    inter = np.count_nonzero(sil & win.mask & seen)
+    union = np.count_nonzero((sil | win.mask) & seen)
+    return inter / union if union else 0.0
+
+
+def _contour(
+    T: np.ndarray,
+    Kw: np.ndarray,
+    verts: np.ndarray,
+    slices: np.ndarray,
+    win: _Window,
+    cfg: RefineConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The model drawn at T in the window, and its outer contour points.
+
+    Returns:
+        (silhouette (h, w) bool, contour points in O (M, 3) [m], their pixels (M, 2) and outward
+        unit normals (M, 2) in window coordinates), or None when a vertex is behind the camera.
+    """
+    import cv2
+
+    Xc = verts @ T[:3, :3].T + T[:3, 3]
+    if Xc[:, 2].min() < MIN_DEPTH_M:
+        return None
+    uv = (Xc @ Kw.T)[:, :2] / Xc[:, 2:3]
+    pts, pts16 = uv.astype(np.float32), np.round(uv * 16).astype(np.int32)
+    sil = np.zeros(win.mask.shape, np.uint8)
+    hulls = []
+    for i0, i1 in itertools.pairwise(slices):
+        hull = cv2.convexHull(pts[i0:i1], returnPoints=False)[:, 0] + i0
+        cv2.fillConvexPoly(sil, pts16[hull], 1, cv2.LINE_8, 4)
+        hulls.append(hull)
+    sizes = np.array([len(h) for h in hulls])
+    a = np.concatenate(hulls)
+    nxt = np.arange(1, len(a) + 1)
+    nxt[np.cumsum(sizes) - 1] = np.cumsum(sizes) - sizes  # each hull closes on its first vertex
+    b = a[nxt]
+    d = uv[b] - uv[a]
+    length = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
+    keep = length > 1e-6
+    a, b, d, length = a[keep], b[keep], d[keep], length[keep]
+    # cv2.convexHull lists the hull with positive signed area: (d_y, -d_x) points outwards.
+    normal = np.stack([d[:, 1], -d[:, 0]], 1) / length[:, None]
+    count = np.maximum(1, np.round(length / cfg.spacing_px)).astype(np.int64)
+    edge = np.repeat(np.arange(len(a)), count)
+    k = np.arange(len(edge)) - np.repeat(np.cumsum(count) - count, count)
+    s = ((k + 0.5) / count[edge])[:, None]
+    X_O = verts[a[edge]] * (1 - s) + verts[b[edge]] * s
+    Xp = X_O @ T[:3, :3].T + T[:3, 3]
+    p = (Xp @ Kw.T)[:, :2] / Xp[:, 2:3]
+    n = normal[edge]
+    h, w = sil.shape
+    q = np.round(p + 1.5 * n).astype(np.int64)
+    inq = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
+    outer = ~inq
+    outer[inq] = sil[q[inq, 1], q[inq, 0]] == 0
+    pi = np.round(p).astype(np.int64)
+    inside = (pi[:, 0] >= 1) & (pi[:, 0] < w - 1) & (pi[:, 1] >= 1) & (pi[:, 1] < h - 1)
+    ok = outer & inside
+    ok[ok] = ~win.hidden[pi[ok, 1], pi[ok, 0]]
+    return sil.astype(bool), X_O[ok], p[ok], n[ok]
+
+
+def _residuals(
+    T: np.ndarray,
+    Kw: np.ndarray,
+    X_O: np.ndarray,
+    p: np.ndarray,
+    n: np.ndarray,
+    win: _Window,
+    cfg: RefineConfig,
+    use_edges: bool,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Residuals [px] (R,) and their Jacobians (R, 6) in (rotation [rad], translation [m]) of the
+    contour points, and how many came from image edges."""
+    Xc = X_O @ T[:3, :3].T + T[:3, 3]
+    Y = Xc - T[:3, 3]
+    z = Xc[:, 2]
+    fz = np.stack([Kw[0, 0] / z, Kw[1, 1] / z, Xc[:, 0] / z, Xc[:, 1] / z], 1)
+
+    def jac(g: np.ndarray) -> np.ndarray:
+        """Jacobians (M, 6) of g . p for image directions g (M, 2)."""
+        c0, c1 = g[:, 0] * fz[:, 0], g[:, 1] * fz[:, 1]
+        c2 = -(c0 * fz[:, 2] + c1 * fz[:, 3])
+        y0, y1, y2 = Y[:, 0], Y[:, 1], Y[:, 2]
+        return np.stack([y1 * c2 - y2 * c1, y2 * c0 - y0 * c2, y0 * c1 - y1 * c0, c0, c1, c2], 1)
+
+    d = np.array([[0.0, 0.0], [0.5, 0.0], [-0.5, 0.0], [0.0, 0.5], [0.0, -0.5]])
+    q = p[None] + d[:, None]
+    sd = _sample(win.sdf, q[..., 0], q[..., 1])
+    r_mask = sd[0]
+    J_mask = jac(np.stack([sd[1] - sd[2], sd[3] - sd[4]], 1))
+    if not use_edges or win.rgb is None:
+        return r_mask, J_mask, 0
+    offs = np.arange(-cfg.edge_search_px, cfg.edge_search_px + 1e-9, 0.5)
+    P = p[:, None, :] + offs[None, :, None] * n[:, None, :]
+    col = _sample(win.rgb, P[..., 0] + win.x0, P[..., 1] + win.y0).astype(np.float32)
+    mag = np.linalg.norm(np.diff(col, axis=1), axis=2) / 0.5
+    sdp = _sample(win.sdf, P[..., 0], P[..., 1])
+    mag[np.abs(sdp[:, 1:] + sdp[:, :-1]) > 2 * cfg.edge_gate_px] = 0.0
+    k = np.argmax(mag, axis=1)
+    rows = np.arange(len(k))
+    good = (mag[rows, k] >= cfg.edge_min) & (k > 0) & (k < mag.shape[1] - 1)
+    kg, rg = k[good], rows[good]
+    m0, m1, m2 = mag[rg, kg - 1], mag[rg, kg], mag[rg, kg + 1]
+    den = np.minimum(m0 - 2 * m1 + m2, -1e-9)  # a maximum: den <= 0
+    frac = np.clip(0.5 * (m0 - m2) / den, -0.5, 0.5)
+    s_edge = offs[kg] + 0.25 + 0.5 * frac
+    r_edge = -s_edge
+    J_edge = jac(n)[good]
+    wm = np.sqrt(cfg.mask_weight)
+    r = np.concatenate([r_edge, wm * r_mask])
+    J = np.concatenate([J_edge, wm * J_mask])
+    return r, J, int(good.sum())
