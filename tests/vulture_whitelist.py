@@ -57,3 +57,10 @@ _.FAILURE_REASONS  # grasping.execute: the vocabulary of failure reasons
 _.decode_torch  # batched, differentiable decode, checked against perception.geometry.decode
 _.pose_loss_4d  # the paper's eq. 7 as one function
 _.load_sample  # one sample of a split without building a PoseDataset
+
+# Fields of a MuJoCo render context set from a model (read by MuJoCo, not by Python).
+_.lineWidth
+_.shadowClip
+_.shadowScale
+_.fogStart
+_.fogEnd

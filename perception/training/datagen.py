@@ -36,6 +36,7 @@ import argparse
 import dataclasses
 import os
 import sys
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -162,14 +163,17 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
     return info
 
 
-def _write_info(cfg: GenConfig, info: dict[str, Any], count: int) -> None:
-    """Write info.json with the split's entry set to count images."""
+def _write_info(cfg: GenConfig, info: dict[str, Any], count: int, wall_s: float = 0.0) -> None:
+    """Write info.json with the split's entry set to count images, adding wall_s [s] to the
+    wall time the split's runs have taken."""
     base = SEED_BASES[cfg.split]
+    old = info["splits"].get(cfg.split, {})
     info["splits"][cfg.split] = {
         "count": count,
         "objects": list(cfg.objects),
         "seed_range": [base, base + count],
         "command": dataclasses.replace(cfg, count=count).command(),
+        "wall_s": round(float(old.get("wall_s", 0.0)) + wall_s, 1),
     }
     bop.write_json(cfg.out / "info.json", info)
 
@@ -208,6 +212,7 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
         cfg: what to generate.
         on_image: called with each sample index as soon as its files are written.
     """
+    started = time.monotonic()
     cfg.out.mkdir(parents=True, exist_ok=True)
     info = _check_info(cfg)
     write_models(cfg.out)
@@ -258,7 +263,7 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
         merge_scene(cfg.out, cfg.split, s)
     split_dir = cfg.out / cfg.split
     total = sum(1 for _ in split_dir.glob("*/records/*.json"))
-    _write_info(cfg, load_info(cfg.out), total)
+    _write_info(cfg, load_info(cfg.out), total, time.monotonic() - started)
     write_camera(cfg.out, cfg.split, cfg.width, cfg.height)
     return len(todo)
 

@@ -86,13 +86,14 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
 
 def _stages(state: dict, command: str) -> list[dict]:
     """The training runs that led to a checkpoint, first to last: each stage's command, epochs,
-    data seed ranges and final validation metrics."""
+    wall time [s] (None when not recorded), data seed ranges and final validation metrics."""
     chain, node = [], {**state, "command": command}
     while node:
         hist = node.get("history")
         chain.append({
             "command": node.get("command"),
             "epochs": node.get("epoch"),
+            "wall_s": node.get("wall_s"),
             "data_seeds": node.get("data_seeds"),
             "validation": node.get("validation") or (hist[-1] if hist else None),
         })  # fmt: skip

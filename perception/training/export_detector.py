@@ -79,6 +79,7 @@ def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, 
         "train_config": tc,
         "data_seeds": state["data_seeds"],
         "epochs_done": state["epoch"],
+        "wall_s": state.get("wall_s"),
         "validation": validation,
         "trained_at_commit": state["commit"],
     }

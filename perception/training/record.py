@@ -22,9 +22,9 @@ from sim.core.files import sha256_file
 from sim.core.paths import DATA_ENV, REPO_ROOT, WEIGHTS_DIR, data_root, git_commit
 
 #: Averages the manifest keeps of each test split.
-RECORD_KEYS = ("count", "center_px_mean", "center_crop_px_mean", "distance_pct_mean",
-               "rotation_deg_mean", "rotation_deg_median", "outlier_rate", "iou_acc",
-               "add_s_recall")  # fmt: skip
+RECORD_KEYS = ("count", "center_px_mean", "center_256_px_mean", "center_crop_px_mean",
+               "distance_pct_mean", "rotation_deg_mean", "rotation_deg_median", "outlier_rate",
+               "invalid_rate", "iou_mean", "iou_acc_50", "add_recall", "add_s_recall")  # fmt: skip
 #: Images of each shipped test split (`make data`).
 SHIPPED_TEST_IMAGES = {"paper": 1000, "headcam": 500}
 #: The splits a record covers, by kind of crop box.

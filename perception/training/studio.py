@@ -34,11 +34,11 @@ import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is im
 import mujoco
 import numpy as np
 
-from perception.geometry import encode
 from perception.training.rendering import OffscreenRenderer
 from perception.training.textures import PLAIN_TEXTURE, add_texture_bank, bank_texture_name
+from perception.training.views import roll_to_theta, unit_vector
 from sim.core.errors import UnknownNameError
-from sim.core.transforms import invert_transform, mat_to_quat, rot_z
+from sim.core.transforms import invert_transform, mat_to_quat
 from sim.world.camera import R_CV_FROM_MJ, T_world_cam, camera_intrinsics
 from sim.world.objects import OBJECT_NAMES, VISUAL_GROUP, ObjectModel, load_object
 
@@ -175,50 +175,6 @@ def build_studio_spec(objects: Sequence[ObjectModel], cfg: StudioConfig) -> mujo
     return spec
 
 
-def _roll_to_theta(
-    position: np.ndarray, aim: np.ndarray, theta: float, K: np.ndarray
-) -> np.ndarray:
-    """R_world_cv of a camera at position aimed at aim whose view of the object (at the world
-    origin, canonical) has in-plane angle theta [rad].
-
-    theta grows one for one with the camera's roll, offset by a small term that depends on where
-    the object lies off the optical axis; a few fixed-point steps remove the offset to 1e-9 rad.
-    """
-    roll = theta
-    for _ in range(6):
-        R = _look_at(position, aim, roll)
-        T_C_O = np.eye(4)
-        T_C_O[:3, :3] = R.T
-        T_C_O[:3, 3] = -R.T @ position
-        err = np.angle(np.exp(1j * (theta - encode(T_C_O, K)[1])))
-        if abs(err) < 1e-10:
-            break
-        roll += err
-    return R
-
-
-def _look_at(position: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
-    """R_world_cv of a camera at position looking at target, rolled by roll about its axis.
-
-    With roll = 0 the image's x axis is horizontal (perpendicular to world z; world y when the
-    camera looks straight up or down).
-    """
-    z = target - position
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    if np.linalg.norm(x) < 1e-6:
-        x = np.cross(z, [0.0, 1.0, 0.0])
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    return np.stack([x, y, z], axis=1) @ rot_z(roll)
-
-
-def _unit(rng: np.random.Generator, dim: int = 3) -> np.ndarray:
-    """A direction uniform on the unit sphere of R^dim (dim 4: a uniform random quaternion)."""
-    v = rng.normal(size=dim)
-    return v / np.linalg.norm(v)
-
-
 class Studio:
     """The compiled paper-protocol model with its renderer; render samples with `render`.
 
@@ -279,19 +235,19 @@ class Studio:
     def _place_camera(self, diameter: float, rng: np.random.Generator) -> tuple[float, float]:
         cfg, m = self.config, self.model
         distance = rng.uniform(*cfg.distance) * diameter
-        position = _unit(rng) * distance
-        aim = _unit(rng) * cfg.aim_offset * diameter * rng.random() ** (1 / 3)
+        position = unit_vector(rng) * distance
+        aim = unit_vector(rng) * cfg.aim_offset * diameter * rng.random() ** (1 / 3)
         lo, hi = cfg.inplane_deg
         steps = round((hi - lo) / cfg.inplane_step_deg)
         theta = np.radians(lo + cfg.inplane_step_deg * rng.integers(0, steps + 1))
-        R_world_cv = _roll_to_theta(position, aim, theta, self.K)
+        R_world_cv = roll_to_theta(position, aim, theta, self.K)
         m.cam_pos[self._cam] = position
         m.cam_quat[self._cam] = mat_to_quat(R_world_cv @ R_CV_FROM_MJ)
         return float(theta), float(distance)
 
     def _place_room(self, distance: float, rng: np.random.Generator) -> None:
         m, d = self.model, self.data
-        d.mocap_quat[self._room] = _unit(rng, 4)
+        d.mocap_quat[self._room] = unit_vector(rng, 4)
         d.mocap_pos[self._room] = 0.0
         half = distance + rng.uniform(*self.config.room_margin, 3)
         for i, g in enumerate(self._walls):
@@ -332,7 +288,7 @@ class Studio:
             ray = ray / np.linalg.norm(ray)
             depth = rng.uniform(0.1, 3.0)
             q = cam_pos + depth * ray
-            quat = _unit(rng, 4)
+            quat = unit_vector(rng, 4)
             # Occlusion test: does the clutter's bounding sphere overlap the object's image disc
             # while being nearer than the object's far side?
             angle = np.arccos(np.clip(ray @ to_obj / d_obj, -1.0, 1.0))
@@ -362,7 +318,7 @@ class Studio:
         for i in range(cfg.max_lights):
             m.light_active[i] = i < n
             m.light_type[i] = kinds[rng.choice(3, p=[0.4, 0.35, 0.25])]
-            pos = _unit(rng) * rng.uniform(0.5, 3.0)
+            pos = unit_vector(rng) * rng.uniform(0.5, 3.0)
             m.light_pos[i] = pos
             direction = -pos / np.linalg.norm(pos) + rng.normal(0.0, 0.15, 3)
             m.light_dir[i] = direction / np.linalg.norm(direction)

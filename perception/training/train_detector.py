@@ -200,7 +200,7 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / CHECKPOINT_NAME
     g = torch.Generator()
-    step, epoch0, history, g_state = 0, 0, [], None
+    step, epoch0, history, g_state, wall_s = 0, 0, [], None, 0.0
     if resume and ckpt.is_file():
         try:
             state = read_checkpoint(ckpt)
@@ -230,6 +230,7 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
         try:
             step, epoch0, history = restore(state, model, opt)
             g_state = state["rng"]["generator"]
+            wall_s = float(state.get("wall_s") or 0.0)
         except Exception as exc:
             raise AssetError(
                 f"checkpoint {ckpt} is corrupt ({exc}); delete it or pass --no-resume"
@@ -250,12 +251,16 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
         "seed": cfg.seed,
     }
 
+    wall0, started = wall_s, time.monotonic()
+
     def save(epoch: int) -> None:
+        # Wall time of the run over all its resumptions.
+        header = {"kind": "detector", "wall_s": wall0 + time.monotonic() - started}
         if ranks.main:
             save_checkpoint(
                 ckpt, model, opt, model_config=cfg.detector.to_dict(), train_config=cfg.to_dict(),
                 step=step, epoch=epoch, history=history, rng=rng_state(g), data_seeds=seeds,
-                header={"kind": "detector"},
+                header=header,
             )  # fmt: skip
 
     last_save = time.monotonic()

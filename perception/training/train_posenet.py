@@ -229,7 +229,7 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
     total_steps = cfg.epochs * steps_per_epoch
     ckpt = checkpoint_path(cfg)
     ckpt.parent.mkdir(parents=True, exist_ok=True)
-    lineage = {"command": command or _command(cfg), "init_from": None}
+    lineage = {"command": command or _command(cfg), "init_from": None, "wall_s": 0.0}
     resuming = resume and ckpt.is_file()
     if cfg.init and not resuming:
         src = _resolve_init(cfg.init, ckpt.parent)
@@ -242,6 +242,7 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
         lineage["init_from"] = {
             "checkpoint": src.name,
             **{k: parent.get(k) for k in ("command", "init_from", "train_config", "epoch")},
+            "wall_s": parent.get("wall_s"),
             **{k: parent.get(k) for k in ("data_seeds", "commit")},
             "validation": parent["history"][-1] if parent.get("history") else None,
         }
@@ -253,8 +254,10 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
         if ranks.main:
             print(f"resuming {ckpt} at epoch {epoch0}, step {step}")
     net = ranks.wrap(model)  # the model itself with one process
+    wall0, started = float(lineage.get("wall_s") or 0.0), time.monotonic()  # over resumptions
 
     def save(epoch: int) -> None:
+        lineage["wall_s"] = wall0 + time.monotonic() - started
         if ranks.main:
             save_checkpoint(
                 ckpt, model, opt, model_config=model.cfg.to_dict(), train_config=cfg.to_dict(),
