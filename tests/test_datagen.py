@@ -18,7 +18,7 @@ from perception.geometry import encode, invert_transform, project
 from perception.training import bop
 from perception.training import dataset as ds
 from perception.training.annotations import full_silhouette
-from perception.training.datagen import SEED_BASES, main
+from perception.training.datagen import SEED_BASES, WALL_TIME_FILE, main
 from perception.training.sheets import draw_annotations
 from sim.core.errors import AssetError
 from sim.world import constants as C
@@ -52,8 +52,11 @@ def headcam(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _files(root: Path) -> dict[str, bytes]:
+    """Every file's bytes but the wall times, which are measured."""
     return {
-        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+        str(p.relative_to(root)): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != WALL_TIME_FILE
     }
 
 
@@ -203,6 +206,11 @@ def test_truncated_silhouette_counts_pixels_outside_the_image() -> None:
 
 
 # --- reproducible and resumable --------------------------------------------------------------
+
+
+def test_wall_time_is_recorded_per_split(paper: Path) -> None:
+    times = json.loads((paper / WALL_TIME_FILE).read_text())
+    assert set(times) == {"val"} and times["val"] > 0
 
 
 def test_full_silhouette_read_inside_its_window_is_the_whole_one() -> None:

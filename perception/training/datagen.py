@@ -62,6 +62,8 @@ from sim.world.tiers import TIERS, check_tier
 GENERATOR_VERSION = "2"
 SEED_BASES: dict[str, int] = {"train": 0, "val": 100_000_000, "test": 200_000_000}
 MAX_COUNT = 100_000_000
+#: Wall time [s] of each split's generation runs, summed over resumptions.
+WALL_TIME_FILE = "wall_time.json"
 DEFAULT_SIZE: dict[str, tuple[int, int]] = {"paper": (256, 256), "headcam": (640, 480)}
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -163,19 +165,25 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
     return info
 
 
-def _write_info(cfg: GenConfig, info: dict[str, Any], count: int, wall_s: float = 0.0) -> None:
-    """Write info.json with the split's entry set to count images, adding wall_s [s] to the
-    wall time the split's runs have taken."""
+def _write_info(cfg: GenConfig, info: dict[str, Any], count: int) -> None:
+    """Write info.json with the split's entry set to count images."""
     base = SEED_BASES[cfg.split]
-    old = info["splits"].get(cfg.split, {})
     info["splits"][cfg.split] = {
         "count": count,
         "objects": list(cfg.objects),
         "seed_range": [base, base + count],
         "command": dataclasses.replace(cfg, count=count).command(),
-        "wall_s": round(float(old.get("wall_s", 0.0)) + wall_s, 1),
     }
     bop.write_json(cfg.out / "info.json", info)
+
+
+def add_wall_time(out: Path, split: str, seconds: float) -> None:
+    """Add seconds to the wall time the runs of a split have taken, in ``<out>/wall_time.json``
+    (apart from info.json, whose bytes depend on the arguments alone)."""
+    path = out / WALL_TIME_FILE
+    times = bop.read_json(path, out, split) if path.is_file() else {}
+    times[split] = round(float(times.get(split, 0.0)) + seconds, 1)
+    bop.write_json(path, times)
 
 
 # Per-process state of pool workers (each worker owns one renderer; set by `_init_worker`).
@@ -263,7 +271,8 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
         merge_scene(cfg.out, cfg.split, s)
     split_dir = cfg.out / cfg.split
     total = sum(1 for _ in split_dir.glob("*/records/*.json"))
-    _write_info(cfg, load_info(cfg.out), total, time.monotonic() - started)
+    _write_info(cfg, load_info(cfg.out), total)
+    add_wall_time(cfg.out, cfg.split, time.monotonic() - started)
     write_camera(cfg.out, cfg.split, cfg.width, cfg.height)
     return len(todo)
 
