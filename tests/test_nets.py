@@ -238,7 +238,7 @@ def test_evaluate_records_test_figures_in_the_manifest(tiny_data, tmp_path, monk
     "argv, needle",
     [
         (["--boxes", "magic"], "valid box sources: gt, detector"),
-        (["--boxes", "detector", "--dists", "paper"], "valid: headcam"),
+        (["--boxes", "detector", "--dists", "mars"], "valid distributions: paper, headcam"),
         (["--dists", "mars"], "valid distributions: paper, headcam"),
     ],
 )

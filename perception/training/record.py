@@ -28,7 +28,7 @@ RECORD_KEYS = ("count", "center_px_mean", "center_256_px_mean", "center_crop_px_
 #: Images of each shipped test split (`make data`).
 SHIPPED_TEST_IMAGES = {"paper": 1000, "headcam": 500}
 #: The splits a record covers, by kind of crop box.
-RECORD_DISTS = {"gt": tuple(DISTS), "detector": ("headcam",)}
+RECORD_DISTS = {"gt": tuple(DISTS), "detector": tuple(DISTS)}
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -120,6 +120,10 @@ def record_in_manifest(report: dict, weights: Path, boxes: str, command: str,
             **provenance, "weights_sha256": detector_sha, "images": summary["images"],
             "overall": summary["overall"], "per_class": report["detection"],
             "missed": summary["missed"],
+            **{d: {"images": report[f"{d}_detection_summary"]["images"],
+                   "overall": report[f"{d}_detection_summary"]["overall"],
+                   "per_class": report[f"{d}_detection"]}
+               for d in DISTS if f"{d}_detection_summary" in report},
         }  # fmt: skip
     write_manifest(manifest_path, manifest)
     return variant
