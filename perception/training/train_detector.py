@@ -297,7 +297,7 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
             if cfg.loss_log is not None:
                 ranks.log(cfg.loss_log, step=step, epoch=epoch + 1, loss=losses[-1], lr=lr)
             if step % 10 == 0:
-                bar.set_postfix({k.removeprefix("loss_"): f"{float(v):.3f}"
+                bar.set_postfix({k.removeprefix("loss_"): f"{float(v.detach()):.3f}"
                                  for k, v in parts.items()})  # fmt: skip
             if time.monotonic() - last_save > 60 * cfg.checkpoint_minutes:
                 save(epoch)
