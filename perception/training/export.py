@@ -112,7 +112,8 @@ def training_curves(checkpoints: Path) -> dict[str, list[list[dict]]]:
             state = read_checkpoint(path)
             stages.append(state.get("history") or [])
             parent = state.get("init_from")
-            path = checkpoints / parent["checkpoint"] if parent else None
+            name = (parent or {}).get("checkpoint")  # None: started from shipped weights
+            path = checkpoints / name if name else None
         if stages:
             curves[variant] = stages[::-1]
     return curves
