@@ -25,13 +25,10 @@ bench: setup
 	$(PY) bench/sim_speed.py
 
 # Training data (outside git: $$POSEGRASP_DATA, else data/) and the shipped weights, from scratch.
-DATA_DIR := $(or $(POSEGRASP_DATA),data)
-CKPT := $(DATA_DIR)/checkpoints
 DATA_COUNTS := paper:train:20000 paper:val:1000 paper:test:1000 \
 	headcam:train:10000 headcam:val:500 headcam:test:500
-# Head-camera scenes of a tier (folder headcam_<tier>): training data and per-tier test splits.
-TIER_COUNTS := hard:train:3000 hard:val:300 hard:test:500 \
-	clutter:test:300 any-pose:test:300 far:test:300
+# Head-camera test scenes of the tiers (folders headcam_<tier>), for accuracy per tier.
+TIER_COUNTS := hard:test:500 clutter:test:300 any-pose:test:300 far:test:300
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
 	  $(PY) -m perception.training.datagen --dist $$dist --split $$split --count $$count --workers 2 \
@@ -41,21 +38,16 @@ data: setup
 	  --count $$count --workers 2 || exit 1; done
 
 # The shipped weights were trained with exactly these commands (see perception/weights/manifest.json,
-# which records each stage's command, data seeds, validation figures and wall time):
-# `ours` on both distributions (the first 5000 head-camera images), fine-tuned on all the
-# head-camera images, then twice on the paper protocol, the head camera and the hard tier together
-# (the second time with fewer paper-protocol images and a lower learning rate);
-# `paper` as published, on the paper's protocol alone; the detector on the head camera, then
-# fine-tuned on the head camera, the hard tier and the paper protocol.
+# which records each stage's command, data seeds, validation figures and, where measured, wall
+# time): `ours` on both distributions (the first 5000 head-camera images), then fine-tuned on all
+# the head-camera images; `paper` as published, on the paper's protocol alone; the detector on
+# the head camera.
 weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed
-	$(PY) -m perception.training.train_posenet --variant ours --epochs 14 --dists headcam --lr 0.001 --init posenet_ours_mixed --name posenet_ours_headcam
-	$(PY) -m perception.training.train_posenet --variant ours --dists paper,headcam,headcam_hard --limit headcam=5000 --epochs 2 --lr 0.001 --init posenet_ours_headcam --name posenet_ours_all
-	$(PY) -m perception.training.train_posenet --variant ours --dists paper,headcam,headcam_hard --limit paper=5000,headcam=5000 --epochs 1 --lr 0.0003 --init posenet_ours_all
+	$(PY) -m perception.training.train_posenet --variant ours --epochs 14 --dists headcam --lr 0.001 --init posenet_ours_mixed
 	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 8
 	$(PY) -m perception.training.export --plot docs/training_curves.png
-	$(PY) -m perception.training.train_detector --epochs 8 --out $(CKPT)/detector_headcam
-	$(PY) -m perception.training.train_detector --also headcam_hard,paper --limit 600 --init $(CKPT)/detector_headcam/detector.pt --epochs 1 --lr 0.0005 --export
+	$(PY) -m perception.training.train_detector --epochs 8 --export
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record
