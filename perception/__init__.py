@@ -29,6 +29,7 @@ from perception.geometry import (
 )
 from perception.metrics import (
     add,
+    add_metric_name,
     adi,
     box_iou,
     center_error_px,
@@ -44,6 +45,8 @@ from perception.metrics import (
 )
 from perception.summaries import (
     add_auc,
+    invalid_rate,
+    iou_accuracy,
     outlier_rate,
     recall,
     recall_5cm5deg,
@@ -75,6 +78,7 @@ __all__ = [
     "PoseDetection",
     "add",
     "add_auc",
+    "add_metric_name",
     "adi",
     "axes_from_p",
     "box_iou",
@@ -90,7 +94,9 @@ __all__ = [
     "identity_symmetry",
     "image_to_crop",
     "intrinsics",
+    "invalid_rate",
     "invert_transform",
+    "iou_accuracy",
     "make_transform",
     "mask_iou",
     "mspd",

@@ -23,6 +23,7 @@ from ray import cloudpickle
 from ray.cluster_utils import Cluster
 
 from perception.training.datagen import main as datagen_main
+from perception.training.writer import WALL_TIME_FILE
 from sim.core.backends import default_chunk, run_map
 from sim.evaluate import _run_one, evaluate
 
@@ -59,8 +60,9 @@ def local_report() -> dict:
 
 
 def _files(root: Path) -> dict[str, bytes]:
+    # Every file but the measured wall times.
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file()}  # fmt: skip
+            if p.is_file() and p.name != WALL_TIME_FILE}  # fmt: skip
 
 
 def _die_once(marker: str, job):

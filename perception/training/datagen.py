@@ -49,7 +49,13 @@ from perception.training import bop
 from perception.training.dataset import DISTS, SPLITS, load_info
 from perception.training.generators import HeadcamGenerator, PaperGenerator, make_generator
 from perception.training.sheets import write_preview
-from perception.training.writer import merge_scene, write_camera, write_models, write_sample
+from perception.training.writer import (
+    add_wall_time,
+    merge_scene,
+    write_camera,
+    write_models,
+    write_sample,
+)
 from sim.core.backends import add_backend_arguments, check_backend, default_chunk, run_map
 from sim.core.cli import fail
 from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
@@ -62,8 +68,6 @@ from sim.world.tiers import TIERS, check_tier
 GENERATOR_VERSION = "2"
 SEED_BASES: dict[str, int] = {"train": 0, "val": 100_000_000, "test": 200_000_000}
 MAX_COUNT = 100_000_000
-#: Wall time [s] of each split's generation runs, summed over resumptions.
-WALL_TIME_FILE = "wall_time.json"
 DEFAULT_SIZE: dict[str, tuple[int, int]] = {"paper": (256, 256), "headcam": (640, 480)}
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -175,15 +179,6 @@ def _write_info(cfg: GenConfig, info: dict[str, Any], count: int) -> None:
         "command": dataclasses.replace(cfg, count=count).command(),
     }
     bop.write_json(cfg.out / "info.json", info)
-
-
-def add_wall_time(out: Path, split: str, seconds: float) -> None:
-    """Add seconds to the wall time the runs of a split have taken, in ``<out>/wall_time.json``
-    (apart from info.json, whose bytes depend on the arguments alone)."""
-    path = out / WALL_TIME_FILE
-    times = bop.read_json(path, out, split) if path.is_file() else {}
-    times[split] = round(float(times.get(split, 0.0)) + seconds, 1)
-    bop.write_json(path, times)
 
 
 # Per-process state of pool workers (each worker owns one renderer; set by `_init_worker`).

@@ -136,3 +136,16 @@ def write_camera(root: Path, split: str, width: int, height: int) -> None:
         "depth_scale": 1.0,
     }
     write_json(root / "camera.json", camera)
+
+
+#: Wall time [s] of each split's generation runs, summed over resumptions.
+WALL_TIME_FILE = "wall_time.json"
+
+
+def add_wall_time(out: Path, split: str, seconds: float) -> None:
+    """Add seconds to the wall time the runs of a split have taken, in ``<out>/wall_time.json``
+    (apart from info.json, whose bytes depend on the arguments alone)."""
+    path = out / WALL_TIME_FILE
+    times = read_json(path, out, split) if path.is_file() else {}
+    times[split] = round(float(times.get(split, 0.0)) + seconds, 1)
+    write_json(path, times)
