@@ -62,22 +62,6 @@ class DetectionSet(torch.utils.data.Dataset):
         return self.transform.resize(image_tensor(s.rgb), target)
 
 
-class MixedSet(torch.utils.data.Dataset):
-    """Several `DetectionSet`s one after the other (item i of the mix is item i - offset of the
-    set it falls in)."""
-
-    def __init__(self, parts: list[DetectionSet]) -> None:
-        self.parts = parts
-        self.ends = np.cumsum([len(p) for p in parts])
-
-    def __len__(self) -> int:
-        return int(self.ends[-1]) if len(self.ends) else 0
-
-    def __getitem__(self, i: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        k = int(np.searchsorted(self.ends, i, side="right"))
-        return self.parts[k][i - (int(self.ends[k - 1]) if k else 0)]
-
-
 def collate_list(batch: list) -> list:
     """A batch as the list of its ``(image, target)`` items (images differ in size)."""
     return batch
@@ -125,7 +109,7 @@ def training_images(
                 "perception.training.datagen` (see its --dist and --tier)"
             )
         parts.append(DetectionSet(extra, "train", min_visible_px, cfg, limit))
-    return (parts[0] if len(parts) == 1 else MixedSet(parts)), parts
+    return (parts[0] if len(parts) == 1 else torch.utils.data.ConcatDataset(parts)), parts
 
 
 def start_from(model: torch.nn.Module, path: Path, cfg: DetectorConfig) -> None:

@@ -6,12 +6,7 @@ import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is im
 import mujoco
 import numpy as np
 
-from sim.world.camera import (
-    RenderContextCache,
-    geom_ids_from_colours,
-    render_assets_key,
-    scene_capacity,
-)
+from sim.world.camera import RenderContextCache, geom_ids_from_colours, scene_capacity
 
 
 class OffscreenRenderer:
@@ -32,7 +27,6 @@ class OffscreenRenderer:
         self._gl: mujoco.GLContext | None = None
         self._contexts = RenderContextCache(mujoco.mjtFontScale.mjFONTSCALE_50)
         self._model: mujoco.MjModel | None = None
-        self._key: bytes | None = None
         self._scene: mujoco.MjvScene | None = None
         self._cam = mujoco.MjvCamera()
         self._cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
@@ -53,9 +47,8 @@ class OffscreenRenderer:
             self._scene = mujoco.MjvScene(model, maxgeom=scene_capacity(model))
             for flag in ("mjRND_SHADOW", "mjRND_REFLECTION", "mjRND_SKYBOX"):
                 self._scene.flags[getattr(mujoco.mjtRndFlag, flag)] = False
-            self._key = render_assets_key(model, mujoco.mjtFontScale.mjFONTSCALE_50)
             self._model = model
-        ctx = self._contexts.get(model, self._key)
+        ctx = self._contexts.get(model)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, ctx)
         return ctx, self._scene
 

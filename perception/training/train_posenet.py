@@ -49,6 +49,8 @@ from sim.world.objects import OBJECT_NAMES
 
 #: The command line of this module.
 TRAIN_COMMAND = "python -m perception.training.train_posenet"
+#: What a fine-tuning run keeps of the checkpoint it starts from.
+LINEAGE_KEYS = ("command", "init_from", "train_config", "epoch", "wall_s", "data_seeds", "commit")
 #: Gradient-norm clip of every step.
 GRAD_CLIP = 5.0
 
@@ -241,9 +243,7 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
         model.load_state_dict(parent["model"])
         lineage["init_from"] = {
             "checkpoint": src.name,
-            **{k: parent.get(k) for k in ("command", "init_from", "train_config", "epoch")},
-            "wall_s": parent.get("wall_s"),
-            **{k: parent.get(k) for k in ("data_seeds", "commit")},
+            **{k: parent.get(k) for k in LINEAGE_KEYS},
             "validation": parent["history"][-1] if parent.get("history") else None,
         }
     step, epoch0, history = 0, 0, []

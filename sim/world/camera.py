@@ -201,10 +201,11 @@ class RenderContextCache:
         self._key: bytes | None = None
         self._model: mujoco.MjModel | None = None
 
-    def get(self, model: mujoco.MjModel, key: bytes | None) -> mujoco.MjrContext:
-        """The render context for model; key is `render_assets_key(model, font_scale)`."""
+    def get(self, model: mujoco.MjModel) -> mujoco.MjrContext:
+        """The render context for model (its assets are compared when the model changes)."""
         if self._ctx is not None and model is self._model:
             return self._ctx
+        key = render_assets_key(model, self.font_scale)
         if self._ctx is not None and key is not None and key == self._key:
             _refresh(self._ctx, model)
         else:
@@ -268,7 +269,6 @@ class CameraRenderer:
         self.height = height
         self.options = options or RenderOptions()
         self._scene: mujoco.MjvScene | None = None
-        self._key: bytes | None = None
         self._option = mujoco.MjvOption()
         self._rect = mujoco.MjrRect(0, 0, width, height)
 
@@ -281,8 +281,7 @@ class CameraRenderer:
             self._scene = mujoco.MjvScene(self.model, maxgeom=scene_capacity(self.model))
             self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.options.shadows
             self._scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = self.options.reflections
-            self._key = render_assets_key(self.model, mujoco.mjtFontScale.mjFONTSCALE_150)
-        ctx = _shared_cache().get(self.model, self._key)
+        ctx = _shared_cache().get(self.model)
         ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, ctx)
         return ctx, self._scene
