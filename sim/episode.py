@@ -218,13 +218,13 @@ class Episode:
         res.friction_margin = outcome.friction_margin
         return res
 
-    def run(
-        self, estimator: PoseEstimator | PrivilegedEstimator, recorder=None
-    ) -> tuple[Observation, EpisodeResult]:
-        """Observe, ask the estimator (timed as ``estimate``), act; the result carries the
-        estimator's `last_info` (when it has one) as ``estimate_info``. Only a
-        `PrivilegedEstimator` (an oracle) is handed the true pose."""
-        obs = self.observe()
+    def estimate(
+        self, estimator: PoseEstimator | PrivilegedEstimator, obs: Observation
+    ) -> tuple[np.ndarray | None, list[tuple[str, np.ndarray]]]:
+        """Ask the estimator for the target's pose in obs (timed as ``estimate``): the estimate
+        T_C_O (or None) and the neighbours it reports, (class, T_C_N) pairs. Only a
+        `PrivilegedEstimator` (an oracle) is handed the true pose; it reports the true
+        neighbours."""
         t = time.perf_counter()
         if isinstance(estimator, PrivilegedEstimator):
             est = estimator.estimate_from_truth(obs, self.T_C_O_true.copy())
@@ -233,6 +233,15 @@ class Episode:
             est = estimator.estimate(obs)
             neighbours = list(getattr(estimator, "last_neighbours", None) or ())
         self.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
+        return est, neighbours
+
+    def run(
+        self, estimator: PoseEstimator | PrivilegedEstimator, recorder=None
+    ) -> tuple[Observation, EpisodeResult]:
+        """Observe, ask the estimator (`estimate`), act; the result carries the estimator's
+        `last_info` (when it has one) as ``estimate_info``."""
+        obs = self.observe()
+        est, neighbours = self.estimate(estimator, obs)
         res = self.act(est, estimator.name, recorder=recorder, neighbours=neighbours)
         res.estimate_info = dict(getattr(estimator, "last_info", None) or {})
         return obs, res

@@ -4,9 +4,12 @@
         [--width 640 --height 480] [--distractors N] [--no-shadows]
 
     python -m sim.render_scene --sheet docs/tiers.png [--object phone --seed 0]
+        [--estimator hybrid]
 
 writes the head camera's RGB image to `--out`; with `--sheet` instead one picture of every tier
-(`sim.world.tiers`), head camera above the external view, labelled; with `--external` also writes
+(`sim.world.tiers`), head camera above the external view, labelled; on each head image the
+target's true pose (white) and the pose `--estimator` finds in that image (green), with the
+estimate's errors in the label (`--estimator none`: no poses); with `--external` also writes
 `<stem>_external.png` next to it, a view from the world camera "external" that shows the robot,
 the table and the objects. Every argument is checked before the scene is built; a bad one gives a
 single `error: ...` line on stderr that names the valid choices, and a non-zero exit status.
@@ -22,9 +25,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from perception.overlay import draw_pose
 from sim.core.cli import ArgumentParser, fail
+from sim.core.contract import Observation, PoseEstimator
 from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
-from sim.core.validate import check_output_file, check_seed
+from sim.core.validate import check_choice, check_output_file, check_seed
+from sim.episode import Episode, EpisodeConfig, pose_errors
+from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, PrivilegedEstimator, make_estimator
 from sim.world import constants as C  # importing sim defaults MUJOCO_GL to egl
 from sim.world.camera import CameraRenderer, RenderOptions, check_resolution
 from sim.world.objects import OBJECT_NAMES
@@ -35,6 +42,11 @@ EXTERNAL_CAMERA = "external"
 #: Exit status of bad arguments (argparse's convention) and of every other failure.
 EXIT_USAGE = 2
 EXIT_FAILURE = 1
+#: `--estimator` value of a sheet without poses.
+NO_ESTIMATOR = "none"
+#: RGB of the poses drawn on a sheet's head images, and of its label lines.
+TRUE_COLOUR, ESTIMATE_COLOUR = (255, 255, 255), (0, 255, 0)
+TEXT_COLOUR, ERRORS_COLOUR, MISSED_COLOUR = (0, 0, 0), (0, 120, 0), (190, 0, 0)
 
 
 @dataclass(frozen=True)
@@ -50,6 +62,8 @@ class RenderRequest:
         distractors: number of other objects on the table.
         shadows: render shadows (about 3x slower on software rendering).
         tier: the scene tier (`sim.world.tiers`); its presets override `distractors`.
+        estimator: the estimator (`sim.estimators.ESTIMATORS`) whose poses a sheet shows, or
+            `NO_ESTIMATOR`.
     """
 
     object: str
@@ -61,6 +75,7 @@ class RenderRequest:
     distractors: int
     shadows: bool
     tier: str = DEFAULT_TIER
+    estimator: str = NO_ESTIMATOR
 
     @property
     def external_path(self) -> Path:
@@ -99,6 +114,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
     p.add_argument("--no-shadows", action="store_true", help="render without shadows (faster)")
     p.add_argument("--sheet", help="write one labelled picture of every tier here (PNG)")
+    p.add_argument(
+        "--estimator",
+        metavar="NAME",
+        help=f"with --sheet: draw the true pose and this estimator's on each head image, one of: "
+        f"{', '.join([*ESTIMATORS, NO_ESTIMATOR])} (default: {DEFAULT_ESTIMATOR})",
+    )
     return p
 
 
@@ -106,8 +127,9 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
     """Validate parsed arguments before anything is built.
 
     Raises:
-        UnknownNameError: unknown object or tier.
-        InvalidArgumentError: bad resolution, seed, distractor count or output path.
+        UnknownNameError: unknown object, tier or estimator.
+        InvalidArgumentError: bad resolution, seed, distractor count or output path, or
+            `--estimator` without `--sheet`.
     """
     if args.object not in OBJECT_NAMES:
         raise UnknownNameError("object", args.object, OBJECT_NAMES)
@@ -119,6 +141,12 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
         raise InvalidArgumentError(
             f"invalid number of distractors {args.distractors}; valid: 0..{n_max}"
         )
+    estimator = NO_ESTIMATOR
+    if args.sheet is not None:
+        estimator = args.estimator or DEFAULT_ESTIMATOR
+        check_choice(estimator, [*ESTIMATORS, NO_ESTIMATOR], "estimator")
+    elif args.estimator is not None:
+        raise InvalidArgumentError("--estimator applies to --sheet only")
     out = check_output_file(args.out, "--out", (".png",))
     req = RenderRequest(
         object=args.object,
@@ -130,6 +158,7 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
         distractors=args.distractors,
         shadows=not args.no_shadows,
         tier=args.tier,
+        estimator=estimator,
     )
     if req.external:
         check_output_file(req.external_path, "--out")
@@ -163,21 +192,53 @@ def render(req: RenderRequest) -> list[Path]:
     return written
 
 
+def _estimate_on_head(
+    ep: Episode, obs: Observation, estimator: PoseEstimator | PrivilegedEstimator
+) -> tuple[np.ndarray, str, tuple[int, int, int]]:
+    """The head image with the true pose and the estimator's drawn on it (as `sim.run_episode`
+    saves it), and a line with the estimate's errors or "not detected" and its colour."""
+    est, _ = ep.estimate(estimator, obs)
+    target = ep.scene.target.model
+    v, f = np.asarray(target.mesh.vertices), np.asarray(target.mesh.faces)
+    img = draw_pose(obs.rgb, ep.T_C_O_true, obs.K, v, f, color=TRUE_COLOUR, label="true")
+    if est is None:
+        return img, f"{estimator.name}: {ep.object} not detected", MISSED_COLOUR
+    img = draw_pose(
+        img, est, obs.K, v, f, color=ESTIMATE_COLOUR, label="estimate", label_below=True
+    )
+    e = pose_errors(est, ep.T_C_O_true, v, target.diameter)
+    errors = f"{e['translation_m'] * 1000:.0f} mm, {e['rotation_deg']:.1f} deg off"
+    return img, f"{estimator.name} estimate: {errors}", ERRORS_COLOUR
+
+
 def render_sheet(req: RenderRequest, path: Path) -> Path:
     """One column per tier (seed `req.seed`, target `req.object`): the head camera above the
-    external view, each at `req.width` x `req.height`, with the tier's name and summary."""
+    external view, each at `req.width` x `req.height`, with the tier's name and summary. Unless
+    `req.estimator` is `NO_ESTIMATOR`, the estimator runs on each head image as in an episode
+    (`sim.episode.Episode.estimate`); the image shows the true pose and the estimate, the label
+    the estimate's translation and rotation errors, or that it found no target."""
+    estimator = None if req.estimator == NO_ESTIMATOR else make_estimator(req.estimator)
     columns = []
-    options = RenderOptions(shadows=req.shadows, reflections=False)
     for name, tier in TIERS.items():
-        scene = build_scene(req.object, req.seed, tier_scene(name))
-        with CameraRenderer(scene.model, req.width, req.height, options) as renderer:
-            views = [renderer.rgb(scene.data, cam) for cam in (C.HEAD_CAMERA, EXTERNAL_CAMERA)]
-        label = np.full((40, req.width, 3), 255, np.uint8)
-        hidden = f" ({scene.occlusion:.0%} of the target hidden)" if scene.occlusion else ""
-        for row, text in enumerate((name + hidden, tier.summary)):
+        cfg = EpisodeConfig(width=req.width, height=req.height, shadows=req.shadows, tier=name)
+        ep = Episode(req.object, req.seed, cfg)
+        try:
+            obs = ep.observe()
+            hidden = (
+                f" ({ep.scene.occlusion:.0%} of the target hidden)" if ep.scene.occlusion else ""
+            )
+            head, lines = obs.rgb, [(name + hidden, TEXT_COLOUR), (tier.summary, TEXT_COLOUR)]
+            if estimator is not None:
+                head, errors, colour = _estimate_on_head(ep, obs, estimator)
+                lines.append((errors, colour))
+            external = ep.renderer.rgb(ep.scene.data, EXTERNAL_CAMERA)
+        finally:
+            ep.close()
+        label = np.full((4 + 18 * len(lines), req.width, 3), 255, np.uint8)
+        for row, (text, colour) in enumerate(lines):
             cv2.putText(label, text[:70], (6, 16 + 18 * row), cv2.FONT_HERSHEY_SIMPLEX,
-                        0.45 if row else 0.55, (0, 0, 0), 1, cv2.LINE_AA)  # fmt: skip
-        columns.append(np.vstack([label, *views]))
+                        0.45 if row else 0.55, colour, 1, cv2.LINE_AA)  # fmt: skip
+        columns.append(np.vstack([label, head, external]))
     _write_png(path, np.hstack(columns))
     return path
 

@@ -115,7 +115,8 @@ def test_bad_input_as_a_process(tmp_path: Path, args: list[str], expected: list[
 
 def test_sheet_shows_every_tier(tmp_path) -> None:
     out = tmp_path / "tiers.png"
-    assert main(["--sheet", str(out), "--width", "64", "--height", "48", "--no-shadows"]) == 0
+    argv = ["--sheet", str(out), "--width", "64", "--height", "48", "--no-shadows"]
+    assert main([*argv, "--estimator", "none"]) == 0  # poses: tests/test_render_sheet.py
     img = cv2.imread(str(out))
     assert img.shape == (40 + 2 * 48, 64 * len(TIERS), 3)
     # Every column holds two real renders (not blank).
