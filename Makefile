@@ -28,7 +28,8 @@ bench: setup
 DATA_COUNTS := paper:train:20000 paper:val:1000 paper:test:1000 \
 	headcam:train:10000 headcam:val:500 headcam:test:500
 # Head-camera test scenes of the tiers (folders headcam_<tier>), for accuracy per tier.
-TIER_COUNTS := hard:test:500 clutter:test:300 any-pose:test:300 far:test:300
+TIER_COUNTS := hard:train:3000 hard:val:300 hard:test:500 clutter:test:300 any-pose:test:300 \
+	far:test:300
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
 	  $(PY) -m perception.training.datagen --dist $$dist --split $$split --count $$count --workers 2 \
@@ -40,14 +41,20 @@ data: setup
 # The shipped weights were trained with exactly these commands (see perception/weights/manifest.json,
 # which records each stage's command, data seeds, validation figures and, where measured, wall
 # time): `ours` on both distributions (the first 5000 head-camera images), then fine-tuned on all
-# the head-camera images; `paper` as published, on the paper's protocol alone; the detector on
-# the head camera.
+# the head-camera images; its expert `ours_hard` fine-tuned from it on the head camera and the
+# hard tier; `paper` as published, on the paper's protocol alone; the detector on the head
+# camera, then fine-tuned on the head camera and the hard tier.
+CKPT := $${POSEGRASP_DATA:-data}/checkpoints
 weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 14 --dists headcam --lr 0.001 --init posenet_ours_mixed
+	$(PY) -m perception.training.train_posenet --variant ours --dists headcam,headcam_hard \
+	  --limit headcam=5000 --epochs 5 --lr 0.0005 --init posenet_ours --name posenet_ours_hard
 	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 8
 	$(PY) -m perception.training.export --plot docs/training_curves.png
-	$(PY) -m perception.training.train_detector --epochs 8 --export
+	$(PY) -m perception.training.train_detector --epochs 8 --out $(CKPT)/detector_base
+	$(PY) -m perception.training.train_detector --also headcam_hard --limit 2500 --epochs 1 \
+	  --lr 0.0005 --init $(CKPT)/detector_base/detector.pt --export
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record

@@ -1,13 +1,20 @@
 """The hybrid pose estimator (docs/DESIGN.md §1): Mask R-CNN detections, 64x64 square crops, 2D/4D
 pose nets, and the exact geometry that turns their outputs into T_C_O.
 
-    est = HybridPoseEstimator.from_weights()  # perception/weights/{detector,posenet_ours}.pt
+    est = HybridPoseEstimator.from_weights()  # perception/weights/: detector, posenet_ours(_hard)
     for d in est.estimate(rgb, K):  # rgb (H, W, 3) uint8, K (3, 3) [px]
         print(d.name, d.score, d.T_C_O, d.timings_ms)
 
 Stages (each timed, in milliseconds, per image): ``detect`` (Mask R-CNN), ``crop`` (square boxes
-around the detected boxes, resampled to 64x64), ``nets`` (one batched pose-net pass over every
-detection) and ``decode`` (crop -> image pixel of the origin, then `perception.geometry.decode`).
+around the detected boxes, resampled to 64x64), ``nets`` (one batched pass of each pose net over
+every detection) and ``decode`` (crop -> image pixel of the origin, then
+`perception.geometry.decode`, and with expert nets the choice between their poses).
+
+Two pose nets ship: `ours` (`DEFAULT_POSENET`), trained on upright objects alone at 0.7-0.9 m,
+and its expert (`HARD_POSENET`), fine-tuned on the hard tier's scenes as well (clutter, any
+resting pose, 0.9-1.6 m, occlusion). Each detection gets both poses; the expert's wins when its
+silhouette agrees with the detected mask, over the pixels no other detection covers, by at
+least `SWITCH_IOU` more (`perception.overlay.silhouette_agreement`).
 
 Crops match the pose nets' training: those crops were random squares of 0.95..1.35 times the
 visible box's longer side, shifted by up to 0.1 of the side; here the square is centred on the
@@ -17,7 +24,7 @@ detected box with the mean scale, `DEFAULT_CROP_SCALE` = 1.15.
 from __future__ import annotations
 
 import time
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +36,7 @@ from perception.detector import DEFAULT_WEIGHTS, Detection, Detector, check_rgb
 from perception.detector_net import DetectorConfig
 from perception.geometry import decode
 from perception.nets import CROP, NetConfig, PoseNet, load_posenet, normalise
+from perception.overlay import silhouette_agreement
 from perception.refine import PoseRefiner
 from perception.support import refine_on_support, refine_with_mask
 from sim.core.contract import Observation
@@ -40,9 +48,13 @@ from sim.world.objects import OBJECT_NAMES, load_object
 DEFAULT_POSENET = WEIGHTS_DIR / "posenet_ours.pt"
 #: The `paper` variant's shipped nets (estimator ``hybrid-paper``).
 PAPER_POSENET = WEIGHTS_DIR / "posenet_paper.pt"
+#: `ours` fine-tuned on the hard tier too: the expert net next to `DEFAULT_POSENET`.
+HARD_POSENET = WEIGHTS_DIR / "posenet_ours_hard.pt"
 #: Square crop side / longer side of the detected box: the mean of the training range 0.95..1.35.
 DEFAULT_CROP_SCALE = 1.15
 STAGES: tuple[str, ...] = ("detect", "crop", "nets", "decode")
+#: Silhouette IoU an expert's pose must gain over the main net's to replace it.
+SWITCH_IOU = 0.05
 
 
 @dataclass
@@ -83,10 +95,17 @@ class HybridPoseEstimator:
         detector: the object extractor.
         posenet: the 2D/4D pose nets (one class slice per object, index = obj_id - 1).
         crop_scale: square crop side as a multiple of the detected box's longer side.
+        experts: more pose nets of the same classes. Each detection then gets every net's pose,
+            and an expert's replaces `posenet`'s when its silhouette agrees better with the
+            detected mask by at least `SWITCH_IOU` (`silhouette_agreement`).
     """
 
     def __init__(
-        self, detector: Detector, posenet: PoseNet, crop_scale: float = DEFAULT_CROP_SCALE
+        self,
+        detector: Detector,
+        posenet: PoseNet,
+        crop_scale: float = DEFAULT_CROP_SCALE,
+        experts: Sequence[PoseNet] = (),
     ) -> None:
         if not np.isfinite(crop_scale) or crop_scale <= 0:
             raise InvalidArgumentError(f"crop_scale must be positive, got {crop_scale}")
@@ -94,8 +113,12 @@ class HybridPoseEstimator:
             raise InvalidArgumentError(
                 f"the pose nets have {posenet.cfg.n_classes} classes, need {len(OBJECT_NAMES)}"
             )
+        for net in experts:
+            if net.cfg.n_classes != posenet.cfg.n_classes:
+                raise InvalidArgumentError("the expert pose nets must have the same classes")
         self.detector = detector
         self.posenet = posenet.eval()
+        self.experts = [net.eval() for net in experts]
         self.crop_scale = float(crop_scale)
 
     @classmethod
@@ -107,8 +130,11 @@ class HybridPoseEstimator:
         crop_scale: float = DEFAULT_CROP_SCALE,
         max_detections: int | None = None,
         verify: bool = True,
+        expert_paths: Sequence[Path | str] | None = None,
     ) -> HybridPoseEstimator:
-        """Load the shipped weights (defaults under perception/weights/).
+        """Load the shipped weights (defaults under perception/weights/); `expert_paths` are
+        the weights of the expert pose nets (see the class); None: `HARD_POSENET` with the
+        default `posenet_path`, none with another.
 
         `verify` checks each file against the hash its folder's manifest records; pass False
         (or set ``POSEGRASP_UNVERIFIED_WEIGHTS=1``) for weights you trained.
@@ -123,7 +149,10 @@ class HybridPoseEstimator:
             score_threshold=score_threshold,
             max_detections=max_detections,
         )
-        return cls(detector, load_posenet(Path(posenet_path), verify), crop_scale)
+        if expert_paths is None:
+            expert_paths = (HARD_POSENET,) if Path(posenet_path) == DEFAULT_POSENET else ()
+        experts = [load_posenet(Path(e), verify) for e in expert_paths]
+        return cls(detector, load_posenet(Path(posenet_path), verify), crop_scale, experts)
 
     @classmethod
     def with_random_weights(
@@ -177,9 +206,9 @@ class HybridPoseEstimator:
         dets = self.detector.detect(rgb)
         timings["detect"] = (time.perf_counter() - t0) * 1000.0
         wanted = dets if classes is None else [d for d in dets if d.name in classes]
-        found = self._poses(rgb, K, wanted, timings)
+        found = self._poses(rgb, K, wanted, timings, dets)
         rest = [d for d in dets if classes is not None and d.name not in classes] if others else []
-        other = self._poses(rgb, K, rest, timings) if rest else []
+        other = self._poses(rgb, K, rest, timings, dets) if rest else []
         timings["total"] = float(sum(timings[k] for k in STAGES))
         return found, other, timings
 
@@ -189,8 +218,10 @@ class HybridPoseEstimator:
         K: np.ndarray,
         dets: list[Detection],
         timings: dict[str, float],
+        scene: list[Detection] = (),
     ) -> list[PoseDetection]:
-        """Crop, nets and decode for some detections; adds each stage's time to `timings`."""
+        """Crop, nets and decode for some detections (`scene`: all the image's detections, whose
+        masks may hide an object); adds each stage's time to `timings`."""
         t1 = time.perf_counter()
         kept: list[tuple[Detection, tuple[float, float, float]]] = []
         crops = []
@@ -202,25 +233,34 @@ class HybridPoseEstimator:
             kept.append((d, box))
             crops.append(crop_and_resize(rgb, box, CROP))
         t2 = time.perf_counter()
+        outs = []
         if kept:
+            x = normalise(torch.from_numpy(np.stack(crops)))
+            cls = torch.tensor([d.obj_id - 1 for d, _ in kept])
+            size = torch.tensor([box[2] / K[0, 0] for _, box in kept], dtype=torch.float32)
             with torch.inference_mode():
-                out = self.posenet(
-                    normalise(torch.from_numpy(np.stack(crops))),
-                    torch.tensor([d.obj_id - 1 for d, _ in kept]),
-                    torch.tensor([box[2] / K[0, 0] for _, box in kept], dtype=torch.float32),
-                )
-            uv_unit = out.uv_unit.double().numpy()
-            p = out.p.double().numpy()
-            theta = out.theta.double().numpy()
+                for net in (self.posenet, *self.experts):
+                    out = net(x, cls, size)
+                    outs.append([t.double().numpy() for t in (out.uv_unit, out.p, out.theta)])
         t3 = time.perf_counter()
         results = []
         for i, (d, box) in enumerate(kept):
-            uv = crop_to_image(from_unit(uv_unit[i], CROP), box, CROP)
-            if not np.all(np.isfinite(p[i])) or np.linalg.norm(p[i]) < 1e-9:
+            cands = []
+            for uv_unit, p, theta in outs:
+                uv = crop_to_image(from_unit(uv_unit[i], CROP), box, CROP)
+                if not np.all(np.isfinite(p[i])) or np.linalg.norm(p[i]) < 1e-9:
+                    continue
+                T = decode(p[i], float(theta[i]), uv, K)
+                if _is_pose_in_front(T):
+                    cands.append((T, uv))
+            if not cands:
                 continue
-            T = decode(p[i], float(theta[i]), uv, K)
-            if not _is_pose_in_front(T):
-                continue
+            T, uv = cands[0]
+            if len(cands) > 1:
+                hidden = [e.mask for e in scene if e is not d]
+                iou = silhouette_agreement(d.name, [c[0] for c in cands], K, d.mask, hidden)
+                if iou.max() >= iou[0] + SWITCH_IOU:
+                    T, uv = cands[int(np.argmax(iou))]
             results.append(PoseDetection(d.name, d.score, d.box_xyxy, d.mask, T, uv, box, timings))
         t4 = time.perf_counter()
         for stage, dt in zip(STAGES[1:], np.diff([t1, t2, t3, t4]) * 1000.0, strict=True):

@@ -43,6 +43,31 @@ def silhouette(
     return mask.astype(bool)
 
 
+def silhouette_agreement(
+    name: str, poses: list[np.ndarray], K: np.ndarray, mask: np.ndarray, hidden: list[np.ndarray]
+) -> np.ndarray:
+    """IoU of each pose's rendered silhouette with the detected (visible) mask, over the pixels
+    no other detection covers, in a window of 1.8 times the mask's box; (len(poses),)."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return np.zeros(len(poses))
+    bw, bh = xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
+    x0, y0 = max(0, int(xs.min() - 0.4 * bw)), max(0, int(ys.min() - 0.4 * bh))
+    x1 = min(mask.shape[1], int(xs.max() + 0.4 * bw) + 1)
+    y1 = min(mask.shape[0], int(ys.max() + 0.4 * bh) + 1)
+    seen = ~np.logical_or.reduce([h[y0:y1, x0:x1] for h in hidden]) if hidden else True
+    visible = mask[y0:y1, x0:x1] & seen
+    Kw = np.asarray(K, np.float64) - np.array([[0, 0, x0], [0, 0, y0], [0, 0, 0]])
+    mesh = load_object(name).mesh
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    out = np.zeros(len(poses))
+    for i, T in enumerate(poses):
+        sil = silhouette(T, Kw, v, f, visible.shape) & seen
+        union = np.count_nonzero(sil | visible)
+        out[i] = np.count_nonzero(sil & visible) / union if union else 0.0
+    return out
+
+
 def draw_pose(
     image: np.ndarray,
     T_C_O: np.ndarray,

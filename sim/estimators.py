@@ -57,7 +57,9 @@ class NoisyOracleEstimator:
 
 
 def _hybrid() -> PoseEstimator:
-    """The hybrid estimator with the shipped weights (imports torch: call before rendering)."""
+    """The hybrid estimator with the shipped weights: the detector, `ours` and its expert
+    fine-tuned on the hard tier (per detection, the pose whose silhouette agrees better with the
+    detected mask wins). Imports torch: call before rendering."""
     from perception import HybridPoseEstimator
 
     return HybridPoseEstimator.from_weights().as_episode_estimator()
@@ -76,7 +78,7 @@ def _hybrid_paper() -> PoseEstimator:
     from perception import HybridPoseEstimator
     from perception.hybrid import PAPER_POSENET
 
-    est = HybridPoseEstimator.from_weights(posenet_path=PAPER_POSENET)
+    est = HybridPoseEstimator.from_weights(posenet_path=PAPER_POSENET, expert_paths=())
     return est.as_episode_estimator(name="hybrid-paper")
 
 

@@ -51,7 +51,11 @@ GATE_EPISODES = 25
 GATE_TIER = "hard"
 #: Held-out scenes (see `sim.world.constants.EVAL_SEED_BASE`), apart from the default evaluation's.
 GATE_SEED_START = 1_500_000_000
-WEIGHTS = ("perception/weights/detector.pt", "perception/weights/posenet_ours.pt")
+WEIGHTS = (
+    "perception/weights/detector.pt",
+    "perception/weights/posenet_ours.pt",
+    "perception/weights/posenet_ours_hard.pt",
+)
 GATE_ESTIMATORS = (DEFAULT_ESTIMATOR,)
 #: Significance level of the paired success test.
 ALPHA = 0.05

@@ -2,10 +2,11 @@
 
     python -m perception.training.export [--checkpoints DIR (default: <data>/checkpoints)]
 
-Writes `perception/weights/posenet_<variant>.pt` (float16 weights and the model config, no
+Writes `perception/weights/posenet_<name>.pt` (float16 weights and the model config, no
 optimiser state) and `perception/weights/manifest.json` (command, data seed ranges, sizes,
-validation metrics, commit) for every variant that has a checkpoint. The detector is shipped by
-`perception.training.export_detector` (``python -m perception.training.train_detector --export``).
+validation metrics, commit) for every shipped net (`SHIPPED`) that has a checkpoint. The
+detector is shipped by `perception.training.export_detector` (``python -m
+perception.training.train_detector --export``).
 """
 
 from __future__ import annotations
@@ -25,13 +26,16 @@ from sim.core.errors import AssetError, PosegraspError
 from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, git_commit
 
 MANIFEST = WEIGHTS_DIR / MANIFEST_NAME
+#: The shipped pose nets: each variant, and `ours` fine-tuned on the hard tier too (the expert
+#: of ``hybrid``, `perception.hybrid.HARD_POSENET`).
+SHIPPED: tuple[str, ...] = (*VARIANTS, "ours_hard")
 
 
 def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
-    """Export every variant found under `checkpoints`; returns the manifest.
+    """Export every shipped net (`SHIPPED`) found under `checkpoints`; returns the manifest.
 
-    Writes ``<out>/posenet_<variant>.pt`` and updates the ``pose_nets`` key of `MANIFEST`; the
-    test figures of a variant are kept only when its weights are unchanged.
+    Writes ``<out>/posenet_<name>.pt`` and updates the ``pose_nets`` key of `MANIFEST`; the
+    test figures of a net are kept only when its weights are unchanged.
 
     Raises:
         AssetError: no checkpoint under `checkpoints`, or a manifest that is not valid JSON.
@@ -40,7 +44,7 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
     manifest = read_manifest(MANIFEST)
     nets = manifest.setdefault("pose_nets", {})
     found = False
-    for variant in VARIANTS:
+    for variant in SHIPPED:
         ckpt = checkpoints / f"posenet_{variant}.pt"
         if not ckpt.is_file():
             continue
@@ -63,7 +67,7 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
         kept = {k: v for k, v in nets.get(variant, {}).items() if same and k.startswith("test")}
         tc = state["train_config"]
         command = state.get("command") or (
-            f"{TRAIN_COMMAND} --variant {variant} --epochs {tc['epochs']}"
+            f"{TRAIN_COMMAND} --variant {state['model_config']['variant']} --epochs {tc['epochs']}"
         )
         nets[variant] = {
             **weights_entry(path),
@@ -102,10 +106,10 @@ def _stages(state: dict, command: str) -> list[dict]:
 
 
 def training_curves(checkpoints: Path) -> dict[str, list[list[dict]]]:
-    """Validation history of every stage of every exported variant: variant -> stages (first to
+    """Validation history of every stage of every exported net: name -> stages (first to
     last) -> epochs; the chain stops at a stage whose checkpoint is gone."""
     curves = {}
-    for variant in VARIANTS:
+    for variant in SHIPPED:
         path = checkpoints / f"posenet_{variant}.pt"
         stages = []
         while path is not None and path.is_file():

@@ -31,6 +31,8 @@ def _command(tc: dict[str, Any]) -> str:
         parts.append(f"--also {','.join(tc['also'])}")
     if tc.get("init"):
         parts.append(f"--init {tc['init']}")
+    if tc.get("limit"):
+        parts.append(f"--limit {tc['limit']}")
     parts.append(f"--epochs {tc['epochs']}")
     if tc.get("lr") not in (None, 1e-3):
         parts.append(f"--lr {tc['lr']:g}")
