@@ -142,7 +142,14 @@ def test_unlisted_files_load_and_an_entry_without_hash_fails_closed(weights_copy
 def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) -> None:
     manifest = json.loads(MANIFEST.read_text())
     entries = integrity.manifest_entries(manifest)
-    assert sorted(entries) == ["detector.pt", "posenet_ours.pt", "posenet_paper.pt"]
+    # Every shipped file is listed, and nothing else.
+    assert sorted(entries) == sorted(p.name for p in WEIGHTS_DIR.glob("*.pt"))
+    assert sorted(entries) == [
+        "detector.pt",
+        "posenet_ours.pt",
+        "posenet_ours_hard.pt",
+        "posenet_paper.pt",
+    ]
     for name, e in entries.items():
         assert sha256_file(WEIGHTS_DIR / name) == e["sha256"]
     f = tmp_path / "w.bin"
