@@ -43,21 +43,36 @@ def silhouette(
     return mask.astype(bool)
 
 
+def mask_window(mask: np.ndarray, margin: float = 0.4) -> tuple[int, int, int, int] | None:
+    """The mask's bounding box grown by `margin` times its width and height on each side and
+    clipped to the image: (x0, y0, x1, y1), x1 and y1 exclusive; None for an empty mask."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return None
+    bw, bh = xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
+    x0, y0 = max(0, int(xs.min() - margin * bw)), max(0, int(ys.min() - margin * bh))
+    x1 = min(mask.shape[1], int(xs.max() + margin * bw) + 1)
+    y1 = min(mask.shape[0], int(ys.max() + margin * bh) + 1)
+    return x0, y0, x1, y1
+
+
+def window_intrinsics(K: np.ndarray, x0: float, y0: float) -> np.ndarray:
+    """The intrinsics of the image window whose top-left pixel is (x0, y0), (3, 3) float64."""
+    return np.asarray(K, np.float64) - np.array([[0, 0, x0], [0, 0, y0], [0, 0, 0]])
+
+
 def silhouette_agreement(
     name: str, poses: list[np.ndarray], K: np.ndarray, mask: np.ndarray, hidden: list[np.ndarray]
 ) -> np.ndarray:
     """IoU of each pose's rendered silhouette with the detected (visible) mask, over the pixels
     no other detection covers, in a window of 1.8 times the mask's box; (len(poses),)."""
-    ys, xs = np.nonzero(mask)
-    if len(xs) == 0:
+    box = mask_window(mask)
+    if box is None:
         return np.zeros(len(poses))
-    bw, bh = xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
-    x0, y0 = max(0, int(xs.min() - 0.4 * bw)), max(0, int(ys.min() - 0.4 * bh))
-    x1 = min(mask.shape[1], int(xs.max() + 0.4 * bw) + 1)
-    y1 = min(mask.shape[0], int(ys.max() + 0.4 * bh) + 1)
+    x0, y0, x1, y1 = box
     seen = ~np.logical_or.reduce([h[y0:y1, x0:x1] for h in hidden]) if hidden else True
     visible = mask[y0:y1, x0:x1] & seen
-    Kw = np.asarray(K, np.float64) - np.array([[0, 0, x0], [0, 0, y0], [0, 0, 0]])
+    Kw = window_intrinsics(K, x0, y0)
     mesh = load_object(name).mesh
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     out = np.zeros(len(poses))
@@ -115,6 +130,24 @@ def draw_pose(
             cv2.LINE_AA,
         )
     return out
+
+
+def draw_estimate(
+    image: np.ndarray,
+    K: np.ndarray,
+    T_true: np.ndarray,
+    T_est: np.ndarray | None,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+) -> np.ndarray:
+    """A copy of an image with the true pose drawn in white (label "true") and, when there is
+    one, the estimate in green (label "estimate", below its outline)."""
+    img = draw_pose(image, T_true, K, vertices, faces, color=(255, 255, 255), label="true")
+    if T_est is None:
+        return img
+    return draw_pose(
+        img, T_est, K, vertices, faces, color=(0, 255, 0), label="estimate", label_below=True
+    )
 
 
 def draw_detections(rgb: np.ndarray, K: np.ndarray, found: Sequence[Any]) -> np.ndarray:

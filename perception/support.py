@@ -163,23 +163,16 @@ def refine_with_mask(
         mask: the object's segmentation in the image, (H, W) bool (e.g. the detector's).
     """
     from perception.metrics import mask_iou
-    from perception.overlay import silhouette
+    from perception.overlay import mask_window, silhouette, window_intrinsics
 
     mask = np.asarray(mask, bool)
-    ys, xs = np.nonzero(mask)
     T_C_O = np.asarray(T_C_O, np.float64)
-    if len(xs) == 0:
+    box = mask_window(mask)
+    if box is None:
         return MaskRefinement(T_C_O.copy(), 0.0, 0.0, 0.0, (0.0, 0.0), 0)
-    h, w = mask.shape
-    bw, bh = xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
-    x0 = max(0, int(xs.min() - 0.4 * bw))
-    y0 = max(0, int(ys.min() - 0.4 * bh))
-    x1 = min(w, int(xs.max() + 0.4 * bw) + 1)
-    y1 = min(h, int(ys.max() + 0.4 * bh) + 1)
+    x0, y0, x1, y1 = box
     window = mask[y0:y1, x0:x1]
-    Kw = np.asarray(K, np.float64).copy()
-    Kw[0, 2] -= x0
-    Kw[1, 2] -= y0
+    Kw = window_intrinsics(K, x0, y0)
     mesh = model.mesh
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     T_cam_world = np.linalg.inv(T_world_cam)

@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from perception.overlay import draw_pose
+from perception.overlay import draw_estimate
 from sim.core.cli import ArgumentParser, fail
 from sim.core.contract import Observation, PoseEstimator
 from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
@@ -44,8 +44,7 @@ EXIT_USAGE = 2
 EXIT_FAILURE = 1
 #: `--estimator` value of a sheet without poses.
 NO_ESTIMATOR = "none"
-#: RGB of the poses drawn on a sheet's head images, and of its label lines.
-TRUE_COLOUR, ESTIMATE_COLOUR = (255, 255, 255), (0, 255, 0)
+#: RGB of a sheet's label lines.
 TEXT_COLOUR, ERRORS_COLOUR, MISSED_COLOUR = (0, 0, 0), (0, 120, 0), (190, 0, 0)
 
 
@@ -200,12 +199,9 @@ def _estimate_on_head(
     est, _ = ep.estimate(estimator, obs)
     target = ep.scene.target.model
     v, f = np.asarray(target.mesh.vertices), np.asarray(target.mesh.faces)
-    img = draw_pose(obs.rgb, ep.T_C_O_true, obs.K, v, f, color=TRUE_COLOUR, label="true")
+    img = draw_estimate(obs.rgb, obs.K, ep.T_C_O_true, est, v, f)
     if est is None:
         return img, f"{estimator.name}: {ep.object} not detected", MISSED_COLOUR
-    img = draw_pose(
-        img, est, obs.K, v, f, color=ESTIMATE_COLOUR, label="estimate", label_below=True
-    )
     e = pose_errors(est, ep.T_C_O_true, v, target.diameter)
     errors = f"{e['translation_m'] * 1000:.0f} mm, {e['rotation_deg']:.1f} deg off"
     return img, f"{estimator.name} estimate: {errors}", ERRORS_COLOUR

@@ -126,16 +126,12 @@ def _save(folder: Path, obs, est, ep, result) -> None:
     import cv2
     from PIL import Image
 
-    from perception.overlay import draw_pose
+    from perception.overlay import draw_estimate
 
     folder.mkdir(parents=True, exist_ok=True)
     mesh = ep.scene.target.model.mesh
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    img = draw_pose(obs.rgb, result.T_C_O_true, obs.K, v, f, color=(255, 255, 255), label="true")
-    if est is not None:
-        img = draw_pose(
-            img, est, obs.K, v, f, color=(0, 255, 0), label="estimate", label_below=True
-        )
+    img = draw_estimate(obs.rgb, obs.K, result.T_C_O_true, est, v, f)
     cv2.imwrite(str(folder / "head.png"), img[..., ::-1])
     frames = [Image.fromarray(fr) for fr in ep.frames]
     if frames:
