@@ -47,7 +47,7 @@ from sim.evaluate import evaluate, format_report
 from sim.world.objects import OBJECT_NAMES
 
 BASELINE = Path(__file__).resolve().parent / "gate_baseline.json"
-GATE_EPISODES = 25
+GATE_EPISODES = 40
 GATE_TIER = "hard"
 #: Held-out scenes (see `sim.world.constants.EVAL_SEED_BASE`), apart from the default evaluation's.
 GATE_SEED_START = 1_500_000_000
