@@ -1,6 +1,8 @@
 """Fit P(grasp success | pose error) per object and tier from noisy-oracle episodes.
 
     python -m sim.fit_success --tier isolated --episodes 100 --out docs/success_model.json
+    python -m sim.fit_success --refit                  # refit every model from its stored episodes
+    python -m sim.fit_success --check run.json ...     # predicted against measured success
 
 For every object, `--episodes` held-out noisy-oracle episodes run with the noise `SPREAD`: each
 episode draws its own sigma for each component (along and across the camera ray [mm], in-plane
@@ -9,17 +11,22 @@ covers every mix of the four components. Each episode's error components and out
 `perception.success_model.SuccessModel` whose bandwidths maximise the leave-one-out likelihood.
 The models of a tier replace that tier's in `--out` and keep the others.
 ``perception.training.tables --success-model`` then reports the grasp success the test-split
-poses should reach, without running a robot.
+poses should reach, without running a robot. `--refit` fits every model in `--out` again from the
+episodes it stores (no episodes are run). `--check` takes reports of ``sim.evaluate --json`` and
+prints, per report, the mean predicted probability of its episodes that have a pose estimate
+(each from its own pose errors, with the model of its object and tier) beside their measured
+success rate.
 """
 
 from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 
-from perception.success_model import COMPONENTS, SuccessModel, components_of
+from perception.success_model import COMPONENTS, SuccessModel, components_of, load_models
 from sim.core.cli import ArgumentParser, fail, write_json
 from sim.core.errors import AssetError, PosegraspError
 from sim.core.paths import DOCS_DIR
@@ -64,6 +71,42 @@ def fit(samples: list[dict], objects: list[str], tier: str) -> dict[str, dict]:
     return models
 
 
+def refit(models: dict[str, dict]) -> dict[str, dict]:
+    """Every model fitted again from the episodes it stores."""
+    out = {}
+    for key, raw in models.items():
+        m = SuccessModel.from_json(raw)
+        new = SuccessModel.fit(m.X, m.y)
+        out[key] = new.to_json() | {"episodes": len(m.y), "success_rate": new.rate}
+    return out
+
+
+def check(models: dict[str, SuccessModel], report: dict) -> tuple[float, int, int]:
+    """(mean predicted success, measured successes, episodes) over a report's episodes that have
+    a pose estimate.
+
+    Raises:
+        AssetError: a report without episodes, or an object or tier no model covers.
+    """
+    episodes = [e for e in report.get("episodes", []) if e.get("pose_error") is not None]
+    if not episodes:
+        raise AssetError("the report lists no episode with a pose error (sim.evaluate --json)")
+    p = []
+    for e in episodes:
+        key = f"{e['object']}/{e.get('tier', report.get('tier'))}"
+        if key not in models:
+            raise AssetError(f"no success model for {key}; fit it with `python -m sim.fit_success`")
+        p.append(float(models[key].predict(components_of(e["pose_error"]))))
+    return float(np.mean(p)), sum(bool(e["success"]) for e in episodes), len(episodes)
+
+
+def _read_json(path: Path, what: str) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise AssetError(f"cannot read {what} {path} ({exc})") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.fit_success", description=__doc__.split("\n")[0])
@@ -94,20 +137,41 @@ def main(argv: list[str] | None = None) -> int:
         default=DEFAULT_OUT,
         help="the models' JSON file",
     )
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--refit", action="store_true", help="refit the models from their episodes")
+    mode.add_argument("--check", type=Path, nargs="+", metavar="RUN", help="sim.evaluate reports")
     args = p.parse_args(argv)
     objects = args.objects
     try:
+        if args.check:
+            loaded = load_models(args.out)
+            for path in args.check:
+                report = _read_json(path, "report")
+                pred, k, n = check(loaded, report)
+                print(
+                    f"{path}: {report.get('estimator')} on {report.get('tier')}: predicted "
+                    f"{pred:.1%}, measured {k / n:.1%} ({k}/{n} episodes with an estimate)"
+                )
+            return 0
         old: dict = {}
         if args.out.is_file():
             try:
-                old = json.loads(args.out.read_text())["models"]
-            except (ValueError, KeyError, TypeError) as exc:
+                old = _read_json(args.out, "success models")["models"]
+            except (KeyError, TypeError) as exc:
                 raise AssetError(f"{args.out} is not a file of success models ({exc})") from None
-        samples = sample(objects, args.episodes, args.tier, args.workers)
-        models = {**old, **fit(samples, objects, args.tier)}
+        if args.refit:
+            if not old:
+                raise AssetError(f"{args.out} holds no models to refit")
+            models = refit(old)
+        else:
+            samples = sample(objects, args.episodes, args.tier, args.workers)
+            models = {**old, **fit(samples, objects, args.tier)}
     except PosegraspError as exc:
         return fail(str(exc))
-    for key in sorted(k for k in models if k.endswith(f"/{args.tier}")):
+    shown = (
+        sorted(models) if args.refit else sorted(k for k in models if k.endswith(f"/{args.tier}"))
+    )
+    for key in shown:
         m = models[key]
         bw = ", ".join(f"{c} {h:g}" for c, h in zip(COMPONENTS, m["bandwidth"], strict=True))
         print(

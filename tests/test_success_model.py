@@ -86,3 +86,61 @@ def test_fit_cli_rejects_bad_input_in_one_line(tmp_path: Path, capsys, argv, mes
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
     assert not (tmp_path / "m.json").exists()
+
+
+def test_the_prior_falls_with_every_error_beyond_the_sample() -> None:
+    X, y = _step_data()
+    m = SuccessModel.fit(X, y)
+    assert m.prior is not None and np.all(m.prior[1:] <= 0.0)
+    far = np.array([[300.0, 15, 5, 5], [3.0, 15, 5, 5]])
+    p = m.predict(far)
+    # 300 mm along the ray is ten times the sampled range: the estimate follows the prior down,
+    # where the overall rate (1/3 here) would have been returned before.
+    assert p[0] < 0.05 and p[1] > 0.9
+    constant = SuccessModel(m.X, m.y, m.bandwidth)  # the same kernel with the constant prior
+    assert constant.predict(far[0]) == pytest.approx(m.rate, abs=1e-6)
+
+
+def test_the_prior_improves_the_leave_one_out_likelihood() -> None:
+    rng = np.random.default_rng(3)
+    X = rng.uniform(0, 40, (200, 4))
+    y = (rng.uniform(size=200) < 1 / (1 + np.exp(0.2 * (X[:, 0] - 20)))).astype(float)
+    m = SuccessModel.fit(X, y)
+    assert m.log_likelihood > SuccessModel.loo_log_likelihood(X, y, m.bandwidth)
+
+
+def _report(tier: str, rows: list[tuple[str, float | None, bool]]) -> dict:
+    def error(ray: float | None) -> dict | None:
+        if ray is None:
+            return None
+        return {"ray_m": ray / 1000, "lateral_m": 0.0, "inplane_deg": 1.0, "outplane_deg": 1.0}
+
+    episodes = [
+        {"object": o, "tier": tier, "success": s, "pose_error": error(ray)} for o, ray, s in rows
+    ]
+    return {"estimator": "hybrid", "tier": tier, "episodes": episodes}
+
+
+def test_refit_and_check_from_the_cli(tmp_path: Path, capsys) -> None:
+    X, y = _step_data(80)
+    old = SuccessModel(X, y, np.full(4, 5.0))  # a file written before the prior existed
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps({"models": {"phone/far": old.to_json()}}))
+    assert fit_success.main(["--refit", "--out", str(path)]) == 0
+    new = load_models(path)["phone/far"]
+    assert new.prior is not None and new.log_likelihood > SuccessModel.loo_log_likelihood(
+        X, y, np.full(4, 5.0)
+    )
+    run = tmp_path / "run.json"
+    rows = [("phone", 2.0, True), ("phone", 200.0, False), ("phone", None, False)]
+    run.write_text(json.dumps(_report("far", rows)))
+    pred, k, n = fit_success.check({"phone/far": new}, _report("far", rows))
+    assert (k, n) == (1, 2)  # the episode without an estimate is not a pose error
+    want = np.mean([new.predict(np.array([2.0, 0, 1, 1])), new.predict(np.array([200, 0, 1, 1]))])
+    assert pred == pytest.approx(want)
+    capsys.readouterr()
+    assert fit_success.main(["--check", str(run), "--out", str(path)]) == 0
+    assert "measured 50.0% (1/2 episodes with an estimate)" in capsys.readouterr().out
+    run.write_text(json.dumps(_report("hard", rows)))
+    assert fit_success.main(["--check", str(run), "--out", str(path)]) != 0
+    assert "no success model for phone/hard" in capsys.readouterr().err
