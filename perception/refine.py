@@ -27,6 +27,7 @@ import itertools
 import time
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from perception.metrics import rotation_error_deg
@@ -34,6 +35,7 @@ from sim.core.errors import InvalidArgumentError
 from sim.core.transforms import axis_angle, check_intrinsics, rigid_problem
 from sim.world.objects import load_object
 
+_Opt = np.ndarray | None
 #: The refinement stops when a model vertex comes closer than this to the camera plane [m].
 MIN_DEPTH_M = 1e-3
 
@@ -83,8 +85,6 @@ class RefineConfig:
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear samples of an image (h, w[, C]) at pixel coordinates x, y (M, S) -> (M, S[, C]),
     borders replicated."""
-    import cv2
-
     out = cv2.remap(img, x.astype(np.float32), y.astype(np.float32), cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
     return out.reshape(x.shape + img.shape[2:])
@@ -102,20 +102,13 @@ class _Window:
     rgb: np.ndarray | None  # the whole image, (H, W, 3) uint8
 
 
-def _window(
-    mask: np.ndarray,
-    rgb: np.ndarray | None,
-    occluder: np.ndarray | None,
-    cfg: RefineConfig,
-) -> _Window:
+def _window(mask: np.ndarray, rgb: _Opt, occluder: _Opt, cfg: RefineConfig) -> _Window:
     """Cut the window around the mask and compute its signed distance field."""
-    import cv2
-
-    bx, by, bw, bh = cv2.boundingRect(mask.view(np.uint8))
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     H, W = mask.shape
-    pad = int(8 + cfg.margin * max(bw, bh))
-    x0, y0 = max(0, bx - pad), max(0, by - pad)
-    x1, y1 = min(W, bx + bw + pad), min(H, by + bh + pad)
+    pad = int(8 + cfg.margin * max(cols[-1] - cols[0] + 1, rows[-1] - rows[0] + 1))
+    x0, y0 = max(0, int(cols[0]) - pad), max(0, int(rows[0]) - pad)
+    x1, y1 = min(W, int(cols[-1]) + 1 + pad), min(H, int(rows[-1]) + 1 + pad)
     m = np.ascontiguousarray(mask[y0:y1, x0:x1])
     m8 = m.view(np.uint8)
     sdf = cv2.distanceTransform(1 - m8, cv2.DIST_L2, cv2.DIST_MASK_3)
@@ -226,8 +219,8 @@ class PoseRefiner:
             T[:3, 3] += step[3:]
             if angle < 1e-5 and np.abs(step[3:]).max() < 1e-6:
                 break
-        final = _contour(T, Kw, verts, slices, win, cfg)
-        iou_after = _iou(final[0], win) if final is not None else 0.0
+        final = _draw(T, Kw, verts, slices, win.mask.shape)
+        iou_after = _iou(final[1], win) if final is not None else 0.0
         iou_before = iou_before if iou_before is not None else 0.0
         rot = rotation_error_deg(T[:3, :3], T0[:3, :3])
         shift = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
@@ -249,15 +242,10 @@ class PoseRefiner:
 
 
 def _check_inputs(
-    T_C_O: np.ndarray,
-    K: np.ndarray,
-    mask: np.ndarray,
-    rgb: np.ndarray | None,
-    occluder: np.ndarray | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    T_C_O: np.ndarray, K: np.ndarray, mask: np.ndarray, rgb: _Opt, occluder: _Opt
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, _Opt, _Opt]:
     """Validated float64 pose and K, bool mask and occluder, uint8 image."""
-    problem = rigid_problem(T_C_O, 1e-4)
-    if problem is not None:
+    if (problem := rigid_problem(T_C_O, 1e-4)) is not None:
         raise InvalidArgumentError(f"T_C_O {problem}")
     T = np.asarray(T_C_O, np.float64)
     if T[2, 3] <= 0:
@@ -289,6 +277,25 @@ def _iou(sil: np.ndarray, win: _Window) -> float:
     return inter / union if union else 0.0
 
 
+def _draw(
+    T: np.ndarray, Kw: np.ndarray, verts: np.ndarray, slices: np.ndarray, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]] | None:
+    """The model drawn at T in a window of `shape`: vertex pixels (n, 2), silhouette (h, w) bool
+    and each part's hull (vertex indices), or None when a vertex is behind the camera."""
+    Xc = verts @ T[:3, :3].T + T[:3, 3]
+    if Xc[:, 2].min() < MIN_DEPTH_M:
+        return None
+    uv = (Xc @ Kw.T)[:, :2] / Xc[:, 2:3]
+    pts, pts16 = uv.astype(np.float32), np.round(uv * 16).astype(np.int32)
+    sil = np.zeros(shape, np.uint8)
+    hulls = []
+    for i0, i1 in itertools.pairwise(slices):
+        hull = cv2.convexHull(pts[i0:i1], returnPoints=False)[:, 0] + i0
+        cv2.fillConvexPoly(sil, pts16[hull], 1, cv2.LINE_8, 4)
+        hulls.append(hull)
+    return uv, sil.view(bool), hulls
+
+
 def _contour(
     T: np.ndarray,
     Kw: np.ndarray,
@@ -303,19 +310,10 @@ def _contour(
         (silhouette (h, w) bool, contour points in O (M, 3) [m], their pixels (M, 2) and outward
         unit normals (M, 2) in window coordinates), or None when a vertex is behind the camera.
     """
-    import cv2
-
-    Xc = verts @ T[:3, :3].T + T[:3, 3]
-    if Xc[:, 2].min() < MIN_DEPTH_M:
+    drawn = _draw(T, Kw, verts, slices, win.mask.shape)
+    if drawn is None:
         return None
-    uv = (Xc @ Kw.T)[:, :2] / Xc[:, 2:3]
-    pts, pts16 = uv.astype(np.float32), np.round(uv * 16).astype(np.int32)
-    sil = np.zeros(win.mask.shape, np.uint8)
-    hulls = []
-    for i0, i1 in itertools.pairwise(slices):
-        hull = cv2.convexHull(pts[i0:i1], returnPoints=False)[:, 0] + i0
-        cv2.fillConvexPoly(sil, pts16[hull], 1, cv2.LINE_8, 4)
-        hulls.append(hull)
+    uv, sil, hulls = drawn
     sizes = np.array([len(h) for h in hulls])
     a = np.concatenate(hulls)
     nxt = np.arange(1, len(a) + 1)
@@ -339,12 +337,12 @@ def _contour(
     q = np.round(p + 1.5 * n).astype(np.int64)
     inq = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
     outer = ~inq
-    outer[inq] = sil[q[inq, 1], q[inq, 0]] == 0
+    outer[inq] = ~sil[q[inq, 1], q[inq, 0]]
     pi = np.round(p).astype(np.int64)
     inside = (pi[:, 0] >= 1) & (pi[:, 0] < w - 1) & (pi[:, 1] >= 1) & (pi[:, 1] < h - 1)
     ok = outer & inside
     ok[ok] = ~win.hidden[pi[ok, 1], pi[ok, 0]]
-    return sil.astype(bool), X_O[ok], p[ok], n[ok]
+    return sil, X_O[ok], p[ok], n[ok]
 
 
 def _residuals(
