@@ -62,7 +62,7 @@ class RefineConfig:
 
     iterations: int = 6
     mask_only_iterations: int = 3
-    spacing_px: float = 2.0
+    spacing_px: float = 2.5
     edge_search_px: float = 4.0
     edge_gate_px: float = 3.0
     edge_min: float = 8.0
