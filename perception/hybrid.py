@@ -218,7 +218,7 @@ class HybridPoseEstimator:
         K: np.ndarray,
         dets: list[Detection],
         timings: dict[str, float],
-        scene: list[Detection] = (),
+        scene: Sequence[Detection] = (),
     ) -> list[PoseDetection]:
         """Crop, nets and decode for some detections (`scene`: all the image's detections, whose
         masks may hide an object); adds each stage's time to `timings`."""

@@ -43,16 +43,26 @@ def silhouette(
     return mask.astype(bool)
 
 
+def mask_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """The bounding box of a mask's pixels, (x0, y0, x1, y1) with x1 and y1 exclusive, from its
+    row and column projections; None for an empty mask."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return None
+    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
+
+
 def mask_window(mask: np.ndarray, margin: float = 0.4) -> tuple[int, int, int, int] | None:
     """The mask's bounding box grown by `margin` times its width and height on each side and
     clipped to the image: (x0, y0, x1, y1), x1 and y1 exclusive; None for an empty mask."""
-    ys, xs = np.nonzero(mask)
-    if len(xs) == 0:
+    box = mask_box(mask)
+    if box is None:
         return None
-    bw, bh = xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
-    x0, y0 = max(0, int(xs.min() - margin * bw)), max(0, int(ys.min() - margin * bh))
-    x1 = min(mask.shape[1], int(xs.max() + margin * bw) + 1)
-    y1 = min(mask.shape[0], int(ys.max() + margin * bh) + 1)
+    bx0, by0, bx1, by1 = box
+    bw, bh = bx1 - bx0, by1 - by0
+    x0, y0 = max(0, int(bx0 - margin * bw)), max(0, int(by0 - margin * bh))
+    x1 = min(mask.shape[1], int(bx1 - 1 + margin * bw) + 1)
+    y1 = min(mask.shape[0], int(by1 - 1 + margin * bh) + 1)
     return x0, y0, x1, y1
 
 

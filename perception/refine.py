@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from perception.metrics import rotation_error_deg
+from perception.overlay import mask_box, window_intrinsics
 from sim.core.errors import InvalidArgumentError
 from sim.core.transforms import axis_angle, check_intrinsics, rigid_problem
 from sim.world.objects import load_object
@@ -102,13 +103,14 @@ class _Window:
     rgb: np.ndarray | None  # the whole image, (H, W, 3) uint8
 
 
-def _window(mask: np.ndarray, rgb: _Opt, occluder: _Opt, cfg: RefineConfig) -> _Window:
-    """Cut the window around the mask and compute its signed distance field."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+def _window(mask: np.ndarray, box: tuple[int, int, int, int], rgb: _Opt, occluder: _Opt,
+            cfg: RefineConfig) -> _Window:  # fmt: skip
+    """Cut the window around the mask's box (`mask_box`) and compute its signed distance field."""
+    bx0, by0, bx1, by1 = box
     H, W = mask.shape
-    pad = int(8 + cfg.margin * max(cols[-1] - cols[0] + 1, rows[-1] - rows[0] + 1))
-    x0, y0 = max(0, int(cols[0]) - pad), max(0, int(rows[0]) - pad)
-    x1, y1 = min(W, int(cols[-1]) + 1 + pad), min(H, int(rows[-1]) + 1 + pad)
+    pad = int(8 + cfg.margin * max(bx1 - bx0, by1 - by0))
+    x0, y0 = max(0, bx0 - pad), max(0, by0 - pad)
+    x1, y1 = min(W, bx1 + pad), min(H, by1 + pad)
     m = np.ascontiguousarray(mask[y0:y1, x0:x1])
     m8 = m.view(np.uint8)
     sdf = cv2.distanceTransform(1 - m8, cv2.DIST_L2, cv2.DIST_MASK_3)
@@ -180,11 +182,11 @@ class PoseRefiner:
         parts = self.part_vertices(name)
         T0, K, mask, rgb, occluder = _check_inputs(T_C_O, K, mask, rgb, occluder)
         info: dict = {"iterations": 0, "points": 0, "edge_points": 0, "accepted": False}
-        if not mask.any():
+        if (box := mask_box(mask)) is None:
             info |= {"iou_before": 0.0, "iou_after": 0.0, "reason": "empty mask"}
             return T0.copy(), info | {"time_ms": (time.perf_counter() - t_start) * 1000}
-        win = _window(mask, rgb, occluder, cfg := self.config)
-        Kw = K - np.array([[0, 0, win.x0], [0, 0, win.y0], [0, 0, 0]])  # window pixels
+        win = _window(mask, box, rgb, occluder, cfg := self.config)
+        Kw = window_intrinsics(K, win.x0, win.y0)
         verts = np.concatenate(parts)
         slices = np.cumsum([0] + [len(p) for p in parts])
         T, lam = T0.copy(), 1e-3

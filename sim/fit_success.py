@@ -59,6 +59,11 @@ def sample(objects: list[str], episodes: int, tier: str, workers: int) -> list[d
     ]
 
 
+def _record(model: SuccessModel) -> dict:
+    """A model as stored: its JSON, its episode count and success rate."""
+    return model.to_json() | {"episodes": len(model.y), "success_rate": model.rate}
+
+
 def fit(samples: list[dict], objects: list[str], tier: str) -> dict[str, dict]:
     """One model per object from its samples, by ``"<object>/<tier>"``."""
     models = {}
@@ -66,8 +71,7 @@ def fit(samples: list[dict], objects: list[str], tier: str) -> dict[str, dict]:
         mine = [s for s in samples if s["object"] == o]
         X = np.array([s["x"] for s in mine])
         y = np.array([s["success"] for s in mine], float)
-        m = SuccessModel.fit(X, y)
-        models[f"{o}/{tier}"] = m.to_json() | {"episodes": len(mine), "success_rate": m.rate}
+        models[f"{o}/{tier}"] = _record(SuccessModel.fit(X, y))
     return models
 
 
@@ -76,8 +80,7 @@ def refit(models: dict[str, dict]) -> dict[str, dict]:
     out = {}
     for key, raw in models.items():
         m = SuccessModel.from_json(raw)
-        new = SuccessModel.fit(m.X, m.y)
-        out[key] = new.to_json() | {"episodes": len(m.y), "success_rate": new.rate}
+        out[key] = _record(SuccessModel.fit(m.X, m.y))
     return out
 
 
