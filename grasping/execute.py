@@ -157,9 +157,11 @@ class Executor:
         self.scene.data.ctrl[self.fingers] = opening
 
     def _touching(self, a: set[int], b: set[int]) -> bool:
-        d = self.scene.data
-        for i in range(d.ncon):
-            g1, g2 = int(d.contact.geom1[i]), int(d.contact.geom2[i])
+        """Some contact of the current step is between a geom of a and one of b."""
+        if self.scene.data.ncon == 0:
+            return False
+        contact = self.scene.data.contact  # one view: its fields are read once per call
+        for g1, g2 in zip(contact.geom1.tolist(), contact.geom2.tolist()):
             if (g1 in a and g2 in b) or (g1 in b and g2 in a):
                 return True
         return False

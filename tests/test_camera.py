@@ -21,7 +21,7 @@ from sim.world.camera import (
     _shared_cache,
     camera_intrinsics,
     check_resolution,
-    render_assets_key,
+    same_render_assets,
     scene_capacity,
 )
 
@@ -194,9 +194,13 @@ def test_render_context_shared_across_scenes_renders_what_a_fresh_one_does() -> 
     cfg = SceneConfig(n_distractors=2, randomize_appearance=True)
     first = build_scene("car", 3, cfg)
     second = build_scene("phone", 4, cfg)
-    key = render_assets_key(first.model, mujoco.mjtFontScale.mjFONTSCALE_150)
-    assert key == render_assets_key(second.model, mujoco.mjtFontScale.mjFONTSCALE_150)
-    assert key != render_assets_key(first.model, mujoco.mjtFontScale.mjFONTSCALE_50)
+    assert same_render_assets(first.model, second.model)
+    bigger = build_scene("phone", 4, cfg).model
+    bigger.vis.global_.offwidth += 1  # another offscreen buffer: not the same context
+    assert not same_render_assets(first.model, bigger)
+    retextured = build_scene("phone", 4, cfg).model
+    retextured.tex_data[0] ^= 1  # another texture: not the same context
+    assert not same_render_assets(first.model, retextured)
     with CameraRenderer(first.model, 160, 120) as r:
         r.rgb(first.data, C.HEAD_CAMERA)
     with CameraRenderer(second.model, 160, 120) as r:  # reuses the cached context

@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import json
 import os
+import struct
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -48,13 +50,10 @@ from sim.world.objects import OBJECT_NAMES
 
 IMAGES_PER_SCENE = 1000
 MM_PER_M = 1000.0
-#: Fixed PNG encoder settings (fast zlib level, run-length strategy): same image, same bytes.
-PNG_PARAMS = [
-    cv2.IMWRITE_PNG_COMPRESSION,
-    1,
-    cv2.IMWRITE_PNG_STRATEGY,
-    cv2.IMWRITE_PNG_STRATEGY_RLE,
-]
+#: zlib level of the PNGs written (`png_bytes`): fast, and a fixed level gives the same bytes
+#: for the same image.
+PNG_LEVEL = 2
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_END = b"IEND\xaeB`\x82"
 #: The four per-scene files (``<name>.json``), merged from the image records.
 SCENE_FILES = ("scene_gt", "scene_camera", "scene_gt_info", "scene_posegrasp")
@@ -127,13 +126,36 @@ def write_json(path: Path, obj: Any, indent: int | None = 1) -> None:
     _atomic_write(Path(path), json_bytes(obj, indent))
 
 
+def _png_chunk(kind: bytes, body: bytes) -> bytes:
+    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+
 def png_bytes(image: np.ndarray) -> bytes:
-    """PNG encoding of an RGB (H, W, 3) or grey (H, W) uint8 image, with `PNG_PARAMS`."""
-    img = image[..., ::-1] if image.ndim == 3 else image
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img), PNG_PARAMS)
-    if not ok:
-        raise AssetError(f"cannot encode an image of shape {image.shape} as PNG")
-    return buf.tobytes()
+    """PNG encoding of an RGB (H, W, 3) or grey (H, W) uint8 image: 8 bits per channel, every
+    row unfiltered, one zlib stream at `PNG_LEVEL`.
+
+    Rendered images compress about as well without PNG's row filters as libpng does with its
+    adaptive filter choice (67 against 63 kB for a 640x480 head-camera image), in a quarter of
+    the time; masks, mostly zeros, compress to about 1.5 kB.
+    """
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
+        raise AssetError(
+            f"cannot encode an image of shape {img.shape} and type {img.dtype} as PNG: "
+            "expected (H, W) or (H, W, 3) uint8"
+        )
+    h, w = img.shape[:2]
+    if h == 0 or w == 0:
+        raise AssetError(f"cannot encode an empty image of shape {img.shape} as PNG")
+    rows = np.zeros((h, 1 + img[0].size), np.uint8)  # leading 0: filter type None
+    rows[:, 1:] = img.reshape(h, -1)
+    header = struct.pack(">IIBBBBB", w, h, 8, 2 if img.ndim == 3 else 0, 0, 0, 0)
+    return (
+        _PNG_SIGNATURE
+        + _png_chunk(b"IHDR", header)
+        + _png_chunk(b"IDAT", zlib.compress(rows.tobytes(), PNG_LEVEL))
+        + _png_chunk(b"IEND", b"")
+    )
 
 
 def write_bytes(path: Path, payload: bytes) -> None:
@@ -218,7 +240,7 @@ def read_png(path: Path, root: Path, split: str | None, grey: bool = False) -> n
         raise AssetError(f"missing dataset file {path}; {rebuild_hint(root, split)}") from None
     # A PNG ends with the IEND chunk; a file cut short does not (cv2 may still decode part).
     img = None
-    if raw.startswith(b"\x89PNG\r\n\x1a\n") and raw.endswith(_PNG_END):
+    if raw.startswith(_PNG_SIGNATURE) and raw.endswith(_PNG_END):
         flag = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR
         img = cv2.imdecode(np.frombuffer(raw, np.uint8), flag)
     if img is None:

@@ -24,7 +24,7 @@ from perception.training.studio import HIDDEN_GROUP, Studio, StudioConfig
 from sim.core.errors import InvalidArgumentError, UnknownNameError
 from sim.core.transforms import invert_transform
 from sim.world import constants as C
-from sim.world.camera import T_world_cam, body_mask, camera_intrinsics
+from sim.world.camera import T_world_cam, camera_intrinsics
 from sim.world.scene import Scene, SceneConfig, build_scene
 from sim.world.tiers import tier_scene
 
@@ -122,32 +122,49 @@ class HeadcamGenerator:
         return build_scene(name, seed, SceneConfig(n_distractors=0, randomize_appearance=True))
 
     def render(self, name: str, seed: int) -> RenderedImage:
-        """The head camera's view of `_scene` with its visible objects."""
+        """The head camera's view of `_scene` with its visible objects.
+
+        Each object's full silhouette is drawn with every other geom hidden and read back, as
+        depth, only inside a box that holds its projection; its visible pixels are those where
+        that depth is not behind the scene's depth there (the same triangles under the same
+        camera write the same depths), so no segmentation render is needed.
+        """
         scene = self._scene(name, seed)
         model, data, r = scene.model, scene.data, self.renderer
         cam = model.camera(C.HEAD_CAMERA).id
         K = camera_intrinsics(model, C.HEAD_CAMERA, self.width, self.height)
         T_C_W = invert_transform(T_world_cam(model, data, C.HEAD_CAMERA))
-        rgb = r.render(model, data, cam)
-        seg = r.geom_ids(model, data, cam)
-        groups = model.geom_group.copy()
-        objects = []
+        r.draw(model, data, cam)
+        rgb = r.read_rgb()
+        windows, front = [], []
         for placed in scene.objects:
-            T_C_O = T_C_W @ scene.object_pose(placed.body)
-            visib = body_mask(model, seg, placed.body)
-            if T_C_O[2, 3] <= 0 or not visib.any():
-                continue
-            # The full silhouette: the same view with every other geom hidden, read back only
-            # inside a box that holds the body's projection.
             bid = model.body(placed.body).id
             window = _body_window(model, data, bid, T_C_W, K, self.width, self.height)
+            window = window or (0, 0, self.width, self.height)
+            windows.append((bid, window))
+            front.append(r.read_depth(window))
+        groups = model.geom_group.copy()
+        objects = []
+        for placed, (bid, window), scene_depth in zip(scene.objects, windows, front):
+            T_C_O = T_C_W @ scene.object_pose(placed.body)
+            if T_C_O[2, 3] <= 0:
+                continue
             model.geom_group[:] = np.where(model.geom_bodyid == bid, groups, HIDDEN_GROUP)
             try:
-                full = body_mask(model, r.geom_ids(model, data, cam, window=window), placed.body)
+                r.draw(model, data, cam)
+                depth = r.read_depth(window)
             finally:
                 model.geom_group[:] = groups
+            drawn = depth < 1.0
+            seen = drawn & (depth <= scene_depth)
+            if not seen.any():
+                continue
+            full = np.zeros((self.height, self.width), bool)
+            visib = np.zeros_like(full)
+            x0, y0, x1, y1 = window
+            full[y0:y1, x0:x1], visib[y0:y1, x0:x1] = drawn, seen
             extra = {"body": placed.body, "target": placed is scene.target}
-            objects.append(RenderedObject(placed.name, T_C_O, full | visib, visib, extra))
+            objects.append(RenderedObject(placed.name, T_C_O, full, visib, extra))
         extra = {"target": name, "n_distractors": len(scene.objects) - 1}
         return RenderedImage(rgb, K, T_C_W, objects, extra)
 

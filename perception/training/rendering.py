@@ -6,6 +6,7 @@ import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is im
 import mujoco
 import numpy as np
 
+from sim.core.errors import StateError
 from sim.world.camera import RenderContextCache, geom_ids_from_colours, scene_capacity
 
 
@@ -33,6 +34,7 @@ class OffscreenRenderer:
         self._pert = mujoco.MjvPerturb()
         self._rect = mujoco.MjrRect(0, 0, width, height)
         self._buf = np.empty((height, width, 3), np.uint8)
+        self._drawn: mujoco.MjrContext | None = None  # the render context of the last draw
 
     def _bind(self, model: mujoco.MjModel) -> tuple[mujoco.MjrContext, mujoco.MjvScene]:
         if self._gl is None:
@@ -52,22 +54,17 @@ class OffscreenRenderer:
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, ctx)
         return ctx, self._scene
 
-    def render(
+    def draw(
         self,
         model: mujoco.MjModel,
         data: mujoco.MjData,
         camera: int,
         opt: mujoco.MjvOption | None = None,
         segment: bool = False,
-        window: tuple[int, int, int, int] | None = None,
-    ) -> np.ndarray:
-        """RGB image, or segmentation id colours if segment (black where nothing is drawn).
-
-        Needs up-to-date kinematics and camera poses in data. With a window (x0, y0, x1, y1)
-        [px, top-left origin, ends excluded] only those pixels are read back and the rest is
-        black, which costs less when little of the image is wanted. Returns shape (H, W, 3),
-        uint8.
-        """
+    ) -> None:
+        """Render a view into the offscreen buffer without reading it back (`read_rgb`,
+        `read_depth` read it). Needs up-to-date kinematics and camera poses in data; segment
+        draws segmentation id colours."""
         ctx, scene = self._bind(model)
         self._cam.fixedcamid = camera
         mujoco.mjv_updateScene(
@@ -82,6 +79,24 @@ class OffscreenRenderer:
         scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = segment
         scene.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = segment
         mujoco.mjr_render(self._rect, scene, ctx)
+        self._drawn = ctx
+
+    def _drawn_context(self) -> mujoco.MjrContext:
+        if self._drawn is None:
+            raise StateError("nothing is drawn yet: call draw() before reading pixels back")
+        self._gl.make_current()
+        return self._drawn
+
+    def _read_rect(self, window: tuple[int, int, int, int]) -> mujoco.MjrRect:
+        x0, y0, x1, y1 = window
+        # OpenGL rows run bottom to top.
+        return mujoco.MjrRect(x0, self.height - y1, x1 - x0, y1 - y0)
+
+    def read_rgb(self, window: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        """The colours of the last `draw`, shape (H, W, 3), uint8; with a window (x0, y0, x1, y1)
+        [px, top-left origin, ends excluded] only those pixels are read back and the rest is
+        black, which costs less when little of the image is wanted."""
+        ctx = self._drawn_context()
         if window is None:
             mujoco.mjr_readPixels(self._buf, None, self._rect, ctx)
             return np.flipud(self._buf).copy()
@@ -90,11 +105,35 @@ class OffscreenRenderer:
         if x1 <= x0 or y1 <= y0:
             return out
         part = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
-        # OpenGL rows run bottom to top.
-        rect = mujoco.MjrRect(x0, self.height - y1, x1 - x0, y1 - y0)
-        mujoco.mjr_readPixels(part, None, rect, ctx)
+        mujoco.mjr_readPixels(part, None, self._read_rect(window), ctx)
         out[y0:y1, x0:x1] = np.flipud(part)
         return out
+
+    def read_depth(self, window: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        """The depth buffer of the last `draw` (OpenGL window depth in [0, 1], 1 where nothing is
+        drawn), only inside window (x0, y0, x1, y1) when given: shape (y1 - y0, x1 - x0), else
+        (H, W); float32, top row first. Two draws of the same geom under the same camera write
+        the same depths, so comparing them tells which surface is in front."""
+        ctx = self._drawn_context()
+        x0, y0, x1, y1 = window if window is not None else (0, 0, self.width, self.height)
+        out = np.ones((max(0, y1 - y0), max(0, x1 - x0)), np.float32)
+        if out.size:
+            mujoco.mjr_readPixels(None, out, self._read_rect((x0, y0, x1, y1)), ctx)
+        return np.flipud(out)
+
+    def render(
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        camera: int,
+        opt: mujoco.MjvOption | None = None,
+        segment: bool = False,
+        window: tuple[int, int, int, int] | None = None,
+    ) -> np.ndarray:
+        """RGB image, or segmentation id colours if segment (black where nothing is drawn):
+        `draw` then `read_rgb(window)`. Returns shape (H, W, 3), uint8."""
+        self.draw(model, data, camera, opt, segment)
+        return self.read_rgb(window)
 
     def geom_ids(
         self,
@@ -116,4 +155,4 @@ class OffscreenRenderer:
             self._contexts.free()
             self._gl.free()
             self._gl = None
-        self._model = self._scene = None
+        self._model = self._scene = self._drawn = None

@@ -6,7 +6,6 @@ Frames: a MuJoCo camera looks along its -z with y up; posegrasp's camera frame i
 
 from __future__ import annotations
 
-import hashlib
 import os
 from dataclasses import dataclass
 
@@ -156,22 +155,26 @@ _ASSET_ARRAYS = (
 )  # fmt: skip
 
 
-def render_assets_key(model: mujoco.MjModel, font_scale: int) -> bytes | None:
-    """What a render context built for model depends on besides a few per-model fields: the
-    meshes, textures, offscreen buffer and font. None for models a context is never shared
-    across (height fields, skins, flexes)."""
-    if model.nhfield or model.nskin or model.nflex:
-        return None
-    g, q = model.vis.global_, model.vis.quality
-    h = hashlib.blake2b(digest_size=16)
-    sizes = (model.nmesh, model.ntex, model.nmat, g.offwidth, g.offheight, q.offsamples,
-             q.shadowsize, int(font_scale))  # fmt: skip
-    h.update(repr(sizes).encode())
+def _render_sizes(m: mujoco.MjModel) -> tuple[int, ...]:
+    g, q = m.vis.global_, m.vis.quality
+    return (m.nmesh, m.ntex, m.nmat, g.offwidth, g.offheight, q.offsamples, q.shadowsize)
+
+
+def same_render_assets(a: mujoco.MjModel, b: mujoco.MjModel) -> bool:
+    """Whether a render context built for model a serves model b as well: the same meshes,
+    textures and offscreen buffer (compared array by array, no copies). Never for models with
+    height fields, skins or flexes, whose contexts are not shared."""
+    if any(m.nhfield or m.nskin or m.nflex for m in (a, b)):
+        return False
+    if _render_sizes(a) != _render_sizes(b):
+        return False
     for name in _ASSET_ARRAYS:
-        arr = getattr(model, name, None)
-        if arr is not None:
-            h.update(np.ascontiguousarray(arr).tobytes())
-    return h.digest()
+        x, y = getattr(a, name, None), getattr(b, name, None)
+        if (x is None) != (y is None):
+            return False
+        if x is not None and (x.shape != y.shape or not np.array_equal(x, y)):
+            return False
+    return True
 
 
 def scene_capacity(model: mujoco.MjModel) -> int:
@@ -198,20 +201,17 @@ class RenderContextCache:
     def __init__(self, font_scale: int) -> None:
         self.font_scale = font_scale
         self._ctx: mujoco.MjrContext | None = None
-        self._key: bytes | None = None
         self._model: mujoco.MjModel | None = None
 
     def get(self, model: mujoco.MjModel) -> mujoco.MjrContext:
         """The render context for model (its assets are compared when the model changes)."""
         if self._ctx is not None and model is self._model:
             return self._ctx
-        key = render_assets_key(model, self.font_scale)
-        if self._ctx is not None and key is not None and key == self._key:
+        if self._ctx is not None and same_render_assets(self._model, model):
             _refresh(self._ctx, model)
         else:
             self.free()
             self._ctx = mujoco.MjrContext(model, self.font_scale)
-            self._key = key
         self._model = model
         return self._ctx
 
@@ -219,7 +219,7 @@ class RenderContextCache:
         """Free the context (on its GL context, which must be current)."""
         if self._ctx is not None:
             self._ctx.free()
-        self._ctx = self._key = self._model = None
+        self._ctx = self._model = None
 
 
 def _refresh(ctx: mujoco.MjrContext, model: mujoco.MjModel) -> None:
