@@ -161,7 +161,7 @@ class Executor:
         if self.scene.data.ncon == 0:
             return False
         contact = self.scene.data.contact  # one view: its fields are read once per call
-        for g1, g2 in zip(contact.geom1.tolist(), contact.geom2.tolist()):
+        for g1, g2 in zip(contact.geom1.tolist(), contact.geom2.tolist(), strict=True):
             if (g1 in a and g2 in b) or (g1 in b and g2 in a):
                 return True
         return False

@@ -145,7 +145,7 @@ class HeadcamGenerator:
             front.append(r.read_depth(window))
         groups = model.geom_group.copy()
         objects = []
-        for placed, (bid, window), scene_depth in zip(scene.objects, windows, front):
+        for placed, (bid, window), scene_depth in zip(scene.objects, windows, front, strict=True):
             T_C_O = T_C_W @ scene.object_pose(placed.body)
             if T_C_O[2, 3] <= 0:
                 continue
