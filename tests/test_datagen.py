@@ -214,8 +214,9 @@ def test_wall_time_is_recorded_per_split(paper: Path) -> None:
     assert set(times) == {"val"} and times["val"] > 0
 
 
-def test_full_silhouette_read_inside_its_window_is_the_whole_one() -> None:
-    # The generator reads each object's full silhouette back only inside a projected box.
+def test_depth_read_inside_a_window_is_that_part_of_the_whole_one() -> None:
+    # The generator reads each object's depth back only inside its projected box: the box must
+    # hold every pixel the object covers, and the part read must equal the whole read there.
     from perception.training.generators import HeadcamGenerator, _body_window
     from perception.training.studio import HIDDEN_GROUP
 
@@ -230,13 +231,16 @@ def test_full_silhouette_read_inside_its_window_is_the_whole_one() -> None:
         seen = 0
         for placed in scene.objects:
             bid = model.body(placed.body).id
-            window = _body_window(model, data, bid, T_C_W, K, 320, 240)
+            x0, y0, x1, y1 = _body_window(model, data, bid, T_C_W, K, 320, 240)
             model.geom_group[:] = np.where(model.geom_bodyid == bid, groups, HIDDEN_GROUP)
-            whole = r.geom_ids(model, data, cam)
-            part = r.geom_ids(model, data, cam, window=window)
+            r.draw(model, data, cam)
+            whole, part = r.read_depth(), r.read_depth((x0, y0, x1, y1))
             model.geom_group[:] = groups
-            np.testing.assert_array_equal(part, whole)
-            seen += int((whole >= 0).any())
+            np.testing.assert_array_equal(part, whole[y0:y1, x0:x1])
+            inside = np.zeros_like(whole, bool)
+            inside[y0:y1, x0:x1] = True
+            assert not (whole[~inside] < 1.0).any()
+            seen += int((part < 1.0).any())
         assert seen >= 2
     finally:
         gen.close()
@@ -246,7 +250,7 @@ def test_visible_masks_from_depth_match_a_segmentation_render() -> None:
     # The generator tells an object's visible pixels by comparing its own depth with the
     # scene's; a segmentation render of the same view must agree but for depth ties.
     from perception.training.generators import HeadcamGenerator
-    from sim.world.camera import body_mask
+    from sim.world.camera import CameraRenderer, body_mask
 
     gen = HeadcamGenerator(320, 240, tier="hard")
     try:
@@ -254,10 +258,11 @@ def test_visible_masks_from_depth_match_a_segmentation_render() -> None:
         for seed in range(3):
             image = gen.render("phone", 40 + seed)
             scene = gen._scene("phone", 40 + seed)
-            model, r = scene.model, gen.renderer
+            model = scene.model
             cam = model.camera(C.HEAD_CAMERA).id
-            np.testing.assert_array_equal(r.render(model, scene.data, cam), image.rgb)
-            seg = r.geom_ids(model, scene.data, cam)
+            np.testing.assert_array_equal(gen.renderer.render(model, scene.data, cam), image.rgb)
+            with CameraRenderer(model, 320, 240) as ref:
+                seg = ref.segmentation(scene.data, cam)
             for obj in image.objects:
                 expected = body_mask(model, seg, obj.extra["body"])
                 assert not (obj.mask_visib & ~obj.mask).any()

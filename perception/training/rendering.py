@@ -1,4 +1,4 @@
-"""Offscreen RGB and segmentation renders of a MuJoCo model's fixed cameras, one GL context."""
+"""Offscreen RGB, depth and segmentation renders of a MuJoCo model's fixed cameras, one GL context."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import mujoco
 import numpy as np
 
 from sim.core.errors import StateError
-from sim.world.camera import RenderContextCache, geom_ids_from_colours, scene_capacity
+from sim.world.camera import RenderContextCache, scene_capacity
 
 
 class OffscreenRenderer:
@@ -134,19 +134,6 @@ class OffscreenRenderer:
         `draw` then `read_rgb(window)`. Returns shape (H, W, 3), uint8."""
         self.draw(model, data, camera, opt, segment)
         return self.read_rgb(window)
-
-    def geom_ids(
-        self,
-        model: mujoco.MjModel,
-        data: mujoco.MjData,
-        camera: int,
-        opt: mujoco.MjvOption | None = None,
-        window: tuple[int, int, int, int] | None = None,
-    ) -> np.ndarray:
-        """Geom id per pixel (-1 where no geom is drawn, or outside the window of `render`),
-        shape (H, W), int32."""
-        rgb = self.render(model, data, camera, opt, segment=True, window=window)
-        return geom_ids_from_colours(rgb, self._bind(model)[1])
 
     def close(self) -> None:
         """Free the render and GL contexts."""
