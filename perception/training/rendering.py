@@ -1,4 +1,4 @@
-"""Offscreen RGB, depth and segmentation renders of a MuJoCo model's fixed cameras, one GL context."""
+"""Offscreen RGB, depth and segmentation renders of fixed cameras, one GL context."""
 
 from __future__ import annotations
 
