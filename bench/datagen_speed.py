@@ -1,17 +1,23 @@
 """Dataset generation speed: images per second, end to end (render + PNG/JSON writes).
 
-    python bench/datagen_speed.py [--paper N] [--headcam N] [--workers K]
+    python bench/datagen_speed.py [--paper N] [--headcam N] [--workers K] [--views V]
 
 Prints, for the paper protocol at 256x256 in one process and with K worker processes (default 2;
 the target is >= 50 images/s on 2 cores), and for the head-camera distribution at 640x480 in one
-process:
+process, with K workers, and with K workers rendering V views per scene (`--views`, default 4;
+the target is >= 30 images/s on 2 cores):
 
-- the end-to-end rate (including the workers' start-up: spawn, imports, GL contexts);
-- the steady rate, timed from the first finished image to the last;
-- the CPU time per image (this process and its workers), which does not depend on how busy the
-  machine is; cores / CPU time is the rate an otherwise idle machine would reach.
+- the end-to-end rate of a run of 2N images (including the workers' start-up: spawn, imports,
+  GL contexts);
+- the rate of a long run, start-up cancelled: N more images (a fresh run of 2N against one of
+  N) take the difference of the two wall times; this is the rate of a split of thousands;
+- the CPU time per image of a long run, the same difference in CPU time (this process and its
+  workers); it does not depend on how busy the machine is, and cores / CPU time is the rate an
+  otherwise idle machine would reach.
 
-Output goes to a temporary folder that is deleted afterwards.
+Output goes to a temporary folder in the data root (`$POSEGRASP_DATA`, else data/), where
+generated data normally goes (file creation costs differ between file systems), and is deleted
+afterwards.
 """
 
 from __future__ import annotations
@@ -22,9 +28,11 @@ import resource
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
-from perception.training.datagen import GenConfig, generate
+from perception.training.generation import GenConfig, generate
+from sim.core.paths import data_root
 
 
 def _cpu_seconds() -> float:
@@ -33,38 +41,51 @@ def _cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
-def measure(cfg: GenConfig) -> dict[str, float]:
-    """Generate cfg.count images; returns end-to-end and steady rates [1/s], CPU per image [s]."""
-    stamps: list[float] = []
+def _run(cfg: GenConfig) -> tuple[float, float]:
+    """Generate cfg; returns its wall and CPU time [s]."""
     cpu0, t0 = _cpu_seconds(), time.perf_counter()
-    generate(cfg, on_image=lambda _: stamps.append(time.perf_counter()))
-    t1, cpu1 = time.perf_counter(), _cpu_seconds()
-    steady = (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 else float("nan")
+    generate(cfg)
+    return time.perf_counter() - t0, _cpu_seconds() - cpu0
+
+
+def measure(cfg: GenConfig) -> dict[str, float]:
+    """Runs of cfg.count and 2 * cfg.count images (fresh folders); returns the end-to-end rate
+    of the longer [1/s], and the rate and CPU time per image [s] of the images it adds."""
+    n = cfg.count
+    wall1, cpu1 = _run(replace(cfg, out=cfg.out / "n"))
+    wall2, cpu2 = _run(replace(cfg, count=2 * n, out=cfg.out / "2n"))
     return {
-        "rate": cfg.count / (t1 - t0),
-        "steady": steady,
-        "seconds": t1 - t0,
-        "cpu": (cpu1 - cpu0) / cfg.count,
+        "rate": 2 * n / wall2,
+        "seconds": wall2,
+        "long_rate": n / (wall2 - wall1),
+        "cpu": (cpu2 - cpu1) / n,
     }
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--paper", type=int, default=400, help="paper images per run")
-    p.add_argument("--headcam", type=int, default=12, help="headcam images")
-    p.add_argument("--workers", type=int, default=2, help="worker processes of the pool run")
+    p.add_argument("--paper", type=int, default=400, help="paper images N (runs of N and 2N)")
+    p.add_argument("--headcam", type=int, default=120, help="headcam images N (runs of N and 2N)")
+    p.add_argument("--workers", type=int, default=2, help="worker processes of the pool runs")
+    p.add_argument("--views", type=int, default=4, help="headcam views per scene of the last run")
     a = p.parse_args(argv)
     os.environ.setdefault("LP_NUM_THREADS", "1")
     cores = os.cpu_count() or 1
     print(f"cores: {cores}, load average: {os.getloadavg()[0]:.2f}")
+    w = a.workers
     runs = [
-        ("paper 256x256, 1 process", "paper", a.paper, 256, 256, 1),
-        (f"paper 256x256, {a.workers} workers", "paper", a.paper, 256, 256, a.workers),
-        ("headcam 640x480, 1 process", "headcam", a.headcam, 640, 480, 1),
-    ]
-    with tempfile.TemporaryDirectory() as tmp:
-        for k, (label, dist, n, w, h, workers) in enumerate(runs):
-            if n <= 0:
+        ("paper 256x256, 1 process", "paper", a.paper, 256, 256, 1, 1),
+        (f"paper 256x256, {w} workers", "paper", a.paper, 256, 256, w, 1),
+        ("headcam 640x480, 1 process", "headcam", a.headcam, 640, 480, 1, 1),
+        (f"headcam 640x480, {w} workers", "headcam", a.headcam, 640, 480, w, 1),
+        (f"headcam 640x480, {w} workers, {a.views} views per scene", "headcam",
+         a.headcam, 640, 480, w, a.views),
+    ]  # fmt: skip
+    root = data_root()
+    root.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=root, prefix=".datagen_speed_") as tmp:
+        for k, (label, dist, n, w, h, workers, views) in enumerate(runs):
+            if n <= 0 or (views > 1 and a.views <= 1):
                 continue
             cfg = GenConfig(
                 dist=dist,
@@ -75,12 +96,14 @@ def main(argv: list[str] | None = None) -> int:
                 height=h,
                 workers=workers,
                 progress=False,
+                views=views,
             )
             r = measure(cfg)
             print(
-                f"{label}: {r['rate']:6.1f} images/s end to end ({n} in {r['seconds']:.1f} s), "
-                f"{r['steady']:6.1f} images/s steady, {1000 * r['cpu']:.1f} ms CPU per image "
-                f"(idle-machine estimate {min(workers, cores) / r['cpu']:.0f} images/s)",
+                f"{label}: {r['rate']:5.1f} images/s end to end ({2 * n} in "
+                f"{r['seconds']:.1f} s); long run {r['long_rate']:5.1f} images/s, "
+                f"{1000 * r['cpu']:.1f} ms CPU per image (idle-machine estimate "
+                f"{min(workers, cores) / r['cpu']:.0f} images/s)",
                 flush=True,
             )
     print(f"load average after: {os.getloadavg()[0]:.2f}")

@@ -18,7 +18,8 @@ from perception.geometry import encode, invert_transform, project
 from perception.training import bop
 from perception.training import dataset as ds
 from perception.training.annotations import full_silhouette
-from perception.training.datagen import SEED_BASES, main
+from perception.training.datagen import main
+from perception.training.generation import SEED_BASES
 from perception.training.sheets import draw_annotations
 from perception.training.writer import WALL_TIME_FILE
 from sim.core.errors import AssetError

@@ -163,6 +163,21 @@ def write_bytes(path: Path, payload: bytes) -> None:
     _atomic_write(Path(path), payload)
 
 
+def write_same(path: Path, written: Path, payload: bytes) -> None:
+    """Write at path the bytes already written at `written` (payload): as a hard link to it,
+    which costs far less than a new file on most file systems, or as a copy where hard links
+    are not supported. Replaces whatever was at path."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.unlink(missing_ok=True)
+        os.link(written, tmp)
+    except OSError:
+        write_bytes(path, payload)
+        return
+    os.replace(tmp, path)
+
+
 def write_png(path: Path, image: np.ndarray) -> None:
     """Write an RGB (H, W, 3) or grey (H, W) uint8 image as PNG, atomically."""
     _atomic_write(Path(path), png_bytes(image))

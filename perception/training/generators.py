@@ -11,6 +11,7 @@ Each keeps one GL context for its whole life; `render(name, seed)` depends only 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,7 +26,7 @@ from sim.core.errors import InvalidArgumentError, UnknownNameError
 from sim.core.transforms import invert_transform
 from sim.world import constants as C
 from sim.world.camera import T_world_cam, camera_intrinsics
-from sim.world.scene import Scene, SceneConfig, build_scene
+from sim.world.scene import PlacedObject, Scene, SceneConfig, aim_head, build_scene
 from sim.world.tiers import tier_scene
 
 #: At most this many distractors in a headcam scene (drawn uniformly from 0..3).
@@ -93,7 +94,8 @@ class PaperGenerator:
 
 
 class HeadcamGenerator:
-    """Head-camera images of seeded table scenes: a new scene per image, one GL context.
+    """Head-camera images of seeded table scenes: a new scene per image (or per few views of
+    it, `render_views`), one GL context.
 
     Args:
         width, height: image size [px].
@@ -122,55 +124,105 @@ class HeadcamGenerator:
         return build_scene(name, seed, SceneConfig(n_distractors=0, randomize_appearance=True))
 
     def render(self, name: str, seed: int) -> RenderedImage:
-        """The head camera's view of `_scene` with its visible objects.
+        """The head camera's view of `_scene` with its visible objects (view 0 of
+        `render_views`)."""
+        return self.render_views(name, seed, [0])[0]
 
-        Each object's full silhouette is drawn with every other geom hidden and read back, as
-        depth, only inside a box that holds its projection; its visible pixels are those where
-        that depth is not behind the scene's depth there (the same triangles under the same
-        camera write the same depths), so no segmentation render is needed.
+    def render_views(self, name: str, seed: int, views: Sequence[int]) -> list[RenderedImage]:
+        """Several head-camera views of one `_scene`, which is built and settled once.
+
+        View 0 is the scene as built, the head aimed at the target. View v > 0 aims the head at
+        object v mod n of the scene's n objects (v mod n = 0: the target again), offset by up to
+        `SceneConfig.aim_jitter` per axis drawn from ``default_rng([seed, 2, v])``; the head is
+        set kinematically from its settled posture (nothing else moves), so a view depends only
+        on (name, seed, v). The image's ``target`` and its objects' ``target`` flags name the
+        object the head is aimed at.
         """
         scene = self._scene(name, seed)
+        model, data = scene.model, scene.data
+        settled = data.qpos.copy()
+        images = []
+        for v in views:
+            aimed = scene.objects[v % len(scene.objects)]
+            if v > 0:
+                data.qpos[:] = settled
+                jitter = SceneConfig().aim_jitter
+                offset = np.random.default_rng([seed, 2, v]).uniform(-jitter, jitter, 3)
+                aim_head(model, data, data.body(aimed.body).xpos + offset)
+                mujoco.mj_forward(model, data)
+            images.append(self._image(scene, aimed, v))
+        return images
+
+    def _image(self, scene: Scene, aimed: PlacedObject, view: int) -> RenderedImage:
+        """The head camera's current view of scene with its visible objects.
+
+        Each object's full silhouette is drawn with every geom but its own hidden and read
+        back, as depth, only inside a box that holds its projection; its visible pixels are
+        those where that depth is not behind the scene's depth there (the same triangles under
+        the same camera write the same depths), so no segmentation render is needed. Objects
+        whose boxes do not overlap share one draw; objects outside the image are not drawn.
+        """
         model, data, r = scene.model, scene.data, self.renderer
         cam = model.camera(C.HEAD_CAMERA).id
         K = camera_intrinsics(model, C.HEAD_CAMERA, self.width, self.height)
         T_C_W = invert_transform(T_world_cam(model, data, C.HEAD_CAMERA))
         r.draw(model, data, cam)
         rgb = r.read_rgb()
-        windows, front = [], []
+        todo = []  # (placed, body id, window, pose, the scene's depth in the window)
         for placed in scene.objects:
+            T_C_O = T_C_W @ scene.object_pose(placed.body)
             bid = model.body(placed.body).id
             window = _body_window(model, data, bid, T_C_W, K, self.width, self.height)
             window = window or (0, 0, self.width, self.height)
-            windows.append((bid, window))
-            front.append(r.read_depth(window))
+            if T_C_O[2, 3] > 0 and window[2] > window[0] and window[3] > window[1]:
+                todo.append((placed, bid, window, T_C_O, r.read_depth(window)))
+        masks: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         groups = model.geom_group.copy()
-        objects = []
-        for placed, (bid, window), scene_depth in zip(scene.objects, windows, front, strict=True):
-            T_C_O = T_C_W @ scene.object_pose(placed.body)
-            if T_C_O[2, 3] <= 0:
-                continue
-            model.geom_group[:] = np.where(model.geom_bodyid == bid, groups, HIDDEN_GROUP)
-            try:
+        try:
+            for batch in _disjoint_batches([t[2] for t in todo]):
+                shown = np.isin(model.geom_bodyid, [todo[k][1] for k in batch])
+                model.geom_group[:] = np.where(shown, groups, HIDDEN_GROUP)
                 r.draw(model, data, cam)
-                depth = r.read_depth(window)
-            finally:
-                model.geom_group[:] = groups
-            drawn = depth < 1.0
-            seen = drawn & (depth <= scene_depth)
+                for k in batch:
+                    placed, _, window, _, scene_depth = todo[k]
+                    depth = r.read_depth(window)
+                    drawn = depth < 1.0
+                    masks[placed.body] = (drawn, drawn & (depth <= scene_depth))
+        finally:
+            model.geom_group[:] = groups
+        objects = []
+        for placed, _, (x0, y0, x1, y1), T_C_O, _ in todo:
+            drawn, seen = masks[placed.body]
             if not seen.any():
                 continue
             full = np.zeros((self.height, self.width), bool)
             visib = np.zeros_like(full)
-            x0, y0, x1, y1 = window
             full[y0:y1, x0:x1], visib[y0:y1, x0:x1] = drawn, seen
-            extra = {"body": placed.body, "target": placed is scene.target}
+            extra = {"body": placed.body, "target": placed is aimed}
             objects.append(RenderedObject(placed.name, T_C_O, full, visib, extra))
-        extra = {"target": name, "n_distractors": len(scene.objects) - 1}
+        extra = {"target": aimed.name, "n_distractors": len(scene.objects) - 1}
+        if view > 0:
+            extra["view"] = view
         return RenderedImage(rgb, K, T_C_W, objects, extra)
 
     def close(self) -> None:
         """Free the GL context."""
         self.renderer.close()
+
+
+def _disjoint_batches(windows: Sequence[tuple[int, int, int, int]]) -> list[list[int]]:
+    """Indices of windows (x0, y0, x1, y1) [ends excluded] in batches whose windows do not
+    overlap, greedily in order: what one batch draws in a window is its own object alone."""
+    batches: list[list[int]] = []
+    for k, (x0, y0, x1, y1) in enumerate(windows):
+        for batch in batches:
+            if all(x1 <= windows[j][0] or windows[j][2] <= x0 or y1 <= windows[j][1]
+                   or windows[j][3] <= y0 for j in batch):  # fmt: skip
+                batch.append(k)
+                break
+        else:
+            batches.append([k])
+    return batches
 
 
 def _body_window(

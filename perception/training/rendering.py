@@ -42,10 +42,9 @@ class OffscreenRenderer:
         self._gl.make_current()
         if model is not self._model or self._scene is None:
             vis = model.vis.global_
-            vis.offwidth, vis.offheight = (
-                max(vis.offwidth, self.width),
-                max(vis.offheight, self.height),
-            )
+            # The offscreen buffer at the image size: software rendering clears all of it on
+            # every draw, so a larger one costs time and draws the same pixels.
+            vis.offwidth, vis.offheight = self.width, self.height
             self._scene = mujoco.MjvScene(model, maxgeom=scene_capacity(model))
             for flag in ("mjRND_SHADOW", "mjRND_REFLECTION", "mjRND_SKYBOX"):
                 self._scene.flags[getattr(mujoco.mjtRndFlag, flag)] = False

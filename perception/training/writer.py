@@ -28,6 +28,7 @@ from perception.training.bop import (
     write_json,
     write_ply,
     write_png,
+    write_same,
 )
 from perception.training.generators import RenderedImage
 from sim.world.objects import OBJECT_NAMES, load_object
@@ -52,10 +53,13 @@ def write_sample(
     write_png(rgb_path(sdir, im_id), image.rgb)
     for k, obj in enumerate(image.objects):
         full = png_bytes(obj.mask.astype(np.uint8) * 255)
-        same = obj.mask_visib is obj.mask or np.array_equal(obj.mask_visib, obj.mask)
-        visib = full if same else png_bytes(obj.mask_visib.astype(np.uint8) * 255)
         write_bytes(mask_path(sdir, im_id, k, False), full)
-        write_bytes(mask_path(sdir, im_id, k, True), visib)
+        if obj.mask_visib is obj.mask or np.array_equal(obj.mask_visib, obj.mask):
+            write_same(mask_path(sdir, im_id, k, True), mask_path(sdir, im_id, k, False), full)
+        else:
+            write_bytes(
+                mask_path(sdir, im_id, k, True), png_bytes(obj.mask_visib.astype(np.uint8) * 255)
+            )
     write_json(record_path(sdir, im_id), record, indent=None)
 
 

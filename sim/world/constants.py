@@ -68,7 +68,7 @@ HOME_POSTURE: dict[str, float] = {
     FINGER_JOINTS[1]: FINGER_TRAVEL,
 }
 
-#: The data generator (`perception.training.datagen.SEED_BASES`) draws its scenes from seeds
+#: The data generator (`perception.training.generation.SEED_BASES`) draws its scenes from seeds
 #: below this.
 DATA_SEED_LIMIT = 300_000_000
 #: Episodes that score a learned estimator start at this seed, so that no evaluated scene was a

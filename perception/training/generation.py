@@ -1,0 +1,277 @@
+"""Rendering a dataset split: the checked request (`GenConfig`), its seeds, and `generate`.
+
+Seeds: sample ``index`` of a split shows scene ``index // views`` (``views`` = 1 unless
+``--views``), whose seed is ``SEED_BASES[split] + index // views``; the bases are 10^8 apart, so
+splits never share a seed (``--count`` is at most 10^8). ``paper`` draws everything from
+``numpy.random.default_rng(seed)``; ``headcam`` builds ``build_scene(target, seed, ...)`` with the
+number of distractors drawn from ``default_rng([seed, 1])`` and renders view ``index % views`` of
+it (`HeadcamGenerator.render_views`: view 0 aimed at the target, the others at each object in
+turn). The class of sample index (its scene's target) is ``objects[(index // views) %
+len(objects)]``. With several views per scene, building and settling a scene (a third of an
+image's cost) is paid once per scene. Same arguments, same bytes: PNGs are encoded with fixed
+parameters, JSON with sorted keys, and nothing depends on the number of workers or on timing.
+
+Resuming: every file is written to a temporary name and renamed; an image is done once its record
+(``records/<im_id>.json``) exists, and a re-run skips done images. The BOP scene files are merged
+from the records whenever a scene's images are complete and at the end of a run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
+from tqdm import tqdm
+
+from perception.training import bop
+from perception.training.dataset import load_info
+from perception.training.generators import HeadcamGenerator, PaperGenerator, make_generator
+from perception.training.writer import (
+    add_wall_time,
+    merge_scene,
+    write_camera,
+    write_models,
+    write_sample,
+)
+from sim.core.backends import default_chunk, run_map
+from sim.core.errors import InvalidArgumentError
+from sim.world.objects import OBJECT_NAMES
+
+GENERATOR_VERSION = "2"
+SEED_BASES: dict[str, int] = {"train": 0, "val": 100_000_000, "test": 200_000_000}
+MAX_COUNT = 100_000_000
+#: Most head-camera views rendered of one scene (`--views`).
+MAX_VIEWS = 16
+DEFAULT_SIZE: dict[str, tuple[int, int]] = {"paper": (256, 256), "headcam": (640, 480)}
+
+
+@dataclass(frozen=True)
+class GenConfig:
+    """A checked generation request.
+
+    Attributes:
+        dist: "paper" or "headcam".
+        split: "train", "val" or "test".
+        count: number of samples of the split (indices 0..count-1).
+        out: dataset folder.
+        objects: classes cycled over by sample index.
+        width, height: image size [px].
+        workers, backend, address: rendering processes and where they run (`sim.core.backends`).
+        preview: where to write a contact sheet, or None.
+        progress: show a tqdm bar.
+        tier: the scene tier of ``headcam`` images (`sim.world.tiers`); None is the mixed
+            table scenes of 0-3 distractors the shipped networks were trained on.
+        views: ``headcam`` images per scene (`HeadcamGenerator.render_views`); 1 for
+            ``paper``.
+    """
+
+    dist: str
+    split: str
+    count: int
+    out: Path
+    objects: tuple[str, ...] = OBJECT_NAMES
+    width: int = 256
+    height: int = 256
+    workers: int = 1
+    preview: Path | None = None
+    progress: bool = True
+    tier: str | None = None
+    backend: str = "local"
+    address: str | None = None
+    views: int = 1
+
+    def seed(self, index: int) -> int:
+        """Seed of sample index (of its scene)."""
+        return SEED_BASES[self.split] + index // self.views
+
+    def view(self, index: int) -> int:
+        """View of its scene that sample index shows."""
+        return index % self.views
+
+    def object_of(self, index: int) -> str:
+        """Class of sample index (its scene's target, for headcam)."""
+        return self.objects[(index // self.views) % len(self.objects)]
+
+    def command(self) -> str:
+        """The command line that regenerates the split (without --out)."""
+        objs = "all" if self.objects == OBJECT_NAMES else ",".join(self.objects)
+        tier = "" if self.tier is None else f" --tier {self.tier}"
+        tier += "" if self.views == 1 else f" --views {self.views}"
+        return (
+            f"python -m perception.training.datagen --dist {self.dist} --split {self.split} "
+            f"--count {self.count} --objects {objs} --width {self.width} --height {self.height}"
+            + tier
+        )
+
+
+# --- the run ---------------------------------------------------------------------------------
+
+
+def _check_info(cfg: GenConfig) -> dict[str, Any]:
+    """info.json of the dataset folder updated for this run; errors if arguments conflict."""
+    path = cfg.out / "info.json"
+    if path.exists():
+        info = load_info(cfg.out)
+        have = (info.get("dist"), info.get("width"), info.get("height"), info.get("version"))
+        want = (cfg.dist, cfg.width, cfg.height, GENERATOR_VERSION)
+        if have != want or info.get("tier") != cfg.tier:
+            raise InvalidArgumentError(
+                f"{cfg.out} holds a {have[0]} dataset at {have[1]}x{have[2]} (generator "
+                f"version {have[3]}, tier {info.get('tier')}); this run asks for {cfg.dist} at "
+                f"{cfg.width}x{cfg.height} (version {GENERATOR_VERSION}, tier {cfg.tier}); "
+                "use another --out"
+            )
+        old = info["splits"].get(cfg.split)
+        if old is not None and tuple(old["objects"]) != cfg.objects:
+            raise InvalidArgumentError(
+                f"split {cfg.split!r} in {cfg.out} was generated with --objects "
+                f"{','.join(old['objects'])}; use the same objects or another --out"
+            )
+        if old is not None and old.get("views", 1) != cfg.views:
+            raise InvalidArgumentError(
+                f"split {cfg.split!r} in {cfg.out} was generated with --views "
+                f"{old.get('views', 1)}; use the same views or another --out"
+            )
+    else:
+        info = {
+            "generator": "perception.training.datagen",
+            "version": GENERATOR_VERSION,
+            "dist": cfg.dist,
+            "width": cfg.width,
+            "height": cfg.height,
+            "images_per_scene": bop.IMAGES_PER_SCENE,
+            "objects": {str(bop.obj_id(n)): n for n in OBJECT_NAMES},
+            "units": (
+                "BOP files (scene_gt cam_t_m2c, scene_camera cam_t_w2c, models) in millimetres; "
+                "scene_posegrasp.json and records in metres; pixels with (0, 0) the centre of "
+                "the top-left pixel"
+            ),
+            "seed_bases": SEED_BASES,
+            "splits": {},
+        }
+        if cfg.tier is not None:
+            info["tier"] = cfg.tier
+    return info
+
+
+def _write_info(cfg: GenConfig, info: dict[str, Any], count: int) -> None:
+    """Write info.json with the split's entry set to count images."""
+    base = SEED_BASES[cfg.split]
+    info["splits"][cfg.split] = {
+        "count": count,
+        "objects": list(cfg.objects),
+        "seed_range": [base, base + -(-count // cfg.views)],
+        "command": dataclasses.replace(cfg, count=count).command(),
+    }
+    if cfg.views > 1:
+        info["splits"][cfg.split]["views"] = cfg.views
+    bop.write_json(cfg.out / "info.json", info)
+
+
+# Per-process state of pool workers (each worker owns one renderer; set by `_init_worker`).
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(cfg: GenConfig) -> None:
+    os.environ.setdefault("LP_NUM_THREADS", "1")
+    _WORKER["cfg"] = cfg
+    _WORKER["gen"] = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier)
+
+
+def _work(indices: tuple[int, ...]) -> tuple[int, ...]:
+    return _generate(_WORKER["cfg"], _WORKER["gen"], indices)
+
+
+def _generate(
+    cfg: GenConfig, gen: PaperGenerator | HeadcamGenerator, indices: tuple[int, ...]
+) -> tuple[int, ...]:
+    """Render and write samples of one scene (the same ``index // views``); returns indices."""
+    seed = cfg.seed(indices[0])
+    if cfg.views == 1:
+        images = [gen.render(cfg.object_of(indices[0]), seed)]
+    else:
+        views = [cfg.view(i) for i in indices]
+        images = gen.render_views(cfg.object_of(indices[0]), seed, views)
+    for index, image in zip(indices, images, strict=True):
+        write_sample(cfg.out, cfg.split, index, seed, image, cfg.dist)
+    return indices
+
+
+def _done(cfg: GenConfig, index: int) -> bool:
+    scene_id, im_id = bop.split_index(index)
+    return bop.record_path(bop.scene_dir(cfg.out, cfg.split, scene_id), im_id).exists()
+
+
+def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> int:
+    """Generate (or complete) a split; returns the number of images rendered by this call.
+
+    Args:
+        cfg: what to generate.
+        on_image: called with each sample index as soon as its files are written.
+    """
+    started = time.monotonic()
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    info = _check_info(cfg)
+    write_models(cfg.out)
+    _write_info(cfg, info, max(cfg.count, info["splits"].get(cfg.split, {}).get("count", 0)))
+    todo = [i for i in range(cfg.count) if not _done(cfg, i)]
+    groups: dict[int, list[int]] = {}  # the samples still to render per generator scene
+    for i in todo:
+        groups.setdefault(i // cfg.views, []).append(i)
+    tasks = [tuple(g) for g in groups.values()]
+    # Images still to render per scene; a scene's files are merged when it reaches zero. Scenes
+    # with nothing to render are merged at the end if their files are missing.
+    left: dict[int, int] = {}
+    for i in todo:
+        left[i // bop.IMAGES_PER_SCENE] = left.get(i // bop.IMAGES_PER_SCENE, 0) + 1
+    n_scenes = -(-cfg.count // bop.IMAGES_PER_SCENE)
+    stale = set(left) | {
+        s
+        for s in range(n_scenes)
+        if not (bop.scene_dir(cfg.out, cfg.split, s) / "scene_gt.json").exists()
+    }
+    bar = tqdm(total=cfg.count, initial=cfg.count - len(todo), desc=f"{cfg.dist}/{cfg.split}",
+               unit="img", disable=not cfg.progress, dynamic_ncols=True)  # fmt: skip
+
+    def finished(index: int) -> None:
+        bar.update(1)
+        if on_image is not None:
+            on_image(index)
+        s = index // bop.IMAGES_PER_SCENE
+        left[s] -= 1
+        if left[s] == 0:
+            merge_scene(cfg.out, cfg.split, s)
+            stale.discard(s)
+
+    try:
+        if len(tasks) <= 1 or (cfg.workers <= 1 and cfg.backend == "local"):
+            gen = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier)
+            try:
+                for task in tasks:
+                    for i in _generate(cfg, gen, task):
+                        finished(i)
+            finally:
+                gen.close()
+        else:  # in the order the images come back; the Ray backend sizes its own chunks
+            chunk = default_chunk(len(tasks), cfg.workers) if cfg.backend == "local" else None
+            for done in run_map(_work, tasks, backend=cfg.backend, workers=cfg.workers,
+                                address=cfg.address, chunk=chunk, initializer=_init_worker,
+                                initargs=(cfg,), ordered=False):  # fmt: skip
+                for i in done:
+                    finished(i)
+    finally:
+        bar.close()
+    for s in sorted(stale):
+        merge_scene(cfg.out, cfg.split, s)
+    split_dir = cfg.out / cfg.split
+    total = sum(1 for _ in split_dir.glob("*/records/*.json"))
+    _write_info(cfg, load_info(cfg.out), total)
+    add_wall_time(cfg.out, cfg.split, time.monotonic() - started)
+    write_camera(cfg.out, cfg.split, cfg.width, cfg.height)
+    return len(todo)
