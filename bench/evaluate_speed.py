@@ -9,7 +9,8 @@ the wall time of both runs; then twice as many episodes with 2 workers, so that 
 long run (the episodes it adds over the wall time it adds: the workers' start-up, imports and
 estimator loading, cancels) is printed beside the end-to-end rate. Targets: a hybrid episode
 <= 3 s wall median on 2 cores; 2 workers at least 1.6x faster than 1; at least 10 episodes/s
-with 2 workers. The runs must agree episode by episode (they are seeded); the script says so.
+with 2 workers. The runs must agree episode by episode, pose errors to the last bit (they are
+seeded, and the estimator computes on one thread in every worker); the script says so.
 
 ``--backend ray`` instead runs the episodes on the local pool and on Ray (`sim.core.backends`),
 both with `--workers` CPUs (or on the cluster at `--address`), and prints side by side their

@@ -45,8 +45,16 @@ from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
 
 @functools.cache
 def _estimator(name: str, noise: str | None = None):
-    """One estimator per worker process (the hybrid one loads its weights once)."""
-    return make_estimator(name, None if noise is None else parse_noise(noise))
+    """One estimator per worker process (the hybrid one loads its weights once).
+
+    A learned estimator computes on one thread, with any number of workers and on any backend:
+    the nets' sums run in an order that depends on the thread count, so this keeps every
+    episode's pose, to the last bit, independent of how the evaluation was spread.
+    """
+    estimator = make_estimator(name, None if noise is None else parse_noise(noise))
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
+    return estimator
 
 
 def _init_worker() -> None:

@@ -301,3 +301,22 @@ def test_every_cli_refuses_bad_input_in_one_line_before_any_work(
     assert status == 2
     assert err.count("\n") == 1 and err.startswith("error: ") and words in err, err
     assert sorted(tmp_path.rglob("*")) == before  # nothing written
+
+
+def test_evaluation_computes_a_learned_estimator_on_one_thread(monkeypatch) -> None:
+    # The nets' sums depend on the thread count; one thread in every worker and in-process keeps
+    # an episode's pose independent of the number of workers and the backend.
+    import torch
+
+    from sim import evaluate as ev
+
+    before = torch.get_num_threads()
+    monkeypatch.setattr(ev, "make_estimator", lambda name, noise=None: (name, noise))
+    ev._estimator.cache_clear()
+    try:
+        torch.set_num_threads(2)
+        assert ev._estimator("hybrid") == ("hybrid", None)
+        assert torch.get_num_threads() == 1
+    finally:
+        ev._estimator.cache_clear()
+        torch.set_num_threads(before)
