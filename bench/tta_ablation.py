@@ -24,11 +24,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
-from perception.crops import random_square_box
 from perception.nets import load_posenet
-from perception.training.crop_sets import CropSet
+from perception.training.crop_sets import CropSet, random_boxes
 from perception.training.dataset import PoseDataset
 from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
 from perception.training.tables import TEST_CROPS
@@ -56,20 +54,12 @@ def _variant(box: tuple[float, float, float], scale: float, shift: tuple[float, 
 def crops_with_variants(root: Path, limit: int | None) -> tuple[dict, int]:
     """The test crops of `tables` (same seeds, same order) and their variants, variant-major:
     row v * n + i is variant v of crop i. Returns (arrays, n)."""
-    cfg = TEST_CROPS
     ds = PoseDataset(root, "test")
     n_img = len(ds) if limit is None else min(limit, len(ds))
-    rng = np.random.default_rng([cfg.seed, 2])  # as build_crops draws the test split's boxes
     per_variant = [CropSet() for _ in range(len(SCALES) * len(SHIFTS))]
-    for i in tqdm(range(n_img), desc="crops", leave=False):
-        s = ds[i]
-        for obj in s.objects:
-            if obj.visib_fract < cfg.min_visib or obj.T_C_O[2, 3] <= 0:
-                continue
-            for _ in range(cfg.per_object):
-                box = random_square_box(obj.box_xyxy, rng, cfg.max_shift, cfg.scale_range)
-                for k, (sc, sh) in enumerate((a, b) for a in SCALES for b in SHIFTS):
-                    per_variant[k].add(s.rgb, s.K, obj, _variant(box, sc, sh))
+    for sample, obj, box in random_boxes(ds, TEST_CROPS, n_img):
+        for k, (sc, sh) in enumerate((a, b) for a in SCALES for b in SHIFTS):
+            per_variant[k].add(sample.rgb, sample.K, obj, _variant(box, sc, sh))
     parts = [c.arrays() for c in per_variant]
     n = len(parts[0]["cls"])
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}, n

@@ -101,6 +101,19 @@ class CropSet:
         }
 
 
+def random_boxes(ds: PoseDataset, cfg: CropConfig, n: int):
+    """(sample, object, square box) of every crop `build_crops` cuts from the first n images of
+    ds, in its order, with its seeded random boxes (a progress bar shows the images)."""
+    rng = np.random.default_rng([cfg.seed, ("train", "val", "test").index(ds.split)])
+    for i in tqdm(range(n), desc=f"crops {ds.root.name}/{ds.split}", leave=False):
+        s = ds[i]
+        for obj in s.objects:
+            if obj.visib_fract < cfg.min_visib or obj.T_C_O[2, 3] <= 0:
+                continue
+            for _ in range(cfg.per_object):
+                yield s, obj, random_square_box(obj.box_xyxy, rng, cfg.max_shift, cfg.scale_range)
+
+
 def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = None) -> dict:
     """Cut (or load cached) training crops and labels of one split of one dataset.
 
@@ -118,16 +131,9 @@ def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = Non
                 return {k: z[k] for k in z.files}
         except (OSError, ValueError) as exc:
             raise AssetError(f"corrupt crop cache {cache}: {exc}; delete it to rebuild") from exc
-    rng = np.random.default_rng([cfg.seed, ("train", "val", "test").index(split)])
     out = CropSet()
-    for i in tqdm(range(n), desc=f"crops {root.name}/{split}", leave=False):
-        s = ds[i]
-        for obj in s.objects:
-            if obj.visib_fract < cfg.min_visib or obj.T_C_O[2, 3] <= 0:
-                continue
-            for _ in range(cfg.per_object):
-                box = random_square_box(obj.box_xyxy, rng, cfg.max_shift, cfg.scale_range)
-                out.add(s.rgb, s.K, obj, box)
+    for sample, obj, box in random_boxes(ds, cfg, n):
+        out.add(sample.rgb, sample.K, obj, box)
     arrays = out.arrays()
     tmp = cache.with_suffix(".tmp.npz")
     np.savez(tmp, **arrays)
