@@ -140,16 +140,18 @@ class HeadcamGenerator:
         """
         scene = self._scene(name, seed)
         model, data = scene.model, scene.data
-        settled = data.qpos.copy()
+        settled, moved = data.qpos.copy(), False
+        jitter = SceneConfig().aim_jitter
         images = []
         for v in views:
             aimed = scene.objects[v % len(scene.objects)]
-            if v > 0:
+            if moved or v > 0:  # every view starts from the settled posture
                 data.qpos[:] = settled
-                jitter = SceneConfig().aim_jitter
-                offset = np.random.default_rng([seed, 2, v]).uniform(-jitter, jitter, 3)
-                aim_head(model, data, data.body(aimed.body).xpos + offset)
+                if v > 0:
+                    offset = np.random.default_rng([seed, 2, v]).uniform(-jitter, jitter, 3)
+                    aim_head(model, data, data.body(aimed.body).xpos + offset)
                 mujoco.mj_forward(model, data)
+                moved = v > 0
             images.append(self._image(scene, aimed, v))
         return images
 

@@ -86,27 +86,10 @@ class OffscreenRenderer:
         self._gl.make_current()
         return self._drawn
 
-    def _read_rect(self, window: tuple[int, int, int, int]) -> mujoco.MjrRect:
-        x0, y0, x1, y1 = window
-        # OpenGL rows run bottom to top.
-        return mujoco.MjrRect(x0, self.height - y1, x1 - x0, y1 - y0)
-
-    def read_rgb(self, window: tuple[int, int, int, int] | None = None) -> np.ndarray:
-        """The colours of the last `draw`, shape (H, W, 3), uint8; with a window (x0, y0, x1, y1)
-        [px, top-left origin, ends excluded] only those pixels are read back and the rest is
-        black, which costs less when little of the image is wanted."""
-        ctx = self._drawn_context()
-        if window is None:
-            mujoco.mjr_readPixels(self._buf, None, self._rect, ctx)
-            return np.flipud(self._buf).copy()
-        x0, y0, x1, y1 = window
-        out = np.zeros((self.height, self.width, 3), np.uint8)
-        if x1 <= x0 or y1 <= y0:
-            return out
-        part = np.empty((y1 - y0, x1 - x0, 3), np.uint8)
-        mujoco.mjr_readPixels(part, None, self._read_rect(window), ctx)
-        out[y0:y1, x0:x1] = np.flipud(part)
-        return out
+    def read_rgb(self) -> np.ndarray:
+        """The colours of the last `draw`, shape (H, W, 3), uint8."""
+        mujoco.mjr_readPixels(self._buf, None, self._rect, self._drawn_context())
+        return np.flipud(self._buf).copy()
 
     def read_depth(self, window: tuple[int, int, int, int] | None = None) -> np.ndarray:
         """The depth buffer of the last `draw` (OpenGL window depth in [0, 1], 1 where nothing is
@@ -116,8 +99,9 @@ class OffscreenRenderer:
         ctx = self._drawn_context()
         x0, y0, x1, y1 = window if window is not None else (0, 0, self.width, self.height)
         out = np.ones((max(0, y1 - y0), max(0, x1 - x0)), np.float32)
-        if out.size:
-            mujoco.mjr_readPixels(None, out, self._read_rect((x0, y0, x1, y1)), ctx)
+        if out.size:  # OpenGL rows run bottom to top
+            rect = mujoco.MjrRect(x0, self.height - y1, x1 - x0, y1 - y0)
+            mujoco.mjr_readPixels(None, out, rect, ctx)
         return np.flipud(out)
 
     def render(
@@ -127,12 +111,11 @@ class OffscreenRenderer:
         camera: int,
         opt: mujoco.MjvOption | None = None,
         segment: bool = False,
-        window: tuple[int, int, int, int] | None = None,
     ) -> np.ndarray:
         """RGB image, or segmentation id colours if segment (black where nothing is drawn):
-        `draw` then `read_rgb(window)`. Returns shape (H, W, 3), uint8."""
+        `draw` then `read_rgb`. Returns shape (H, W, 3), uint8."""
         self.draw(model, data, camera, opt, segment)
-        return self.read_rgb(window)
+        return self.read_rgb()
 
     def close(self) -> None:
         """Free the render and GL contexts."""

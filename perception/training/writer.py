@@ -52,14 +52,13 @@ def write_sample(
     record = annotate(image, seed, dist)
     write_png(rgb_path(sdir, im_id), image.rgb)
     for k, obj in enumerate(image.objects):
+        full_path, visib_path = mask_path(sdir, im_id, k, False), mask_path(sdir, im_id, k, True)
         full = png_bytes(obj.mask.astype(np.uint8) * 255)
-        write_bytes(mask_path(sdir, im_id, k, False), full)
+        write_bytes(full_path, full)
         if obj.mask_visib is obj.mask or np.array_equal(obj.mask_visib, obj.mask):
-            write_same(mask_path(sdir, im_id, k, True), mask_path(sdir, im_id, k, False), full)
+            write_same(visib_path, full_path, full)
         else:
-            write_bytes(
-                mask_path(sdir, im_id, k, True), png_bytes(obj.mask_visib.astype(np.uint8) * 255)
-            )
+            write_bytes(visib_path, png_bytes(obj.mask_visib.astype(np.uint8) * 255))
     write_json(record_path(sdir, im_id), record, indent=None)
 
 

@@ -168,13 +168,7 @@ def same_render_assets(a: mujoco.MjModel, b: mujoco.MjModel) -> bool:
         return False
     if _render_sizes(a) != _render_sizes(b):
         return False
-    for name in _ASSET_ARRAYS:
-        x, y = getattr(a, name, None), getattr(b, name, None)
-        if (x is None) != (y is None):
-            return False
-        if x is not None and (x.shape != y.shape or not np.array_equal(x, y)):
-            return False
-    return True
+    return all(np.array_equal(getattr(a, n, None), getattr(b, n, None)) for n in _ASSET_ARRAYS)
 
 
 def scene_capacity(model: mujoco.MjModel) -> int:
