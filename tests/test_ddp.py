@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 import torch
 
+from perception.training.augment import photometric_jitter as _augment
 from perception.training.datagen import main as datagen_main
 from perception.training.ddp import Ranks, resolve_device
-from perception.training.train_posenet import _augment
 from perception.training.train_posenet import main as train_main
 from sim.core.errors import InvalidArgumentError
 

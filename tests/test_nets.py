@@ -12,9 +12,11 @@ from perception.nets import NetConfig, PoseNet, load_posenet, normalise
 from perception.training import datagen
 from perception.training import export as export_weights
 from perception.training import train_posenet as train_mod
+from perception.training.dataset import parse_limit
 from perception.training.losses import posenet_loss
+from perception.training.schedule import learning_rate
 from perception.training.tables import evaluate_split
-from perception.training.train_posenet import SMOKE, parse_limit, train
+from perception.training.train_posenet import SMOKE, train
 from sim.core.errors import AssetError
 from sim.core.paths import WEIGHTS_DIR
 from sim.world.objects import OBJECT_NAMES
@@ -121,7 +123,7 @@ def test_fine_tune_records_its_lineage_and_exports_stages(tiny_data, tmp_path, m
     assert ckpt["command"] == (
         "python -m perception.training.train_posenet --variant ours --epochs 2 --dists headcam "
         "--batch 16 "
-        "--limit headcam=3,12 --init posenet_ours_mixed"
+        "--limit headcam=3,12 --width 4 --lam 1 --init posenet_ours_mixed"
     )
     assert ckpt["data_seeds"] == {
         "headcam": {"train": [0, 3], "val": [100_000_000, 100_000_002],
@@ -167,12 +169,38 @@ def test_parse_limit() -> None:
         (["--limit", "lots"], "--limit wants N or dist=N"),
         (["--limit", "studio=3"], "valid: paper, headcam"),
         (["--name", "a/b"], "--name must be a plain name"),
+        (["--objects", "car,boat"], "valid: car, faucet, chair"),
+        (["--width", "0"], "--width must be at least 1"),
     ],
 )
 def test_train_cli_bad_input(argv, needle, capsys) -> None:
     assert train_mod.main(argv) == 2
     err = capsys.readouterr().err
     assert needle in err and "Traceback" not in err
+
+
+def test_one_net_per_object_sees_only_its_object(tiny_data, tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
+    seen = {"train": set(), "val": set()}
+
+    class Recording(PoseNet):
+        def forward(self, crops, cls, scale):
+            seen["train" if self.training else "val"].update(cls.tolist())
+            return super().forward(crops, cls, scale)
+
+    monkeypatch.setattr(train_mod, "PoseNet", Recording)
+    cfg = replace(SMOKE, out=tmp_path, objects=("chair",), augment=False, decay=False, limit=None)
+    train(cfg)
+    assert seen["train"] == seen["val"] == {OBJECT_NAMES.index("chair")}
+    ckpt = torch.load(tmp_path / "posenet_ours.pt", weights_only=False)
+    assert ckpt["command"].endswith("--width 4 --lam 1 --objects chair --no-augment --constant-lr")
+
+
+def test_learning_rate_schedules() -> None:
+    lrs = [learning_rate(s, 100, 1e-3) for s in range(100)]
+    flat = [learning_rate(s, 100, 1e-3, decay=False) for s in range(100)]
+    assert lrs[:5] == flat[:5] and lrs[4] == pytest.approx(1e-3)  # the same warm-up
+    assert lrs[-1] == pytest.approx(1e-5, rel=0.05) and flat[5:] == [1e-3] * 95
 
 
 def test_missing_and_corrupt_weights(tmp_path) -> None:

@@ -199,3 +199,23 @@ def load_sample(root: str | os.PathLike[str], split: str, index: int) -> Sample:
     """Load sample index of a split (image index % 1000 of scene index // 1000)."""
     scene_id, im_id = split_index(index)
     return PoseDataset(root, split).load(scene_id, im_id)
+
+
+def parse_limit(text: str | None) -> tuple[int | None, tuple[tuple[str, int], ...]]:
+    """`--limit`: "N" (every distribution) or "dist=N,..." -> (limit, dist_limits)."""
+    if text is None:
+        return None, ()
+    limit, per = None, []
+    for item in text.split(","):
+        name, _, num = item.rpartition("=")
+        if name and name not in DATASETS:
+            raise InvalidArgumentError(
+                f"unknown dataset {name!r} in --limit; valid: {', '.join(DATASETS)}"
+            )
+        if not num.isdigit() or int(num) < 1:
+            raise InvalidArgumentError(f"--limit wants N or dist=N with N >= 1, got {item!r}")
+        if name:
+            per.append((name, int(num)))
+        else:
+            limit = int(num)
+    return limit, tuple(per)

@@ -8,11 +8,16 @@ import torch
 from torch import nn
 
 
-def learning_rate(step: int, total_steps: int, peak: float, warmup: float = 0.05) -> float:
-    """Linear warm-up to `peak` over the first `warmup` fraction of steps, then cosine to 1 %."""
+def learning_rate(
+    step: int, total_steps: int, peak: float, warmup: float = 0.05, decay: bool = True
+) -> float:
+    """Linear warm-up to `peak` over the first `warmup` fraction of steps, then cosine to 1 %
+    (or, with ``decay=False``, `peak` to the end)."""
     w = max(1, int(warmup * total_steps))
     if step < w:
         return peak * (step + 1) / w
+    if not decay:
+        return peak
     frac = min(1.0, (step - w) / max(1, total_steps - w))
     return peak * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * frac)))
 

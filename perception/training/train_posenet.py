@@ -28,6 +28,7 @@ import torch
 from tqdm import tqdm
 
 from perception.nets import VARIANTS, NetConfig, PoseNet, normalise
+from perception.training.augment import photometric_jitter
 from perception.training.checkpoints import (
     config_dict,
     read_checkpoint,
@@ -37,8 +38,8 @@ from perception.training.checkpoints import (
     seed_torch,
 )
 from perception.training.crop_sets import CropConfig, build_crops, concat, data_seed_ranges
-from perception.training.dataset import DATASETS, DISTS
-from perception.training.ddp import DEVICES, ONE_PROCESS, Ranks, resolve_device, start
+from perception.training.dataset import DATASETS, DISTS, parse_limit
+from perception.training.ddp import DEVICES, Ranks, resolve_device, start
 from perception.training.losses import posenet_loss
 from perception.training.posenet_eval import evaluate_arrays
 from perception.training.schedule import learning_rate, optimiser_step
@@ -63,7 +64,11 @@ class PoseNetTrainConfig:
         variant: "paper" or "ours".
         dists: which data distributions to train on.
         epochs, batch, lr, weight_decay, lam: optimisation (lam weighs the rotation loss).
+        decay: cosine decay of the learning rate after the warm-up (False: constant).
         width: backbone width.
+        augment: photometric jitter of the training crops.
+        objects: train and validate on these objects' crops only (empty: all), as the paper's
+            one-net-per-object design does.
         crops: how crops are cut.
         limit: use at most this many images per split (None: all).
         dist_limits: per-distribution image limits, ((dist, images), ...), on top of `limit`.
@@ -87,7 +92,10 @@ class PoseNetTrainConfig:
     lr: float = 2e-3
     weight_decay: float = 1e-4
     lam: float = 1.0
+    decay: bool = True
     width: int = 16
+    augment: bool = True
+    objects: tuple[str, ...] = ()
     crops: CropConfig = field(default_factory=CropConfig)
     limit: int | None = None
     dist_limits: tuple[tuple[str, int], ...] = ()
@@ -145,22 +153,6 @@ def _resolve_init(init: str, out: Path) -> Path:
     )
 
 
-def _augment(x: torch.Tensor, g: torch.Generator, ranks: Ranks = ONE_PROCESS) -> torch.Tensor:
-    """Photometric jitter: brightness, contrast, per-channel gain and pixel noise.
-
-    The jitter is drawn for the whole global batch (`x` is this rank's shard of it) and this
-    rank's rows are taken, so a batch is jittered alike on any number of processes.
-    """
-    b = x.shape[0] * ranks.world
-    bright = (torch.rand(b, 1, 1, 1, generator=g) - 0.5) * 0.3
-    contrast = 0.75 + 0.5 * torch.rand(b, 1, 1, 1, generator=g)
-    gain = 0.9 + 0.2 * torch.rand(b, 3, 1, 1, generator=g)
-    noise = torch.randn((b, *x.shape[1:]), generator=g) * 0.02
-    jitter = [ranks.shard(t).to(x.device) for t in (bright, contrast, gain, noise)]
-    bright, contrast, gain, noise = jitter
-    return (x * contrast * gain + bright + noise).clamp(-0.5, 0.5)
-
-
 def _command(cfg: PoseNetTrainConfig) -> str:
     """The CLI command that runs `cfg` (as far as the CLI exposes it)."""
     parts = [
@@ -177,6 +169,11 @@ def _command(cfg: PoseNetTrainConfig) -> str:
     lims = [f"{d}={n}" for d, n in cfg.dist_limits] + ([str(cfg.limit)] if cfg.limit else [])
     if lims:
         parts.append(f"--limit {','.join(lims)}")
+    if cfg.width != PoseNetTrainConfig.width or cfg.lam != PoseNetTrainConfig.lam:
+        parts.append(f"--width {cfg.width} --lam {cfg.lam:g}")
+    if cfg.objects:
+        parts.append(f"--objects {','.join(cfg.objects)}")
+    parts += ["--no-augment"] * (not cfg.augment) + ["--constant-lr"] * (not cfg.decay)
     if cfg.init:
         parts.append(f"--init {cfg.init}")
     if cfg.name:
@@ -222,6 +219,11 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
     if cfg.variant == "paper":
         keep = np.abs(np.rad2deg(tr["theta"])) <= cfg.max_theta_deg
         tr = {k: v[keep] for k, v in tr.items()}
+    if bad := sorted(set(cfg.objects) - set(OBJECT_NAMES)):
+        raise InvalidArgumentError(f"unknown objects {bad}; valid: {', '.join(OBJECT_NAMES)}")
+    if cfg.objects:  # one net per object: only its crops
+        ids = [OBJECT_NAMES.index(o) for o in cfg.objects]
+        tr, va = ({k: v[np.isin(d["cls"], ids)] for k, v in d.items()} for d in (tr, va))
     if len(tr["crops"]) == 0:
         raise AssetError("no training crops; generate data first (`make data`)")
     data_seeds = data_seed_ranges(cfg.dists, {d: n for d in cfg.dists if (n := _limit(cfg, d))})
@@ -282,12 +284,14 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
             def batch(key: str, idx=idx) -> torch.Tensor:
                 return torch.from_numpy(tr[key][idx]).to(ranks.device)
 
-            x = _augment(normalise(batch("crops")), g, ranks)
+            x = normalise(batch("crops"))
+            if cfg.augment:
+                x = photometric_jitter(x, g, ranks)
             out = net(x, batch("cls"), batch("scale"))
             loss, parts = posenet_loss(
                 out, batch("uv_unit"), batch("p"), batch("theta"), cfg.variant, cfg.lam
             )
-            lr = learning_rate(step, total_steps, cfg.lr)
+            lr = learning_rate(step, total_steps, cfg.lr, decay=cfg.decay)
             optimiser_step(model, opt, loss, lr, GRAD_CLIP)
             step += 1
             if cfg.loss_log is not None:
@@ -310,26 +314,6 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
         save(epoch + 1)
         last_save = time.monotonic()
     return {"checkpoint": str(ckpt), "history": history}
-
-
-def parse_limit(text: str | None) -> tuple[int | None, tuple[tuple[str, int], ...]]:
-    """`--limit`: "N" (every distribution) or "dist=N,..." -> (limit, dist_limits)."""
-    if text is None:
-        return None, ()
-    limit, per = None, []
-    for item in text.split(","):
-        name, _, num = item.rpartition("=")
-        if name and name not in DATASETS:
-            raise InvalidArgumentError(
-                f"unknown dataset {name!r} in --limit; valid: {', '.join(DATASETS)}"
-            )
-        if not num.isdigit() or int(num) < 1:
-            raise InvalidArgumentError(f"--limit wants N or dist=N with N >= 1, got {item!r}")
-        if name:
-            per.append((name, int(num)))
-        else:
-            limit = int(num)
-    return limit, tuple(per)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -363,6 +347,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--loss-log", type=Path, default=None, help="append one JSON line per step to this file"
     )
+    p.add_argument("--width", type=int, default=PoseNetTrainConfig.width, help="backbone width")
+    p.add_argument("--lam", type=float, default=PoseNetTrainConfig.lam, help="rotation weight")
+    p.add_argument("--objects", default="", help="train one net on these objects (comma list)")
+    p.add_argument("--no-augment", action="store_true", help="no photometric jitter")
+    p.add_argument("--constant-lr", action="store_true", help="no learning-rate decay")
     p.add_argument("--smoke", action="store_true", help="a tiny run that takes seconds")
     p.add_argument("--no-resume", action="store_true", help="start over")
     args = p.parse_args(argv)
@@ -371,8 +360,11 @@ def main(argv: list[str] | None = None) -> int:
     dists = tuple(args.dists.split(","))
     if any(d not in DATASETS for d in dists) or len(set(dists)) != len(dists):
         return fail(f"invalid --dists {args.dists!r}; a comma list of: {', '.join(DATASETS)}")
-    if args.epochs < 1 or args.batch < 1:
-        return fail("--epochs and --batch must be at least 1")
+    if args.epochs < 1 or args.batch < 1 or args.width < 1 or args.lam < 0:
+        return fail("--epochs, --batch and --width must be at least 1 and --lam at least 0")
+    objects = tuple(o for o in args.objects.split(",") if o)
+    if bad := sorted(set(objects) - set(OBJECT_NAMES)):
+        return fail(f"unknown objects {bad} in --objects; valid: {', '.join(OBJECT_NAMES)}")
     try:
         limit, dist_limits = parse_limit(args.limit)
         resolve_device(args.device)
@@ -383,7 +375,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = PoseNetTrainConfig(
         variant=args.variant, dists=dists, epochs=args.epochs, batch=args.batch, lr=args.lr,
         limit=limit, dist_limits=dist_limits, init=args.init, name=args.name, out=args.out,
-        threads=args.threads, device=args.device, loss_log=args.loss_log,
+        threads=args.threads, device=args.device, loss_log=args.loss_log, width=args.width,
+        lam=args.lam, objects=objects, augment=not args.no_augment, decay=not args.constant_lr,
     )  # fmt: skip
     if args.smoke:
         cfg = replace(SMOKE, variant=args.variant, dists=dists, out=args.out, device=args.device,
