@@ -12,8 +12,9 @@ Studies:
 - ``ours``: the factors of the `ours` recipe, each changed alone from a base run trained from
   scratch on 5000 head-camera images for `--epochs` epochs (a reduced budget: the shipped net
   trains far longer): backbone width 24 instead of 16, rotation weight lambda 3 instead of 1,
-  no photometric augmentation, a constant learning rate instead of the cosine decay. Scored on
-  the head-camera test split.
+  no photometric augmentation, a constant learning rate instead of the cosine decay. The base
+  run is repeated with another seed (initialisation and batch order) to show how far two runs
+  of the same recipe differ. Scored on the head-camera test split.
 
 Runs checkpoint as they go (`<data>/checkpoints/ablation/`) and a rerun resumes them; a finished
 run is not retrained. Test crops are `perception.training.tables`' (`TEST_CROPS`): the same
@@ -92,6 +93,7 @@ def ours_study(out: Path, epochs: int) -> dict:
     )  # fmt: skip
     runs = {
         "base (width 16, lambda 1, jitter, cosine)": base,
+        "base, another seed": replace(base, seed=1, name=f"ours_base_seed1_e{epochs}"),
         "lambda 3": replace(base, lam=3.0, name=f"ours_lam3_e{epochs}"),
         "no photometric jitter": replace(base, augment=False, name=f"ours_noaug_e{epochs}"),
         "constant learning rate": replace(base, decay=False, name=f"ours_const_e{epochs}"),
