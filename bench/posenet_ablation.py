@@ -35,25 +35,19 @@ import numpy as np
 
 from perception.nets import load_posenet
 from perception.training.crop_sets import build_crops
-from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
+from perception.training.posenet_eval import evaluate_arrays
 from perception.training.tables import TEST_CROPS
 from perception.training.train_posenet import PoseNetTrainConfig, checkpoint_path, train
 from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
 from sim.world.objects import OBJECT_NAMES
 
 COLUMNS = ("center_crop_px", "center_px", "distance_pct", "rotation_deg")
-OUTLIER_DEG = 15.0
 STUDIES = ("per-object", "ours")
 
 
 def _scores(model, data: dict, rows: np.ndarray) -> dict[str, float]:
-    sub = {k: v[rows] for k, v in data.items()}
-    pred = predict(model, sub["crops"], sub["cls"], sub["scale"])
-    m = pose_metrics(decode_predictions(pred, sub), sub)
-    out = {k: float(np.mean(m[k])) for k in COLUMNS}
-    out["outlier_rate"] = float(np.mean(m["rotation_deg"] > OUTLIER_DEG))
-    out["crops"] = len(rows)
-    return out
+    """`evaluate_arrays` (mean errors, outliers over 15 deg) on the given crops."""
+    return evaluate_arrays(model, {k: v[rows] for k, v in data.items()}) | {"crops": len(rows)}
 
 
 def _per_object(model_for, data: dict) -> dict[str, dict[str, float]]:

@@ -109,6 +109,10 @@ class PoseNetTrainConfig:
     device: str = "auto"
     loss_log: Path | None = None
 
+    def __post_init__(self) -> None:
+        if bad := sorted(set(self.objects) - set(OBJECT_NAMES)):
+            raise InvalidArgumentError(f"unknown objects {bad}; valid: {', '.join(OBJECT_NAMES)}")
+
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for checkpoints (paths as strings)."""
         return config_dict(self)
@@ -219,8 +223,6 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
     if cfg.variant == "paper":
         keep = np.abs(np.rad2deg(tr["theta"])) <= cfg.max_theta_deg
         tr = {k: v[keep] for k, v in tr.items()}
-    if bad := sorted(set(cfg.objects) - set(OBJECT_NAMES)):
-        raise InvalidArgumentError(f"unknown objects {bad}; valid: {', '.join(OBJECT_NAMES)}")
     if cfg.objects:  # one net per object: only its crops
         ids = [OBJECT_NAMES.index(o) for o in cfg.objects]
         tr, va = ({k: v[np.isin(d["cls"], ids)] for k, v in d.items()} for d in (tr, va))
@@ -362,22 +364,20 @@ def main(argv: list[str] | None = None) -> int:
         return fail(f"invalid --dists {args.dists!r}; a comma list of: {', '.join(DATASETS)}")
     if args.epochs < 1 or args.batch < 1 or args.width < 1 or args.lam < 0:
         return fail("--epochs, --batch and --width must be at least 1 and --lam at least 0")
-    objects = tuple(o for o in args.objects.split(",") if o)
-    if bad := sorted(set(objects) - set(OBJECT_NAMES)):
-        return fail(f"unknown objects {bad} in --objects; valid: {', '.join(OBJECT_NAMES)}")
+    if args.name is not None and (not args.name or "/" in args.name or args.name.endswith(".pt")):
+        return fail(f"--name must be a plain name such as posenet_ours, got {args.name!r}")
     try:
         limit, dist_limits = parse_limit(args.limit)
         resolve_device(args.device)
+        cfg = PoseNetTrainConfig(
+            variant=args.variant, dists=dists, epochs=args.epochs, batch=args.batch, lr=args.lr,
+            limit=limit, dist_limits=dist_limits, init=args.init, name=args.name, out=args.out,
+            threads=args.threads, device=args.device, loss_log=args.loss_log, width=args.width,
+            lam=args.lam, objects=tuple(o for o in args.objects.split(",") if o),
+            augment=not args.no_augment, decay=not args.constant_lr,
+        )  # fmt: skip
     except InvalidArgumentError as exc:
         return fail(str(exc))
-    if args.name is not None and (not args.name or "/" in args.name or args.name.endswith(".pt")):
-        return fail(f"--name must be a plain name such as posenet_ours, got {args.name!r}")
-    cfg = PoseNetTrainConfig(
-        variant=args.variant, dists=dists, epochs=args.epochs, batch=args.batch, lr=args.lr,
-        limit=limit, dist_limits=dist_limits, init=args.init, name=args.name, out=args.out,
-        threads=args.threads, device=args.device, loss_log=args.loss_log, width=args.width,
-        lam=args.lam, objects=objects, augment=not args.no_augment, decay=not args.constant_lr,
-    )  # fmt: skip
     if args.smoke:
         cfg = replace(SMOKE, variant=args.variant, dists=dists, out=args.out, device=args.device,
                       loss_log=args.loss_log, threads=args.threads)  # fmt: skip
