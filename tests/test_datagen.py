@@ -147,6 +147,10 @@ def test_paper_pose_projects_onto_mask(paper: Path) -> None:
         theta = np.degrees(sample.extra["roll"])
         assert -60 <= theta <= 60 and abs(theta / 3 - round(theta / 3)) < 1e-6
         assert abs(np.degrees(encode(obj.T_C_O, sample.K)[1]) - theta) < 1e-6
+        # The camera 1.2-1.8 object diameters from the object's origin.
+        dist = sample.extra["camera_distance"]
+        assert dist == pytest.approx(np.linalg.norm(obj.T_C_O[:3, 3]))
+        assert 1.2 <= dist / load_object(obj.name).diameter <= 1.8
 
 
 def test_paper_K_matches_sim_intrinsics(paper: Path) -> None:
@@ -384,6 +388,12 @@ def test_cli_refuses_to_mix_arguments(paper: Path, tmp_path: Path, capsys) -> No
     assert err.count("\n") == 1 and "use another --out" in err
     assert main([*args, "--objects", "phone"]) != 0
     assert "--objects" in capsys.readouterr().err
+    # A folder of an older paper protocol (camera 1.6-4.5 diameters away) is not resumed.
+    info = json.loads((out / "info.json").read_text())
+    (out / "info.json").write_text(json.dumps(info | {"version": "2"}))
+    assert main(args) != 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "version 2" in err and "use another --out" in err
 
 
 def test_cli_help(capsys) -> None:

@@ -43,7 +43,9 @@ from sim.core.backends import default_chunk, run_map
 from sim.core.errors import InvalidArgumentError
 from sim.world.objects import OBJECT_NAMES
 
-GENERATOR_VERSION = "2"
+#: Generator version per distribution; a dataset folder only resumes at its own version. Paper
+#: protocol 3: the camera 1.2-1.8 object diameters from the object (2: 1.6-4.5).
+GENERATOR_VERSIONS: dict[str, str] = {"paper": "3", "headcam": "2"}
 SEED_BASES: dict[str, int] = {"train": 0, "val": 100_000_000, "test": 200_000_000}
 MAX_COUNT = 100_000_000
 #: Most head-camera views rendered of one scene (`--views`).
@@ -119,12 +121,12 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
     if path.exists():
         info = load_info(cfg.out)
         have = (info.get("dist"), info.get("width"), info.get("height"), info.get("version"))
-        want = (cfg.dist, cfg.width, cfg.height, GENERATOR_VERSION)
+        want = (cfg.dist, cfg.width, cfg.height, GENERATOR_VERSIONS[cfg.dist])
         if have != want or info.get("tier") != cfg.tier:
             raise InvalidArgumentError(
                 f"{cfg.out} holds a {have[0]} dataset at {have[1]}x{have[2]} (generator "
                 f"version {have[3]}, tier {info.get('tier')}); this run asks for {cfg.dist} at "
-                f"{cfg.width}x{cfg.height} (version {GENERATOR_VERSION}, tier {cfg.tier}); "
+                f"{cfg.width}x{cfg.height} (version {want[3]}, tier {cfg.tier}); "
                 "use another --out"
             )
         old = info["splits"].get(cfg.split)
@@ -141,7 +143,7 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
     else:
         info = {
             "generator": "perception.training.datagen",
-            "version": GENERATOR_VERSION,
+            "version": GENERATOR_VERSIONS[cfg.dist],
             "dist": cfg.dist,
             "width": cfg.width,
             "height": cfg.height,

@@ -83,7 +83,7 @@ class StudioConfig:
     width: int = 256
     height: int = 256
     fovy_deg: float = 50.0
-    distance: tuple[float, float] = (1.6, 4.5)
+    distance: tuple[float, float] = (1.2, 1.8)
     aim_offset: float = 0.12
     max_clutter: int = 8
     max_lights: int = 4

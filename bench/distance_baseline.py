@@ -1,0 +1,111 @@
+"""Does a pose net read the object's distance from its crop, or does it guess?
+
+    python bench/distance_baseline.py [--weights perception/weights/posenet_paper.pt]
+        [--data paper] [--json out.json]
+
+On the test crops `perception.training.tables` scores (`TEST_CROPS`: ground-truth boxes
+perturbed like detections) of a dataset folder (a name under the data root or a path), per
+object and over all:
+
+- the net's distance error ``|T - T^| / |T|`` [%], as `tables` reports it;
+- the error of the best constant: the one distance per object that minimises the mean relative
+  error ``|d - c| / d`` on these very crops (a weighted median, fitted on the test set itself, so
+  it favours the baseline). A net that does not beat it has learned nothing about distance;
+- the correlation of log predicted with log true distance (0: no information);
+- the true distances in object diameters (min..max), the protocol's range.
+
+The `paper` variant sees only the 64x64 crop, resized from a box of any size, so its distance can
+only come from perspective: this bench shows whether the protocol's distances leave enough of it.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from perception.nets import load_posenet
+from perception.training.bop import obj_id
+from perception.training.crop_sets import build_crops
+from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
+from perception.training.tables import TEST_CROPS
+from sim.core.cli import ArgumentParser, fail
+from sim.core.errors import PosegraspError
+from sim.core.paths import WEIGHTS_DIR, data_root
+from sim.world.objects import OBJECT_NAMES, load_object
+
+
+def best_constant(d: np.ndarray) -> float:
+    """The c minimising mean(|d - c| / d): the median of d weighted by 1 / d."""
+    order = np.argsort(d)
+    w = 1.0 / d[order]
+    k = int(np.searchsorted(np.cumsum(w), w.sum() / 2))
+    return float(d[order][k])
+
+
+def rows(pred_d: np.ndarray, true_d: np.ndarray, net_err: np.ndarray, diam: np.ndarray) -> dict:
+    """The figures of one group of crops (see the module docstring)."""
+    c = best_constant(true_d)
+    return {
+        "crops": len(true_d),
+        "net_distance_pct": float(net_err.mean()),
+        "constant_distance_pct": float(100 * np.mean(np.abs(true_d - c) / true_d)),
+        "log_correlation": float(np.corrcoef(np.log(true_d), np.log(pred_d))[0, 1]),
+        "diameters": [float((true_d / diam).min()), float((true_d / diam).max())],
+    }
+
+
+def run(weights: Path, root: Path) -> dict[str, dict]:
+    """Per object name and "all": `rows` of the test crops of the dataset at root."""
+    data = build_crops(root, "test", TEST_CROPS)
+    dec = decode_predictions(
+        predict(load_posenet(weights), data["crops"], data["cls"], data["scale"]), data
+    )
+    err = pose_metrics(dec, data)["distance_pct"]
+    true_d = np.linalg.norm(data["T_C_O"][:, :3, 3], axis=1)
+    pred_d = np.linalg.norm(dec["T_C_O"][:, :3, 3], axis=1)
+    names = {obj_id(n) - 1: n for n in OBJECT_NAMES}
+    diam = np.array([load_object(names[int(c)]).diameter for c in data["cls"]])
+    out, const = {}, np.zeros(len(true_d))
+    for c in sorted(set(data["cls"].tolist())):
+        s = data["cls"] == c
+        out[names[c]] = rows(pred_d[s], true_d[s], err[s], diam[s])
+        const[s] = np.abs(true_d[s] - best_constant(true_d[s])) / true_d[s]
+    # Over all objects, each object keeps its own constant.
+    out["all"] = rows(pred_d, true_d, err, diam) | {"constant_distance_pct": 100 * const.mean()}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/distance_baseline.py", description=__doc__.split("\n")[0])
+    p.add_argument("--weights", type=Path, default=WEIGHTS_DIR / "posenet_paper.pt")
+    p.add_argument("--data", default="paper", help="dataset folder: a name under the data root "
+                   "or a path (default: paper)")  # fmt: skip
+    p.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    a = p.parse_args(argv)
+    root = Path(a.data) if Path(a.data).is_dir() else data_root() / a.data
+    if not (root / "test").is_dir():
+        return fail(f"no test split in {root}: give --data a dataset folder with a test split")
+    try:
+        res = run(a.weights, root)
+    except PosegraspError as exc:
+        return fail(str(exc))
+    print(f"{a.weights.name} on {root}/test (crops as perception.training.tables cuts them)")
+    print(f"{'object':<8} {'crops':>5} {'net %':>7} {'constant %':>10} {'log corr':>8} "
+          f"{'diameters':>11}")  # fmt: skip
+    for name, r in res.items():
+        lo, hi = r["diameters"]
+        print(f"{name:<8} {r['crops']:5d} {r['net_distance_pct']:7.2f} "
+              f"{r['constant_distance_pct']:10.2f} {r['log_correlation']:8.2f} "
+              f"{lo:5.2f}-{hi:4.2f}")  # fmt: skip
+    if a.json is not None:
+        a.json.write_text(json.dumps({"weights": a.weights.name, "data": str(root), "rows": res},
+                                     indent=1, sort_keys=True))  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
