@@ -50,7 +50,7 @@ weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 14 --dists headcam --lr 0.001 --init posenet_ours_mixed
 	$(PY) -m perception.training.train_posenet --variant ours --dists headcam,headcam_hard \
 	  --limit headcam=5000 --epochs 5 --lr 0.0005 --init posenet_ours --name posenet_ours_hard
-	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 8
+	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 12
 	$(PY) -m perception.training.export --plot docs/training_curves.png
 	$(PY) -m perception.training.train_detector --epochs 8 --out $(CKPT)/detector_base
 	$(PY) -m perception.training.train_detector --also headcam_hard --limit 2500 --epochs 1 \
