@@ -12,7 +12,10 @@ object and over all:
   error ``|d - c| / d`` on these very crops (a weighted median, fitted on the test set itself, so
   it favours the baseline). A net that does not beat it has learned nothing about distance;
 - the correlation of log predicted with log true distance (0: no information);
-- the true distances in object diameters (min..max), the protocol's range.
+- the true distances in object diameters (min..max), the protocol's range;
+- over all objects, the median ratio ``|p^| / |p|`` of the predicted to the true position vector
+  by how far the predicted viewpoint (the direction of p) is off: a net trained with eq. 7 shortens
+  p where it is unsure of the viewpoint.
 
 The `paper` variant sees only the 64x64 crop, resized from a box of any size, so its distance can
 only come from perspective: this bench shows whether the protocol's distances leave enough of it.
@@ -35,6 +38,9 @@ from sim.core.cli import ArgumentParser, fail
 from sim.core.errors import PosegraspError
 from sim.core.paths import WEIGHTS_DIR, data_root
 from sim.world.objects import OBJECT_NAMES, load_object
+
+#: Bins of the viewpoint error [deg] for `norm_ratios`.
+VIEW_BINS = ((0, 10), (10, 20), (20, 40), (40, 80), (80, 181))
 
 
 def best_constant(d: np.ndarray) -> float:
@@ -60,9 +66,8 @@ def rows(pred_d: np.ndarray, true_d: np.ndarray, net_err: np.ndarray, diam: np.n
 def run(weights: Path, root: Path) -> dict[str, dict]:
     """Per object name and "all": `rows` of the test crops of the dataset at root."""
     data = build_crops(root, "test", TEST_CROPS)
-    dec = decode_predictions(
-        predict(load_posenet(weights), data["crops"], data["cls"], data["scale"]), data
-    )
+    pred = predict(load_posenet(weights), data["crops"], data["cls"], data["scale"])
+    dec = decode_predictions(pred, data)
     err = pose_metrics(dec, data)["distance_pct"]
     true_d = np.linalg.norm(data["T_C_O"][:, :3, 3], axis=1)
     pred_d = np.linalg.norm(dec["T_C_O"][:, :3, 3], axis=1)
@@ -75,6 +80,19 @@ def run(weights: Path, root: Path) -> dict[str, dict]:
         const[s] = np.abs(true_d[s] - best_constant(true_d[s])) / true_d[s]
     # Over all objects, each object keeps its own constant.
     out["all"] = rows(pred_d, true_d, err, diam) | {"constant_distance_pct": 100 * const.mean()}
+    out["all"]["norm_ratio_by_viewpoint_error"] = norm_ratios(data["p"], pred["p"])
+    return out
+
+
+def norm_ratios(p: np.ndarray, p_hat: np.ndarray) -> dict[str, dict]:
+    """Median |p^| / |p| and count per bin of the angle between p^ and p [deg] (`VIEW_BINS`)."""
+    n, n_hat = np.linalg.norm(p, axis=1), np.linalg.norm(p_hat, axis=1)
+    ang = np.degrees(np.arccos(np.clip(np.sum(p * p_hat, axis=1) / (n * n_hat), -1.0, 1.0)))
+    out = {}
+    for lo, hi in VIEW_BINS:
+        s = (ang >= lo) & (ang < hi)
+        if s.any():
+            out[f"{lo}-{hi}"] = {"crops": int(s.sum()), "median": float(np.median(n_hat[s] / n[s]))}
     return out
 
 
@@ -101,6 +119,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:<8} {r['crops']:5d} {r['net_distance_pct']:7.2f} "
               f"{r['constant_distance_pct']:10.2f} {r['log_correlation']:8.2f} "
               f"{lo:5.2f}-{hi:4.2f}")  # fmt: skip
+    ratios = res["all"]["norm_ratio_by_viewpoint_error"]
+    print("|p^| / |p| (median) by viewpoint error: " + ", ".join(
+        f"{k} deg {v['median']:.2f} ({v['crops']})" for k, v in ratios.items()))  # fmt: skip
     if a.json is not None:
         a.json.write_text(json.dumps({"weights": a.weights.name, "data": str(root), "rows": res},
                                      indent=1, sort_keys=True))  # fmt: skip

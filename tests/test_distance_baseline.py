@@ -34,3 +34,15 @@ def test_rows_of_a_net_that_knows_the_distance() -> None:
     r = bench.rows(d * 1.01, d, np.full(200, 1.0), np.full(200, 0.25))
     assert r["log_correlation"] > 0.999 and r["constant_distance_pct"] > 10
     assert r["diameters"] == [d.min() / 0.25, d.max() / 0.25] and r["crops"] == 200
+
+
+def test_norm_ratios_bin_by_the_viewpoint_error() -> None:
+    p = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 2.0], [1.0, 0.0, 0.0]])
+    tilt = np.radians(30.0)
+    p_hat = np.array([[0.0, 0.0, 0.8], [0.0, 2 * np.sin(tilt), 2 * np.cos(tilt)], [0.0, 0.0, 0.5]])
+    r = bench.norm_ratios(p, p_hat)
+    assert r == {
+        "0-10": {"crops": 1, "median": 0.8},
+        "20-40": {"crops": 1, "median": 1.0},
+        "80-181": {"crops": 1, "median": 0.5},
+    }
