@@ -43,7 +43,8 @@ data: setup
 # time): `ours` on both distributions (the first 5000 head-camera images), then fine-tuned on all
 # the head-camera images; its expert `ours_hard` fine-tuned from it on the head camera and the
 # hard tier; `paper` as published, on the paper's protocol alone; the detector on the head
-# camera, then fine-tuned on the head camera and the hard tier.
+# camera, then fine-tuned on the head camera and the hard tier; from it, the paper protocol's
+# detector (perception/weights/paper_protocol/) fine-tuned on the head camera and that protocol.
 CKPT := $${POSEGRASP_DATA:-data}/checkpoints
 weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed
@@ -55,9 +56,15 @@ weights: data
 	$(PY) -m perception.training.train_detector --epochs 8 --out $(CKPT)/detector_base
 	$(PY) -m perception.training.train_detector --also headcam_hard --limit 2500 --epochs 1 \
 	  --lr 0.0005 --init $(CKPT)/detector_base/detector.pt --export
+	$(PY) -m perception.training.train_detector --also paper --limit 2500 --epochs 1 --lr 0.0005 \
+	  --init perception/weights/detector.pt --out $(CKPT)/detector_paper --export \
+	  --weights-out perception/weights/paper_protocol
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record
+	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt \
+	  --dists paper,headcam --boxes detector --detector perception/weights/paper_protocol/detector.pt \
+	  --json docs/table2_paper_detections.json
 
 setup: system-deps $(STAMP)
 

@@ -152,6 +152,13 @@ def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) ->
     ]
     for name, e in entries.items():
         assert sha256_file(WEIGHTS_DIR / name) == e["sha256"]
+    # The paper protocol's detector has a folder and a manifest of its own.
+    paper = WEIGHTS_DIR / "paper_protocol"
+    entries = integrity.manifest_entries(json.loads((paper / "manifest.json").read_text()))
+    assert sorted(entries) == [p.name for p in paper.glob("*.pt")] == ["detector.pt"]
+    assert sha256_file(paper / "detector.pt") == entries["detector.pt"]["sha256"]
+    integrity.verify_weights(paper / "detector.pt")
+    assert "--also paper" in entries["detector.pt"]["command"]
     f = tmp_path / "w.bin"
     f.write_bytes(b"abc")
     before = files._sha256.cache_info().misses
