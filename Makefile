@@ -42,16 +42,20 @@ data: setup
 # which records each stage's command, data seeds, validation figures and, where measured, wall
 # time): `ours` on both distributions (the first 5000 head-camera images), then fine-tuned on all
 # the head-camera images; its expert `ours_hard` fine-tuned from it on the head camera and the
-# hard tier; `paper` as published, on the paper's protocol alone; the detector on the head
-# camera, then fine-tuned on the head camera and the hard tier; from it, the paper protocol's
-# detector (perception/weights/paper_protocol/) fine-tuned on the head camera and that protocol.
+# hard tier; `paper` as published, on the paper's protocol alone (12 epochs, then 6 more in
+# batches of 32); the detector on the head camera, then fine-tuned on the head camera and the
+# hard tier; from it, the paper protocol's detector (perception/weights/paper_protocol/)
+# fine-tuned on the head camera and that protocol.
 CKPT := $${POSEGRASP_DATA:-data}/checkpoints
 weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 14 --dists headcam --lr 0.001 --init posenet_ours_mixed
 	$(PY) -m perception.training.train_posenet --variant ours --dists headcam,headcam_hard \
 	  --limit headcam=5000 --epochs 5 --lr 0.0005 --init posenet_ours --name posenet_ours_hard
-	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 12
+	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 12 \
+	  --name posenet_paper_base
+	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 6 --batch 32 \
+	  --lr 0.0005 --init posenet_paper_base
 	$(PY) -m perception.training.export --plot docs/training_curves.png
 	$(PY) -m perception.training.train_detector --epochs 8 --out $(CKPT)/detector_base
 	$(PY) -m perception.training.train_detector --also headcam_hard --limit 2500 --epochs 1 \
