@@ -23,18 +23,16 @@ only come from perspective: this bench shows whether the protocol's distances le
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from perception.nets import load_posenet
-from perception.training.bop import obj_id
 from perception.training.crop_sets import build_crops
 from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
 from perception.training.tables import TEST_CROPS
-from sim.core.cli import ArgumentParser, fail
+from sim.core.cli import ArgumentParser, fail, write_json
 from sim.core.errors import PosegraspError
 from sim.core.paths import WEIGHTS_DIR, data_root
 from sim.world.objects import OBJECT_NAMES, load_object
@@ -51,13 +49,21 @@ def best_constant(d: np.ndarray) -> float:
     return float(d[order][k])
 
 
-def rows(pred_d: np.ndarray, true_d: np.ndarray, net_err: np.ndarray, diam: np.ndarray) -> dict:
-    """The figures of one group of crops (see the module docstring)."""
-    c = best_constant(true_d)
+def constant_errors(d: np.ndarray) -> np.ndarray:
+    """Relative errors |d - c| / d of the best constant c (`best_constant`) of distances d."""
+    return np.abs(d - best_constant(d)) / d
+
+
+def rows(
+    pred_d: np.ndarray, true_d: np.ndarray, net_err: np.ndarray, diam: np.ndarray,
+    const_err: np.ndarray,
+) -> dict:  # fmt: skip
+    """The figures of one group of crops (see the module docstring); `const_err` are the
+    relative errors of the constant baseline (`constant_errors`, per object)."""
     return {
         "crops": len(true_d),
         "net_distance_pct": float(net_err.mean()),
-        "constant_distance_pct": float(100 * np.mean(np.abs(true_d - c) / true_d)),
+        "constant_distance_pct": float(100 * const_err.mean()),
         "log_correlation": float(np.corrcoef(np.log(true_d), np.log(pred_d))[0, 1]),
         "diameters": [float((true_d / diam).min()), float((true_d / diam).max())],
     }
@@ -71,15 +77,14 @@ def run(weights: Path, root: Path) -> dict[str, dict]:
     err = pose_metrics(dec, data)["distance_pct"]
     true_d = np.linalg.norm(data["T_C_O"][:, :3, 3], axis=1)
     pred_d = np.linalg.norm(dec["T_C_O"][:, :3, 3], axis=1)
-    names = {obj_id(n) - 1: n for n in OBJECT_NAMES}
-    diam = np.array([load_object(names[int(c)]).diameter for c in data["cls"]])
+    diam = np.array([load_object(OBJECT_NAMES[c]).diameter for c in data["cls"]])
     out, const = {}, np.zeros(len(true_d))
-    for c in sorted(set(data["cls"].tolist())):
+    for c in sorted(set(data["cls"].tolist())):  # class index c is OBJECT_NAMES[c]
         s = data["cls"] == c
-        out[names[c]] = rows(pred_d[s], true_d[s], err[s], diam[s])
-        const[s] = np.abs(true_d[s] - best_constant(true_d[s])) / true_d[s]
+        const[s] = constant_errors(true_d[s])
+        out[OBJECT_NAMES[c]] = rows(pred_d[s], true_d[s], err[s], diam[s], const[s])
     # Over all objects, each object keeps its own constant.
-    out["all"] = rows(pred_d, true_d, err, diam) | {"constant_distance_pct": 100 * const.mean()}
+    out["all"] = rows(pred_d, true_d, err, diam, const)
     out["all"]["norm_ratio_by_viewpoint_error"] = norm_ratios(data["p"], pred["p"])
     return out
 
@@ -123,8 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|p^| / |p| (median) by viewpoint error: " + ", ".join(
         f"{k} deg {v['median']:.2f} ({v['crops']})" for k, v in ratios.items()))  # fmt: skip
     if a.json is not None:
-        a.json.write_text(json.dumps({"weights": a.weights.name, "data": str(root), "rows": res},
-                                     indent=1, sort_keys=True))  # fmt: skip
+        write_json(a.json, {"weights": a.weights.name, "data": str(root), "rows": res})
     return 0
 
 

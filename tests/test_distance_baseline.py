@@ -31,7 +31,7 @@ def test_best_constant_minimises_the_mean_relative_error() -> None:
 def test_rows_of_a_net_that_knows_the_distance() -> None:
     rng = np.random.default_rng(4)
     d = rng.uniform(0.4, 0.9, 200)
-    r = bench.rows(d * 1.01, d, np.full(200, 1.0), np.full(200, 0.25))
+    r = bench.rows(d * 1.01, d, np.full(200, 1.0), np.full(200, 0.25), bench.constant_errors(d))
     assert r["log_correlation"] > 0.999 and r["constant_distance_pct"] > 10
     assert r["diameters"] == [d.min() / 0.25, d.max() / 0.25] and r["crops"] == 200
 
