@@ -140,8 +140,21 @@ def test_fine_tune_records_its_lineage_and_exports_stages(tiny_data, tmp_path, m
     assert [s["command"] for s in stages] == ["stage one", ckpt["command"]]
     assert [s["epochs"] for s in stages] == [1, 2]
     assert manifest["pose_nets"]["ours"]["command"] == ckpt["command"]
+    # Test figures survive a re-export of the same weights (compared by value, the file is not
+    # rewritten) and are dropped when the weights change.
+    shipped = out / "posenet_ours.pt"
+    manifest["pose_nets"]["ours"]["test"] = {"rotation_deg": 1.0}
+    export_weights.write_manifest(out / "manifest.json", manifest)
+    mtime = shipped.stat().st_mtime_ns
+    again = export_weights.export(tmp_path, out)
+    assert again["pose_nets"]["ours"]["test"] == {"rotation_deg": 1.0}
+    assert shipped.stat().st_mtime_ns == mtime
+    train(replace(ft, epochs=3))
+    changed = export_weights.export(tmp_path, out)
+    assert "test" not in changed["pose_nets"]["ours"]
+    assert shipped.stat().st_mtime_ns != mtime
     curves = export_weights.training_curves(tmp_path)
-    assert [[h["epoch"] for h in st] for st in curves["ours"]] == [[1], [1, 2]]
+    assert [[h["epoch"] for h in st] for st in curves["ours"]] == [[1], [1, 2, 3]]
     export_weights.plot_curves(curves, tmp_path / "curves.png")
     assert (tmp_path / "curves.png").stat().st_size > 1000
 

@@ -11,9 +11,12 @@ perception.training.train_detector --export``).
 
 from __future__ import annotations
 
+import pickle
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+
+import torch
 
 from perception.nets import VARIANTS
 from perception.training.checkpoints import read_checkpoint, save_atomically
@@ -60,10 +63,11 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
             "commit": state["commit"],
         }
         path = out / f"posenet_{variant}.pt"
-        before = path.read_bytes() if path.is_file() else None
-        save_atomically(shipped, path)
-        # Test figures stay valid only for the very same weights.
-        same = before == path.read_bytes()
+        # Test figures stay valid only for the very same weights, compared by value: two saves
+        # of equal tensors need not give equal bytes. Unchanged weights are not rewritten.
+        same = _same_weights(path, shipped)
+        if not same:
+            save_atomically(shipped, path)
         kept = {k: v for k, v in nets.get(variant, {}).items() if same and k.startswith("test")}
         tc = state["train_config"]
         command = state.get("command") or (
@@ -86,6 +90,22 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
     manifest["exported_at_commit"] = git_commit()
     write_manifest(MANIFEST, manifest)
     return manifest
+
+
+def _same_weights(path: Path, shipped: dict) -> bool:
+    """`path` holds exactly the tensors and model config of `shipped`."""
+    if not path.is_file():
+        return False
+    try:
+        old = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, pickle.UnpicklingError):
+        return False  # unreadable: it is replaced
+    a, b = old.get("model", {}), shipped["model"]
+    return (
+        old.get("model_config") == shipped["model_config"]
+        and a.keys() == b.keys()
+        and all(a[k].dtype == b[k].dtype and torch.equal(a[k], b[k]) for k in a)
+    )
 
 
 def _stages(state: dict, command: str) -> list[dict]:
