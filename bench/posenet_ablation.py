@@ -13,7 +13,9 @@ Studies:
 - ``ours``: the factors of the `ours` recipe, each changed alone from a base run trained from
   scratch on 5000 head-camera images for `--epochs` epochs (a reduced budget: the shipped net
   trains far longer): backbone width 24 instead of 16, rotation weight lambda 3 instead of 1,
-  no photometric augmentation, a constant learning rate instead of the cosine decay. The base
+  no photometric augmentation, a constant learning rate instead of the cosine decay, crops of
+  48 or 96 px instead of 64 (test crops cut alike at that side), and the rotation as the 6D
+  representation instead of viewpoint direction and roll (`perception.nets.ROTATIONS`). The base
   run is repeated with another seed (initialisation and batch order) to show how far two runs
   of the same recipe differ. Scored on the head-camera test split.
 
@@ -105,12 +107,20 @@ def ours_study(out: Path, epochs: int) -> dict:
         "no photometric jitter": replace(base, augment=False, name=f"ours_noaug_e{epochs}"),
         "constant learning rate": replace(base, decay=False, name=f"ours_const_e{epochs}"),
         "width 24": replace(base, width=24, name=f"ours_w24_e{epochs}"),
+        "crop 48": replace(base, crops=replace(base.crops, size=48), name=f"ours_crop48_e{epochs}"),
+        "crop 96": replace(base, crops=replace(base.crops, size=96), name=f"ours_crop96_e{epochs}"),
+        "6D rotation": replace(base, rotation="6d", name=f"ours_6d_e{epochs}"),
     }
-    data = build_crops(data_root() / "headcam", "test", TEST_CROPS)
+    data = {}  # test crops by side
     res = {}
     for label, cfg in runs.items():
         model = _train(cfg)
-        res[label] = _per_object(lambda o, m=model: m, data)
+        side = cfg.crops.size
+        if side not in data:
+            data[side] = build_crops(
+                data_root() / "headcam", "test", replace(TEST_CROPS, size=side)
+            )
+        res[label] = _per_object(lambda o, m=model: m, data[side])
         res[label]["checkpoint"] = str(checkpoint_path(cfg))
     return res
 

@@ -114,8 +114,10 @@ class HybridPoseEstimator:
                 f"the pose nets have {posenet.cfg.n_classes} classes, need {len(OBJECT_NAMES)}"
             )
         for net in experts:
-            if net.cfg.n_classes != posenet.cfg.n_classes:
-                raise InvalidArgumentError("the expert pose nets must have the same classes")
+            if (net.cfg.n_classes, net.cfg.crop) != (posenet.cfg.n_classes, posenet.cfg.crop):
+                raise InvalidArgumentError(
+                    "the expert pose nets must have the same classes and crop size"
+                )
         self.detector = detector
         self.posenet = posenet.eval()
         self.experts = [net.eval() for net in experts]
@@ -231,7 +233,7 @@ class HybridPoseEstimator:
                 continue
             box = square_box(d.box_xyxy, scale=self.crop_scale)
             kept.append((d, box))
-            crops.append(crop_and_resize(rgb, box, CROP))
+            crops.append(crop_and_resize(rgb, box, self.posenet.cfg.crop))
         t2 = time.perf_counter()
         outs = []
         if kept:

@@ -6,7 +6,10 @@ Two variants:
 - ``paper``: crop only, 4D output (p_x, p_y, p_z, theta), theta meant for -60..60 degrees.
 - ``ours``: the crop's angular size ``s = side / f`` enters the 4D head, which predicts the
   direction of p, the scale-invariant distance ``log(|p| * s)`` and the roll as (cos, sin), so any
-  roll works and distance no longer has to come from perspective cues alone.
+  roll works and distance no longer has to come from perspective cues alone. With
+  ``rotation="6d"`` it predicts the rotation R_O_C' itself in the continuous 6D representation
+  (two columns, Gram-Schmidt; Zhou et al., CVPR 2019) instead of direction and roll, whose roll
+  reference turns abruptly where the view passes over the object's poles.
 """
 
 from __future__ import annotations
@@ -18,10 +21,13 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from perception.geometry_torch import axes_from_p
 from perception.integrity import verify_weights
 from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 
 VARIANTS: tuple[str, ...] = ("paper", "ours")
+#: Rotation outputs of "ours": viewpoint direction and roll, or the 6D representation.
+ROTATIONS: tuple[str, ...] = ("view-roll", "6d")
 CROP = 64
 
 
@@ -33,6 +39,8 @@ class NetConfig:
         variant: "paper" or "ours".
         n_classes: number of object classes (one head slice each).
         width: channels of the first conv stage (the others have 2x and 4x).
+        crop: side of the input crop [px], a multiple of 8 (the paper's is 64).
+        rotation: "ours" rotation output, one of `ROTATIONS` ("paper" always has p and theta).
         hidden: width of the fully connected layer.
         dropout: dropout before the heads.
     """
@@ -40,12 +48,22 @@ class NetConfig:
     variant: str = "ours"
     n_classes: int = 6
     width: int = 16
+    crop: int = CROP
+    rotation: str = "view-roll"
     hidden: int = 512
     dropout: float = 0.5
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
             raise UnknownNameError("variant", self.variant, VARIANTS)
+        if not (isinstance(self.crop, int) and 16 <= self.crop <= 256 and self.crop % 8 == 0):
+            raise InvalidArgumentError(f"crop must be a multiple of 8 in 16..256, got {self.crop}")
+        if self.rotation not in ROTATIONS:
+            raise UnknownNameError("rotation", self.rotation, ROTATIONS)
+        if self.variant == "paper" and self.rotation != "view-roll":
+            raise InvalidArgumentError(
+                "the paper variant predicts p and theta (rotation view-roll)"
+            )
 
     def to_dict(self) -> dict:
         """Plain dict (stored in checkpoints)."""
@@ -89,13 +107,13 @@ class PoseNet(nn.Module):
             *_conv(2 * w, 4 * w), *_conv(4 * w, 4 * w), nn.MaxPool2d(2),
             nn.Flatten(),
         )  # fmt: skip
-        feat = 4 * w * (CROP // 8) ** 2
+        feat = 4 * w * (cfg.crop // 8) ** 2
         extra = 1 if cfg.variant == "ours" else 0
         self.fc = nn.Sequential(
             nn.Linear(feat + extra, cfg.hidden), nn.ReLU(True), nn.Dropout(cfg.dropout)
         )
         self.head2d = nn.Linear(cfg.hidden, 2 * cfg.n_classes)
-        self.k4 = 6 if cfg.variant == "ours" else 4
+        self.k4 = {"paper": 4, "ours": 7 if cfg.rotation == "6d" else 6}[cfg.variant]
         self.head4d = nn.Linear(cfg.hidden + extra, self.k4 * cfg.n_classes)
         for m in self.modules():
             if isinstance(m, (nn.Linear, nn.Conv2d)):
@@ -107,7 +125,12 @@ class PoseNet(nn.Module):
             self.head4d.weight.mul_(0.1)
             self.head2d.weight.mul_(0.1)
             b = self.head4d.bias.view(cfg.n_classes, self.k4)
-            if cfg.variant == "ours":
+            if cfg.rotation == "6d":
+                # Columns x = (1, 0, 0), y = (0, 0, -1): a level view from -y, far from the
+                # poles, where the roll's theta = 0 reference is singular.
+                b[:, 0], b[:, 5] = 1.0, -1.0
+                b[:, 6] = math.log(0.2)
+            elif cfg.variant == "ours":
                 b[:, 3] = math.log(0.2)  # |p| * side / f is about the object's size
                 b[:, 4] = 1.0  # cos(theta) = 1
 
@@ -115,10 +138,15 @@ class PoseNet(nn.Module):
         """Predict for a batch.
 
         Args:
-            crops: (B, 3, 64, 64) float, normalised as `normalise` does.
+            crops: (B, 3, crop, crop) float, normalised as `normalise` does.
             cls: (B,) class indices.
             scale: (B,) crop angular size side / f (used by "ours").
         """
+        if crops.shape[-2:] != (self.cfg.crop, self.cfg.crop):
+            raise InvalidArgumentError(
+                f"this net takes {self.cfg.crop}x{self.cfg.crop} crops, got "
+                f"{tuple(crops.shape[-2:])}"
+            )
         f = self.backbone(crops)
         if self.cfg.variant == "ours":
             ls = torch.log(scale).unsqueeze(1)
@@ -131,7 +159,9 @@ class PoseNet(nn.Module):
         o2 = self.head2d(h).view(-1, self.cfg.n_classes, 2)[idx, cls]
         o4 = self.head4d(h4).view(-1, self.cfg.n_classes, self.k4)[idx, cls]
         uv = torch.sigmoid(o2) * 1.5 - 0.25  # the origin may lie a little outside the crop
-        if self.cfg.variant == "ours":
+        if self.cfg.rotation == "6d":
+            p, cs = _from_6d(o4[:, :6], torch.exp(o4[:, 6].clamp(-6.0, 3.0)) / scale)
+        elif self.cfg.variant == "ours":
             d = o4[:, :3] / torch.linalg.norm(o4[:, :3], dim=1, keepdim=True).clamp_min(1e-6)
             dist = torch.exp(o4[:, 3].clamp(-6.0, 3.0)) / scale
             p = d * dist.unsqueeze(1)
@@ -142,16 +172,33 @@ class PoseNet(nn.Module):
         return PoseOutput(uv, p, cs)
 
 
+def _from_6d(a: torch.Tensor, dist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """p and the roll's (cos, sin) from 6D rotation outputs (B, 6) and distances (B,).
+
+    R_O_C' = [b1 b2 b3] by Gram-Schmidt on the two predicted columns; the camera looks along b3
+    at O's origin, so p = -dist * b3, and the roll is b1 seen in the theta = 0 axes of that p
+    (`perception.geometry_torch.axes_from_p`, R_O_C' = [x y z] Rz(theta))."""
+    b1 = a[:, :3] / torch.linalg.norm(a[:, :3], dim=1, keepdim=True).clamp_min(1e-6)
+    a2 = a[:, 3:] - (b1 * a[:, 3:]).sum(1, keepdim=True) * b1
+    b2 = a2 / torch.linalg.norm(a2, dim=1, keepdim=True).clamp_min(1e-6)
+    b3 = torch.linalg.cross(b1, b2, dim=1)
+    p = -b3 * dist.unsqueeze(1)
+    x, y, _ = axes_from_p(p)
+    return p, torch.stack([(x * b1).sum(1), (y * b1).sum(1)], dim=1)
+
+
 def normalise(crops_uint8: torch.Tensor) -> torch.Tensor:
-    """(B, 64, 64, 3) uint8 -> (B, 3, 64, 64) float in [-0.5, 0.5]."""
+    """(B, S, S, 3) uint8 -> (B, 3, S, S) float in [-0.5, 0.5] (S: the crop side, 64 for the
+    shipped nets)."""
     if (
         crops_uint8.dtype != torch.uint8
         or crops_uint8.ndim != 4
-        or crops_uint8.shape[1:] != (CROP, CROP, 3)
+        or crops_uint8.shape[3] != 3
+        or crops_uint8.shape[1] != crops_uint8.shape[2]
     ):
         raise InvalidArgumentError(
-            f"crops must be uint8 of shape (B, {CROP}, {CROP}, 3), got {crops_uint8.dtype} "
-            f"{tuple(crops_uint8.shape)}"
+            f"crops must be uint8 of shape (B, S, S, 3), e.g. (B, {CROP}, {CROP}, 3), got "
+            f"{crops_uint8.dtype} {tuple(crops_uint8.shape)}"
         )
     return crops_uint8.permute(0, 3, 1, 2).float() / 255.0 - 0.5
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from perception.nets import NetConfig, PoseNet, load_posenet, normalise
+from perception.geometry_torch import rotation_from_p_cs
+from perception.nets import NetConfig, PoseNet, _from_6d, load_posenet, normalise
 from perception.training import datagen
 from perception.training import export as export_weights
 from perception.training import train_posenet as train_mod
@@ -19,6 +20,7 @@ from perception.training.tables import evaluate_split
 from perception.training.train_posenet import SMOKE, train
 from sim.core.errors import AssetError
 from sim.core.paths import WEIGHTS_DIR
+from sim.core.transforms import quat_to_mat
 from sim.world.objects import OBJECT_NAMES
 
 
@@ -47,7 +49,37 @@ def test_normalise_rejects_wrong_input() -> None:
     with pytest.raises(ValueError, match="uint8"):
         normalise(torch.zeros((2, 64, 64, 3)))
     with pytest.raises(ValueError, match="shape"):
-        normalise(torch.zeros((2, 32, 32, 3), dtype=torch.uint8))
+        normalise(torch.zeros((2, 32, 48, 3), dtype=torch.uint8))
+    net = PoseNet(NetConfig(width=4))  # 64x64 crops
+    x = normalise(torch.zeros((2, 32, 32, 3), dtype=torch.uint8))
+    with pytest.raises(ValueError, match="takes 64x64 crops, got"):
+        net(x, torch.tensor([0, 1]), torch.full((2,), 0.15))
+    with pytest.raises(ValueError, match="multiple of 8"):
+        NetConfig(crop=60)
+    with pytest.raises(ValueError, match="view-roll"):
+        NetConfig(variant="paper", rotation="6d")
+
+
+@pytest.mark.parametrize(("crop", "rotation"), [(48, "view-roll"), (96, "6d")])
+def test_other_crop_sizes_and_the_6d_rotation(crop: int, rotation: str) -> None:
+    net = PoseNet(NetConfig(width=4, crop=crop, rotation=rotation)).eval()
+    x = normalise(torch.randint(0, 256, (3, crop, crop, 3), dtype=torch.uint8))
+    out = net(x, torch.tensor([0, 2, 5]), torch.full((3,), 0.15))
+    assert out.p.shape == (3, 3) and out.cs.shape == (3, 2)
+    # At initialisation the 6D head starts near a level view from -y, |p| = 0.2 / scale.
+    if rotation == "6d":
+        assert torch.allclose(out.p, torch.tensor([0.0, -0.2 / 0.15, 0.0]), atol=0.15)
+
+
+def test_6d_rotation_decodes_to_the_rotation_it_encodes() -> None:
+    g = torch.Generator().manual_seed(3)
+    q = torch.randn(64, 4, generator=g).numpy()
+    R = torch.tensor(np.stack([quat_to_mat(v / np.linalg.norm(v)) for v in q]), dtype=torch.float32)
+    six = torch.cat([R[:, :, 0], R[:, :, 1]], dim=1) * 2.5  # the scale of a column is free
+    dist = torch.rand(64, generator=g) + 0.5
+    p, cs = _from_6d(six, dist)
+    assert torch.allclose(torch.linalg.norm(p, dim=1), dist, atol=1e-5)
+    assert torch.allclose(rotation_from_p_cs(p, cs), R, atol=1e-4)
 
 
 def test_unknown_variant() -> None:

@@ -32,6 +32,7 @@ class CropConfig:
         scale_range: random scale of the square box side relative to the box's longer side.
         min_visib: instances less visible than this are skipped.
         seed: seed of the random boxes.
+        size: side the crops are resampled to [px] (the nets' input; 64 as in the paper).
     """
 
     per_object: int = 2
@@ -39,6 +40,7 @@ class CropConfig:
     scale_range: tuple[float, float] = (0.95, 1.35)
     min_visib: float = 0.5
     seed: int = 0
+    size: int = CROP
 
 
 def data_seed_ranges(
@@ -66,16 +68,17 @@ class CropSet:
 
     KEYS = ("crops", "cls", "uv_unit", "p", "theta", "scale", "box", "K", "T_C_O", "uv")
 
-    def __init__(self) -> None:
+    def __init__(self, size: int = CROP) -> None:
+        self.size = size
         self.rows: dict[str, list] = {k: [] for k in self.KEYS}
 
     def add(self, rgb: np.ndarray, K: np.ndarray, obj, box: tuple[float, float, float]) -> None:
         """Cut the square `box` (x0, y0, side) of `rgb` around annotated object `obj`."""
         p, theta, uv = encode(obj.T_C_O, K)
         r = self.rows
-        r["crops"].append(crop_and_resize(rgb, box, CROP))
+        r["crops"].append(crop_and_resize(rgb, box, self.size))
         r["cls"].append(obj.obj_id - 1)
-        r["uv_unit"].append(to_unit(image_to_crop(uv, box, CROP), CROP))
+        r["uv_unit"].append(to_unit(image_to_crop(uv, box, self.size), self.size))
         r["p"].append(p)
         r["theta"].append(theta)
         r["scale"].append(box[2] / K[0, 0])
@@ -88,7 +91,7 @@ class CropSet:
         """The layout `build_crops` returns (empty arrays of the right shapes when no crop)."""
         r = self.rows
         return {
-            "crops": np.asarray(r["crops"], np.uint8).reshape(-1, CROP, CROP, 3),
+            "crops": np.asarray(r["crops"], np.uint8).reshape(-1, self.size, self.size, 3),
             "cls": np.asarray(r["cls"], np.int64),
             "uv_unit": np.asarray(r["uv_unit"], np.float32).reshape(-1, 2),
             "p": np.asarray(r["p"], np.float32).reshape(-1, 3),
@@ -118,20 +121,21 @@ def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = Non
     """Cut (or load cached) training crops and labels of one split of one dataset.
 
     Returns:
-        dict of arrays: crops (N, 64, 64, 3) uint8, cls (N,), uv_unit (N, 2), p (N, 3),
+        dict of arrays: crops (N, S, S, 3) uint8 (S = cfg.size), cls (N,), uv_unit (N, 2), p (N, 3),
         theta (N,), scale (N,) = side / f, box (N, 3) square boxes (x0, y0, side), K (N, 3, 3),
         T_C_O (N, 4, 4), uv (N, 2) true origin pixel.
     """
     ds = PoseDataset(root, split)
     n = len(ds) if limit is None else min(limit, len(ds))
-    cache = root / f"crops_{split}_{cfg.per_object}_{cfg.seed}_{n}.npz"  # n: images used
+    side = "" if cfg.size == CROP else f"_s{cfg.size}"
+    cache = root / f"crops_{split}_{cfg.per_object}_{cfg.seed}_{n}{side}.npz"  # n: images used
     if cache.is_file():
         try:
             with np.load(cache) as z:
                 return {k: z[k] for k in z.files}
         except (OSError, ValueError) as exc:
             raise AssetError(f"corrupt crop cache {cache}: {exc}; delete it to rebuild") from exc
-    out = CropSet()
+    out = CropSet(cfg.size)
     for sample, obj, box in random_boxes(ds, cfg, n):
         out.add(sample.rgb, sample.K, obj, box)
     arrays = out.arrays()

@@ -28,6 +28,7 @@ name for the others).
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +39,7 @@ from perception.crops import square_box
 from perception.detector import DEFAULT_WEIGHTS, Detector
 from perception.hybrid import DEFAULT_CROP_SCALE
 from perception.metrics import box_iou
-from perception.nets import PoseNet, load_posenet
+from perception.nets import CROP, PoseNet, load_posenet
 from perception.overlay import silhouette
 from perception.success_model import SuccessModel, components_of, load_models
 from perception.training.crop_sets import CropConfig, CropSet, build_crops
@@ -82,13 +83,18 @@ def _iou(T_est: np.ndarray, T_gt: np.ndarray, K: np.ndarray, name: str) -> float
 
 
 def detector_crops(
-    root: Path, detector: Detector, limit: int | None = None, min_visib: float = 0.5
+    root: Path,
+    detector: Detector,
+    limit: int | None = None,
+    min_visib: float = 0.5,
+    size: int = CROP,
 ) -> tuple[dict, dict]:
     """Crops of a test split cut around detector boxes, as an end-to-end system would see them.
 
     Every annotated object at least `min_visib` visible is matched with the highest-scoring
     detection of its class whose box overlaps its visible box by IoU >= 0.5 and whose score is
-    at least `MATCH_SCORE`; the crop is the square `perception.hybrid` cuts around that box.
+    at least `MATCH_SCORE`; the crop is the square `perception.hybrid` cuts around that box,
+    resampled to `size` x `size` (the pose net's input).
 
     Returns:
         The crop arrays in `perception.training.crop_sets.build_crops`' layout (matched
@@ -99,7 +105,7 @@ def detector_crops(
     """
     ds = PoseDataset(root, "test")
     n = len(ds) if limit is None else min(limit, len(ds))
-    out = CropSet()
+    out = CropSet(size)
     gts, dets = [], []
     objects = dict.fromkeys(OBJECT_NAMES, 0)
     missed = dict.fromkeys(OBJECT_NAMES, 0)
@@ -183,7 +189,7 @@ def evaluate_split(
         -> the key of ours it is compared with).
     """
     if data is None:
-        data = build_crops(root, "test", TEST_CROPS, limit)
+        data = build_crops(root, "test", replace(TEST_CROPS, size=model.cfg.crop), limit)
     if len(data["crops"]) == 0:
         raise AssetError(f"no test crops under {root}")
     info = load_info(root)
@@ -299,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
             data = None
             if args.boxes == "detector":
                 detector = Detector.from_weights(args.detector, score_threshold=0.05)
-                data, det = detector_crops(roots[d], detector, args.limit)
+                data, det = detector_crops(roots[d], detector, args.limit, size=model.cfg.crop)
                 # Keys without the split's name are the head camera's (the manifest's record).
                 tag = "" if d == "headcam" else f"{d}_"
                 report[f"{tag}detection"] = det["detection"]

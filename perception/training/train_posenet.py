@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from perception.nets import VARIANTS, NetConfig, PoseNet, normalise
+from perception.nets import CROP, ROTATIONS, VARIANTS, NetConfig, PoseNet, normalise
 from perception.training.augment import photometric_jitter
 from perception.training.checkpoints import (
     config_dict,
@@ -66,6 +66,7 @@ class PoseNetTrainConfig:
         epochs, batch, lr, weight_decay, lam: optimisation (lam weighs the rotation loss).
         decay: cosine decay of the learning rate after the warm-up (False: constant).
         width: backbone width.
+        rotation: rotation output of "ours" (`perception.nets.ROTATIONS`).
         augment: photometric jitter of the training crops.
         objects: train and validate on these objects' crops only (empty: all), as the paper's
             one-net-per-object design does.
@@ -94,6 +95,7 @@ class PoseNetTrainConfig:
     lam: float = 1.0
     decay: bool = True
     width: int = 16
+    rotation: str = "view-roll"
     augment: bool = True
     objects: tuple[str, ...] = ()
     crops: CropConfig = field(default_factory=CropConfig)
@@ -159,30 +161,24 @@ def _resolve_init(init: str, out: Path) -> Path:
 
 def _command(cfg: PoseNetTrainConfig) -> str:
     """The CLI command that runs `cfg` (as far as the CLI exposes it)."""
-    parts = [
-        TRAIN_COMMAND,
-        f"--variant {cfg.variant}",
-        f"--epochs {cfg.epochs}",
-    ]
-    if tuple(cfg.dists) != DISTS:
-        parts.append(f"--dists {','.join(cfg.dists)}")
-    if cfg.lr != PoseNetTrainConfig.lr:
-        parts.append(f"--lr {cfg.lr:g}")
-    if cfg.batch != PoseNetTrainConfig.batch:
-        parts.append(f"--batch {cfg.batch}")
-    lims = [f"{d}={n}" for d, n in cfg.dist_limits] + ([str(cfg.limit)] if cfg.limit else [])
-    if lims:
-        parts.append(f"--limit {','.join(lims)}")
-    if cfg.width != PoseNetTrainConfig.width or cfg.lam != PoseNetTrainConfig.lam:
-        parts.append(f"--width {cfg.width} --lam {cfg.lam:g}")
-    if cfg.objects:
-        parts.append(f"--objects {','.join(cfg.objects)}")
-    parts += ["--no-augment"] * (not cfg.augment) + ["--constant-lr"] * (not cfg.decay)
-    if cfg.init:
-        parts.append(f"--init {cfg.init}")
-    if cfg.name:
-        parts.append(f"--name {cfg.name}")
-    return " ".join(parts)
+    d = PoseNetTrainConfig
+    lims = [f"{k}={n}" for k, n in cfg.dist_limits] + ([str(cfg.limit)] if cfg.limit else [])
+    options = (
+        (tuple(cfg.dists) != DISTS, f"--dists {','.join(cfg.dists)}"),
+        (cfg.lr != d.lr, f"--lr {cfg.lr:g}"),
+        (cfg.batch != d.batch, f"--batch {cfg.batch}"),
+        (bool(lims), f"--limit {','.join(lims)}"),
+        (cfg.width != d.width or cfg.lam != d.lam, f"--width {cfg.width} --lam {cfg.lam:g}"),
+        (bool(cfg.objects), f"--objects {','.join(cfg.objects)}"),
+        (cfg.crops.size != CROP, f"--crop {cfg.crops.size}"),
+        (cfg.rotation != d.rotation, f"--rotation {cfg.rotation}"),
+        (not cfg.augment, "--no-augment"),
+        (not cfg.decay, "--constant-lr"),
+        (bool(cfg.init), f"--init {cfg.init}"),
+        (bool(cfg.name), f"--name {cfg.name}"),
+    )
+    head = [TRAIN_COMMAND, f"--variant {cfg.variant}", f"--epochs {cfg.epochs}"]
+    return " ".join(head + [text for wanted, text in options if wanted])
 
 
 def train(cfg: PoseNetTrainConfig, resume: bool = True, command: str | None = None) -> dict:
@@ -229,7 +225,8 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
     if len(tr["crops"]) == 0:
         raise AssetError("no training crops; generate data first (`make data`)")
     data_seeds = data_seed_ranges(cfg.dists, {d: n for d in cfg.dists if (n := _limit(cfg, d))})
-    model = PoseNet(NetConfig(variant=cfg.variant, n_classes=len(OBJECT_NAMES), width=cfg.width))
+    net_cfg = NetConfig(cfg.variant, len(OBJECT_NAMES), cfg.width, cfg.crops.size, cfg.rotation)
+    model = PoseNet(net_cfg)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = max(1, len(tr["crops"]) // cfg.batch)
     total_steps = cfg.epochs * steps_per_epoch
@@ -240,7 +237,7 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
     if cfg.init and not resuming:
         src = _resolve_init(cfg.init, ckpt.parent)
         parent = read_checkpoint(src)
-        if parent["model_config"] != model.cfg.to_dict():
+        if NetConfig(**parent["model_config"]) != model.cfg:  # older files: fields defaulted
             raise AssetError(
                 f"{src} holds a {parent['model_config']} model, not {model.cfg.to_dict()}"
             )
@@ -351,6 +348,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--width", type=int, default=PoseNetTrainConfig.width, help="backbone width")
     p.add_argument("--lam", type=float, default=PoseNetTrainConfig.lam, help="rotation weight")
+    p.add_argument("--crop", type=int, default=CROP, help=f"crop side [px] (default {CROP})")
+    p.add_argument(
+        "--rotation", default="view-roll", help=f"ours' rotation output: {', '.join(ROTATIONS)}"
+    )
     p.add_argument("--objects", default="", help="train one net on these objects (comma list)")
     p.add_argument("--no-augment", action="store_true", help="no photometric jitter")
     p.add_argument("--constant-lr", action="store_true", help="no learning-rate decay")
@@ -359,11 +360,15 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.variant not in VARIANTS:
         return fail(f"unknown variant {args.variant!r}; valid variants: {', '.join(VARIANTS)}")
+    if args.rotation not in ROTATIONS:
+        return fail(f"unknown --rotation {args.rotation!r}; valid: {', '.join(ROTATIONS)}")
     dists = tuple(args.dists.split(","))
     if any(d not in DATASETS for d in dists) or len(set(dists)) != len(dists):
         return fail(f"invalid --dists {args.dists!r}; a comma list of: {', '.join(DATASETS)}")
     if args.epochs < 1 or args.batch < 1 or args.width < 1 or args.lam < 0:
         return fail("--epochs, --batch and --width must be at least 1 and --lam at least 0")
+    if not 16 <= args.crop <= 256 or args.crop % 8:
+        return fail(f"--crop must be a multiple of 8 in 16..256, got {args.crop}")
     if args.name is not None and (not args.name or "/" in args.name or args.name.endswith(".pt")):
         return fail(f"--name must be a plain name such as posenet_ours, got {args.name!r}")
     try:
@@ -375,6 +380,7 @@ def main(argv: list[str] | None = None) -> int:
             threads=args.threads, device=args.device, loss_log=args.loss_log, width=args.width,
             lam=args.lam, objects=tuple(o for o in args.objects.split(",") if o),
             augment=not args.no_augment, decay=not args.constant_lr,
+            crops=CropConfig(size=args.crop), rotation=args.rotation,
         )  # fmt: skip
     except InvalidArgumentError as exc:
         return fail(str(exc))
