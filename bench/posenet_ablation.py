@@ -107,9 +107,9 @@ def ours_study(out: Path, epochs: int) -> dict:
         "no photometric jitter": replace(base, augment=False, name=f"ours_noaug_e{epochs}"),
         "constant learning rate": replace(base, decay=False, name=f"ours_const_e{epochs}"),
         "width 24": replace(base, width=24, name=f"ours_w24_e{epochs}"),
+        "6D rotation": replace(base, rotation="6d", name=f"ours_6d_e{epochs}"),
         "crop 48": replace(base, crops=replace(base.crops, size=48), name=f"ours_crop48_e{epochs}"),
         "crop 96": replace(base, crops=replace(base.crops, size=96), name=f"ours_crop96_e{epochs}"),
-        "6D rotation": replace(base, rotation="6d", name=f"ours_6d_e{epochs}"),
     }
     data = {}  # test crops by side
     res = {}
