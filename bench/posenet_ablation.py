@@ -3,6 +3,7 @@ same budget, and scored on the held-out test split.
 
     python bench/posenet_ablation.py --study per-object [--json out.json]
     python bench/posenet_ablation.py --study ours [--epochs 5] [--json out.json]
+    python bench/posenet_ablation.py --study forgetting [--epochs 5] [--json out.json]
 
 Studies:
 - ``per-object``: the paper trains one 2D-NET and one 4D-NET per object. Here each object gets
@@ -18,6 +19,9 @@ Studies:
   representation instead of viewpoint direction and roll (`perception.nets.ROTATIONS`). The base
   run is repeated with another seed (initialisation and batch order) to show how far two runs
   of the same recipe differ. Scored on the head-camera test split.
+- ``forgetting``: the shipped `ours` fine-tuned for `--epochs` epochs on 5000 images of each
+  distribution (paper protocol and head camera) at 5e-4, against the shipped `ours` itself, on
+  both test splits; the shipped `paper` net on the paper split is the reference to beat.
 
 Runs checkpoint as they go (`<data>/checkpoints/ablation/`) and a rerun resumes them; a finished
 run is not retrained. Test crops are `perception.training.tables`' (`TEST_CROPS`): the same
@@ -46,7 +50,7 @@ from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
 from sim.world.objects import OBJECT_NAMES
 
 COLUMNS = ("center_crop_px", "center_px", "distance_pct", "rotation_deg")
-STUDIES = ("per-object", "ours")
+STUDIES = ("per-object", "ours", "forgetting")
 
 
 def _scores(model, data: dict, rows: np.ndarray) -> dict[str, float]:
@@ -125,6 +129,29 @@ def ours_study(out: Path, epochs: int) -> dict:
     return res
 
 
+def forgetting_study(out: Path, epochs: int) -> dict:
+    """The shipped `ours` saw the paper protocol only before version 3 and last trained on the
+    head camera alone. Fine-tuned from it on both distributions (5000 images of each, a fresh
+    schedule at 5e-4), does it learn the paper protocol without losing the head camera?"""
+    shipped = WEIGHTS_DIR / "posenet_ours.pt"
+    cfg = PoseNetTrainConfig(
+        variant="ours", dists=("paper", "headcam"), epochs=epochs,
+        dist_limits=(("paper", 5000), ("headcam", 5000)), lr=5e-4, init=str(shipped), out=out,
+        name=f"ours_both_v{GENERATOR_VERSIONS['paper']}_e{epochs}",
+    )  # fmt: skip
+    nets = {"shipped ours": load_posenet(shipped), "fine-tuned on both": _train(cfg)}
+    res = {}
+    for dist in ("paper", "headcam"):
+        data = build_crops(data_root() / dist, "test", TEST_CROPS)
+        for label, net in nets.items():
+            res[f"{dist}: {label}"] = _per_object(lambda o, m=net: m, data)
+    paper = load_posenet(WEIGHTS_DIR / "posenet_paper.pt")
+    data = build_crops(data_root() / "paper", "test", TEST_CROPS)
+    res["paper: shipped paper (reference)"] = _per_object(lambda o: paper, data)
+    res["paper: fine-tuned on both"]["checkpoint"] = str(checkpoint_path(cfg))
+    return res
+
+
 def _print(results: dict) -> None:
     print("| run | object | centre [crop px] | centre [px] | distance [%] | rotation [deg] "
           "| > 15 deg |")  # fmt: skip
@@ -153,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
     out = checkpoint_dir() / "ablation"
     if args.study == "per-object":
         results = per_object_study(out)
+    elif args.study == "forgetting":
+        results = forgetting_study(out, args.epochs)
     else:
         results = ours_study(out, args.epochs)
     _print(results)
