@@ -4,6 +4,7 @@ same budget, and scored on the held-out test split.
     python bench/posenet_ablation.py --study per-object [--json out.json]
     python bench/posenet_ablation.py --study ours [--epochs 5] [--json out.json]
     python bench/posenet_ablation.py --study forgetting [--epochs 5] [--json out.json]
+    python bench/posenet_ablation.py --study rotation [--epochs 5] [--json out.json]
 
 Studies:
 - ``per-object``: the paper trains one 2D-NET and one 4D-NET per object. Here each object gets
@@ -22,6 +23,9 @@ Studies:
 - ``forgetting``: the shipped `ours` fine-tuned for `--epochs` epochs on 5000 images of each
   distribution (paper protocol and head camera) at 5e-4, against the shipped `ours` itself, on
   both test splits; the shipped `paper` net on the paper split is the reference to beat.
+- ``rotation``: `ours` trained from scratch on 5000 paper-protocol images for `--epochs` epochs
+  with each rotation output (viewpoint direction and roll, or 6D), scored on the paper
+  protocol's test split, whose views cover the whole sphere.
 
 Runs checkpoint as they go (`<data>/checkpoints/ablation/`) and a rerun resumes them; a finished
 run is not retrained. Test crops are `perception.training.tables`' (`TEST_CROPS`): the same
@@ -50,7 +54,7 @@ from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
 from sim.world.objects import OBJECT_NAMES
 
 COLUMNS = ("center_crop_px", "center_px", "distance_pct", "rotation_deg")
-STUDIES = ("per-object", "ours", "forgetting")
+STUDIES = ("per-object", "ours", "forgetting", "rotation")
 
 
 def _scores(model, data: dict, rows: np.ndarray) -> dict[str, float]:
@@ -152,6 +156,23 @@ def forgetting_study(out: Path, epochs: int) -> dict:
     return res
 
 
+def rotation_study(out: Path, epochs: int) -> dict:
+    """`ours` with either rotation output, from scratch on 5000 paper-protocol images: its views
+    cover the whole sphere, poles included, where direction and roll are ill-conditioned."""
+    base = PoseNetTrainConfig(
+        variant="ours", dists=("paper",), dist_limits=(("paper", 5000),), epochs=epochs,
+        out=out, name=f"ours_paper_v{GENERATOR_VERSIONS['paper']}_e{epochs}",
+    )  # fmt: skip
+    runs = {"direction and roll": base, "6D": replace(base, rotation="6d", name=base.name + "_6d")}
+    data = build_crops(data_root() / "paper", "test", TEST_CROPS)
+    res = {}
+    for label, cfg in runs.items():
+        model = _train(cfg)
+        res[label] = _per_object(lambda o, m=model: m, data)
+        res[label]["checkpoint"] = str(checkpoint_path(cfg))
+    return res
+
+
 def _print(results: dict) -> None:
     print("| run | object | centre [crop px] | centre [px] | distance [%] | rotation [deg] "
           "| > 15 deg |")  # fmt: skip
@@ -182,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
         results = per_object_study(out)
     elif args.study == "forgetting":
         results = forgetting_study(out, args.epochs)
+    elif args.study == "rotation":
+        results = rotation_study(out, args.epochs)
     else:
         results = ours_study(out, args.epochs)
     _print(results)
