@@ -17,7 +17,9 @@ Studies:
   trains far longer): backbone width 24 instead of 16, rotation weight lambda 3 instead of 1,
   no photometric augmentation, a constant learning rate instead of the cosine decay, crops of
   48 or 96 px instead of 64 (test crops cut alike at that side), and the rotation as the 6D
-  representation instead of viewpoint direction and roll (`perception.nets.ROTATIONS`). The base
+  representation instead of viewpoint direction and roll (`perception.nets.ROTATIONS`), and
+  distillation: the shipped `ours` (trained far longer, on more data) as a teacher whose outputs
+  on each batch are a second target beside the labels. The base
   run is repeated with another seed (initialisation and batch order) to show how far two runs
   of the same recipe differ. Scored on the head-camera test split.
 - ``forgetting``: the shipped `ours` fine-tuned for `--epochs` epochs on 5000 images of each
@@ -116,6 +118,9 @@ def ours_study(out: Path, epochs: int) -> dict:
         "constant learning rate": replace(base, decay=False, name=f"ours_const_e{epochs}"),
         "width 24": replace(base, width=24, name=f"ours_w24_e{epochs}"),
         "6D rotation": replace(base, rotation="6d", name=f"ours_6d_e{epochs}"),
+        "distilled from the shipped ours": replace(
+            base, teacher=WEIGHTS_DIR / "posenet_ours.pt", name=f"ours_distil_e{epochs}"
+        ),
         "crop 48": replace(base, crops=replace(base.crops, size=48), name=f"ours_crop48_e{epochs}"),
         "crop 96": replace(base, crops=replace(base.crops, size=96), name=f"ours_crop96_e{epochs}"),
     }

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -189,6 +190,21 @@ def test_fine_tune_records_its_lineage_and_exports_stages(tiny_data, tmp_path, m
     assert [[h["epoch"] for h in st] for st in curves["ours"]] == [[1], [1, 2, 3]]
     export_weights.plot_curves(curves, tmp_path / "curves.png")
     assert (tmp_path / "curves.png").stat().st_size > 1000
+
+
+def test_distillation_adds_the_teachers_outputs_as_a_target(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
+    teacher = train(replace(SMOKE, out=tmp_path, name="teacher", seed=5))["checkpoint"]
+    plain = train(replace(SMOKE, out=tmp_path, name="plain"))
+    again = train(replace(SMOKE, out=tmp_path, name="again"))
+    taught = train(replace(SMOKE, out=tmp_path, name="taught", teacher=Path(teacher)))
+    a = torch.load(plain["checkpoint"], weights_only=False)["model"]
+    b = torch.load(taught["checkpoint"], weights_only=False)["model"]
+    c = torch.load(again["checkpoint"], weights_only=False)["model"]
+    assert all(torch.equal(a[k], c[k]) for k in a)  # a run is repeatable to the bit
+    # Same seed, same data and labels: only the teacher's term can make the weights differ.
+    assert any(not torch.equal(a[k], b[k]) for k in a)
+    assert np.isfinite(taught["history"][-1]["rotation_deg"])
 
 
 def test_fine_tune_from_a_missing_checkpoint_is_a_clear_error(tiny_data, tmp_path, monkeypatch):

@@ -145,6 +145,24 @@ def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = Non
     return arrays
 
 
+def split_crops(
+    dists: tuple[str, ...], split: str, cfg: CropConfig, limits: dict[str, int | None]
+) -> dict:
+    """The crops of `split` of each distribution in `dists` (`build_crops`, with at most
+    limits[dist] images; None: all), concatenated."""
+    parts = []
+    for d in dists:
+        root = data_root() / d
+        if not (root / split).is_dir():
+            raise AssetError(
+                f"no {d} {split} data under {root}; build it with "
+                f"`python -m perception.training.datagen --dist {d} --split {split} --count N` "
+                "(or `make data`)"
+            )
+        parts.append(build_crops(root, split, cfg, limits.get(d)))
+    return concat(parts)
+
+
 def concat(parts: list[dict]) -> dict:
     """Concatenate crop dicts."""
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from perception.nets import CROP, ROTATIONS, VARIANTS, NetConfig, PoseNet, normalise
+from perception.nets import CROP, ROTATIONS, VARIANTS, NetConfig, PoseNet, load_posenet, normalise
 from perception.training.augment import photometric_jitter
 from perception.training.checkpoints import (
     config_dict,
@@ -37,7 +37,7 @@ from perception.training.checkpoints import (
     save_checkpoint,
     seed_torch,
 )
-from perception.training.crop_sets import CropConfig, build_crops, concat, data_seed_ranges
+from perception.training.crop_sets import CropConfig, data_seed_ranges, split_crops
 from perception.training.dataset import DATASETS, DISTS, parse_limit
 from perception.training.ddp import DEVICES, Ranks, resolve_device, start
 from perception.training.losses import posenet_loss
@@ -45,7 +45,7 @@ from perception.training.posenet_eval import evaluate_arrays
 from perception.training.schedule import learning_rate, optimiser_step
 from sim.core.cli import ArgumentParser, fail
 from sim.core.errors import AssetError, InvalidArgumentError, PosegraspError
-from sim.core.paths import checkpoint_dir, data_root
+from sim.core.paths import checkpoint_dir
 from sim.world.objects import OBJECT_NAMES
 
 #: The command line of this module.
@@ -84,6 +84,8 @@ class PoseNetTrainConfig:
         device: "auto", "cpu" or "cuda" (`perception.training.ddp.DEVICES`).
         loss_log: append one JSON line per step here (step, epoch, loss averaged over the
             processes, lr), or None.
+        teacher: distillation: pose-net weights whose outputs on each training batch are a
+            second target, weighted as the labels are (None: labels only).
     """
 
     variant: str = "ours"
@@ -110,6 +112,7 @@ class PoseNetTrainConfig:
     threads: int | None = None
     device: str = "auto"
     loss_log: Path | None = None
+    teacher: Path | None = None
 
     def __post_init__(self) -> None:
         if bad := sorted(set(self.objects) - set(OBJECT_NAMES)):
@@ -121,21 +124,6 @@ class PoseNetTrainConfig:
 
 
 SMOKE = PoseNetTrainConfig(epochs=1, batch=16, limit=12, out=Path("out/smoke"), width=4)
-
-
-def _load_split(cfg: PoseNetTrainConfig, split: str) -> dict:
-    """The crops of `split` of every distribution the run trains on, concatenated."""
-    parts = []
-    for d in cfg.dists:
-        root = data_root() / d
-        if not (root / split).is_dir():
-            raise AssetError(
-                f"no {d} {split} data under {root}; build it with "
-                f"`python -m perception.training.datagen --dist {d} --split {split} --count N` "
-                "(or `make data`)"
-            )
-        parts.append(build_crops(root, split, cfg.crops, _limit(cfg, d)))
-    return concat(parts)
 
 
 def _limit(cfg: PoseNetTrainConfig, dist: str) -> int | None:
@@ -212,8 +200,8 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
     seed_torch(cfg.seed, ranks.threads(cfg.threads))
     if not ranks.main:
         ranks.barrier()  # rank 0 cuts and caches the crops first
-    tr = _load_split(cfg, "train")
-    va = _load_split(cfg, "val")
+    limits = {d: _limit(cfg, d) for d in cfg.dists}
+    tr, va = (split_crops(cfg.dists, part, cfg.crops, limits) for part in ("train", "val"))
     if ranks.main:
         ranks.barrier()
     if cfg.variant == "paper":
@@ -255,6 +243,8 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
         if ranks.main:
             print(f"resuming {ckpt} at epoch {epoch0}, step {step}")
     net = ranks.wrap(model)  # the model itself with one process
+    with torch.random.fork_rng():  # building the teacher leaves the run's random stream alone
+        teacher = load_posenet(cfg.teacher, verify=False).to(ranks.device) if cfg.teacher else None
     wall0, started = float(lineage.get("wall_s") or 0.0), time.monotonic()  # over resumptions
 
     def save(epoch: int) -> None:
@@ -290,6 +280,10 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
             loss, parts = posenet_loss(
                 out, batch("uv_unit"), batch("p"), batch("theta"), cfg.variant, cfg.lam
             )
+            if teacher is not None:
+                with torch.no_grad():
+                    t = teacher(x, batch("cls"), batch("scale"))
+                loss = loss + posenet_loss(out, t.uv_unit, t.p, t.cs, cfg.variant, cfg.lam)[0]
             lr = learning_rate(step, total_steps, cfg.lr, decay=cfg.decay)
             optimiser_step(model, opt, loss, lr, GRAD_CLIP)
             step += 1
