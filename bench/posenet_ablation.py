@@ -149,14 +149,12 @@ def forgetting_study(out: Path, epochs: int) -> dict:
         name=f"ours_both_v{GENERATOR_VERSIONS['paper']}_e{epochs}",
     )  # fmt: skip
     nets = {"shipped ours": load_posenet(shipped), "fine-tuned on both": _train(cfg)}
+    reference = {"shipped paper (reference)": load_posenet(WEIGHTS_DIR / "posenet_paper.pt")}
     res = {}
     for dist in ("paper", "headcam"):
         data = build_crops(data_root() / dist, "test", TEST_CROPS)
-        for label, net in nets.items():
+        for label, net in (nets | reference if dist == "paper" else nets).items():
             res[f"{dist}: {label}"] = _per_object(lambda o, m=net: m, data)
-    paper = load_posenet(WEIGHTS_DIR / "posenet_paper.pt")
-    data = build_crops(data_root() / "paper", "test", TEST_CROPS)
-    res["paper: shipped paper (reference)"] = _per_object(lambda o: paper, data)
     res["paper: fine-tuned on both"]["checkpoint"] = str(checkpoint_path(cfg))
     return res
 

@@ -117,6 +117,13 @@ class PoseNetTrainConfig:
     def __post_init__(self) -> None:
         if bad := sorted(set(self.objects) - set(OBJECT_NAMES)):
             raise InvalidArgumentError(f"unknown objects {bad}; valid: {', '.join(OBJECT_NAMES)}")
+        self.net_config()  # checks variant, width, crop side and rotation output
+
+    def net_config(self) -> NetConfig:
+        """The model this run trains."""
+        return NetConfig(
+            self.variant, len(OBJECT_NAMES), self.width, self.crops.size, self.rotation
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for checkpoints (paths as strings)."""
@@ -212,9 +219,8 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
         tr, va = ({k: v[np.isin(d["cls"], ids)] for k, v in d.items()} for d in (tr, va))
     if len(tr["crops"]) == 0:
         raise AssetError("no training crops; generate data first (`make data`)")
-    data_seeds = data_seed_ranges(cfg.dists, {d: n for d in cfg.dists if (n := _limit(cfg, d))})
-    net_cfg = NetConfig(cfg.variant, len(OBJECT_NAMES), cfg.width, cfg.crops.size, cfg.rotation)
-    model = PoseNet(net_cfg)
+    data_seeds = data_seed_ranges(cfg.dists, {d: n for d, n in limits.items() if n})
+    model = PoseNet(cfg.net_config())
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = max(1, len(tr["crops"]) // cfg.batch)
     total_steps = cfg.epochs * steps_per_epoch
@@ -354,15 +360,11 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.variant not in VARIANTS:
         return fail(f"unknown variant {args.variant!r}; valid variants: {', '.join(VARIANTS)}")
-    if args.rotation not in ROTATIONS:
-        return fail(f"unknown --rotation {args.rotation!r}; valid: {', '.join(ROTATIONS)}")
     dists = tuple(args.dists.split(","))
     if any(d not in DATASETS for d in dists) or len(set(dists)) != len(dists):
         return fail(f"invalid --dists {args.dists!r}; a comma list of: {', '.join(DATASETS)}")
     if args.epochs < 1 or args.batch < 1 or args.width < 1 or args.lam < 0:
         return fail("--epochs, --batch and --width must be at least 1 and --lam at least 0")
-    if not 16 <= args.crop <= 256 or args.crop % 8:
-        return fail(f"--crop must be a multiple of 8 in 16..256, got {args.crop}")
     if args.name is not None and (not args.name or "/" in args.name or args.name.endswith(".pt")):
         return fail(f"--name must be a plain name such as posenet_ours, got {args.name!r}")
     try:
@@ -376,7 +378,7 @@ def main(argv: list[str] | None = None) -> int:
             augment=not args.no_augment, decay=not args.constant_lr,
             crops=CropConfig(size=args.crop), rotation=args.rotation,
         )  # fmt: skip
-    except InvalidArgumentError as exc:
+    except PosegraspError as exc:  # NetConfig checks the crop side and rotation output
         return fail(str(exc))
     if args.smoke:
         cfg = replace(SMOKE, variant=args.variant, dists=dists, out=args.out, device=args.device,
