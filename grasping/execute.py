@@ -14,8 +14,12 @@ import mujoco
 import numpy as np
 
 from grasping.planner import PLANNED_JOINTS, GraspPlan
+from sim.core.errors import InvalidArgumentError
 from sim.world import constants as C
 from sim.world.scene import Scene
+
+#: How the arm travels to the pre-grasp (`ExecutionConfig.transit`).
+TRANSIT_MODES: tuple[str, ...] = ("kinematic", "dynamic")
 
 #: Failure reasons an episode can end with.
 FAILURE_REASONS: tuple[str, ...] = (
@@ -36,6 +40,8 @@ class ExecutionConfig:
 
     Attributes:
         control_dt: period of control updates [s].
+        timestep: physics step while the grasp is executed [s] (the scene is built and settled
+            at the world's 2 ms, so what the camera sees does not depend on it).
         max_speed: joint speed limits for (base xy [m/s], base yaw, torso [m/s], arm [rad/s]).
         approach_speed: grasp-site speed on the approach [m/s].
         close_time: maximum time for the fingers to close [s].
@@ -47,9 +53,14 @@ class ExecutionConfig:
         measure_margin: after a success, measure the grasp's friction margin
             (`Executor.friction_margin`).
         margin_steps: bisection steps of the margin (resolution: nominal friction / 2^steps).
+        transit: how the arm travels through free space to the pre-grasp: "kinematic" (the
+            planned path is played back joint by joint and checked for contact at every control
+            tick; physics resumes from the last contact-free tick if anything is touched) or
+            "dynamic" (simulated throughout).
     """
 
     control_dt: float = 0.01
+    timestep: float = 0.004
     max_speed: tuple[float, float, float, float] = (0.4, 0.8, 0.15, 1.2)
     approach_speed: float = 0.08
     close_time: float = 0.8
@@ -60,6 +71,17 @@ class ExecutionConfig:
     knock_over_deg: float = 30.0
     measure_margin: bool = False
     margin_steps: int = 7
+    transit: str = "kinematic"
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.timestep <= self.control_dt:
+            raise InvalidArgumentError(
+                f"timestep must be in (0, control_dt = {self.control_dt}] s, got {self.timestep}"
+            )
+        if self.transit not in TRANSIT_MODES:
+            raise InvalidArgumentError(
+                f"unknown transit {self.transit!r}; valid: {', '.join(TRANSIT_MODES)}"
+            )
 
 
 @dataclass
@@ -101,6 +123,7 @@ class Executor:
         self.scene = scene
         self.cfg = config or ExecutionConfig()
         m = scene.model
+        m.opt.timestep = self.cfg.timestep
         self.act = np.array(
             [m.actuator("act_" + j.removeprefix(C.PREFIX)).id for j in PLANNED_JOINTS]
         )
@@ -108,6 +131,9 @@ class Executor:
             [m.actuator("act_" + j.removeprefix(C.PREFIX)).id for j in C.FINGER_JOINTS]
         )
         self.finger_qadr = np.array([m.joint(j).qposadr[0] for j in C.FINGER_JOINTS])
+        self.qadr = np.array([m.joint(j).qposadr[0] for j in PLANNED_JOINTS])
+        robot_joints = [*PLANNED_JOINTS, *C.FINGER_JOINTS]
+        self.dofadr = np.array([m.joint(j).dofadr[0] for j in robot_joints])
         self.finger_geoms = [
             set(np.flatnonzero(m.geom_bodyid == m.body(b).id).tolist()) for b in C.FINGER_BODIES
         ]
@@ -123,19 +149,56 @@ class Executor:
         self.frames: list[np.ndarray] = []
         self.table_hit = False
         self.events: list[str] = []
+        self._kinematic = False  # playing the transit back without physics (see `_transit`)
 
     # -- low level ---------------------------------------------------------------------------
     def _advance(self, seconds: float) -> None:
         m, d = self.scene.model, self.scene.data
         n = max(1, round(self.cfg.control_dt / m.opt.timestep))
         for _ in range(max(1, round(seconds / self.cfg.control_dt))):
-            mujoco.mj_step(m, d, nstep=n)
+            if not (self._kinematic and self._kinematic_tick()):
+                mujoco.mj_step(m, d, nstep=n)
             if not self.table_hit and self._touching(self.robot_geoms, self.table_geoms):
                 self.table_hit = True
                 self.events.append(f"robot touched the table at t={d.time:.2f} s")
             self._tick += 1
             if self.recorder is not None and self._tick % self.record_every == 0:
                 self.frames.append(self.recorder(self.scene))
+
+    def _kinematic_tick(self) -> bool:
+        """Put the robot where the controls command it and look for contact; True if the tick
+        is done, False (and physics from the last contact-free configuration from now on) if
+        the robot touched anything there."""
+        m, d = self.scene.model, self.scene.data
+        q_prev = d.qpos.copy()
+        d.qpos[self.qadr] = d.ctrl[self.act]
+        d.qpos[self.finger_qadr] = d.ctrl[self.fingers]
+        d.qvel[self.dofadr] = 0.0
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_collision(m, d)
+        contact = d.contact
+        for g1, g2 in zip(contact.geom1.tolist(), contact.geom2.tolist(), strict=True):
+            if (g1 in self.robot_geoms) != (g2 in self.robot_geoms):
+                d.qpos[:] = q_prev
+                mujoco.mj_forward(m, d)
+                self._kinematic = False
+                self.events.append(
+                    f"transit touched the scene at t={d.time:.2f} s; the rest of it is simulated"
+                )
+                return False
+        d.time += self.cfg.control_dt
+        return True
+
+    def _transit(self, plan: GraspPlan) -> None:
+        """Travel through free space to the pre-grasp (`ExecutionConfig.transit`)."""
+        self._kinematic = self.cfg.transit == "kinematic"
+        for q in plan.transit:
+            self.move(q)
+        self.move(plan.hover)
+        self.move(plan.pregrasp)
+        if self._kinematic:
+            self._kinematic = False
+            mujoco.mj_forward(self.scene.model, self.scene.data)
 
     def _duration(self, q0: np.ndarray, q1: np.ndarray) -> float:
         s = self.cfg.max_speed
@@ -240,10 +303,7 @@ class Executor:
 
         t = time.perf_counter()
         self.set_fingers(C.FINGER_TRAVEL)
-        for q in plan.transit:
-            self.move(q)
-        self.move(plan.hover)
-        self.move(plan.pregrasp)
+        self._transit(plan)
         self._advance(0.2)
         timings["pregrasp"] = (time.perf_counter() - t) * 1000
         t = time.perf_counter()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import json
 import os
 import sys
 import time
@@ -57,10 +58,24 @@ def _estimator(name: str, noise: str | None = None):
     return estimator
 
 
+def execution_settings() -> dict:
+    """The grasp execution's settings every episode runs with (`ExecutionConfig`, without the
+    margin switch, which reports record apart), as they read back from JSON: two reports with
+    different settings are different experiments and do not pair."""
+    from dataclasses import asdict
+
+    from grasping.execute import ExecutionConfig
+
+    settings = asdict(ExecutionConfig())
+    del settings["measure_margin"]
+    return json.loads(json.dumps(settings))
+
+
 def _init_worker() -> None:
     """One compute thread per worker process: the workers already fill the cores."""
     os.environ["OMP_NUM_THREADS"] = "1"
     os.environ["MKL_NUM_THREADS"] = "1"
+    os.environ["LP_NUM_THREADS"] = "1"  # Mesa's software rasteriser
 
 
 def _run_one(job: tuple[str, int, str, str, str | None, bool]) -> dict:
@@ -161,6 +176,7 @@ def evaluate(
         "estimator": estimator,
         "tier": tier,
         "noise": noise,
+        "execution": execution_settings(),
         "seed_start": seed_start,
         "episodes_per_object": episodes,
         "workers": workers,

@@ -24,7 +24,7 @@ millimetres grasps everything, so no regression short of a collapse shows).
 (5 mm, 2 deg) to (10 mm, 4 deg).
 
 The gate fails closed: a missing, empty or malformed baseline, or one recorded for another tier,
-other seeds or other weights, is an error that says how to rewrite it.
+other seeds, other execution settings or other weights, is an error that says how to rewrite it.
 """
 
 from __future__ import annotations
@@ -64,7 +64,15 @@ MARGIN_RISE = 0.02
 #: Bootstrap resamples of the margin rise.
 BOOTSTRAP = 2000
 #: What a baseline record must hold.
-RECORD_KEYS = ("estimator", "tier", "seed_start", "episodes_per_object", "weights", "episodes")
+RECORD_KEYS = (
+    "estimator",
+    "tier",
+    "seed_start",
+    "episodes_per_object",
+    "execution",
+    "weights",
+    "episodes",
+)
 
 
 def _rewrite_hint(path: Path) -> str:
@@ -134,10 +142,11 @@ def compare(
     `weights` is the fingerprint of the weights the run used (`weights_fingerprint()` when
     None); a baseline of other weights, tier or seeds fails.
     """
-    protocol = ("estimator", "tier", "seed_start", "episodes_per_object")
+    protocol = ("estimator", "tier", "seed_start", "episodes_per_object", "execution")
     if any(report.get(k) != baseline.get(k) for k in protocol):
         return False, (
-            "FAIL: the run does not match the baseline's estimator, tier and seeds; "
+            "FAIL: the run does not match the baseline's estimator, tier, seeds and execution "
+            "settings; "
             "rewrite it with `python -m sim.gate --write`"
         )
     if baseline["weights"] != (weights or weights_fingerprint()):
@@ -180,6 +189,7 @@ def baseline_of(report: dict) -> dict:
         "tier": report["tier"],
         "seed_start": report["seed_start"],
         "episodes_per_object": report["episodes_per_object"],
+        "execution": report["execution"],
         "successes": report["overall"]["successes"],
         "weights": weights_fingerprint(),
         "episodes": [

@@ -9,6 +9,7 @@ import pytest
 
 from sim import gate
 from sim.core.errors import AssetError
+from sim.evaluate import execution_settings
 from sim.world.objects import OBJECT_NAMES
 
 WEIGHTS = {"w.pt": "0123"}
@@ -35,6 +36,7 @@ def _report(lost: int = 0, won: int = 0, margin_shift: float = 0.0, **protocol) 
         "tier": gate.GATE_TIER,
         "seed_start": gate.GATE_SEED_START,
         "episodes_per_object": 10,
+        "execution": execution_settings(),
         "overall": {"successes": sum(e["success"] for e in eps)},
         "episodes": eps,
     }
@@ -70,6 +72,10 @@ def test_paired_rule(baseline: dict, lost: int, won: int, shift: float, passed: 
 def test_a_run_of_another_protocol_or_other_weights_fails(baseline: dict) -> None:
     ok, verdict = gate.compare(_report(tier="isolated"), baseline, WEIGHTS)
     assert not ok and "gate --write" in verdict
+    # The same scenes grasped with other physics (here: a simulated transit) are not paired.
+    other = {**execution_settings(), "transit": "dynamic"}
+    ok, verdict = gate.compare(_report(execution=other), baseline, WEIGHTS)
+    assert not ok and "execution settings" in verdict
     ok, verdict = gate.compare(_report(), baseline, {"w.pt": "ffff"})
     assert not ok and "other weights" in verdict
 
