@@ -54,6 +54,35 @@ def load_report(path: Path) -> dict[tuple[str, str, int], Outcome]:
     return out
 
 
+def check_same_execution(paths: list[Path]) -> None:
+    """Refuse to pair reports whose grasps ran with different execution settings (the
+    ``execution`` record of `sim.evaluate`; a report without one is taken as it is).
+
+    Raises:
+        InvalidArgumentError: two reports record different settings, naming the first that
+            differs.
+    """
+    seen: tuple[Path, dict] | None = None
+    for path in paths:
+        try:
+            settings = json.loads(Path(path).read_text()).get("execution")
+        except (OSError, ValueError, AttributeError):
+            continue  # load_report says what is wrong with it
+        if not isinstance(settings, dict):
+            continue
+        if seen is None:
+            seen = (path, settings)
+            continue
+        first, ref = seen
+        diff = sorted(k for k in ref.keys() | settings.keys() if ref.get(k) != settings.get(k))
+        if diff:
+            k = diff[0]
+            raise InvalidArgumentError(
+                f"{first} and {path} grasped with different execution settings ({k}: "
+                f"{ref.get(k)!r} against {settings.get(k)!r}); pair runs of one protocol"
+            )
+
+
 def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     """Wilson score interval of a binomial proportion (95 % for the default z).
 
@@ -333,6 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     if (args.more or args.plot) and not args.curve:
         return fail("more than two reports, or --plot, need --curve")
     try:
+        check_same_execution([args.a, args.b, *args.more])
         if args.curve:
             rows = curve([args.a, args.b, *args.more], args.boot)
             print(format_curve(rows))

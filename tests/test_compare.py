@@ -12,7 +12,12 @@ from sim import compare as cmp
 from sim.core.errors import InvalidArgumentError
 
 
-def _report(path: Path, successes: dict[tuple[str, int], bool], tier: str = "isolated") -> Path:
+def _report(
+    path: Path,
+    successes: dict[tuple[str, int], bool],
+    tier: str = "isolated",
+    execution: dict | None = None,
+) -> Path:
     eps = [
         {
             "object": o,
@@ -24,7 +29,10 @@ def _report(path: Path, successes: dict[tuple[str, int], bool], tier: str = "iso
         }
         for (o, s), ok in successes.items()
     ]
-    path.write_text(json.dumps({"tier": tier, "episodes": eps}))
+    report = {"tier": tier, "episodes": eps}
+    if execution is not None:
+        report["execution"] = execution
+    path.write_text(json.dumps(report))
     return path
 
 
@@ -96,6 +104,21 @@ def test_cli_bad_input_is_one_line(tmp_path: Path, capsys, argv, message) -> Non
         assert exc.code == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+
+
+def test_runs_of_other_execution_settings_are_not_paired(tmp_path: Path, capsys) -> None:
+    outcomes = {("phone", s): True for s in range(10)}
+    fast = {"transit": "kinematic", "timestep": 0.004}
+    a = _report(tmp_path / "a.json", outcomes, execution=fast)
+    b = _report(tmp_path / "b.json", outcomes, execution={**fast, "transit": "dynamic"})
+    c = _report(tmp_path / "c.json", outcomes, execution=fast)
+    old = _report(tmp_path / "old.json", outcomes)  # recorded before reports said
+    assert cmp.main([str(a), str(b), "--boot", "200"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "transit: 'kinematic' against 'dynamic'" in err and len(err.splitlines()) == 1
+    assert cmp.main([str(a), str(c), "--boot", "200"]) == 0
+    assert cmp.main([str(a), str(old), "--boot", "200"]) == 0
+    assert cmp.main([str(a), str(c), str(b), "--curve", "--boot", "200"]) == 2
 
 
 def test_margin_difference_on_pairs_both_grasped() -> None:
