@@ -60,7 +60,7 @@ class ExecutionConfig:
     """
 
     control_dt: float = 0.01
-    timestep: float = 0.004
+    timestep: float = 0.005
     max_speed: tuple[float, float, float, float] = (0.4, 0.8, 0.15, 1.2)
     approach_speed: float = 0.08
     close_time: float = 0.8
@@ -74,9 +74,11 @@ class ExecutionConfig:
     transit: str = "kinematic"
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.timestep <= self.control_dt:
+        steps = self.control_dt / self.timestep if self.timestep > 0 else 0.0
+        if steps < 1 or abs(steps - round(steps)) > 1e-6:
             raise InvalidArgumentError(
-                f"timestep must be in (0, control_dt = {self.control_dt}] s, got {self.timestep}"
+                f"timestep must divide control_dt = {self.control_dt} s into whole steps "
+                f"(e.g. {self.control_dt / 2:g} or {self.control_dt / 4:g}), got {self.timestep}"
             )
         if self.transit not in TRANSIT_MODES:
             raise InvalidArgumentError(
