@@ -7,10 +7,13 @@ Runs the same held-out episodes (`--episodes` per object) with 1 and with 2 work
 `sim.evaluate.evaluate`, prints the median episode wall time (one process, estimator loaded) and
 the wall time of both runs; then twice as many episodes with 2 workers, so that the rate of a
 long run (the episodes it adds over the wall time it adds: the workers' start-up, imports and
-estimator loading, cancels) is printed beside the end-to-end rate. Targets: a hybrid episode
-<= 3 s wall median on 2 cores; 2 workers at least 1.6x faster than 1; at least 10 episodes/s
-with 2 workers. The runs must agree episode by episode, pose errors to the last bit (they are
-seeded, and the estimator computes on one thread in every worker); the script says so.
+estimator loading, cancels) is printed beside the end-to-end rate, with the start-up that
+separates them. The speed-up of 2 workers over 1 compares the long-run rate with the one
+worker's rate after its first episode (which imports torch and loads the estimator in this
+process). Targets: a hybrid episode <= 3 s wall median on 2 cores; 2 workers at least 1.6x
+faster than 1; at least 10 episodes/s with 2 workers (the long-run rate). The runs must agree
+episode by episode, pose errors to the last bit (they are seeded, and the estimator computes on
+one thread in every worker); the script says so.
 
 ``--backend ray`` instead runs the episodes on the local pool and on Ray (`sim.core.backends`),
 both with `--workers` CPUs (or on the cluster at `--address`), and prints side by side their
@@ -106,6 +109,9 @@ def main() -> None:
     two = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=2)
     longer = evaluate(objs, 2 * args.episodes, args.estimator, SEED_START, workers=2)
     walls = [e["wall_ms"] for e in one["episodes"]]
+    # One worker runs in this process: its first episode imports torch and loads the estimator.
+    one_rate = (len(walls) - 1) / (one["wall_s"] - walls[0] / 1000)
+    long_rate = len(walls) / (longer["wall_s"] - two["wall_s"])
     key = lambda e: (e["object"], e["seed"])  # noqa: E731
     again = {key(e): _outcomes({"episodes": [e]}) for e in longer["episodes"]}
     same = _outcomes(one) == _outcomes(two) == [again[key(e)][0] for e in one["episodes"]]
@@ -116,9 +122,12 @@ def main() -> None:
         "episode_wall_ms_p90": float(np.percentile(walls, 90)),
         "wall_s_1_worker": one["wall_s"],
         "wall_s_2_workers": two["wall_s"],
-        "speedup_2_workers": one["wall_s"] / two["wall_s"],
+        "speedup_2_workers_end_to_end": one["wall_s"] / two["wall_s"],
+        "speedup_2_workers": long_rate / one_rate,
+        "episodes_per_s_1_worker_after_loading": one_rate,
         "episodes_per_s_2_workers": len(walls) / two["wall_s"],
-        "episodes_per_s_2_workers_long_run": len(walls) / (longer["wall_s"] - two["wall_s"]),
+        "episodes_per_s_2_workers_long_run": long_rate,
+        "startup_s_2_workers": two["wall_s"] - len(walls) / long_rate,
         "same_outcomes": same,
         "successes": one["overall"]["successes"],
     }
@@ -134,13 +143,16 @@ def main() -> None:
     )
     print(
         f"sim.evaluate wall: 1 worker {out['wall_s_1_worker']:.1f} s, 2 workers "
-        f"{out['wall_s_2_workers']:.1f} s, speed-up {out['speedup_2_workers']:.2f}x  "
-        f"[target >= 1.6x: {ok(out['speedup_2_workers'] >= 1.6)}]"
+        f"{out['wall_s_2_workers']:.1f} s ({out['speedup_2_workers_end_to_end']:.2f}x end to "
+        f"end); after start-up {out['episodes_per_s_1_worker_after_loading']:.2f} against "
+        f"{out['episodes_per_s_2_workers_long_run']:.2f} episodes/s, speed-up "
+        f"{out['speedup_2_workers']:.2f}x  [target >= 1.6x: {ok(out['speedup_2_workers'] >= 1.6)}]"
     )
     long_run = out["episodes_per_s_2_workers_long_run"]
     print(
         f"throughput with 2 workers: {out['episodes_per_s_2_workers']:.2f} episodes/s end to end, "
-        f"{long_run:.2f} in a long run  [target >= 10: {ok(long_run >= 10)}]"
+        f"{long_run:.2f} in a long run  [target >= 10: {ok(long_run >= 10)}]; start-up of the "
+        f"workers (processes, imports, loading) about {out['startup_s_2_workers']:.1f} s"
     )
     print(f"same outcomes with 1 and 2 workers and in the longer run: {same}")
 
