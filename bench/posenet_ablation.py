@@ -5,6 +5,7 @@ same budget, and scored on the held-out test split.
     python bench/posenet_ablation.py --study ours [--epochs 5] [--json out.json]
     python bench/posenet_ablation.py --study forgetting [--epochs 5] [--json out.json]
     python bench/posenet_ablation.py --study rotation [--epochs 5] [--json out.json]
+    python bench/posenet_ablation.py --study ensemble [--epochs 5] [--json out.json]
 
 Studies:
 - ``per-object``: the paper trains one 2D-NET and one 4D-NET per object. Here each object gets
@@ -28,6 +29,11 @@ Studies:
 - ``rotation``: `ours` trained from scratch on 5000 paper-protocol images for `--epochs` epochs
   with each rotation output (viewpoint direction and roll, or 6D), scored on the paper
   protocol's test split, whose views cover the whole sphere.
+- ``ensemble``: two nets as one, their outputs averaged (crop centres, viewpoint directions
+  renormalised, distances, rolls as unit (cos, sin) vectors), against each alone, on the
+  head-camera test split: the two base runs of ``ours`` (same recipe, two seeds), and the
+  shipped `ours` with the shipped hard-tier expert (`posenet_ours_hard.pt`), both of which
+  `hybrid` already runs on every detection (it keeps one of the two poses).
 
 Runs checkpoint as they go (`<data>/checkpoints/ablation/`) and a rerun resumes them; a finished
 run is not retrained. Test crops are `perception.training.tables`' (`TEST_CROPS`): the same
@@ -45,8 +51,9 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
-from perception.nets import load_posenet
+from perception.nets import PoseOutput, load_posenet
 from perception.training.crop_sets import build_crops
 from perception.training.generation import GENERATOR_VERSIONS
 from perception.training.posenet_eval import evaluate_arrays
@@ -56,7 +63,7 @@ from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
 from sim.world.objects import OBJECT_NAMES
 
 COLUMNS = ("center_crop_px", "center_px", "distance_pct", "rotation_deg")
-STUDIES = ("per-object", "ours", "forgetting", "rotation")
+STUDIES = ("per-object", "ours", "forgetting", "rotation", "ensemble")
 
 
 def _scores(model, data: dict, rows: np.ndarray) -> dict[str, float]:
@@ -105,11 +112,15 @@ def per_object_study(out: Path) -> dict:
     }
 
 
-def ours_study(out: Path, epochs: int) -> dict:
-    base = PoseNetTrainConfig(
+def _ours_base(out: Path, epochs: int) -> PoseNetTrainConfig:
+    return PoseNetTrainConfig(
         variant="ours", dists=("headcam",), dist_limits=(("headcam", 5000),), epochs=epochs,
         out=out, name=f"ours_base_e{epochs}",
     )  # fmt: skip
+
+
+def ours_study(out: Path, epochs: int) -> dict:
+    base = _ours_base(out, epochs)
     runs = {
         "base (width 16, lambda 1, jitter, cosine)": base,
         "base, another seed": replace(base, seed=1, name=f"ours_base_seed1_e{epochs}"),
@@ -176,6 +187,47 @@ def rotation_study(out: Path, epochs: int) -> dict:
     return res
 
 
+class Ensemble(torch.nn.Module):
+    """Several pose nets as one: the mean of their crop centres, viewpoint directions
+    (renormalised), distances and rolls (as unit (cos, sin) vectors)."""
+
+    def __init__(self, nets: list[torch.nn.Module]) -> None:
+        super().__init__()
+        self.nets = torch.nn.ModuleList(nets)
+
+    def forward(self, crops: torch.Tensor, cls: torch.Tensor, scale: torch.Tensor) -> PoseOutput:
+        outs = [net(crops, cls, scale) for net in self.nets]
+
+        def unit(v: torch.Tensor) -> torch.Tensor:
+            return v / torch.linalg.norm(v, dim=1, keepdim=True).clamp_min(1e-9)
+
+        uv = torch.stack([o.uv_unit for o in outs]).mean(0)
+        dist = torch.stack([torch.linalg.norm(o.p, dim=1) for o in outs]).mean(0)
+        direction = unit(torch.stack([unit(o.p) for o in outs]).mean(0))
+        cs = torch.stack([unit(o.cs) for o in outs]).mean(0)
+        return PoseOutput(uv, direction * dist.unsqueeze(1), cs)
+
+
+def ensemble_study(out: Path, epochs: int) -> dict:
+    """Each pair of nets alone and averaged, on the head-camera test split."""
+    base = _ours_base(out, epochs)
+    other = replace(base, seed=1, name=f"ours_base_seed1_e{epochs}")
+    pairs = {
+        "base runs": (("base", _train(base)), ("base, another seed", _train(other))),
+        "shipped": (
+            ("shipped ours", load_posenet(WEIGHTS_DIR / "posenet_ours.pt")),
+            ("shipped expert", load_posenet(WEIGHTS_DIR / "posenet_ours_hard.pt")),
+        ),
+    }
+    data = build_crops(data_root() / "headcam", "test", TEST_CROPS)
+    res = {}
+    for group, ((a, net_a), (b, net_b)) in pairs.items():
+        mean = (f"mean of the {group}", Ensemble([net_a, net_b]))
+        for label, net in ((a, net_a), (b, net_b), mean):
+            res[label] = _per_object(lambda o, m=net: m, data)
+    return res
+
+
 def _print(results: dict) -> None:
     print("| run | object | centre [crop px] | centre [px] | distance [%] | rotation [deg] "
           "| > 15 deg |")  # fmt: skip
@@ -208,6 +260,8 @@ def main(argv: list[str] | None = None) -> int:
         results = forgetting_study(out, args.epochs)
     elif args.study == "rotation":
         results = rotation_study(out, args.epochs)
+    elif args.study == "ensemble":
+        results = ensemble_study(out, args.epochs)
     else:
         results = ours_study(out, args.epochs)
     _print(results)
