@@ -128,6 +128,8 @@ def run_map(
             server, from which the pool processes are forked with them already loaded, instead
             of each importing them on its own (where the platform has no fork server, the
             processes are spawned as without it). Nothing may compute in threads at import.
+            The first pool with a preload starts this process's fork server, and its list is
+            the one that holds for the process's later pools.
 
     Raises:
         UnknownNameError, InvalidArgumentError: a bad backend or address.
