@@ -43,7 +43,7 @@ def _planned_site(s, plan) -> np.ndarray:
 
 def test_kinematic_transit_arrives_at_the_planned_pregrasp_like_the_simulated_one() -> None:
     kin, ex_k, plan_k, before_k = _to_pregrasp("kinematic")
-    dyn, ex_d, plan_d, _ = _to_pregrasp("dynamic")
+    dyn, _, _, _ = _to_pregrasp("dynamic")
     site_k = kin.data.site_xpos[_site(kin.model)]
     site_d = dyn.data.site_xpos[_site(dyn.model)]
     # Played back, the gripper is where the plan put it (gravity is compensated) ...
