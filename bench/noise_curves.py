@@ -1,0 +1,110 @@
+"""Grasp success against pose noise on every tier: the paired noise curve, one line per tier.
+
+    python bench/noise_curves.py [--tiers all] [--episodes 50] [--out out/noise] \
+        [--plot docs/noise_curves_tiers.png] [--json F]
+
+For each tier, `oracle` and then `noisy-oracle` at sigma = (2.5 mm, 1 deg), (5 mm, 2 deg),
+(10 mm, 4 deg) and (20 mm, 8 deg) on all four error components run on the same held-out scenes
+(`--episodes` per object, seeds from `sim.world.constants.EVAL_SEED_BASE`, friction margins
+measured), exactly as `python -m sim.evaluate --tier T --estimator noisy-oracle --noise
+S,S,D,D --margin` does; a seed draws the same standard normals at every level, so each level
+pairs with the one before (`sim.compare.curve`: lost and gained grasps, exact McNemar p). Each
+run's report is kept in `--out` as ``<tier>_<level>.json`` and a rerun reuses it, so an
+interrupted study resumes. Prints each tier's chain; `--plot` draws success (Wilson 95 % bars)
+against sigma for every tier in one figure.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
+from sim.compare import check_same_execution, curve, format_curve, wilson_interval
+from sim.core.cli import ArgumentParser, fail, write_json
+from sim.core.validate import arg, check_int, check_names, check_output_file, check_plot_path
+from sim.evaluate import evaluate
+from sim.world.constants import EVAL_SEED_BASE
+from sim.world.objects import OBJECT_NAMES
+from sim.world.tiers import TIERS
+
+#: (label, noise) along the curve; None is the true pose.
+LEVELS: tuple[tuple[str, str | None], ...] = (
+    ("oracle", None),
+    ("n2.5", "2.5,2.5,1,1"),
+    ("n5", "5,5,2,2"),
+    ("n10", "10,10,4,4"),
+    ("n20", "20,20,8,8"),
+)
+
+
+def run_tier(tier: str, episodes: int, out: Path) -> list[dict]:
+    """The tier's chain of reports (run, or read back when already in `out`)."""
+    paths = []
+    for label, noise in LEVELS:
+        path = out / f"{tier}_{label}.json"
+        if not path.is_file():
+            estimator = "oracle" if noise is None else "noisy-oracle"
+            print(f"{tier}: {estimator} {noise or ''}", file=sys.stderr)
+            report = evaluate(list(OBJECT_NAMES), episodes, estimator, EVAL_SEED_BASE, 2, tier,
+                              noise=noise, margin=True)  # fmt: skip
+            write_json(path, report)
+        paths.append(path)
+    check_same_execution(paths)
+    return curve(paths)
+
+
+def plot(chains: dict[str, list[dict]], path: Path) -> None:
+    """Success against the noise level, one line per tier."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    for i, (tier, rows) in enumerate(chains.items()):
+        x = np.arange(len(rows)) + (i - (len(chains) - 1) / 2) * 0.04
+        rate = np.array([r["successes"] / r["episodes"] for r in rows])
+        ci = np.array([wilson_interval(r["successes"], r["episodes"]) for r in rows])
+        ax.errorbar(x, 100 * rate, yerr=100 * np.abs(ci.T - rate), fmt="o-", capsize=3,
+                    label=tier, markersize=4)  # fmt: skip
+    labels = ["0", "2.5 mm, 1 deg", "5 mm, 2 deg", "10 mm, 4 deg", "20 mm, 8 deg"]
+    ax.set_xticks(np.arange(len(LEVELS)), labels, fontsize=8)
+    ax.set_xlabel("sigma of each error component (along and across the ray, in and out of plane)")
+    ax.set_ylabel("grasp success [%]")
+    ax.set_title("noisy-oracle on 300 paired scenes per tier", fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = ArgumentParser(description=__doc__.split("\n")[0])
+    tiers = arg(check_names, list(TIERS), "tier", "--tiers")
+    p.add_argument("--tiers", type=tiers, default=list(TIERS),
+                   help="'all' or a comma list of " + ", ".join(TIERS))  # fmt: skip
+    p.add_argument("--episodes", type=arg(check_int, 3, 10_000, "--episodes", base=int),
+                   default=50, help="episodes per object and level, 3..10000")  # fmt: skip
+    p.add_argument("--out", type=Path, default=Path("out/noise"), help="the runs' reports")
+    p.add_argument("--plot", type=arg(check_plot_path, "--plot"), default=None)
+    p.add_argument("--json", type=arg(check_output_file, "--json"), default=None)
+    args = p.parse_args(argv)
+    if args.out.exists() and not args.out.is_dir():
+        return fail(f"--out {args.out} is a file; give a folder")
+    args.out.mkdir(parents=True, exist_ok=True)
+    chains = {}
+    for tier in args.tiers:
+        chains[tier] = run_tier(tier, args.episodes, args.out)
+        print(f"tier {tier}:\n{format_curve(chains[tier])}\n")
+    if args.plot is not None:
+        plot(chains, args.plot)
+        print(f"wrote {args.plot}")
+    if args.json is not None:
+        write_json(args.json, chains)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
