@@ -26,7 +26,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -42,6 +46,18 @@ SEED_START = 1_200_000_000  # held out (sim.world.constants.EVAL_SEED_BASE and a
 def _outcomes(report: dict) -> list[tuple]:
     return [(e["success"], e["failure_reason"], json.dumps(e["pose_error"], sort_keys=True))
             for e in report["episodes"]]  # fmt: skip
+
+
+def _fresh_evaluation(episodes: int, estimator: str, workers: int) -> dict:
+    """`python -m sim.evaluate` in a new process, as a user runs it: every run starts its
+    workers from nothing, so the difference of two runs leaves exactly the episodes it adds."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "report.json"
+        cmd = [sys.executable, "-m", "sim.evaluate", "--objects", "all", "--episodes",
+               str(episodes), "--estimator", estimator, "--seed-start", str(SEED_START),
+               "--workers", str(workers), "--json", str(out)]  # fmt: skip
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        return json.loads(out.read_text())
 
 
 def ray_side_by_side(args: argparse.Namespace, objs: list[str]) -> dict:
@@ -106,8 +122,8 @@ def main() -> None:
         print(f"same outcomes on both backends: {out['same_outcomes']}")
         return
     one = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=1)
-    two = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=2)
-    longer = evaluate(objs, 2 * args.episodes, args.estimator, SEED_START, workers=2)
+    two = _fresh_evaluation(args.episodes, args.estimator, workers=2)
+    longer = _fresh_evaluation(2 * args.episodes, args.estimator, workers=2)
     walls = [e["wall_ms"] for e in one["episodes"]]
     # One worker runs in this process: its first episode imports torch and loads the estimator.
     one_rate = (len(walls) - 1) / (one["wall_s"] - walls[0] / 1000)

@@ -71,13 +71,6 @@ def execution_settings() -> dict:
     return json.loads(json.dumps(settings))
 
 
-def _preload(estimator: str) -> tuple[str, ...]:
-    """What the workers import before their first episode: the episode code, and torch with the
-    estimator's module for a learned estimator (importing torch takes seconds per process)."""
-    base = ("sim.episode", "sim.estimators")
-    return base if estimator in ("oracle", "noisy-oracle") else (*base, "perception.hybrid")
-
-
 def _init_worker() -> None:
     """One compute thread per worker process: the workers already fill the cores."""
     os.environ["OMP_NUM_THREADS"] = "1"
@@ -173,7 +166,7 @@ def evaluate(
     results = []
     for d, node in run_map(_run_one, jobs, backend=backend, workers=workers, address=address,
                            desc="episodes", initializer=_init_worker, with_node=True,
-                           total=n_jobs, preload=_preload(estimator)):  # fmt: skip
+                           total=n_jobs):  # fmt: skip
         if node is not None:
             d["node"] = node
         results.append(d)

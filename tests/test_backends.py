@@ -83,15 +83,7 @@ def test_results_come_in_job_order_locally() -> None:
     assert default_chunk(1000, 2) == 16 and default_chunk(10, 2) == 1
 
 
-def _preloaded(name: str) -> bool:
-    return name in sys.modules
-
-
-def test_a_pool_forked_from_a_preloading_server_gives_the_same_episodes(local_report) -> None:
-    # Spawned workers import what the job needs; workers forked from the fork server also hold
-    # what it imported before forking them.
-    assert list(run_map(_preloaded, ["tabnanny"], workers=2)) == [False]
-    assert list(run_map(_preloaded, ["tabnanny"], workers=2, preload=("tabnanny",))) == [True]
+def test_a_pool_of_two_workers_gives_the_same_episodes(local_report) -> None:
     pooled = evaluate(OBJECTS, EPISODES, "oracle", SEED, tier="isolated", workers=2)
     assert [_outcome(e) for e in pooled["episodes"]] == [
         _outcome(e) for e in local_report["episodes"]

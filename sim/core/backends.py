@@ -4,8 +4,7 @@
 (or as they complete, `ordered=False`), with a progress bar that counts items as they return:
 
 - ``local`` (the default): ``fn`` in this process (one worker) or in a pool of `workers` spawned
-  processes (forked from a fork server that imported `preload` first, when given), one job at a
-  time (`chunk` jobs with ``chunk``).
+  processes, one job at a time (`chunk` jobs with ``chunk``).
 - ``ray``: Ray tasks over chunks of jobs, sized so the per-task overhead (a few milliseconds)
   stays small against the work (`default_chunk`). With `address` the tasks run on that existing
   cluster (``ray start --head`` prints it; ``auto`` finds one started on this machine), else a
@@ -104,7 +103,6 @@ def run_map(
     ordered: bool = True,
     with_node: bool = False,
     total: int | None = None,
-    preload: tuple[str, ...] = (),
 ) -> Iterator[Any]:
     """Yield ``fn(job)`` for every job.
 
@@ -124,12 +122,6 @@ def run_map(
         with_node: yield ``(result, node)`` pairs, node the Ray node id that ran the job (None
             on the local backend).
         total: the number of jobs, for the bar (default: ``len(jobs)`` when it has one).
-        preload: modules every local pool process needs (torch, say): imported once in a fork
-            server, from which the pool processes are forked with them already loaded, instead
-            of each importing them on its own (where the platform has no fork server, the
-            processes are spawned as without it). Nothing may compute in threads at import.
-            The first pool with a preload starts this process's fork server, and its list is
-            the one that holds for the process's later pools.
 
     Raises:
         UnknownNameError, InvalidArgumentError: a bad backend or address.
@@ -151,7 +143,7 @@ def run_map(
         if ray is not None:
             results = _ray_map(ray, fn, jobs, workers, chunk, initializer, initargs, ordered, bar)
         else:
-            local = _local_map(fn, jobs, workers, chunk, initializer, initargs, ordered, preload)
+            local = _local_map(fn, jobs, workers, chunk, initializer, initargs, ordered)
             results = ((r, None) for r in local)
         for result, node in results:
             if ray is None:
@@ -163,16 +155,11 @@ def run_map(
             ray.shutdown()
 
 
-def _local_map(fn, jobs, workers, chunk, initializer, initargs, ordered, preload) -> Iterator[Any]:
+def _local_map(fn, jobs, workers, chunk, initializer, initargs, ordered) -> Iterator[Any]:
     if workers <= 1:
         yield from map(fn, jobs)
         return
-    if preload and "forkserver" in mp.get_all_start_methods():
-        ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(list(preload))
-    else:
-        ctx = mp.get_context("spawn")
-    with ctx.Pool(workers, initializer, initargs) as pool:
+    with mp.get_context("spawn").Pool(workers, initializer, initargs) as pool:
         imap = pool.imap if ordered else pool.imap_unordered
         # Pool.imap queues its whole input at once: fed in windows, a long stream of jobs is
         # never held in memory.
