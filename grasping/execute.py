@@ -143,6 +143,7 @@ class Executor:
         self.object_geoms = set(np.flatnonzero(m.geom_bodyid == target).tolist())
         robot_bodies = [i for i in range(m.nbody) if m.body(i).name.startswith(C.PREFIX)]
         self.robot_geoms = set(np.flatnonzero(np.isin(m.geom_bodyid, robot_bodies)).tolist())
+        self.scene_geoms = set(range(m.ngeom)) - self.robot_geoms
         table = m.body("table").id
         self.table_geoms = set(np.flatnonzero(m.geom_bodyid == table).tolist())
         self.recorder = recorder
@@ -178,16 +179,14 @@ class Executor:
         d.qvel[self.dofadr] = 0.0
         mujoco.mj_kinematics(m, d)
         mujoco.mj_collision(m, d)
-        contact = d.contact
-        for g1, g2 in zip(contact.geom1.tolist(), contact.geom2.tolist(), strict=True):
-            if (g1 in self.robot_geoms) != (g2 in self.robot_geoms):
-                d.qpos[:] = q_prev
-                mujoco.mj_forward(m, d)
-                self._kinematic = False
-                self.events.append(
-                    f"transit touched the scene at t={d.time:.2f} s; the rest of it is simulated"
-                )
-                return False
+        if self._touching(self.robot_geoms, self.scene_geoms):
+            d.qpos[:] = q_prev
+            mujoco.mj_forward(m, d)
+            self._kinematic = False
+            self.events.append(
+                f"transit touched the scene at t={d.time:.2f} s; the rest of it is simulated"
+            )
+            return False
         d.time += self.cfg.control_dt
         return True
 

@@ -14,7 +14,7 @@ from sim.world.scene import build_scene
 
 
 def _site(model: mujoco.MjModel) -> int:
-    return next(i for i in range(model.nsite) if model.site(i).name.endswith(C.GRASP_SITE))
+    return model.site(C.GRASP_SITE).id
 
 
 def _to_pregrasp(transit: str, torso_shift: float = 0.0):
