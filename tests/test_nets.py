@@ -192,6 +192,34 @@ def test_fine_tune_records_its_lineage_and_exports_stages(tiny_data, tmp_path, m
     assert (tmp_path / "curves.png").stat().st_size > 1000
 
 
+def test_a_fine_tune_of_shipped_weights_keeps_their_recorded_stages(
+    tiny_data, tmp_path, monkeypatch
+):
+    monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
+    first = train(replace(SMOKE, out=tmp_path / "ckpt", name="posenet_ours"), command="stage one")
+    weights = tmp_path / "weights"
+    monkeypatch.setattr(export_weights, "MANIFEST", weights / "manifest.json")
+    shipped = export_weights.export(Path(first["checkpoint"]).parent, weights)
+    recorded = shipped["pose_nets"]["ours"]["stages"]
+    assert [s["command"] for s in recorded] == ["stage one"]
+    # A fine-tune started from the shipped file (not a checkpoint) continues its history.
+    ft = replace(SMOKE, out=tmp_path / "ft", init=str(weights / "posenet_ours.pt"), epochs=2)
+    result = train(ft)
+    ckpt = torch.load(result["checkpoint"], weights_only=False)
+    assert ckpt["init_from"]["stages"] == recorded
+    stages = export_weights.export(tmp_path / "ft", weights)["pose_nets"]["ours"]["stages"]
+    assert [s["command"] for s in stages] == ["stage one", ckpt["command"]]
+    # Exporting the same fine-tune again does not repeat the shipped stages, and the curves
+    # stop at the shipped file instead of following its name back to the checkpoint itself.
+    again = export_weights.export(tmp_path / "ft", weights)["pose_nets"]["ours"]["stages"]
+    assert again == stages
+    assert len(export_weights.training_curves(tmp_path / "ft")["ours"]) == 1
+    # Weights that are not the recorded bytes carry no stages.
+    other = tmp_path / "weights" / "posenet_ours.pt"
+    other.write_bytes(other.read_bytes() + b"x")
+    assert train_mod.shipped_stages(other) is None
+
+
 def test_distillation_adds_the_teachers_outputs_as_a_target(tiny_data, tmp_path, monkeypatch):
     monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
     teacher = train(replace(SMOKE, out=tmp_path, name="teacher", seed=5))["checkpoint"]

@@ -113,6 +113,9 @@ def _stages(state: dict, command: str) -> list[dict]:
     wall time [s] (None when not recorded), data seed ranges and final validation metrics."""
     chain, node = [], {**state, "command": command}
     while node:
+        if node.get("stages"):  # shipped weights: the stages their manifest recorded
+            chain.extend(node["stages"][::-1])
+            break
         hist = node.get("history")
         chain.append({
             "command": node.get("command"),
@@ -131,8 +134,9 @@ def training_curves(checkpoints: Path) -> dict[str, list[list[dict]]]:
     curves = {}
     for variant in SHIPPED:
         path = checkpoints / f"posenet_{variant}.pt"
-        stages = []
-        while path is not None and path.is_file():
+        stages, seen = [], set()
+        while path is not None and path.is_file() and path not in seen:
+            seen.add(path)
             state = read_checkpoint(path)
             stages.append(state.get("history") or [])
             parent = state.get("init_from")

@@ -11,7 +11,7 @@ from perception.integrity import MANIFEST_NAME
 from sim.core.errors import AssetError
 from sim.core.files import atomic_write_json, sha256_file
 
-__all__ = ["MANIFEST_NAME", "read_manifest", "weights_entry", "write_manifest"]
+__all__ = ["MANIFEST_NAME", "read_manifest", "shipped_stages", "weights_entry", "write_manifest"]
 
 
 def read_manifest(path: Path) -> dict[str, Any]:
@@ -32,6 +32,17 @@ def weights_entry(path: Path) -> dict[str, Any]:
     """The identity of a shipped weights file as its manifest entry records it: ``file`` (name),
     ``bytes`` and ``sha256`` (which `perception.integrity.verify_weights` checks at load)."""
     return {"file": path.name, "bytes": path.stat().st_size, "sha256": sha256_file(path)}
+
+
+def shipped_stages(path: Path) -> list[dict[str, Any]] | None:
+    """The training stages the manifest beside `path` records for it, when `path` is a shipped
+    pose net whose bytes are the ones recorded (so a fine-tune from it keeps its history);
+    None for any other file."""
+    manifest = read_manifest(path.parent / MANIFEST_NAME)
+    for entry in manifest.get("pose_nets", {}).values():
+        if entry.get("file") == path.name and entry.get("sha256") == sha256_file(path):
+            return entry.get("stages")
+    return None
 
 
 def write_manifest(path: Path, manifest: dict[str, Any]) -> None:

@@ -41,6 +41,7 @@ from perception.training.crop_sets import CropConfig, data_seed_ranges, split_cr
 from perception.training.dataset import DATASETS, DISTS, parse_limit
 from perception.training.ddp import DEVICES, Ranks, resolve_device, start
 from perception.training.losses import posenet_loss
+from perception.training.manifest import shipped_stages
 from perception.training.posenet_eval import evaluate_arrays
 from perception.training.schedule import learning_rate, optimiser_step
 from sim.core.cli import ArgumentParser, fail
@@ -240,6 +241,8 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
             "checkpoint": src.name,
             **{k: parent.get(k) for k in LINEAGE_KEYS},
             "validation": parent["history"][-1] if parent.get("history") else None,
+            # Shipped weights carry no lineage of their own: their manifest's stages stand in.
+            "stages": shipped_stages(src),
         }
     step, epoch0, history = 0, 0, []
     if resuming:
