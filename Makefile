@@ -42,8 +42,8 @@ data: setup
 # which records each stage's command, data seeds, validation figures and, where measured, wall
 # time): `ours` on both distributions (the first 5000 head-camera images), then fine-tuned on the
 # first 10000 head-camera images, then on all 20000; its expert `ours_hard` fine-tuned from the
-# 10000-image stage on the head camera and the hard tier; `paper` as published, on the paper's protocol alone (12 epochs, then 6 more in
-# batches of 32); the detector on the head camera, then fine-tuned on the head camera and the
+# 10000-image stage on the head camera and the hard tier; `paper` as published, on the paper's
+# protocol alone (12 epochs, then 6 more in batches of 32); the detector on the head camera, then fine-tuned on the head camera and the
 # hard tier; from it, the paper protocol's detector (perception/weights/paper_protocol/)
 # fine-tuned on the head camera and that protocol.
 CKPT := $${POSEGRASP_DATA:-data}/checkpoints

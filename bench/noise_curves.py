@@ -21,8 +21,15 @@ from pathlib import Path
 
 import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
 from sim.compare import check_same_execution, curve, format_curve, wilson_interval
-from sim.core.cli import ArgumentParser, fail, write_json
-from sim.core.validate import arg, check_int, check_names, check_output_file, check_plot_path
+from sim.core.cli import ArgumentParser, write_json
+from sim.core.validate import (
+    arg,
+    check_int,
+    check_names,
+    check_output_dir,
+    check_output_file,
+    check_plot_path,
+)
 from sim.evaluate import evaluate
 from sim.world.constants import EVAL_SEED_BASE
 from sim.world.objects import OBJECT_NAMES
@@ -36,6 +43,14 @@ LEVELS: tuple[tuple[str, str | None], ...] = (
     ("n10", "10,10,4,4"),
     ("n20", "20,20,8,8"),
 )
+
+
+def _tick(noise: str | None) -> str:
+    """A level's axis label: "0", or the sigmas as "<mm> mm, <deg> deg"."""
+    if noise is None:
+        return "0"
+    mm, _, deg, _ = noise.split(",")
+    return f"{mm} mm, {deg} deg"
 
 
 def run_tier(tier: str, episodes: int, out: Path) -> list[dict]:
@@ -69,8 +84,7 @@ def plot(chains: dict[str, list[dict]], path: Path) -> None:
         ci = np.array([wilson_interval(r["successes"], r["episodes"]) for r in rows])
         ax.errorbar(x, 100 * rate, yerr=100 * np.abs(ci.T - rate), fmt="o-", capsize=3,
                     label=tier, markersize=4)  # fmt: skip
-    labels = ["0", "2.5 mm, 1 deg", "5 mm, 2 deg", "10 mm, 4 deg", "20 mm, 8 deg"]
-    ax.set_xticks(np.arange(len(LEVELS)), labels, fontsize=8)
+    ax.set_xticks(np.arange(len(LEVELS)), [_tick(noise) for _, noise in LEVELS], fontsize=8)
     ax.set_xlabel("sigma of each error component (along and across the ray, in and out of plane)")
     ax.set_ylabel("grasp success [%]")
     ax.set_title("noisy-oracle on 300 paired scenes per tier", fontsize=10)
@@ -87,12 +101,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="'all' or a comma list of " + ", ".join(TIERS))  # fmt: skip
     p.add_argument("--episodes", type=arg(check_int, 3, 10_000, "--episodes", base=int),
                    default=50, help="episodes per object and level, 3..10000")  # fmt: skip
-    p.add_argument("--out", type=Path, default=Path("out/noise"), help="the runs' reports")
+    p.add_argument("--out", type=arg(check_output_dir, "--out"), default=Path("out/noise"),
+                   help="the runs' reports")  # fmt: skip
     p.add_argument("--plot", type=arg(check_plot_path, "--plot"), default=None)
     p.add_argument("--json", type=arg(check_output_file, "--json"), default=None)
     args = p.parse_args(argv)
-    if args.out.exists() and not args.out.is_dir():
-        return fail(f"--out {args.out} is a file; give a folder")
     args.out.mkdir(parents=True, exist_ok=True)
     chains = {}
     for tier in args.tiers:

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from perception.integrity import MANIFEST_NAME
+from perception.integrity import MANIFEST_NAME, manifest_entries
 from sim.core.errors import AssetError
 from sim.core.files import atomic_write_json, sha256_file
 
@@ -38,11 +38,10 @@ def shipped_stages(path: Path) -> list[dict[str, Any]] | None:
     """The training stages the manifest beside `path` records for it, when `path` is a shipped
     pose net whose bytes are the ones recorded (so a fine-tune from it keeps its history);
     None for any other file."""
-    manifest = read_manifest(path.parent / MANIFEST_NAME)
-    for entry in manifest.get("pose_nets", {}).values():
-        if entry.get("file") == path.name and entry.get("sha256") == sha256_file(path):
-            return entry.get("stages")
-    return None
+    entry = manifest_entries(read_manifest(path.parent / MANIFEST_NAME)).get(path.name)
+    if entry is None or entry.get("sha256") != sha256_file(path):
+        return None
+    return entry.get("stages")
 
 
 def write_manifest(path: Path, manifest: dict[str, Any]) -> None:
