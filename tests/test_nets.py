@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from perception.nets import NetConfig, PoseNet, _from_6d, load_posenet, normalis
 from perception.training import datagen
 from perception.training import export as export_weights
 from perception.training import train_posenet as train_mod
+from perception.training.crop_sets import CropConfig, build_crops
 from perception.training.dataset import parse_limit
 from perception.training.losses import posenet_loss
 from perception.training.schedule import learning_rate
@@ -239,6 +241,22 @@ def test_fine_tune_from_a_missing_checkpoint_is_a_clear_error(tiny_data, tmp_pat
     monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
     with pytest.raises(AssetError, match="no checkpoint 'nope'"):
         train(replace(SMOKE, out=tmp_path, init="nope"))
+
+
+def test_a_crop_cache_is_extended_to_the_crops_a_fresh_build_cuts(tiny_data, tmp_path) -> None:
+    fresh, grown = tmp_path / "fresh", tmp_path / "grown"
+    for d in (fresh, grown):
+        shutil.copytree(tiny_data / "paper", d)
+    cfg = CropConfig(seed=7)
+    first = build_crops(grown, "train", cfg, limit=5)
+    assert (grown / "crops_train_2_7_5.npz").is_file()
+    (grown / "train" / "000000" / "rgb" / "000001.png").unlink()  # a re-cut would fail on it
+    extended = build_crops(grown, "train", cfg, limit=12)
+    scratch = build_crops(fresh, "train", cfg, limit=12)
+    assert len(first["cls"]) < len(scratch["cls"])
+    assert extended.keys() == scratch.keys()
+    for k in scratch:
+        np.testing.assert_array_equal(extended[k], scratch[k], err_msg=k)
 
 
 def test_parse_limit() -> None:

@@ -8,6 +8,7 @@ cuts them the same way with its own `CropConfig`, or collects crops around detec
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -104,21 +105,52 @@ class CropSet:
         }
 
 
-def random_boxes(ds: PoseDataset, cfg: CropConfig, n: int):
+def random_boxes(ds: PoseDataset, cfg: CropConfig, n: int, start: int = 0):
     """(sample, object, square box) of every crop `build_crops` cuts from the first n images of
-    ds, in its order, with its seeded random boxes (a progress bar shows the images)."""
+    ds, in its order, with its seeded random boxes (a progress bar shows the images). Images
+    before `start` only advance the random stream (their labels are read, not their pixels), so
+    the crops from `start` on are those a run from image 0 cuts there."""
     rng = np.random.default_rng([cfg.seed, ("train", "val", "test").index(ds.split)])
     for i in tqdm(range(n), desc=f"crops {ds.root.name}/{ds.split}", leave=False):
+        boxes = [
+            (k, random_square_box(box_xyxy, rng, cfg.max_shift, cfg.scale_range))
+            for k, (visib, depth, box_xyxy) in enumerate(ds.crop_labels(i))
+            if visib >= cfg.min_visib and depth > 0
+            for _ in range(cfg.per_object)
+        ]
+        if i < start or not boxes:
+            continue
         s = ds[i]
-        for obj in s.objects:
-            if obj.visib_fract < cfg.min_visib or obj.T_C_O[2, 3] <= 0:
-                continue
-            for _ in range(cfg.per_object):
-                yield s, obj, random_square_box(obj.box_xyxy, rng, cfg.max_shift, cfg.scale_range)
+        for k, box in boxes:
+            yield s, s.objects[k], box
+
+
+def _cache_path(root: Path, split: str, cfg: CropConfig, n: int) -> Path:
+    side = "" if cfg.size == CROP else f"_s{cfg.size}"
+    return root / f"crops_{split}_{cfg.per_object}_{cfg.seed}_{n}{side}.npz"  # n: images used
+
+
+def _load_cache(cache: Path) -> dict:
+    try:
+        with np.load(cache) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise AssetError(f"corrupt crop cache {cache}: {exc}; delete it to rebuild") from exc
+
+
+def _largest_prefix(root: Path, split: str, cfg: CropConfig, n: int) -> int:
+    """The most images (< n) a cached crop set of the same config was cut from (0: none)."""
+    side = "" if cfg.size == CROP else f"_s{cfg.size}"
+    name = re.compile(rf"crops_{split}_{cfg.per_object}_{cfg.seed}_(\d+){side}\.npz")
+    sizes = [int(m[1]) for p in root.glob("crops_*.npz") if (m := name.fullmatch(p.name))]
+    return max((k for k in sizes if k < n), default=0)
 
 
 def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = None) -> dict:
     """Cut (or load cached) training crops and labels of one split of one dataset.
+
+    A cache of the first m < n images of the same config is extended rather than cut again:
+    the crops are identical to a build from scratch.
 
     Returns:
         dict of arrays: crops (N, S, S, 3) uint8 (S = cfg.size), cls (N,), uv_unit (N, 2), p (N, 3),
@@ -127,18 +159,16 @@ def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = Non
     """
     ds = PoseDataset(root, split)
     n = len(ds) if limit is None else min(limit, len(ds))
-    side = "" if cfg.size == CROP else f"_s{cfg.size}"
-    cache = root / f"crops_{split}_{cfg.per_object}_{cfg.seed}_{n}{side}.npz"  # n: images used
+    cache = _cache_path(root, split, cfg, n)
     if cache.is_file():
-        try:
-            with np.load(cache) as z:
-                return {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
-            raise AssetError(f"corrupt crop cache {cache}: {exc}; delete it to rebuild") from exc
+        return _load_cache(cache)
+    m = _largest_prefix(root, split, cfg, n)
     out = CropSet(cfg.size)
-    for sample, obj, box in random_boxes(ds, cfg, n):
+    for sample, obj, box in random_boxes(ds, cfg, n, start=m):
         out.add(sample.rgb, sample.K, obj, box)
     arrays = out.arrays()
+    if m:
+        arrays = concat([_load_cache(_cache_path(root, split, cfg, m)), arrays])
     tmp = cache.with_suffix(".tmp.npz")
     np.savez(tmp, **arrays)
     tmp.replace(cache)
