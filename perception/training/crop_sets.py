@@ -125,9 +125,14 @@ def random_boxes(ds: PoseDataset, cfg: CropConfig, n: int, start: int = 0):
             yield s, s.objects[k], box
 
 
-def _cache_path(root: Path, split: str, cfg: CropConfig, n: int) -> Path:
+def _cache_name(split: str, cfg: CropConfig, n: str) -> str:
+    """File name of the crop cache of the first n images (n: a number, or a regex group)."""
     side = "" if cfg.size == CROP else f"_s{cfg.size}"
-    return root / f"crops_{split}_{cfg.per_object}_{cfg.seed}_{n}{side}.npz"  # n: images used
+    return f"crops_{split}_{cfg.per_object}_{cfg.seed}_{n}{side}.npz"
+
+
+def _cache_path(root: Path, split: str, cfg: CropConfig, n: int) -> Path:
+    return root / _cache_name(split, cfg, str(n))
 
 
 def _load_cache(cache: Path) -> dict:
@@ -140,8 +145,7 @@ def _load_cache(cache: Path) -> dict:
 
 def _largest_prefix(root: Path, split: str, cfg: CropConfig, n: int) -> int:
     """The most images (< n) a cached crop set of the same config was cut from (0: none)."""
-    side = "" if cfg.size == CROP else f"_s{cfg.size}"
-    name = re.compile(rf"crops_{split}_{cfg.per_object}_{cfg.seed}_(\d+){side}\.npz")
+    name = re.compile(_cache_name(split, cfg, "(\\d+)").replace(".npz", "\\.npz"))
     sizes = [int(m[1]) for p in root.glob("crops_*.npz") if (m := name.fullmatch(p.name))]
     return max((k for k in sizes if k < n), default=0)
 
