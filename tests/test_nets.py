@@ -212,10 +212,22 @@ def test_a_fine_tune_of_shipped_weights_keeps_their_recorded_stages(
     stages = export_weights.export(tmp_path / "ft", weights)["pose_nets"]["ours"]["stages"]
     assert [s["command"] for s in stages] == ["stage one", ckpt["command"]]
     # Exporting the same fine-tune again does not repeat the shipped stages, and the curves
-    # stop at the shipped file instead of following its name back to the checkpoint itself.
+    # continue with the shipped file's recorded stages instead of following its name back to
+    # the checkpoint itself: stage one's final validation alone, as its checkpoint is elsewhere.
     again = export_weights.export(tmp_path / "ft", weights)["pose_nets"]["ours"]["stages"]
     assert again == stages
-    assert len(export_weights.training_curves(tmp_path / "ft")["ours"]) == 1
+    curves = export_weights.training_curves(tmp_path / "ft")["ours"]
+    assert [[h["epoch"] for h in st] for st in curves] == [[1], [1, 2]]
+    assert curves[0] == [recorded[0]["validation"]]
+    # With the stage's checkpoint beside it (named by its --name), its whole history is drawn.
+    base = train(replace(SMOKE, out=tmp_path / "base", epochs=2), command="x --name ours_base")
+    export_weights.export(Path(base["checkpoint"]).parent, weights)
+    named = tmp_path / "named"
+    named.mkdir()
+    shutil.copy(base["checkpoint"], named / "ours_base.pt")
+    train(replace(ft, out=named, epochs=1))
+    curves = export_weights.training_curves(named)["ours"]
+    assert [[h["epoch"] for h in st] for st in curves] == [[1, 2], [1]]
     # Weights that are not the recorded bytes carry no stages.
     other = tmp_path / "weights" / "posenet_ours.pt"
     other.write_bytes(other.read_bytes() + b"x")

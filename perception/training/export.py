@@ -128,9 +128,25 @@ def _stages(state: dict, command: str) -> list[dict]:
     return chain[::-1]
 
 
+def _stage_history(checkpoints: Path, stage: dict) -> list[dict]:
+    """Validation history of a recorded stage: that of the checkpoint its command names
+    (``--name``) under `checkpoints` when that run ended on the recorded figures, else its final
+    validation alone (empty when none was recorded)."""
+    words = (stage.get("command") or "").split()
+    final = stage.get("validation")
+    if "--name" in words[:-1]:
+        path = checkpoints / f"{words[words.index('--name') + 1]}.pt"
+        if path.is_file():
+            hist = read_checkpoint(path).get("history") or []
+            if hist and hist[-1] == final:
+                return hist
+    return [final] if final else []
+
+
 def training_curves(checkpoints: Path) -> dict[str, list[list[dict]]]:
     """Validation history of every stage of every exported net: name -> stages (first to
-    last) -> epochs; the chain stops at a stage whose checkpoint is gone."""
+    last) -> epochs. The chain follows the checkpoints each run started from; a run started from
+    shipped weights continues with the stages they record (`_stage_history`)."""
     curves = {}
     for variant in SHIPPED:
         path = checkpoints / f"posenet_{variant}.pt"
@@ -139,8 +155,11 @@ def training_curves(checkpoints: Path) -> dict[str, list[list[dict]]]:
             seen.add(path)
             state = read_checkpoint(path)
             stages.append(state.get("history") or [])
-            parent = state.get("init_from")
-            name = (parent or {}).get("checkpoint")  # None: started from shipped weights
+            parent = state.get("init_from") or {}
+            if parent.get("stages"):  # shipped weights: their recorded stages, last first
+                stages += [_stage_history(checkpoints, st) for st in parent["stages"][::-1]]
+                break
+            name = parent.get("checkpoint")  # None: started from scratch
             path = checkpoints / name if name else None
         if stages:
             curves[variant] = stages[::-1]
