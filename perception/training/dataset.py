@@ -148,33 +148,8 @@ class PoseDataset:
             }
         return self._scenes[scene_id]
 
-    def crop_labels(self, i: int) -> list[tuple[float, float, np.ndarray]]:
-        """(visible fraction, depth of the origin [m], visible box xyxy) of every object of image
-        i, from the scene files alone: no image or mask is read."""
-        scene_id, im_id = self.index[i]
-        scene = self._scene(scene_id)
-        key = str(im_id)
-        try:
-            gts, infos = scene["scene_gt"][key], scene["scene_gt_info"][key]
-            extras = scene["scene_posegrasp"][key]["objects"]
-            return [
-                (
-                    float(info["visib_fract"]),
-                    float(pose_from_bop(gt)[2, 3]),
-                    np.asarray(extra["box_xyxy"], float),
-                )
-                for gt, info, extra in zip(gts, infos, extras, strict=True)
-            ]
-        except (KeyError, TypeError, ValueError) as exc:
-            sdir = scene_dir(self.root, self.split, scene_id)
-            raise AssetError(
-                f"corrupt annotations of image {im_id} in {sdir} ({exc!r}); "
-                f"{rebuild_hint(self.root, self.split)}"
-            ) from None
-
-    def load(self, scene_id: int, im_id: int) -> Sample:
-        """Load and check one image and its annotations (metres)."""
-        sdir = scene_dir(self.root, self.split, scene_id)
+    def _annotations(self, scene_id: int, im_id: int) -> tuple[list, np.ndarray, list, dict]:
+        """The scene files' entries of one image, checked: (gt, K, gt_info, posegrasp)."""
         scene = self._scene(scene_id)
         key = str(im_id)
         try:
@@ -185,9 +160,29 @@ class PoseDataset:
                 raise InvalidArgumentError("entries of the scene files disagree")
         except (KeyError, TypeError, ValueError) as exc:
             raise AssetError(
-                f"corrupt annotations of image {im_id} in {sdir} ({exc!r}); "
+                f"corrupt annotations of image {im_id} in "
+                f"{scene_dir(self.root, self.split, scene_id)} ({exc!r}); "
                 f"{rebuild_hint(self.root, self.split)}"
             ) from None
+        return gts, K, infos, pg
+
+    def crop_labels(self, i: int) -> list[tuple[float, float, np.ndarray]]:
+        """(visible fraction, depth of the origin [m], visible box xyxy) of every object of image
+        i, from the scene files alone: no image or mask is read."""
+        gts, _, infos, pg = self._annotations(*self.index[i])
+        return [
+            (
+                float(info["visib_fract"]),
+                float(pose_from_bop(gt)[2, 3]),
+                np.asarray(extra["box_xyxy"], float),
+            )
+            for gt, info, extra in zip(gts, infos, pg["objects"], strict=True)
+        ]
+
+    def load(self, scene_id: int, im_id: int) -> Sample:
+        """Load and check one image and its annotations (metres)."""
+        sdir = scene_dir(self.root, self.split, scene_id)
+        gts, K, infos, pg = self._annotations(scene_id, im_id)
         rgb = read_png(rgb_path(sdir, im_id), self.root, self.split)
         objects = []
         for k, (gt, info, extra) in enumerate(zip(gts, infos, pg["objects"], strict=True)):
