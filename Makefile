@@ -26,10 +26,10 @@ bench: setup
 
 # Training data (outside git: $$POSEGRASP_DATA, else data/) and the shipped weights, from scratch.
 DATA_COUNTS := paper:train:20000 paper:val:1000 paper:test:1000 \
-	headcam:train:80000 headcam:val:500 headcam:test:500
+	headcam:train:120000 headcam:val:500 headcam:test:500
 # Head-camera test scenes of the tiers (folders headcam_<tier>), for accuracy per tier.
 TIER_COUNTS := hard:train:3000 hard:val:300 hard:test:500 clutter:test:300 any-pose:test:300 \
-	far:train:5000 far:val:300 far:test:300
+	far:train:10000 far:val:300 far:test:300
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
 	  $(PY) -m perception.training.datagen --dist $$dist --split $$split --count $$count --workers 2 \
@@ -42,7 +42,8 @@ data: setup
 # which records each stage's command, data seeds, validation figures and, where measured, wall
 # time): `ours` on both distributions (the first 5000 head-camera images), then fine-tuned on the
 # first 10000 head-camera images, then on the first 20000, then on the first 40000, then on those
-# and the far tier's 5000 training scenes, then on all 80000 and the far tier; its expert
+# and the far tier's first 5000 training scenes, then on the first 80000 and those 5000, then on all
+# 120000 and the far tier's 10000; its expert
 # `ours_hard` fine-tuned from the 10000-image stage on the head camera and the hard tier; `paper`
 # as published, on the paper's protocol alone (12 epochs, then 6 more in batches of 32); the
 # detector on the head camera, then fine-tuned on the head camera and the hard tier; from it, the
@@ -58,9 +59,13 @@ weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 5 --dists headcam \
 	  --limit headcam=40000 --lr 0.0005 --init posenet_ours_ft20k --name posenet_ours_ft40k
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 3 --dists headcam,headcam_far \
-	  --limit headcam=40000 --lr 0.0002 --init posenet_ours_ft40k --name posenet_ours_far
+	  --limit headcam=40000,headcam_far=5000 --lr 0.0002 --init posenet_ours_ft40k \
+	  --name posenet_ours_far
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 3 --dists headcam,headcam_far \
-	  --lr 0.0003 --init posenet_ours_far
+	  --limit headcam=80000,headcam_far=5000 --lr 0.0003 --init posenet_ours_far \
+	  --name posenet_ours_ft80k
+	$(PY) -m perception.training.train_posenet --variant ours --epochs 2 --dists headcam,headcam_far \
+	  --lr 0.0003 --init posenet_ours_ft80k
 	$(PY) -m perception.training.train_posenet --variant ours --dists headcam,headcam_hard \
 	  --limit headcam=5000 --epochs 5 --lr 0.0005 --init posenet_ours_head --name posenet_ours_hard
 	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 12 \
