@@ -38,16 +38,10 @@ data: setup
 	  $(PY) -m perception.training.datagen --dist headcam --tier $$tier --split $$split \
 	  --count $$count --workers 2 || exit 1; done
 
-# The shipped weights were trained with exactly these commands (see perception/weights/manifest.json,
-# which records each stage's command, data seeds, validation figures and, where measured, wall
-# time): `ours` on both distributions (the first 5000 head-camera images), then fine-tuned on the
-# first 10000 head-camera images, then on the first 20000, then on the first 40000, then on those
-# and the far tier's first 5000 training scenes, then on the first 80000 and those 5000, then on
-# all 120000 and the far tier's 10000; its expert `ours_hard` fine-tuned from the 10000-image stage
-# on the head camera and the hard tier; `paper` as published, on the paper's protocol alone (12
-# epochs, then 6 more in batches of 32); the detector on the head camera, then fine-tuned on the
-# head camera and the hard tier; from it, the paper protocol's detector
-# (perception/weights/paper_protocol/) fine-tuned on the head camera and that protocol.
+# The shipped weights were trained with exactly these commands, in this order (each `--init`
+# names the stage it starts from); perception/weights/manifest.json records each stage's command,
+# data seeds, validation figures and, where measured, wall time, and README.md's "Data and
+# training" says what every stage is for.
 CKPT := $${POSEGRASP_DATA:-data}/checkpoints
 weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed
