@@ -26,10 +26,10 @@ bench: setup
 
 # Training data (outside git: $$POSEGRASP_DATA, else data/) and the shipped weights, from scratch.
 DATA_COUNTS := paper:train:20000 paper:val:1000 paper:test:1000 \
-	headcam:train:120000 headcam:val:500 headcam:test:500
+	headcam:train:160000 headcam:val:500 headcam:test:500
 # Head-camera test scenes of the tiers (folders headcam_<tier>), for accuracy per tier.
 TIER_COUNTS := hard:train:3000 hard:val:300 hard:test:500 clutter:test:300 any-pose:test:300 \
-	far:train:10000 far:val:300 far:test:300
+	far:train:20000 far:val:300 far:test:300
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
 	  $(PY) -m perception.training.datagen --dist $$dist --split $$split --count $$count --workers 2 \
@@ -58,7 +58,10 @@ weights: data
 	  --limit headcam=80000,headcam_far=5000 --lr 0.0003 --init posenet_ours_far \
 	  --name posenet_ours_ft80k
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 2 --dists headcam,headcam_far \
-	  --lr 0.0003 --init posenet_ours_ft80k
+	  --limit headcam=120000,headcam_far=10000 --lr 0.0003 --init posenet_ours_ft80k \
+	  --name posenet_ours_ft120k
+	$(PY) -m perception.training.train_posenet --variant ours --epochs 2 --dists headcam,headcam_far \
+	  --lr 0.0003 --init posenet_ours_ft120k
 	$(PY) -m perception.training.train_posenet --variant ours --dists headcam,headcam_hard \
 	  --limit headcam=5000 --epochs 5 --lr 0.0005 --init posenet_ours_head --name posenet_ours_hard
 	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 12 \
