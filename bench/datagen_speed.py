@@ -32,7 +32,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from perception.training.generation import GenConfig, generate
-from sim.core.paths import data_root
+from posegrasp.core.paths import data_root
+from posegrasp.core.runtime import setup_rendering
 
 
 def _cpu_seconds() -> float:
@@ -69,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2, help="worker processes of the pool runs")
     p.add_argument("--views", type=int, default=4, help="headcam views per scene of the last run")
     a = p.parse_args(argv)
+    setup_rendering()
     os.environ.setdefault("LP_NUM_THREADS", "1")
     cores = os.cpu_count() or 1
     print(f"cores: {cores}, load average: {os.getloadavg()[0]:.2f}")

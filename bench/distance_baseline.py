@@ -32,10 +32,11 @@ from perception.nets import load_posenet
 from perception.training.crop_sets import build_crops
 from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
 from perception.training.tables import TEST_CROPS
-from sim.core.cli import ArgumentParser, fail, write_json
-from sim.core.errors import PosegraspError
-from sim.core.paths import WEIGHTS_DIR, data_root
-from sim.world.objects import OBJECT_NAMES, load_object
+from posegrasp.core.cli import ArgumentParser, fail, write_json
+from posegrasp.core.errors import PosegraspError
+from posegrasp.core.paths import WEIGHTS_DIR, data_root
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 #: Bins of the viewpoint error [deg] for `norm_ratios`.
 VIEW_BINS = ((0, 10), (10, 20), (20, 40), (40, 80), (80, 181))
@@ -109,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
                    "or a path (default: paper)")  # fmt: skip
     p.add_argument("--json", type=Path, default=None, help="also write the figures here")
     a = p.parse_args(argv)
+    setup_rendering()
     root = Path(a.data) if Path(a.data).is_dir() else data_root() / a.data
     if not (root / "test").is_dir():
         return fail(f"no test split in {root}: give --data a dataset folder with a test split")

@@ -15,11 +15,11 @@ import time
 
 import numpy as np
 
-import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.tiers import TIERS
 from sim.episode import EpisodeConfig, play_episode
 from sim.estimators import ESTIMATORS, make_estimator
-from sim.world.objects import OBJECT_NAMES
-from sim.world.tiers import TIERS
 
 SEED_START = 1_400_000_000
 
@@ -32,6 +32,7 @@ def main() -> None:
                    default="oracle")  # fmt: skip
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
+    setup_rendering()
     if not 1 <= args.episodes <= 1000:
         p.error("--episodes must be in 1..1000")
     walls, stages = [], {}

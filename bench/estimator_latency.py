@@ -30,15 +30,15 @@ import torch
 import torch._dynamo
 import torchvision  # noqa: F401
 
-import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
 from perception.detector import DEFAULT_WEIGHTS
 from perception.hybrid import DEFAULT_POSENET, STAGES, HybridPoseEstimator
-from sim.core.cli import ArgumentParser, fail
-from sim.core.errors import PosegraspError
-from sim.world import constants as C
-from sim.world.camera import CameraRenderer, camera_intrinsics
-from sim.world.objects import OBJECT_NAMES
-from sim.world.scene import SceneConfig, build_scene
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.errors import PosegraspError
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.world import constants as C
+from posegrasp.world.camera import CameraRenderer, camera_intrinsics
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.scene import SceneConfig, build_scene
 
 WIDTH, HEIGHT = 640, 480
 TARGET_MS = 66.0
@@ -94,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)  # fmt: skip
+    setup_rendering()
     if args.images < 1 or args.threads < 1:
         return fail("--images and --threads must be at least 1")
     torch.set_num_threads(args.threads)

@@ -15,8 +15,9 @@ faster than 1; at least 10 episodes/s with 2 workers (the long-run rate). The ru
 episode by episode, pose errors to the last bit (they are seeded, and the estimator computes on
 one thread in every worker); the script says so.
 
-``--backend ray`` instead runs the episodes on the local pool and on Ray (`sim.core.backends`),
-both with `--workers` CPUs (or on the cluster at `--address`), and prints side by side their
+``--backend ray`` instead runs the episodes on the local pool and on Ray
+(`posegrasp.core.backends`), both with `--workers` CPUs (or on the cluster at `--address`), and
+prints side by side their
 episodes/s (Ray's without its start-up, which is printed apart), Ray's per-task overhead (no-op
 tasks of one job each) and whether both backends agree episode by episode. Target: Ray within
 15 % of the local pool's throughput.
@@ -34,13 +35,13 @@ from pathlib import Path
 
 import numpy as np
 
-import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
-from sim.core.backends import BACKENDS, OBJECT_STORE_BYTES, run_map
+from posegrasp.core.backends import BACKENDS, OBJECT_STORE_BYTES, run_map
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.world.objects import OBJECT_NAMES
 from sim.estimators import DEFAULT_ESTIMATOR
 from sim.evaluate import evaluate
-from sim.world.objects import OBJECT_NAMES
 
-SEED_START = 1_200_000_000  # held out (sim.world.constants.EVAL_SEED_BASE and above)
+SEED_START = 1_200_000_000  # held out (posegrasp.world.constants.EVAL_SEED_BASE and above)
 
 
 def _outcomes(report: dict) -> list[tuple]:
@@ -105,6 +106,7 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (--backend ray)")
     p.add_argument("--address", default=None, help="an existing Ray cluster (--backend ray)")
     args = p.parse_args()
+    setup_rendering()
     objs = list(OBJECT_NAMES)
     if args.backend == "ray":
         out = ray_side_by_side(args, objs)

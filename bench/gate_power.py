@@ -23,11 +23,11 @@ import json
 import time
 from pathlib import Path
 
-import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
+from posegrasp.core.files import atomic_write_json
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.world.objects import OBJECT_NAMES
 from sim import gate
-from sim.core.files import atomic_write_json
 from sim.evaluate import evaluate
-from sim.world.objects import OBJECT_NAMES
 
 BASE_NOISE = "5,5,2,2"
 WORSE_NOISE = "10,10,4,4"
@@ -79,6 +79,7 @@ def main() -> int:
     p.add_argument("--no-rerun", action="store_true", help="skip the rerun of the baseline")
     p.add_argument("--json", type=Path, help="every verdict, saved after each run (resumes)")
     args = p.parse_args()
+    setup_rendering()
     margin = not args.no_margin
     if not 1 <= args.runs <= 1000 or not 0 <= args.false_alarm_runs <= 1000:
         p.error("--runs must be in 1..1000 and --false-alarm-runs in 0..1000")

@@ -5,7 +5,7 @@
 
 For each tier, `oracle` and then `noisy-oracle` at sigma = (2.5 mm, 1 deg), (5 mm, 2 deg),
 (10 mm, 4 deg) and (20 mm, 8 deg) on all four error components run on the same held-out scenes
-(`--episodes` per object, seeds from `sim.world.constants.EVAL_SEED_BASE`, friction margins
+(`--episodes` per object, seeds from `posegrasp.world.constants.EVAL_SEED_BASE`, friction margins
 measured), exactly as `python -m sim.evaluate --tier T --estimator noisy-oracle --noise
 S,S,D,D --margin` does; a seed draws the same standard normals at every level, so each level
 pairs with the one before (`sim.compare.curve`: lost and gained grasps, exact McNemar p). Each
@@ -19,10 +19,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import sim  # noqa: F401  (sets MUJOCO_GL before MuJoCo loads)
-from sim.compare import check_same_execution, curve, format_curve, wilson_interval
-from sim.core.cli import ArgumentParser, write_json
-from sim.core.validate import (
+from posegrasp.core.cli import ArgumentParser, write_json
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import (
     arg,
     check_int,
     check_names,
@@ -30,10 +29,12 @@ from sim.core.validate import (
     check_output_file,
     check_plot_path,
 )
+from posegrasp.world.constants import EVAL_SEED_BASE
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.tiers import TIERS
+from sim.compare import check_same_execution, curve, format_curve
 from sim.evaluate import evaluate
-from sim.world.constants import EVAL_SEED_BASE
-from sim.world.objects import OBJECT_NAMES
-from sim.world.tiers import TIERS
+from sim.stats import wilson_interval
 
 #: (label, noise) along the curve; None is the true pose.
 LEVELS: tuple[tuple[str, str | None], ...] = (
@@ -106,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plot", type=arg(check_plot_path, "--plot"), default=None)
     p.add_argument("--json", type=arg(check_output_file, "--json"), default=None)
     args = p.parse_args(argv)
+    setup_rendering()
     args.out.mkdir(parents=True, exist_ok=True)
     chains = {}
     for tier in args.tiers:

@@ -59,8 +59,9 @@ from perception.training.generation import GENERATOR_VERSIONS
 from perception.training.posenet_eval import evaluate_arrays
 from perception.training.tables import TEST_CROPS
 from perception.training.train_posenet import PoseNetTrainConfig, checkpoint_path, train
-from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.world.objects import OBJECT_NAMES
 
 COLUMNS = ("center_crop_px", "center_px", "distance_pct", "rotation_deg")
 STUDIES = ("per-object", "ours", "forgetting", "rotation", "ensemble")
@@ -247,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--epochs", type=int, default=5, help="epochs of the `ours` runs")
     p.add_argument("--json", type=Path, default=None, help="write every figure here")
     args = p.parse_args(argv)
+    setup_rendering()
     if args.study not in STUDIES:
         print(f"error: unknown study {args.study!r}; valid: {', '.join(STUDIES)}", file=sys.stderr)
         return 2

@@ -35,10 +35,11 @@ from perception.metrics import box_iou, mask_iou, rotation_error_deg
 from perception.overlay import silhouette
 from perception.refine import PoseRefiner
 from perception.training.dataset import PoseDataset
-from sim.core.cli import ArgumentParser, fail
-from sim.core.errors import PosegraspError
-from sim.core.paths import data_root
-from sim.world.objects import load_object
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.errors import PosegraspError
+from posegrasp.core.paths import data_root
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.world.objects import load_object
 
 TARGET_MS = 10.0
 
@@ -124,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2, help="torch threads (>= 1)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
+    setup_rendering()
     if min(args.images, args.repeats, args.threads) < 1 or args.start < 0:
         return fail("--images, --repeats and --threads must be at least 1, --start at least 0")
     torch.set_num_threads(args.threads)

@@ -15,14 +15,10 @@ Other processes on the machine lower every figure: the report includes the load 
 
 from __future__ import annotations
 
-import os
-
 # Before MuJoCo is imported: it picks its GL backend at import time (sim does the same, but
 # mujoco is imported first here).
-os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
-
 import json
+import os
 import platform
 import statistics
 import sys
@@ -32,12 +28,13 @@ from dataclasses import asdict, dataclass
 
 import mujoco
 
-from sim.core.cli import ArgumentParser, fail
-from sim.core.errors import InvalidArgumentError, PosegraspError
-from sim.world import constants as C
-from sim.world.camera import CameraRenderer, RenderOptions
-from sim.world.objects import OBJECT_NAMES
-from sim.world.scene import SceneConfig, build_scene
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.world import constants as C
+from posegrasp.world.camera import CameraRenderer, RenderOptions
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.scene import SceneConfig, build_scene
 
 TARGET_BUILD_S = 0.5
 TARGET_RTF = 10.0
@@ -222,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object instead")
     try:
         args = parser.parse_args(argv)
+        setup_rendering()
         if args.seeds < 1 or args.frames < 1 or not args.sim_seconds > 0:
             raise InvalidArgumentError(
                 "--seeds and --frames must be integers >= 1 and --sim-seconds a number > 0"

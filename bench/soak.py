@@ -32,14 +32,15 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from sim.core.cli import ArgumentParser, fail, write_json
-from sim.core.errors import AssetError, PosegraspError
-from sim.core.files import atomic_write_json
-from sim.core.paths import WEIGHTS_DIR
-from sim.core.validate import arg, check_int, check_output_file, check_workers
+from posegrasp.core.cli import ArgumentParser, fail, write_json
+from posegrasp.core.errors import AssetError, PosegraspError
+from posegrasp.core.files import atomic_write_json
+from posegrasp.core.paths import WEIGHTS_DIR
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_int, check_output_file, check_workers
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.tiers import TIERS
 from sim.estimators import ESTIMATORS
-from sim.world.objects import OBJECT_NAMES
-from sim.world.tiers import TIERS
 
 #: Held-out seeds of the soak's own.
 SEED_START = 1_800_000_000
@@ -59,6 +60,7 @@ def _fds() -> int:
 def _init_worker() -> None:
     os.environ["OMP_NUM_THREADS"] = "1"
     os.environ["MKL_NUM_THREADS"] = "1"
+    setup_rendering()
 
 
 @functools.cache
@@ -240,6 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=arg(check_output_file, "--json"), default=None,
                    help="write the summary here")  # fmt: skip
     args = p.parse_args(argv)
+    setup_rendering()
     with tempfile.TemporaryDirectory() as d:
         try:
             s = soak(args.episodes, args.workers, Path(d) / "record.json")

@@ -30,7 +30,8 @@ from perception.training.crop_sets import CropSet, random_boxes
 from perception.training.dataset import PoseDataset
 from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
 from perception.training.tables import TEST_CROPS
-from sim.core.paths import WEIGHTS_DIR, data_root
+from posegrasp.core.paths import WEIGHTS_DIR, data_root
+from posegrasp.core.runtime import setup_rendering
 
 SCALES = (1.0, 0.92, 1.08)
 SHIFTS = ((0.0, 0.0), (0.04, 0.0), (-0.04, 0.0), (0.0, 0.04), (0.0, -0.04))
@@ -91,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--limit", type=int, default=None, help="first N test images")
     p.add_argument("--json", type=Path, default=None)
     a = p.parse_args(argv)
+    setup_rendering()
     model = load_posenet(a.weights)
     data, n = crops_with_variants(data_root() / a.dataset, a.limit)
     t = time.perf_counter()

@@ -8,7 +8,7 @@ position is taken with both finger orders (the gripper is symmetric under a half
 approach axis), and every object symmetry maps the set onto itself.
 
 Those hand-designed segments serve the canonical resting pose. Every other resting pose of the
-object (`sim.world.resting`) gets the grasps from above that `grasping.top_grasps` generates
+object (`posegrasp.world.resting`) gets the grasps from above that `grasping.top_grasps` generates
 from the parts, so that every pose an object can lie in has candidates.
 """
 
@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from grasping.top_grasps import top_grasps
-from sim.core.errors import UnknownNameError
-from sim.core.transforms import quat_to_mat
-from sim.world.objects import OBJECT_NAMES, ObjectModel, load_object
+from posegrasp.core.errors import UnknownNameError
+from posegrasp.core.transforms import quat_to_mat
+from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
 
 
 @dataclass(frozen=True)

@@ -14,8 +14,8 @@ from collections.abc import Sequence
 import numpy as np
 import trimesh
 
-from sim.world import constants as C
-from sim.world.objects import load_object
+from posegrasp.world import constants as C
+from posegrasp.world.objects import load_object
 
 #: The open gripper and its approach in G [m]: from the pre-grasp (10 cm back along the
 #: approach) to the fingertips (13.5 mm ahead of the site); fingers open to twice the finger

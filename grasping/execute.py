@@ -14,24 +14,13 @@ import mujoco
 import numpy as np
 
 from grasping.planner import PLANNED_JOINTS, GraspPlan
-from sim.core.errors import InvalidArgumentError
-from sim.world import constants as C
-from sim.world.scene import Scene
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.failures import check_failure_reason
+from posegrasp.world import constants as C
+from posegrasp.world.scene import Scene
 
 #: How the arm travels to the pre-grasp (`ExecutionConfig.transit`).
 TRANSIT_MODES: tuple[str, ...] = ("kinematic", "dynamic")
-
-#: Failure reasons an episode can end with.
-FAILURE_REASONS: tuple[str, ...] = (
-    "no_estimate",
-    "unreachable",
-    "no_grasp",
-    "ik_infeasible",
-    "collision",
-    "missed",
-    "slipped",
-    "disturbed",
-)
 
 
 @dataclass(frozen=True)
@@ -92,7 +81,7 @@ class GraspOutcome:
 
     Attributes:
         success: the object is lifted and held.
-        failure_reason: one of FAILURE_REASONS, or None on success.
+        failure_reason: one of `posegrasp.core.failures.FAILURE_REASONS`, or None on success.
         lift_height: final clearance of the object's lowest point over the table [m].
         timings_ms: wall time per stage [ms].
         friction_margin: lowest sliding friction coefficient at which the same grasp still holds
@@ -300,7 +289,9 @@ class Executor:
         others0 = {o.body: self.scene.object_pose(o.body) for o in self.scene.objects[1:]}
 
         def fail(reason: str) -> GraspOutcome:
-            return GraspOutcome(False, reason, self.lift_height(), timings, self.frames)
+            return GraspOutcome(
+                False, check_failure_reason(reason), self.lift_height(), timings, self.frames
+            )
 
         t = time.perf_counter()
         self.set_fingers(C.FINGER_TRAVEL)

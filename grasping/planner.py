@@ -20,9 +20,10 @@ import numpy as np
 
 from grasping.candidates import GraspCandidate, grasp_candidates
 from grasping.clearance import intrusion
-from sim.core.errors import PosegraspError
-from sim.core.transforms import check_rigid
-from sim.world import constants as C
+from posegrasp.core.errors import PosegraspError
+from posegrasp.core.failures import check_failure_reason
+from posegrasp.core.transforms import check_rigid
+from posegrasp.world import constants as C
 
 #: Accepted deviation of an estimated rotation from orthonormality (estimates come as float32).
 POSE_TOL = 1e-4
@@ -57,7 +58,7 @@ class PlanningError(PosegraspError):
 
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)
-        self.reason = reason
+        self.reason = check_failure_reason(reason)
 
 
 class _NoConvergence(Exception):

@@ -17,8 +17,8 @@ import functools
 import numpy as np
 import trimesh
 
-from sim.world import constants as C
-from sim.world.objects import ObjectModel, Part, load_object
+from posegrasp.world import constants as C
+from posegrasp.world.objects import ObjectModel, Part, load_object
 
 #: The Fetch fingers in the grasp frame G (x approach, y closing, z across), measured on the
 #: converted model: each finger spans x in [-0.0635, 0.0135], |z| <= 0.0135 and, open,

@@ -52,7 +52,7 @@ from perception.summaries import (
     recall_5cm5deg,
     summary_stats,
 )
-from sim.core.transforms import (
+from posegrasp.core.transforms import (
     intrinsics,
     invert_transform,
     make_transform,

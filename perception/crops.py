@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.core.errors import InvalidArgumentError
+from posegrasp.core.errors import InvalidArgumentError
 
 SquareBox = tuple[float, float, float]
 

@@ -23,9 +23,9 @@ from torchvision.models.detection import MaskRCNN
 
 from perception.detector_net import DetectorConfig, build_detector
 from perception.integrity import verify_weights
-from sim.core.errors import AssetError, InvalidArgumentError
-from sim.core.paths import WEIGHTS_DIR
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.core.errors import AssetError, InvalidArgumentError
+from posegrasp.core.paths import WEIGHTS_DIR
+from posegrasp.world.objects import OBJECT_NAMES
 
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
 REBUILD_HINT = (

@@ -5,7 +5,7 @@ The model is torchvision's own `MaskRCNN` with a light backbone: a ResNet-style 
 blocks (widths `DetectorConfig.widths`, strides 8, 16 and 32 feed a feature pyramid, plus the
 usual max-pooled level at stride 64), narrow box and mask heads, few proposals, and a reduced
 input size (a 640x480 image is resized to 320x240 inside the model). Labels are BOP object ids:
-0 is background, 1..6 follow `sim.world.objects.OBJECT_NAMES`.
+0 is background, 1..6 follow `posegrasp.world.objects.OBJECT_NAMES`.
 
 Inference on images, the box conventions and loading weights live in `perception.detector`.
 """
@@ -26,8 +26,8 @@ from torchvision.models.detection.mask_rcnn import MaskRCNNHeads, MaskRCNNPredic
 from torchvision.models.detection.transform import GeneralizedRCNNTransform
 from torchvision.ops import MultiScaleRoIAlign
 
-from sim.core.errors import InvalidArgumentError
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.world.objects import OBJECT_NAMES
 
 
 @dataclass(frozen=True)

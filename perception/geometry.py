@@ -17,8 +17,8 @@ import math
 
 import numpy as np
 
-from sim.core.errors import InvalidArgumentError
-from sim.core.transforms import (
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.transforms import (
     as_array,
     as_scalar,
     check_intrinsics,

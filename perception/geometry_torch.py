@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 
 from perception.geometry import SINGULAR_EPS
-from sim.core.errors import InvalidArgumentError
+from posegrasp.core.errors import InvalidArgumentError
 
 # Default margin that keeps the arccos argument away from +-1 (finite gradient).
 ARCCOS_EPS = 1e-7

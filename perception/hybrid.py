@@ -39,11 +39,11 @@ from perception.nets import CROP, NetConfig, PoseNet, load_posenet, normalise
 from perception.overlay import silhouette_agreement
 from perception.refine import PoseRefiner
 from perception.support import refine_on_support, refine_with_mask
-from sim.core.contract import Observation
-from sim.core.errors import InvalidArgumentError, UnknownNameError
-from sim.core.paths import WEIGHTS_DIR
-from sim.core.transforms import check_intrinsics, rigid_problem
-from sim.world.objects import OBJECT_NAMES, load_object
+from posegrasp.core.contract import Estimate, Observation
+from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
+from posegrasp.core.paths import WEIGHTS_DIR
+from posegrasp.core.transforms import check_intrinsics, rigid_problem
+from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 DEFAULT_POSENET = WEIGHTS_DIR / "posenet_ours.pt"
 #: The `paper` variant's shipped nets (estimator ``hybrid-paper``).
@@ -298,7 +298,7 @@ class HybridPoseEstimator:
         name: str | None = None,
         refine: bool = False,
     ) -> HybridEpisodeEstimator:
-        """This estimator behind the episode interface (`sim.core.contract.PoseEstimator`);
+        """This estimator behind the episode interface (`posegrasp.core.contract.PoseEstimator`);
         `support` puts each pose onto the observation's table and, with `mask_fit`, fits its yaw
         and position on the table to the detected mask (`perception.support`); `refine` refines
         it against the detected mask and the image (`perception.refine`). `name` names it in
@@ -307,8 +307,9 @@ class HybridPoseEstimator:
 
 
 class HybridEpisodeEstimator:
-    """`sim.core.contract.PoseEstimator` for episodes: the pose of the highest-scoring detection of
-    the requested class, or None when it is not detected. Ignores the privileged ground truth.
+    """`posegrasp.core.contract.PoseEstimator` for episodes: the pose of the highest-scoring
+    detection of the requested class, or None when it is not detected. Ignores the privileged
+    ground truth.
 
     With `support` (name ``hybrid-table``) the pose is then moved onto the known table top
     (`perception.support.refine_on_support`): nearest resting pose, and the distance along the
@@ -320,11 +321,11 @@ class HybridEpisodeEstimator:
     the detected mask and the image (`perception.refine.PoseRefiner`), with the other detections'
     masks as possible occluders.
 
-    After each call `last_info` describes the estimate: ``detected``, ``class``, ``score``,
-    ``box_xyxy``, ``uv``, ``timings_ms`` (per stage), with `support`, ``support``
-    (resting pose, tilt removed [deg], shift along the ray [m], what was applied), with `refine`,
-    ``refine`` (the refiner's info) and the stage ``refine`` in ``timings_ms``, and
-    `last_neighbours` lists the other detected objects as (class, T_C_N) pairs.
+    Each `Estimate`'s ``info`` holds ``detected``, ``class``, ``score``, ``box_xyxy``, ``uv``,
+    ``timings_ms`` (per stage), with `support`, ``support`` (resting pose, tilt removed [deg],
+    shift along the ray [m], what was applied), with `refine`, ``refine`` (the refiner's info)
+    and the stage ``refine`` in ``timings_ms``; its ``neighbours`` are the other detected objects
+    as (class, T_C_N) pairs.
     """
 
     def __init__(
@@ -341,22 +342,21 @@ class HybridEpisodeEstimator:
         self.refiner = PoseRefiner() if refine else None
         default = "hybrid-table" if self.support else "hybrid-refine" if refine else "hybrid"
         self.name = name or default
-        self.last_info: dict = {}
-        self.last_neighbours: list[tuple[str, np.ndarray]] = []
 
-    def estimate(self, obs: Observation) -> np.ndarray | None:
-        """T_C_O (4, 4) of obs.object in obs.rgb, or None."""
+    def estimate(self, obs: Observation) -> Estimate:
+        """T_C_O (4, 4) of obs.object in obs.rgb (None when not detected), the other detections
+        and the description of the estimate."""
         if obs.object not in OBJECT_NAMES:
             raise UnknownNameError("object", obs.object, OBJECT_NAMES)
         found, others, timings = self.estimator.estimate_split(
             obs.rgb, obs.K, classes=(obs.object,), others=True
         )
-        self.last_info = {"detected": bool(found), "timings_ms": dict(timings)}
-        self.last_neighbours = [(d.name, d.T_C_O.copy()) for d in others]
+        info: dict = {"detected": bool(found), "timings_ms": dict(timings)}
+        neighbours = tuple((d.name, d.T_C_O.copy()) for d in others)
         if not found:
-            return None
+            return Estimate(None, neighbours, info)
         best = max(found, key=lambda d: d.score)
-        self.last_info |= {
+        info |= {
             "class": best.name,
             "score": float(best.score),
             "box_xyxy": [float(v) for v in best.box_xyxy],
@@ -368,7 +368,7 @@ class HybridEpisodeEstimator:
             t0 = time.perf_counter()
             model = load_object(best.name)
             ref = refine_on_support(T, obs.T_world_cam, model, obs.table_top_z)
-            info = {
+            sup = {
                 "resting_pose": ref.resting_pose,
                 "tilt_deg": ref.tilt_deg,
                 "shift_m": ref.shift_m,
@@ -378,20 +378,20 @@ class HybridEpisodeEstimator:
             if self.mask_fit and "translation" in ref.applied:
                 fit = refine_with_mask(T, obs.T_world_cam, obs.K, model, best.mask)
                 T = fit.T_C_O
-                info |= {
+                sup |= {
                     "mask_iou_before": fit.iou_before,
                     "mask_iou_after": fit.iou_after,
                     "mask_yaw_deg": fit.yaw_deg,
                     "mask_shift_m": list(fit.shift_m),
                 }
-                info["applied"].append("mask_fit")
-            self.last_info["timings_ms"]["support"] = (time.perf_counter() - t0) * 1000
-            self.last_info["support"] = info
+                sup["applied"].append("mask_fit")
+            info["timings_ms"]["support"] = (time.perf_counter() - t0) * 1000
+            info["support"] = sup
         if self.refiner is not None:
             t0 = time.perf_counter()
             masks = [d.mask for d in (*found, *others) if d is not best]
             occluder = np.logical_or.reduce(masks) if masks else None
-            T, info = self.refiner.refine(best.name, T, obs.K, best.mask, obs.rgb, occluder)
-            self.last_info["timings_ms"]["refine"] = (time.perf_counter() - t0) * 1000
-            self.last_info["refine"] = info
-        return T
+            T, ref_info = self.refiner.refine(best.name, T, obs.K, best.mask, obs.rgb, occluder)
+            info["timings_ms"]["refine"] = (time.perf_counter() - t0) * 1000
+            info["refine"] = ref_info
+        return Estimate(T, neighbours, info)

@@ -8,7 +8,7 @@ another folder) are loaded as they are.
 
 Weights the user trained and put in place by hand are accepted with ``verify=False`` on the
 loaders or with the environment variable ``POSEGRASP_UNVERIFIED_WEIGHTS=1``. Each file is hashed
-once per process (`sim.core.files.sha256_file`), so loading again costs nothing extra.
+once per process (`posegrasp.core.files.sha256_file`), so loading again costs nothing extra.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from sim.core.errors import AssetError
-from sim.core.files import sha256_file
+from posegrasp.core.errors import AssetError
+from posegrasp.core.files import sha256_file
 
 MANIFEST_NAME = "manifest.json"
 #: Set to 1 to load weights whose hash differs from their manifest's.

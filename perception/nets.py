@@ -23,7 +23,7 @@ from torch import nn
 
 from perception.geometry_torch import axes_from_p
 from perception.integrity import verify_weights
-from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 
 VARIANTS: tuple[str, ...] = ("paper", "ours")
 #: Rotation outputs of "ours": viewpoint direction and roll, or the 6D representation.

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.world.objects import load_object
+from posegrasp.world.objects import load_object
 
 
 def silhouette(

@@ -32,9 +32,9 @@ import numpy as np
 
 from perception.metrics import rotation_error_deg
 from perception.overlay import mask_box, window_intrinsics
-from sim.core.errors import InvalidArgumentError
-from sim.core.transforms import axis_angle, check_intrinsics, rigid_problem
-from sim.world.objects import load_object
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.transforms import axis_angle, check_intrinsics, rigid_problem
+from posegrasp.world.objects import load_object
 
 _Opt = np.ndarray | None
 #: The refinement stops when a model vertex comes closer than this to the camera plane [m].
@@ -158,7 +158,7 @@ class PoseRefiner:
         """Refine one pose estimate.
 
         Args:
-            name: object class, one of `sim.world.objects.OBJECT_NAMES`.
+            name: object class, one of `posegrasp.world.objects.OBJECT_NAMES`.
             T_C_O: estimated pose in the camera (OpenCV) frame, shape (4, 4), metres.
             K: intrinsics, shape (3, 3) [px].
             mask: the object's visible mask (e.g. the detector's), shape (H, W), bool.

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.core.errors import AssetError, InvalidArgumentError
+from posegrasp.core.errors import AssetError, InvalidArgumentError
 
 #: Error components, in the units the model works in.
 COMPONENTS: tuple[str, ...] = ("ray_mm", "lateral_mm", "inplane_deg", "outplane_deg")

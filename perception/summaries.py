@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from sim.core.errors import InvalidArgumentError
+from posegrasp.core.errors import InvalidArgumentError
 
 
 def _values_1d(values: object, name: str) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Support-plane refinement of an estimated pose: the object rests on a known horizontal plane.
 
 A tabletop robot knows where its table is. An object lying on it can only be in one of its
-resting poses (`sim.world.objects.ObjectModel.resting_poses`, free yaw about the plane's
+resting poses (`posegrasp.world.objects.ObjectModel.resting_poses`, free yaw about the plane's
 normal) with its lowest point on the plane. `refine_on_support` keeps what the image
 measures best, the ray through the object's origin (2D-NET) and the yaw about the plane
 normal (4D-NET), and replaces what it measures worst, the distance along that ray and the
@@ -26,9 +26,9 @@ import numpy as np
 
 from perception.geometry import rot_z
 from perception.metrics import rotation_error_deg
-from sim.core.errors import InvalidArgumentError
-from sim.core.transforms import quat_to_mat
-from sim.world.objects import ObjectModel
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.transforms import quat_to_mat
+from posegrasp.world.objects import ObjectModel
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,24 @@
 """posegrasp: score 6D pose estimators by simulated robot grasps.
 
-Importing this package registers the gymnasium env `GraspEval-v0`, so
-`gymnasium.make("posegrasp:GraspEval-v0")` works without any other import.
+This package is the bottom layer: the shared basics (`posegrasp.core`) and the simulated world
+(`posegrasp.world`). Importing it registers the gymnasium env `GraspEval-v0` by a string entry
+point (`sim.env:GraspEvalEnv`), which imports nothing of the layers above until the env is made,
+so `gymnasium.make("posegrasp:GraspEval-v0")` works without any other import.
 """
 
-from sim.env import ENV_ID, GraspEvalEnv, pose_action, register_envs
+import gymnasium
 
-__all__ = ["ENV_ID", "GraspEvalEnv", "pose_action", "register_envs"]
+ENV_ID = "GraspEval-v0"
+#: Where gymnasium finds the env class when it is made.
+ENV_ENTRY_POINT = "sim.env:GraspEvalEnv"
+
+
+def register_envs() -> None:
+    """Register `GraspEval-v0` with gymnasium (idempotent)."""
+    if ENV_ID not in gymnasium.envs.registry:
+        gymnasium.register(id=ENV_ID, entry_point=ENV_ENTRY_POINT)
+
+
+register_envs()
+
+__all__ = ["ENV_ENTRY_POINT", "ENV_ID", "register_envs"]

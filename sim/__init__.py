@@ -1,10 +1,5 @@
-"""posegrasp simulation: the Fetch robot, scenes, cameras, rendering and episodes.
+"""posegrasp's experiment: episodes, the estimator registry, the gymnasium env and the commands.
 
-Rendering defaults to Mesa's software EGL (`MUJOCO_GL=egl`): the variable must be set before
-MuJoCo's renderer is first loaded, so it is defaulted here. No GL context is created on import.
+Importing it has no side effects; rendering is set up by `posegrasp.core.runtime.setup_rendering`,
+which the commands and the env call.
 """
-
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])

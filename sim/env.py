@@ -16,15 +16,15 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from sim.core.errors import InvalidArgumentError, StateError, UnknownNameError
-from sim.core.transforms import mat_to_quat, quat_to_mat
-from sim.core.validate import check_seed
+from posegrasp.core.errors import InvalidArgumentError, StateError, UnknownNameError
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.transforms import mat_to_quat, quat_to_mat
+from posegrasp.core.validate import check_seed
+from posegrasp.world.camera import CameraRenderer, RenderOptions
+from posegrasp.world.objects import OBJECT_NAMES, check_object
+from posegrasp.world.tiers import check_tier
 from sim.episode import Episode, EpisodeConfig
-from sim.world.camera import CameraRenderer, RenderOptions
-from sim.world.objects import OBJECT_NAMES, check_object
-from sim.world.tiers import check_tier
 
-ENV_ID = "GraspEval-v0"
 #: Tolerance on the norm of the action's quaternion.
 UNIT_QUAT_TOL = 1e-3
 #: Most neighbour poses an action may report.
@@ -119,7 +119,7 @@ class GraspEvalEnv(gym.Env):
     ## Observation Space
     `Dict`: `rgb` (`Box(H, W, 3)`, uint8), `K` (`Box(3, 3)`, intrinsics [px]), `T_world_cam`
     (`Box(4, 4)`, camera pose in the world, OpenCV convention), `object` (`Discrete(6)`, index
-    into `sim.world.objects.OBJECT_NAMES`).
+    into `posegrasp.world.objects.OBJECT_NAMES`).
 
     ## Rewards
     1.0 when the object is lifted at least 0.10 m above the table and still held after a 2 s
@@ -144,7 +144,7 @@ class GraspEvalEnv(gym.Env):
     `object`: a class name, or None to draw one per episode; `width`, `height`: head camera
     resolution; `render_mode`: None or "rgb_array" (external camera view); `config`: an
     `EpisodeConfig`; `timings`: add per-stage wall-clock timings to `info`; `tier`: the scene
-    tier (`sim.world.tiers.TIERS`, default ``isolated``, or the config's).
+    tier (`posegrasp.world.tiers.TIERS`, default ``isolated``, or the config's).
 
     ## Version History
     * v0: first version.
@@ -164,6 +164,7 @@ class GraspEvalEnv(gym.Env):
     ) -> None:
         if object is not None and object not in OBJECT_NAMES:
             raise UnknownNameError("object", object, OBJECT_NAMES)
+        setup_rendering()
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise UnknownNameError("render mode", str(render_mode), self.metadata["render_modes"])
         self.object = object
@@ -337,12 +338,3 @@ class GraspEvalEnv(gym.Env):
 
     def close(self) -> None:
         self._close_episode()
-
-
-def register_envs() -> None:
-    """Register GraspEval-v0 with gymnasium (idempotent)."""
-    if ENV_ID not in gym.registry:
-        gym.register(id=ENV_ID, entry_point="sim.env:GraspEvalEnv")
-
-
-register_envs()

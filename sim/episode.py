@@ -17,21 +17,22 @@ import numpy as np
 from grasping.execute import ExecutionConfig, Executor
 from grasping.planner import POSE_TOL, GraspPlanner, PlannerConfig, PlanningError
 from perception.metrics import error_components
-from sim.core.contract import Observation, PoseEstimator
-from sim.core.errors import StateError
-from sim.core.transforms import check_rigid
+from posegrasp.core.contract import CONTRACT_VERSION, Estimate, Observation, PoseEstimator
+from posegrasp.core.errors import InvalidArgumentError, StateError
+from posegrasp.core.failures import check_failure_reason
+from posegrasp.core.transforms import check_rigid
+from posegrasp.world import constants as C
+from posegrasp.world.camera import CameraRenderer, RenderOptions, T_world_cam, camera_intrinsics
+from posegrasp.world.objects import check_object
+from posegrasp.world.scene import Scene, SceneConfig, build_scene
+from posegrasp.world.tiers import DEFAULT_TIER, tier_scene
 from sim.estimators import PrivilegedEstimator
-from sim.world import constants as C
-from sim.world.camera import CameraRenderer, RenderOptions, T_world_cam, camera_intrinsics
-from sim.world.objects import check_object
-from sim.world.scene import Scene, SceneConfig, build_scene
-from sim.world.tiers import DEFAULT_TIER, tier_scene
 
 
 @dataclass(frozen=True)
 class EpisodeConfig:
     """Everything that defines an episode besides object, seed and estimator; `tier` names the
-    scene preset (`sim.world.tiers`) applied to `scene`."""
+    scene preset (`posegrasp.world.tiers`) applied to `scene`."""
 
     width: int = 640
     height: int = 480
@@ -183,7 +184,7 @@ class Episode:
                 estimator,
                 self.cfg.tier,
                 success,
-                reason,
+                check_failure_reason(reason),
                 self.T_C_O_true,
                 None if T_C_O_est is None else np.asarray(T_C_O_est, float),
                 errors,
@@ -220,30 +221,35 @@ class Episode:
 
     def estimate(
         self, estimator: PoseEstimator | PrivilegedEstimator, obs: Observation
-    ) -> tuple[np.ndarray | None, list[tuple[str, np.ndarray]]]:
-        """Ask the estimator for the target's pose in obs (timed as ``estimate``): the estimate
-        T_C_O (or None) and the neighbours it reports, (class, T_C_N) pairs. Only a
-        `PrivilegedEstimator` (an oracle) is handed the true pose; it reports the true
-        neighbours."""
+    ) -> Estimate:
+        """Ask the estimator for the target's pose in obs (timed as ``estimate``). Only a
+        `PrivilegedEstimator` (an oracle) is handed the true pose and the true neighbours.
+
+        Raises:
+            InvalidArgumentError: the estimator answered something other than an `Estimate`.
+        """
         t = time.perf_counter()
         if isinstance(estimator, PrivilegedEstimator):
-            est = estimator.estimate_from_truth(obs, self.T_C_O_true.copy())
-            neighbours = self.true_neighbours()
+            est = estimator.estimate_from_truth(obs, self.T_C_O_true.copy(), self.true_neighbours())
         else:
             est = estimator.estimate(obs)
-            neighbours = list(getattr(estimator, "last_neighbours", None) or ())
         self.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
-        return est, neighbours
+        if not isinstance(est, Estimate):
+            raise InvalidArgumentError(
+                f"estimator {estimator.name!r} returned {type(est).__name__}, not an Estimate "
+                f"(posegrasp.core.contract, version {CONTRACT_VERSION})"
+            )
+        return est
 
     def run(
         self, estimator: PoseEstimator | PrivilegedEstimator, recorder=None
     ) -> tuple[Observation, EpisodeResult]:
-        """Observe, ask the estimator (`estimate`), act; the result carries the estimator's
-        `last_info` (when it has one) as ``estimate_info``."""
+        """Observe, ask the estimator (`estimate`), act; the result carries the estimate's
+        ``info`` as ``estimate_info``."""
         obs = self.observe()
-        est, neighbours = self.estimate(estimator, obs)
-        res = self.act(est, estimator.name, recorder=recorder, neighbours=neighbours)
-        res.estimate_info = dict(getattr(estimator, "last_info", None) or {})
+        est = self.estimate(estimator, obs)
+        res = self.act(est.T_C_O, estimator.name, recorder=recorder, neighbours=est.neighbours)
+        res.estimate_info = dict(est.info)
         return obs, res
 
     def true_neighbours(self) -> list[tuple[str, np.ndarray]]:

@@ -1,20 +1,23 @@
 """The estimator registry of the experiment: the oracles and the hybrid estimators by name.
 
-Real estimators implement `sim.core.contract.PoseEstimator`. The oracles are the experiment's
+Real estimators implement `posegrasp.core.contract.PoseEstimator`. The oracles are the experiment's
 own instruments, not estimators a robot could run: they implement `PrivilegedEstimator` and are
 handed the true pose by the episode, which no other estimator ever sees.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from sim.core.contract import Observation, PoseEstimator
-from sim.core.errors import InvalidArgumentError, UnknownNameError
+from posegrasp.core.contract import Estimate, Observation, PoseEstimator
+from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from sim.pose_noise import PoseNoise, perturb_pose
+
+#: Other objects' poses: (class, T_C_N) pairs in the camera frame.
+Neighbours = Sequence[tuple[str, np.ndarray]]
 
 
 @runtime_checkable
@@ -23,22 +26,27 @@ class PrivilegedEstimator(Protocol):
 
     name: str
 
-    def estimate_from_truth(self, obs: Observation, T_C_O_true: np.ndarray) -> np.ndarray | None:
-        """The pose to grasp on, derived from the true pose T_C_O_true (4, 4)."""
+    def estimate_from_truth(
+        self, obs: Observation, T_C_O_true: np.ndarray, neighbours: Neighbours
+    ) -> Estimate:
+        """The estimate to grasp on, derived from the true pose T_C_O_true (4, 4) and the other
+        objects' true poses `neighbours`, (class, T_C_N) pairs in the camera frame."""
         ...
 
 
 class OracleEstimator:
-    """The true pose."""
+    """The true pose and the true neighbours."""
 
     name = "oracle"
 
-    def estimate_from_truth(self, obs: Observation, T_C_O_true: np.ndarray) -> np.ndarray | None:
-        return np.array(T_C_O_true, dtype=float)
+    def estimate_from_truth(
+        self, obs: Observation, T_C_O_true: np.ndarray, neighbours: Neighbours
+    ) -> Estimate:
+        return Estimate(np.array(T_C_O_true, dtype=float), tuple(neighbours))
 
 
 class NoisyOracleEstimator:
-    """The true pose with seeded, controlled errors (see `PoseNoise`).
+    """The true pose with seeded, controlled errors (see `PoseNoise`), and the true neighbours.
 
     The errors of an episode come from its seed alone: at every noise level a seed draws the same
     standard-normal numbers, scaled by the level's sigmas (common random numbers), so runs at
@@ -52,8 +60,11 @@ class NoisyOracleEstimator:
             ray=0.01, lateral=0.005, inplane=np.deg2rad(3), outplane=np.deg2rad(3)
         )
 
-    def estimate_from_truth(self, obs: Observation, T_C_O_true: np.ndarray) -> np.ndarray | None:
-        return perturb_pose(np.array(T_C_O_true, dtype=float), self.noise, self.noise.rng(obs.seed))
+    def estimate_from_truth(
+        self, obs: Observation, T_C_O_true: np.ndarray, neighbours: Neighbours
+    ) -> Estimate:
+        T = perturb_pose(np.array(T_C_O_true, dtype=float), self.noise, self.noise.rng(obs.seed))
+        return Estimate(T, tuple(neighbours))
 
 
 def _hybrid() -> PoseEstimator:

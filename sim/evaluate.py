@@ -3,8 +3,9 @@
     python -m sim.evaluate --objects all --episodes 50 --estimator hybrid --workers 2 \
         --json out.json --plot success_vs_error.png
 
-Scene seeds start at `sim.world.constants.EVAL_SEED_BASE`, far from the seeds the data generator
-renders training images from, so a learned estimator is never scored on a scene it was trained on.
+Scene seeds start at `posegrasp.world.constants.EVAL_SEED_BASE`, far from the seeds the data
+generator renders training images from, so a learned estimator is never scored on a scene it was
+trained on.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from __future__ import annotations
 import functools
 import itertools
 import json
-import os
 import sys
 import time
 from collections import Counter
@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.compare import bootstrap_means, margin_error_correlation, wilson_interval
-from sim.core.backends import add_backend_arguments, check_backend, run_map
-from sim.core.cli import ArgumentParser, fail, write_json
-from sim.core.errors import PosegraspError
-from sim.core.paths import DOCS_DIR
-from sim.core.validate import (
+from posegrasp.core.backends import add_backend_arguments, check_backend, run_map
+from posegrasp.core.cli import ArgumentParser, fail, write_json
+from posegrasp.core.errors import PosegraspError
+from posegrasp.core.paths import DOCS_DIR
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import (
     arg,
     check_choice,
     check_int,
@@ -37,11 +37,12 @@ from sim.core.validate import (
     check_workers,
     effective_workers,
 )
+from posegrasp.world import constants as C
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
 from sim.pose_noise import NOISE_FORMAT, parse_noise
-from sim.world import constants as C
-from sim.world.objects import OBJECT_NAMES
-from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
+from sim.stats import BOOTSTRAP, bootstrap_means, margin_error_correlation, wilson_interval
 
 
 @functools.cache
@@ -72,10 +73,9 @@ def execution_settings() -> dict:
 
 
 def _init_worker() -> None:
-    """One compute thread per worker process: the workers already fill the cores."""
-    os.environ["OMP_NUM_THREADS"] = "1"
-    os.environ["MKL_NUM_THREADS"] = "1"
-    os.environ["LP_NUM_THREADS"] = "1"  # Mesa's software rasteriser
+    """One compute thread per worker process (torch, OpenMP, Mesa's software rasteriser): the
+    workers already fill the cores."""
+    setup_rendering(threads=1)
 
 
 def _run_one(job: tuple[str, int, str, str, str | None, bool]) -> dict:
@@ -125,7 +125,7 @@ def _group(episodes: list[dict]) -> dict:
             out[f"{key}_p90"] = float(np.percentile(v, 90))
     margins = np.array([e["friction_margin"] for e in episodes if e.get("friction_margin")])
     if margins.size:
-        boot = bootstrap_means(margins, 2000, np.random.default_rng(0))
+        boot = bootstrap_means(margins, BOOTSTRAP, np.random.default_rng(0))
         out["friction_margin_mean"] = float(margins.mean())
         out["friction_margin_low"], out["friction_margin_high"] = (
             float(v) for v in np.percentile(boot, [2.5, 97.5])
@@ -153,7 +153,7 @@ def evaluate(
     """Run episodes (objects x seeds) of one tier and aggregate per object and overall; `noise`
     (`sim.pose_noise.NOISE_FORMAT`) sets the errors of ``noisy-oracle``; `margin` measures each
     successful grasp's friction margin. `backend` and `address` say where the episodes run
-    (`sim.core.backends.run_map`); on Ray each episode records the ``node`` that ran it."""
+    (`posegrasp.core.backends.run_map`); on Ray each episode records the ``node`` that ran it."""
     check_tier(tier)
     n_jobs = len(objects) * episodes
     workers, note = effective_workers(workers, n_jobs)
@@ -342,6 +342,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_backend_arguments(p)
     args = p.parse_args(argv)
+    setup_rendering()
     objects = args.objects
     try:
         check_seed(args.seed_start, "--seed-start", args.episodes)

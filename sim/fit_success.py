@@ -27,18 +27,18 @@ from pathlib import Path
 import numpy as np
 
 from perception.success_model import COMPONENTS, SuccessModel, components_of, load_models
-from sim.core.cli import ArgumentParser, fail, write_json
-from sim.core.errors import AssetError, PosegraspError
-from sim.core.paths import DOCS_DIR
-from sim.core.validate import arg, check_int, check_names, check_output_file, check_workers
+from posegrasp.core.cli import ArgumentParser, fail, write_json
+from posegrasp.core.errors import AssetError, PosegraspError
+from posegrasp.core.paths import DOCS_DIR
+from posegrasp.core.validate import arg, check_int, check_names, check_output_file, check_workers
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.evaluate import evaluate
-from sim.world.objects import OBJECT_NAMES
-from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
 
 #: The noise of the sampled episodes (`--noise` of noisy-oracle): largest sigmas along and across
 #: the ray [mm] and in and out of the image plane [deg].
 SPREAD = "spread:40,40,16,16"
-#: Held-out scenes of their own (see `sim.world.constants.EVAL_SEED_BASE`).
+#: Held-out scenes of their own (see `posegrasp.world.constants.EVAL_SEED_BASE`).
 SEED_START = 1_700_000_000
 DEFAULT_OUT = DOCS_DIR / "success_model.json"
 

@@ -35,21 +35,23 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.compare import bootstrap_means, mcnemar_exact
-from sim.core.backends import add_backend_arguments, check_backend
-from sim.core.cli import ArgumentParser, check_writable_file, fail, write_json
-from sim.core.errors import AssetError, PosegraspError
-from sim.core.files import sha256_file
-from sim.core.paths import REPO_ROOT
-from sim.core.validate import arg, check_choice, check_workers
+from posegrasp.core.backends import add_backend_arguments, check_backend
+from posegrasp.core.cli import ArgumentParser, check_writable_file, fail, write_json
+from posegrasp.core.errors import AssetError, PosegraspError
+from posegrasp.core.files import sha256_file
+from posegrasp.core.paths import REPO_ROOT
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_choice, check_workers
+from posegrasp.world.objects import OBJECT_NAMES
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS
 from sim.evaluate import evaluate, format_report
-from sim.world.objects import OBJECT_NAMES
+from sim.stats import BOOTSTRAP, bootstrap_means, mcnemar_exact
 
 BASELINE = Path(__file__).resolve().parent / "gate_baseline.json"
 GATE_EPISODES = 40
 GATE_TIER = "hard"
-#: Held-out scenes (see `sim.world.constants.EVAL_SEED_BASE`), apart from the default evaluation's.
+#: Held-out scenes (see `posegrasp.world.constants.EVAL_SEED_BASE`), apart from the default
+#: evaluation's.
 GATE_SEED_START = 1_500_000_000
 WEIGHTS = (
     "perception/weights/detector.pt",
@@ -62,7 +64,6 @@ ALPHA = 0.05
 #: Smallest rise of the mean friction margin that counts as a regression.
 MARGIN_RISE = 0.02
 #: Bootstrap resamples of the margin rise.
-BOOTSTRAP = 2000
 #: What a baseline record must hold.
 RECORD_KEYS = (
     "estimator",
@@ -120,7 +121,7 @@ def run_gate(
     address: str | None = None,
 ) -> dict:
     """The gate's evaluation: `episodes` per object of `GATE_TIER` from `GATE_SEED_START`,
-    friction margins measured, on `backend` (`sim.core.backends.run_map`)."""
+    friction margins measured, on `backend` (`posegrasp.core.backends.run_map`)."""
     return evaluate(
         list(OBJECT_NAMES), episodes, estimator, GATE_SEED_START, workers, GATE_TIER,
         margin=True, backend=backend, address=address,
@@ -221,6 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_backend_arguments(p)
     args = p.parse_args(argv)
+    setup_rendering()
     try:
         check_backend(args.backend, args.address)
     except PosegraspError as exc:

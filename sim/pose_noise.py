@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.core.errors import InvalidArgumentError, UnknownNameError
-from sim.core.transforms import axis_angle
+from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
+from posegrasp.core.transforms import axis_angle
 
 #: How `PoseNoise` draws its errors.
 MODES: tuple[str, ...] = ("gaussian", "fixed", "spread")

@@ -7,7 +7,7 @@
         [--estimator hybrid]
 
 writes the head camera's RGB image to `--out`; with `--sheet` instead one picture of every tier
-(`sim.world.tiers`), head camera above the external view, labelled; on each head image the
+(`posegrasp.world.tiers`), head camera above the external view, labelled; on each head image the
 target's true pose (white) and the pose `--estimator` finds in that image (green), with the
 estimate's errors in the label (`--estimator none`: no poses); with `--external` also writes
 `<stem>_external.png` next to it, a view from the world camera "external" that shows the robot,
@@ -26,17 +26,18 @@ import cv2
 import numpy as np
 
 from perception.overlay import draw_estimate
-from sim.core.cli import ArgumentParser, fail
-from sim.core.contract import Observation, PoseEstimator
-from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
-from sim.core.validate import check_choice, check_output_file, check_seed
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.contract import Observation, PoseEstimator
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import check_choice, check_output_file, check_seed
+from posegrasp.world import constants as C  # importing sim defaults MUJOCO_GL to egl
+from posegrasp.world.camera import CameraRenderer, RenderOptions, check_resolution
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.scene import SceneConfig, build_scene
+from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
 from sim.episode import Episode, EpisodeConfig, pose_errors
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, PrivilegedEstimator, make_estimator
-from sim.world import constants as C  # importing sim defaults MUJOCO_GL to egl
-from sim.world.camera import CameraRenderer, RenderOptions, check_resolution
-from sim.world.objects import OBJECT_NAMES
-from sim.world.scene import SceneConfig, build_scene
-from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
 
 EXTERNAL_CAMERA = "external"
 #: Exit status of bad arguments (argparse's convention) and of every other failure.
@@ -60,7 +61,7 @@ class RenderRequest:
         width, height: image size [px], both cameras.
         distractors: number of other objects on the table.
         shadows: render shadows (about 3x slower on software rendering).
-        tier: the scene tier (`sim.world.tiers`); its presets override `distractors`.
+        tier: the scene tier (`posegrasp.world.tiers`); its presets override `distractors`.
         estimator: the estimator (`sim.estimators.ESTIMATORS`) whose poses a sheet shows, or
             `NO_ESTIMATOR`.
     """
@@ -196,7 +197,7 @@ def _estimate_on_head(
 ) -> tuple[np.ndarray, str, tuple[int, int, int]]:
     """The head image with the true pose and the estimator's drawn on it (as `sim.run_episode`
     saves it), and a line with the estimate's errors or "not detected" and its colour."""
-    est, _ = ep.estimate(estimator, obs)
+    est = ep.estimate(estimator, obs).T_C_O
     target = ep.scene.target.model
     v, f = np.asarray(target.mesh.vertices), np.asarray(target.mesh.faces)
     img = draw_estimate(obs.rgb, obs.K, ep.T_C_O_true, est, v, f)
@@ -243,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
     try:
         args = build_parser().parse_args(argv)
+        setup_rendering()
         if args.sheet is not None:
             args.out = args.sheet
         req = check_request(args)

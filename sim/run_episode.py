@@ -11,15 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.core.cli import ArgumentParser, fail
-from sim.core.errors import PosegraspError
-from sim.core.validate import arg, check_choice, check_output_dir, check_seed
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.errors import PosegraspError
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_choice, check_output_dir, check_seed
+from posegrasp.world import constants as C
+from posegrasp.world.camera import CameraRenderer, RenderOptions
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
 from sim.pose_noise import NOISE_FORMAT, parse_noise
-from sim.world import constants as C
-from sim.world.camera import CameraRenderer, RenderOptions
-from sim.world.objects import OBJECT_NAMES
-from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
 
 
 def _rpy_deg(R: np.ndarray) -> np.ndarray:
@@ -189,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         help="write the head image with the estimated pose drawn on it and a GIF of the grasp",
     )
     args = p.parse_args(argv)
+    setup_rendering()
     try:
         noise = None if args.noise is None else parse_noise(args.noise)
         estimator = make_estimator(args.estimator, noise)

@@ -15,11 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.core.backends import add_backend_arguments, check_backend, run_map
-from sim.core.cli import ArgumentParser, fail
-from sim.core.errors import PosegraspError
-from sim.core.files import atomic_write_json
-from sim.core.validate import (
+from posegrasp.core.backends import add_backend_arguments, check_backend, run_map
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.errors import PosegraspError
+from posegrasp.core.files import atomic_write_json
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import (
     arg,
     check_choice,
     check_int,
@@ -29,8 +30,8 @@ from sim.core.validate import (
     check_workers,
     effective_workers,
 )
-from sim.world.objects import OBJECT_NAMES
-from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 
 #: Error kinds and the magnitudes tried, in report units (mm or deg).
 LEVELS: dict[str, tuple[float, ...]] = {
@@ -86,7 +87,7 @@ def study(
     address: str | None = None,
 ) -> dict:
     """Run the study on one tier and return {object: {kind: {levels, rates, tolerance}}};
-    `backend` and `address` say where the episodes run (`sim.core.backends.run_map`)."""
+    `backend` and `address` say where the episodes run (`posegrasp.core.backends.run_map`)."""
     check_tier(tier)
     n_jobs = len(objects) * sum(map(len, LEVELS.values())) * episodes
     workers, note = effective_workers(workers, n_jobs)
@@ -158,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="out/tolerance", help="output prefix (.json and .png)")
     add_backend_arguments(p)
     args = p.parse_args(argv)
+    setup_rendering()
     objects = args.objects or [args.object or "phone"]
     try:
         check_seed(args.seed_start, "--seed-start", args.episodes)

@@ -2,21 +2,16 @@
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
-
-# torch (with torchvision and torch._dynamo, which loads triton) must be imported before any
-# MuJoCo GL context exists: importing triton afterwards crashes the process (docs/DESIGN.md §11).
-import torch  # noqa: I001
-import torch._dynamo
-import torchvision  # noqa: F401
-
 from collections.abc import Callable
 
 import mujoco
 import pytest
+import torch
+
+from posegrasp.core.runtime import setup_rendering
+
+# Loads torch (and triton) before any MuJoCo GL context exists (docs/DESIGN.md §11).
+setup_rendering()
 
 
 def _warnings(data: mujoco.MjData) -> dict[str, int]:

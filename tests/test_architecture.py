@@ -63,10 +63,12 @@ def test_import_contracts_hold() -> None:
     assert "0 broken" in res.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "module, bad_import",
     [
-        ("sim/world/constants.py", "import sim.episode"),  # the world reaching up
+        ("posegrasp/world/constants.py", "import sim.episode"),  # the bottom reaching up
+        ("posegrasp/core/errors.py", "import posegrasp.world.scene"),  # core reaching into world
         ("grasping/candidates.py", "import perception.geometry"),  # siblings meeting
         ("perception/hybrid.py", "import perception.training.dataset"),  # run time -> training
     ],
@@ -170,15 +172,6 @@ def test_offline_pattern_matches_the_training_modules() -> None:
     assert OFFLINE_MODULES.match("perception.training.train_posenet")
     assert OFFLINE_MODULES.match("sim.evaluate")
     assert not OFFLINE_MODULES.match("perception.hybrid")
-
-
-def test_no_source_file_over_400_lines() -> None:
-    long = {
-        str(p.relative_to(REPO)): n
-        for p in _source_files()
-        if (n := len(p.read_text().splitlines())) > 400
-    }
-    assert long == {}
 
 
 def test_no_citation_of_a_document_outside_the_repo() -> None:

@@ -1,4 +1,4 @@
-"""The parallel backends (`sim.core.backends`): Ray gives the local pool's answers.
+"""The parallel backends (`posegrasp.core.backends`): Ray gives the local pool's answers.
 
 Same seeds, same per-episode results and the same data bytes on both backends; a Ray worker
 killed mid-run has its chunk retried and the report stays complete and identical; an
@@ -16,7 +16,6 @@ import sys
 import time
 from pathlib import Path
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 import pytest
 import ray
 from ray import cloudpickle
@@ -24,7 +23,7 @@ from ray.cluster_utils import Cluster
 
 from perception.training.datagen import main as datagen_main
 from perception.training.writer import WALL_TIME_FILE
-from sim.core.backends import default_chunk, run_map
+from posegrasp.core.backends import default_chunk, run_map
 from sim.evaluate import _run_one, evaluate
 
 REPO = Path(__file__).resolve().parent.parent

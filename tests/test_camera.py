@@ -1,4 +1,4 @@
-"""Camera model of `sim.world.camera`, checked against renders (docs/DESIGN.md §4).
+"""Camera model of `posegrasp.world.camera`, checked against renders (docs/DESIGN.md §4).
 
 Small spheres are placed in front of a camera; the centroid of each sphere's rendered
 segmentation mask must agree with its centre projected by `intrinsics()` and `T_world_cam()`.
@@ -12,9 +12,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim.core.errors import InvalidArgumentError, UnknownNameError
-from sim.world import constants as C
-from sim.world.camera import (
+from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
+from posegrasp.world import constants as C
+from posegrasp.world.camera import (
     CameraRenderer,
     RenderOptions,
     T_world_cam,
@@ -38,7 +38,7 @@ SPHERE_DEPTH = (1.0, 1.4, 0.9, 1.2, 1.1, 1.3)
 def _sphere_centres(aspect: float, radius_px: float, height: int) -> tuple[np.ndarray, float]:
     """World centres of the spheres for an image of the given aspect, and their radius [m].
 
-    Directions are built from the camera's own axes and fovy, not from `sim.world.camera`.
+    Directions are built from the camera's own axes and fovy, not from `posegrasp.world.camera`.
     """
     z_mj = np.cross(CAM_X, CAM_Y)
     tan_y = np.tan(np.deg2rad(FOVY_DEG) / 2)
@@ -166,7 +166,7 @@ def test_intrinsics_formula() -> None:
 
 
 def test_head_camera_intrinsics_use_its_fovy() -> None:
-    from sim.world.robot import fetch_spec
+    from posegrasp.world.robot import fetch_spec
 
     model = fetch_spec().compile()
     fovy = model.cam_fovy[model.camera(C.HEAD_CAMERA).id]
@@ -189,7 +189,7 @@ def test_bad_camera_and_resolution() -> None:
 def test_render_context_shared_across_scenes_renders_what_a_fresh_one_does() -> None:
     # Scenes rebuilt with other objects share the robot's meshes and the room's textures, so the
     # second renderer reuses the first's render context; its images must be a fresh context's.
-    from sim.world.scene import SceneConfig, build_scene
+    from posegrasp.world.scene import SceneConfig, build_scene
 
     cfg = SceneConfig(n_distractors=2, randomize_appearance=True)
     first = build_scene("car", 3, cfg)
@@ -213,7 +213,7 @@ def test_render_context_shared_across_scenes_renders_what_a_fresh_one_does() -> 
 
 
 def test_scene_capacity_covers_every_geom() -> None:
-    from sim.world.scene import SceneConfig, build_scene
+    from posegrasp.world.scene import SceneConfig, build_scene
 
     model = build_scene("chair", 0, SceneConfig(n_distractors=3)).model
     assert scene_capacity(model) > 2 * model.ngeom

@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from posegrasp.core.errors import InvalidArgumentError
 from sim import compare as cmp
-from sim.core.errors import InvalidArgumentError
+from sim import stats
 
 
 def _report(
@@ -37,25 +38,25 @@ def _report(
 
 
 def test_mcnemar_exact_by_hand() -> None:
-    assert cmp.mcnemar_exact(0, 0) == 1.0
-    assert cmp.mcnemar_exact(0, 6) == pytest.approx(2 * 0.5**6)
-    assert cmp.mcnemar_exact(6, 0) == pytest.approx(2 * 0.5**6)
+    assert stats.mcnemar_exact(0, 0) == 1.0
+    assert stats.mcnemar_exact(0, 6) == pytest.approx(2 * 0.5**6)
+    assert stats.mcnemar_exact(6, 0) == pytest.approx(2 * 0.5**6)
     # 2 vs 8 discordant: 2 * P(X <= 2), X ~ Bin(10, 1/2) = 2 * 56 / 1024
-    assert cmp.mcnemar_exact(2, 8) == pytest.approx(2 * 56 / 1024)
+    assert stats.mcnemar_exact(2, 8) == pytest.approx(2 * 56 / 1024)
     # One-sided, the test of a loss: at least 5 of 5 discordant pairs go A's way.
-    assert cmp.mcnemar_exact(5, 0, one_sided=True) == pytest.approx(0.5**5)
-    assert cmp.mcnemar_exact(0, 5, one_sided=True) == pytest.approx(1.0)
-    assert cmp.mcnemar_exact(5, 2, one_sided=True) == pytest.approx(29 / 128)
+    assert stats.mcnemar_exact(5, 0, one_sided=True) == pytest.approx(0.5**5)
+    assert stats.mcnemar_exact(0, 5, one_sided=True) == pytest.approx(1.0)
+    assert stats.mcnemar_exact(5, 2, one_sided=True) == pytest.approx(29 / 128)
 
 
 def test_paired_difference_and_bootstrap() -> None:
     rng = np.random.default_rng(0)
     a = np.ones(50, bool)
-    same = cmp.paired(a, a.copy(), 500, rng)
+    same = stats.paired(a, a.copy(), 500, rng)
     assert same["difference"] == 0.0 and same["bootstrap_low"] == same["bootstrap_high"] == 0.0
     b = a.copy()
     b[:10] = False
-    r = cmp.paired(a, b, 2000, rng)
+    r = stats.paired(a, b, 2000, rng)
     assert r["difference"] == pytest.approx(-0.2)
     assert r["a_only"] == 10 and r["b_only"] == 0
     assert r["bootstrap_low"] < -0.2 < r["bootstrap_high"] < 0.0
@@ -125,14 +126,14 @@ def test_margin_difference_on_pairs_both_grasped() -> None:
     rng = np.random.default_rng(0)
     a = [(True, 0.20), (True, 0.30), (False, None), (True, 0.25)]
     b = [(True, 0.25), (False, None), (True, 0.1), (True, 0.30)]
-    m = cmp.margin_difference(a, b, 500, rng)
+    m = stats.margin_difference(a, b, 500, rng)
     assert m["pairs"] == 2 and m["difference"] == pytest.approx(0.05)
     assert m["bootstrap_low"] == pytest.approx(0.05) and m["bootstrap_high"] == pytest.approx(0.05)
-    assert cmp.margin_difference([(False, None)], [(True, 0.2)], 100, rng) is None
+    assert stats.margin_difference([(False, None)], [(True, 0.2)], 100, rng) is None
 
 
 def test_margin_error_correlation() -> None:
-    margin_error_correlation = cmp.margin_error_correlation
+    margin_error_correlation = stats.margin_error_correlation
 
     eps = [
         {"friction_margin": 0.1 + 0.01 * i, "pose_error": {"translation_m": 0.001 * i,

@@ -9,7 +9,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 import cv2
 import numpy as np
 import pytest
@@ -22,11 +21,11 @@ from perception.training.datagen import main
 from perception.training.generation import SEED_BASES
 from perception.training.sheets import draw_annotations
 from perception.training.writer import WALL_TIME_FILE
-from sim.core.errors import AssetError
-from sim.world import constants as C
-from sim.world.camera import T_world_cam, camera_intrinsics
-from sim.world.objects import OBJECT_NAMES, load_object
-from sim.world.scene import SceneConfig, build_scene
+from posegrasp.core.errors import AssetError
+from posegrasp.world import constants as C
+from posegrasp.world.camera import T_world_cam, camera_intrinsics
+from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.scene import SceneConfig, build_scene
 
 N_PAPER = 8
 N_HEADCAM = 3
@@ -255,7 +254,7 @@ def test_visible_masks_from_depth_match_a_segmentation_render() -> None:
     # The generator tells an object's visible pixels by comparing its own depth with the
     # scene's; a segmentation render of the same view must agree but for depth ties.
     from perception.training.generators import HeadcamGenerator
-    from sim.world.camera import CameraRenderer, body_mask
+    from posegrasp.world.camera import CameraRenderer, body_mask
 
     gen = HeadcamGenerator(320, 240, tier="hard")
     try:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 import numpy as np
 import pytest
 

@@ -14,7 +14,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 import numpy as np
 import pytest
 import torch
@@ -23,7 +22,7 @@ from perception.training.augment import photometric_jitter as _augment
 from perception.training.datagen import main as datagen_main
 from perception.training.ddp import Ranks, resolve_device
 from perception.training.train_posenet import main as train_main
-from sim.core.errors import InvalidArgumentError
+from posegrasp.core.errors import InvalidArgumentError
 
 REPO = Path(__file__).resolve().parent.parent
 #: Largest relative difference of a step's loss between 2 processes and 1. The first step agrees

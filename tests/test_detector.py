@@ -23,8 +23,8 @@ from perception.training.bop import box_xyxy
 from perception.training.detection_eval import coco_ap
 from perception.training.export_detector import export_detector
 from perception.training.train_detector import SMOKE, main, train
-from sim.core.errors import AssetError, InvalidArgumentError
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.core.errors import AssetError, InvalidArgumentError
+from posegrasp.world.objects import OBJECT_NAMES
 
 H, W = 480, 640
 

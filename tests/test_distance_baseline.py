@@ -6,7 +6,7 @@ import importlib.util
 
 import numpy as np
 
-from sim.core.paths import REPO_ROOT
+from posegrasp.core.paths import REPO_ROOT
 
 _spec = importlib.util.spec_from_file_location(
     "distance_baseline", REPO_ROOT / "bench" / "distance_baseline.py"

@@ -10,9 +10,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import posegrasp  # noqa: F401  (registers the env)
-from sim.core.errors import InvalidArgumentError, PosegraspError, StateError, UnknownNameError
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError, StateError, UnknownNameError
+from posegrasp.world.tiers import TIERS
 from sim.env import MAX_NEIGHBOURS, GraspEvalEnv, pose_action
-from sim.world.tiers import TIERS
 
 
 def _truth(env: gym.Env) -> np.ndarray:

@@ -7,14 +7,14 @@ import json
 import numpy as np
 import pytest
 
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.world import constants as C
+from posegrasp.world.objects import OBJECT_NAMES
 from sim import evaluate, run_episode
-from sim.core.errors import InvalidArgumentError
 from sim.episode import Episode
 from sim.episode import play_episode as run
 from sim.estimators import NoisyOracleEstimator, OracleEstimator, make_estimator
 from sim.pose_noise import PoseNoise, perturb_pose
-from sim.world import constants as C
-from sim.world.objects import OBJECT_NAMES
 
 
 @pytest.mark.parametrize("name", OBJECT_NAMES)

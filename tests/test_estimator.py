@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 from perception.crops import crop_and_resize, crop_to_image, from_unit, square_box
 from perception.detector_net import DetectorConfig, build_detector, state_dict_fp16
 from perception.geometry import decode
@@ -20,12 +19,12 @@ from perception.hybrid import (
     PoseDetection,
 )
 from perception.nets import CROP, NetConfig, PoseNet, normalise
-from sim.core.contract import Observation
-from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
-from sim.world import constants as C
-from sim.world.camera import CameraRenderer, camera_intrinsics
-from sim.world.objects import OBJECT_NAMES
-from sim.world.scene import SceneConfig, build_scene
+from posegrasp.core.contract import Observation
+from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from posegrasp.world import constants as C
+from posegrasp.world.camera import CameraRenderer, camera_intrinsics
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.scene import SceneConfig, build_scene
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -98,7 +97,8 @@ def test_nothing_detected_gives_an_empty_list(head_image: tuple[np.ndarray, np.n
     found, timings = est.estimate_timed(rgb, K)
     assert found == [] and timings["nets"] >= 0
     obs = Observation(rgb, K, np.eye(4), "phone", 0)
-    assert est.as_episode_estimator().estimate(obs) is None
+    none = est.as_episode_estimator().estimate(obs)
+    assert none.T_C_O is None and none.info["detected"] is False
 
 
 def test_class_filter(estimator: HybridPoseEstimator, head_image) -> None:
@@ -117,10 +117,13 @@ def test_episode_estimator(estimator: HybridPoseEstimator, head_image) -> None:
     ep = estimator.as_episode_estimator()
     assert isinstance(ep, HybridEpisodeEstimator) and ep.name == "hybrid"
     best = max((d for d in found if d.name == found[0].name), key=lambda d: d.score)
-    T = ep.estimate(Observation(rgb, K, np.eye(4), best.name, 0))
-    np.testing.assert_allclose(T, best.T_C_O)
+    e = ep.estimate(Observation(rgb, K, np.eye(4), best.name, 0))
+    np.testing.assert_allclose(e.T_C_O, best.T_C_O)
+    assert e.info["class"] == best.name and e.info["score"] == pytest.approx(best.score)
+    others = sorted(d.name for d in found if d.name != best.name)
+    assert sorted(n for n, _ in e.neighbours) == others
     missing = next(n for n in OBJECT_NAMES if n not in {d.name for d in found})
-    assert ep.estimate(Observation(rgb, K, np.eye(4), missing, 0)) is None
+    assert ep.estimate(Observation(rgb, K, np.eye(4), missing, 0)).T_C_O is None
     with pytest.raises(UnknownNameError):
         ep.estimate(Observation(rgb, K, np.eye(4), "teapot", 0))
 

@@ -8,9 +8,9 @@ import pytest
 
 from grasping.execute import TRANSIT_MODES, ExecutionConfig, Executor
 from grasping.planner import PLANNED_JOINTS, GraspPlanner
-from sim.core.errors import InvalidArgumentError
-from sim.world import constants as C
-from sim.world.scene import build_scene
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.world import constants as C
+from posegrasp.world.scene import build_scene
 
 
 def _site(model: mujoco.MjModel) -> int:

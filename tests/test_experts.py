@@ -7,15 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 from perception.crops import image_to_crop, square_box, to_unit
 from perception.detector import Detection
 from perception.geometry import encode
 from perception.hybrid import DEFAULT_CROP_SCALE, SWITCH_IOU, HybridPoseEstimator
 from perception.nets import CROP, NetConfig, PoseNet, PoseOutput
 from perception.overlay import silhouette, silhouette_agreement
-from sim.core.errors import InvalidArgumentError
-from sim.world.objects import OBJECT_NAMES, load_object
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
 SHAPE = (480, 640)

@@ -21,9 +21,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from grasping.execute import FAILURE_REASONS
 from grasping.planner import PlanningError
-from sim.core.errors import PosegraspError
+from posegrasp.core.errors import PosegraspError
+from posegrasp.core.failures import FAILURE_REASONS
 from sim.env import MAX_NEIGHBOURS, GraspEvalEnv, pose_action
 
 #: Values that sit on or past the edge of every option's range.
@@ -174,7 +174,7 @@ _options = st.one_of(
 )
 _seeds = st.one_of(st.none(), st.integers(-5, 2**33), _numbers)
 #: What a step may report instead of success.
-REASONS = {*FAILURE_REASONS, "invalid_action"}
+REASONS = set(FAILURE_REASONS)
 
 
 def _fuzz_env(examples: int, monkeypatch) -> None:

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
+from posegrasp.core.errors import AssetError
+from posegrasp.world.objects import OBJECT_NAMES
 from sim import gate
-from sim.core.errors import AssetError
 from sim.evaluate import execution_settings
-from sim.world.objects import OBJECT_NAMES
 
 WEIGHTS = {"w.pt": "0123"}
 

@@ -20,8 +20,8 @@ from perception import crops, geometry, metrics, summaries
 from perception import geometry as g
 from perception import geometry_torch as gt
 from perception.training import losses
-from sim.core import transforms as tf
-from sim.core.transforms import intrinsics
+from posegrasp.core import transforms as tf
+from posegrasp.core.transforms import intrinsics
 
 SQRT_EPS = math.sqrt(g.SINGULAR_EPS)
 

@@ -11,11 +11,11 @@ from grasping.candidates import grasp_candidates
 from grasping.execute import Executor
 from grasping.planner import GraspPlanner, PlanningError
 from grasping.top_grasps import clear, top_grasp_points, top_grasps
-from sim.core.errors import InvalidArgumentError, UnknownNameError
-from sim.core.transforms import quat_to_mat
-from sim.world import constants as C
-from sim.world.objects import OBJECT_NAMES, load_object
-from sim.world.scene import build_scene
+from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
+from posegrasp.core.transforms import quat_to_mat
+from posegrasp.world import constants as C
+from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.scene import build_scene
 
 
 @pytest.mark.parametrize("name", OBJECT_NAMES)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -11,10 +12,11 @@ def test_render_then_import_torchvision_in_a_fresh_process() -> None:
     code = textwrap.dedent(
         """
         import sys
-        import sim
-        from sim.world.camera import CameraRenderer
-        from sim.world.scene import build_scene
-        from sim.world import constants as C
+        from posegrasp.core.runtime import setup_rendering
+        setup_rendering()
+        from posegrasp.world.camera import CameraRenderer
+        from posegrasp.world.scene import build_scene
+        from posegrasp.world import constants as C
         scene = build_scene("phone", 0)
         with CameraRenderer(scene.model, 64, 48) as r:
             img = r.rgb(scene.data, C.HEAD_CAMERA)
@@ -31,3 +33,44 @@ def test_render_then_import_torchvision_in_a_fresh_process() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.startswith("ok (48, 64, 3) 1")
+
+
+def test_rendering_without_set_up_is_refused_in_one_line() -> None:
+    code = textwrap.dedent(
+        """
+        from posegrasp.core.errors import StateError
+        from posegrasp.world.camera import CameraRenderer
+        from posegrasp.world.scene import build_scene
+        from posegrasp.world import constants as C
+        scene = build_scene("phone", 0)
+        try:
+            with CameraRenderer(scene.model, 64, 48) as r:
+                r.rgb(scene.data, C.HEAD_CAMERA)
+        except StateError as exc:
+            print("refused:", exc)
+        """
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "refused:" in out.stdout and "setup_rendering()" in out.stdout
+    assert "torch" not in out.stdout
+
+
+def test_importing_the_packages_changes_no_environment_variable() -> None:
+    code = "import os; before = dict(os.environ)\n" + textwrap.dedent(
+        """
+        import posegrasp, posegrasp.world.camera, sim.episode, sim.env, perception, grasping
+        import sys
+        print(sorted(k for k in os.environ if os.environ.get(k) != before.get(k)))
+        print("torch" in sys.modules)
+        """
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split("\n")[:2] == ["[]", "False"]

@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from perception import metrics as m
 from perception import summaries
-from sim.core.errors import InvalidArgumentError
-from sim.core.transforms import intrinsics, rot_z
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.transforms import intrinsics, rot_z
 
 
 def box_points(rng: np.random.Generator, n: int = 300) -> np.ndarray:

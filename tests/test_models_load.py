@@ -9,9 +9,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim.world.objects import OBJECT_NAMES, load_object
-from sim.world.robot import fetch_spec, home_qpos_ctrl
-from sim.world.scene import WORLD_XML, SceneConfig, build_scene
+from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.robot import fetch_spec, home_qpos_ctrl
+from posegrasp.world.scene import WORLD_XML, SceneConfig, build_scene
 
 Warnings = Callable[[mujoco.MjData], dict[str, int]]
 N_STEPS = 200

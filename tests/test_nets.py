@@ -21,10 +21,10 @@ from perception.training.losses import posenet_loss
 from perception.training.schedule import learning_rate
 from perception.training.tables import evaluate_split
 from perception.training.train_posenet import SMOKE, train
-from sim.core.errors import AssetError
-from sim.core.paths import WEIGHTS_DIR
-from sim.core.transforms import quat_to_mat
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.core.errors import AssetError
+from posegrasp.core.paths import WEIGHTS_DIR
+from posegrasp.core.transforms import quat_to_mat
+from posegrasp.world.objects import OBJECT_NAMES
 
 
 @pytest.fixture(scope="module")
@@ -356,7 +356,7 @@ def test_evaluate_records_test_figures_in_the_manifest(tiny_data, tmp_path, monk
     import shutil
 
     from perception.training import tables as evaluate
-    from sim.core.files import sha256_file
+    from posegrasp.core.files import sha256_file
 
     monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
     weights = tmp_path / "posenet_ours.pt"

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from perception.metrics import error_components
-from sim.core.contract import Observation
-from sim.core.errors import InvalidArgumentError
+from posegrasp.core.contract import Observation
+from posegrasp.core.errors import InvalidArgumentError
 from sim.estimators import NoisyOracleEstimator, make_estimator
 from sim.pose_noise import parse_noise
 
@@ -39,15 +39,17 @@ def test_a_seed_draws_the_same_errors_at_every_level() -> None:
     T = np.eye(4)
     T[:3, 3] = [0.05, -0.02, 0.8]
     obs = Observation(np.zeros((4, 4, 3), np.uint8), np.eye(3), np.eye(4), "phone", 1234)
-    small = NoisyOracleEstimator(parse_noise("2.5,2.5,1,1")).estimate_from_truth(obs, T)
-    large = NoisyOracleEstimator(parse_noise("5,5,2,2")).estimate_from_truth(obs, T)
-    zero = NoisyOracleEstimator(parse_noise("0,0,0,0")).estimate_from_truth(obs, T)
+    small = NoisyOracleEstimator(parse_noise("2.5,2.5,1,1")).estimate_from_truth(obs, T, ()).T_C_O
+    large = NoisyOracleEstimator(parse_noise("5,5,2,2")).estimate_from_truth(obs, T, ()).T_C_O
+    zero = NoisyOracleEstimator(parse_noise("0,0,0,0")).estimate_from_truth(obs, T, ()).T_C_O
     np.testing.assert_allclose(zero, T, atol=1e-12)
     es, el = error_components(small, T), error_components(large, T)
     for k in ("ray_m", "lateral_m", "inplane_deg", "outplane_deg"):
         assert el[k] == pytest.approx(2 * es[k], rel=1e-6, abs=1e-9)
-    other = NoisyOracleEstimator(parse_noise("2.5,2.5,1,1")).estimate_from_truth(
-        Observation(obs.rgb, obs.K, obs.T_world_cam, "phone", 1235), T
+    other = (
+        NoisyOracleEstimator(parse_noise("2.5,2.5,1,1"))
+        .estimate_from_truth(Observation(obs.rgb, obs.K, obs.T_world_cam, "phone", 1235), T, ())
+        .T_C_O
     )
     assert not np.allclose(other, small)
 
@@ -60,7 +62,7 @@ def test_spread_noise_draws_each_sigma_on_its_own() -> None:
     errs = []
     for seed in range(400):
         obs = Observation(np.zeros((4, 4, 3), np.uint8), np.eye(3), np.eye(4), "phone", seed)
-        e = error_components(NoisyOracleEstimator(n).estimate_from_truth(obs, T), T)
+        e = error_components(NoisyOracleEstimator(n).estimate_from_truth(obs, T, ()).T_C_O, T)
         errs.append([e["ray_m"] * 1000, e["lateral_m"] * 1000, e["inplane_deg"], e["outplane_deg"]])
     E = np.array(errs)
     assert E[:, 0].max() < 5 * 40 and E[:, 2].max() < 5 * 16

@@ -6,8 +6,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim.core.errors import UnknownNameError
-from sim.world.objects import COLLISION_GROUP, OBJECT_NAMES, VISUAL_GROUP, load_object
+from posegrasp.core.errors import UnknownNameError
+from posegrasp.world.objects import COLLISION_GROUP, OBJECT_NAMES, VISUAL_GROUP, load_object
 
 
 def test_six_objects() -> None:

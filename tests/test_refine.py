@@ -8,9 +8,9 @@ import pytest
 from perception.metrics import mask_iou, rotation_error_deg
 from perception.overlay import silhouette
 from perception.refine import PoseRefiner, RefineConfig
-from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
-from sim.core.transforms import axis_angle, intrinsics, rot_x, rot_z
-from sim.world.objects import load_object
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from posegrasp.core.transforms import axis_angle, intrinsics, rot_x, rot_z
+from posegrasp.world.objects import load_object
 
 K = intrinsics(np.radians(50.0), 640, 480)
 
@@ -135,7 +135,7 @@ def test_hybrid_refine_is_registered() -> None:
 
 def test_the_episode_adapter_refines_with_the_detected_mask() -> None:
     from perception.hybrid import HybridEpisodeEstimator, PoseDetection
-    from sim.core.contract import Observation
+    from posegrasp.core.contract import Observation
 
     T_true = true_pose()
     mask, rgb = render("pistol", T_true)
@@ -151,10 +151,11 @@ def test_the_episode_adapter_refines_with_the_detected_mask() -> None:
     est = HybridEpisodeEstimator(Stub(), refine=True)  # type: ignore[arg-type]
     assert est.name == "hybrid-refine"
     obs = Observation(rgb=rgb, K=K, T_world_cam=np.eye(4), object="pistol", seed=0)
-    T = est.estimate(obs)
+    e = est.estimate(obs)
+    T = e.T_C_O
     assert T is not None
-    assert est.last_info["refine"]["accepted"]
-    assert "refine" in est.last_info["timings_ms"]
+    assert e.info["refine"]["accepted"]
+    assert "refine" in e.info["timings_ms"]
     assert rotation_error_deg(T[:3, :3], T_true[:3, :3]) < rotation_error_deg(
         T0[:3, :3], T_true[:3, :3]
     )

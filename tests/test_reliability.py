@@ -18,13 +18,13 @@ from perception.nets import load_posenet
 from perception.training import record, tables
 from perception.training.checkpoints import save_atomically
 from perception.training.manifest import write_manifest
-from sim.core import files
-from sim.core.backends import run_map
-from sim.core.cli import write_json
-from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
-from sim.core.files import sha256_file
-from sim.core.paths import WEIGHTS_DIR
-from sim.core.validate import (
+from posegrasp.core import files
+from posegrasp.core.backends import run_map
+from posegrasp.core.cli import write_json
+from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from posegrasp.core.files import sha256_file
+from posegrasp.core.paths import WEIGHTS_DIR
+from posegrasp.core.validate import (
     check_names,
     check_output_file,
     check_plot_path,
@@ -33,7 +33,7 @@ from sim.core.validate import (
     effective_workers,
     parse_intrinsics,
 )
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import OBJECT_NAMES
 
 MANIFEST = WEIGHTS_DIR / "manifest.json"
 

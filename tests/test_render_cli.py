@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.tiers import TIERS
 from sim.render_scene import main
-from sim.world.objects import OBJECT_NAMES
-from sim.world.tiers import TIERS
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from perception.overlay import silhouette
+from posegrasp.core.contract import Estimate, Observation
+from posegrasp.world.tiers import TIERS
 from sim import render_scene
-from sim.core.contract import Observation
 from sim.episode import Episode, EpisodeConfig
 from sim.estimators import ESTIMATORS
 from sim.render_scene import main
-from sim.world.tiers import TIERS
 
 REPO = Path(__file__).resolve().parent.parent
 W, H, SEED, TIER = 160, 120, 4, "isolated"
@@ -98,9 +98,9 @@ class _Blind:
     def __init__(self, seen: list[Observation]) -> None:
         self.seen = seen
 
-    def estimate(self, obs: Observation) -> None:
+    def estimate(self, obs: Observation) -> Estimate:
         self.seen.append(obs)
-        return None
+        return Estimate(None)
 
 
 def test_a_missed_detection_is_shown_not_raised(
@@ -123,10 +123,12 @@ class _Shifted:
 
     name = "shifted"
 
-    def estimate_from_truth(self, obs: Observation, T_C_O_true: np.ndarray) -> np.ndarray:
+    def estimate_from_truth(
+        self, obs: Observation, T_C_O_true: np.ndarray, neighbours: tuple
+    ) -> Estimate:
         T = np.array(T_C_O_true, dtype=float)
         T[0, 3] += 0.03
-        return T
+        return Estimate(T, tuple(neighbours))
 
 
 def test_a_wrong_estimate_is_drawn_off_the_true_outline(

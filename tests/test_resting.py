@@ -1,13 +1,13 @@
-"""Resting poses found by physics (`sim.world.resting`) and the tiers that use them."""
+"""Resting poses found by physics (`posegrasp.world.resting`) and the tiers that use them."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from sim.core.transforms import quat_to_mat
-from sim.world.objects import OBJECT_NAMES, load_object
-from sim.world.resting import find_resting_poses, is_stable, main, upright_quat
+from posegrasp.core.transforms import quat_to_mat
+from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.resting import find_resting_poses, is_stable, main, upright_quat
 
 
 def test_upright_quat_turns_the_direction_up() -> None:

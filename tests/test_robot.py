@@ -1,4 +1,4 @@
-"""The Fetch as converted by `sim.world.robot`: names, no mocap or weld, holds its posture."""
+"""The Fetch as converted by `posegrasp.world.robot`: names, no mocap or weld, holds its posture."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim.world import constants as C
-from sim.world.robot import fetch_spec, home_qpos_ctrl
+from posegrasp.world import constants as C
+from posegrasp.world.robot import fetch_spec, home_qpos_ctrl
 
 Warnings = Callable[[mujoco.MjData], dict[str, int]]
 

@@ -1,4 +1,5 @@
-"""Seeded scenes of `sim.world.scene`: physics settles quietly and the head camera sees the target.
+"""Seeded scenes of `posegrasp.world.scene`: physics settles quietly and the head camera sees the
+target.
 
 The fast tests run every object with a few seeds; the slow test is the full acceptance
 criterion (6 objects x 50 seeds, the target visible in at least 49 of 50 per object).
@@ -13,11 +14,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim.core.errors import UnknownNameError
-from sim.world import constants as C
-from sim.world.camera import CameraRenderer, RenderOptions, T_world_cam, body_mask
-from sim.world.objects import OBJECT_NAMES
-from sim.world.scene import SceneConfig, build_scene
+from posegrasp.core.errors import UnknownNameError
+from posegrasp.world import constants as C
+from posegrasp.world.camera import CameraRenderer, RenderOptions, T_world_cam, body_mask
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.scene import SceneConfig, build_scene
 
 Warnings = Callable[[mujoco.MjData], dict[str, int]]
 

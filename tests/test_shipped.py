@@ -6,11 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 from perception.hybrid import HybridPoseEstimator
 from perception.training import overlays as estimator_cli
+from posegrasp.world import constants as C
 from sim.episode import Episode
-from sim.world import constants as C
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -33,13 +32,14 @@ def test_shipped_estimators_on_a_held_out_episode(shipped: HybridPoseEstimator, 
         ep.close()
     truth = ep.T_C_O_true
     plain = shipped.as_episode_estimator()
-    T = plain.estimate(obs)
-    assert T is not None and plain.last_info["class"] == name and plain.last_info["score"] > 0.5
+    e = plain.estimate(obs)
+    T = e.T_C_O
+    assert T is not None and e.info["class"] == name and e.info["score"] > 0.5
     assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.06
     table = shipped.as_episode_estimator(support=True)
     assert table.name == "hybrid-table"
-    Tt = table.estimate(obs)
-    info = table.last_info["support"]
+    et = table.estimate(obs)
+    Tt, info = et.T_C_O, et.info["support"]
     assert info["applied"] == ["rotation", "translation", "mask_fit"]
     assert info["mask_iou_after"] >= info["mask_iou_before"] > 0.5
     # The refined pose rests on the table: the model's lowest point is at the table's height.

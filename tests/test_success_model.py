@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from perception.success_model import PRIOR_WEIGHT, SuccessModel, components_of, load_models
+from posegrasp.core.errors import AssetError, InvalidArgumentError
 from sim import fit_success
-from sim.core.errors import AssetError, InvalidArgumentError
 
 
 def _step_data(n: int = 300, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from perception.support import refine_on_support, snap_to_resting
-from sim.core.transforms import quat_to_mat
-from sim.world.objects import load_object
-from sim.world.resting import upright_quat
+from posegrasp.core.transforms import quat_to_mat
+from posegrasp.world.objects import load_object
+from posegrasp.world.resting import upright_quat
 
 SUPPORT_Z = 0.72
 

@@ -14,9 +14,9 @@ import pytest
 from perception import metrics
 from perception.training import paper_tables, tables
 from perception.training.posenet_eval import pose_metrics
-from sim.core.transforms import intrinsics, rot_z
-from sim.world.objects import OBJECT_NAMES, load_object
-from sim.world.tiers import TIERS
+from posegrasp.core.transforms import intrinsics, rot_z
+from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.tiers import TIERS
 
 
 def _pose(t: tuple[float, float, float], R: np.ndarray | None = None) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Scene tiers (`sim.world.tiers`), footprint layouts, clean grasps and the base drive."""
+"""Scene tiers (`posegrasp.world.tiers`), footprint layouts, clean grasps and the base drive."""
 
 from __future__ import annotations
 
@@ -11,14 +11,14 @@ from scipy.spatial import ConvexHull
 from grasping.clearance import intrusion
 from grasping.execute import Executor
 from grasping.planner import GraspPlanner
-from sim.core.errors import UnknownNameError
-from sim.core.transforms import quat_to_mat
-from sim.world import constants as C
-from sim.world.layout import gap
-from sim.world.objects import load_object
-from sim.world.occlusion import occlusion
-from sim.world.scene import SceneConfig, build_scene
-from sim.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
+from posegrasp.core.errors import UnknownNameError
+from posegrasp.core.transforms import quat_to_mat
+from posegrasp.world import constants as C
+from posegrasp.world.layout import gap
+from posegrasp.world.objects import load_object
+from posegrasp.world.occlusion import occlusion
+from posegrasp.world.scene import SceneConfig, build_scene
+from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
 
 FAST = SceneConfig(settle_time=0.0)
 
@@ -128,7 +128,7 @@ def test_a_moved_neighbour_makes_the_grasp_unclean() -> None:
 
 
 def test_neighbours_an_estimator_reports_are_validated() -> None:
-    from sim.core.errors import InvalidArgumentError
+    from posegrasp.core.errors import InvalidArgumentError
     from sim.episode import Episode
 
     cases = [

@@ -51,7 +51,6 @@ _.T_world_G  # GraspPlan: the chosen gripper pose
 _.crop_box  # PoseDetection: the square crop the nets saw
 _.description  # ObjectModel: the definition's prose
 _.ctrl_home  # Scene: the control vector that holds the home posture
-_.FAILURE_REASONS  # grasping.execute: the vocabulary of failure reasons
 
 # Public API used by the tests and by users, not by other modules.
 _.decode_torch  # batched, differentiable decode, checked against perception.geometry.decode

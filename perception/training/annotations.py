@@ -15,8 +15,8 @@ import numpy as np
 from perception.geometry import project
 from perception.training.bop import MM_PER_M, bbox_xywh, box_xyxy, obj_id, pose_to_bop
 from perception.training.generators import RenderedImage
-from sim.core.transforms import invert_transform
-from sim.world.objects import ObjectModel, load_object
+from posegrasp.core.transforms import invert_transform
+from posegrasp.world.objects import ObjectModel, load_object
 
 
 def full_silhouette(

@@ -17,7 +17,7 @@ Layout of a dataset folder ``<root>`` (one distribution, built by
     <root>/<split>/<scene_id:06d>/records/<im_id:06d>.json  one image's entries of all the above
 
 Sample ``index`` of a split is image ``im_id = index % 1000`` of scene ``index // 1000``. Object
-ids are 1..6 in `sim.world.objects.OBJECT_NAMES` order.
+ids are 1..6 in `posegrasp.world.objects.OBJECT_NAMES` order.
 
 Units: BOP files use millimetres for translations, sizes and diameters (``cam_t_m2c``,
 ``cam_t_w2c``, ``models_info``, the PLY vertices), as the BOP toolkit expects. Everything else is
@@ -44,9 +44,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sim.core.errors import AssetError, UnknownNameError
-from sim.core.transforms import make_transform
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.core.errors import AssetError, UnknownNameError
+from posegrasp.core.transforms import make_transform
+from posegrasp.world.objects import OBJECT_NAMES
 
 IMAGES_PER_SCENE = 1000
 MM_PER_M = 1000.0

@@ -16,8 +16,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from sim.core.files import atomic_write
-from sim.core.paths import git_commit
+from posegrasp.core.files import atomic_write
+from posegrasp.core.paths import git_commit
 
 
 def seed_torch(seed: int, threads: int | None) -> None:
@@ -42,7 +42,7 @@ def rng_state(generator: torch.Generator | None = None) -> dict[str, torch.Tenso
 
 def save_atomically(obj: Any, path: Path) -> None:
     """`torch.save` through a temporary file in `path`'s folder, fsynced, then renamed over it
-    (`sim.core.files.atomic_write`): a failed save leaves the previous file intact."""
+    (`posegrasp.core.files.atomic_write`): a failed save leaves the previous file intact."""
     atomic_write(path, lambda f: torch.save(obj, f))
 
 

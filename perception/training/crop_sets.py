@@ -19,8 +19,8 @@ from perception.crops import crop_and_resize, image_to_crop, random_square_box, 
 from perception.geometry import encode
 from perception.nets import CROP
 from perception.training.dataset import PoseDataset, load_info
-from sim.core.errors import AssetError
-from sim.core.paths import data_root
+from posegrasp.core.errors import AssetError
+from posegrasp.core.paths import data_root
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ Two distributions (docs/DESIGN.md §8; the generators are in
   (`perception.training.studio`): camera uniform on the sphere at a random distance, random roll,
   procedural backgrounds, clutter, lights and colours; 256x256 by default.
 - ``headcam``: the deployment distribution: the Fetch head camera's view of a seeded
-  `sim.world.scene.build_scene` (target + 0-3 distractors on the table, randomised
+  `posegrasp.world.scene.build_scene` (target + 0-3 distractors on the table, randomised
   appearance), 640x480 by default; every object with visible pixels is annotated.
 
 Layout and units: see `perception.training.bop` (BOP layout, BOP files in millimetres,
@@ -30,8 +30,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import NoReturn
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
-
 from perception.training.dataset import DISTS, SPLITS
 from perception.training.generation import (
     DEFAULT_SIZE,
@@ -41,14 +39,15 @@ from perception.training.generation import (
     generate,
 )
 from perception.training.sheets import write_preview
-from sim.core.backends import add_backend_arguments, check_backend
-from sim.core.cli import fail
-from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
-from sim.core.paths import data_root
-from sim.core.validate import check_names, check_output_file, check_workers
-from sim.world.camera import check_resolution
-from sim.world.objects import OBJECT_NAMES
-from sim.world.tiers import TIERS, check_tier
+from posegrasp.core.backends import add_backend_arguments, check_backend
+from posegrasp.core.cli import fail
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from posegrasp.core.paths import data_root
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import check_names, check_output_file, check_workers
+from posegrasp.world.camera import check_resolution
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.tiers import TIERS, check_tier
 
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -165,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
     try:
         cfg = parse_args(argv)
+        setup_rendering()
         _check_writable(cfg.out)
     except SystemExit as exc:  # --help
         return int(exc.code or 0)

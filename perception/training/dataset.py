@@ -31,8 +31,8 @@ from perception.training.bop import (
     scene_dir,
     split_index,
 )
-from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
-from sim.world.tiers import TIERS
+from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from posegrasp.world.tiers import TIERS
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 DISTS: tuple[str, ...] = ("paper", "headcam")

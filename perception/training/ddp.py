@@ -27,7 +27,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from sim.core.errors import InvalidArgumentError
+from posegrasp.core.errors import InvalidArgumentError
 
 #: The values of ``--device``: ``auto`` is ``cuda`` when a GPU is present, else ``cpu``.
 DEVICES = ("auto", "cpu", "cuda")

@@ -17,8 +17,8 @@ from perception.detector_net import DetectorConfig, input_transform
 from perception.training.bop import box_xyxy
 from perception.training.dataset import PoseDataset
 from perception.training.ddp import Ranks
-from sim.core.errors import AssetError
-from sim.core.paths import data_root
+from posegrasp.core.errors import AssetError
+from posegrasp.core.paths import data_root
 
 
 class DetectionSet(torch.utils.data.Dataset):

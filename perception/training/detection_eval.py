@@ -10,8 +10,8 @@ import numpy as np
 
 from perception.detector import Detection, Detector, to_model_box
 from perception.training.dataset import PoseDataset, Sample
-from sim.core.errors import AssetError
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.core.errors import AssetError
+from posegrasp.world.objects import OBJECT_NAMES
 
 
 def pycocotools_api() -> tuple[Any, Any, Any]:

@@ -24,9 +24,10 @@ from perception.training.crop_sets import data_seed_ranges
 from perception.training.dataset import DISTS
 from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
 from perception.training.train_posenet import TRAIN_COMMAND
-from sim.core.cli import ArgumentParser, fail
-from sim.core.errors import AssetError, PosegraspError
-from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, git_commit
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.errors import AssetError, PosegraspError
+from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, git_commit
+from posegrasp.core.runtime import setup_rendering
 
 MANIFEST = WEIGHTS_DIR / MANIFEST_NAME
 #: The shipped pose nets: each variant, and `ours` fine-tuned on the hard tier too (the expert
@@ -219,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoints", type=Path, default=None)
     p.add_argument("--plot", type=Path, default=None, help="write the training curves here (PNG)")
     args = p.parse_args(argv)
+    setup_rendering()
     ckpts = args.checkpoints or checkpoint_dir()
     try:
         m = export(ckpts)

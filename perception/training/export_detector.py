@@ -17,8 +17,8 @@ from perception.detector_net import (
 )
 from perception.training.checkpoints import read_checkpoint, save_atomically
 from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
-from sim.core.errors import AssetError
-from sim.core.paths import WEIGHTS_DIR
+from posegrasp.core.errors import AssetError
+from posegrasp.core.paths import WEIGHTS_DIR
 
 WEIGHTS_NAME = "detector.pt"
 TRAIN_COMMAND = "python -m perception.training.train_detector"

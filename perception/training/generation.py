@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 from tqdm import tqdm
 
 from perception.training import bop
@@ -39,9 +38,10 @@ from perception.training.writer import (
     write_models,
     write_sample,
 )
-from sim.core.backends import default_chunk, run_map
-from sim.core.errors import InvalidArgumentError
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.core.backends import default_chunk, run_map
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.world.objects import OBJECT_NAMES
 
 #: Generator version per distribution; a dataset folder only resumes at its own version. Paper
 #: protocol 3: the camera 1.2-1.8 object diameters from the object (2: 1.6-4.5).
@@ -64,10 +64,11 @@ class GenConfig:
         out: dataset folder.
         objects: classes cycled over by sample index.
         width, height: image size [px].
-        workers, backend, address: rendering processes and where they run (`sim.core.backends`).
+        workers, backend, address: rendering processes and where they run
+            (`posegrasp.core.backends`).
         preview: where to write a contact sheet, or None.
         progress: show a tqdm bar.
-        tier: the scene tier of ``headcam`` images (`sim.world.tiers`); None is the mixed
+        tier: the scene tier of ``headcam`` images (`posegrasp.world.tiers`); None is the mixed
             table scenes of 0-3 distractors the shipped networks were trained on.
         views: ``headcam`` images per scene (`HeadcamGenerator.render_views`); 1 for
             ``paper``.
@@ -182,6 +183,7 @@ _WORKER: dict[str, Any] = {}
 
 def _init_worker(cfg: GenConfig) -> None:
     os.environ.setdefault("LP_NUM_THREADS", "1")
+    setup_rendering()
     _WORKER["cfg"] = cfg
     _WORKER["gen"] = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier)
 

@@ -2,7 +2,7 @@
 
 - `PaperGenerator`: the paper's protocol, one object alone in the randomised studio
   (`perception.training.studio`).
-- `HeadcamGenerator`: the Fetch head camera's view of a seeded `sim.world.scene.build_scene`
+- `HeadcamGenerator`: the Fetch head camera's view of a seeded `posegrasp.world.scene.build_scene`
   (target + 0..`MAX_DISTRACTORS` distractors, randomised appearance); every object with visible
   pixels is annotated.
 
@@ -15,19 +15,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 import mujoco
 import numpy as np
 
 from perception.training.dataset import DISTS
 from perception.training.rendering import OffscreenRenderer
 from perception.training.studio import HIDDEN_GROUP, Studio, StudioConfig
-from sim.core.errors import InvalidArgumentError, UnknownNameError
-from sim.core.transforms import invert_transform
-from sim.world import constants as C
-from sim.world.camera import T_world_cam, camera_intrinsics
-from sim.world.scene import PlacedObject, Scene, SceneConfig, aim_head, build_scene
-from sim.world.tiers import tier_scene
+from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
+from posegrasp.core.transforms import invert_transform
+from posegrasp.world import constants as C
+from posegrasp.world.camera import T_world_cam, camera_intrinsics
+from posegrasp.world.scene import PlacedObject, Scene, SceneConfig, aim_head, build_scene
+from posegrasp.world.tiers import tier_scene
 
 #: At most this many distractors in a headcam scene (drawn uniformly from 0..3).
 MAX_DISTRACTORS = 3

@@ -15,7 +15,7 @@ from perception.geometry_torch import (
     safe_norm,
 )
 from perception.nets import PoseOutput
-from sim.core.errors import InvalidArgumentError
+from posegrasp.core.errors import InvalidArgumentError
 
 
 def eq7_terms(

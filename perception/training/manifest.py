@@ -8,8 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from perception.integrity import MANIFEST_NAME, manifest_entries
-from sim.core.errors import AssetError
-from sim.core.files import atomic_write_json, sha256_file
+from posegrasp.core.errors import AssetError
+from posegrasp.core.files import atomic_write_json, sha256_file
 
 __all__ = ["MANIFEST_NAME", "read_manifest", "shipped_stages", "weights_entry", "write_manifest"]
 
@@ -45,5 +45,5 @@ def shipped_stages(path: Path) -> list[dict[str, Any]] | None:
 
 
 def write_manifest(path: Path, manifest: dict[str, Any]) -> None:
-    """Write the manifest (sorted keys, one-space indent) atomically (`sim.core.files`)."""
+    """Write the manifest (sorted keys, one-space indent) atomically (`posegrasp.core.files`)."""
     atomic_write_json(path, manifest)

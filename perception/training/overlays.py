@@ -15,10 +15,11 @@ from perception.hybrid import HybridPoseEstimator
 from perception.overlay import draw_detections
 from perception.training.dataset import DISTS, SPLITS, PoseDataset
 from perception.training.sheets import contact_sheet
-from sim.core.cli import ArgumentParser, fail
-from sim.core.errors import PosegraspError
-from sim.core.paths import data_root
-from sim.core.validate import arg, check_choice, check_int, check_output_dir, parse_intrinsics
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.errors import PosegraspError
+from posegrasp.core.paths import data_root
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_choice, check_int, check_output_dir, parse_intrinsics
 
 #: Most images one command overlays.
 MAX_IMAGES = 1000
@@ -64,6 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         help="output folder",
     )
     args = p.parse_args(argv)
+    setup_rendering()
     if args.image is not None and args.K is None:
         return fail("--image needs --K fx,fy,cx,cy")
     try:

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from perception import summaries
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import OBJECT_NAMES
 
 #: The paper's Tables 1 and 2 and its invalid-pose share, per object and average, under the key
 #: of the figure of ours each is compared with.

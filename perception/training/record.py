@@ -17,9 +17,9 @@ from perception.integrity import UNVERIFIED_ENV, verification_overridden
 from perception.nets import VARIANTS
 from perception.training.dataset import DISTS, PoseDataset
 from perception.training.manifest import MANIFEST_NAME, read_manifest, write_manifest
-from sim.core.errors import AssetError, InvalidArgumentError
-from sim.core.files import sha256_file
-from sim.core.paths import DATA_ENV, REPO_ROOT, WEIGHTS_DIR, data_root, git_commit
+from posegrasp.core.errors import AssetError, InvalidArgumentError
+from posegrasp.core.files import sha256_file
+from posegrasp.core.paths import DATA_ENV, REPO_ROOT, WEIGHTS_DIR, data_root, git_commit
 
 #: Averages the manifest keeps of each test split.
 RECORD_KEYS = ("count", "center_px_mean", "center_256_px_mean", "center_crop_px_mean",

@@ -2,19 +2,20 @@
 
 from __future__ import annotations
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 import mujoco
 import numpy as np
 
-from sim.core.errors import StateError
-from sim.world.camera import RenderContextCache, scene_capacity
+from posegrasp.core.errors import StateError
+from posegrasp.core.runtime import gl_context_class
+from posegrasp.world.camera import RenderContextCache, scene_capacity
 
 
 class OffscreenRenderer:
     """Offscreen RGB and segmentation renders of fixed cameras, for one model at a time.
 
     One GL context lives as long as the renderer; MuJoCo's render context (textures, meshes) is
-    kept across models with the same meshes and textures (`sim.world.camera.RenderContextCache`),
+    kept across models with the same meshes and textures
+    (`posegrasp.world.camera.RenderContextCache`),
     so a stream of freshly compiled scenes costs no new GL or render context each.
     Shadows, reflections and the skybox are off. The GL context is made on first use; call
     `close()` to free it.
@@ -38,7 +39,7 @@ class OffscreenRenderer:
 
     def _bind(self, model: mujoco.MjModel) -> tuple[mujoco.MjrContext, mujoco.MjvScene]:
         if self._gl is None:
-            self._gl = mujoco.GLContext(self.width, self.height)
+            self._gl = gl_context_class()(self.width, self.height)
         self._gl.make_current()
         if model is not self._model or self._scene is None:
             vis = model.vis.global_

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 
 from perception.training.dataset import PoseDataset, Sample
-from sim.core.errors import AssetError, InvalidArgumentError
-from sim.world.objects import load_object
+from posegrasp.core.errors import AssetError, InvalidArgumentError
+from posegrasp.world.objects import load_object
 
 
 def draw_annotations(

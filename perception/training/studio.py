@@ -30,17 +30,16 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 import mujoco
 import numpy as np
 
 from perception.training.rendering import OffscreenRenderer
 from perception.training.textures import PLAIN_TEXTURE, add_texture_bank, bank_texture_name
 from perception.training.views import roll_to_theta, unit_vector
-from sim.core.errors import UnknownNameError
-from sim.core.transforms import invert_transform, mat_to_quat
-from sim.world.camera import R_CV_FROM_MJ, T_world_cam, camera_intrinsics
-from sim.world.objects import OBJECT_NAMES, VISUAL_GROUP, ObjectModel, load_object
+from posegrasp.core.errors import UnknownNameError
+from posegrasp.core.transforms import invert_transform, mat_to_quat
+from posegrasp.world.camera import R_CV_FROM_MJ, T_world_cam, camera_intrinsics
+from posegrasp.world.objects import OBJECT_NAMES, VISUAL_GROUP, ObjectModel, load_object
 
 CAMERA = "studio"
 #: Geom group of the room and the clutter (drawn by default, left out of the mask pass).

@@ -53,11 +53,12 @@ from perception.training.record import (
     record_command,
     record_in_manifest,
 )
-from sim.core.cli import ArgumentParser, fail, write_json
-from sim.core.errors import AssetError, PosegraspError
-from sim.core.paths import WEIGHTS_DIR, data_root
-from sim.core.validate import arg, check_choice, check_int, check_names, check_output_file
-from sim.world.objects import OBJECT_NAMES, load_object
+from posegrasp.core.cli import ArgumentParser, fail, write_json
+from posegrasp.core.errors import AssetError, PosegraspError
+from posegrasp.core.paths import WEIGHTS_DIR, data_root
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_choice, check_int, check_names, check_output_file
+from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 #: Test boxes are perturbed like detections, with this seed.
 TEST_CROPS = CropConfig(per_object=1, max_shift=0.05, scale_range=(1.0, 1.2), seed=12345)
@@ -291,6 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         "weights on the full shipped test splits of the default data folder",
     )
     args = p.parse_args(argv)
+    setup_rendering()
     try:
         check_choice(args.boxes, BOXES, "box source")
         dists = check_names(args.dists or "headcam,paper", DATASETS, "distribution", "--dists")

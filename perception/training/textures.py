@@ -7,7 +7,6 @@ fixed seed, so it is part of the generator's definition rather than of any sampl
 
 from __future__ import annotations
 
-import sim  # noqa: F401  # isort: skip  (defaults MUJOCO_GL before mujoco is imported)
 import cv2
 import mujoco
 import numpy as np

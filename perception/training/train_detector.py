@@ -54,9 +54,10 @@ from perception.training.detection_data import (
 from perception.training.detection_eval import evaluate_detector, pycocotools_api
 from perception.training.export_detector import TRAIN_COMMAND, export_detector
 from perception.training.schedule import learning_rate, optimiser_step
-from sim.core.cli import ArgumentParser, fail
-from sim.core.errors import AssetError, InvalidArgumentError, PosegraspError
-from sim.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.errors import AssetError, InvalidArgumentError, PosegraspError
+from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
+from posegrasp.core.runtime import setup_rendering
 
 CHECKPOINT_NAME = "detector.pt"
 
@@ -366,6 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--weights-out", type=Path, default=WEIGHTS_DIR, help="export folder")
     args = p.parse_args(argv)
+    setup_rendering()
     try:
         resolve_device(args.device)
         if args.smoke:

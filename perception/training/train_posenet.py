@@ -44,10 +44,11 @@ from perception.training.losses import posenet_loss
 from perception.training.manifest import shipped_stages
 from perception.training.posenet_eval import evaluate_arrays
 from perception.training.schedule import learning_rate, optimiser_step
-from sim.core.cli import ArgumentParser, fail
-from sim.core.errors import AssetError, InvalidArgumentError, PosegraspError
-from sim.core.paths import checkpoint_dir
-from sim.world.objects import OBJECT_NAMES
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.errors import AssetError, InvalidArgumentError, PosegraspError
+from posegrasp.core.paths import checkpoint_dir
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.world.objects import OBJECT_NAMES
 
 #: The command line of this module.
 TRAIN_COMMAND = "python -m perception.training.train_posenet"
@@ -361,6 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--smoke", action="store_true", help="a tiny run that takes seconds")
     p.add_argument("--no-resume", action="store_true", help="start over")
     args = p.parse_args(argv)
+    setup_rendering()
     if args.variant not in VARIANTS:
         return fail(f"unknown variant {args.variant!r}; valid variants: {', '.join(VARIANTS)}")
     dists = tuple(args.dists.split(","))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from perception.geometry import encode
-from sim.core.transforms import rot_z
+from posegrasp.core.transforms import rot_z
 
 
 def roll_to_theta(position: np.ndarray, aim: np.ndarray, theta: float, K: np.ndarray) -> np.ndarray:

@@ -31,7 +31,7 @@ from perception.training.bop import (
     write_same,
 )
 from perception.training.generators import RenderedImage
-from sim.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 
 def write_sample(

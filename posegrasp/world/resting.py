@@ -7,7 +7,7 @@ plane's normal). Those directions are clustered; a cluster is a resting pose whe
 orientation when placed afresh and left alone for a second. Its share is the fraction of drops
 that ended in it.
 
-`python -m sim.world.resting --object phone` prints what the drops find;
+`python -m posegrasp.world.resting --object phone` prints what the drops find;
 `--write` stores it in `scenes/objects/<name>.json` (`resting_poses`), the pose the object was
 designed to stand in first (the canonical one, used by the `isolated` tier).
 """
@@ -23,11 +23,12 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from sim.core.cli import ArgumentParser, fail
-from sim.core.errors import AssetError, InvalidArgumentError, PosegraspError
-from sim.core.paths import SCENES_DIR
-from sim.core.transforms import quat_to_mat
-from sim.world.objects import OBJECT_NAMES, check_object, load_object
+from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.errors import AssetError, InvalidArgumentError, PosegraspError
+from posegrasp.core.paths import SCENES_DIR
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.transforms import quat_to_mat
+from posegrasp.world.objects import OBJECT_NAMES, check_object, load_object
 
 #: A plane with the world's contact class (`scenes/world.xml`, class "world") and its options.
 _PLANE_XML = """<mujoco>
@@ -216,7 +217,7 @@ def _rounded(q: np.ndarray) -> list[float]:
 
 
 def _parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m sim.world.resting", description=__doc__)
+    p = ArgumentParser(prog="python -m posegrasp.world.resting", description=__doc__)
     p.add_argument("--object", default="all", help=f"one of {', '.join(OBJECT_NAMES)} or all")
     p.add_argument("--drops", type=int, default=96, help="random drops per object")
     p.add_argument("--seed", type=int, default=0)
@@ -228,6 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     """Find (and with --write store) the resting poses of one object or all; the exit status."""
     try:
         args = _parser().parse_args(argv)
+        setup_rendering()
         names = OBJECT_NAMES if args.object == "all" else (check_object(args.object),)
         if not 1 <= args.drops <= 4096:
             raise InvalidArgumentError(f"--drops must be in 1..4096, got {args.drops}")

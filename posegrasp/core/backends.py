@@ -35,7 +35,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
 
 #: The backends, the first the default.
 BACKENDS = ("local", "ray")

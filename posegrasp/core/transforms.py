@@ -13,7 +13,7 @@ import math
 import mujoco
 import numpy as np
 
-from sim.core.errors import InvalidArgumentError
+from posegrasp.core.errors import InvalidArgumentError
 
 #: Largest deviation of R^T R from the identity accepted as a rotation.
 ORTHONORMAL_TOL = 1e-6

@@ -13,14 +13,14 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from sim.core.errors import InvalidArgumentError, UnknownNameError
-from sim.core.paths import SCENES_DIR
-from sim.core.transforms import quat_mul, yaw_quat
-from sim.world import constants as C
-from sim.world.layout import sample_layout
-from sim.world.objects import OBJECT_NAMES, ObjectModel, load_object
-from sim.world.occlusion import occlusion
-from sim.world.robot import RobotConfig, fetch_spec, home_qpos_ctrl
+from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
+from posegrasp.core.paths import SCENES_DIR
+from posegrasp.core.transforms import quat_mul, yaw_quat
+from posegrasp.world import constants as C
+from posegrasp.world.layout import sample_layout
+from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
+from posegrasp.world.occlusion import occlusion
+from posegrasp.world.robot import RobotConfig, fetch_spec, home_qpos_ctrl
 
 WORLD_XML = SCENES_DIR / "world.xml"
 #: Layouts drawn at most for a scene whose occlusion is bounded.
@@ -53,7 +53,7 @@ class SceneConfig:
         occluders: how many of the near distractors stand on the robot's side of the target,
             between it and the head camera.
         occlusion: when set, the accepted range of the share of the target's silhouette that
-            the other objects hide from the head camera (`sim.world.occlusion`); layouts are
+            the other objects hide from the head camera (`posegrasp.world.occlusion`); layouts are
             drawn again (from the same seed's stream) until one falls in it.
     """
 
@@ -189,7 +189,7 @@ def _near_layout(
     objs: list[ObjectModel], cfg: SceneConfig, rng: np.random.Generator
 ) -> list[tuple[np.ndarray, tuple[str, np.ndarray], float]]:
     """(xy, resting orientation, yaw) per object with `cfg.near_distractors` neighbours beside
-    the target (`sim.world.layout`)."""
+    the target (`posegrasp.world.layout`)."""
     rests = [_resting(o, cfg, rng, i == 0) for i, o in enumerate(objs)]
     near = min(cfg.near_distractors, len(objs) - 1)
     quats = [q for _, q in rests]

@@ -12,8 +12,8 @@ from collections.abc import Sequence
 import mujoco
 import numpy as np
 
-from sim.world import constants as C
-from sim.world.camera import CameraRenderer, RenderOptions, body_mask
+from posegrasp.world import constants as C
+from posegrasp.world.camera import CameraRenderer, RenderOptions, body_mask
 
 #: Resolution of the occlusion renders (a quarter of the head camera's pixels).
 WIDTH, HEIGHT = 320, 240

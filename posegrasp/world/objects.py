@@ -17,10 +17,10 @@ import mujoco
 import numpy as np
 import trimesh
 
-from sim.core.errors import AssetError, UnknownNameError
-from sim.core.paths import SCENES_DIR
-from sim.core.transforms import quat_to_mat
-from sim.world.robot import WORLD_CONAFFINITY, WORLD_CONTYPE
+from posegrasp.core.errors import AssetError, UnknownNameError
+from posegrasp.core.paths import SCENES_DIR
+from posegrasp.core.transforms import quat_to_mat
+from posegrasp.world.robot import WORLD_CONAFFINITY, WORLD_CONTYPE
 
 OBJECT_NAMES: tuple[str, ...] = ("car", "faucet", "chair", "phone", "screen", "pistol")
 OBJECTS_DIR = SCENES_DIR / "objects"
@@ -135,7 +135,7 @@ class ObjectModel:
         symmetries: proper rotational symmetries besides the identity, each a 4x4 T_O_O'
             (appearance included; every object here is designed to have none).
         resting_poses: name -> orientation of O on a horizontal support, wxyz; the first is
-            the canonical pose, the others were found by physics (`sim.world.resting`).
+            the canonical pose, the others were found by physics (`posegrasp.world.resting`).
         ungraspable: resting poses in which the Fetch gripper cannot take the object from above
             (no grasp candidate fits; `grasping.candidates` is tested against this list).
     """

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from sim.core.transforms import quat_to_mat, rot_z
-from sim.world.objects import ObjectModel
+from posegrasp.core.transforms import quat_to_mat, rot_z
+from posegrasp.world.objects import ObjectModel
 
 #: Where footprints may lie: the table top (x 0.45..1.05, y -0.5..0.5) less a 2 cm margin [m].
 TABLE_XY = ((0.47, 1.03), (-0.48, 0.48))

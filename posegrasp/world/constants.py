@@ -1,4 +1,5 @@
-"""Names of the Fetch robot as posegrasp converts it (see `sim.world.robot`), in a fixed order."""
+"""Names of the Fetch robot as posegrasp converts it (see `posegrasp.world.robot`), in a fixed
+order."""
 
 from __future__ import annotations
 

@@ -19,8 +19,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from sim.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
-from sim.core.transforms import check_intrinsics
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from posegrasp.core.transforms import check_intrinsics
 
 T = TypeVar("T")
 #: Seeds are what numpy's generators accept from every caller: 0 <= seed < 2**32.
@@ -146,7 +146,7 @@ def check_json_file(path: str | Path, option: str) -> Any:
 
 def parse_intrinsics(spec: str, option: str = "--K") -> np.ndarray:
     """``fx,fy,cx,cy`` [px] as a checked K: positive focal lengths and principal point within
-    `MAX_INTRINSIC_PX` (`sim.core.transforms.check_intrinsics`)."""
+    `MAX_INTRINSIC_PX` (`posegrasp.core.transforms.check_intrinsics`)."""
     try:
         fx, fy, cx, cy = (float(v) for v in str(spec).split(","))
     except ValueError:

@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 from typing import NoReturn
 
-from sim.core.errors import InvalidArgumentError
-from sim.core.files import atomic_write_json
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.files import atomic_write_json
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -46,7 +46,7 @@ def check_writable_file(path: Path) -> None:
 
 
 def write_json(path: Path, report: dict) -> None:
-    """Write a report as indented JSON with sorted keys, atomically (`sim.core.files`), and say
-    where."""
+    """Write a report as indented JSON with sorted keys, atomically (`posegrasp.core.files`),
+    and say where."""
     atomic_write_json(path, report)
     print(f"wrote {path}")

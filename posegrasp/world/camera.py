@@ -12,8 +12,9 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from sim.core.errors import AssetError, InvalidArgumentError, UnknownNameError
-from sim.core.transforms import intrinsics
+from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from posegrasp.core.runtime import gl_context_class
+from posegrasp.core.transforms import intrinsics
 
 R_CV_FROM_MJ = np.diag([1.0, -1.0, -1.0])
 MAX_RESOLUTION = (4096, 4096)
@@ -40,8 +41,8 @@ def check_resolution(width: int, height: int) -> None:
 
 
 def camera_intrinsics(model: mujoco.MjModel, camera: str, width: int, height: int) -> np.ndarray:
-    """Pinhole K of a MuJoCo camera rendered at width x height (`sim.core.transforms.intrinsics`
-    of the camera's fovy).
+    """Pinhole K of a MuJoCo camera rendered at width x height
+    (`posegrasp.core.transforms.intrinsics` of the camera's fovy).
 
     Returns:
         K, shape (3, 3), in pixels.
@@ -82,29 +83,6 @@ class RenderOptions:
     reflections: bool = False
 
 
-def _preload_torch() -> None:
-    """Import torch, torch._dynamo and torchvision, when installed, before the first GL context.
-
-    Importing them once a MuJoCo GL context exists crashes the process (inside triton). A user
-    who renders first (e.g. `GraspEval-v0.reset`) and loads a network afterwards would hit that;
-    importing them here, once per process, makes the order irrelevant.
-    """
-    global _TORCH_PRELOADED
-    if _TORCH_PRELOADED:
-        return
-    _TORCH_PRELOADED = True
-    import importlib.util
-
-    if importlib.util.find_spec("torchvision") is None:
-        return
-    import torch
-    import torch._dynamo  # noqa: F401
-    import torchvision  # noqa: F401
-
-
-_TORCH_PRELOADED = False
-
-
 def geom_ids_from_colours(rgb: np.ndarray, scene: mujoco.MjvScene) -> np.ndarray:
     """Geom id per pixel of a render with `mjRND_SEGMENT` and `mjRND_IDCOLOR` (scene object i
     drawn in colour i + 1, black where nothing is drawn): shape (H, W), int32, -1 where no geom.
@@ -130,13 +108,13 @@ def shared_gl_context() -> mujoco.GLContext:
     """
     global _GL
     if _GL is None or _GL[0] != os.getpid():
-        _preload_torch()
+        gl_context = gl_context_class()
         try:
-            _GL = (os.getpid(), mujoco.GLContext(MAX_RESOLUTION[0], MAX_RESOLUTION[1]))
+            _GL = (os.getpid(), gl_context(MAX_RESOLUTION[0], MAX_RESOLUTION[1]))
         except mujoco.FatalError as exc:
             raise AssetError(
-                "MuJoCo cannot open an OpenGL context: set MUJOCO_GL=egl before mujoco is "
-                "imported (import sim first, or export MUJOCO_GL=egl) and install Mesa's EGL "
+                "MuJoCo cannot open an OpenGL context with MUJOCO_GL="
+                f"{os.environ['MUJOCO_GL']}: install Mesa's EGL "
                 f"(libegl1, libgl1-mesa-dri); MuJoCo said: {exc}"
             ) from exc
     _GL[1].make_current()

@@ -4,7 +4,7 @@
 - ``clutter``: 3-5 objects of the other classes on the table, two of them 3-8 cm (edge to edge)
   from the target; lights and surface colours randomised.
 - ``any-pose``: the target alone, in any of its stable resting poses (found by physics,
-  `sim.world.resting`) that the gripper can take it in, drawn uniformly.
+  `posegrasp.world.resting`) that the gripper can take it in, drawn uniformly.
 - ``far``: the base stands back so that the head camera sees the target 0.9-1.6 m away; the
   robot drives before it grasps.
 """
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 
-from sim.core.errors import UnknownNameError
-from sim.world.scene import SceneConfig
+from posegrasp.core.errors import UnknownNameError
+from posegrasp.world.scene import SceneConfig
 
 
 @dataclass(frozen=True)

@@ -16,8 +16,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from sim.core.errors import AssetError
-from sim.world import constants as C
+from posegrasp.core.errors import AssetError
+from posegrasp.world import constants as C
 
 #: Collision bits: robot geoms collide with the world and objects, never with each other.
 ROBOT_CONTYPE = 2

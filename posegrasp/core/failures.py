@@ -1,0 +1,34 @@
+"""Every reason an episode can fail with, each with its meaning: the one list that the executor,
+the planner, the env, `sim.evaluate` and the docs use."""
+
+from __future__ import annotations
+
+#: Failure reason -> what it means. An episode's ``failure_reason`` is one of these keys, or None
+#: on success.
+FAILURE_REASONS: dict[str, str] = {
+    "no_estimate": "the estimator returned no pose (e.g. the object was not detected)",
+    "unreachable": "the object is farther than 1.3 m from the base after the drive, or the drive "
+    "would exceed 2 m",
+    "no_grasp": "no grasp candidate approaches from above at the estimated pose",
+    "ik_infeasible": "no tried candidate's inverse kinematics converged at some stage",
+    "collision": "before closing, the robot touched the table or knocked the object by over 2 cm",
+    "missed": "after closing, not both fingers touch the object",
+    "slipped": "after lift and hold, the object is below 0.10 m or no longer between the fingers",
+    "disturbed": "the object was held, but another object moved over 3 cm or tilted over 30 deg",
+    "invalid_action": "the env's action was not a finite pose with a unit quaternion (the "
+    "problem is in info['error'])",
+    "error": "the episode raised an error, recorded in its notes (sim.evaluate keeps going)",
+}
+
+
+def check_failure_reason(reason: str | None) -> str | None:
+    """reason itself when it is None or one of `FAILURE_REASONS`.
+
+    Raises:
+        UnknownNameError: any other reason.
+    """
+    if reason is not None and reason not in FAILURE_REASONS:
+        from posegrasp.core.errors import UnknownNameError
+
+        raise UnknownNameError("failure reason", reason, FAILURE_REASONS)
+    return reason

@@ -1,0 +1,117 @@
+"""The statistics of paired grasp experiments: pure functions, no I/O.
+
+Wilson intervals of a success rate, the exact McNemar test on discordant pairs, and paired
+bootstrap intervals of success and friction-margin differences (`sim.compare`, `sim.evaluate`,
+`sim.gate`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import binomtest, spearmanr
+
+#: An episode's outcome: (success, friction margin or None).
+Outcome = tuple[bool, float | None]
+
+#: Bootstrap resamples unless told otherwise.
+BOOTSTRAP = 2000
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (95 % for the default z).
+
+    Returns:
+        (low, high); (0, 1) when n == 0.
+    """
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
+
+
+def bootstrap_means(values: np.ndarray, boot: int, rng: np.random.Generator) -> np.ndarray:
+    """Means of `boot` resamples (with replacement) of `values`, shape (boot,)."""
+    values = np.asarray(values, float)
+    return rng.choice(values, (boot, values.size)).mean(axis=1)
+
+
+def margin_error_correlation(episodes: list[dict]) -> dict[str, float | int | None]:
+    """Spearman rank correlation of the friction margin with each pose error (translation [m],
+    rotation [deg], ADD [m]) over the episodes that have both, and their count; None where
+    fewer than 5 episodes have both or either side is constant. Positive: larger errors, looser
+    grasps."""
+    pairs = [
+        (e["friction_margin"], e["pose_error"])
+        for e in episodes
+        if e.get("friction_margin") is not None and e.get("pose_error")
+    ]
+    out: dict[str, float | int | None] = {"episodes": len(pairs)}
+    for key in ("translation_m", "rotation_deg", "add_m"):
+        m = np.array([p[0] for p in pairs], float)
+        err = np.array([p[1].get(key, np.nan) for p in pairs], float)
+        ok = np.isfinite(err)
+        rho = None
+        if ok.sum() >= 5 and np.ptp(m[ok]) > 0 and np.ptp(err[ok]) > 0:
+            rho = float(spearmanr(m[ok], err[ok]).statistic)
+        out[key] = rho
+    return out
+
+
+def mcnemar_exact(a_only: int, b_only: int, one_sided: bool = False) -> float:
+    """Exact McNemar p-value from the discordant pair counts (1.0 when there are none):
+    two-sided, or with `one_sided` the chance of at least `a_only` of the `a_only + b_only`
+    discordant pairs going A's way if neither is better (the test of a loss)."""
+    n = a_only + b_only
+    if n == 0:
+        return 1.0
+    if one_sided:
+        return float(binomtest(a_only, n, 0.5, alternative="greater").pvalue)
+    return float(binomtest(min(a_only, b_only), n, 0.5).pvalue)
+
+
+def paired(a: np.ndarray, b: np.ndarray, boot: int, rng: np.random.Generator) -> dict:
+    """Success of A and B on the same episodes (bool arrays) and their paired difference."""
+    n = len(a)
+    a_only, b_only = int(np.sum(a & ~b)), int(np.sum(~a & b))
+    diff = float(b.mean() - a.mean())
+    idx = rng.integers(0, n, size=(boot, n))
+    d = b[idx].mean(axis=1) - a[idx].mean(axis=1)
+    lo, hi = np.percentile(d, [2.5, 97.5])
+    return {
+        "episodes": n,
+        "success_a": int(a.sum()),
+        "success_b": int(b.sum()),
+        "difference": diff,
+        "bootstrap_low": float(lo),
+        "bootstrap_high": float(hi),
+        "a_only": a_only,
+        "b_only": b_only,
+        "mcnemar_p": mcnemar_exact(a_only, b_only),
+    }
+
+
+def margin_difference(
+    a: list[Outcome], b: list[Outcome], boot: int, rng: np.random.Generator
+) -> dict | None:
+    """Mean friction-margin difference B - A on the pairs both grasped with a margin, with its
+    paired bootstrap 95 % interval; None when there is no such pair."""
+    d = np.array(
+        [
+            mb - ma
+            for (sa, ma), (sb, mb) in zip(a, b, strict=True)
+            if sa and sb and ma is not None and mb is not None
+        ]
+    )
+    if d.size == 0:
+        return None
+    means = bootstrap_means(d, boot, rng)
+    lo, hi = np.percentile(means, [2.5, 97.5])
+    return {
+        "pairs": int(d.size),
+        "difference": float(d.mean()),
+        "bootstrap_low": float(lo),
+        "bootstrap_high": float(hi),
+    }
