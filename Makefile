@@ -9,13 +9,18 @@ export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 EGL_PACKAGES := libegl1 libgl1 libgl1-mesa-dri libegl-mesa0 libglvnd0 libglx-mesa0
 
-.PHONY: run test lint bench data weights system-deps setup clean
+.PHONY: run test test-slow lint bench data weights system-deps setup clean
 
 run: setup
 	$(PY) -m sim.run_episode --object phone
 
+# The fast tier: unit tests and fast integration (about 2-3 minutes on 2 cores).
 test: setup
 	$(PY) -m pytest -q -m "not slow"
+
+# The slow tier: the gate's episodes, Ray clusters, tree copies through lint-imports, soaks.
+test-slow: setup
+	$(PY) -m pytest -q -m slow
 
 lint: setup
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check . && $(VENV)/bin/lint-imports
@@ -40,8 +45,8 @@ data: setup
 
 # The shipped weights were trained with exactly these commands, in this order (each `--init`
 # names the stage it starts from); perception/weights/manifest.json records each stage's command,
-# data seeds, validation figures and, where measured, wall time, and README.md's "Data and
-# training" says what every stage is for.
+# data seeds, validation figures and, where measured, wall time, and docs/DESIGN.md §7
+# ("Training") says what the stages are for.
 CKPT := $${POSEGRASP_DATA:-data}/checkpoints
 weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed

@@ -1,11 +1,12 @@
 """Dataset generation speed: images per second, end to end (render + PNG/JSON writes).
 
     python bench/datagen_speed.py [--paper N] [--headcam N] [--workers K] [--views V]
+        [--json PATH]
 
-Prints, for the paper protocol at 256x256 in one process and with K worker processes (default 2;
-the target is >= 50 images/s on 2 cores), and for the head-camera distribution at 640x480 in one
-process, with K workers, and with K workers rendering V views per scene (`--views`, default 4;
-the target is >= 30 images/s on 2 cores):
+Prints, for the paper protocol at 256x256 in one process and with K worker processes (default 2,
+the count the targets are for: >= 50 images/s on 2 cores), and for the head-camera distribution
+at 640x480 in one process, with K workers, and with K workers rendering V views per scene
+(`--views`, default 4; the target is >= 30 images/s on 2 cores):
 
 - the end-to-end rate of a run of 2N images (including the workers' start-up: spawn, imports,
   GL contexts);
@@ -15,6 +16,8 @@ the target is >= 30 images/s on 2 cores):
   workers); it does not depend on how busy the machine is, and cores / CPU time is the rate an
   otherwise idle machine would reach.
 
+`--json PATH` writes these figures per run (``-``: to standard output).
+
 Output goes to a temporary folder in the data root (`$POSEGRASP_DATA`, else data/), where
 generated data normally goes (file creation costs differ between file systems), and is deleted
 afterwards.
@@ -22,7 +25,6 @@ afterwards.
 
 from __future__ import annotations
 
-import argparse
 import os
 import resource
 import sys
@@ -31,9 +33,21 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from perception.training.generation import GenConfig, generate
+from perception.training.generation import MAX_VIEWS, GenConfig, generate
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    add_workers_argument,
+    command,
+    summary_stream,
+    write_json,
+)
 from posegrasp.core.paths import data_root
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_int
+
+#: Worker processes of the pool runs unless told otherwise: the targets are for 2 cores.
+TARGET_WORKERS = 2
 
 
 def _cpu_seconds() -> float:
@@ -63,17 +77,26 @@ def measure(cfg: GenConfig) -> dict[str, float]:
     }
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--paper", type=int, default=400, help="paper images N (runs of N and 2N)")
-    p.add_argument("--headcam", type=int, default=120, help="headcam images N (runs of N and 2N)")
-    p.add_argument("--workers", type=int, default=2, help="worker processes of the pool runs")
-    p.add_argument("--views", type=int, default=4, help="headcam views per scene of the last run")
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/datagen_speed.py", description=__doc__.splitlines()[0])
+    images = arg(check_int, 0, 100_000, "--paper", base=int)
+    p.add_argument("--paper", type=images, default=400,
+                   help="paper images N (runs of N and 2N), 0..100000 (0: none)")  # fmt: skip
+    images = arg(check_int, 0, 100_000, "--headcam", base=int)
+    p.add_argument("--headcam", type=images, default=120,
+                   help="headcam images N (runs of N and 2N), 0..100000 (0: none)")  # fmt: skip
+    add_workers_argument(p, TARGET_WORKERS, "of the pool runs, the targets' count")
+    p.add_argument("--views", type=arg(check_int, 1, MAX_VIEWS, "--views", base=int), default=4,
+                   help=f"headcam views per scene of the last run, 1..{MAX_VIEWS}")  # fmt: skip
+    add_json_argument(p, "every run's rates")
     a = p.parse_args(argv)
     setup_rendering()
+    log = summary_stream(a.json)
     os.environ.setdefault("LP_NUM_THREADS", "1")
     cores = os.cpu_count() or 1
-    print(f"cores: {cores}, load average: {os.getloadavg()[0]:.2f}")
+    print(f"cores: {cores}, load average: {os.getloadavg()[0]:.2f}", file=log)
     w = a.workers
     runs = [
         ("paper 256x256, 1 process", "paper", a.paper, 256, 256, 1, 1),
@@ -85,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     ]  # fmt: skip
     root = data_root()
     root.mkdir(parents=True, exist_ok=True)
+    rows = {}
     with tempfile.TemporaryDirectory(dir=root, prefix=".datagen_speed_") as tmp:
         for k, (label, dist, n, w, h, workers, views) in enumerate(runs):
             if n <= 0 or (views > 1 and a.views <= 1):
@@ -101,14 +125,18 @@ def main(argv: list[str] | None = None) -> int:
                 views=views,
             )
             r = measure(cfg)
+            rows[label] = r | {"images": 2 * n, "workers": workers, "views": views}
             print(
                 f"{label}: {r['rate']:5.1f} images/s end to end ({2 * n} in "
                 f"{r['seconds']:.1f} s); long run {r['long_rate']:5.1f} images/s, "
                 f"{1000 * r['cpu']:.1f} ms CPU per image (idle-machine estimate "
                 f"{min(workers, cores) / r['cpu']:.0f} images/s)",
+                file=log,
                 flush=True,
             )
-    print(f"load average after: {os.getloadavg()[0]:.2f}")
+    print(f"load average after: {os.getloadavg()[0]:.2f}", file=log)
+    if a.json is not None:
+        write_json(a.json, {"cores": cores, "runs": rows})
     return 0
 
 

@@ -1,7 +1,7 @@
 """Does a pose net read the object's distance from its crop, or does it guess?
 
     python bench/distance_baseline.py [--weights perception/weights/posenet_paper.pt]
-        [--data paper] [--json out.json]
+        [--data paper] [--json PATH]
 
 On the test crops `perception.training.tables` scores (`TEST_CROPS`: ground-truth boxes
 perturbed like detections) of a dataset folder (a name under the data root or a path), per
@@ -32,8 +32,14 @@ from perception.nets import load_posenet
 from perception.training.crop_sets import build_crops
 from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
 from perception.training.tables import TEST_CROPS
-from posegrasp.core.cli import ArgumentParser, fail, write_json
-from posegrasp.core.errors import PosegraspError
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    summary_stream,
+    write_json,
+)
+from posegrasp.core.errors import AssetError
 from posegrasp.core.paths import WEIGHTS_DIR, data_root
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.world.objects import OBJECT_NAMES, load_object
@@ -102,33 +108,39 @@ def norm_ratios(p: np.ndarray, p_hat: np.ndarray) -> dict[str, dict]:
     return out
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/distance_baseline.py", description=__doc__.split("\n")[0])
-    p.add_argument("--weights", type=Path, default=WEIGHTS_DIR / "posenet_paper.pt")
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=WEIGHTS_DIR / "posenet_paper.pt",
+        metavar="PATH",
+        help="pose net weights (default: the shipped paper net)",
+    )
     p.add_argument("--data", default="paper", help="dataset folder: a name under the data root "
                    "or a path (default: paper)")  # fmt: skip
-    p.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    add_json_argument(p, "the figures")
     a = p.parse_args(argv)
     setup_rendering()
     root = Path(a.data) if Path(a.data).is_dir() else data_root() / a.data
     if not (root / "test").is_dir():
-        return fail(f"no test split in {root}: give --data a dataset folder with a test split")
-    try:
-        res = run(a.weights, root)
-    except PosegraspError as exc:
-        return fail(str(exc))
-    print(f"{a.weights.name} on {root}/test (crops as perception.training.tables cuts them)")
+        raise AssetError(f"no test split in {root}: give --data a dataset folder with a test split")
+    res = run(a.weights, root)
+    log = summary_stream(a.json)
+    print(f"{a.weights.name} on {root}/test (crops as perception.training.tables cuts them)",
+          file=log)  # fmt: skip
     print(f"{'object':<8} {'crops':>5} {'net %':>7} {'constant %':>10} {'log corr':>8} "
-          f"{'diameters':>11}")  # fmt: skip
+          f"{'diameters':>11}", file=log)  # fmt: skip
     for name, r in res.items():
         lo, hi = r["diameters"]
         print(f"{name:<8} {r['crops']:5d} {r['net_distance_pct']:7.2f} "
               f"{r['constant_distance_pct']:10.2f} {r['log_correlation']:8.2f} "
-              f"{lo:5.2f}-{hi:4.2f}")  # fmt: skip
+              f"{lo:5.2f}-{hi:4.2f}", file=log)  # fmt: skip
     ratios = res["all"]["norm_ratio_by_viewpoint_error"]
-    print("|p^| / |p| (median) by viewpoint error: " + ", ".join(
-        f"{k} deg {v['median']:.2f} ({v['crops']})" for k, v in ratios.items()))  # fmt: skip
+    by_error = ", ".join(f"{k} deg {v['median']:.2f} ({v['crops']})" for k, v in ratios.items())
+    print(f"|p^| / |p| (median) by viewpoint error: {by_error}", file=log)
     if a.json is not None:
         write_json(a.json, {"weights": a.weights.name, "data": str(root), "rows": res})
     return 0

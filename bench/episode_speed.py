@@ -1,6 +1,6 @@
 """Grasp planning and whole-episode wall time, in one process (2 cores).
 
-    python bench/episode_speed.py [--episodes 5] [--tier hard] [--estimator hybrid] [--json]
+    python bench/episode_speed.py [--episodes 5] [--tier hard] [--estimator hybrid] [--json PATH]
 
 Targets: planning (all IK for one grasp) <= 100 ms median; a whole oracle episode <= 3 s wall
 median; a `hard` episode <= 1.5 s wall median. Scenes are held out (seeds from 1.4e9); the
@@ -9,32 +9,43 @@ estimator is loaded before the clock starts.
 
 from __future__ import annotations
 
-import argparse
-import json
+import sys
 import time
 
 import numpy as np
 
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    summary_stream,
+    target,
+    write_json,
+)
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_choice, check_int
 from posegrasp.world.objects import OBJECT_NAMES
-from posegrasp.world.tiers import TIERS
+from posegrasp.world.tiers import TIERS, check_tier
 from sim.episode import EpisodeConfig, play_episode
 from sim.estimators import ESTIMATORS, make_estimator
 
 SEED_START = 1_400_000_000
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--episodes", type=int, default=5, help="episodes per object")
-    p.add_argument("--tier", choices=list(TIERS), default="isolated")
-    p.add_argument("--estimator", choices=[e for e in ESTIMATORS if e != "noisy-oracle"],
-                   default="oracle")  # fmt: skip
-    p.add_argument("--json", action="store_true")
-    args = p.parse_args()
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/episode_speed.py", description=__doc__.split("\n")[0])
+    p.add_argument("--episodes", type=arg(check_int, 1, 1000, "--episodes", base=int), default=5,
+                   help="episodes per object, 1..1000 (default 5)")  # fmt: skip
+    p.add_argument("--tier", type=arg(check_tier), default="isolated",
+                   help=f"scene tier, one of: {', '.join(TIERS)} (default isolated)")  # fmt: skip
+    names = [e for e in ESTIMATORS if e != "noisy-oracle"]
+    p.add_argument("--estimator", type=arg(check_choice, names, "estimator"), default="oracle",
+                   metavar="NAME", help=f"one of: {', '.join(names)} (default oracle)")  # fmt: skip
+    add_json_argument(p, "the figures")
+    args = p.parse_args(argv)
     setup_rendering()
-    if not 1 <= args.episodes <= 1000:
-        p.error("--episodes must be in 1..1000")
     walls, stages = [], {}
     successes = 0
     estimator = make_estimator(args.estimator)
@@ -56,24 +67,26 @@ def main() -> None:
         "episode_wall_ms_p90": float(np.percentile(walls, 90)),
         "stage_ms_median": med,
     }
-    if args.json:
-        print(json.dumps(out, sort_keys=True))
-        return
-    ok = lambda good: "PASS" if good else "MISS"  # noqa: E731
-    print(f"{args.estimator} episodes, tier {args.tier}: {out['episodes']} ({successes} successes)")
+    log = summary_stream(args.json)
+    wall = out["episode_wall_ms_median"]
+    print(f"{args.estimator} episodes, tier {args.tier}: {out['episodes']} ({successes} successes)",
+          file=log)  # fmt: skip
     print(
         f"planning (IK for one grasp), median: {out['planning_ms_median']:.1f} ms  "
-        f"[target <= 100 ms: {ok(out['planning_ms_median'] <= 100)}]"
+        + target("<= 100 ms", out["planning_ms_median"] <= 100),
+        file=log,
     )
     print(
-        f"episode wall, median: {out['episode_wall_ms_median']:.0f} ms, "
-        f"p90 {out['episode_wall_ms_p90']:.0f} ms  "
-        f"[target <= 3000 ms: {ok(out['episode_wall_ms_median'] <= 3000)}"
-        + (f"; hard <= 1500 ms: {ok(out['episode_wall_ms_median'] <= 1500)}]"
-           if args.tier == "hard" else "]")
-    )  # fmt: skip
-    print("stages, median ms: " + "  ".join(f"{k} {v:.0f}" for k, v in med.items()))
+        f"episode wall, median: {wall:.0f} ms, p90 {out['episode_wall_ms_p90']:.0f} ms  "
+        + target("<= 3000 ms", wall <= 3000)
+        + (f" {target('of hard <= 1500 ms', wall <= 1500)}" if args.tier == "hard" else ""),
+        file=log,
+    )
+    print("stages, median ms: " + "  ".join(f"{k} {v:.0f}" for k, v in med.items()), file=log)
+    if args.json is not None:
+        write_json(args.json, out)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,13 +1,13 @@
 """Latency of the hybrid pose estimator per stage on 640x480 head-camera images (2 threads).
 
-    python bench/estimator_latency.py [--images 50] [--threads 2] [--json] [--random-weights]
+    python bench/estimator_latency.py [--images 50] [--threads 2] [--json PATH] [--random-weights]
 
 Renders head-camera images of seeded table scenes with 1 object and with 3 objects (the target
 and 2 distractors), then times `HybridPoseEstimator.estimate_timed` on each (after a warm-up):
 median and 90th percentile of every stage (detect, crop, nets, decode) and of the total.
 Targets: total <= 66 ms median for 3 objects; both pose nets <= 7 ms per object (the batched
-nets stage of the 3-object images divided by their detections). `--json` prints one JSON
-object whose ``total_ms_median`` is the 3-object median.
+nets stage of the 3-object images divided by their detections). `--json PATH` writes one JSON
+object whose ``total_ms_median`` is the 3-object median (``-``: to standard output).
 
 Without shipped weights (`make weights`), `--random-weights` times the architecture with random
 weights: the detector then keeps its top-scoring boxes, as many as the scene has objects, so
@@ -16,7 +16,6 @@ every stage sees the work a trained model would do; the poses are meaningless.
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 from pathlib import Path
@@ -32,9 +31,18 @@ import torchvision  # noqa: F401
 
 from perception.detector import DEFAULT_WEIGHTS
 from perception.hybrid import DEFAULT_POSENET, STAGES, HybridPoseEstimator
-from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    fail,
+    summary_stream,
+    target,
+    write_json,
+)
 from posegrasp.core.errors import PosegraspError
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_int, check_seed
 from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, camera_intrinsics
 from posegrasp.world.objects import OBJECT_NAMES
@@ -79,24 +87,27 @@ def time_estimator(
     return {"stages_ms": stats, "detections_per_image": float(np.mean(counts))}
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/estimator_latency.py", description=__doc__.split("\n")[0])
-    p.add_argument("--images", type=int, default=50, help="images per scene type (>= 1)")
-    p.add_argument("--threads", type=int, default=2, help="torch threads")
-    p.add_argument("--seed", type=int, default=5000, help="seed of the first scene")
-    p.add_argument("--detector", type=Path, default=DEFAULT_WEIGHTS)
-    p.add_argument("--posenet", type=Path, default=DEFAULT_POSENET)
+    p.add_argument("--images", type=arg(check_int, 1, 10_000, "--images", base=int), default=50,
+                   help="images per scene type, 1..10000 (default 50)")  # fmt: skip
+    p.add_argument("--threads", type=arg(check_int, 1, 64, "--threads", base=int), default=2,
+                   help="torch threads, 1..64 (default 2)")  # fmt: skip
+    p.add_argument("--seed", type=arg(check_seed, "--seed", base=int), default=5000,
+                   help="seed of the first scene (default 5000)")  # fmt: skip
+    p.add_argument("--detector", type=Path, default=DEFAULT_WEIGHTS, metavar="PATH")
+    p.add_argument("--posenet", type=Path, default=DEFAULT_POSENET, metavar="PATH")
     p.add_argument(
         "--random-weights",
         action="store_true",
         help="time the architecture with random weights (no training needed)",
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    args = p.parse_args(argv)  # fmt: skip
+    add_json_argument(p, "the figures")
+    args = p.parse_args(argv)
     setup_rendering()
-    if args.images < 1 or args.threads < 1:
-        return fail("--images and --threads must be at least 1")
+    check_seed(args.seed, "--seed", 3000 + args.images)
     torch.set_num_threads(args.threads)
     results = {}
     try:
@@ -126,30 +137,32 @@ def main(argv: list[str] | None = None) -> int:
         "nets_ms_per_object": nets_per_object,
         "load_average_1min": os.getloadavg()[0],
     }
-    if args.json:
-        print(json.dumps(out, sort_keys=True))
-        return 0
+    log = summary_stream(args.json)
     label = "RANDOM WEIGHTS (architecture only)" if args.random_weights else "shipped weights"
     print(f"hybrid estimator, {label}, {WIDTH}x{HEIGHT}, {args.threads} threads, "
-          f"{args.images} images per row, load average {out['load_average_1min']:.1f}")  # fmt: skip
-    print(f"{'objects':<9}{'dets':>6}" + "".join(f"{s:>18}" for s in (*STAGES, "total")))
+          f"{args.images} images per row, load average {out['load_average_1min']:.1f}",
+          file=log)  # fmt: skip
+    print(f"{'objects':<9}{'dets':>6}" + "".join(f"{s:>18}" for s in (*STAGES, "total")), file=log)
     for n in (1, 3):
         r = results[n]
         cells = "".join(
             f"{r['stages_ms'][s]['median']:>9.1f} /{r['stages_ms'][s]['p90']:>6.1f}"
             for s in (*STAGES, "total")
         )
-        print(f"{n:<9}{r['detections_per_image']:>6.1f}{cells}")
-    print("(median / p90 ms)")
-    verdict = "PASS" if three["median"] <= TARGET_MS else "MISS"
+        print(f"{n:<9}{r['detections_per_image']:>6.1f}{cells}", file=log)
+    print("(median / p90 ms)", file=log)
     print(
-        f"3-object total median {three['median']:.1f} ms [target <= {TARGET_MS:.0f} ms: {verdict}]"
+        f"3-object total median {three['median']:.1f} ms "
+        + target(f"<= {TARGET_MS:.0f} ms", three["median"] <= TARGET_MS),
+        file=log,
     )
-    verdict = "PASS" if nets_per_object <= NETS_TARGET_MS else "MISS"
     print(
         f"2D-NET + 4D-NET, batched over the 3-object images: {nets_per_object:.2f} ms per object "
-        f"[target <= {NETS_TARGET_MS:.0f} ms: {verdict}]"
+        + target(f"<= {NETS_TARGET_MS:.0f} ms", nets_per_object <= NETS_TARGET_MS),
+        file=log,
     )
+    if args.json is not None:
+        write_json(args.json, out)
     return 0
 
 

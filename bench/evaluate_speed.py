@@ -1,7 +1,7 @@
 """Hybrid episode wall time and the speed-up of `sim.evaluate` with 2 worker processes over 1.
 
-    python bench/evaluate_speed.py [--estimator hybrid] [--episodes 10] [--json]
-    python bench/evaluate_speed.py --backend ray [--workers 2] [--address ADDR]
+    python bench/evaluate_speed.py [--estimator hybrid] [--episodes 10] [--json PATH]
+    python bench/evaluate_speed.py --backend ray [--workers 2] [--address ADDR] [--json PATH]
 
 Runs the same held-out episodes (`--episodes` per object) with 1 and with 2 workers through
 `sim.evaluate.evaluate`, prints the median episode wall time (one process, estimator loaded) and
@@ -35,13 +35,30 @@ from pathlib import Path
 
 import numpy as np
 
-from posegrasp.core.backends import BACKENDS, OBJECT_STORE_BYTES, run_map
+from posegrasp.core.backends import (
+    OBJECT_STORE_BYTES,
+    add_backend_arguments,
+    check_backend,
+    run_map,
+)
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    add_workers_argument,
+    command,
+    summary_stream,
+    target,
+    write_json,
+)
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_int
 from posegrasp.world.objects import OBJECT_NAMES
-from sim.estimators import DEFAULT_ESTIMATOR
+from sim.estimators import add_estimator_arguments
 from sim.evaluate import evaluate
 
 SEED_START = 1_200_000_000  # held out (posegrasp.world.constants.EVAL_SEED_BASE and above)
+#: CPUs of each backend in the Ray comparison unless told otherwise: the target is for 2 cores.
+TARGET_WORKERS = 2
 
 
 def _outcomes(report: dict) -> list[tuple]:
@@ -97,32 +114,37 @@ def ray_side_by_side(args: argparse.Namespace, objs: list[str]) -> dict:
     }
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--estimator", default=DEFAULT_ESTIMATOR)
-    p.add_argument("--episodes", type=int, default=10, help="episodes per object")
-    p.add_argument("--json", action="store_true")
-    p.add_argument("--backend", default="local", choices=BACKENDS)
-    p.add_argument("--workers", type=int, default=2, help="processes or Ray CPUs (--backend ray)")
-    p.add_argument("--address", default=None, help="an existing Ray cluster (--backend ray)")
-    args = p.parse_args()
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/evaluate_speed.py", description=__doc__.split("\n")[0])
+    add_estimator_arguments(p, noise=False)
+    p.add_argument("--episodes", type=arg(check_int, 1, 10_000, "--episodes", base=int),
+                   default=10, help="episodes per object, 1..10000 (default 10)")  # fmt: skip
+    add_json_argument(p, "the figures")
+    add_backend_arguments(p)
+    add_workers_argument(p, TARGET_WORKERS, "with --backend ray: processes or Ray CPUs per backend")
+    args = p.parse_args(argv)
     setup_rendering()
+    check_backend(args.backend, args.address)
+    log = summary_stream(args.json)
     objs = list(OBJECT_NAMES)
     if args.backend == "ray":
         out = ray_side_by_side(args, objs)
-        if args.json:
-            print(json.dumps(out, sort_keys=True))
-            return
         rel = out["ray_over_local"]
-        print(f"{args.estimator}: {out['episodes']} episodes on {out['cpus']} CPUs per backend")
-        print(f"{'backend':<8} {'episodes/s':>10}")
-        print(f"{'local':<8} {out['episodes_per_s_local']:>10.2f}")
+        print(f"{args.estimator}: {out['episodes']} episodes on {out['cpus']} CPUs per backend",
+              file=log)  # fmt: skip
+        print(f"{'backend':<8} {'episodes/s':>10}", file=log)
+        print(f"{'local':<8} {out['episodes_per_s_local']:>10.2f}", file=log)
         print(f"{'ray':<8} {out['episodes_per_s_ray']:>10.2f}  ({rel:.0%} of local, start-up "
-              f"apart)  [target >= 85 %: {'PASS' if rel >= 0.85 else 'MISS'}]")  # fmt: skip
+              f"apart)  {target('>= 85 %', rel >= 0.85)}", file=log)  # fmt: skip
         print(f"Ray start-up {out['ray_startup_s']:.1f} s; per-task overhead "
-              f"{out['ray_task_overhead_ms']:.1f} ms (no-op tasks of one job)")  # fmt: skip
-        print(f"same outcomes on both backends: {out['same_outcomes']}")
-        return
+              f"{out['ray_task_overhead_ms']:.1f} ms (no-op tasks of one job)",
+              file=log)  # fmt: skip
+        print(f"same outcomes on both backends: {out['same_outcomes']}", file=log)
+        if args.json is not None:
+            write_json(args.json, out)
+        return 0
     one = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=1)
     two = _fresh_evaluation(args.episodes, args.estimator, workers=2)
     longer = _fresh_evaluation(2 * args.episodes, args.estimator, workers=2)
@@ -149,31 +171,33 @@ def main() -> None:
         "same_outcomes": same,
         "successes": one["overall"]["successes"],
     }
-    if args.json:
-        print(json.dumps(out, sort_keys=True))
-        return
-    ok = lambda good: "PASS" if good else "MISS"  # noqa: E731
-    print(f"{args.estimator}: {out['episodes']} episodes, {out['successes']} successes")
+    print(f"{args.estimator}: {out['episodes']} episodes, {out['successes']} successes", file=log)
     print(
         f"episode wall (1 process), median {out['episode_wall_ms_median']:.0f} ms, "
         f"p90 {out['episode_wall_ms_p90']:.0f} ms  "
-        f"[target <= 3000 ms: {ok(out['episode_wall_ms_median'] <= 3000)}]"
+        + target("<= 3000 ms", out["episode_wall_ms_median"] <= 3000),
+        file=log,
     )
     print(
         f"sim.evaluate wall: 1 worker {out['wall_s_1_worker']:.1f} s, 2 workers "
         f"{out['wall_s_2_workers']:.1f} s ({out['speedup_2_workers_end_to_end']:.2f}x end to "
         f"end); after start-up {out['episodes_per_s_1_worker_after_loading']:.2f} against "
         f"{out['episodes_per_s_2_workers_long_run']:.2f} episodes/s, speed-up "
-        f"{out['speedup_2_workers']:.2f}x  [target >= 1.6x: {ok(out['speedup_2_workers'] >= 1.6)}]"
+        f"{out['speedup_2_workers']:.2f}x  " + target(">= 1.6x", out["speedup_2_workers"] >= 1.6),
+        file=log,
     )
     long_run = out["episodes_per_s_2_workers_long_run"]
     print(
         f"throughput with 2 workers: {out['episodes_per_s_2_workers']:.2f} episodes/s end to end, "
-        f"{long_run:.2f} in a long run  [target >= 10: {ok(long_run >= 10)}]; start-up of the "
-        f"workers (processes, imports, loading) about {out['startup_s_2_workers']:.1f} s"
+        f"{long_run:.2f} in a long run  {target('>= 10', long_run >= 10)}; start-up of the "
+        f"workers (processes, imports, loading) about {out['startup_s_2_workers']:.1f} s",
+        file=log,
     )
-    print(f"same outcomes with 1 and 2 workers and in the longer run: {same}")
+    print(f"same outcomes with 1 and 2 workers and in the longer run: {same}", file=log)
+    if args.json is not None:
+        write_json(args.json, out)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,7 +1,7 @@
 """Grasp success against pose noise on every tier: the paired noise curve, one line per tier.
 
-    python bench/noise_curves.py [--tiers all] [--episodes 50] [--out out/noise] \
-        [--plot docs/noise_curves_tiers.png] [--json F]
+    python bench/noise_curves.py [--tiers all] [--episodes 50] [--workers N] [--out out/noise] \
+        [--plot docs/noise_curves_tiers.png] [--json PATH]
 
 For each tier, `oracle` and then `noisy-oracle` at sigma = (2.5 mm, 1 deg), (5 mm, 2 deg),
 (10 mm, 4 deg) and (20 mm, 8 deg) on all four error components run on the same held-out scenes
@@ -19,16 +19,18 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from posegrasp.core.cli import ArgumentParser, write_json
-from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import (
-    arg,
-    check_int,
-    check_names,
-    check_output_dir,
-    check_output_file,
-    check_plot_path,
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    add_out_argument,
+    add_workers_argument,
+    command,
+    summary_stream,
+    write_json,
 )
+from posegrasp.core.files import atomic_write_json
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_int, check_names, check_plot_path
 from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import TIERS
@@ -54,17 +56,19 @@ def _tick(noise: str | None) -> str:
     return f"{mm} mm, {deg} deg"
 
 
-def run_tier(tier: str, episodes: int, out: Path) -> list[dict]:
-    """The tier's chain of reports (run, or read back when already in `out`)."""
+def run_tier(tier: str, episodes: int, out: Path, workers: int = 1) -> list[dict]:
+    """The tier's chain of reports (run on `workers` processes, or read back when already in
+    `out`)."""
     paths = []
     for label, noise in LEVELS:
         path = out / f"{tier}_{label}.json"
         if not path.is_file():
             estimator = "oracle" if noise is None else "noisy-oracle"
             print(f"{tier}: {estimator} {noise or ''}", file=sys.stderr)
-            report = evaluate(list(OBJECT_NAMES), episodes, estimator, EVAL_SEED_BASE, 2, tier,
-                              noise=noise, margin=True)  # fmt: skip
-            write_json(path, report)
+            report = evaluate(list(OBJECT_NAMES), episodes, estimator, EVAL_SEED_BASE, workers,
+                              tier, noise=noise, margin=True)  # fmt: skip
+            atomic_write_json(path, report)
+            print(f"wrote {path}", file=sys.stderr)
         paths.append(path)
     check_same_execution(paths)
     return curve(paths)
@@ -95,27 +99,31 @@ def plot(chains: dict[str, list[dict]], path: Path) -> None:
     plt.close(fig)
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
-    p = ArgumentParser(description=__doc__.split("\n")[0])
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/noise_curves.py", description=__doc__.split("\n")[0])
     tiers = arg(check_names, list(TIERS), "tier", "--tiers")
     p.add_argument("--tiers", type=tiers, default=list(TIERS),
                    help="'all' or a comma list of " + ", ".join(TIERS))  # fmt: skip
     p.add_argument("--episodes", type=arg(check_int, 3, 10_000, "--episodes", base=int),
                    default=50, help="episodes per object and level, 3..10000")  # fmt: skip
-    p.add_argument("--out", type=arg(check_output_dir, "--out"), default=Path("out/noise"),
-                   help="the runs' reports")  # fmt: skip
-    p.add_argument("--plot", type=arg(check_plot_path, "--plot"), default=None)
-    p.add_argument("--json", type=arg(check_output_file, "--json"), default=None)
+    add_workers_argument(p)
+    add_out_argument(p, "the runs' reports, <tier>_<level>.json, reused by a rerun", "out/noise")
+    p.add_argument("--plot", type=arg(check_plot_path, "--plot"), default=None, metavar="PATH",
+                   help="success against sigma for every tier (.png, .pdf or .svg)")  # fmt: skip
+    add_json_argument(p, "every tier's chain")
     args = p.parse_args(argv)
     setup_rendering()
+    log = summary_stream(args.json)
     args.out.mkdir(parents=True, exist_ok=True)
     chains = {}
     for tier in args.tiers:
-        chains[tier] = run_tier(tier, args.episodes, args.out)
-        print(f"tier {tier}:\n{format_curve(chains[tier])}\n")
+        chains[tier] = run_tier(tier, args.episodes, args.out, args.workers)
+        print(f"tier {tier}:\n{format_curve(chains[tier])}\n", file=log)
     if args.plot is not None:
         plot(chains, args.plot)
-        print(f"wrote {args.plot}")
+        print(f"wrote {args.plot}", file=log)
     if args.json is not None:
         write_json(args.json, chains)
     return 0

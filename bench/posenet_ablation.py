@@ -1,11 +1,11 @@
 """Ablations of the pose nets: each choice trained both ways on the same data, same seed and
 same budget, and scored on the held-out test split.
 
-    python bench/posenet_ablation.py --study per-object [--json out.json]
-    python bench/posenet_ablation.py --study ours [--epochs 5] [--json out.json]
-    python bench/posenet_ablation.py --study forgetting [--epochs 5] [--json out.json]
-    python bench/posenet_ablation.py --study rotation [--epochs 5] [--json out.json]
-    python bench/posenet_ablation.py --study ensemble [--epochs 5] [--json out.json]
+    python bench/posenet_ablation.py --study per-object [--json PATH]
+    python bench/posenet_ablation.py --study ours [--epochs 5] [--json PATH]
+    python bench/posenet_ablation.py --study forgetting [--epochs 5] [--json PATH]
+    python bench/posenet_ablation.py --study rotation [--epochs 5] [--json PATH]
+    python bench/posenet_ablation.py --study ensemble [--epochs 5] [--json PATH]
 
 Studies:
 - ``per-object``: the paper trains one 2D-NET and one 4D-NET per object. Here each object gets
@@ -39,16 +39,16 @@ Runs checkpoint as they go (`<data>/checkpoints/ablation/`) and a rerun resumes 
 run is not retrained. Test crops are `perception.training.tables`' (`TEST_CROPS`): the same
 ground-truth boxes perturbed like detections. Prints centre error in crop pixels (Table 1's
 unit) and in image pixels, distance [%], rotation [deg] and the share of rotations over 15 deg,
-per object and overall; `--json` writes every figure once all runs are done.
+per object and overall; `--json PATH` writes every figure once all runs are done (``-``: to
+standard output).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 import torch
@@ -59,8 +59,16 @@ from perception.training.generation import GENERATOR_VERSIONS
 from perception.training.posenet_eval import evaluate_arrays
 from perception.training.tables import TEST_CROPS
 from perception.training.train_posenet import PoseNetTrainConfig, checkpoint_path, train
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    summary_stream,
+    write_json,
+)
 from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_choice, check_int
 from posegrasp.world.objects import OBJECT_NAMES
 
 COLUMNS = ("center_crop_px", "center_px", "distance_pct", "rotation_deg")
@@ -229,32 +237,31 @@ def ensemble_study(out: Path, epochs: int) -> dict:
     return res
 
 
-def _print(results: dict) -> None:
+def _print(results: dict, log: TextIO | None = None) -> None:
     print("| run | object | centre [crop px] | centre [px] | distance [%] | rotation [deg] "
-          "| > 15 deg |")  # fmt: skip
-    print("|---" * 7 + "|")
+          "| > 15 deg |", file=log)  # fmt: skip
+    print("|---" * 7 + "|", file=log)
     for label, per in results.items():
         for obj in (*OBJECT_NAMES, "average"):
             r = per[obj]
             print(
                 f"| {label} | {obj} | {r['center_crop_px']:.2f} | {r['center_px']:.2f} | "
-                f"{r['distance_pct']:.2f} | {r['rotation_deg']:.2f} | {r['outlier_rate']:.1%} |"
+                f"{r['distance_pct']:.2f} | {r['rotation_deg']:.2f} | {r['outlier_rate']:.1%} |",
+                file=log,
             )
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--study", required=True, help=f"one of: {', '.join(STUDIES)}")
-    p.add_argument("--epochs", type=int, default=5, help="epochs of the `ours` runs")
-    p.add_argument("--json", type=Path, default=None, help="write every figure here")
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/posenet_ablation.py", description=__doc__.split("\n")[0])
+    p.add_argument("--study", required=True, type=arg(check_choice, STUDIES, "study"),
+                   help=f"one of: {', '.join(STUDIES)}")  # fmt: skip
+    p.add_argument("--epochs", type=arg(check_int, 1, 100, "--epochs", base=int), default=5,
+                   help="epochs of the `ours` runs, 1..100 (default 5)")  # fmt: skip
+    add_json_argument(p, "every figure of the finished study")
     args = p.parse_args(argv)
     setup_rendering()
-    if args.study not in STUDIES:
-        print(f"error: unknown study {args.study!r}; valid: {', '.join(STUDIES)}", file=sys.stderr)
-        return 2
-    if not 1 <= args.epochs <= 100:
-        print("error: --epochs must be in 1..100", file=sys.stderr)
-        return 2
     out = checkpoint_dir() / "ablation"
     if args.study == "per-object":
         results = per_object_study(out)
@@ -266,11 +273,9 @@ def main(argv: list[str] | None = None) -> int:
         results = ensemble_study(out, args.epochs)
     else:
         results = ours_study(out, args.epochs)
-    _print(results)
-    if args.json:
-        tmp = args.json.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"study": args.study, "results": results}, indent=1))
-        tmp.replace(args.json)  # only a finished study is written
+    _print(results, summary_stream(args.json))
+    if args.json is not None:
+        write_json(args.json, {"study": args.study, "results": results})
     return 0
 
 

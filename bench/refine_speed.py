@@ -1,6 +1,7 @@
 """Speed and accuracy of the render-and-compare refiner on the head-camera test split.
 
-    python bench/refine_speed.py [--images 100] [--start 0] [--repeats 3] [--threads 2] [--json]
+    python bench/refine_speed.py [--images 100] [--start 0] [--repeats 3] [--threads 2]
+        [--json PATH]
 
 Runs the shipped hybrid estimator (detector + pose nets) on test images
 (``$POSEGRASP_DATA/headcam/test``) and matches its detections to the annotated objects as
@@ -20,7 +21,6 @@ error. Target: <= 10 ms per object on 2 cores, rotation <= 1.5 deg, centre <= 1 
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -35,10 +35,17 @@ from perception.metrics import box_iou, mask_iou, rotation_error_deg
 from perception.overlay import silhouette
 from perception.refine import PoseRefiner
 from perception.training.dataset import PoseDataset
-from posegrasp.core.cli import ArgumentParser, fail
-from posegrasp.core.errors import PosegraspError
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    summary_stream,
+    target,
+    write_json,
+)
 from posegrasp.core.paths import data_root
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_int
 from posegrasp.world.objects import load_object
 
 TARGET_MS = 10.0
@@ -116,45 +123,47 @@ def summary(r: dict) -> dict:
     return out
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/refine_speed.py", description=__doc__.split("\n")[0])
-    p.add_argument("--images", type=int, default=100, help="test images (>= 1; the split has 500)")
-    p.add_argument("--start", type=int, default=0, help="first test image (>= 0)")
-    p.add_argument("--repeats", type=int, default=3, help="timed runs per object (>= 1)")
-    p.add_argument("--threads", type=int, default=2, help="torch threads (>= 1)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--images", type=arg(check_int, 1, 100_000, "--images", base=int), default=100,
+                   help="test images, 1..100000 (default 100; the split has 500)")  # fmt: skip
+    p.add_argument("--start", type=arg(check_int, 0, 100_000, "--start", base=int), default=0,
+                   help="first test image, 0..100000 (default 0)")  # fmt: skip
+    p.add_argument("--repeats", type=arg(check_int, 1, 100, "--repeats", base=int), default=3,
+                   help="timed runs per object, 1..100 (default 3)")  # fmt: skip
+    p.add_argument("--threads", type=arg(check_int, 1, 64, "--threads", base=int), default=2,
+                   help="torch threads, 1..64 (default 2)")  # fmt: skip
+    add_json_argument(p, "the figures")
     args = p.parse_args(argv)
     setup_rendering()
-    if min(args.images, args.repeats, args.threads) < 1 or args.start < 0:
-        return fail("--images, --repeats and --threads must be at least 1, --start at least 0")
     torch.set_num_threads(args.threads)
-    try:
-        ds = PoseDataset(data_root() / "headcam", "test")
-        indices = range(args.start, min(len(ds), args.start + args.images))
-        res = summary(run(ds, indices, args.repeats))
-    except PosegraspError as exc:
-        return fail(str(exc))
+    ds = PoseDataset(data_root() / "headcam", "test")
+    indices = range(args.start, min(len(ds), args.start + args.images))
+    res = summary(run(ds, indices, args.repeats))
     res |= {"images": [indices.start, indices.stop], "load_average_1min": os.getloadavg()[0]}
-    if args.json:
-        print(json.dumps(res, sort_keys=True))
-        return 0
+    log = summary_stream(args.json)
     print(f"refiner on headcam/test images {indices.start}..{indices.stop - 1}: "
-          f"{res['objects']} objects, load average {res['load_average_1min']:.1f}")  # fmt: skip
+          f"{res['objects']} objects, load average {res['load_average_1min']:.1f}",
+          file=log)  # fmt: skip
     for key, label in (("fastest_ms", f"fastest of {args.repeats}"), ("first_ms", "first run")):
         t = res[key]
         print(f"time per object [ms] ({label}): median {t['median']:.1f}, p90 {t['p90']:.1f} "
-              f"(target <= {TARGET_MS:.0f})")  # fmt: skip
+              + target(f"<= {TARGET_MS:.0f} ms", t["median"] <= TARGET_MS), file=log)  # fmt: skip
     print(f"{'':8}{'rot mean':>10}{'rot med':>9}{'centre px':>11}{'dist %':>8}{'IoU':>8}"
-          f"{'IoU>0.5':>9}")  # fmt: skip
+          f"{'IoU>0.5':>9}", file=log)  # fmt: skip
     for when in ("before", "after"):
         e = res[when]
         print(f"{when:8}{e['rotation_deg_mean']:>10.2f}{e['rotation_deg_median']:>9.2f}"
               f"{e['centre_px_mean']:>11.2f}{e['distance_pct_mean']:>8.2f}{e['iou_mean']:>8.3f}"
-              f"{e['iou_over_0.5']:>9.3f}")  # fmt: skip
+              f"{e['iou_over_0.5']:>9.3f}", file=log)  # fmt: skip
     print(
-        f"accepted {res['accepted']:.1%}; rotation error lowered for {res['rotation_lowered']:.1%}"
+        f"accepted {res['accepted']:.1%}; rotation error lowered for {res['rotation_lowered']:.1%}",
+        file=log,
     )
+    if args.json is not None:
+        write_json(args.json, res)
     return 0
 
 

@@ -1,6 +1,6 @@
 """Simulation and rendering speed of posegrasp scenes, against the project's targets.
 
-    python bench/sim_speed.py [--seeds 10] [--sim-seconds 5] [--frames 30] [--json]
+    python bench/sim_speed.py [--seeds 10] [--sim-seconds 5] [--frames 30] [--json PATH]
 
 Measures, on this machine (software EGL rendering unless MUJOCO_GL says otherwise):
 - scene build time: `build_scene` (compile, place, aim the head, 0.5 s settle), median over seeds;
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 # Before MuJoCo is imported: it picks its GL backend at import time (sim does the same, but
 # mujoco is imported first here).
-import json
 import os
 import platform
 import statistics
@@ -28,9 +27,16 @@ from dataclasses import asdict, dataclass
 
 import mujoco
 
-from posegrasp.core.cli import ArgumentParser, fail
-from posegrasp.core.errors import InvalidArgumentError, PosegraspError
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    summary_stream,
+    verdict,
+    write_json,
+)
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_float, check_int
 from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, RenderOptions
 from posegrasp.world.objects import OBJECT_NAMES
@@ -174,10 +180,6 @@ def measure(seeds: int, sim_seconds: float, frames: int) -> SpeedReport:
     )
 
 
-def _mark(ok: bool) -> str:
-    return "PASS" if ok else "MISS"
-
-
 def format_report(r: SpeedReport) -> str:
     """The human-readable table."""
     ok = r.checks()
@@ -186,10 +188,10 @@ def format_report(r: SpeedReport) -> str:
         "",
         f"{'measure':<54}{'value':>10}  {'target':<10}result",
         f"{'scene build, median of ' + str(r.build_seeds) + ' seeds [s]':<54}"
-        f"{r.build_s_median:>10.3f}  {'<= 0.5':<10}{_mark(ok['build'])}",
+        f"{r.build_s_median:>10.3f}  {'<= 0.5':<10}{verdict(ok['build'])}",
         f"{'  (min / max) [s]':<54}{r.build_s_min:>10.3f}  {r.build_s_max:.3f}",
         f"{'physics real-time factor, 1 object':<54}{r.rtf_one_object:>10.1f}  "
-        f"{'>= 10':<10}{_mark(ok['rtf'])}",
+        f"{'>= 10':<10}{verdict(ok['rtf'])}",
         f"{'physics real-time factor, 6 objects':<54}{r.rtf_six_objects:>10.1f}",
         f"(renders use the scene's multisampling, {r.msaa_samples} samples, unless marked)",
     ]
@@ -200,39 +202,43 @@ def format_report(r: SpeedReport) -> str:
         line = f"{label + ' [fps]':<54}{s.fps:>10.1f}"
         key = (s.kind, s.width, s.height, s.shadows, s.msaa_samples)
         if key == ("rgb", 640, 480, False, r.msaa_samples):
-            line += f"  {'>= 30':<10}{_mark(ok['rgb_640x480_no_shadows'])}"
+            line += f"  {'>= 30':<10}{verdict(ok['rgb_640x480_no_shadows'])}"
         lines.append(line)
     return "\n".join(lines)
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
     parser = ArgumentParser(
         prog="python bench/sim_speed.py",
         description="Scene build time, physics real-time factor and render speed vs targets.",
     )
-    parser.add_argument("--seeds", type=int, default=10, help="scenes to build (default: 10)")
     parser.add_argument(
-        "--sim-seconds", type=float, default=5.0, help="simulated time per RTF run (default: 5)"
+        "--seeds",
+        type=arg(check_int, 1, 10_000, "--seeds", base=int),
+        default=10,
+        help="scenes to build, 1..10000 (default: 10)",
     )
-    parser.add_argument("--frames", type=int, default=30, help="frames per render figure (30)")
-    parser.add_argument("--json", action="store_true", help="print one JSON object instead")
-    try:
-        args = parser.parse_args(argv)
-        setup_rendering()
-        if args.seeds < 1 or args.frames < 1 or not args.sim_seconds > 0:
-            raise InvalidArgumentError(
-                "--seeds and --frames must be integers >= 1 and --sim-seconds a number > 0"
-            )
-        report = measure(args.seeds, args.sim_seconds, args.frames)
-    except SystemExit as exc:  # --help, or a bad argument already reported in one line
-        return exc.code if isinstance(exc.code, int) else 0
-    except PosegraspError as exc:
-        return fail(str(exc))
-    if args.json:
-        print(json.dumps({**asdict(report), "targets_met": report.checks()}))
-    else:
-        print(format_report(report))
+    parser.add_argument(
+        "--sim-seconds",
+        type=arg(check_float, 0.01, 3600.0, "--sim-seconds", base=float),
+        default=5.0,
+        help="simulated time per RTF run [s], 0.01..3600 (default: 5)",
+    )
+    parser.add_argument(
+        "--frames",
+        type=arg(check_int, 1, 100_000, "--frames", base=int),
+        default=30,
+        help="frames per render figure, 1..100000 (default: 30)",
+    )
+    add_json_argument(parser, "every figure and the targets met")
+    args = parser.parse_args(argv)
+    setup_rendering()
+    report = measure(args.seeds, args.sim_seconds, args.frames)
+    print(format_report(report), file=summary_stream(args.json))
+    if args.json is not None:
+        write_json(args.json, {**asdict(report), "targets_met": report.checks()})
     return 0
 
 

@@ -1,6 +1,6 @@
 """Soak: many episodes over every object, estimator and tier, with injected faults.
 
-    python bench/soak.py [--episodes 1000] [--workers 2] [--json summary.json]
+    python bench/soak.py [--episodes 1000] [--workers N] [--json PATH]
 
 Episode i runs combination i of objects x estimators x tiers (cycled) on held-out seed
 `SEED_START` + i, in spawned worker processes. Faults injected on the way: a worker process is
@@ -32,12 +32,19 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from posegrasp.core.cli import ArgumentParser, fail, write_json
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    add_workers_argument,
+    command,
+    summary_stream,
+    write_json,
+)
 from posegrasp.core.errors import AssetError, PosegraspError
 from posegrasp.core.files import atomic_write_json
 from posegrasp.core.paths import WEIGHTS_DIR
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import arg, check_int, check_output_file, check_workers
+from posegrasp.core.validate import arg, check_int
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import TIERS
 from sim.estimators import ESTIMATORS
@@ -233,22 +240,19 @@ def format_summary(s: dict) -> str:
     ])  # fmt: skip
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns 0, or 1 when the soak found a crash or lost an episode."""
     p = ArgumentParser(prog="python bench/soak.py", description=__doc__.split("\n")[0])
     p.add_argument("--episodes", type=arg(check_int, 1, 100_000, "--episodes", base=int),
                    default=1000, help="episodes, 1..100000 (default 1000)")  # fmt: skip
-    p.add_argument("--workers", type=arg(check_workers, base=int), default=2, help="1..64")
-    p.add_argument("--json", type=arg(check_output_file, "--json"), default=None,
-                   help="write the summary here")  # fmt: skip
+    add_workers_argument(p)
+    add_json_argument(p, "the figures")
     args = p.parse_args(argv)
     setup_rendering()
     with tempfile.TemporaryDirectory() as d:
-        try:
-            s = soak(args.episodes, args.workers, Path(d) / "record.json")
-        except PosegraspError as exc:
-            return fail(str(exc))
-    print(format_summary(s))
+        s = soak(args.episodes, args.workers, Path(d) / "record.json")
+    print(format_summary(s), file=summary_stream(args.json))
     if args.json is not None:
         write_json(args.json, s)
     return 1 if s["crashes"] or s["episodes_lost"] else 0

@@ -1,7 +1,7 @@
 """Test-time augmentation of the pose nets: does fusing the poses of several crops help?
 
     python bench/tta_ablation.py [--weights perception/weights/posenet_ours.pt]
-        [--dataset headcam] [--limit N] [--json out.json]
+        [--dataset headcam] [--limit N] [--json PATH]
 
 On a test split, each object gets the crop `perception.training.tables` scores it with (a
 ground-truth box perturbed like a detection, `TEST_CROPS`), plus variants of that crop: its
@@ -17,8 +17,6 @@ fifteen; and the nets' time per object for each.
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -27,11 +25,19 @@ import numpy as np
 
 from perception.nets import load_posenet
 from perception.training.crop_sets import CropSet, random_boxes
-from perception.training.dataset import PoseDataset
+from perception.training.dataset import DATASETS, PoseDataset
 from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
 from perception.training.tables import TEST_CROPS
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    summary_stream,
+    write_json,
+)
 from posegrasp.core.paths import WEIGHTS_DIR, data_root
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_choice, check_int
 
 SCALES = (1.0, 0.92, 1.08)
 SHIFTS = ((0.0, 0.0), (0.04, 0.0), (-0.04, 0.0), (0.0, 0.04), (0.0, -0.04))
@@ -85,14 +91,24 @@ def fuse(uv: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.median(uv, axis=0), out
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--weights", type=Path, default=WEIGHTS_DIR / "posenet_ours.pt")
-    p.add_argument("--dataset", default="headcam")
-    p.add_argument("--limit", type=int, default=None, help="first N test images")
-    p.add_argument("--json", type=Path, default=None)
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/tta_ablation.py", description=__doc__.splitlines()[0])
+    p.add_argument("--weights", type=Path, default=WEIGHTS_DIR / "posenet_ours.pt", metavar="PATH",
+                   help="pose net weights (default: the shipped ours)")  # fmt: skip
+    p.add_argument(
+        "--dataset",
+        default="headcam",
+        type=arg(check_choice, DATASETS, "dataset"),
+        help=f"dataset folder under the data root, one of: {', '.join(DATASETS)}",
+    )
+    p.add_argument("--limit", type=arg(check_int, 1, 100_000_000, "--limit", base=int),
+                   default=None, help="first N test images")  # fmt: skip
+    add_json_argument(p, "the figures")
     a = p.parse_args(argv)
     setup_rendering()
+    log = summary_stream(a.json)
     model = load_posenet(a.weights)
     data, n = crops_with_variants(data_root() / a.dataset, a.limit)
     t = time.perf_counter()
@@ -113,15 +129,15 @@ def main(argv: list[str] | None = None) -> int:
             "nets_ms_per_object": per_crop_ms * len(idx),
         }
     print(f"{a.weights.name} on {a.dataset}/test: {n} objects (ground-truth boxes perturbed "
-          "like detections)")  # fmt: skip
+          "like detections)", file=log)  # fmt: skip
     print(f"{'crops':<12} {'centre px':>9} {'distance %':>10} {'rotation':>9} "
-          f"{'> 15 deg':>8} {'nets ms':>8}")  # fmt: skip
+          f"{'> 15 deg':>8} {'nets ms':>8}", file=log)  # fmt: skip
     for name, r in rows.items():
         print(f"{name:<12} {r['center_px']:9.2f} {r['distance_pct']:10.2f} "
               f"{r['rotation_deg']:9.2f} {100 * r['outlier_rate']:7.2f}% "
-              f"{r['nets_ms_per_object']:8.2f}")  # fmt: skip
+              f"{r['nets_ms_per_object']:8.2f}", file=log)  # fmt: skip
     if a.json is not None:
-        a.json.write_text(json.dumps({"objects": n, "rows": rows}, indent=1, sort_keys=True))
+        write_json(a.json, {"objects": n, "rows": rows})
     return 0
 
 

@@ -22,8 +22,8 @@ import torch
 from torchvision.models.detection import MaskRCNN
 
 from perception.detector_net import DetectorConfig, build_detector
-from perception.integrity import verify_weights
-from posegrasp.core.errors import AssetError, InvalidArgumentError
+from perception.integrity import load_checked
+from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR
 from posegrasp.world.objects import OBJECT_NAMES
 
@@ -109,19 +109,16 @@ def load_detector_model(
         AssetError: the file is missing or corrupt; the message says how to rebuild it.
         WeightsMismatchError: the manifest next to it records another hash.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise AssetError(f"detector weights {path} are missing; {REBUILD_HINT}")
-    verify_weights(path, verify)
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+
+    def build(state: dict) -> tuple:
         cfg = DetectorConfig.from_dict(state["model_config"])
         model = build_detector(cfg)
         model.load_state_dict(
             {k: v.float() if v.is_floating_point() else v for k, v in state["model"].items()}
         )
-    except Exception as exc:  # unpickling, missing keys or shape mismatches: a bad file
-        raise AssetError(f"detector weights {path} are corrupt ({exc}); {REBUILD_HINT}") from exc
+        return model, cfg, state
+
+    model, cfg, state = load_checked(Path(path), verify, build, "detector weights", REBUILD_HINT)
     model.eval()
     meta = {k: v for k, v in state.items() if k not in ("model", "optimizer")}
     return model, cfg, meta

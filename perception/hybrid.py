@@ -306,6 +306,56 @@ class HybridPoseEstimator:
         return HybridEpisodeEstimator(self, support, mask_fit, name, refine)
 
 
+@dataclass(frozen=True)
+class TargetDetections:
+    """The detections of one image, split around the requested object.
+
+    Attributes:
+        best: the highest-scoring detection of the requested class, or None.
+        found: every detection of that class.
+        others: the detections of the other classes.
+        info: the estimate's description so far: ``detected``, ``timings_ms`` and, when found,
+            ``class``, ``score``, ``box_xyxy``, ``uv`` and ``detections``.
+        neighbours: the other classes' poses, (class, T_C_N) pairs.
+    """
+
+    best: PoseDetection | None
+    found: list[PoseDetection]
+    others: list[PoseDetection]
+    info: dict
+    neighbours: tuple[tuple[str, np.ndarray], ...]
+
+    def occluder(self) -> np.ndarray | None:
+        """Where another detection may hide the target: the union of every other mask."""
+        masks = [d.mask for d in (*self.found, *self.others) if d is not self.best]
+        return np.logical_or.reduce(masks) if masks else None
+
+
+def detect_target(estimator: HybridPoseEstimator, obs: Observation) -> TargetDetections:
+    """Detect once and split the detections around ``obs.object``.
+
+    Raises:
+        UnknownNameError: obs.object is not a known object.
+    """
+    if obs.object not in OBJECT_NAMES:
+        raise UnknownNameError("object", obs.object, OBJECT_NAMES)
+    found, others, timings = estimator.estimate_split(
+        obs.rgb, obs.K, classes=(obs.object,), others=True
+    )
+    info: dict = {"detected": bool(found), "timings_ms": dict(timings)}
+    neighbours = tuple((d.name, d.T_C_O.copy()) for d in others)
+    best = max(found, key=lambda d: d.score) if found else None
+    if best is not None:
+        info |= {
+            "class": best.name,
+            "score": float(best.score),
+            "box_xyxy": [float(v) for v in best.box_xyxy],
+            "uv": [float(v) for v in best.uv],
+            "detections": len(found),
+        }
+    return TargetDetections(best, found, others, info, neighbours)
+
+
 class HybridEpisodeEstimator:
     """`posegrasp.core.contract.PoseEstimator` for episodes: the pose of the highest-scoring
     detection of the requested class, or None when it is not detected. Ignores the privileged
@@ -346,23 +396,10 @@ class HybridEpisodeEstimator:
     def estimate(self, obs: Observation) -> Estimate:
         """T_C_O (4, 4) of obs.object in obs.rgb (None when not detected), the other detections
         and the description of the estimate."""
-        if obs.object not in OBJECT_NAMES:
-            raise UnknownNameError("object", obs.object, OBJECT_NAMES)
-        found, others, timings = self.estimator.estimate_split(
-            obs.rgb, obs.K, classes=(obs.object,), others=True
-        )
-        info: dict = {"detected": bool(found), "timings_ms": dict(timings)}
-        neighbours = tuple((d.name, d.T_C_O.copy()) for d in others)
-        if not found:
+        target = detect_target(self.estimator, obs)
+        info, neighbours, best = target.info, target.neighbours, target.best
+        if best is None:
             return Estimate(None, neighbours, info)
-        best = max(found, key=lambda d: d.score)
-        info |= {
-            "class": best.name,
-            "score": float(best.score),
-            "box_xyxy": [float(v) for v in best.box_xyxy],
-            "uv": [float(v) for v in best.uv],
-            "detections": len(found),
-        }
         T = best.T_C_O.copy()
         if self.support and obs.table_top_z is not None:
             t0 = time.perf_counter()
@@ -389,8 +426,7 @@ class HybridEpisodeEstimator:
             info["support"] = sup
         if self.refiner is not None:
             t0 = time.perf_counter()
-            masks = [d.mask for d in (*found, *others) if d is not best]
-            occluder = np.logical_or.reduce(masks) if masks else None
+            occluder = target.occluder()
             T, ref_info = self.refiner.refine(best.name, T, obs.K, best.mask, obs.rgb, occluder)
             info["timings_ms"]["refine"] = (time.perf_counter() - t0) * 1000
             info["refine"] = ref_info

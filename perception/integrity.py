@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -91,3 +92,30 @@ def verify_weights(path: Path, verify: bool = True) -> None:
             f"weights {path} do not match {manifest_path} (sha256 {actual[:12]}..., "
             f"recorded {expected[:12]}...); {_override_hint()}"
         )
+
+
+def load_checked(path: Path, verify: bool, build: Callable[[dict], Any], what: str, hint: str):
+    """Load a weights file the way every loader does: present, its hash checked
+    (`verify_weights`), unpickled on the CPU and turned into a model by `build(state)`.
+
+    Args:
+        path: the weights file.
+        verify: check the hash its folder's manifest records.
+        build: makes the model from the file's dict; anything it raises means a bad file.
+        what: what the file holds, for messages (e.g. "detector weights").
+        hint: how to rebuild the file, for messages.
+
+    Raises:
+        AssetError: the file is missing or corrupt; the message says how to rebuild it.
+        WeightsMismatchError: the manifest next to it records another hash.
+    """
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise AssetError(f"{what} file {path} is missing; {hint}")
+    verify_weights(path, verify)
+    try:
+        return build(torch.load(path, map_location="cpu", weights_only=False))
+    except Exception as exc:  # unpickling, missing keys or shape mismatches: a bad file
+        raise AssetError(f"{what} file {path} is corrupt ({exc}); {hint}") from exc

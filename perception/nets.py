@@ -22,8 +22,8 @@ import torch
 from torch import nn
 
 from perception.geometry_torch import axes_from_p
-from perception.integrity import verify_weights
-from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from perception.integrity import load_checked
+from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 
 VARIANTS: tuple[str, ...] = ("paper", "ours")
 #: Rotation outputs of "ours": viewpoint direction and roll, or the 6D representation.
@@ -216,15 +216,12 @@ def load_posenet(path: Path, verify: bool = True) -> PoseNet:
         WeightsMismatchError: the manifest next to it records another hash.
     """
     hint = "rebuild it with `make weights` (or python -m perception.training.train_posenet)"
-    path = Path(path)
-    if not path.is_file():
-        raise AssetError(f"weights file {path} is missing; {hint}")
-    verify_weights(path, verify)
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+
+    def build(state: dict) -> PoseNet:
         model = PoseNet(NetConfig(**state["model_config"]))
         model.load_state_dict({k: v.float() for k, v in state["model"].items()})
-    except Exception as exc:  # any unpickling or shape error means a bad file
-        raise AssetError(f"weights file {path} is corrupt ({exc}); {hint}") from exc
+        return model
+
+    model = load_checked(Path(path), verify, build, "pose net weights", hint)
     model.eval()
     return model

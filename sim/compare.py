@@ -1,6 +1,7 @@
 """Paired comparison of two evaluations on the seeds both ran.
 
-    python -m sim.compare A.json B.json [--json out.json] [--boot 2000]
+    python -m sim.compare A.json B.json [--json PATH] [--boot 2000]
+    python -m sim.compare A.json B.json C.json ... --curve [--plot PATH] [--json PATH]
 
 A and B are reports of `python -m sim.evaluate --json`. Episodes pair up by (object, tier, seed):
 the same scene, so the difference in success is measured without the scene-to-scene variance.
@@ -18,9 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
-from posegrasp.core.cli import ArgumentParser, fail, write_json
-from posegrasp.core.errors import InvalidArgumentError, PosegraspError
-from posegrasp.core.validate import arg, check_int, check_output_file
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    summary_stream,
+    write_json,
+)
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.validate import arg, check_int, check_plot_path
 from sim.stats import (
     BOOTSTRAP,
     Outcome,
@@ -230,6 +237,7 @@ def plot_curve(rows: list[dict], path: Path, title: str) -> None:
     plt.close(fig)
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.compare", description=__doc__.split("\n")[0])
@@ -243,16 +251,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument(
         "--plot",
-        type=arg(check_output_file, "--plot", (".png", ".pdf", ".svg")),
+        type=arg(check_plot_path),
         default=None,
-        help="with --curve: plot success and margin along the chain here",
+        metavar="PATH",
+        help="with --curve: plot success and margin along the chain here (.png, .pdf or .svg)",
     )
-    p.add_argument(
-        "--json",
-        type=arg(check_output_file, "--json"),
-        default=None,
-        help="write the comparison here",
-    )
+    add_json_argument(p, "the comparison")
     p.add_argument(
         "--boot",
         type=arg(check_int, 100, 100_000, "--boot", base=int),
@@ -261,21 +265,19 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = p.parse_args(argv)
     if (args.more or args.plot) and not args.curve:
-        return fail("more than two reports, or --plot, need --curve")
-    try:
-        check_same_execution([args.a, args.b, *args.more])
-        if args.curve:
-            rows = curve([args.a, args.b, *args.more], args.boot)
-            print(format_curve(rows))
-            if args.plot is not None:
-                tier = json.loads(Path(args.a).read_text()).get("tier", "?")
-                plot_curve(rows, args.plot, f"tier {tier}: paired runs on the same scenes")
-            res: dict | list = rows
-        else:
-            res = compare(load_report(args.a), load_report(args.b), args.boot)
-            print(format_comparison(res, str(args.a), str(args.b)))
-    except PosegraspError as exc:
-        return fail(str(exc))
+        raise InvalidArgumentError("more than two reports, or --plot, need --curve")
+    log = summary_stream(args.json)
+    check_same_execution([args.a, args.b, *args.more])
+    if args.curve:
+        rows = curve([args.a, args.b, *args.more], args.boot)
+        print(format_curve(rows), file=log)
+        if args.plot is not None:
+            tier = json.loads(Path(args.a).read_text()).get("tier", "?")
+            plot_curve(rows, args.plot, f"tier {tier}: paired runs on the same scenes")
+        res: dict | list = rows
+    else:
+        res = compare(load_report(args.a), load_report(args.b), args.boot)
+        print(format_comparison(res, str(args.a), str(args.b)), file=log)
     if args.json is not None:
         write_json(args.json, res)
     return 0

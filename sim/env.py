@@ -20,7 +20,8 @@ from posegrasp.core.errors import InvalidArgumentError, StateError, UnknownNameE
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import mat_to_quat, quat_to_mat
 from posegrasp.core.validate import check_seed
-from posegrasp.world.camera import CameraRenderer, RenderOptions
+from posegrasp.world.camera import CameraRenderer, external_renderer
+from posegrasp.world.constants import EXTERNAL_CAMERA
 from posegrasp.world.objects import OBJECT_NAMES, check_object
 from posegrasp.world.tiers import check_tier
 from sim.episode import Episode, EpisodeConfig
@@ -331,10 +332,8 @@ class GraspEvalEnv(gym.Env):
         if self.render_mode != "rgb_array" or self._episode is None:
             return None
         if self._external is None:
-            self._external = CameraRenderer(
-                self._episode.scene.model, 480, 360, RenderOptions(shadows=False)
-            )
-        return self._external.rgb(self._episode.scene.data, "external")
+            self._external = external_renderer(self._episode.scene.model)
+        return self._external.rgb(self._episode.scene.data, EXTERNAL_CAMERA)
 
     def close(self) -> None:
         self._close_episode()

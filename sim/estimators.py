@@ -1,4 +1,5 @@
-"""The estimator registry of the experiment: the oracles and the hybrid estimators by name.
+"""The estimator registry of the experiment: the oracles and the learned estimators by name
+(`perception.estimators`).
 
 Real estimators implement `posegrasp.core.contract.PoseEstimator`. The oracles are the experiment's
 own instruments, not estimators a robot could run: they implement `PrivilegedEstimator` and are
@@ -7,14 +8,17 @@ handed the true pose by the episode, which no other estimator ever sees.
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable, Sequence
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from perception.estimators import LEARNED_ESTIMATORS
 from posegrasp.core.contract import Estimate, Observation, PoseEstimator
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
-from sim.pose_noise import PoseNoise, perturb_pose
+from posegrasp.core.validate import arg, check_choice
+from sim.pose_noise import NOISE_FORMAT, PoseNoise, parse_noise, perturb_pose
 
 #: Other objects' poses: (class, T_C_N) pairs in the camera frame.
 Neighbours = Sequence[tuple[str, np.ndarray]]
@@ -67,48 +71,11 @@ class NoisyOracleEstimator:
         return Estimate(T, tuple(neighbours))
 
 
-def _hybrid() -> PoseEstimator:
-    """The hybrid estimator with the shipped weights: the detector, `ours` and its expert
-    fine-tuned on the hard tier (per detection, the pose whose silhouette agrees better with the
-    detected mask wins). Imports torch: call before rendering."""
-    from perception import HybridPoseEstimator
-
-    return HybridPoseEstimator.from_weights().as_episode_estimator()
-
-
-def _hybrid_table() -> PoseEstimator:
-    """The hybrid estimator, its poses then put onto the known table (`perception.support`)."""
-    from perception import HybridPoseEstimator
-
-    return HybridPoseEstimator.from_weights().as_episode_estimator(support=True)
-
-
-def _hybrid_paper() -> PoseEstimator:
-    """The hybrid estimator with the `paper` variant's nets (the published 4D output, trained on
-    the paper's protocol) in place of ours."""
-    from perception import HybridPoseEstimator
-    from perception.hybrid import PAPER_POSENET
-
-    est = HybridPoseEstimator.from_weights(posenet_path=PAPER_POSENET, expert_paths=())
-    return est.as_episode_estimator(name="hybrid-paper")
-
-
-def _hybrid_refine() -> PoseEstimator:
-    """The hybrid estimator, its pose then refined by render-and-compare against the detected
-    mask and the image (`perception.refine`)."""
-    from perception import HybridPoseEstimator
-
-    return HybridPoseEstimator.from_weights().as_episode_estimator(refine=True)
-
-
 #: Estimator factories by name.
 ESTIMATORS: dict[str, Callable[[], PoseEstimator | PrivilegedEstimator]] = {
     "oracle": OracleEstimator,
     "noisy-oracle": NoisyOracleEstimator,
-    "hybrid": _hybrid,
-    "hybrid-table": _hybrid_table,
-    "hybrid-paper": _hybrid_paper,
-    "hybrid-refine": _hybrid_refine,
+    **LEARNED_ESTIMATORS,
 }
 
 
@@ -132,3 +99,51 @@ def make_estimator(
             raise InvalidArgumentError(f"--noise applies to noisy-oracle only, not to {name}")
         return NoisyOracleEstimator(noise)
     return ESTIMATORS[name]()
+
+
+def check_noise(spec: str) -> str:
+    """A ``--noise`` value (`sim.pose_noise.NOISE_FORMAT`), returned as given once it parses.
+
+    Raises:
+        InvalidArgumentError: not of the format.
+    """
+    parse_noise(spec)
+    return spec
+
+
+def add_estimator_arguments(
+    parser: argparse.ArgumentParser,
+    default: str | None = DEFAULT_ESTIMATOR,
+    noise: bool = True,
+    purpose: str | None = None,
+    also: Sequence[str] = (),
+) -> None:
+    """Add ``--estimator NAME`` (one of `ESTIMATORS`) and, with `noise`, ``--noise SIGMAS``
+    (noisy-oracle's errors), both checked while parsing; `make_estimator` refuses ``--noise``
+    for another estimator.
+
+    Args:
+        parser: the command line.
+        default: the estimator unless told otherwise (None: none).
+        noise: add ``--noise``.
+        purpose: what the estimator is for, shown before the list of names.
+        also: further names the command accepts beside `ESTIMATORS`.
+    """
+    names = [*ESTIMATORS, *also]
+    lead = f"{purpose}; " if purpose else ""
+    tail = "" if default is None else f" (default {default})"
+    parser.add_argument(
+        "--estimator",
+        default=default,
+        type=arg(check_choice, names, "estimator"),
+        metavar="NAME",
+        help=f"{lead}one of: {', '.join(names)}{tail}",
+    )
+    if noise:
+        parser.add_argument(
+            "--noise",
+            default=None,
+            type=arg(check_noise),
+            metavar="SIGMAS",
+            help=f"noisy-oracle's Gaussian sigmas: {NOISE_FORMAT}",
+        )

@@ -1,7 +1,7 @@
 """Evaluate an estimator by grasp success over many seeded episodes.
 
-    python -m sim.evaluate --objects all --episodes 50 --estimator hybrid --workers 2 \
-        --json out.json --plot success_vs_error.png
+    python -m sim.evaluate --objects all --episodes 50 --estimator hybrid [--workers N] \
+        [--tier T] [--noise SIGMAS] [--margin] --json out.json --plot success_vs_error.png
 
 Scene seeds start at `posegrasp.world.constants.EVAL_SEED_BASE`, far from the seeds the data
 generator renders training images from, so a learned estimator is never scored on a scene it was
@@ -21,27 +21,31 @@ from pathlib import Path
 import numpy as np
 
 from posegrasp.core.backends import add_backend_arguments, check_backend, run_map
-from posegrasp.core.cli import ArgumentParser, fail, write_json
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    add_workers_argument,
+    command,
+    summary_stream,
+    write_json,
+)
 from posegrasp.core.errors import PosegraspError
 from posegrasp.core.paths import DOCS_DIR
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import (
     arg,
-    check_choice,
     check_int,
     check_names,
-    check_output_file,
     check_plot_path,
     check_seed,
     check_tolerance_file,
-    check_workers,
     effective_workers,
 )
 from posegrasp.world import constants as C
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
-from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
-from sim.pose_noise import NOISE_FORMAT, parse_noise
+from sim.estimators import add_estimator_arguments, make_estimator
+from sim.pose_noise import parse_noise
 from sim.stats import BOOTSTRAP, bootstrap_means, margin_error_correlation, wilson_interval
 
 
@@ -300,6 +304,7 @@ def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = Non
     plt.close(fig)
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.evaluate", description=__doc__.split("\n")[0])
@@ -311,71 +316,59 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--episodes", type=arg(check_int, 1, MAX_EPISODES, "--episodes", base=int),
                    default=50, help=f"episodes per object, 1..{MAX_EPISODES}")  # fmt: skip
-    p.add_argument(
-        "--estimator",
-        default=DEFAULT_ESTIMATOR,
-        type=arg(check_choice, list(ESTIMATORS), "estimator"),
-        help=f"one of: {', '.join(ESTIMATORS)}",
-    )
+    add_estimator_arguments(p)
     p.add_argument(
         "--seed-start",
         type=arg(check_seed, "--seed-start", base=int),
         default=C.EVAL_SEED_BASE,
         help="first scene seed (default: held-out scenes, never rendered as training data)",
     )
-    p.add_argument("--workers", type=arg(check_workers, base=int), default=1,
-                   help="worker processes, 1..64 (at most one per episode and core)")  # fmt: skip
-    p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
-    p.add_argument("--noise", default=None, help=f"noisy-oracle's Gaussian sigmas: {NOISE_FORMAT}")
+    add_workers_argument(p, what="at most one per episode and core")
+    p.add_argument("--tier", default=DEFAULT_TIER, type=arg(check_tier),
+                   help=f"scene tier, one of: {', '.join(TIERS)}")  # fmt: skip
     p.add_argument(
         "--margin", action="store_true", help="measure each grasp's friction margin (slower)"
     )
-    p.add_argument("--json", type=arg(check_output_file, "--json"), default=None,
-                   help="write the full report here")  # fmt: skip
-    p.add_argument("--plot", type=arg(check_plot_path), default=None,
+    add_json_argument(p, "the full report")
+    p.add_argument("--plot", type=arg(check_plot_path), default=None, metavar="PATH",
                    help="plot of success against pose error (.png, .pdf or .svg)")  # fmt: skip
     p.add_argument(
         "--tolerance",
         type=arg(check_tolerance_file),
         default=DEFAULT_TOLERANCE,
+        metavar="PATH",
         help="tolerance curves to overlay (JSON of python -m sim.tolerance)",
     )
     add_backend_arguments(p)
     args = p.parse_args(argv)
     setup_rendering()
-    objects = args.objects
-    try:
-        check_seed(args.seed_start, "--seed-start", args.episodes)
-        check_tier(args.tier)
-        check_backend(args.backend, args.address)
-        if args.noise is not None:
-            make_estimator(args.estimator, parse_noise(args.noise))  # validates the pair
-        tolerance = args.tolerance  # the checked curves, or the default file's path
-        if isinstance(tolerance, Path):
-            tolerance = (
-                check_tolerance_file(tolerance) if args.plot and tolerance.is_file() else None
-            )
-        _estimator(args.estimator, args.noise)  # fails fast (bad --noise, missing weights)
-        report = evaluate(
-            objects,
-            args.episodes,
-            args.estimator,
-            args.seed_start,
-            args.workers,
-            args.tier,
-            args.noise,
-            args.margin,
-            args.backend,
-            args.address,
-        )
-    except PosegraspError as exc:
-        return fail(str(exc))
-    print(format_report(report))
-    if args.json is not None:
-        write_json(args.json, report)
+    check_seed(args.seed_start, "--seed-start", args.episodes)
+    check_backend(args.backend, args.address)
+    if args.noise is not None:
+        make_estimator(args.estimator, parse_noise(args.noise))  # validates the pair
+    tolerance = args.tolerance  # the checked curves, or the default file's path
+    if isinstance(tolerance, Path):
+        tolerance = check_tolerance_file(tolerance) if args.plot and tolerance.is_file() else None
+    _estimator(args.estimator, args.noise)  # fails fast (missing weights)
+    report = evaluate(
+        args.objects,
+        args.episodes,
+        args.estimator,
+        args.seed_start,
+        args.workers,
+        args.tier,
+        args.noise,
+        args.margin,
+        args.backend,
+        args.address,
+    )
+    log = summary_stream(args.json)
+    print(format_report(report), file=log)
     if args.plot is not None:
         plot_success_vs_error(report, args.plot, tolerance)
-        print(f"wrote {args.plot}")
+        print(f"wrote {args.plot}", file=log)
+    if args.json is not None:
+        write_json(args.json, report)
     return 0
 
 

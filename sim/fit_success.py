@@ -1,6 +1,7 @@
 """Fit P(grasp success | pose error) per object and tier from noisy-oracle episodes.
 
-    python -m sim.fit_success --tier isolated --episodes 100 --out docs/success_model.json
+    python -m sim.fit_success --tier isolated --episodes 100 [--workers N] \
+        [--models docs/success_model.json]
     python -m sim.fit_success --refit                  # refit every model from its stored episodes
     python -m sim.fit_success --check run.json ...     # predicted against measured success
 
@@ -9,9 +10,9 @@ episode draws its own sigma for each component (along and across the camera ray 
 and out-of-plane [deg]) uniformly up to the given figure, then Gaussian errors, so the sample
 covers every mix of the four components. Each episode's error components and outcome train a
 `perception.success_model.SuccessModel` whose bandwidths maximise the leave-one-out likelihood.
-The models of a tier replace that tier's in `--out` and keep the others.
+The models of a tier replace that tier's in `--models` and keep the others.
 ``perception.training.tables --success-model`` then reports the grasp success the test-split
-poses should reach, without running a robot. `--refit` fits every model in `--out` again from the
+poses should reach, without running a robot. `--refit` fits every model in `--models` again from the
 episodes it stores (no episodes are run). `--check` takes reports of ``sim.evaluate --json`` and
 prints, per report, the mean predicted probability of its episodes that have a pose estimate
 (each from its own pose errors, with the model of its object and tier) beside their measured
@@ -27,10 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from perception.success_model import COMPONENTS, SuccessModel, components_of, load_models
-from posegrasp.core.cli import ArgumentParser, fail, write_json
-from posegrasp.core.errors import AssetError, PosegraspError
+from posegrasp.core.cli import ArgumentParser, add_workers_argument, command, write_json
+from posegrasp.core.errors import AssetError
 from posegrasp.core.paths import DOCS_DIR
-from posegrasp.core.validate import arg, check_int, check_names, check_output_file, check_workers
+from posegrasp.core.validate import arg, check_int, check_names, check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.evaluate import evaluate
@@ -40,7 +41,7 @@ from sim.evaluate import evaluate
 SPREAD = "spread:40,40,16,16"
 #: Held-out scenes of their own (see `posegrasp.world.constants.EVAL_SEED_BASE`).
 SEED_START = 1_700_000_000
-DEFAULT_OUT = DOCS_DIR / "success_model.json"
+DEFAULT_MODELS = DOCS_DIR / "success_model.json"
 
 
 def sample(objects: list[str], episodes: int, tier: str, workers: int) -> list[dict]:
@@ -110,6 +111,7 @@ def _read_json(path: Path, what: str) -> dict:
         raise AssetError(f"cannot read {what} {path} ({exc})") from None
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.fit_success", description=__doc__.split("\n")[0])
@@ -131,46 +133,42 @@ def main(argv: list[str] | None = None) -> int:
         type=arg(check_tier),
         help=f"scene tier, one of: {', '.join(TIERS)}",
     )
+    add_workers_argument(p)
     p.add_argument(
-        "--workers", type=arg(check_workers, base=int), default=2, help="worker processes, 1..64"
-    )
-    p.add_argument(
-        "--out",
-        type=arg(check_output_file, "--out"),
-        default=DEFAULT_OUT,
-        help="the models' JSON file",
+        "--models",
+        type=arg(check_output_file, "--models"),
+        default=DEFAULT_MODELS,
+        metavar="PATH",
+        help="the success models' JSON file: read, and updated unless --check (default "
+        f"{DEFAULT_MODELS.parent.name}/{DEFAULT_MODELS.name})",
     )
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--refit", action="store_true", help="refit the models from their episodes")
     mode.add_argument("--check", type=Path, nargs="+", metavar="RUN", help="sim.evaluate reports")
     args = p.parse_args(argv)
-    objects = args.objects
-    try:
-        if args.check:
-            loaded = load_models(args.out)
-            for path in args.check:
-                report = _read_json(path, "report")
-                pred, k, n = check(loaded, report)
-                print(
-                    f"{path}: {report.get('estimator')} on {report.get('tier')}: predicted "
-                    f"{pred:.1%}, measured {k / n:.1%} ({k}/{n} episodes with an estimate)"
-                )
-            return 0
-        old: dict = {}
-        if args.out.is_file():
-            try:
-                old = _read_json(args.out, "success models")["models"]
-            except (KeyError, TypeError) as exc:
-                raise AssetError(f"{args.out} is not a file of success models ({exc})") from None
-        if args.refit:
-            if not old:
-                raise AssetError(f"{args.out} holds no models to refit")
-            models = refit(old)
-        else:
-            samples = sample(objects, args.episodes, args.tier, args.workers)
-            models = {**old, **fit(samples, objects, args.tier)}
-    except PosegraspError as exc:
-        return fail(str(exc))
+    if args.check:
+        loaded = load_models(args.models)
+        for path in args.check:
+            report = _read_json(path, "report")
+            pred, k, n = check(loaded, report)
+            print(
+                f"{path}: {report.get('estimator')} on {report.get('tier')}: predicted "
+                f"{pred:.1%}, measured {k / n:.1%} ({k}/{n} episodes with an estimate)"
+            )
+        return 0
+    old: dict = {}
+    if args.models.is_file():
+        try:
+            old = _read_json(args.models, "success models")["models"]
+        except (KeyError, TypeError) as exc:
+            raise AssetError(f"{args.models} is not a file of success models ({exc})") from None
+    if args.refit:
+        if not old:
+            raise AssetError(f"{args.models} holds no models to refit")
+        models = refit(old)
+    else:
+        samples = sample(args.objects, args.episodes, args.tier, args.workers)
+        models = {**old, **fit(samples, args.objects, args.tier)}
     shown = (
         sorted(models) if args.refit else sorted(k for k in models if k.endswith(f"/{args.tier}"))
     )
@@ -181,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{key:<18} {m['episodes']:>4} episodes, success {m['success_rate']:.1%}, "
             f"LOO log-likelihood {m['log_likelihood']:.3f}, bandwidths {bw}"
         )
-    write_json(args.out, {"noise": SPREAD, "seed_start": SEED_START, "models": models})
+    write_json(args.models, {"noise": SPREAD, "seed_start": SEED_START, "models": models})
     return 0
 
 

@@ -3,6 +3,7 @@
     python -m sim.gate             # run the gate's episodes and compare (exit 1 on a regression)
     python -m sim.gate --write     # run them and write the baseline (commit it with the weights)
     python -m sim.gate --estimator hybrid          # one estimator only
+    python -m sim.gate --workers 2 [--backend ray [--address ADDR]] [--baseline PATH]
 
 The default estimator (`GATE_ESTIMATORS`) runs `GATE_EPISODES` held-out episodes per object of
 the `GATE_TIER` tier (seeds from `GATE_SEED_START`), measuring each grasp's friction margin, and
@@ -36,14 +37,14 @@ from pathlib import Path
 import numpy as np
 
 from posegrasp.core.backends import add_backend_arguments, check_backend
-from posegrasp.core.cli import ArgumentParser, check_writable_file, fail, write_json
+from posegrasp.core.cli import ArgumentParser, add_workers_argument, command, write_json
 from posegrasp.core.errors import AssetError, PosegraspError
 from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import REPO_ROOT
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import arg, check_choice, check_workers
+from posegrasp.core.validate import check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
-from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS
+from sim.estimators import DEFAULT_ESTIMATOR, add_estimator_arguments
 from sim.evaluate import evaluate, format_report
 from sim.stats import BOOTSTRAP, bootstrap_means, mcnemar_exact
 
@@ -206,54 +207,45 @@ def baseline_of(report: dict) -> dict:
     }
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status (1 when the gate fails)."""
     p = ArgumentParser(prog="python -m sim.gate", description=__doc__.split("\n")[0])
     p.add_argument("--write", action="store_true", help="write the baseline instead of comparing")
-    p.add_argument("--baseline", type=Path, default=BASELINE)
     p.add_argument(
-        "--workers", type=arg(check_workers, base=int), default=2, help="worker processes, 1..64"
+        "--baseline",
+        type=Path,
+        default=BASELINE,
+        metavar="PATH",
+        help="the baseline file, compared with or (--write) written (default "
+        f"{BASELINE.parent.name}/{BASELINE.name})",
     )
-    p.add_argument(
-        "--estimator",
-        default=None,
-        type=arg(check_choice, list(ESTIMATORS), "estimator"),
-        help=f"only this one; one of: {', '.join(ESTIMATORS)}",
-    )
+    add_workers_argument(p)
+    add_estimator_arguments(p, default=None, noise=False, purpose="only this one")
     add_backend_arguments(p)
     args = p.parse_args(argv)
     setup_rendering()
-    try:
-        check_backend(args.backend, args.address)
-    except PosegraspError as exc:
-        return fail(str(exc))
-    try:
-        if args.write:
-            check_writable_file(args.baseline)
-            # All of the gate's estimators replace the whole file; one keeps the others.
-            keep = args.estimator and args.baseline.is_file()
-            baselines = load_baselines(args.baseline) if keep else {}
-        else:
-            baselines = load_baselines(args.baseline)
-    except PosegraspError as exc:
-        if not args.write:
-            return fail(str(exc))
-        baselines = {}  # --write replaces an unreadable baseline
-    if args.estimator:
-        names = [args.estimator]
+    check_backend(args.backend, args.address)
+    if args.write:
+        check_output_file(args.baseline, "--baseline")
+        baselines = {}
+        if args.estimator and args.baseline.is_file():  # one estimator keeps the others
+            try:
+                baselines = load_baselines(args.baseline)
+            except PosegraspError:
+                pass  # --write replaces an unreadable baseline
+        names = [args.estimator] if args.estimator else list(GATE_ESTIMATORS)
     else:
-        names = list(GATE_ESTIMATORS) if args.write else list(baselines)
-    if not args.write and (missing := [n for n in names if n not in baselines]):
-        return fail(
-            f"no baseline for {', '.join(missing)} in {args.baseline}; it has: "
-            f"{', '.join(baselines)}; write one with `python -m sim.gate --write --estimator E`"
-        )
+        baselines = load_baselines(args.baseline)
+        names = [args.estimator] if args.estimator else list(baselines)
+        if missing := [n for n in names if n not in baselines]:
+            raise AssetError(
+                f"no baseline for {', '.join(missing)} in {args.baseline}; it has: "
+                f"{', '.join(baselines)}; write one with `python -m sim.gate --write --estimator E`"
+            )
     failed = False
     for name in names:
-        try:
-            report = run_gate(name, GATE_EPISODES, args.workers, args.backend, args.address)
-        except PosegraspError as exc:
-            return fail(str(exc))
+        report = run_gate(name, GATE_EPISODES, args.workers, args.backend, args.address)
         print(format_report(report))
         if args.write:
             baselines[name] = baseline_of(report)

@@ -1,18 +1,18 @@
 """Render a seeded scene from the head camera (and optionally from the external camera).
 
-    python -m sim.render_scene --object phone --seed 0 --out head.png [--external]
+    python -m sim.render_scene --object phone --seed 0 --png head.png [--external]
         [--width 640 --height 480] [--distractors N] [--no-shadows]
 
     python -m sim.render_scene --sheet docs/tiers.png [--object phone --seed 0]
         [--estimator hybrid]
 
-writes the head camera's RGB image to `--out`; with `--sheet` instead one picture of every tier
+writes the head camera's RGB image to `--png`; with `--sheet` instead one picture of every tier
 (`posegrasp.world.tiers`), head camera above the external view, labelled; on each head image the
 target's true pose (white) and the pose `--estimator` finds in that image (green), with the
 estimate's errors in the label (`--estimator none`: no poses); with `--external` also writes
 `<stem>_external.png` next to it, a view from the world camera "external" that shows the robot,
 the table and the objects. Every argument is checked before the scene is built; a bad one gives a
-single `error: ...` line on stderr that names the valid choices, and a non-zero exit status.
+single `error: ...` line on stderr that names the valid choices, and exit status 2.
 """
 
 from __future__ import annotations
@@ -26,23 +26,25 @@ import cv2
 import numpy as np
 
 from perception.overlay import draw_estimate
-from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.cli import ArgumentParser, command
 from posegrasp.core.contract import Observation, PoseEstimator
-from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import check_choice, check_output_file, check_seed
+from posegrasp.core.validate import arg, check_choice, check_int, check_output_file, check_seed
 from posegrasp.world import constants as C  # importing sim defaults MUJOCO_GL to egl
 from posegrasp.world.camera import CameraRenderer, RenderOptions, check_resolution
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.scene import SceneConfig, build_scene
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
 from sim.episode import Episode, EpisodeConfig, pose_errors
-from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, PrivilegedEstimator, make_estimator
+from sim.estimators import (
+    DEFAULT_ESTIMATOR,
+    PrivilegedEstimator,
+    add_estimator_arguments,
+    make_estimator,
+)
 
 EXTERNAL_CAMERA = "external"
-#: Exit status of bad arguments (argparse's convention) and of every other failure.
-EXIT_USAGE = 2
-EXIT_FAILURE = 1
 #: `--estimator` value of a sheet without poses.
 NO_ESTIMATOR = "none"
 #: RGB of a sheet's label lines.
@@ -56,7 +58,7 @@ class RenderRequest:
     Attributes:
         object: target object class, one of `OBJECT_NAMES`.
         seed: scene seed (>= 0).
-        out: path of the head-camera PNG.
+        out: path of the head-camera PNG (`--png`), or of the sheet (`--sheet`).
         external: also render the external camera to `external_path`.
         width, height: image size [px], both cameras.
         distractors: number of other objects on the table.
@@ -84,7 +86,8 @@ class RenderRequest:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command-line parser (no validation beyond types; see `check_request`)."""
+    """The command-line parser: every value is checked while parsing, the combinations by
+    `check_request`."""
     p = ArgumentParser(
         prog="python -m sim.render_scene",
         description="Render a seeded posegrasp scene from the robot's head camera.",
@@ -92,11 +95,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--object",
         default="phone",
+        type=arg(check_choice, OBJECT_NAMES, "object"),
         metavar="NAME",
         help=f"target object, one of: {', '.join(OBJECT_NAMES)} (default: phone)",
     )
-    p.add_argument("--seed", type=int, default=0, help="scene seed in 0..2**32-1 (default: 0)")
-    p.add_argument("--out", type=str, default="head.png", help="output PNG (default: head.png)")
+    p.add_argument(
+        "--seed",
+        type=arg(check_seed, "--seed", base=int),
+        default=0,
+        help="scene seed in 0..2**32-1 (default: 0)",
+    )
+    image = p.add_mutually_exclusive_group()
+    image.add_argument(
+        "--png",
+        type=arg(check_output_file, "--png", (".png",)),
+        default="head.png",
+        metavar="PATH",
+        help="the head camera's image (default: head.png)",
+    )
+    image.add_argument(
+        "--sheet",
+        type=arg(check_output_file, "--sheet", (".png",)),
+        default=None,
+        metavar="PATH",
+        help="instead, one labelled picture of every tier (PNG)",
+    )
     p.add_argument(
         "--external",
         action="store_true",
@@ -104,54 +127,45 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--width", type=int, default=640, help="image width [px] (default: 640)")
     p.add_argument("--height", type=int, default=480, help="image height [px] (default: 480)")
+    n_max = len(OBJECT_NAMES) - 1
     p.add_argument(
         "--distractors",
-        type=int,
+        type=arg(check_int, 0, n_max, "--distractors", base=int),
         default=0,
         metavar="N",
-        help=f"other objects on the table, 0..{len(OBJECT_NAMES) - 1} (default: 0)",
+        help=f"other objects on the table, 0..{n_max} (default: 0)",
     )
-    p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
+    p.add_argument("--tier", default=DEFAULT_TIER, type=arg(check_tier),
+                   help=f"scene tier, one of: {', '.join(TIERS)}")  # fmt: skip
     p.add_argument("--no-shadows", action="store_true", help="render without shadows (faster)")
-    p.add_argument("--sheet", help="write one labelled picture of every tier here (PNG)")
-    p.add_argument(
-        "--estimator",
-        metavar="NAME",
-        help=f"with --sheet: draw the true pose and this estimator's on each head image, one of: "
-        f"{', '.join([*ESTIMATORS, NO_ESTIMATOR])} (default: {DEFAULT_ESTIMATOR})",
+    add_estimator_arguments(
+        p,
+        default=None,
+        noise=False,
+        purpose="with --sheet: draw the true pose and this estimator's on each head image "
+        f"(default {DEFAULT_ESTIMATOR}; {NO_ESTIMATOR}: no poses)",
+        also=(NO_ESTIMATOR,),
     )
     return p
 
 
 def check_request(args: argparse.Namespace) -> RenderRequest:
-    """Validate parsed arguments before anything is built.
+    """The request of parsed arguments, its combinations checked before anything is built.
 
     Raises:
-        UnknownNameError: unknown object, tier or estimator.
-        InvalidArgumentError: bad resolution, seed, distractor count or output path, or
-            `--estimator` without `--sheet`.
+        InvalidArgumentError: bad resolution, or `--estimator` without `--sheet`, or no
+            writable `<stem>_external.png` beside the image.
     """
-    if args.object not in OBJECT_NAMES:
-        raise UnknownNameError("object", args.object, OBJECT_NAMES)
-    check_tier(args.tier)
     check_resolution(args.width, args.height)
-    check_seed(args.seed, "--seed")
-    n_max = len(OBJECT_NAMES) - 1
-    if not 0 <= args.distractors <= n_max:
-        raise InvalidArgumentError(
-            f"invalid number of distractors {args.distractors}; valid: 0..{n_max}"
-        )
     estimator = NO_ESTIMATOR
     if args.sheet is not None:
         estimator = args.estimator or DEFAULT_ESTIMATOR
-        check_choice(estimator, [*ESTIMATORS, NO_ESTIMATOR], "estimator")
     elif args.estimator is not None:
         raise InvalidArgumentError("--estimator applies to --sheet only")
-    out = check_output_file(args.out, "--out", (".png",))
     req = RenderRequest(
         object=args.object,
         seed=args.seed,
-        out=out,
+        out=Path(args.sheet if args.sheet is not None else args.png),
         external=args.external,
         width=args.width,
         height=args.height,
@@ -161,7 +175,7 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
         estimator=estimator,
     )
     if req.external:
-        check_output_file(req.external_path, "--out")
+        check_output_file(req.external_path, "--external")
     return req
 
 
@@ -240,22 +254,14 @@ def render_sheet(req: RenderRequest, path: Path) -> Path:
     return path
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
-    try:
-        args = build_parser().parse_args(argv)
-        setup_rendering()
-        if args.sheet is not None:
-            args.out = args.sheet
-        req = check_request(args)
-        for path in [render_sheet(req, req.out)] if args.sheet is not None else render(req):
-            print(path)
-    except SystemExit as exc:  # --help, or a bad argument already reported in one line
-        return exc.code if isinstance(exc.code, int) else 0
-    except (UnknownNameError, InvalidArgumentError) as exc:
-        return fail(str(exc), EXIT_USAGE)
-    except PosegraspError as exc:
-        return fail(str(exc), EXIT_FAILURE)
+    args = build_parser().parse_args(argv)
+    setup_rendering()
+    req = check_request(args)
+    for path in [render_sheet(req, req.out)] if args.sheet is not None else render(req):
+        print(path)
     return 0
 
 

@@ -1,26 +1,33 @@
 """Run one grasp episode and print what happened.
 
-python -m sim.run_episode --object phone [--seed N] [--estimator hybrid] [--json] [--save DIR]
+python -m sim.run_episode --object phone [--seed N] [--estimator hybrid] [--tier T]
+    [--noise SIGMAS] [--json PATH] [--out DIR]
 """
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
-from posegrasp.core.cli import ArgumentParser, fail
-from posegrasp.core.errors import PosegraspError
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    add_out_argument,
+    command,
+    summary_stream,
+    write_json,
+)
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import arg, check_choice, check_output_dir, check_seed
+from posegrasp.core.validate import arg, check_choice, check_seed
 from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, RenderOptions
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
-from sim.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, make_estimator
-from sim.pose_noise import NOISE_FORMAT, parse_noise
+from sim.estimators import add_estimator_arguments, make_estimator
+from sim.pose_noise import parse_noise
 
 
 def _rpy_deg(R: np.ndarray) -> np.ndarray:
@@ -103,7 +110,14 @@ def summary(result) -> str:
     return "\n".join(lines)
 
 
-def _run(obj: str, seed: int, estimator, save: Path | None, tier: str = DEFAULT_TIER):
+def _run(
+    obj: str,
+    seed: int,
+    estimator,
+    save: Path | None,
+    tier: str = DEFAULT_TIER,
+    log: TextIO | None = None,
+):
     from sim.episode import Episode, EpisodeConfig
 
     ep = Episode(obj, seed, EpisodeConfig(tier=tier))
@@ -115,7 +129,7 @@ def _run(obj: str, seed: int, estimator, save: Path | None, tier: str = DEFAULT_
             recorder = lambda scene: external.rgb(scene.data, "external")  # noqa: E731
         obs, result = ep.run(estimator, recorder)
         if save is not None:
-            _save(save, obs, result.T_C_O_est, ep, result)
+            _save(save, obs, result.T_C_O_est, ep, result, log or sys.stdout)
         return result
     finally:
         ep.close()
@@ -123,7 +137,7 @@ def _run(obj: str, seed: int, estimator, save: Path | None, tier: str = DEFAULT_
             external.close()
 
 
-def _save(folder: Path, obs, est, ep, result) -> None:
+def _save(folder: Path, obs, est, ep, result, log: TextIO) -> None:
     import cv2
     from PIL import Image
 
@@ -147,10 +161,12 @@ def _save(folder: Path, obs, est, ep, result) -> None:
         )
     print(
         f"wrote {folder / 'head.png'}, {folder / 'grasp.gif'} ({len(frames)} frames) and "
-        f"{folder / 'grasp_strip.png'}"
+        f"{folder / 'grasp_strip.png'}",
+        file=log,
     )
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.run_episode", description=__doc__.split("\n")[0])
@@ -168,45 +184,35 @@ def main(argv: list[str] | None = None) -> int:
         f"{C.DATA_SEED_LIMIT} are the data generator's, i.e. scenes the networks may have been "
         "trained on)",
     )
-    p.add_argument(
-        "--estimator",
-        default=DEFAULT_ESTIMATOR,
-        type=arg(check_choice, list(ESTIMATORS), "estimator"),
-        help=f"one of: {', '.join(ESTIMATORS)}",
-    )
+    add_estimator_arguments(p)
     p.add_argument(
         "--tier",
         default=DEFAULT_TIER,
         type=arg(check_tier),
         help=f"scene tier, one of: {', '.join(TIERS)}",
     )
-    p.add_argument("--noise", default=None, help=f"noisy-oracle's Gaussian sigmas: {NOISE_FORMAT}")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead")
-    p.add_argument(
-        "--save",
-        type=arg(check_output_dir, "--save", base=Path),
-        default=None,
-        metavar="DIR",
-        help="write the head image with the estimated pose drawn on it and a GIF of the grasp",
+    add_json_argument(p, "the episode")
+    add_out_argument(
+        p,
+        "head.png (the head image with the true and estimated poses drawn on it), grasp.gif and "
+        "grasp_strip.png (the grasp from the external camera)",
+        aliases=("--save",),
     )
     args = p.parse_args(argv)
     setup_rendering()
-    try:
-        noise = None if args.noise is None else parse_noise(args.noise)
-        estimator = make_estimator(args.estimator, noise)
-        result = _run(args.object, args.seed, estimator, args.save, args.tier)
-    except PosegraspError as exc:
-        return fail(str(exc))
+    log = summary_stream(args.json)
+    noise = None if args.noise is None else parse_noise(args.noise)
+    estimator = make_estimator(args.estimator, noise)
+    result = _run(args.object, args.seed, estimator, args.out, args.tier, log)
     if args.seed < C.DATA_SEED_LIMIT and args.estimator.startswith("hybrid"):
         print(
             f"note: seed {args.seed} is in the data generator's range (< {C.DATA_SEED_LIMIT}); "
             "the networks may have seen this scene in training",
             file=sys.stderr,
         )
-    if args.json:
-        print(json.dumps(result.to_json(), sort_keys=True))
-    else:
-        print(summary(result))
+    print(summary(result), file=log)
+    if args.json is not None:
+        write_json(args.json, result.to_json())
     return 0
 
 

@@ -5,7 +5,11 @@ about the camera ray, out-of-plane rotation) and each magnitude, episodes grasp 
 perturbed by exactly that magnitude (random sign or direction, seeded). The tolerance of a kind
 is the largest magnitude up to which the success rate stays at or above 90 %.
 
-    python -m sim.tolerance --object phone   (or --objects all) [--episodes 10] [--workers 2]
+    python -m sim.tolerance --object phone   (or --objects all) [--episodes 10] [--workers N]
+        [--tier T] [--json out/tolerance.json] [--plot out/tolerance.png]
+
+writes the curves and tolerances as JSON (`--json`, read by ``sim.evaluate --tolerance``) and
+their plot (`--plot`).
 """
 
 from __future__ import annotations
@@ -16,18 +20,22 @@ from pathlib import Path
 import numpy as np
 
 from posegrasp.core.backends import add_backend_arguments, check_backend, run_map
-from posegrasp.core.cli import ArgumentParser, fail
-from posegrasp.core.errors import PosegraspError
-from posegrasp.core.files import atomic_write_json
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    add_workers_argument,
+    command,
+    summary_stream,
+    write_json,
+)
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import (
     arg,
     check_choice,
     check_int,
     check_names,
-    check_output_file,
+    check_plot_path,
     check_seed,
-    check_workers,
     effective_workers,
 )
 from posegrasp.world.objects import OBJECT_NAMES
@@ -41,6 +49,9 @@ LEVELS: dict[str, tuple[float, ...]] = {
     "outplane_deg": (0, 5, 10, 15, 20, 30),
 }
 THRESHOLD = 0.9
+#: Where the curves and their plot go unless told otherwise (checked like a given path).
+DEFAULT_JSON = "out/tolerance.json"
+DEFAULT_PLOT = "out/tolerance.png"
 
 
 def _noise(kind: str, value: float):
@@ -143,6 +154,7 @@ def plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.tolerance", description=__doc__.split("\n")[0])
@@ -153,33 +165,35 @@ def main(argv: list[str] | None = None) -> int:
                        help="'all' or a comma list")  # fmt: skip
     p.add_argument("--episodes", type=arg(check_int, 1, 10_000, "--episodes", base=int),
                    default=10, help="episodes per level, 1..10000")  # fmt: skip
-    p.add_argument("--seed-start", type=arg(check_seed, "--seed-start", base=int), default=1000)
-    p.add_argument("--workers", type=arg(check_workers, base=int), default=1, help="1..64")
-    p.add_argument("--tier", default=DEFAULT_TIER, help=f"scene tier, one of: {', '.join(TIERS)}")
-    p.add_argument("--out", default="out/tolerance", help="output prefix (.json and .png)")
+    p.add_argument("--seed-start", type=arg(check_seed, "--seed-start", base=int), default=1000,
+                   help="first scene seed (default 1000)")  # fmt: skip
+    add_workers_argument(p)
+    p.add_argument("--tier", default=DEFAULT_TIER, type=arg(check_tier),
+                   help=f"scene tier, one of: {', '.join(TIERS)}")  # fmt: skip
+    add_json_argument(p, "the curves and tolerances", DEFAULT_JSON)
+    p.add_argument(
+        "--plot",
+        type=arg(check_plot_path),
+        default=DEFAULT_PLOT,
+        metavar="PATH",
+        help=f"plot of the curves (.png, .pdf or .svg; default {DEFAULT_PLOT})",
+    )
     add_backend_arguments(p)
     args = p.parse_args(argv)
     setup_rendering()
     objects = args.objects or [args.object or "phone"]
-    try:
-        check_seed(args.seed_start, "--seed-start", args.episodes)
-        out = check_output_file(args.out, "--out")
-        json_path, png_path = out.with_suffix(".json"), out.with_suffix(".png")
-        for path in (json_path, png_path):
-            check_output_file(path, "--out")
-        check_tier(args.tier)
-        check_backend(args.backend, args.address)
-        result = study(objects, args.episodes, args.seed_start, args.workers, args.tier,
-                       args.backend, args.address)  # fmt: skip
-    except PosegraspError as exc:
-        return fail(str(exc))
-    atomic_write_json(json_path, result)
-    plot(result, png_path)
-    print(f"{'object':<8}" + "".join(f"{k:>14}" for k in LEVELS))
+    check_seed(args.seed_start, "--seed-start", args.episodes)
+    check_backend(args.backend, args.address)
+    result = study(objects, args.episodes, args.seed_start, args.workers, args.tier,
+                   args.backend, args.address)  # fmt: skip
+    log = summary_stream(args.json)
+    plot(result, args.plot)
+    print(f"{'object':<8}" + "".join(f"{k:>14}" for k in LEVELS), file=log)
     for o, kinds in result.items():
-        print(f"{o:<8}" + "".join(f"{kinds[k]['tolerance']:>14.1f}" for k in LEVELS))
-    print(f"tolerance = error where success drops below {THRESHOLD:.0%}")
-    print(f"wrote {json_path} and {png_path}")
+        print(f"{o:<8}" + "".join(f"{kinds[k]['tolerance']:>14.1f}" for k in LEVELS), file=log)
+    print(f"tolerance = error where success drops below {THRESHOLD:.0%}", file=log)
+    print(f"wrote {args.plot}", file=log)
+    write_json(args.json, result)
     return 0
 
 

@@ -105,6 +105,7 @@ def test_bad_backend_arguments_are_one_line(args: list[str], needle: str, capsys
     assert needle in err and len(err.splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_an_unreachable_cluster_is_one_line_within_30_s() -> None:
     cmd = [sys.executable, "-m", "sim.evaluate", "--objects", "phone", "--episodes", "1",
            "--estimator", "oracle", "--backend", "ray", "--address", "127.0.0.1:1"]  # fmt: skip
@@ -121,6 +122,7 @@ def test_an_unreachable_cluster_is_one_line_within_30_s() -> None:
 # --- a Ray started by the command, then one started by the tests ------------------------------
 
 
+@pytest.mark.slow
 def test_datagen_writes_the_same_bytes_on_ray(tmp_path: Path) -> None:
     args = ["--dist", "paper", "--split", "val", "--count", "5", "--width", "96", "--height",
             "96", "--quiet"]  # fmt: skip
@@ -139,6 +141,7 @@ def ray_session():
     ray.shutdown()
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("ray_session")
 class TestOnALocalRay:
     """Two tests on one Ray session of 2 CPUs (`run_map` uses a session it finds)."""
@@ -164,6 +167,7 @@ class TestOnALocalRay:
         ]
 
 
+@pytest.mark.slow
 def test_two_nodes_share_an_evaluation(local_report: dict) -> None:
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, **RAY_ARGS})
     try:

@@ -89,11 +89,22 @@ def test_cli_prints_a_table_and_writes_json(tmp_path: Path, capsys) -> None:
     assert json.loads(out.read_text())["overall"]["b_only"] == 0
 
 
+def test_cli_json_to_standard_output_keeps_the_table_apart(tmp_path: Path, capsys) -> None:
+    a = _report(tmp_path / "a.json", {("phone", s): True for s in range(10)})
+    b = _report(tmp_path / "b.json", {("phone", s): s % 2 == 0 for s in range(10)})
+    assert cmp.main([str(a), str(b), "--json", "-", "--boot", "200"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["overall"]["a_only"] == 5  # stdout is the JSON alone
+    assert "McNemar p" in captured.err and "wrote" not in captured.out
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
         (["nope.json", "nope2.json"], "is not a report"),
         (["{a}", "{a}", "--boot", "5"], "valid: integers 100..100000"),
+        (["{a}", "{a}", "--curve", "--plot", "p.xyz"], "valid suffixes: .png, .pdf, .svg"),
+        (["{a}", "{a}", "--plot", "p.png"], "need --curve"),
     ],
 )
 def test_cli_bad_input_is_one_line(tmp_path: Path, capsys, argv, message) -> None:

@@ -355,27 +355,31 @@ def test_corrupt_json_is_detected(paper: Path, tmp_path: Path) -> None:
     ("args", "needle"),
     [
         (["--dist", "paper", "--split", "val", "--count", "2", "--objects", "cat"], "car, faucet"),
-        (["--dist", "paper", "--split", "val", "--count", "0"], "valid: 1.."),
+        (["--dist", "paper", "--split", "val", "--count", "0"], "valid: integers 1.."),
         (["--dist", "photo", "--split", "val", "--count", "1"], "paper, headcam"),
         (["--dist", "paper", "--split", "dev", "--count", "1"], "train, val, test"),
-        (["--dist", "paper", "--split", "val", "--count", "x"], "invalid int value"),
+        (["--dist", "paper", "--split", "val", "--count", "x"], "invalid --count 'x'"),
+        (["--dist", "paper", "--split", "val", "--count", "1", "--workers", "0"], "1..64"),
         (["--dist", "paper", "--split", "val", "--count", "1", "--width", "0"], "1..4096"),
         (["--dist", "headcam", "--split", "val", "--count", "1", "--tier", "x"], "any-pose, far"),
         (["--dist", "paper", "--split", "val", "--count", "1", "--tier", "far"], "headcam"),
     ],
 )
 def test_cli_bad_arguments_give_one_line(args, needle, tmp_path: Path, capsys) -> None:
-    assert main([*args, "--out", str(tmp_path / "x")]) != 0
+    assert main([*args, "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("error: ") and needle in err
+    assert not (tmp_path / "x").exists()
 
 
-def test_cli_unwritable_output(tmp_path: Path, capsys) -> None:
+@pytest.mark.parametrize("sub", ["", "/sub"])
+def test_cli_unwritable_output(sub: str, tmp_path: Path, capsys) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("")
-    assert main(["--dist", "paper", "--split", "val", "--count", "1", "--out", str(blocker)]) != 0
+    args = ["--dist", "paper", "--split", "val", "--count", "1", "--out", f"{blocker}{sub}"]
+    assert main(args) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "cannot write to output folder" in err
+    assert err.count("\n") == 1 and "--out" in err and "a file, not a folder" in err
 
 
 def test_cli_refuses_to_mix_arguments(paper: Path, tmp_path: Path, capsys) -> None:

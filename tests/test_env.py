@@ -90,6 +90,7 @@ def test_unknown_object() -> None:
         GraspEvalEnv(object="teapot")
 
 
+@pytest.mark.slow
 def test_runs_in_async_vector_env() -> None:
     envs = gym.vector.AsyncVectorEnv(
         [lambda: gym.make("posegrasp:GraspEval-v0", object="screen")] * 2, context="spawn"

@@ -90,10 +90,12 @@ def test_unknown_estimator() -> None:
         make_estimator("magic")
 
 
-def test_run_episode_cli_json(capsys) -> None:
-    argv = ["--object", "faucet", "--seed", "2", "--json", "--estimator", "oracle"]
+def test_run_episode_cli_json_to_stdout(capsys) -> None:
+    argv = ["--object", "faucet", "--seed", "2", "--json", "-", "--estimator", "oracle"]
     assert run_episode.main(argv) == 0
-    d = json.loads(capsys.readouterr().out)
+    captured = capsys.readouterr()
+    d = json.loads(captured.out)  # standard output holds the JSON and nothing else
+    assert "episode  object=faucet" in captured.err  # the summary went to standard error
     for key in (
         "object",
         "seed",
@@ -115,21 +117,50 @@ def test_run_episode_cli_json(capsys) -> None:
     }
 
 
+def test_run_episode_cli_json_to_a_file(tmp_path, capsys) -> None:
+    out = tmp_path / "sub" / "episode.json"
+    argv = ["--object", "faucet", "--seed", "2", "--json", str(out), "--estimator", "oracle"]
+    assert run_episode.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "episode  object=faucet" in printed and f"wrote {out}" in printed
+    d = json.loads(out.read_text())
+    assert d["object"] == "faucet" and d["seed"] == 2 and d["estimator"] == "oracle"
+    assert d["success"] is True and d["pose_error"]["translation_m"] == pytest.approx(0.0)
+
+
+class _Started(Exception):
+    """Raised by a stub in place of the episode: the arguments it was given."""
+
+
+@pytest.mark.parametrize("option", ["--out", "--save"])
+def test_run_episode_out_folder_and_its_former_name(option, tmp_path, monkeypatch) -> None:
+    def started(*args):
+        raise _Started(args)
+
+    monkeypatch.setattr(run_episode, "_run", started)
+    with pytest.raises(_Started) as exc:
+        run_episode.main(["--estimator", "oracle", option, str(tmp_path / "o")])
+    assert exc.value.args[0][3] == tmp_path / "o"  # the folder the episode saves into
+    assert not (tmp_path / "o").exists()  # created only when the episode writes
+
+
 @pytest.mark.parametrize(
     "argv, needle",
     [
         (["--object", "teapot"], "valid objects: car, faucet"),
         (["--estimator", "magic"], "valid estimators: oracle"),
         (["--seed", "x"], "invalid --seed"),
+        (["--noise", "1,2"], "--noise must be"),
+        (["--tier", "nope"], "valid tiers: isolated"),
+        (["--json", "{tmp}"], "it is a folder"),
+        (["--out", "{tmp}/file/sub"], "is a file, not a folder"),
     ],
 )
-def test_run_episode_cli_bad_input(argv, needle, capsys) -> None:
-    try:
-        status = run_episode.main(argv)
-    except SystemExit as exc:
-        status = exc.code
+def test_run_episode_cli_bad_input(argv, needle, tmp_path, capsys) -> None:
+    (tmp_path / "file").write_text("")
+    status = run_episode.main([a.replace("{tmp}", str(tmp_path)) for a in argv])
     err = capsys.readouterr().err
-    assert status != 0
+    assert status == 2
     assert needle in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
 
 
@@ -151,7 +182,6 @@ def test_evaluate_cli(tmp_path, capsys) -> None:
     ):
         assert key in g and key in d["overall"]
     assert g["episodes"] == 2
-    with pytest.raises(SystemExit) as exc:  # refused while parsing, before any work
-        evaluate.main(["--objects", "teapot"])
-    assert exc.value.code == 2
+    capsys.readouterr()
+    assert evaluate.main(["--objects", "teapot"]) == 2  # refused while parsing, before any work
     assert "valid objects: car" in capsys.readouterr().err

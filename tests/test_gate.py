@@ -106,6 +106,7 @@ def test_baseline_covers_the_gate_estimators() -> None:
         assert len(rec["episodes"]) == gate.GATE_EPISODES * len(OBJECT_NAMES)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("estimator", gate.GATE_ESTIMATORS)
 def test_grasp_success_gate(estimator: str) -> None:
     """The regression gate: each gate estimator on 10 held-out hard episodes per object,

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from perception.metrics import error_components
+from posegrasp.core.cli import ArgumentParser
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
-from sim.estimators import NoisyOracleEstimator, make_estimator
-from sim.pose_noise import parse_noise
+from sim.estimators import NoisyOracleEstimator, add_estimator_arguments, make_estimator
+from sim.pose_noise import NOISE_FORMAT, parse_noise
 
 
 def test_parse_noise_units() -> None:
@@ -26,6 +27,25 @@ def test_parse_noise_units() -> None:
 def test_parse_noise_rejects_with_the_format(text: str) -> None:
     with pytest.raises(InvalidArgumentError, match="RAY_MM,LATERAL_MM,INPLANE_DEG,OUTPLANE_DEG"):
         parse_noise(text)
+
+
+def test_the_shared_arguments_check_estimator_and_noise_while_parsing(capsys) -> None:
+    p = ArgumentParser(prog="x")
+    add_estimator_arguments(p)
+    args = p.parse_args(["--estimator", "noisy-oracle", "--noise", "5,5,2,2@3"])
+    assert (args.estimator, args.noise) == ("noisy-oracle", "5,5,2,2@3")  # kept as given
+    assert p.parse_args([]).estimator == "hybrid" and p.parse_args([]).noise is None
+    for argv, words in ((["--noise", "5,5"], NOISE_FORMAT), (["--estimator", "x"], "oracle, ")):
+        with pytest.raises(SystemExit) as exc:
+            p.parse_args(argv)
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and err.count("\n") == 1 and words in err
+    gate = ArgumentParser(prog="y")
+    add_estimator_arguments(gate, default=None, noise=False, also=("none",))
+    assert gate.parse_args([]).estimator is None and gate.parse_args(["--estimator", "none"])
+    with pytest.raises(SystemExit):
+        gate.parse_args(["--noise", "1,1,1,1"])  # no --noise there
+    capsys.readouterr()
 
 
 def test_noise_only_for_the_noisy_oracle() -> None:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import itertools
 import json
 import shutil
+import sys
 from pathlib import Path
 
 import pytest
@@ -20,11 +22,14 @@ from perception.training.checkpoints import save_atomically
 from perception.training.manifest import write_manifest
 from posegrasp.core import files
 from posegrasp.core.backends import run_map
-from posegrasp.core.cli import write_json
+from posegrasp.core.cli import command, summary_stream, write_json
 from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 from posegrasp.core.files import sha256_file
-from posegrasp.core.paths import WEIGHTS_DIR
+from posegrasp.core.paths import REPO_ROOT, WEIGHTS_DIR
 from posegrasp.core.validate import (
+    STDOUT,
+    check_float,
+    check_json_output,
     check_names,
     check_output_file,
     check_plot_path,
@@ -248,6 +253,9 @@ def test_workers_are_capped_by_jobs_and_cores_with_a_note() -> None:
         (check_names, ("", OBJECT_NAMES, "object", "--objects"), "comma list"),
         (check_names, ("teapot", OBJECT_NAMES, "object", "--objects"), "valid objects"),
         (check_output_file, ("out/", "--out"), "it is a folder"),
+        (check_json_output, ("out/",), "invalid --json 'out/': it is a folder"),
+        (check_float, (float("nan"), 0.0, 1.0, "--x"), "numbers 0..1"),
+        (check_float, (True, 0.0, 1.0, "--x"), "numbers 0..1"),
         (check_plot_path, ("p.xyz",), ".png, .pdf, .svg"),
         (parse_intrinsics, ("1e30,1e30,320,240",), "within +-100000"),
         (parse_intrinsics, ("500,-500,320,240",), "positive focal lengths"),
@@ -264,7 +272,10 @@ def test_shared_validators_name_the_valid_range(check, args, words) -> None:
 
 CLI_REJECTIONS = [
     ("sim.run_episode", ["--seed", "-1"], "0..4294967295"),
+    ("sim.run_episode", ["--out", "{file}/sub"], "is a file, not a folder"),
     ("sim.run_episode", ["--save", "{file}/sub"], "is a file, not a folder"),
+    ("sim.run_episode", ["--tier", "nope"], "valid tiers: isolated"),
+    ("sim.run_episode", ["--json", "out/"], "it is a folder"),
     ("sim.evaluate", ["--episodes", "99999999999"], "1..100000"),
     ("sim.evaluate", ["--seed-start", "-5"], "0..4294967295"),
     ("sim.evaluate", ["--objects", "phone,phone"], "phone twice"),
@@ -272,22 +283,41 @@ CLI_REJECTIONS = [
     ("sim.evaluate", ["--json", "out/"], "it is a folder"),
     ("sim.evaluate", ["--tolerance", "{file}"], "not a JSON file"),
     ("sim.evaluate", ["--workers", "1000"], "1..64"),
+    ("sim.evaluate", ["--workers", "0"], "1..64"),
+    ("sim.evaluate", ["--tier", "nope"], "valid tiers: isolated"),
+    ("sim.evaluate", ["--noise", "1,1,1,1"], "noisy-oracle only"),
     ("sim.tolerance", ["--object", "car", "--objects", "phone"], "not allowed with"),
-    ("sim.tolerance", ["--out", "dir/"], "it is a folder"),
+    ("sim.tolerance", ["--json", "dir/"], "it is a folder"),
+    ("sim.tolerance", ["--plot", "p.xyz"], ".png, .pdf, .svg"),
     ("sim.tolerance", ["--seed-start", "-1"], "0..4294967295"),
+    ("sim.tolerance", ["--workers", "0"], "1..64"),
+    ("sim.tolerance", ["--tier", "nope"], "valid tiers: isolated"),
     ("sim.render_scene", ["--seed", "-2"], "0..4294967295"),
+    ("sim.render_scene", ["--tier", "nope"], "valid tiers: isolated"),
     ("sim.gate", ["--workers", "0"], "1..64"),
+    ("sim.gate", ["--write", "--baseline", "{file}/b.json"], "is a file, not a folder"),
     ("sim.compare", ["a.json", "b.json", "--boot", "5"], "100..100000"),
     ("sim.fit_success", ["--objects", "car,car"], "car twice"),
+    ("sim.fit_success", ["--workers", "0"], "1..64"),
+    ("sim.fit_success", ["--tier", "nope"], "valid tiers: isolated"),
     ("perception.training.datagen", ["--dist", "paper", "--split", "val", "--count", "1",
                                      "--preview", "sheet.xyz"], "valid suffixes: .png"),
     ("perception.training.datagen", ["--dist", "paper", "--split", "val", "--count", "1",
                                      "--objects", "car,car"], "car twice"),
-    ("perception.training.overlays", ["--save", "o", "--images", "0"], "1..1000"),
-    ("perception.training.overlays", ["--save", "o", "--image", "x.png", "--K", "1e30,1,1,1"],
+    ("perception.training.datagen", ["--dist", "paper", "--split", "val", "--count", "1",
+                                     "--workers", "0"], "1..64"),
+    ("perception.training.datagen", ["--dist", "headcam", "--split", "val", "--count", "1",
+                                     "--tier", "nope"], "valid tiers: isolated"),
+    ("perception.training.overlays", ["--out", "o", "--images", "0"], "1..1000"),
+    ("perception.training.overlays", ["--out", "o", "--image", "x.png", "--K", "1e30,1,1,1"],
      "within +-100000"),
+    ("perception.training.overlays", ["--images", "2"], "one of the arguments --out is required"),
     ("perception.training.tables", ["--dists", "paper,paper"], "paper twice"),
     ("perception.training.tables", ["--limit", "0"], "1..100000000"),
+    ("perception.training.tables", ["--boxes", "magic"], "valid box sources: gt, detector"),
+    ("perception.training.tables", ["--json", "out/"], "it is a folder"),
+    ("perception.training.export", ["--plot", "curves.xyz"], ".png, .pdf, .svg"),
+    ("posegrasp.world.resting", ["--seed", "-1"], "0..4294967295"),
 ]  # fmt: skip
 
 
@@ -308,6 +338,82 @@ def test_every_cli_refuses_bad_input_in_one_line_before_any_work(
     assert status == 2
     assert err.count("\n") == 1 and err.startswith("error: ") and words in err, err
     assert sorted(tmp_path.rglob("*")) == before  # nothing written
+
+
+def _bench(name: str, monkeypatch):
+    """A script of bench/ as a module (bench/ is no package), registered while the test runs."""
+    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "bench" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, name, module)  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+BENCH_REJECTIONS = [
+    ("soak", ["--workers", "0"], "1..64"),
+    ("soak", ["--json", "out/"], "it is a folder"),
+    ("gate_power", ["--workers", "65"], "1..64"),
+    ("noise_curves", ["--workers", "0"], "1..64"),
+    ("noise_curves", ["--out", "{file}"], "a file, not a folder"),
+    ("episode_speed", ["--tier", "nope"], "valid tiers: isolated"),
+    ("sim_speed", ["--sim-seconds", "nan"], "numbers 0.01..3600"),
+    ("datagen_speed", ["--workers", "0"], "1..64"),
+    ("evaluate_speed", ["--estimator", "magic"], "valid estimators: oracle"),
+]
+
+
+@pytest.mark.parametrize("name, argv, words", BENCH_REJECTIONS)
+def test_every_bench_refuses_bad_input_in_one_line(
+    name, argv, words, tmp_path, monkeypatch, capsys
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "file").write_text("")
+    main = _bench(name, monkeypatch).main
+    assert main([a.format(file=tmp_path / "file") for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ") and words in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]  # nothing written
+
+
+def test_a_command_returns_its_status_and_a_posegrasp_error_is_one_line(capsys) -> None:
+    @command
+    def refuses(argv: list[str] | None = None) -> int:
+        raise AssetError("no weights in w/; run make weights")
+
+    @command
+    def parses(argv: list[str] | None = None) -> int:
+        from posegrasp.core.cli import ArgumentParser
+
+        p = ArgumentParser(prog="x")
+        p.add_argument("--n", type=int, default=0)
+        return p.parse_args(argv).n
+
+    @command
+    def breaks(argv: list[str] | None = None) -> int:
+        raise KeyError("a bug")
+
+    assert refuses([]) == 2
+    assert capsys.readouterr().err == "error: no weights in w/; run make weights\n"
+    assert parses(["--n", "3"]) == 3 and parses(["--help"]) == 0
+    capsys.readouterr()
+    assert parses(["--n", "x"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+    with pytest.raises(KeyError):  # a bug is not turned into a user error
+        breaks([])
+    assert refuses.__name__ == "refuses"
+
+
+def test_json_to_standard_output_is_the_json_alone(tmp_path, capsys) -> None:
+    assert check_json_output("-") == STDOUT and check_json_output(tmp_path / "r.json").name
+    write_json(STDOUT, {"b": 1, "a": [0.5]})
+    captured = capsys.readouterr()
+    assert json.loads(captured.out) == {"a": [0.5], "b": 1} and captured.err == ""
+    assert not list(tmp_path.iterdir())
+    assert summary_stream(STDOUT) is sys.stderr
+    assert summary_stream(tmp_path / "r.json") is sys.stdout and summary_stream(None) is sys.stdout
+    write_json(tmp_path / "r.json", {"a": 1})
+    assert capsys.readouterr().out == f"wrote {tmp_path / 'r.json'}\n"
+    assert json.loads((tmp_path / "r.json").read_text()) == {"a": 1}
 
 
 def test_evaluation_computes_a_learned_estimator_on_one_thread(monkeypatch) -> None:

@@ -29,7 +29,7 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
 
 def test_writes_head_and_external_png(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "sub" / "head.png"
-    argv = ["--object", "chair", "--seed", "1", "--out", str(out), "--external"]
+    argv = ["--object", "chair", "--seed", "1", "--png", str(out), "--external"]
     assert main([*argv, "--width", "200", "--height", "150", "--no-shadows"]) == 0
     external = tmp_path / "sub" / "head_external.png"
     images = []
@@ -44,7 +44,7 @@ def test_writes_head_and_external_png(tmp_path: Path, capsys: pytest.CaptureFixt
 
 def test_default_size_without_external(tmp_path: Path) -> None:
     out = tmp_path / "h.png"
-    assert main(["--object", "phone", "--out", str(out), "--no-shadows"]) == 0
+    assert main(["--object", "phone", "--png", str(out), "--no-shadows"]) == 0
     img = cv2.imread(str(out))
     assert img is not None and img.shape == (480, 640, 3)
     assert not (tmp_path / "h_external.png").exists()
@@ -53,7 +53,8 @@ def test_default_size_without_external(tmp_path: Path) -> None:
 def test_help(capsys: pytest.CaptureFixture) -> None:
     assert main(["--help"]) == 0
     text = capsys.readouterr().out
-    for option in ("--object", "--seed", "--out", "--external", "--width", "--distractors"):
+    options = ("--object", "--seed", "--png", "--sheet", "--external", "--width", "--distractors")
+    for option in options:
         assert option in text
     assert ", ".join(OBJECT_NAMES) in " ".join(text.split())
 
@@ -65,9 +66,13 @@ BAD_INPUTS = [
     ),
     (["--width", "-640"], ["-640x480", "1..4096"]),
     (["--height", "0"], ["640x0", "1..4096"]),
-    (["--out", "{file}/head.png"], ["is a file, not a folder"]),
-    (["--out", "{tmp}/dir.png"], ["is a folder"]),
-    (["--out", "{tmp}/head.jpg"], [".png"]),
+    (["--png", "{file}/head.png"], ["is a file, not a folder"]),
+    (["--png", "{tmp}/dir.png"], ["is a folder"]),
+    (["--png", "{tmp}/head.jpg"], [".png"]),
+    (["--sheet", "{tmp}/tiers.jpg"], ["--sheet", ".png"]),
+    (["--png", "{tmp}/a.png", "--sheet", "{tmp}/b.png"], ["not allowed with argument --png"]),
+    (["--tier", "nope"], ["unknown tier 'nope'", "valid tiers: " + ", ".join(TIERS)]),
+    (["--out", "{tmp}/head.png"], ["unrecognized arguments: --out"]),
     (["--distractors", "9"], ["0..5"]),
     (["--seed", "-1"], ["0..4294967295"]),
     (["--seed", str(2**32)], ["0..4294967295"]),
@@ -81,7 +86,8 @@ def _fill(args: list[str], tmp_path: Path) -> list[str]:
     blocker.write_text("not a directory")
     (tmp_path / "dir.png").mkdir()
     args = [a.format(file=blocker, tmp=tmp_path) for a in args]
-    return args if "--out" in args else [*args, "--out", str(tmp_path / "x.png")]
+    named = "--png" in args or "--sheet" in args
+    return args if named else [*args, "--png", str(tmp_path / "x.png")]
 
 
 def _assert_one_line_error(stderr: str, expected: list[str]) -> None:

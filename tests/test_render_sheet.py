@@ -154,7 +154,8 @@ def test_bad_estimator_name_is_one_line_exit_2(tmp_path: Path) -> None:
     assert proc.returncode == 2
     lines = proc.stderr.splitlines()
     assert len(lines) == 1, proc.stderr
-    assert lines[0].startswith("error: unknown estimator 'teapot'; valid estimators: ")
+    assert lines[0].startswith("error: ") and lines[0].endswith("(see --help)")
+    assert "unknown estimator 'teapot'; valid estimators: " in lines[0]
     for name in [*ESTIMATORS, "none"]:
         assert name in lines[0]
     assert proc.stdout == "" and not out.exists()
@@ -162,7 +163,7 @@ def test_bad_estimator_name_is_one_line_exit_2(tmp_path: Path) -> None:
 
 def test_estimator_without_sheet_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "head.png"
-    assert main(["--out", str(out), "--estimator", "oracle"]) == 2
+    assert main(["--png", str(out), "--estimator", "oracle"]) == 2
     err = capsys.readouterr().err.splitlines()
     assert err == ["error: --estimator applies to --sheet only"]
     assert not out.exists()

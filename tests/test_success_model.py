@@ -77,12 +77,14 @@ def test_inputs_are_checked() -> None:
         (["--episodes", "1"], "valid: integers 3..10000"),
         (["--objects", "phone,phone"], "phone twice"),
         (["--tier", "banana"], "valid tiers"),
+        (["--workers", "0"], "valid: integers 1..64"),
+        (["--out", "{tmp}"], "unrecognized arguments: --out"),
     ],
 )
 def test_fit_cli_rejects_bad_input_in_one_line(tmp_path: Path, capsys, argv, message) -> None:
-    with pytest.raises(SystemExit) as exc:  # refused while parsing, before any work
-        fit_success.main([*argv, "--out", str(tmp_path / "m.json")])
-    assert exc.value.code == 2
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    # Refused while parsing, before any work.
+    assert fit_success.main([*argv, "--models", str(tmp_path / "m.json")]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
     assert not (tmp_path / "m.json").exists()
@@ -126,7 +128,7 @@ def test_refit_and_check_from_the_cli(tmp_path: Path, capsys) -> None:
     old = SuccessModel(X, y, np.full(4, 5.0))  # a file written before the prior existed
     path = tmp_path / "m.json"
     path.write_text(json.dumps({"models": {"phone/far": old.to_json()}}))
-    assert fit_success.main(["--refit", "--out", str(path)]) == 0
+    assert fit_success.main(["--refit", "--models", str(path)]) == 0
     new = load_models(path)["phone/far"]
     assert new.prior is not None and new.log_likelihood > SuccessModel.loo_log_likelihood(
         X, y, np.full(4, 5.0)
@@ -139,8 +141,8 @@ def test_refit_and_check_from_the_cli(tmp_path: Path, capsys) -> None:
     want = np.mean([new.predict(np.array([2.0, 0, 1, 1])), new.predict(np.array([200, 0, 1, 1]))])
     assert pred == pytest.approx(want)
     capsys.readouterr()
-    assert fit_success.main(["--check", str(run), "--out", str(path)]) == 0
+    assert fit_success.main(["--check", str(run), "--models", str(path)]) == 0
     assert "measured 50.0% (1/2 episodes with an estimate)" in capsys.readouterr().out
     run.write_text(json.dumps(_report("hard", rows)))
-    assert fit_success.main(["--check", str(run), "--out", str(path)]) != 0
+    assert fit_success.main(["--check", str(run), "--models", str(path)]) == 2
     assert "no success model for phone/hard" in capsys.readouterr().err

@@ -2,7 +2,7 @@
 
     python -m perception.training.datagen --dist {paper,headcam} --split {train,val,test} --count N
         [--out DIR] [--objects all|phone,car] [--width W --height H] [--preview sheet.png]
-        [--workers K] [--backend {local,ray} [--address ADDR]] [--tier T] [--views V]
+        [--workers N] [--backend {local,ray} [--address ADDR]] [--tier T] [--views V]
 
 Two distributions (docs/DESIGN.md §8; the generators are in
 `perception.training.generators`):
@@ -28,7 +28,6 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NoReturn
 
 from perception.training.dataset import DISTS, SPLITS
 from perception.training.generation import (
@@ -40,56 +39,81 @@ from perception.training.generation import (
 )
 from perception.training.sheets import write_preview
 from posegrasp.core.backends import add_backend_arguments, check_backend
-from posegrasp.core.cli import fail
-from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from posegrasp.core.cli import ArgumentParser, add_out_argument, add_workers_argument, command, fail
+from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import check_names, check_output_file, check_workers
+from posegrasp.core.validate import (
+    arg,
+    check_choice,
+    check_int,
+    check_names,
+    check_output_dir,
+    check_output_file,
+)
 from posegrasp.world.camera import check_resolution
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import TIERS, check_tier
 
+#: Exit status of a generation that failed on the way (a full disk ...).
 EXIT_FAILURE = 1
-EXIT_USAGE = 2
 
 # --- command line ----------------------------------------------------------------------------
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse that raises a rejected argument as InvalidArgumentError, with the usage line."""
-
-    def error(self, message: str) -> NoReturn:
-        raise InvalidArgumentError(f"{message}; {' '.join(self.format_usage().split())}")
-
-
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = ArgumentParser(
         prog="python -m perception.training.datagen",
         description="Render a seeded, resumable pose dataset in the BOP layout.",
     )
-    p.add_argument("--dist", required=True, help="paper (studio views) or headcam (table scenes)")
-    p.add_argument("--split", required=True, help="train, val or test")
-    p.add_argument("--count", required=True, type=int, help="number of images in the split")
     p.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="dataset folder (default: $POSEGRASP_DATA/<dist>, else data/<dist> in the repo)",
+        "--dist",
+        required=True,
+        type=arg(check_choice, DISTS, "distribution"),
+        help="paper (studio views) or headcam (table scenes)",
     )
-    p.add_argument("--objects", default="all", help="'all' or a comma list, e.g. phone,car")
+    p.add_argument(
+        "--split",
+        required=True,
+        type=arg(check_choice, SPLITS, "split"),
+        help=", ".join(SPLITS),
+    )
+    p.add_argument(
+        "--count",
+        required=True,
+        type=arg(check_int, 1, MAX_COUNT, "--count", base=int),
+        metavar="N",
+        help=f"number of images in the split, 1..{MAX_COUNT}",
+    )
+    add_out_argument(
+        p, "the dataset (default: $POSEGRASP_DATA/<dist>, else data/<dist> in the repo)"
+    )
+    p.add_argument(
+        "--objects",
+        default="all",
+        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
+        help="'all' or a comma list, e.g. phone,car",
+    )
     p.add_argument("--width", type=int, default=None, help="image width (256 paper, 640 headcam)")
     p.add_argument("--height", type=int, default=None, help="image height (256 / 480)")
-    p.add_argument("--preview", default=None, help="write a contact sheet PNG here")
-    p.add_argument("--workers", type=int, default=1, help="rendering processes, 1..64 (default 1)")
+    p.add_argument(
+        "--preview",
+        type=arg(check_output_file, "--preview", (".png",)),
+        default=None,
+        metavar="PATH",
+        help="write a contact sheet PNG here",
+    )
+    add_workers_argument(p, what="they render")
     p.add_argument(
         "--tier",
         default=None,
+        type=arg(check_tier),
         help=f"headcam only: scene tier, one of: {', '.join(TIERS)} (default: the mixed table "
         "scenes; the default folder is then <dist>_<tier>)",
     )
     p.add_argument(
         "--views",
-        type=int,
+        type=arg(check_int, 1, MAX_VIEWS, "--views", base=int),
         default=1,
         help=f"headcam only: images per scene, 1..{MAX_VIEWS}, the head aimed at each object in "
         "turn (default 1: one image per scene, as an episode sees it)",
@@ -100,28 +124,17 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def parse_args(argv: Sequence[str] | None) -> GenConfig:
-    """Parse and check a command line.
+    """Parse and check a command line (a bad value exits with status 2, in one line).
 
     Raises:
-        InvalidArgumentError: an argument argparse rejects, or one out of range.
-        UnknownNameError: an unknown distribution, split or object.
+        InvalidArgumentError: an option that does not apply to the distribution, or a bad
+            resolution or output folder.
+        UnknownNameError: an unknown backend.
     """
     a = _parser().parse_args(argv)
-    if a.dist not in DISTS:
-        raise UnknownNameError("distribution", a.dist, DISTS)
-    if a.split not in SPLITS:
-        raise UnknownNameError("split", a.split, SPLITS)
-    if not 1 <= a.count <= MAX_COUNT:
-        raise InvalidArgumentError(f"invalid --count {a.count}; valid: 1..{MAX_COUNT}")
-    check_workers(a.workers)
     check_backend(a.backend, a.address)
-    objects = tuple(check_names(a.objects, OBJECT_NAMES, "object", "--objects"))
-    if a.tier is not None:
-        check_tier(a.tier)
-        if a.dist != "headcam":
-            raise InvalidArgumentError(f"--tier applies to --dist headcam, not {a.dist}")
-    if not 1 <= a.views <= MAX_VIEWS:
-        raise InvalidArgumentError(f"invalid --views {a.views}; valid: 1..{MAX_VIEWS}")
+    if a.tier is not None and a.dist != "headcam":
+        raise InvalidArgumentError(f"--tier applies to --dist headcam, not {a.dist}")
     if a.views > 1 and a.dist != "headcam":
         raise InvalidArgumentError(f"--views applies to --dist headcam, not {a.dist}")
     width = a.width if a.width is not None else DEFAULT_SIZE[a.dist][0]
@@ -130,16 +143,17 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
     out = a.out
     if out is None:
         out = data_root() / (a.dist if a.tier is None else f"{a.dist}_{a.tier}")
+        check_output_dir(out, "--out")
     return GenConfig(
         dist=a.dist,
         split=a.split,
         count=a.count,
         out=Path(out),
-        objects=objects,
+        objects=tuple(a.objects),
         width=width,
         height=height,
         workers=a.workers,
-        preview=None if a.preview is None else check_output_file(a.preview, "--preview", (".png",)),
+        preview=a.preview,
         progress=not a.quiet,
         tier=a.tier,
         backend=a.backend,
@@ -148,28 +162,11 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
     )
 
 
-def _check_writable(out: Path) -> None:
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write_test"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise InvalidArgumentError(
-            f"cannot write to output folder {out}: {exc.strerror or exc}"
-        ) from None
-
-
+@command
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
-    try:
-        cfg = parse_args(argv)
-        setup_rendering()
-        _check_writable(cfg.out)
-    except SystemExit as exc:  # --help
-        return int(exc.code or 0)
-    except PosegraspError as exc:
-        return fail(str(exc), EXIT_USAGE)
+    cfg = parse_args(argv)
+    setup_rendering()
     # One software-rendering thread per process is faster than llvmpipe's default on 2 cores.
     os.environ.setdefault("LP_NUM_THREADS", "1")
     try:
@@ -179,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
             write_preview(cfg.out, cfg.split, cfg.dist, cfg.preview)
     except KeyboardInterrupt:
         return fail("interrupted; run the same command again to resume", 130)
-    except (PosegraspError, OSError) as exc:
+    except OSError as exc:
         return fail(str(exc), EXIT_FAILURE)
     done = f"{cfg.dist}/{cfg.split}: rendered {n}, {cfg.count - n} already done, in {cfg.out}"
     if cfg.preview is not None:

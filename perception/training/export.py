@@ -1,6 +1,7 @@
 """Turn training checkpoints into the shipped weights and their manifest.
 
     python -m perception.training.export [--checkpoints DIR (default: <data>/checkpoints)]
+        [--plot training_curves.png]
 
 Writes `perception/weights/posenet_<name>.pt` (float16 weights and the model config, no
 optimiser state) and `perception/weights/manifest.json` (command, data seed ranges, sizes,
@@ -24,10 +25,11 @@ from perception.training.crop_sets import data_seed_ranges
 from perception.training.dataset import DISTS
 from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
 from perception.training.train_posenet import TRAIN_COMMAND
-from posegrasp.core.cli import ArgumentParser, fail
+from posegrasp.core.cli import ArgumentParser, command
 from posegrasp.core.errors import AssetError, PosegraspError
 from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, git_commit
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_plot_path
 
 MANIFEST = WEIGHTS_DIR / MANIFEST_NAME
 #: The shipped pose nets: each variant, and `ours` fine-tuned on the hard tier too (the expert
@@ -212,20 +214,30 @@ def _seeds(recorded: dict, dists: Sequence[str]) -> dict:
         return {d: "unknown (dataset not found at export time)" for d in dists}
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(
         prog="python -m perception.training.export", description=__doc__.split("\n")[0]
     )
-    p.add_argument("--checkpoints", type=Path, default=None)
-    p.add_argument("--plot", type=Path, default=None, help="write the training curves here (PNG)")
+    p.add_argument(
+        "--checkpoints",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="folder of the training checkpoints (default: <data>/checkpoints)",
+    )
+    p.add_argument(
+        "--plot",
+        type=arg(check_plot_path),
+        default=None,
+        metavar="PATH",
+        help="write the training curves here (.png, .pdf or .svg)",
+    )
     args = p.parse_args(argv)
     setup_rendering()
     ckpts = args.checkpoints or checkpoint_dir()
-    try:
-        m = export(ckpts)
-    except PosegraspError as exc:
-        return fail(str(exc))
+    m = export(ckpts)
     if args.plot:
         plot_curves(training_curves(ckpts), args.plot)
         print(f"wrote {args.plot}")

@@ -20,7 +20,7 @@ ratio of the pose errors to those from ground-truth boxes (keys ``detection``,
 name for the others).
 
     python -m perception.training.tables [--weights perception/weights/posenet_ours.pt] \
-        --json out.json
+        --json out.json   (--json -: the report on standard output)
     python -m perception.training.tables --dists headcam,headcam_hard,headcam_far
     python -m perception.training.tables --boxes detector --json detector.json
 """
@@ -37,6 +37,7 @@ from tqdm import tqdm
 from perception import metrics
 from perception.crops import square_box
 from perception.detector import DEFAULT_WEIGHTS, Detector
+from perception.estimators import LEARNED_ESTIMATORS
 from perception.hybrid import DEFAULT_CROP_SCALE
 from perception.metrics import box_iou
 from perception.nets import CROP, PoseNet, load_posenet
@@ -45,6 +46,7 @@ from perception.success_model import SuccessModel, components_of, load_models
 from perception.training.crop_sets import CropConfig, CropSet, build_crops
 from perception.training.dataset import DATASETS, PoseDataset, load_info
 from perception.training.detection_eval import coco_ap, visible_objects
+from perception.training.estimator_tables import format_summary, query_errors, summarise_queries
 from perception.training.paper_tables import READINGS, average, format_tables, summarise
 from perception.training.posenet_eval import PAPER_IMAGE, decode_predictions, pose_metrics, predict
 from perception.training.record import (
@@ -53,11 +55,17 @@ from perception.training.record import (
     record_command,
     record_in_manifest,
 )
-from posegrasp.core.cli import ArgumentParser, fail, write_json
-from posegrasp.core.errors import AssetError, PosegraspError
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    summary_stream,
+    write_json,
+)
+from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, data_root
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import arg, check_choice, check_int, check_names, check_output_file
+from posegrasp.core.validate import arg, check_choice, check_int, check_names
 from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 #: Test boxes are perturbed like detections, with this seed.
@@ -251,15 +259,38 @@ def format_detection(det: dict) -> str:
     return "\n".join(rows)
 
 
+def _estimator_tables(name: str, roots: dict[str, Path], limit: int | None, json_path, log) -> int:
+    """`--estimator`: the whole estimator on each split, per object (`estimator_tables`)."""
+    from perception.estimators import LEARNED_ESTIMATORS
+
+    estimator = LEARNED_ESTIMATORS[name]()
+    report: dict = {"estimator": name}
+    for d, root in roots.items():
+        rows = query_errors(estimator, root, limit)
+        report[d] = {"summary": summarise_queries(rows), "queries": rows}
+        print(format_summary(f"{name} on {d}/test", report[d]["summary"]), file=log)
+    if json_path is not None:
+        write_json(json_path, report)
+    return 0
+
+
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(
         prog="python -m perception.training.tables", description=__doc__.split("\n")[0]
     )
-    p.add_argument("--weights", type=Path, default=WEIGHTS_DIR / "posenet_ours.pt")
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=WEIGHTS_DIR / "posenet_ours.pt",
+        metavar="PATH",
+        help="pose net weights (default: the shipped ours)",
+    )
     p.add_argument(
         "--dists",
-        default=None,
+        default="headcam,paper",
+        type=arg(check_names, DATASETS, "distribution", "--dists"),
         help=f"comma list of dataset folders under the data root, of: {', '.join(DATASETS)} "
         "(default: headcam,paper)",
     )
@@ -269,21 +300,33 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help=f"at most this many test images, 1..{MAX_LIMIT}",
     )
-    p.add_argument("--json", type=arg(check_output_file, "--json"), default=None)
+    add_json_argument(p, "the report")
     p.add_argument(
         "--boxes",
         default="gt",
+        type=arg(check_choice, BOXES, "box source"),
         help="crop boxes: gt (ground truth perturbed like detections) or detector (the shipped "
         "Mask R-CNN, head-camera split only; adds COCO detection AP and the ratio of the errors "
         "to those from ground-truth boxes)",
     )
-    p.add_argument("--detector", type=Path, default=DEFAULT_WEIGHTS, help="detector weights")
+    p.add_argument(
+        "--detector", type=Path, default=DEFAULT_WEIGHTS, metavar="PATH", help="detector weights"
+    )
     p.add_argument(
         "--success-model",
         type=Path,
         default=None,
+        metavar="PATH",
         help="models of python -m sim.fit_success: adds the expected grasp success of the "
         "head-camera test poses (a tier's models for headcam_<tier>, isolated for headcam)",
+    )
+    p.add_argument(
+        "--estimator",
+        default=None,
+        metavar="NAME",
+        type=arg(check_choice, list(LEARNED_ESTIMATORS), "learned estimator"),
+        help="score this whole estimator instead (detection included), per object, one of: "
+        f"{', '.join(LEARNED_ESTIMATORS)}",
     )
     p.add_argument(
         "--record",
@@ -293,49 +336,54 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = p.parse_args(argv)
     setup_rendering()
-    try:
-        check_choice(args.boxes, BOXES, "box source")
-        dists = check_names(args.dists or "headcam,paper", DATASETS, "distribution", "--dists")
-        if args.record:
-            check_record_request(args, dists)
-            check_full_splits(dists)
-        roots = {d: check_test_split(d) for d in dists}
-        model = load_posenet(args.weights)
-        models = {} if args.success_model is None else load_models(args.success_model)
-        report: dict = {}
-        for d in dists:
-            data = None
-            if args.boxes == "detector":
-                detector = Detector.from_weights(args.detector, score_threshold=0.05)
-                data, det = detector_crops(roots[d], detector, args.limit, size=model.cfg.crop)
-                # Keys without the split's name are the head camera's (the manifest's record).
-                tag = "" if d == "headcam" else f"{d}_"
-                report[f"{tag}detection"] = det["detection"]
-                summary = {k: v for k, v in det.items() if k != "detection"}
-                report[f"{tag}detection_summary"] = summary
-                print(format_detection(det))
-            success = _success_models(models, d)
-            report[d] = evaluate_split(model, roots[d], args.limit, data, success)
-            if args.boxes == "detector":
-                report[d]["boxes"] = "detector"
-                gt = evaluate_split(model, roots[d], args.limit)
-                report[f"{d}_gt_boxes"] = gt
-                report[f"{tag}detector_to_gt_ratio"] = {
-                    k: report[d]["average"][k] / gt["average"][k] for k in RATIO_KEYS
-                }
-            print(format_tables(d if args.boxes == "gt" else f"{d} (detector boxes)", report[d]))
-            if args.boxes == "detector":
-                print(
-                    "detector boxes / ground-truth boxes (average): "
-                    + ", ".join(
-                        f"{k} {v:.2f}x" for k, v in report[f"{tag}detector_to_gt_ratio"].items()
-                    )
-                )
-        if args.record:
-            variant = record_in_manifest(report, args.weights, args.boxes, record_command(args))
-            print(f"recorded the test figures of {variant} in the manifest")
-    except PosegraspError as exc:
-        return fail(str(exc))
+    log = summary_stream(args.json)
+    dists = args.dists
+    if args.record and args.estimator is not None:
+        raise InvalidArgumentError(
+            "--record stores pose-net figures; it does not apply to --estimator"
+        )
+    if args.record:
+        check_record_request(args, dists)
+        check_full_splits(dists)
+    roots = {d: check_test_split(d) for d in dists}
+    if args.estimator is not None:
+        return _estimator_tables(args.estimator, roots, args.limit, args.json, log)
+    model = load_posenet(args.weights)
+    models = {} if args.success_model is None else load_models(args.success_model)
+    report: dict = {}
+    for d in dists:
+        data = None
+        if args.boxes == "detector":
+            detector = Detector.from_weights(args.detector, score_threshold=0.05)
+            data, det = detector_crops(roots[d], detector, args.limit, size=model.cfg.crop)
+            # Keys without the split's name are the head camera's (the manifest's record).
+            tag = "" if d == "headcam" else f"{d}_"
+            report[f"{tag}detection"] = det["detection"]
+            summary = {k: v for k, v in det.items() if k != "detection"}
+            report[f"{tag}detection_summary"] = summary
+            print(format_detection(det), file=log)
+        success = _success_models(models, d)
+        report[d] = evaluate_split(model, roots[d], args.limit, data, success)
+        if args.boxes == "detector":
+            report[d]["boxes"] = "detector"
+            gt = evaluate_split(model, roots[d], args.limit)
+            report[f"{d}_gt_boxes"] = gt
+            report[f"{tag}detector_to_gt_ratio"] = {
+                k: report[d]["average"][k] / gt["average"][k] for k in RATIO_KEYS
+            }
+        title = d if args.boxes == "gt" else f"{d} (detector boxes)"
+        print(format_tables(title, report[d]), file=log)
+        if args.boxes == "detector":
+            print(
+                "detector boxes / ground-truth boxes (average): "
+                + ", ".join(
+                    f"{k} {v:.2f}x" for k, v in report[f"{tag}detector_to_gt_ratio"].items()
+                ),
+                file=log,
+            )
+    if args.record:
+        variant = record_in_manifest(report, args.weights, args.boxes, record_command(args))
+        print(f"recorded the test figures of {variant} in the manifest", file=log)
     if args.json is not None:
         write_json(args.json, report)
     return 0

@@ -1,14 +1,38 @@
-"""Shared helpers of the command-line tools: one-line errors, never a traceback."""
+"""Shared helpers of the command-line tools: one convention, one-line errors, never a traceback.
+
+Every command follows the same convention:
+
+- ``--json PATH`` writes the machine-readable output to PATH; ``-`` writes it to standard output,
+  and the human summary then goes to standard error, so that standard output is valid JSON;
+- ``--out DIR`` is always a folder of outputs;
+- ``--workers N`` is the number of worker processes, `DEFAULT_WORKERS` unless told otherwise;
+- every value is checked while the command line is parsed (``type=arg(...)``), and a bad one is a
+  single ``error: ...`` line on standard error with exit status 2;
+- ``main(argv) -> int`` is wrapped by `command`, so a `PosegraspError` raised later is the same
+  one-line error with status 2.
+"""
 
 from __future__ import annotations
 
 import argparse
+import functools
+import json
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn, TextIO
 
-from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.errors import PosegraspError
 from posegrasp.core.files import atomic_write_json
+from posegrasp.core.validate import (
+    DEFAULT_WORKERS,
+    MAX_WORKERS,
+    STDOUT,
+    arg,
+    check_json_output,
+    check_output_dir,
+    check_workers,
+)
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -25,28 +49,134 @@ def fail(message: str, status: int = 2) -> int:
     return status
 
 
-def check_writable_file(path: Path) -> None:
-    """Raise InvalidArgumentError unless a file can be written at path."""
-    parent = path.resolve().parent
-    blocker = next((q for q in (parent, *parent.parents) if q.exists()), None)
-    if blocker is not None and not blocker.is_dir():
-        raise InvalidArgumentError(f"cannot write {path}: {blocker} is a file, not a folder")
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InvalidArgumentError(f"cannot create folder {parent}: {exc.strerror}") from exc
-    if path.is_dir():
-        raise InvalidArgumentError(f"output path {path} is a folder; give a file name")
-    probe = parent / f".{path.name}.probe"
-    try:
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise InvalidArgumentError(f"cannot write to {parent}: {exc.strerror}") from exc
+def command(main: Callable[..., int]) -> Callable[..., int]:
+    """Decorate a command's ``main(argv) -> int`` so that it always returns its exit status.
+
+    A `PosegraspError` becomes one ``error:`` line on stderr and status 2 (`fail`); argparse's
+    exit (``--help``: 0, a bad argument, already reported in one line: 2) becomes its status. The
+    decorated function is a console-script entry point as it is (``sys.exit(main())``).
+
+    Args:
+        main: the command; takes the argument list (None: ``sys.argv[1:]``), returns its status.
+
+    Returns:
+        The wrapped command.
+    """
+
+    @functools.wraps(main)
+    def run(*args: Any, **kwargs: Any) -> int:
+        try:
+            return main(*args, **kwargs)
+        except PosegraspError as exc:
+            return fail(str(exc))
+        except SystemExit as exc:
+            if exc.code is None or isinstance(exc.code, int):
+                return exc.code or 0
+            return fail(str(exc.code), 1)
+
+    return run
 
 
-def write_json(path: Path, report: dict) -> None:
-    """Write a report as indented JSON with sorted keys, atomically (`posegrasp.core.files`),
-    and say where."""
+def summary_stream(json_path: Path | str | None) -> TextIO:
+    """Where a command prints its human summary: stderr when its JSON goes to standard output
+    (``--json -``), else stdout."""
+    return sys.stderr if json_path is not None and str(json_path) == STDOUT else sys.stdout
+
+
+def write_json(path: Path | str, report: Any) -> None:
+    """Write a report as indented JSON with sorted keys and say where: to standard output when
+    `path` is ``-`` (`STDOUT`; nothing else is printed), else atomically to the file
+    (`posegrasp.core.files`)."""
+    if str(path) == STDOUT:
+        sys.stdout.write(json.dumps(report, indent=1, sort_keys=True) + "\n")
+        sys.stdout.flush()
+        return
     atomic_write_json(path, report)
     print(f"wrote {path}")
+
+
+def add_json_argument(
+    parser: argparse.ArgumentParser, what: str, default: Path | str | None = None
+) -> None:
+    """Add ``--json PATH``: write `what` as JSON to PATH, ``-`` for standard output.
+
+    Args:
+        parser: the command line.
+        what: what the JSON holds, e.g. "the full report".
+        default: written unless told otherwise (None: no JSON unless asked for).
+    """
+    tail = "" if default is None else f"; default {default}"
+    parser.add_argument(
+        "--json",
+        type=arg(check_json_output, "--json"),
+        default=default,
+        metavar="PATH",
+        help=f"write {what} as JSON to PATH ('-': standard output, the printed summary then "
+        f"goes to standard error{tail})",
+    )
+
+
+def add_workers_argument(
+    parser: argparse.ArgumentParser, default: int = DEFAULT_WORKERS, what: str = ""
+) -> None:
+    """Add ``--workers N``: worker processes, 1..`MAX_WORKERS`, checked while parsing.
+
+    Args:
+        parser: the command line.
+        default: the count unless told otherwise (`DEFAULT_WORKERS` for every command).
+        what: more on what the workers do, appended to the help.
+    """
+    more = f"; {what}" if what else ""
+    parser.add_argument(
+        "--workers",
+        type=arg(check_workers, base=int),
+        default=default,
+        metavar="N",
+        help=f"worker processes, 1..{MAX_WORKERS} (default {default}){more}",
+    )
+
+
+def add_out_argument(
+    parser: argparse.ArgumentParser,
+    what: str,
+    default: Path | str | None = None,
+    required: bool = False,
+    aliases: Sequence[str] = (),
+) -> None:
+    """Add ``--out DIR``: the folder of a command's outputs, checked while parsing
+    (`check_output_dir`; created when the work writes).
+
+    Args:
+        parser: the command line.
+        what: what the folder receives, e.g. "the head image and the grasp GIF".
+        default: the folder unless told otherwise (None: none); a string is checked like a
+            given value.
+        required: the command needs one (also when given by an alias).
+        aliases: former names of the option, accepted but not shown in ``--help``.
+    """
+    tail = f" (default {default})" if default is not None else ""
+    # A required option with aliases: exactly one of them, named --out in the error.
+    group = parser.add_mutually_exclusive_group(required=True) if required and aliases else parser
+    group.add_argument(
+        "--out",
+        type=arg(check_output_dir, "--out", base=Path),
+        default=default,
+        required=required and not aliases,
+        metavar="DIR",
+        help=f"folder of the outputs: {what}{tail}",
+    )
+    for alias in aliases:
+        group.add_argument(
+            alias, dest="out", type=arg(check_output_dir, alias, base=Path), help=argparse.SUPPRESS
+        )
+
+
+def verdict(met: bool) -> str:
+    """A target's verdict as the benchmarks print it: PASS, or MISS."""
+    return "PASS" if met else "MISS"
+
+
+def target(goal: str, met: bool) -> str:
+    """A measured figure's target and verdict as the benchmarks print them after the figure,
+    e.g. ``[target <= 100 ms: PASS]``."""
+    return f"[target {goal}: {verdict(met)}]"

@@ -25,8 +25,11 @@ from posegrasp.core.transforms import check_intrinsics
 T = TypeVar("T")
 #: Seeds are what numpy's generators accept from every caller: 0 <= seed < 2**32.
 SEED_LIMIT = 2**32
-#: Worker processes of any command.
+#: Worker processes of any command: at most, and unless told otherwise.
 MAX_WORKERS = 64
+DEFAULT_WORKERS = 1
+#: ``--json`` value that means standard output.
+STDOUT = "-"
 #: Plot formats matplotlib writes without extra packages.
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 #: Largest focal length and principal-point offset accepted in ``--K`` [px].
@@ -39,6 +42,16 @@ def check_int(value: Any, lo: int, hi: int, name: str) -> int:
     if not ok or not lo <= int(value) <= hi:
         raise InvalidArgumentError(f"invalid {name} {value!r}; valid: integers {lo}..{hi}")
     return int(value)
+
+
+def check_float(value: Any, lo: float, hi: float, name: str) -> float:
+    """`value` as a finite float in lo..hi (inclusive); bools and non-numbers are refused."""
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_)
+    )
+    if not ok or not math.isfinite(value) or not lo <= float(value) <= hi:
+        raise InvalidArgumentError(f"invalid {name} {value!r}; valid: numbers {lo:g}..{hi:g}")
+    return float(value)
 
 
 def check_seed(value: Any, name: str = "seed", count: int = 1) -> int:
@@ -132,6 +145,14 @@ def check_output_dir(path: str | Path, option: str) -> Path:
 def check_plot_path(path: str | Path, option: str = "--plot") -> Path:
     """A plot file whose suffix matplotlib writes (`PLOT_SUFFIXES`)."""
     return check_output_file(path, option, PLOT_SUFFIXES)
+
+
+def check_json_output(path: str | Path, option: str = "--json") -> Path | str:
+    """Where JSON goes: `STDOUT` (``-``) for standard output, else a file `check_output_file`
+    accepts."""
+    if str(path) == STDOUT:
+        return STDOUT
+    return check_output_file(path, option)
 
 
 def check_json_file(path: str | Path, option: str) -> Any:

@@ -15,6 +15,7 @@ import numpy as np
 from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 from posegrasp.core.runtime import gl_context_class
 from posegrasp.core.transforms import intrinsics
+from posegrasp.world.constants import EXTERNAL_SIZE
 
 R_CV_FROM_MJ = np.diag([1.0, -1.0, -1.0])
 MAX_RESOLUTION = (4096, 4096)
@@ -323,3 +324,9 @@ def body_mask(model: mujoco.MjModel, seg: np.ndarray, body: str) -> np.ndarray:
         raise UnknownNameError("body", body, [model.body(i).name for i in range(model.nbody)])
     geoms = np.flatnonzero(model.geom_bodyid == bid)
     return np.isin(seg, geoms)
+
+
+def external_renderer(model: mujoco.MjModel) -> CameraRenderer:
+    """A renderer of the external camera's view at `EXTERNAL_SIZE` (no shadows): what episode
+    GIFs and ``GraspEval-v0.render()`` show; read it with ``.rgb(data, EXTERNAL_CAMERA)``."""
+    return CameraRenderer(model, *EXTERNAL_SIZE, RenderOptions(shadows=False))

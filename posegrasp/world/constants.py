@@ -43,6 +43,9 @@ FINGER_BODIES: tuple[str, ...] = (
     PREFIX + "l_gripper_finger_link",
 )
 HEAD_CAMERA = "head_camera_rgb"
+#: The scene's fixed third-person camera, and the size it is shown at (GIFs, env.render) [px].
+EXTERNAL_CAMERA = "external"
+EXTERNAL_SIZE = (480, 360)
 #: Site between the finger pads, 13.5 mm behind the fingertips. Its x axis is the approach
 #: direction (out of the gripper), y the closing direction, z completes the frame.
 GRASP_SITE = "grasp_site"

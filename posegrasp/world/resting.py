@@ -23,11 +23,12 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from posegrasp.core.cli import ArgumentParser, fail
-from posegrasp.core.errors import AssetError, InvalidArgumentError, PosegraspError
+from posegrasp.core.cli import ArgumentParser, command
+from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import SCENES_DIR
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import quat_to_mat
+from posegrasp.core.validate import arg, check_choice, check_int, check_seed
 from posegrasp.world.objects import OBJECT_NAMES, check_object, load_object
 
 #: A plane with the world's contact class (`scenes/world.xml`, class "world") and its options.
@@ -218,28 +219,24 @@ def _rounded(q: np.ndarray) -> list[float]:
 
 def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m posegrasp.world.resting", description=__doc__)
-    p.add_argument("--object", default="all", help=f"one of {', '.join(OBJECT_NAMES)} or all")
-    p.add_argument("--drops", type=int, default=96, help="random drops per object")
-    p.add_argument("--seed", type=int, default=0)
+    names = [*OBJECT_NAMES, "all"]
+    p.add_argument("--object", default="all", type=arg(check_choice, names, "object"),
+                   help=f"one of {', '.join(OBJECT_NAMES)} or all (default all)")  # fmt: skip
+    p.add_argument("--drops", type=arg(check_int, 1, 4096, "--drops", base=int), default=96,
+                   help="random drops per object, 1..4096 (default 96)")  # fmt: skip
+    p.add_argument("--seed", type=arg(check_seed, "--seed", base=int), default=0,
+                   help="seed of the drops, 0..2**32-1 (default 0)")  # fmt: skip
     p.add_argument("--write", action="store_true", help="store the poses in the object files")
     return p
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """Find (and with --write store) the resting poses of one object or all; the exit status."""
-    try:
-        args = _parser().parse_args(argv)
-        setup_rendering()
-        names = OBJECT_NAMES if args.object == "all" else (check_object(args.object),)
-        if not 1 <= args.drops <= 4096:
-            raise InvalidArgumentError(f"--drops must be in 1..4096, got {args.drops}")
-        if not 0 <= args.seed < 2**32:
-            raise InvalidArgumentError(f"--seed must be in 0..{2**32 - 1}, got {args.seed}")
-        _run(names, args.drops, args.seed, args.write)
-    except SystemExit as exc:
-        return exc.code if isinstance(exc.code, int) else 0
-    except PosegraspError as exc:
-        return fail(str(exc))
+    args = _parser().parse_args(argv)
+    setup_rendering()
+    names = OBJECT_NAMES if args.object == "all" else (args.object,)
+    _run(names, args.drops, args.seed, args.write)
     return 0
 
 

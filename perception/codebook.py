@@ -1,0 +1,350 @@
+"""Global pose hypotheses from a viewpoint codebook: silhouettes over the whole rotation group.
+
+A detected object's visible mask says much about its orientation and, through its size and
+position, about its translation. The codebook holds, per object, the silhouette of every
+rotation of a grid over SO(3) (viewpoints on a Fibonacci sphere x in-plane steps), each seen by
+a virtual camera whose axis passes through the object's origin (the crop frame C' of
+docs/DESIGN.md §6), drawn into a square of `SILHOUETTE_PX` pixels around its own box and
+packed into bits. Matching a detection is one pass of bitwise IoU over all of them; every match
+gives a full pose:
+
+- rotation: ``R_C_O = R_corr(uv) @ R_C'_O`` (`perception.geometry.r_corr`), ``uv`` the pixel of
+  the origin;
+- the origin's pixel: the mask box's centre plus the template's origin offset, scaled by the
+  ratio of the box sizes;
+- distance: the template's distance scaled by the ratio of the box sizes and focal lengths.
+
+The silhouettes come from a `SilhouetteSource` (today the convex parts' projected hulls, as in
+`perception.refine`); a mesh source can take its place without changing the matching.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from perception.geometry import r_corr
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.world.objects import load_object
+
+#: Side of the square a silhouette is drawn into [px].
+SILHOUETTE_PX = 64
+#: The silhouette's longer box side fills this share of the square.
+FILL = 0.875
+#: The virtual camera of the templates: focal length [px] and distance to the origin [m].
+TEMPLATE_F = 1000.0
+TEMPLATE_Z = 1.0
+
+
+class SilhouetteSource(Protocol):
+    """Draws an object's silhouette: projected points and the convex pieces they form."""
+
+    def pieces(self, name: str) -> list[np.ndarray]:
+        """The object's convex pieces: vertices in O [m], each (n_i, 3)."""
+        ...
+
+
+class ConvexParts:
+    """The silhouette source of the built-in objects: their convex primitive parts."""
+
+    def __init__(self) -> None:
+        self._cache: dict[str, list[np.ndarray]] = {}
+
+    def pieces(self, name: str) -> list[np.ndarray]:
+        if name not in self._cache:
+            model = load_object(name)
+            self._cache[name] = [np.unique(p.mesh().vertices, axis=0) for p in model.parts]
+        return self._cache[name]
+
+
+def sphere_rotations(views: int, inplane: int) -> np.ndarray:
+    """A grid over SO(3): `views` viewpoints on a Fibonacci sphere times `inplane` equal turns
+    about the viewing axis.
+
+    Returns:
+        R_C'_O, shape (views * inplane, 3, 3): the rotations of the object in the crop frame C'
+        (its axis through the object's origin), viewpoint-major.
+    """
+    if views < 1 or inplane < 1:
+        raise InvalidArgumentError(f"views and inplane must be >= 1, got {views}, {inplane}")
+    k = np.arange(views) + 0.5
+    z = 1 - 2 * k / views
+    phi = k * math.pi * (3 - math.sqrt(5))
+    r = np.sqrt(1 - z * z)
+    cam_in_o = np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)  # unit, O -> camera
+    out = np.empty((views, inplane, 3, 3))
+    for i, c in enumerate(cam_in_o):
+        zc = -c  # the camera looks at the origin
+        up = np.array([0.0, 0.0, 1.0]) if abs(zc[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        xc = np.cross(up, zc)
+        xc /= np.linalg.norm(xc)
+        yc = np.cross(zc, xc)
+        R_cp_o = np.stack([xc, yc, zc])  # rows: the camera axes in O
+        for j in range(inplane):
+            a = 2 * math.pi * j / inplane
+            ca, sa = math.cos(a), math.sin(a)
+            Rz = np.array([[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]])
+            out[i, j] = Rz @ R_cp_o
+    return out.reshape(-1, 3, 3)
+
+
+def _pack(sil: np.ndarray) -> np.ndarray:
+    """A (S, S) bool silhouette as S * S / 64 uint64 words."""
+    return np.packbits(sil.reshape(-1)).view(np.uint64)
+
+
+@dataclass(frozen=True)
+class Codebook:
+    """The templates of one object.
+
+    Attributes:
+        name: the object.
+        rotations: R_C'_O per template, (N, 3, 3).
+        bits: packed silhouettes, (N, SILHOUETTE_PX**2 / 64) uint64.
+        side: each template's box side at `TEMPLATE_F`, `TEMPLATE_Z` [px], (N,).
+        offset: the origin's pixel minus the box centre, in units of the box side, (N, 2).
+    """
+
+    name: str
+    rotations: np.ndarray
+    bits: np.ndarray
+    side: np.ndarray
+    offset: np.ndarray
+
+    @classmethod
+    def build(
+        cls, name: str, views: int, inplane: int, source: SilhouetteSource | None = None
+    ) -> Codebook:
+        """Draw the templates of `name` on the `sphere_rotations(views, inplane)` grid."""
+        pieces = (source or ConvexParts()).pieces(name)
+        verts = np.concatenate(pieces)
+        slices = np.cumsum([0] + [len(p) for p in pieces])
+        R = sphere_rotations(views, inplane)
+        S = SILHOUETTE_PX
+        X = np.einsum("nij,vj->nvi", R, verts)
+        uv = TEMPLATE_F * X[..., :2] / (TEMPLATE_Z + X[..., 2:3])
+        lo, hi = uv.min(1), uv.max(1)
+        centre, side = (lo + hi) / 2, (hi - lo).max(1)
+        offset = -centre / side[:, None]  # the origin projects at (0, 0)
+        px = (uv - centre[:, None]) * (FILL * S / side)[:, None, None] + S / 2
+        bits = np.empty((len(R), S * S // 64), np.uint64)
+        sil = np.zeros((S, S), np.uint8)
+        for n in range(len(R)):
+            sil[:] = 0
+            _fill(sil, px[n], slices)
+            bits[n] = _pack(sil.view(bool))
+        return cls(name, R, bits, side, offset)
+
+    def save(self, path: Path) -> None:
+        """Write the codebook to an .npz file (atomically)."""
+        tmp = path.with_name(path.name + ".part.npz")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(tmp, rotations=self.rotations, bits=self.bits, side=self.side, offset=self.offset)
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, name: str, path: Path) -> Codebook:
+        """A codebook written by `save`."""
+        with np.load(path) as z:
+            return cls(name, z["rotations"], z["bits"], z["side"], z["offset"])
+
+    def match(self, mask_bits: np.ndarray) -> np.ndarray:
+        """Silhouette IoU of a packed observed mask with every template, (N,)."""
+        inter = np.bitwise_count(self.bits & mask_bits).sum(1, dtype=np.int64)
+        union = np.bitwise_count(self.bits | mask_bits).sum(1, dtype=np.int64)
+        return inter / np.maximum(union, 1)
+
+
+def _fill(canvas: np.ndarray, px: np.ndarray, slices: np.ndarray) -> None:
+    """Fill the union of the convex hulls of each piece's projected points (N, 2) [px]."""
+    pts16 = np.round(px * 16).astype(np.int32)
+    for i0, i1 in itertools.pairwise(slices):
+        hull = cv2.convexHull(px[i0:i1].astype(np.float32), returnPoints=False)[:, 0] + i0
+        cv2.fillConvexPoly(canvas, pts16[hull], 1, cv2.LINE_8, 4)
+
+
+@dataclass(frozen=True)
+class MaskView:
+    """A detected mask framed as the templates are.
+
+    Attributes:
+        bits: the packed silhouette, (SILHOUETTE_PX**2 / 64,) uint64.
+        centre: the centre of the mask's box in the image [px], (2,).
+        side: the longer side of the mask's box [px].
+    """
+
+    bits: np.ndarray
+    centre: np.ndarray
+    side: float
+
+
+def frame_mask(mask: np.ndarray) -> MaskView | None:
+    """The mask (H, W) bool drawn into the templates' square around its box; None when empty."""
+    ys, xs = np.nonzero(mask)
+    if xs.size == 0:
+        return None
+    lo = np.array([xs.min(), ys.min()], float) - 0.5  # pixel edges
+    hi = np.array([xs.max(), ys.max()], float) + 0.5
+    centre, s = (lo + hi) / 2, float(max(hi - lo))
+    S = SILHOUETTE_PX
+    k = FILL * S / s
+    # Pixel centres at integer coordinates in both: canvas = (image - centre) * k + S / 2.
+    A = np.array([[k, 0.0, S / 2 - k * centre[0]], [0.0, k, S / 2 - k * centre[1]]])
+    m = cv2.warpAffine(mask.astype(np.float32), A, (S, S), flags=cv2.INTER_LINEAR)
+    return MaskView(_pack(m >= 0.5), centre, s)
+
+
+def hypothesis_pose(book: Codebook, index: int, view: MaskView, K: np.ndarray) -> np.ndarray:
+    """The full pose T_C_O (4, 4) that template `index` gives for the framed mask `view` seen
+    with intrinsics K."""
+    scale = view.side / book.side[index]
+    uv = view.centre + book.offset[index] * view.side
+    f = math.sqrt(K[0, 0] * K[1, 1])
+    dist = TEMPLATE_Z * (f / TEMPLATE_F) / scale
+    ray = np.linalg.solve(K, np.array([uv[0], uv[1], 1.0]))
+    T = np.eye(4)
+    T[:3, :3] = r_corr(uv, K) @ book.rotations[index]
+    T[:3, 3] = dist * ray / np.linalg.norm(ray)
+    return T
+
+
+def top_hypotheses(
+    scores: np.ndarray, rotations: np.ndarray, k: int, min_angle_deg: float, pool: int = 400
+) -> list[int]:
+    """Indices of up to `k` best-scoring templates, each at least `min_angle_deg` in rotation
+    from every better one kept (greedy non-maximum suppression over the best `pool`)."""
+    order = np.argsort(-scores, kind="stable")[:pool]
+    kept: list[int] = []
+    cos_min = math.cos(math.radians(min_angle_deg))
+    for i in order:
+        ok = True
+        for j in kept:
+            c = (np.trace(rotations[i] @ rotations[j].T) - 1) / 2
+            if c > cos_min:
+                ok = False
+                break
+        if ok:
+            kept.append(int(i))
+            if len(kept) == k:
+                break
+    return kept
+
+
+def paint(
+    pieces: list[np.ndarray],
+    colours: np.ndarray,
+    T: np.ndarray,
+    K: np.ndarray,
+    box: tuple[int, int, int, int],
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The pieces at pose T drawn in their colours (far pieces first) into the image window
+    `box` (x0, y0, x1, y1) [px]: colour image (h, w, 3) float32 and coverage (h, w) bool; None
+    when a vertex lies behind the camera."""
+    x0, y0, x1, y1 = box
+    img = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
+    cover = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    depth = []
+    drawn = []
+    for piece in pieces:
+        X = piece @ T[:3, :3].T + T[:3, 3]
+        if X[:, 2].min() < 1e-3:
+            return None
+        uv = (X @ K.T)[:, :2] / X[:, 2:3] - np.array([x0, y0])
+        depth.append(float(X[:, 2].mean()))
+        drawn.append(uv)
+    for i in np.argsort(depth)[::-1]:
+        uv = drawn[i].astype(np.float32)
+        hull = cv2.convexHull(uv, returnPoints=False)[:, 0]
+        pts = np.round(uv[hull] * 16).astype(np.int32)
+        cv2.fillConvexPoly(img, pts, tuple(float(c) for c in colours[i]), cv2.LINE_8, 4)
+        cv2.fillConvexPoly(cover, pts, 1, cv2.LINE_8, 4)
+    return img, cover.view(bool)
+
+
+def appearance_score(
+    pieces: list[np.ndarray],
+    colours: np.ndarray,
+    T: np.ndarray,
+    K: np.ndarray,
+    rgb: np.ndarray,
+    mask: np.ndarray,
+) -> float:
+    """Pearson correlation, over the mask's pixels the pose covers, of the pieces' colours drawn
+    at pose T with the image (all three channels together): near 1 when the coloured parts
+    lie where the image shows those colours; 0 when undefined."""
+    ys, xs = np.nonzero(mask)
+    if xs.size == 0:
+        return 0.0
+    box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+    drawn = paint(pieces, colours, T, K, box)
+    if drawn is None:
+        return 0.0
+    img, cover = drawn
+    sel = cover & mask[box[1] : box[3], box[0] : box[2]]
+    if np.count_nonzero(sel) < 20:
+        return 0.0
+    a = img[sel].reshape(-1).astype(np.float64)
+    b = rgb[box[1] : box[3], box[0] : box[2]][sel].reshape(-1).astype(np.float64)
+    a -= a.mean()
+    b -= b.mean()
+    den = math.sqrt(float(a @ a) * float(b @ b))
+    return float(a @ b / den) if den > 0 else 0.0
+
+
+def _id_map(
+    pieces: list[np.ndarray], T: np.ndarray, K: np.ndarray, box: tuple[int, int, int, int]
+) -> np.ndarray | None:
+    """Which piece (1-based, 0: none) covers each pixel of the window `box` at pose T, far
+    pieces drawn first; None when a vertex lies behind the camera."""
+    x0, y0, x1, y1 = box
+    ids = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    depth, drawn = [], []
+    for piece in pieces:
+        X = piece @ T[:3, :3].T + T[:3, 3]
+        if X[:, 2].min() < 1e-3:
+            return None
+        depth.append(float(X[:, 2].mean()))
+        drawn.append((X @ K.T)[:, :2] / X[:, 2:3] - np.array([x0, y0]))
+    for i in np.argsort(depth)[::-1]:
+        uv = drawn[i].astype(np.float32)
+        hull = cv2.convexHull(uv, returnPoints=False)[:, 0]
+        cv2.fillConvexPoly(ids, np.round(uv[hull] * 16).astype(np.int32), int(i) + 1, cv2.LINE_8, 4)
+    return ids
+
+
+def image_edges(rgb: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+    """Distance [px] of every pixel of the window `box` to the nearest Canny edge of the
+    image, (h, w) float32."""
+    x0, y0, x1, y1 = box
+    gray = cv2.cvtColor(np.ascontiguousarray(rgb[y0:y1, x0:x1]), cv2.COLOR_RGB2GRAY)
+    edges = cv2.Canny(cv2.GaussianBlur(gray, (3, 3), 0), 20, 60)
+    return cv2.distanceTransform((edges == 0).astype(np.uint8), cv2.DIST_L2, 3)
+
+
+def edge_score(
+    pieces: list[np.ndarray],
+    T: np.ndarray,
+    K: np.ndarray,
+    edge_distance: np.ndarray,
+    box: tuple[int, int, int, int],
+    sigma_px: float = 1.5,
+) -> float:
+    """How well the pieces' outlines at pose T (every boundary between pieces and with the
+    background, in the window `box`) lie on image edges (`image_edges` of the same window):
+    the mean of exp(-d^2 / 2 sigma^2) over the outline pixels, in [0, 1]."""
+    ids = _id_map(pieces, T, K, box)
+    if ids is None:
+        return 0.0
+    outline = np.zeros(ids.shape, bool)
+    outline[:, 1:] |= ids[:, 1:] != ids[:, :-1]
+    outline[1:, :] |= ids[1:, :] != ids[:-1, :]
+    d = edge_distance[outline]
+    if d.size < 10:
+        return 0.0
+    return float(np.mean(np.exp(-(d * d) / (2 * sigma_px * sigma_px))))

@@ -1,0 +1,65 @@
+"""The learned estimators by name: each factory loads the shipped weights and returns an object
+implementing `posegrasp.core.contract.PoseEstimator`. `sim.estimators` adds the experiment's
+oracles; `perception.training.tables --estimator` scores these on the test images.
+
+Importing this module is cheap: each factory imports torch when called.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from posegrasp.core.contract import PoseEstimator
+
+
+def _hybrid() -> PoseEstimator:
+    """The hybrid estimator with the shipped weights: the detector, `ours` and its expert
+    fine-tuned on the hard tier (per detection, the pose whose silhouette agrees better with the
+    detected mask wins). Imports torch: call before rendering."""
+    from perception import HybridPoseEstimator
+
+    return HybridPoseEstimator.from_weights().as_episode_estimator()
+
+
+def _hybrid_table() -> PoseEstimator:
+    """The hybrid estimator, its poses then put onto the known table (`perception.support`)."""
+    from perception import HybridPoseEstimator
+
+    return HybridPoseEstimator.from_weights().as_episode_estimator(support=True)
+
+
+def _hybrid_paper() -> PoseEstimator:
+    """The hybrid estimator with the `paper` variant's nets (the published 4D output, trained on
+    the paper's protocol) in place of ours."""
+    from perception import HybridPoseEstimator
+    from perception.hybrid import PAPER_POSENET
+
+    est = HybridPoseEstimator.from_weights(posenet_path=PAPER_POSENET, expert_paths=())
+    return est.as_episode_estimator(name="hybrid-paper")
+
+
+def _hybrid_refine() -> PoseEstimator:
+    """The hybrid estimator, its pose then refined by render-and-compare against the detected
+    mask and the image (`perception.refine`)."""
+    from perception import HybridPoseEstimator
+
+    return HybridPoseEstimator.from_weights().as_episode_estimator(refine=True)
+
+
+def _hybrid_global() -> PoseEstimator:
+    """Any orientation: the detector, codebook hypotheses over the whole rotation group and the
+    nets' pose, each refined by render-and-compare and verified against the mask and the image
+    (`perception.global_pose`)."""
+    from perception.global_pose import GlobalPoseEstimator
+
+    return GlobalPoseEstimator.from_weights()
+
+
+#: Learned estimator factories by name.
+LEARNED_ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
+    "hybrid": _hybrid,
+    "hybrid-table": _hybrid_table,
+    "hybrid-paper": _hybrid_paper,
+    "hybrid-refine": _hybrid_refine,
+    "hybrid-global": _hybrid_global,
+}

@@ -1,0 +1,243 @@
+"""Any orientation: global hypotheses, each refined by render-and-compare, verified, the best kept.
+
+The learned 4D-NET knows upright objects seen from the head camera; on any other orientation it
+is far off. This estimator does not ask it to learn the sphere. Per detection of the requested
+class (the shipped Mask R-CNN):
+
+1. **Hypotheses**: the viewpoint codebook (`perception.codebook`) matches the detected mask
+   against silhouettes of the object over all of SO(3) and gives the `GlobalConfig.hypotheses`
+   best poses that differ by at least `GlobalConfig.min_angle_deg`; the hybrid nets' own pose
+   joins them.
+2. **Refinement**: each is refined by the render-and-compare refiner (`perception.refine`)
+   against the detected mask and the image, `GlobalConfig.refine_passes` times (its basin is
+   about 10-15 deg; the codebook's grid puts one hypothesis within it).
+3. **Verification**: each refined pose is scored by its silhouette IoU with the visible mask,
+   plus `GlobalConfig.appearance_weight` times the correlation of the parts' colours drawn at
+   that pose with the image (`perception.codebook.appearance_score`), plus
+   `GlobalConfig.edge_weight` times the share of the parts' outlines that lie on image edges
+   (`perception.codebook.edge_score`); the best one wins. Its
+   score is reported as the estimate's confidence; below `GlobalConfig.min_score` the estimate
+   is withheld (``no_estimate``).
+
+Inputs are the image, K and the requested class only: no table, no depth, no camera pose.
+Codebooks are built once per object and grid and cached under the data folder
+(``$POSEGRASP_DATA/codebooks``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from perception.codebook import (
+    Codebook,
+    ConvexParts,
+    SilhouetteSource,
+    appearance_score,
+    edge_score,
+    frame_mask,
+    hypothesis_pose,
+    image_edges,
+    top_hypotheses,
+)
+from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target
+from perception.refine import PoseRefiner
+from posegrasp.core.contract import Estimate, Observation
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.paths import data_root
+from posegrasp.world.objects import load_object
+
+
+@dataclass(frozen=True)
+class GlobalConfig:
+    """Settings of `GlobalPoseEstimator`.
+
+    Attributes:
+        views: viewpoints of the codebook's sphere grid.
+        inplane: in-plane turns per viewpoint.
+        hypotheses: codebook hypotheses refined per detection (the nets' pose comes on top).
+        min_angle_deg: hypotheses differ by at least this rotation [deg].
+        refine_passes: refiner runs per hypothesis.
+        appearance_weight: weight of the colour correlation in the verification score.
+        edge_weight: weight of the outlines' agreement with image edges in it.
+        min_score: a best score below this withholds the estimate.
+    """
+
+    views: int = 1000
+    inplane: int = 24
+    hypotheses: int = 12
+    min_angle_deg: float = 15.0
+    refine_passes: int = 2
+    appearance_weight: float = 0.05
+    edge_weight: float = 0.3
+    min_score: float = 0.0
+
+    def __post_init__(self) -> None:
+        for key in ("views", "inplane", "hypotheses", "refine_passes"):
+            if int(getattr(self, key)) < 1:
+                raise InvalidArgumentError(f"GlobalConfig.{key} must be >= 1")
+        if not (0 <= self.min_angle_deg < 180 and np.isfinite(self.appearance_weight)):
+            raise InvalidArgumentError("GlobalConfig.min_angle_deg must be in [0, 180)")
+
+
+#: Image edges are searched in the mask's box grown by this much [px].
+EDGE_MARGIN_PX = 10
+
+
+def _grown_box(mask: np.ndarray, margin: int) -> tuple[int, int, int, int]:
+    """The box (x0, y0, x1, y1) of a non-empty mask grown by `margin`, inside the image."""
+    ys, xs = np.nonzero(mask)
+    H, W = mask.shape
+    return (
+        max(0, int(xs.min()) - margin),
+        max(0, int(ys.min()) - margin),
+        min(W, int(xs.max()) + margin + 1),
+        min(H, int(ys.max()) + margin + 1),
+    )
+
+
+class CodebookCache:
+    """Codebooks by object, built on first use and kept on disk (`folder`) and in memory."""
+
+    def __init__(
+        self,
+        views: int,
+        inplane: int,
+        folder: Path | None = None,
+        source: SilhouetteSource | None = None,
+    ) -> None:
+        self.views, self.inplane = views, inplane
+        self.folder = folder if folder is not None else data_root() / "codebooks"
+        self.source = source or ConvexParts()
+        self._books: dict[str, Codebook] = {}
+
+    def get(self, name: str) -> Codebook:
+        """The codebook of object `name`."""
+        if name not in self._books:
+            path = self.folder / f"{name}_{self.views}x{self.inplane}.npz"
+            try:
+                book = Codebook.load(name, path)
+            except (OSError, KeyError, ValueError):
+                book = Codebook.build(name, self.views, self.inplane, self.source)
+                try:
+                    book.save(path)
+                except OSError:
+                    pass  # a read-only data folder: the codebook stays in memory
+            self._books[name] = book
+        return self._books[name]
+
+
+@dataclass(frozen=True)
+class Verified:
+    """One refined, scored hypothesis.
+
+    Attributes:
+        T_C_O: the refined pose (4, 4).
+        score: the verification score.
+        iou: silhouette IoU with the visible mask.
+        appearance: the colour correlation.
+        edges: the share of the parts' outlines on image edges.
+        source: ``codebook`` or ``nets``.
+    """
+
+    T_C_O: np.ndarray
+    score: float
+    iou: float
+    appearance: float
+    edges: float
+    source: str
+
+
+class GlobalPoseEstimator:
+    """The estimator ``hybrid-global`` (see the module docstring).
+
+    Args:
+        hybrid: the detector and pose nets (`HybridPoseEstimator.from_weights()`).
+        config: the settings.
+        codebooks: where codebooks come from (default: built from the convex parts and cached
+            in the data folder).
+        name: the name results carry.
+    """
+
+    def __init__(
+        self,
+        hybrid: HybridPoseEstimator,
+        config: GlobalConfig | None = None,
+        codebooks: CodebookCache | None = None,
+        name: str = "hybrid-global",
+    ) -> None:
+        self.hybrid = hybrid
+        self.config = config or GlobalConfig()
+        self.codebooks = codebooks or CodebookCache(self.config.views, self.config.inplane)
+        self.refiner = PoseRefiner()
+        self.name = name
+        self._colours: dict[str, np.ndarray] = {}
+
+    @classmethod
+    def from_weights(cls, config: GlobalConfig | None = None) -> GlobalPoseEstimator:
+        """With the shipped detector and nets."""
+        return cls(HybridPoseEstimator.from_weights(), config)
+
+    def colours(self, name: str) -> np.ndarray:
+        """RGB of each convex part of `name`, (parts, 3) in [0, 1]."""
+        if name not in self._colours:
+            self._colours[name] = np.array([p.rgba[:3] for p in load_object(name).parts])
+        return self._colours[name]
+
+    def verify(
+        self, det: PoseDetection, K: np.ndarray, rgb: np.ndarray, occluder: np.ndarray | None
+    ) -> tuple[list[Verified], dict[str, float]]:
+        """Every hypothesis of one detection, refined and scored, best first, and the stage
+        times [ms] (``hypotheses``, ``verify``)."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        starts: list[tuple[np.ndarray, str]] = [(det.T_C_O, "nets")]
+        view = frame_mask(det.mask)
+        if view is not None:
+            book = self.codebooks.get(det.name)
+            scores = book.match(view.bits)
+            for i in top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg):
+                starts.append((hypothesis_pose(book, i, view, K), "codebook"))
+        t1 = time.perf_counter()
+        pieces, colours = self.codebooks.source.pieces(det.name), self.colours(det.name)
+        box = _grown_box(det.mask, EDGE_MARGIN_PX) if view is not None else (0, 0, 1, 1)
+        edge_distance = image_edges(rgb, box)
+        out = []
+        for T, source in starts:
+            info = {"iou_after": 0.0}
+            for _ in range(cfg.refine_passes):
+                T, info = self.refiner.refine(det.name, T, K, det.mask, rgb, occluder)
+            app = appearance_score(pieces, colours, T, K, rgb, det.mask)
+            edges = edge_score(pieces, T, K, edge_distance, box)
+            iou = float(info["iou_after"])
+            score = iou + cfg.appearance_weight * app + cfg.edge_weight * edges
+            out.append(Verified(T, score, iou, app, edges, source))
+        out.sort(key=lambda v: -v.score)
+        t2 = time.perf_counter()
+        return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}
+
+    def estimate(self, obs: Observation) -> Estimate:
+        """The verified pose of obs.object (None when not detected or below `min_score`), the
+        other detections and the description of the estimate."""
+        target = detect_target(self.hybrid, obs)
+        info, neighbours, best = target.info, target.neighbours, target.best
+        if best is None:
+            return Estimate(None, neighbours, info)
+        ranked, times = self.verify(best, obs.K, obs.rgb, target.occluder())
+        info["timings_ms"] |= times
+        win = ranked[0]
+        info["verify"] = {
+            "confidence": win.score,
+            "iou": win.iou,
+            "appearance": win.appearance,
+            "edges": win.edges,
+            "source": win.source,
+            "hypotheses": len(ranked),
+            "config": asdict(self.config),
+        }
+        if win.score < self.config.min_score:
+            return Estimate(None, neighbours, info)
+        return Estimate(win.T_C_O.copy(), neighbours, info)
