@@ -82,14 +82,26 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/datagen_speed.py", description=__doc__.splitlines()[0])
     images = arg(check_int, 0, 100_000, "--paper", base=int)
-    p.add_argument("--paper", type=images, default=400,
-                   help="paper images N (runs of N and 2N), 0..100000 (0: none)")  # fmt: skip
+    p.add_argument(
+        "--paper",
+        type=images,
+        default=400,
+        help="paper images N (runs of N and 2N), 0..100000 (0: none)",
+    )
     images = arg(check_int, 0, 100_000, "--headcam", base=int)
-    p.add_argument("--headcam", type=images, default=120,
-                   help="headcam images N (runs of N and 2N), 0..100000 (0: none)")  # fmt: skip
+    p.add_argument(
+        "--headcam",
+        type=images,
+        default=120,
+        help="headcam images N (runs of N and 2N), 0..100000 (0: none)",
+    )
     add_workers_argument(p, TARGET_WORKERS, "of the pool runs, the targets' count")
-    p.add_argument("--views", type=arg(check_int, 1, MAX_VIEWS, "--views", base=int), default=4,
-                   help=f"headcam views per scene of the last run, 1..{MAX_VIEWS}")  # fmt: skip
+    p.add_argument(
+        "--views",
+        type=arg(check_int, 1, MAX_VIEWS, "--views", base=int),
+        default=4,
+        help=f"headcam views per scene of the last run, 1..{MAX_VIEWS}",
+    )
     add_json_argument(p, "every run's rates")
     a = p.parse_args(argv)
     setup_rendering()
@@ -103,9 +115,16 @@ def main(argv: list[str] | None = None) -> int:
         (f"paper 256x256, {w} workers", "paper", a.paper, 256, 256, w, 1),
         ("headcam 640x480, 1 process", "headcam", a.headcam, 640, 480, 1, 1),
         (f"headcam 640x480, {w} workers", "headcam", a.headcam, 640, 480, w, 1),
-        (f"headcam 640x480, {w} workers, {a.views} views per scene", "headcam",
-         a.headcam, 640, 480, w, a.views),
-    ]  # fmt: skip
+        (
+            f"headcam 640x480, {w} workers, {a.views} views per scene",
+            "headcam",
+            a.headcam,
+            640,
+            480,
+            w,
+            a.views,
+        ),
+    ]
     root = data_root()
     root.mkdir(parents=True, exist_ok=True)
     rows = {}

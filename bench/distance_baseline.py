@@ -62,9 +62,12 @@ def constant_errors(d: np.ndarray) -> np.ndarray:
 
 
 def rows(
-    pred_d: np.ndarray, true_d: np.ndarray, net_err: np.ndarray, diam: np.ndarray,
+    pred_d: np.ndarray,
+    true_d: np.ndarray,
+    net_err: np.ndarray,
+    diam: np.ndarray,
     const_err: np.ndarray,
-) -> dict:  # fmt: skip
+) -> dict:
     """The figures of one group of crops (see the module docstring); `const_err` are the
     relative errors of the constant baseline (`constant_errors`, per object)."""
     return {
@@ -119,8 +122,11 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PATH",
         help="pose net weights (default: the shipped paper net)",
     )
-    p.add_argument("--data", default="paper", help="dataset folder: a name under the data root "
-                   "or a path (default: paper)")  # fmt: skip
+    p.add_argument(
+        "--data",
+        default="paper",
+        help="dataset folder: a name under the data root or a path (default: paper)",
+    )
     add_json_argument(p, "the figures")
     a = p.parse_args(argv)
     setup_rendering()
@@ -129,15 +135,22 @@ def main(argv: list[str] | None = None) -> int:
         raise AssetError(f"no test split in {root}: give --data a dataset folder with a test split")
     res = run(a.weights, root)
     log = summary_stream(a.json)
-    print(f"{a.weights.name} on {root}/test (crops as perception.training.tables cuts them)",
-          file=log)  # fmt: skip
-    print(f"{'object':<8} {'crops':>5} {'net %':>7} {'constant %':>10} {'log corr':>8} "
-          f"{'diameters':>11}", file=log)  # fmt: skip
+    print(
+        f"{a.weights.name} on {root}/test (crops as perception.training.tables cuts them)", file=log
+    )
+    print(
+        f"{'object':<8} {'crops':>5} {'net %':>7} {'constant %':>10} {'log corr':>8} "
+        f"{'diameters':>11}",
+        file=log,
+    )
     for name, r in res.items():
         lo, hi = r["diameters"]
-        print(f"{name:<8} {r['crops']:5d} {r['net_distance_pct']:7.2f} "
-              f"{r['constant_distance_pct']:10.2f} {r['log_correlation']:8.2f} "
-              f"{lo:5.2f}-{hi:4.2f}", file=log)  # fmt: skip
+        print(
+            f"{name:<8} {r['crops']:5d} {r['net_distance_pct']:7.2f} "
+            f"{r['constant_distance_pct']:10.2f} {r['log_correlation']:8.2f} "
+            f"{lo:5.2f}-{hi:4.2f}",
+            file=log,
+        )
     ratios = res["all"]["norm_ratio_by_viewpoint_error"]
     by_error = ", ".join(f"{k} deg {v['median']:.2f} ({v['crops']})" for k, v in ratios.items())
     print(f"|p^| / |p| (median) by viewpoint error: {by_error}", file=log)

@@ -36,13 +36,26 @@ SEED_START = 1_400_000_000
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/episode_speed.py", description=__doc__.split("\n")[0])
-    p.add_argument("--episodes", type=arg(check_int, 1, 1000, "--episodes", base=int), default=5,
-                   help="episodes per object, 1..1000 (default 5)")  # fmt: skip
-    p.add_argument("--tier", type=arg(check_tier), default="isolated",
-                   help=f"scene tier, one of: {', '.join(TIERS)} (default isolated)")  # fmt: skip
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 1, 1000, "--episodes", base=int),
+        default=5,
+        help="episodes per object, 1..1000 (default 5)",
+    )
+    p.add_argument(
+        "--tier",
+        type=arg(check_tier),
+        default="isolated",
+        help=f"scene tier, one of: {', '.join(TIERS)} (default isolated)",
+    )
     names = [e for e in ESTIMATORS if e != "noisy-oracle"]
-    p.add_argument("--estimator", type=arg(check_choice, names, "estimator"), default="oracle",
-                   metavar="NAME", help=f"one of: {', '.join(names)} (default oracle)")  # fmt: skip
+    p.add_argument(
+        "--estimator",
+        type=arg(check_choice, names, "estimator"),
+        default="oracle",
+        metavar="NAME",
+        help=f"one of: {', '.join(names)} (default oracle)",
+    )
     add_json_argument(p, "the figures")
     args = p.parse_args(argv)
     setup_rendering()
@@ -69,8 +82,10 @@ def main(argv: list[str] | None = None) -> int:
     }
     log = summary_stream(args.json)
     wall = out["episode_wall_ms_median"]
-    print(f"{args.estimator} episodes, tier {args.tier}: {out['episodes']} ({successes} successes)",
-          file=log)  # fmt: skip
+    print(
+        f"{args.estimator} episodes, tier {args.tier}: {out['episodes']} ({successes} successes)",
+        file=log,
+    )
     print(
         f"planning (IK for one grasp), median: {out['planning_ms_median']:.1f} ms  "
         + target("<= 100 ms", out["planning_ms_median"] <= 100),

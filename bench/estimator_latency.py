@@ -91,12 +91,24 @@ def time_estimator(
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/estimator_latency.py", description=__doc__.split("\n")[0])
-    p.add_argument("--images", type=arg(check_int, 1, 10_000, "--images", base=int), default=50,
-                   help="images per scene type, 1..10000 (default 50)")  # fmt: skip
-    p.add_argument("--threads", type=arg(check_int, 1, 64, "--threads", base=int), default=2,
-                   help="torch threads, 1..64 (default 2)")  # fmt: skip
-    p.add_argument("--seed", type=arg(check_seed, "--seed", base=int), default=5000,
-                   help="seed of the first scene (default 5000)")  # fmt: skip
+    p.add_argument(
+        "--images",
+        type=arg(check_int, 1, 10_000, "--images", base=int),
+        default=50,
+        help="images per scene type, 1..10000 (default 50)",
+    )
+    p.add_argument(
+        "--threads",
+        type=arg(check_int, 1, 64, "--threads", base=int),
+        default=2,
+        help="torch threads, 1..64 (default 2)",
+    )
+    p.add_argument(
+        "--seed",
+        type=arg(check_seed, "--seed", base=int),
+        default=5000,
+        help="seed of the first scene (default 5000)",
+    )
     p.add_argument("--detector", type=Path, default=DEFAULT_WEIGHTS, metavar="PATH")
     p.add_argument("--posenet", type=Path, default=DEFAULT_POSENET, metavar="PATH")
     p.add_argument(
@@ -139,9 +151,11 @@ def main(argv: list[str] | None = None) -> int:
     }
     log = summary_stream(args.json)
     label = "RANDOM WEIGHTS (architecture only)" if args.random_weights else "shipped weights"
-    print(f"hybrid estimator, {label}, {WIDTH}x{HEIGHT}, {args.threads} threads, "
-          f"{args.images} images per row, load average {out['load_average_1min']:.1f}",
-          file=log)  # fmt: skip
+    print(
+        f"hybrid estimator, {label}, {WIDTH}x{HEIGHT}, {args.threads} threads, "
+        f"{args.images} images per row, load average {out['load_average_1min']:.1f}",
+        file=log,
+    )
     print(f"{'objects':<9}{'dets':>6}" + "".join(f"{s:>18}" for s in (*STAGES, "total")), file=log)
     for n in (1, 3):
         r = results[n]

@@ -62,8 +62,10 @@ TARGET_WORKERS = 2
 
 
 def _outcomes(report: dict) -> list[tuple]:
-    return [(e["success"], e["failure_reason"], json.dumps(e["pose_error"], sort_keys=True))
-            for e in report["episodes"]]  # fmt: skip
+    return [
+        (e["success"], e["failure_reason"], json.dumps(e["pose_error"], sort_keys=True))
+        for e in report["episodes"]
+    ]
 
 
 def _fresh_evaluation(episodes: int, estimator: str, workers: int) -> dict:
@@ -71,9 +73,23 @@ def _fresh_evaluation(episodes: int, estimator: str, workers: int) -> dict:
     workers from nothing, so the difference of two runs leaves exactly the episodes it adds."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "report.json"
-        cmd = [sys.executable, "-m", "sim.evaluate", "--objects", "all", "--episodes",
-               str(episodes), "--estimator", estimator, "--seed-start", str(SEED_START),
-               "--workers", str(workers), "--json", str(out)]  # fmt: skip
+        cmd = [
+            sys.executable,
+            "-m",
+            "sim.evaluate",
+            "--objects",
+            "all",
+            "--episodes",
+            str(episodes),
+            "--estimator",
+            estimator,
+            "--seed-start",
+            str(SEED_START),
+            "--workers",
+            str(workers),
+            "--json",
+            str(out),
+        ]
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
         return json.loads(out.read_text())
 
@@ -85,8 +101,12 @@ def ray_side_by_side(args: argparse.Namespace, objs: list[str]) -> dict:
     local = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=args.workers)
     t = time.perf_counter()
     if args.address is None:
-        ray.init(num_cpus=args.workers, include_dashboard=False,
-                 object_store_memory=OBJECT_STORE_BYTES, logging_level="ERROR")  # fmt: skip
+        ray.init(
+            num_cpus=args.workers,
+            include_dashboard=False,
+            object_store_memory=OBJECT_STORE_BYTES,
+            logging_level="ERROR",
+        )
     else:
         ray.init(address=args.address, logging_level="ERROR")
     startup = time.perf_counter() - t
@@ -96,8 +116,9 @@ def ray_side_by_side(args: argparse.Namespace, objs: list[str]) -> dict:
         assert list(run_map(abs, range(n_noop), backend="ray", chunk=1)) == list(range(n_noop))
         slots = int(ray.cluster_resources().get("CPU", 1))
         overhead_ms = (time.perf_counter() - t) * 1000 * slots / n_noop
-        on_ray = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=args.workers,
-                          backend="ray")  # fmt: skip
+        on_ray = evaluate(
+            objs, args.episodes, args.estimator, SEED_START, workers=args.workers, backend="ray"
+        )
     finally:
         ray.shutdown()
     n = len(local["episodes"])
@@ -119,8 +140,12 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/evaluate_speed.py", description=__doc__.split("\n")[0])
     add_estimator_arguments(p, noise=False)
-    p.add_argument("--episodes", type=arg(check_int, 1, 10_000, "--episodes", base=int),
-                   default=10, help="episodes per object, 1..10000 (default 10)")  # fmt: skip
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 1, 10_000, "--episodes", base=int),
+        default=10,
+        help="episodes per object, 1..10000 (default 10)",
+    )
     add_json_argument(p, "the figures")
     add_backend_arguments(p)
     add_workers_argument(p, TARGET_WORKERS, "with --backend ray: processes or Ray CPUs per backend")
@@ -132,15 +157,22 @@ def main(argv: list[str] | None = None) -> int:
     if args.backend == "ray":
         out = ray_side_by_side(args, objs)
         rel = out["ray_over_local"]
-        print(f"{args.estimator}: {out['episodes']} episodes on {out['cpus']} CPUs per backend",
-              file=log)  # fmt: skip
+        print(
+            f"{args.estimator}: {out['episodes']} episodes on {out['cpus']} CPUs per backend",
+            file=log,
+        )
         print(f"{'backend':<8} {'episodes/s':>10}", file=log)
         print(f"{'local':<8} {out['episodes_per_s_local']:>10.2f}", file=log)
-        print(f"{'ray':<8} {out['episodes_per_s_ray']:>10.2f}  ({rel:.0%} of local, start-up "
-              f"apart)  {target('>= 85 %', rel >= 0.85)}", file=log)  # fmt: skip
-        print(f"Ray start-up {out['ray_startup_s']:.1f} s; per-task overhead "
-              f"{out['ray_task_overhead_ms']:.1f} ms (no-op tasks of one job)",
-              file=log)  # fmt: skip
+        print(
+            f"{'ray':<8} {out['episodes_per_s_ray']:>10.2f}  ({rel:.0%} of local, start-up "
+            f"apart)  {target('>= 85 %', rel >= 0.85)}",
+            file=log,
+        )
+        print(
+            f"Ray start-up {out['ray_startup_s']:.1f} s; per-task overhead "
+            f"{out['ray_task_overhead_ms']:.1f} ms (no-op tasks of one job)",
+            file=log,
+        )
         print(f"same outcomes on both backends: {out['same_outcomes']}", file=log)
         if args.json is not None:
             write_json(args.json, out)

@@ -48,9 +48,15 @@ FINGERPRINT = {"noisy-oracle": "no weights"}
 
 def _run(noise: str, workers: int, margin: bool = True) -> dict:
     return evaluate(
-        list(OBJECT_NAMES), gate.GATE_EPISODES, "noisy-oracle", gate.GATE_SEED_START, workers,
-        gate.GATE_TIER, noise=noise, margin=margin,
-    )  # fmt: skip
+        list(OBJECT_NAMES),
+        gate.GATE_EPISODES,
+        "noisy-oracle",
+        gate.GATE_SEED_START,
+        workers,
+        gate.GATE_TIER,
+        noise=noise,
+        margin=margin,
+    )
 
 
 def _baseline(report: dict) -> dict:
@@ -61,10 +67,14 @@ def _baseline(report: dict) -> dict:
 
 def _protocol(margin: bool) -> dict:
     return {
-        "tier": gate.GATE_TIER, "seed_start": gate.GATE_SEED_START,
-        "episodes_per_object": gate.GATE_EPISODES, "objects": list(OBJECT_NAMES),
-        "base_noise": BASE_NOISE, "worse_noise": WORSE_NOISE, "margin": margin,
-    }  # fmt: skip
+        "tier": gate.GATE_TIER,
+        "seed_start": gate.GATE_SEED_START,
+        "episodes_per_object": gate.GATE_EPISODES,
+        "objects": list(OBJECT_NAMES),
+        "base_noise": BASE_NOISE,
+        "worse_noise": WORSE_NOISE,
+        "margin": margin,
+    }
 
 
 def _resume(path: Path | None, protocol: dict) -> dict:
@@ -89,15 +99,27 @@ def _resume(path: Path | None, protocol: dict) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/gate_power.py", description=__doc__.split("\n")[0])
-    p.add_argument("--runs", type=arg(check_int, 1, 1000, "--runs", base=int), default=20,
-                   help="regressed runs, each its own draw, 1..1000 (default 20)")  # fmt: skip
+    p.add_argument(
+        "--runs",
+        type=arg(check_int, 1, 1000, "--runs", base=int),
+        default=20,
+        help="regressed runs, each its own draw, 1..1000 (default 20)",
+    )
     alarms = arg(check_int, 0, 1000, "--false-alarm-runs", base=int)
-    p.add_argument("--false-alarm-runs", type=alarms, default=0,
-                   help="unregressed redraws, 0..1000 (default 0)")  # fmt: skip
+    p.add_argument(
+        "--false-alarm-runs",
+        type=alarms,
+        default=0,
+        help="unregressed redraws, 0..1000 (default 0)",
+    )
     add_workers_argument(p)
     p.add_argument("--no-margin", action="store_true", help="success rule only (faster)")
-    p.add_argument("--first-draw", type=arg(check_int, 1, 100_000, "--first-draw", base=int),
-                   default=1, help="draw of the first regressed run, 1..100000")  # fmt: skip
+    p.add_argument(
+        "--first-draw",
+        type=arg(check_int, 1, 100_000, "--first-draw", base=int),
+        default=1,
+        help="draw of the first regressed run, 1..100000",
+    )
     p.add_argument("--no-rerun", action="store_true", help="skip the rerun of the baseline")
     add_json_argument(p, "the baseline and every verdict, after each run (a file resumes)")
     args = p.parse_args(argv)
@@ -149,8 +171,9 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_rerun:
         print(f"rerun of unchanged errors flagged: {0 if state['rerun'][0] else 1} of 1", file=log)
     if args.false_alarm_runs:
-        print(f"redrawn (5 mm, 2 deg) errors flagged: {alarms} of {args.false_alarm_runs}",
-              file=log)  # fmt: skip
+        print(
+            f"redrawn (5 mm, 2 deg) errors flagged: {alarms} of {args.false_alarm_runs}", file=log
+        )
     print(f"wall time {time.perf_counter() - t0:.0f} s", file=log)
     if args.json is not None:
         state["flagged"], state["runs"] = flagged, args.runs

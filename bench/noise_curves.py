@@ -65,8 +65,16 @@ def run_tier(tier: str, episodes: int, out: Path, workers: int = 1) -> list[dict
         if not path.is_file():
             estimator = "oracle" if noise is None else "noisy-oracle"
             print(f"{tier}: {estimator} {noise or ''}", file=sys.stderr)
-            report = evaluate(list(OBJECT_NAMES), episodes, estimator, EVAL_SEED_BASE, workers,
-                              tier, noise=noise, margin=True)  # fmt: skip
+            report = evaluate(
+                list(OBJECT_NAMES),
+                episodes,
+                estimator,
+                EVAL_SEED_BASE,
+                workers,
+                tier,
+                noise=noise,
+                margin=True,
+            )
             atomic_write_json(path, report)
             print(f"wrote {path}", file=sys.stderr)
         paths.append(path)
@@ -87,8 +95,15 @@ def plot(chains: dict[str, list[dict]], path: Path) -> None:
         x = np.arange(len(rows)) + (i - (len(chains) - 1) / 2) * 0.04
         rate = np.array([r["successes"] / r["episodes"] for r in rows])
         ci = np.array([wilson_interval(r["successes"], r["episodes"]) for r in rows])
-        ax.errorbar(x, 100 * rate, yerr=100 * np.abs(ci.T - rate), fmt="o-", capsize=3,
-                    label=tier, markersize=4)  # fmt: skip
+        ax.errorbar(
+            x,
+            100 * rate,
+            yerr=100 * np.abs(ci.T - rate),
+            fmt="o-",
+            capsize=3,
+            label=tier,
+            markersize=4,
+        )
     ax.set_xticks(np.arange(len(LEVELS)), [_tick(noise) for _, noise in LEVELS], fontsize=8)
     ax.set_xlabel("sigma of each error component (along and across the ray, in and out of plane)")
     ax.set_ylabel("grasp success [%]")
@@ -104,14 +119,27 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/noise_curves.py", description=__doc__.split("\n")[0])
     tiers = arg(check_names, list(TIERS), "tier", "--tiers")
-    p.add_argument("--tiers", type=tiers, default=list(TIERS),
-                   help="'all' or a comma list of " + ", ".join(TIERS))  # fmt: skip
-    p.add_argument("--episodes", type=arg(check_int, 3, 10_000, "--episodes", base=int),
-                   default=50, help="episodes per object and level, 3..10000")  # fmt: skip
+    p.add_argument(
+        "--tiers",
+        type=tiers,
+        default=list(TIERS),
+        help="'all' or a comma list of " + ", ".join(TIERS),
+    )
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 3, 10_000, "--episodes", base=int),
+        default=50,
+        help="episodes per object and level, 3..10000",
+    )
     add_workers_argument(p)
     add_out_argument(p, "the runs' reports, <tier>_<level>.json, reused by a rerun", "out/noise")
-    p.add_argument("--plot", type=arg(check_plot_path, "--plot"), default=None, metavar="PATH",
-                   help="success against sigma for every tier (.png, .pdf or .svg)")  # fmt: skip
+    p.add_argument(
+        "--plot",
+        type=arg(check_plot_path, "--plot"),
+        default=None,
+        metavar="PATH",
+        help="success against sigma for every tier (.png, .pdf or .svg)",
+    )
     add_json_argument(p, "every tier's chain")
     args = p.parse_args(argv)
     setup_rendering()

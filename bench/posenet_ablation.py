@@ -123,9 +123,13 @@ def per_object_study(out: Path) -> dict:
 
 def _ours_base(out: Path, epochs: int) -> PoseNetTrainConfig:
     return PoseNetTrainConfig(
-        variant="ours", dists=("headcam",), dist_limits=(("headcam", 5000),), epochs=epochs,
-        out=out, name=f"ours_base_e{epochs}",
-    )  # fmt: skip
+        variant="ours",
+        dists=("headcam",),
+        dist_limits=(("headcam", 5000),),
+        epochs=epochs,
+        out=out,
+        name=f"ours_base_e{epochs}",
+    )
 
 
 def ours_study(out: Path, epochs: int) -> dict:
@@ -164,10 +168,15 @@ def forgetting_study(out: Path, epochs: int) -> dict:
     schedule at 5e-4), does it learn the paper protocol without losing the head camera?"""
     shipped = WEIGHTS_DIR / "posenet_ours.pt"
     cfg = PoseNetTrainConfig(
-        variant="ours", dists=("paper", "headcam"), epochs=epochs,
-        dist_limits=(("paper", 5000), ("headcam", 5000)), lr=5e-4, init=str(shipped), out=out,
+        variant="ours",
+        dists=("paper", "headcam"),
+        epochs=epochs,
+        dist_limits=(("paper", 5000), ("headcam", 5000)),
+        lr=5e-4,
+        init=str(shipped),
+        out=out,
         name=f"ours_both_v{GENERATOR_VERSIONS['paper']}_e{epochs}",
-    )  # fmt: skip
+    )
     nets = {"shipped ours": load_posenet(shipped), "fine-tuned on both": _train(cfg)}
     reference = {"shipped paper (reference)": load_posenet(WEIGHTS_DIR / "posenet_paper.pt")}
     res = {}
@@ -183,9 +192,13 @@ def rotation_study(out: Path, epochs: int) -> dict:
     """`ours` with either rotation output, from scratch on 5000 paper-protocol images: its views
     cover the whole sphere, poles included, where direction and roll are ill-conditioned."""
     base = PoseNetTrainConfig(
-        variant="ours", dists=("paper",), dist_limits=(("paper", 5000),), epochs=epochs,
-        out=out, name=f"ours_paper_v{GENERATOR_VERSIONS['paper']}_e{epochs}",
-    )  # fmt: skip
+        variant="ours",
+        dists=("paper",),
+        dist_limits=(("paper", 5000),),
+        epochs=epochs,
+        out=out,
+        name=f"ours_paper_v{GENERATOR_VERSIONS['paper']}_e{epochs}",
+    )
     runs = {"direction and roll": base, "6D": replace(base, rotation="6d", name=base.name + "_6d")}
     data = build_crops(data_root() / "paper", "test", TEST_CROPS)
     res = {}
@@ -238,8 +251,11 @@ def ensemble_study(out: Path, epochs: int) -> dict:
 
 
 def _print(results: dict, log: TextIO | None = None) -> None:
-    print("| run | object | centre [crop px] | centre [px] | distance [%] | rotation [deg] "
-          "| > 15 deg |", file=log)  # fmt: skip
+    print(
+        "| run | object | centre [crop px] | centre [px] | distance [%] | rotation [deg] "
+        "| > 15 deg |",
+        file=log,
+    )
     print("|---" * 7 + "|", file=log)
     for label, per in results.items():
         for obj in (*OBJECT_NAMES, "average"):
@@ -255,10 +271,18 @@ def _print(results: dict, log: TextIO | None = None) -> None:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/posenet_ablation.py", description=__doc__.split("\n")[0])
-    p.add_argument("--study", required=True, type=arg(check_choice, STUDIES, "study"),
-                   help=f"one of: {', '.join(STUDIES)}")  # fmt: skip
-    p.add_argument("--epochs", type=arg(check_int, 1, 100, "--epochs", base=int), default=5,
-                   help="epochs of the `ours` runs, 1..100 (default 5)")  # fmt: skip
+    p.add_argument(
+        "--study",
+        required=True,
+        type=arg(check_choice, STUDIES, "study"),
+        help=f"one of: {', '.join(STUDIES)}",
+    )
+    p.add_argument(
+        "--epochs",
+        type=arg(check_int, 1, 100, "--epochs", base=int),
+        default=5,
+        help="epochs of the `ours` runs, 1..100 (default 5)",
+    )
     add_json_argument(p, "every figure of the finished study")
     args = p.parse_args(argv)
     setup_rendering()

@@ -77,8 +77,9 @@ def run(ds: PoseDataset, indices: range, repeats: int) -> dict:
         for obj in s.objects:
             if obj.visib_fract < 0.5 or obj.T_C_O[2, 3] <= 0:
                 continue
-            cands = [d for d in found if d.name == obj.name
-                     and box_iou(d.box_xyxy, obj.box_xyxy) >= 0.5]  # fmt: skip
+            cands = [
+                d for d in found if d.name == obj.name and box_iou(d.box_xyxy, obj.box_xyxy) >= 0.5
+            ]
             if not cands:
                 continue
             d = max(cands, key=lambda d: d.score)
@@ -127,14 +128,30 @@ def summary(r: dict) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/refine_speed.py", description=__doc__.split("\n")[0])
-    p.add_argument("--images", type=arg(check_int, 1, 100_000, "--images", base=int), default=100,
-                   help="test images, 1..100000 (default 100; the split has 500)")  # fmt: skip
-    p.add_argument("--start", type=arg(check_int, 0, 100_000, "--start", base=int), default=0,
-                   help="first test image, 0..100000 (default 0)")  # fmt: skip
-    p.add_argument("--repeats", type=arg(check_int, 1, 100, "--repeats", base=int), default=3,
-                   help="timed runs per object, 1..100 (default 3)")  # fmt: skip
-    p.add_argument("--threads", type=arg(check_int, 1, 64, "--threads", base=int), default=2,
-                   help="torch threads, 1..64 (default 2)")  # fmt: skip
+    p.add_argument(
+        "--images",
+        type=arg(check_int, 1, 100_000, "--images", base=int),
+        default=100,
+        help="test images, 1..100000 (default 100; the split has 500)",
+    )
+    p.add_argument(
+        "--start",
+        type=arg(check_int, 0, 100_000, "--start", base=int),
+        default=0,
+        help="first test image, 0..100000 (default 0)",
+    )
+    p.add_argument(
+        "--repeats",
+        type=arg(check_int, 1, 100, "--repeats", base=int),
+        default=3,
+        help="timed runs per object, 1..100 (default 3)",
+    )
+    p.add_argument(
+        "--threads",
+        type=arg(check_int, 1, 64, "--threads", base=int),
+        default=2,
+        help="torch threads, 1..64 (default 2)",
+    )
     add_json_argument(p, "the figures")
     args = p.parse_args(argv)
     setup_rendering()
@@ -144,20 +161,31 @@ def main(argv: list[str] | None = None) -> int:
     res = summary(run(ds, indices, args.repeats))
     res |= {"images": [indices.start, indices.stop], "load_average_1min": os.getloadavg()[0]}
     log = summary_stream(args.json)
-    print(f"refiner on headcam/test images {indices.start}..{indices.stop - 1}: "
-          f"{res['objects']} objects, load average {res['load_average_1min']:.1f}",
-          file=log)  # fmt: skip
+    print(
+        f"refiner on headcam/test images {indices.start}..{indices.stop - 1}: "
+        f"{res['objects']} objects, load average {res['load_average_1min']:.1f}",
+        file=log,
+    )
     for key, label in (("fastest_ms", f"fastest of {args.repeats}"), ("first_ms", "first run")):
         t = res[key]
-        print(f"time per object [ms] ({label}): median {t['median']:.1f}, p90 {t['p90']:.1f} "
-              + target(f"<= {TARGET_MS:.0f} ms", t["median"] <= TARGET_MS), file=log)  # fmt: skip
-    print(f"{'':8}{'rot mean':>10}{'rot med':>9}{'centre px':>11}{'dist %':>8}{'IoU':>8}"
-          f"{'IoU>0.5':>9}", file=log)  # fmt: skip
+        print(
+            f"time per object [ms] ({label}): median {t['median']:.1f}, p90 {t['p90']:.1f} "
+            + target(f"<= {TARGET_MS:.0f} ms", t["median"] <= TARGET_MS),
+            file=log,
+        )
+    print(
+        f"{'':8}{'rot mean':>10}{'rot med':>9}{'centre px':>11}{'dist %':>8}{'IoU':>8}"
+        f"{'IoU>0.5':>9}",
+        file=log,
+    )
     for when in ("before", "after"):
         e = res[when]
-        print(f"{when:8}{e['rotation_deg_mean']:>10.2f}{e['rotation_deg_median']:>9.2f}"
-              f"{e['centre_px_mean']:>11.2f}{e['distance_pct_mean']:>8.2f}{e['iou_mean']:>8.3f}"
-              f"{e['iou_over_0.5']:>9.3f}", file=log)  # fmt: skip
+        print(
+            f"{when:8}{e['rotation_deg_mean']:>10.2f}{e['rotation_deg_median']:>9.2f}"
+            f"{e['centre_px_mean']:>11.2f}{e['distance_pct_mean']:>8.2f}{e['iou_mean']:>8.3f}"
+            f"{e['iou_over_0.5']:>9.3f}",
+            file=log,
+        )
     print(
         f"accepted {res['accepted']:.1%}; rotation error lowered for {res['rotation_lowered']:.1%}",
         file=log,

@@ -112,9 +112,11 @@ def corrupt_weights_refused() -> list[str]:
         shutil.copy(w / "posenet_paper.pt", w / "posenet_ours.pt")  # another shipped file
         data = (w / "detector.pt").read_bytes()
         (w / "detector.pt").write_bytes(data[: len(data) // 2])  # truncated
-        for load in (lambda: load_posenet(w / "posenet_ours.pt"),
-                     lambda: Detector.from_weights(w / "detector.pt"),
-                     lambda: Detector.from_weights(w / "detector.pt", verify=False)):  # fmt: skip
+        for load in (
+            lambda: load_posenet(w / "posenet_ours.pt"),
+            lambda: Detector.from_weights(w / "detector.pt"),
+            lambda: Detector.from_weights(w / "detector.pt", verify=False),
+        ):
             try:
                 load()
                 missed.append("loaded")
@@ -131,8 +133,10 @@ def soak(episodes: int, workers: int, record: Path) -> dict:
     # A stride coprime with the number of combinations: neighbouring episodes differ in object,
     # estimator and tier, and every combination comes up once per len(combos) episodes.
     stride = next(k for k in (7, 11, 13, 17, 19) if len(combos) % k)
-    jobs = ((i, *combos[i * stride % len(combos)], SEED_START + i, i == kill_at)
-            for i in range(episodes))  # fmt: skip
+    jobs = (
+        (i, *combos[i * stride % len(combos)], SEED_START + i, i == kill_at)
+        for i in range(episodes)
+    )
     retry: list[tuple] = []
     results: dict[int, dict] = {}
     deaths, write_failures, writes_after_fault = 0, 0, 0
@@ -193,9 +197,13 @@ def _summary(results, episodes, deaths, write_failures, writes_after, main_fds0,
     workers = {}
     for pid, rs in by_pid.items():
         warm = rs[min(len(rs) - 1, max(1, len(rs) // 10))]  # after the estimators loaded
-        workers[pid] = {"episodes": len(rs), "rss_start_mb": warm["rss_mb"],
-                        "rss_end_mb": rs[-1]["rss_mb"], "fds_start": warm["fds"],
-                        "fds_end": rs[-1]["fds"]}  # fmt: skip
+        workers[pid] = {
+            "episodes": len(rs),
+            "rss_start_mb": warm["rss_mb"],
+            "rss_end_mb": rs[-1]["rss_mb"],
+            "fds_start": warm["fds"],
+            "fds_end": rs[-1]["fds"],
+        }
     longest = max(workers.values(), key=lambda w: w["episodes"], default=None)
     crashes = [r["crash"] for r in results.values() if r["crash"]]
     return {
@@ -212,40 +220,47 @@ def _summary(results, episodes, deaths, write_failures, writes_after, main_fds0,
         "record_writes_after_fault": writes_after,
         "corrupt_weights_loaded": corrupt_weights_refused(),
         "worker": longest,
-        "rss_growth_pct": None if longest is None else
-        100 * (longest["rss_end_mb"] / longest["rss_start_mb"] - 1),
+        "rss_growth_pct": None
+        if longest is None
+        else 100 * (longest["rss_end_mb"] / longest["rss_start_mb"] - 1),
         "main_fds_start": main_fds0,
         "main_fds_end": _fds(),
         "wall_s": time.perf_counter() - t0,
-    }  # fmt: skip
+    }
 
 
 def format_summary(s: dict) -> str:
     """The summary as lines."""
     w = s["worker"] or {}
-    return "\n".join([
-        f"episodes {s['episodes_done']}/{s['episodes']} (lost {s['episodes_lost']}), "
-        f"crashes {s['crashes']}, MuJoCo warnings {s['mujoco_warnings']}, "
-        f"wall {s['wall_s']:.0f} s",
-        f"outcomes: {s['outcomes']}",
-        f"errors: {s['errors'] or 'none'}",
-        f"faults: worker killed {s['workers_killed_injected']} (its episode run again); record "
-        f"writes refused {s['record_write_failures_injected']}, written after "
-        f"{s['record_writes_after_fault']}; corrupt weights loaded: "
-        f"{', '.join(s['corrupt_weights_loaded']) or 'none (all refused)'}",
-        f"worker RSS {w.get('rss_start_mb', 0):.0f} -> {w.get('rss_end_mb', 0):.0f} MB "
-        f"({s['rss_growth_pct'] or 0:+.1f} % over {w.get('episodes', 0)} episodes), fds "
-        f"{w.get('fds_start')} -> {w.get('fds_end')}; main fds {s['main_fds_start']} -> "
-        f"{s['main_fds_end']}",
-    ])  # fmt: skip
+    return "\n".join(
+        [
+            f"episodes {s['episodes_done']}/{s['episodes']} (lost {s['episodes_lost']}), "
+            f"crashes {s['crashes']}, MuJoCo warnings {s['mujoco_warnings']}, "
+            f"wall {s['wall_s']:.0f} s",
+            f"outcomes: {s['outcomes']}",
+            f"errors: {s['errors'] or 'none'}",
+            f"faults: worker killed {s['workers_killed_injected']} (its episode run again); record "
+            f"writes refused {s['record_write_failures_injected']}, written after "
+            f"{s['record_writes_after_fault']}; corrupt weights loaded: "
+            f"{', '.join(s['corrupt_weights_loaded']) or 'none (all refused)'}",
+            f"worker RSS {w.get('rss_start_mb', 0):.0f} -> {w.get('rss_end_mb', 0):.0f} MB "
+            f"({s['rss_growth_pct'] or 0:+.1f} % over {w.get('episodes', 0)} episodes), fds "
+            f"{w.get('fds_start')} -> {w.get('fds_end')}; main fds {s['main_fds_start']} -> "
+            f"{s['main_fds_end']}",
+        ]
+    )
 
 
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns 0, or 1 when the soak found a crash or lost an episode."""
     p = ArgumentParser(prog="python bench/soak.py", description=__doc__.split("\n")[0])
-    p.add_argument("--episodes", type=arg(check_int, 1, 100_000, "--episodes", base=int),
-                   default=1000, help="episodes, 1..100000 (default 1000)")  # fmt: skip
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 1, 100_000, "--episodes", base=int),
+        default=1000,
+        help="episodes, 1..100000 (default 1000)",
+    )
     add_workers_argument(p)
     add_json_argument(p, "the figures")
     args = p.parse_args(argv)

@@ -95,16 +95,25 @@ def fuse(uv: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/tta_ablation.py", description=__doc__.splitlines()[0])
-    p.add_argument("--weights", type=Path, default=WEIGHTS_DIR / "posenet_ours.pt", metavar="PATH",
-                   help="pose net weights (default: the shipped ours)")  # fmt: skip
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=WEIGHTS_DIR / "posenet_ours.pt",
+        metavar="PATH",
+        help="pose net weights (default: the shipped ours)",
+    )
     p.add_argument(
         "--dataset",
         default="headcam",
         type=arg(check_choice, DATASETS, "dataset"),
         help=f"dataset folder under the data root, one of: {', '.join(DATASETS)}",
     )
-    p.add_argument("--limit", type=arg(check_int, 1, 100_000_000, "--limit", base=int),
-                   default=None, help="first N test images")  # fmt: skip
+    p.add_argument(
+        "--limit",
+        type=arg(check_int, 1, 100_000_000, "--limit", base=int),
+        default=None,
+        help="first N test images",
+    )
     add_json_argument(p, "the figures")
     a = p.parse_args(argv)
     setup_rendering()
@@ -121,21 +130,31 @@ def main(argv: list[str] | None = None) -> int:
     rows = {}
     for name, idx in SETS.items():
         fused = [fuse(uv[idx, i], T[idx, i]) for i in range(n)]
-        m = pose_metrics({"uv": np.array([f[0] for f in fused]),
-                          "T_C_O": np.array([f[1] for f in fused])}, truth)  # fmt: skip
+        m = pose_metrics(
+            {"uv": np.array([f[0] for f in fused]), "T_C_O": np.array([f[1] for f in fused])}, truth
+        )
         rows[name] = {k: float(np.mean(v)) for k, v in m.items()} | {
             "outlier_rate": float(np.mean(m["rotation_deg"] > OUTLIER_DEG)),
             "crops": len(idx),
             "nets_ms_per_object": per_crop_ms * len(idx),
         }
-    print(f"{a.weights.name} on {a.dataset}/test: {n} objects (ground-truth boxes perturbed "
-          "like detections)", file=log)  # fmt: skip
-    print(f"{'crops':<12} {'centre px':>9} {'distance %':>10} {'rotation':>9} "
-          f"{'> 15 deg':>8} {'nets ms':>8}", file=log)  # fmt: skip
+    print(
+        f"{a.weights.name} on {a.dataset}/test: {n} objects (ground-truth boxes perturbed "
+        "like detections)",
+        file=log,
+    )
+    print(
+        f"{'crops':<12} {'centre px':>9} {'distance %':>10} {'rotation':>9} "
+        f"{'> 15 deg':>8} {'nets ms':>8}",
+        file=log,
+    )
     for name, r in rows.items():
-        print(f"{name:<12} {r['center_px']:9.2f} {r['distance_pct']:10.2f} "
-              f"{r['rotation_deg']:9.2f} {100 * r['outlier_rate']:7.2f}% "
-              f"{r['nets_ms_per_object']:8.2f}", file=log)  # fmt: skip
+        print(
+            f"{name:<12} {r['center_px']:9.2f} {r['distance_pct']:10.2f} "
+            f"{r['rotation_deg']:9.2f} {100 * r['outlier_rate']:7.2f}% "
+            f"{r['nets_ms_per_object']:8.2f}",
+            file=log,
+        )
     if a.json is not None:
         write_json(a.json, {"objects": n, "rows": rows})
     return 0

@@ -280,8 +280,9 @@ def add_metric_name(syms: Sequence[Symmetry], atol: float = 1e-9) -> str:
     identity, ``"ADD-S"`` (:func:`adi`) when it holds another transform (Hinterstoisser et al.
     2012). ``atol`` bounds the entries of R [-] and t [m] that still count as the identity."""
     eye = np.eye(3)
-    identity = [np.allclose(R, eye, atol=atol) and np.allclose(t, 0.0, atol=atol)
-                for R, t in _syms(syms)]  # fmt: skip
+    identity = [
+        np.allclose(R, eye, atol=atol) and np.allclose(t, 0.0, atol=atol) for R, t in _syms(syms)
+    ]
     return "ADD" if all(identity) else "ADD-S"
 
 

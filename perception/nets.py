@@ -102,11 +102,17 @@ class PoseNet(nn.Module):
         self.cfg = cfg
         w = cfg.width
         self.backbone = nn.Sequential(
-            *_conv(3, w), *_conv(w, w), nn.MaxPool2d(2),
-            *_conv(w, 2 * w), *_conv(2 * w, 2 * w), nn.MaxPool2d(2),
-            *_conv(2 * w, 4 * w), *_conv(4 * w, 4 * w), nn.MaxPool2d(2),
+            *_conv(3, w),
+            *_conv(w, w),
+            nn.MaxPool2d(2),
+            *_conv(w, 2 * w),
+            *_conv(2 * w, 2 * w),
+            nn.MaxPool2d(2),
+            *_conv(2 * w, 4 * w),
+            *_conv(4 * w, 4 * w),
+            nn.MaxPool2d(2),
             nn.Flatten(),
-        )  # fmt: skip
+        )
         feat = 4 * w * (cfg.crop // 8) ** 2
         extra = 1 if cfg.variant == "ours" else 0
         self.fc = nn.Sequential(

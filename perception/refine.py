@@ -86,8 +86,13 @@ class RefineConfig:
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear samples of an image (h, w[, C]) at pixel coordinates x, y (M, S) -> (M, S[, C]),
     borders replicated."""
-    out = cv2.remap(img, x.astype(np.float32), y.astype(np.float32), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
+    out = cv2.remap(
+        img,
+        x.astype(np.float32),
+        y.astype(np.float32),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
     return out.reshape(x.shape + img.shape[2:])
 
 
@@ -103,8 +108,9 @@ class _Window:
     rgb: np.ndarray | None  # the whole image, (H, W, 3) uint8
 
 
-def _window(mask: np.ndarray, box: tuple[int, int, int, int], rgb: _Opt, occluder: _Opt,
-            cfg: RefineConfig) -> _Window:  # fmt: skip
+def _window(
+    mask: np.ndarray, box: tuple[int, int, int, int], rgb: _Opt, occluder: _Opt, cfg: RefineConfig
+) -> _Window:
     """Cut the window around the mask's box (`mask_box`) and compute its signed distance field."""
     bx0, by0, bx1, by1 = box
     H, W = mask.shape

@@ -206,9 +206,10 @@ def format_curve(rows: list[dict]) -> str:
         out.append("margin vs pose error over all these episodes, Spearman per object:")
         for o, rho in pooled.items():
             vals = ", ".join(
-                f"{k} {rho[k]:+.2f}" for k in ("translation_m", "rotation_deg", "add_m")
+                f"{k} {rho[k]:+.2f}"
+                for k in ("translation_m", "rotation_deg", "add_m")
                 if rho.get(k) is not None
-            )  # fmt: skip
+            )
             out.append(f"  {o:<8} {vals or 'too few'} ({rho['episodes']} grasped)")
     return "\n".join(out)
 

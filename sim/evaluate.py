@@ -164,13 +164,24 @@ def evaluate(
     if note:
         print(note, file=sys.stderr)
     # Made as the workers take them, never all at once.
-    jobs = ((o, seed_start + i, estimator, tier, noise, margin)
-            for o in objects for i in range(episodes))  # fmt: skip
+    jobs = (
+        (o, seed_start + i, estimator, tier, noise, margin)
+        for o in objects
+        for i in range(episodes)
+    )
     t = time.perf_counter()
     results = []
-    for d, node in run_map(_run_one, jobs, backend=backend, workers=workers, address=address,
-                           desc="episodes", initializer=_init_worker, with_node=True,
-                           total=n_jobs):  # fmt: skip
+    for d, node in run_map(
+        _run_one,
+        jobs,
+        backend=backend,
+        workers=workers,
+        address=address,
+        desc="episodes",
+        initializer=_init_worker,
+        with_node=True,
+        total=n_jobs,
+    ):
         if node is not None:
             d["node"] = node
         results.append(d)
@@ -284,10 +295,12 @@ def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = Non
                 wlo, whi = wilson_interval(k, n)
                 mid = (lo + min(hi, edges[-1] * 1.3)) / 2
                 err = [[max(0.0, k / n - wlo)], [max(0.0, whi - k / n)]]
-                ax.errorbar(mid, k / n, yerr=err, fmt="o", color="k",
-                            ms=4 + 6 * min(1.0, n / 50), capsize=3)  # fmt: skip
-                ax.annotate(str(n), (mid, k / n), textcoords="offset points", xytext=(4, -12),
-                            fontsize=7)  # fmt: skip
+                ax.errorbar(
+                    mid, k / n, yerr=err, fmt="o", color="k", ms=4 + 6 * min(1.0, n / 50), capsize=3
+                )
+                ax.annotate(
+                    str(n), (mid, k / n), textcoords="offset points", xytext=(4, -12), fontsize=7
+                )
         name, unit = kind.rsplit("_", 1)
         ax.set_xlabel(f"{name} error [{unit}]")
         ax.set_ylim(-0.1, 1.1)
@@ -314,8 +327,12 @@ def main(argv: list[str] | None = None) -> int:
         type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
         help=f"'all' or a comma list of {', '.join(OBJECT_NAMES)}",
     )
-    p.add_argument("--episodes", type=arg(check_int, 1, MAX_EPISODES, "--episodes", base=int),
-                   default=50, help=f"episodes per object, 1..{MAX_EPISODES}")  # fmt: skip
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 1, MAX_EPISODES, "--episodes", base=int),
+        default=50,
+        help=f"episodes per object, 1..{MAX_EPISODES}",
+    )
     add_estimator_arguments(p)
     p.add_argument(
         "--seed-start",
@@ -324,14 +341,23 @@ def main(argv: list[str] | None = None) -> int:
         help="first scene seed (default: held-out scenes, never rendered as training data)",
     )
     add_workers_argument(p, what="at most one per episode and core")
-    p.add_argument("--tier", default=DEFAULT_TIER, type=arg(check_tier),
-                   help=f"scene tier, one of: {', '.join(TIERS)}")  # fmt: skip
+    p.add_argument(
+        "--tier",
+        default=DEFAULT_TIER,
+        type=arg(check_tier),
+        help=f"scene tier, one of: {', '.join(TIERS)}",
+    )
     p.add_argument(
         "--margin", action="store_true", help="measure each grasp's friction margin (slower)"
     )
     add_json_argument(p, "the full report")
-    p.add_argument("--plot", type=arg(check_plot_path), default=None, metavar="PATH",
-                   help="plot of success against pose error (.png, .pdf or .svg)")  # fmt: skip
+    p.add_argument(
+        "--plot",
+        type=arg(check_plot_path),
+        default=None,
+        metavar="PATH",
+        help="plot of success against pose error (.png, .pdf or .svg)",
+    )
     p.add_argument(
         "--tolerance",
         type=arg(check_tolerance_file),

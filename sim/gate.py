@@ -124,9 +124,16 @@ def run_gate(
     """The gate's evaluation: `episodes` per object of `GATE_TIER` from `GATE_SEED_START`,
     friction margins measured, on `backend` (`posegrasp.core.backends.run_map`)."""
     return evaluate(
-        list(OBJECT_NAMES), episodes, estimator, GATE_SEED_START, workers, GATE_TIER,
-        margin=True, backend=backend, address=address,
-    )  # fmt: skip
+        list(OBJECT_NAMES),
+        episodes,
+        estimator,
+        GATE_SEED_START,
+        workers,
+        GATE_TIER,
+        margin=True,
+        backend=backend,
+        address=address,
+    )
 
 
 def _outcomes(episodes: list[dict]) -> dict[tuple[str, int], tuple[bool, float | None]]:

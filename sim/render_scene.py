@@ -135,8 +135,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help=f"other objects on the table, 0..{n_max} (default: 0)",
     )
-    p.add_argument("--tier", default=DEFAULT_TIER, type=arg(check_tier),
-                   help=f"scene tier, one of: {', '.join(TIERS)}")  # fmt: skip
+    p.add_argument(
+        "--tier",
+        default=DEFAULT_TIER,
+        type=arg(check_tier),
+        help=f"scene tier, one of: {', '.join(TIERS)}",
+    )
     p.add_argument("--no-shadows", action="store_true", help="render without shadows (faster)")
     add_estimator_arguments(
         p,
@@ -247,8 +251,16 @@ def render_sheet(req: RenderRequest, path: Path) -> Path:
             ep.close()
         label = np.full((4 + 18 * len(lines), req.width, 3), 255, np.uint8)
         for row, (text, colour) in enumerate(lines):
-            cv2.putText(label, text[:70], (6, 16 + 18 * row), cv2.FONT_HERSHEY_SIMPLEX,
-                        0.45 if row else 0.55, colour, 1, cv2.LINE_AA)  # fmt: skip
+            cv2.putText(
+                label,
+                text[:70],
+                (6, 16 + 18 * row),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.45 if row else 0.55,
+                colour,
+                1,
+                cv2.LINE_AA,
+            )
         columns.append(np.vstack([label, head, external]))
     _write_png(path, np.hstack(columns))
     return path

@@ -112,9 +112,16 @@ def study(
         for i in range(episodes)
     )
     results = list(
-        run_map(_job, jobs, backend=backend, workers=workers, address=address, desc="episodes",
-                total=n_jobs)
-    )  # fmt: skip
+        run_map(
+            _job,
+            jobs,
+            backend=backend,
+            workers=workers,
+            address=address,
+            desc="episodes",
+            total=n_jobs,
+        )
+    )
     out: dict = {}
     for o in objects:
         out[o] = {}
@@ -159,17 +166,35 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.tolerance", description=__doc__.split("\n")[0])
     which = p.add_mutually_exclusive_group()
-    which.add_argument("--object", type=arg(check_choice, OBJECT_NAMES, "object"),
-                       help=f"one of: {', '.join(OBJECT_NAMES)} (default: phone)")  # fmt: skip
-    which.add_argument("--objects", type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
-                       help="'all' or a comma list")  # fmt: skip
-    p.add_argument("--episodes", type=arg(check_int, 1, 10_000, "--episodes", base=int),
-                   default=10, help="episodes per level, 1..10000")  # fmt: skip
-    p.add_argument("--seed-start", type=arg(check_seed, "--seed-start", base=int), default=1000,
-                   help="first scene seed (default 1000)")  # fmt: skip
+    which.add_argument(
+        "--object",
+        type=arg(check_choice, OBJECT_NAMES, "object"),
+        help=f"one of: {', '.join(OBJECT_NAMES)} (default: phone)",
+    )
+    which.add_argument(
+        "--objects",
+        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
+        help="'all' or a comma list",
+    )
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 1, 10_000, "--episodes", base=int),
+        default=10,
+        help="episodes per level, 1..10000",
+    )
+    p.add_argument(
+        "--seed-start",
+        type=arg(check_seed, "--seed-start", base=int),
+        default=1000,
+        help="first scene seed (default 1000)",
+    )
     add_workers_argument(p)
-    p.add_argument("--tier", default=DEFAULT_TIER, type=arg(check_tier),
-                   help=f"scene tier, one of: {', '.join(TIERS)}")  # fmt: skip
+    p.add_argument(
+        "--tier",
+        default=DEFAULT_TIER,
+        type=arg(check_tier),
+        help=f"scene tier, one of: {', '.join(TIERS)}",
+    )
     add_json_argument(p, "the curves and tolerances", DEFAULT_JSON)
     p.add_argument(
         "--plot",
@@ -184,8 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     objects = args.objects or [args.object or "phone"]
     check_seed(args.seed_start, "--seed-start", args.episodes)
     check_backend(args.backend, args.address)
-    result = study(objects, args.episodes, args.seed_start, args.workers, args.tier,
-                   args.backend, args.address)  # fmt: skip
+    result = study(
+        objects, args.episodes, args.seed_start, args.workers, args.tier, args.backend, args.address
+    )
     log = summary_stream(args.json)
     plot(result, args.plot)
     print(f"{'object':<8}" + "".join(f"{k:>14}" for k in LEVELS), file=log)

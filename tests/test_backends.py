@@ -45,8 +45,9 @@ def _outcome(episode: dict) -> dict:
 def _stats(report: dict) -> dict:
     """The per-object and overall figures but the timings."""
     groups = {**report["per_object"], "overall": report["overall"]}
-    return {n: {k: v for k, v in g.items() if not k.endswith("_ms_median")}
-            for n, g in groups.items()}  # fmt: skip
+    return {
+        n: {k: v for k, v in g.items() if not k.endswith("_ms_median")} for n, g in groups.items()
+    }
 
 
 def _evaluate(**kwargs) -> dict:
@@ -60,8 +61,11 @@ def local_report() -> dict:
 
 def _files(root: Path) -> dict[str, bytes]:
     # Every file but the measured wall times.
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file() and p.name != WALL_TIME_FILE}  # fmt: skip
+    return {
+        str(p.relative_to(root)): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != WALL_TIME_FILE
+    }
 
 
 def _die_once(marker: str, job):
@@ -77,8 +81,11 @@ def _die_once(marker: str, job):
 
 def test_results_come_in_job_order_locally() -> None:
     assert list(run_map(abs, [-3, 1, -2], workers=1)) == [3, 1, 2]
-    assert list(run_map(abs, [-3, 1, -2], workers=1, with_node=True)) == [(3, None), (1, None),
-                                                                           (2, None)]  # fmt: skip
+    assert list(run_map(abs, [-3, 1, -2], workers=1, with_node=True)) == [
+        (3, None),
+        (1, None),
+        (2, None),
+    ]
     assert default_chunk(1000, 2) == 16 and default_chunk(10, 2) == 1
 
 
@@ -107,8 +114,21 @@ def test_bad_backend_arguments_are_one_line(args: list[str], needle: str, capsys
 
 @pytest.mark.slow
 def test_an_unreachable_cluster_is_one_line_within_30_s() -> None:
-    cmd = [sys.executable, "-m", "sim.evaluate", "--objects", "phone", "--episodes", "1",
-           "--estimator", "oracle", "--backend", "ray", "--address", "127.0.0.1:1"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "sim.evaluate",
+        "--objects",
+        "phone",
+        "--episodes",
+        "1",
+        "--estimator",
+        "oracle",
+        "--backend",
+        "ray",
+        "--address",
+        "127.0.0.1:1",
+    ]
     t = time.monotonic()
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=60)
     assert time.monotonic() - t < 30
@@ -124,11 +144,24 @@ def test_an_unreachable_cluster_is_one_line_within_30_s() -> None:
 
 @pytest.mark.slow
 def test_datagen_writes_the_same_bytes_on_ray(tmp_path: Path) -> None:
-    args = ["--dist", "paper", "--split", "val", "--count", "5", "--width", "96", "--height",
-            "96", "--quiet"]  # fmt: skip
+    args = [
+        "--dist",
+        "paper",
+        "--split",
+        "val",
+        "--count",
+        "5",
+        "--width",
+        "96",
+        "--height",
+        "96",
+        "--quiet",
+    ]
     assert datagen_main([*args, "--out", str(tmp_path / "local")]) == 0
-    assert datagen_main([*args, "--out", str(tmp_path / "ray"), "--backend", "ray",
-                         "--workers", "2"]) == 0  # fmt: skip
+    assert (
+        datagen_main([*args, "--out", str(tmp_path / "ray"), "--backend", "ray", "--workers", "2"])
+        == 0
+    )
     assert not ray.is_initialized()  # the Ray the command started is stopped
     local, on_ray = _files(tmp_path / "local"), _files(tmp_path / "ray")
     assert len(local) > 10 and on_ray == local
@@ -157,10 +190,14 @@ class TestOnALocalRay:
 
     def test_a_killed_worker_is_retried(self, local_report: dict, tmp_path: Path) -> None:
         marker = tmp_path / "killed"
-        jobs = [(o, SEED + i, "oracle", "isolated", None, False)
-                for o in OBJECTS for i in range(EPISODES)]  # fmt: skip
-        results = list(run_map(functools.partial(_die_once, str(marker)), jobs, backend="ray",
-                               chunk=2))  # fmt: skip
+        jobs = [
+            (o, SEED + i, "oracle", "isolated", None, False)
+            for o in OBJECTS
+            for i in range(EPISODES)
+        ]
+        results = list(
+            run_map(functools.partial(_die_once, str(marker)), jobs, backend="ray", chunk=2)
+        )
         assert marker.exists()  # a worker died mid-run ...
         assert [_outcome(r) for r in results] == [  # ... and the report is complete and the same
             _outcome(e) for e in local_report["episodes"]

@@ -147,10 +147,12 @@ def test_margin_error_correlation() -> None:
     margin_error_correlation = stats.margin_error_correlation
 
     eps = [
-        {"friction_margin": 0.1 + 0.01 * i, "pose_error": {"translation_m": 0.001 * i,
-                                                          "rotation_deg": 10.0 - i}}
+        {
+            "friction_margin": 0.1 + 0.01 * i,
+            "pose_error": {"translation_m": 0.001 * i, "rotation_deg": 10.0 - i},
+        }
         for i in range(10)
-    ]  # fmt: skip
+    ]
     rho = margin_error_correlation([*eps, {"friction_margin": None, "pose_error": None}])
     assert rho["episodes"] == 10
     assert rho["translation_m"] == pytest.approx(1.0)  # larger error, looser grasp

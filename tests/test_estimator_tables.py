@@ -34,8 +34,21 @@ class _Fixed:
 @pytest.fixture(scope="module")
 def split(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("data") / "headcam"
-    args = ["--dist", "headcam", "--split", "test", "--count", "3", "--width", "320",
-            "--height", "240", "--out", str(root), "--quiet"]  # fmt: skip
+    args = [
+        "--dist",
+        "headcam",
+        "--split",
+        "test",
+        "--count",
+        "3",
+        "--width",
+        "320",
+        "--height",
+        "240",
+        "--out",
+        str(root),
+        "--quiet",
+    ]
     assert datagen_main(args) == 0
     return root
 
@@ -44,8 +57,12 @@ def test_every_visible_object_is_one_query_with_its_own_errors(split: Path) -> N
     est = _Fixed()
     rows = query_errors(est, split)
     ds = PoseDataset(split, "test")
-    expected = [(o.name, i) for i in range(len(ds)) for o in ds[i].objects
-                if o.visib_fract >= MIN_VISIB and o.T_C_O[2, 3] > 0]  # fmt: skip
+    expected = [
+        (o.name, i)
+        for i in range(len(ds))
+        for o in ds[i].objects
+        if o.visib_fract >= MIN_VISIB and o.T_C_O[2, 3] > 0
+    ]
     assert [(r["object"], r["image"]) for r in rows] == expected
     assert [o.object for o in est.seen] == [name for name, _ in expected]
     for r in rows:
@@ -59,12 +76,26 @@ def test_every_visible_object_is_one_query_with_its_own_errors(split: Path) -> N
 
 def test_the_summary_counts_misses_and_outliers() -> None:
     rows = [
-        {"object": "car", "found": True, "centre_px": 1.0, "distance_pct": 2.0,
-         "translation_pct": 3.0, "rotation_deg": 1.0, "ms": 10.0},
-        {"object": "car", "found": True, "centre_px": 3.0, "distance_pct": 4.0,
-         "translation_pct": 5.0, "rotation_deg": 30.0, "ms": 30.0},
+        {
+            "object": "car",
+            "found": True,
+            "centre_px": 1.0,
+            "distance_pct": 2.0,
+            "translation_pct": 3.0,
+            "rotation_deg": 1.0,
+            "ms": 10.0,
+        },
+        {
+            "object": "car",
+            "found": True,
+            "centre_px": 3.0,
+            "distance_pct": 4.0,
+            "translation_pct": 5.0,
+            "rotation_deg": 30.0,
+            "ms": 30.0,
+        },
         {"object": "car", "found": False, "ms": 20.0},
-    ]  # fmt: skip
+    ]
     s = summarise_queries(rows)
     assert set(s) == {"car", "all"}
     car = s["car"]

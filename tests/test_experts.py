@@ -103,8 +103,9 @@ def test_an_expert_replaces_the_main_pose_only_when_its_silhouette_agrees_better
     near = _pose(yaw_deg=21)
     iou = silhouette_agreement("phone", [near, T], K, det.mask, [])
     assert iou[1] - iou[0] < SWITCH_IOU
-    np.testing.assert_allclose(_estimate(det, _FixedNet(near, box), [_FixedNet(T, box)]), near,
-                               atol=1e-4)  # fmt: skip
+    np.testing.assert_allclose(
+        _estimate(det, _FixedNet(near, box), [_FixedNet(T, box)]), near, atol=1e-4
+    )
 
 
 def test_experts_must_share_the_classes(scene) -> None:

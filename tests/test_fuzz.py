@@ -27,11 +27,48 @@ from posegrasp.core.failures import FAILURE_REASONS
 from sim.env import MAX_NEIGHBOURS, GraspEvalEnv, pose_action
 
 #: Values that sit on or past the edge of every option's range.
-VALUES = ["-1", "0", "1", "2", "3", "64", "65", "100", "4294967295", "4294967296", "99999999999",
-          "1.5", "nan", "inf", "-inf", "", " ", "abc", "all", "phone", "phone,phone", "car,teapot",
-          ",", "x/", "out/", "p.xyz", "p.png", "r.json", "1e30,1,1,1", "500,500,31,23", "paper",
-          "headcam", "gt", "detector", "clutter", "far", "oracle", "hybrid", "--help-me",
-          "-"]  # fmt: skip
+VALUES = [
+    "-1",
+    "0",
+    "1",
+    "2",
+    "3",
+    "64",
+    "65",
+    "100",
+    "4294967295",
+    "4294967296",
+    "99999999999",
+    "1.5",
+    "nan",
+    "inf",
+    "-inf",
+    "",
+    " ",
+    "abc",
+    "all",
+    "phone",
+    "phone,phone",
+    "car,teapot",
+    ",",
+    "x/",
+    "out/",
+    "p.xyz",
+    "p.png",
+    "r.json",
+    "1e30,1,1,1",
+    "500,500,31,23",
+    "paper",
+    "headcam",
+    "gt",
+    "detector",
+    "clutter",
+    "far",
+    "oracle",
+    "hybrid",
+    "--help-me",
+    "-",
+]
 
 
 class _WorkStarted(Exception):
@@ -44,29 +81,85 @@ def _stub(*args, **kwargs):
 
 #: Each CLI, its options, and the functions that would start real work.
 CLIS: dict[str, tuple[list[str], list[str]]] = {
-    "sim.run_episode": (["--object", "--seed", "--estimator", "--tier", "--noise", "--json",
-                         "--out", "--save"], ["_run", "make_estimator"]),
-    "sim.evaluate": (["--objects", "--episodes", "--estimator", "--seed-start", "--workers",
-                      "--tier", "--noise", "--margin", "--json", "--plot", "--tolerance",
-                      "--backend"], ["evaluate", "_estimator", "make_estimator"]),
-    "sim.tolerance": (["--object", "--objects", "--episodes", "--seed-start", "--workers", "--tier",
-                       "--json", "--plot", "--backend"], ["study"]),
-    "sim.render_scene": (["--object", "--seed", "--png", "--sheet", "--external", "--width",
-                          "--height", "--distractors", "--tier", "--estimator"],
-                         ["render", "render_sheet"]),
+    "sim.run_episode": (
+        ["--object", "--seed", "--estimator", "--tier", "--noise", "--json", "--out", "--save"],
+        ["_run", "make_estimator"],
+    ),
+    "sim.evaluate": (
+        [
+            "--objects",
+            "--episodes",
+            "--estimator",
+            "--seed-start",
+            "--workers",
+            "--tier",
+            "--noise",
+            "--margin",
+            "--json",
+            "--plot",
+            "--tolerance",
+            "--backend",
+        ],
+        ["evaluate", "_estimator", "make_estimator"],
+    ),
+    "sim.tolerance": (
+        [
+            "--object",
+            "--objects",
+            "--episodes",
+            "--seed-start",
+            "--workers",
+            "--tier",
+            "--json",
+            "--plot",
+            "--backend",
+        ],
+        ["study"],
+    ),
+    "sim.render_scene": (
+        [
+            "--object",
+            "--seed",
+            "--png",
+            "--sheet",
+            "--external",
+            "--width",
+            "--height",
+            "--distractors",
+            "--tier",
+            "--estimator",
+        ],
+        ["render", "render_sheet"],
+    ),
     "sim.gate": (["--write", "--baseline", "--workers", "--estimator"], ["run_gate"]),
     "sim.compare": (["--json", "--boot", "--curve", "--plot"], []),
     "sim.fit_success": (["--objects", "--episodes", "--tier", "--workers", "--models"], ["sample"]),
-    "perception.training.datagen": (["--dist", "--split", "--count", "--out", "--objects",
-                                     "--width", "--height", "--preview", "--workers", "--tier",
-                                     "--views"], ["generate"]),
-    "perception.training.overlays": (["--dist", "--split", "--images", "--image", "--K",
-                                      "--out", "--save"], ["HybridPoseEstimator", "PoseDataset"]),
-    "perception.training.tables": (["--weights", "--dists", "--limit", "--json", "--boxes",
-                                    "--record"], ["load_posenet", "check_full_splits",
-                                                  "record_in_manifest", "evaluate_split"]),
+    "perception.training.datagen": (
+        [
+            "--dist",
+            "--split",
+            "--count",
+            "--out",
+            "--objects",
+            "--width",
+            "--height",
+            "--preview",
+            "--workers",
+            "--tier",
+            "--views",
+        ],
+        ["generate"],
+    ),
+    "perception.training.overlays": (
+        ["--dist", "--split", "--images", "--image", "--K", "--out", "--save"],
+        ["HybridPoseEstimator", "PoseDataset"],
+    ),
+    "perception.training.tables": (
+        ["--weights", "--dists", "--limit", "--json", "--boxes", "--record"],
+        ["load_posenet", "check_full_splits", "record_in_manifest", "evaluate_split"],
+    ),
     "perception.training.export": (["--checkpoints", "--plot"], ["export"]),
-}  # fmt: skip
+}
 
 
 def _argv(options: list[str]) -> st.SearchStrategy[list[str]]:
@@ -97,8 +190,9 @@ def _fuzz_cli(module_name: str, examples: int, monkeypatch) -> None:
         monkeypatch.setattr(module, name, _stub)
     home = Path.cwd()
 
-    @settings(max_examples=examples, deadline=None, database=None,
-              suppress_health_check=list(HealthCheck))  # fmt: skip
+    @settings(
+        max_examples=examples, deadline=None, database=None, suppress_health_check=list(HealthCheck)
+    )
     @given(argv=_argv(options))
     def check(argv: list[str]) -> None:
         with tempfile.TemporaryDirectory() as d:
@@ -150,14 +244,19 @@ def _vectors(n: int) -> st.SearchStrategy:
 
 _neighbours = st.one_of(
     st.none(),
-    st.fixed_dictionaries({
-        "count": _scalar,
-        "object": st.one_of(st.just(np.zeros(MAX_NEIGHBOURS, np.int64)), _vectors(MAX_NEIGHBOURS)),
-        "position": st.just(np.zeros((MAX_NEIGHBOURS, 3))),
-        "quaternion": st.sampled_from([np.tile([1.0, 0, 0, 0], (MAX_NEIGHBOURS, 1)),
-                                       np.zeros((MAX_NEIGHBOURS, 4))]),
-    }),
-)  # fmt: skip
+    st.fixed_dictionaries(
+        {
+            "count": _scalar,
+            "object": st.one_of(
+                st.just(np.zeros(MAX_NEIGHBOURS, np.int64)), _vectors(MAX_NEIGHBOURS)
+            ),
+            "position": st.just(np.zeros((MAX_NEIGHBOURS, 3))),
+            "quaternion": st.sampled_from(
+                [np.tile([1.0, 0, 0, 0], (MAX_NEIGHBOURS, 1)), np.zeros((MAX_NEIGHBOURS, 4))]
+            ),
+        }
+    ),
+)
 _actions = st.one_of(
     st.fixed_dictionaries(
         {"has_estimate": _scalar, "position": _vectors(3), "quaternion": _vectors(4)},
@@ -186,8 +285,9 @@ def _fuzz_env(examples: int, monkeypatch) -> None:
     monkeypatch.setattr("sim.episode.GraspPlanner.plan", unreachable)
     env = GraspEvalEnv(object="phone", width=64, height=48)
 
-    @settings(max_examples=examples, deadline=None, database=None,
-              suppress_health_check=list(HealthCheck))  # fmt: skip
+    @settings(
+        max_examples=examples, deadline=None, database=None, suppress_health_check=list(HealthCheck)
+    )
     @given(seed=_seeds, options=_options, action=_actions)
     def check(seed, options, action) -> None:
         try:

@@ -260,10 +260,13 @@ def test_workers_are_capped_by_jobs_and_cores_with_a_note() -> None:
         (parse_intrinsics, ("1e30,1e30,320,240",), "within +-100000"),
         (parse_intrinsics, ("500,-500,320,240",), "positive focal lengths"),
         (parse_intrinsics, ("500,500,320",), "four numbers"),
-        (check_tolerance_curves, ({"phone": {"ray_mm": {"levels": [0], "success_rate": [2]}}},),
-         "python -m sim.tolerance"),
+        (
+            check_tolerance_curves,
+            ({"phone": {"ray_mm": {"levels": [0], "success_rate": [2]}}},),
+            "python -m sim.tolerance",
+        ),
     ],
-)  # fmt: skip
+)
 def test_shared_validators_name_the_valid_range(check, args, words) -> None:
     with pytest.raises((InvalidArgumentError, UnknownNameError)) as exc:
         check(*args)
@@ -300,17 +303,32 @@ CLI_REJECTIONS = [
     ("sim.fit_success", ["--objects", "car,car"], "car twice"),
     ("sim.fit_success", ["--workers", "0"], "1..64"),
     ("sim.fit_success", ["--tier", "nope"], "valid tiers: isolated"),
-    ("perception.training.datagen", ["--dist", "paper", "--split", "val", "--count", "1",
-                                     "--preview", "sheet.xyz"], "valid suffixes: .png"),
-    ("perception.training.datagen", ["--dist", "paper", "--split", "val", "--count", "1",
-                                     "--objects", "car,car"], "car twice"),
-    ("perception.training.datagen", ["--dist", "paper", "--split", "val", "--count", "1",
-                                     "--workers", "0"], "1..64"),
-    ("perception.training.datagen", ["--dist", "headcam", "--split", "val", "--count", "1",
-                                     "--tier", "nope"], "valid tiers: isolated"),
+    (
+        "perception.training.datagen",
+        ["--dist", "paper", "--split", "val", "--count", "1", "--preview", "sheet.xyz"],
+        "valid suffixes: .png",
+    ),
+    (
+        "perception.training.datagen",
+        ["--dist", "paper", "--split", "val", "--count", "1", "--objects", "car,car"],
+        "car twice",
+    ),
+    (
+        "perception.training.datagen",
+        ["--dist", "paper", "--split", "val", "--count", "1", "--workers", "0"],
+        "1..64",
+    ),
+    (
+        "perception.training.datagen",
+        ["--dist", "headcam", "--split", "val", "--count", "1", "--tier", "nope"],
+        "valid tiers: isolated",
+    ),
     ("perception.training.overlays", ["--out", "o", "--images", "0"], "1..1000"),
-    ("perception.training.overlays", ["--out", "o", "--image", "x.png", "--K", "1e30,1,1,1"],
-     "within +-100000"),
+    (
+        "perception.training.overlays",
+        ["--out", "o", "--image", "x.png", "--K", "1e30,1,1,1"],
+        "within +-100000",
+    ),
     ("perception.training.overlays", ["--images", "2"], "one of the arguments --out is required"),
     ("perception.training.tables", ["--dists", "paper,paper"], "paper twice"),
     ("perception.training.tables", ["--limit", "0"], "1..100000000"),
@@ -318,7 +336,7 @@ CLI_REJECTIONS = [
     ("perception.training.tables", ["--json", "out/"], "it is a folder"),
     ("perception.training.export", ["--plot", "curves.xyz"], ".png, .pdf, .svg"),
     ("posegrasp.world.resting", ["--seed", "-1"], "0..4294967295"),
-]  # fmt: skip
+]
 
 
 @pytest.mark.parametrize("module, argv, words", CLI_REJECTIONS)

@@ -60,8 +60,14 @@ def test_estimator_cli_on_an_image_file(tmp_path, capsys) -> None:
     img = tmp_path / "head.png"
     cv2.imwrite(str(img), obs.rgb[..., ::-1])
     K = obs.K
-    argv = ["--image", str(img), "--K", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}",
-            "--save", str(tmp_path / "out")]  # fmt: skip
+    argv = [
+        "--image",
+        str(img),
+        "--K",
+        f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}",
+        "--save",
+        str(tmp_path / "out"),
+    ]
     assert estimator_cli.main(argv) == 0
     assert "car" in capsys.readouterr().out
     drawn = cv2.imread(str(tmp_path / "out" / "head.png"))

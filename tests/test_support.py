@@ -122,8 +122,13 @@ def test_error_components_recover_applied_noise():
 
     _model, _T_w_c, T_c_o = resting_truth("car", next(iter(load_object("car").resting_poses)), 10)
     rng = np.random.default_rng(0)
-    for ray, lat, inp, outp in [(0.02, 0.0, 0, 0), (0, 0.015, 0, 0), (0, 0, 12, 0), (0, 0, 0, 7.5),
-                                (0.01, 0.02, 20, 9)]:  # fmt: skip
+    for ray, lat, inp, outp in [
+        (0.02, 0.0, 0, 0),
+        (0, 0.015, 0, 0),
+        (0, 0, 12, 0),
+        (0, 0, 0, 7.5),
+        (0.01, 0.02, 20, 9),
+    ]:
         noise = PoseNoise(ray, lat, np.radians(inp), np.radians(outp), mode="fixed")
         e = error_components(perturb_pose(T_c_o, noise, rng), T_c_o)
         assert e["ray_m"] == pytest.approx(ray, abs=1e-9)

@@ -48,10 +48,16 @@ def test_centre_error_as_rendered_rescaled_to_256_and_in_crop_pixels() -> None:
 
 
 def _errors(**over: list[float]) -> dict[str, np.ndarray]:
-    base = {"center_px": [1.0] * 4, "center_crop_px": [0.5] * 4, "distance_pct": [2.0] * 4,
-            "rotation_deg": [1.0, 16.0, 15.0, 90.0], "iou": [1.0, 0.6, 0.5, 0.2],
-            "add_rel": [0.05, 0.2, 0.09, 0.5], "adi_rel": [0.01, 0.05, 0.09, 0.1],
-            "trans_m": [0.01, 0.01, 0.2, 0.01]}  # fmt: skip
+    base = {
+        "center_px": [1.0] * 4,
+        "center_crop_px": [0.5] * 4,
+        "distance_pct": [2.0] * 4,
+        "rotation_deg": [1.0, 16.0, 15.0, 90.0],
+        "iou": [1.0, 0.6, 0.5, 0.2],
+        "add_rel": [0.05, 0.2, 0.09, 0.5],
+        "adi_rel": [0.01, 0.05, 0.09, 0.1],
+        "trans_m": [0.01, 0.01, 0.2, 0.01],
+    }
     return {k: np.asarray(v, float) for k, v in (base | over).items()}
 
 
@@ -93,9 +99,15 @@ def _fake_split(monkeypatch, symmetric: str) -> tuple[dict, list[np.ndarray], np
     est = [gt[0], _pose((0.35, 0.0, 0.8)), gt[0], turned]
     cls = np.array([OBJECT_NAMES.index(o) for o in ("car", "car", "faucet", "faucet")])
     uv = np.tile([K[0, 2], K[1, 2]], (4, 1))
-    data = {"crops": np.zeros((4, 64, 64, 3), np.uint8), "cls": cls, "scale": np.ones(4),
-            "K": np.stack([K] * 4), "T_C_O": np.stack(gt), "uv": uv,
-            "box": np.tile([0.0, 0.0, 128.0], (4, 1))}  # fmt: skip
+    data = {
+        "crops": np.zeros((4, 64, 64, 3), np.uint8),
+        "cls": cls,
+        "scale": np.ones(4),
+        "K": np.stack([K] * 4),
+        "T_C_O": np.stack(gt),
+        "uv": uv,
+        "box": np.tile([0.0, 0.0, 128.0], (4, 1)),
+    }
     offset = np.array([[3.0, 4.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
     dec = {"uv": uv + offset, "T_C_O": np.stack(est)}
     half_turn = {"R": rot_z(math.pi), "t": np.zeros((3, 1))}
@@ -178,8 +190,10 @@ def test_a_missing_tier_folder_is_a_one_line_error(tier, tmp_path, monkeypatch, 
     assert tables.main(["--dists", f"headcam_{tier}", "--limit", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
-    assert f"python -m perception.training.datagen --dist headcam --tier {tier} --split test " \
-           "--count N" in err[0]  # fmt: skip
+    assert (
+        f"python -m perception.training.datagen --dist headcam --tier {tier} --split test "
+        "--count N" in err[0]
+    )
 
 
 def test_unknown_dataset_lists_the_tier_folders(capsys) -> None:

@@ -65,11 +65,17 @@ def coco_ap(
         for oid, m in gt:
             r = rle(m)
             area = int(m.sum())
-            anns.append({
-                "id": len(anns) + 1, "image_id": i, "category_id": int(oid),
-                "segmentation": r, "area": float(area), "bbox": mask_utils.toBbox(r).tolist(),
-                "iscrowd": int(area < min_visible_px),
-            })  # fmt: skip
+            anns.append(
+                {
+                    "id": len(anns) + 1,
+                    "image_id": i,
+                    "category_id": int(oid),
+                    "segmentation": r,
+                    "area": float(area),
+                    "bbox": mask_utils.toBbox(r).tolist(),
+                    "iscrowd": int(area < min_visible_px),
+                }
+            )
         for d in dd:
             x0, y0, x1, y1 = to_model_box(d.box_xyxy)
             common = {"image_id": i, "category_id": d.obj_id, "score": d.score}

@@ -120,13 +120,15 @@ def _stages(state: dict, command: str) -> list[dict]:
             chain.extend(node["stages"][::-1])
             break
         hist = node.get("history")
-        chain.append({
-            "command": node.get("command"),
-            "epochs": node.get("epoch"),
-            "wall_s": node.get("wall_s"),
-            "data_seeds": node.get("data_seeds"),
-            "validation": node.get("validation") or (hist[-1] if hist else None),
-        })  # fmt: skip
+        chain.append(
+            {
+                "command": node.get("command"),
+                "epochs": node.get("epoch"),
+                "wall_s": node.get("wall_s"),
+                "data_seeds": node.get("data_seeds"),
+                "validation": node.get("validation") or (hist[-1] if hist else None),
+            }
+        )
         node = node.get("init_from")
     return chain[::-1]
 
@@ -177,8 +179,12 @@ def plot_curves(curves: dict[str, list[list[dict]]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    keys = (("center_px", "centre [px]"), ("distance_pct", "distance [%]"),
-            ("rotation_deg", "rotation [deg]"), ("outlier_rate", "outliers > 15 deg"))  # fmt: skip
+    keys = (
+        ("center_px", "centre [px]"),
+        ("distance_pct", "distance [%]"),
+        ("rotation_deg", "rotation [deg]"),
+        ("outlier_rate", "outliers > 15 deg"),
+    )
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
     for variant, stages in curves.items():
         offset, xs, ys = 0, [], {k: [] for k, _ in keys}

@@ -240,8 +240,14 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
         for s in range(n_scenes)
         if not (bop.scene_dir(cfg.out, cfg.split, s) / "scene_gt.json").exists()
     }
-    bar = tqdm(total=cfg.count, initial=cfg.count - len(todo), desc=f"{cfg.dist}/{cfg.split}",
-               unit="img", disable=not cfg.progress, dynamic_ncols=True)  # fmt: skip
+    bar = tqdm(
+        total=cfg.count,
+        initial=cfg.count - len(todo),
+        desc=f"{cfg.dist}/{cfg.split}",
+        unit="img",
+        disable=not cfg.progress,
+        dynamic_ncols=True,
+    )
 
     def finished(index: int) -> None:
         bar.update(1)
@@ -264,9 +270,17 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
                 gen.close()
         else:  # in the order the images come back; the Ray backend sizes its own chunks
             chunk = default_chunk(len(tasks), cfg.workers) if cfg.backend == "local" else None
-            for done in run_map(_work, tasks, backend=cfg.backend, workers=cfg.workers,
-                                address=cfg.address, chunk=chunk, initializer=_init_worker,
-                                initargs=(cfg,), ordered=False):  # fmt: skip
+            for done in run_map(
+                _work,
+                tasks,
+                backend=cfg.backend,
+                workers=cfg.workers,
+                address=cfg.address,
+                chunk=chunk,
+                initializer=_init_worker,
+                initargs=(cfg,),
+                ordered=False,
+            ):
                 for i in done:
                     finished(i)
     finally:

@@ -217,8 +217,13 @@ def _disjoint_batches(windows: Sequence[tuple[int, int, int, int]]) -> list[list
     batches: list[list[int]] = []
     for k, (x0, y0, x1, y1) in enumerate(windows):
         for batch in batches:
-            if all(x1 <= windows[j][0] or windows[j][2] <= x0 or y1 <= windows[j][1]
-                   or windows[j][3] <= y0 for j in batch):  # fmt: skip
+            if all(
+                x1 <= windows[j][0]
+                or windows[j][2] <= x0
+                or y1 <= windows[j][1]
+                or windows[j][3] <= y0
+                for j in batch
+            ):
                 batch.append(k)
                 break
         else:

@@ -28,23 +28,72 @@ from posegrasp.world.objects import OBJECT_NAMES
 #: The paper's Tables 1 and 2 and its invalid-pose share, per object and average, under the key
 #: of the figure of ours each is compared with.
 PAPER = {
-    "center_crop_px_mean": {"car": 1.89, "chair": 1.77, "faucet": 1.07, "screen": 1.75,
-                            "phone": 1.64, "pistol": 2.17, "average": 1.72},
-    "center_crop_px_std": {"car": 1.53, "chair": 1.45, "faucet": 1.06, "screen": 1.60,
-                           "phone": 1.55, "pistol": 2.10, "average": 1.55},
-    "distance_pct_mean": {"car": 5.43, "chair": 6.19, "faucet": 5.87, "screen": 6.59,
-                          "phone": 7.12, "pistol": 5.57, "average": 6.12},
-    "distance_pct_std": {"car": 5.12, "chair": 5.79, "faucet": 6.27, "screen": 7.04,
-                         "phone": 7.53, "pistol": 5.23, "average": 6.16},
-    "rotation_deg_mean": {"car": 2.83, "chair": 3.19, "faucet": 3.03, "screen": 3.76,
-                          "phone": 4.22, "pistol": 3.58, "average": 3.43},
-    "rotation_deg_std": {"car": 3.21, "chair": 3.68, "faucet": 3.46, "screen": 4.15,
-                         "phone": 4.59, "pistol": 4.01, "average": 3.85},
-    "iou_acc_50": {"car": 0.972, "chair": 0.956, "faucet": 0.964, "screen": 0.961,
-                   "phone": 0.958, "pistol": 0.961, "average": 0.964},
+    "center_crop_px_mean": {
+        "car": 1.89,
+        "chair": 1.77,
+        "faucet": 1.07,
+        "screen": 1.75,
+        "phone": 1.64,
+        "pistol": 2.17,
+        "average": 1.72,
+    },
+    "center_crop_px_std": {
+        "car": 1.53,
+        "chair": 1.45,
+        "faucet": 1.06,
+        "screen": 1.60,
+        "phone": 1.55,
+        "pistol": 2.10,
+        "average": 1.55,
+    },
+    "distance_pct_mean": {
+        "car": 5.43,
+        "chair": 6.19,
+        "faucet": 5.87,
+        "screen": 6.59,
+        "phone": 7.12,
+        "pistol": 5.57,
+        "average": 6.12,
+    },
+    "distance_pct_std": {
+        "car": 5.12,
+        "chair": 5.79,
+        "faucet": 6.27,
+        "screen": 7.04,
+        "phone": 7.53,
+        "pistol": 5.23,
+        "average": 6.16,
+    },
+    "rotation_deg_mean": {
+        "car": 2.83,
+        "chair": 3.19,
+        "faucet": 3.03,
+        "screen": 3.76,
+        "phone": 4.22,
+        "pistol": 3.58,
+        "average": 3.43,
+    },
+    "rotation_deg_std": {
+        "car": 3.21,
+        "chair": 3.68,
+        "faucet": 3.46,
+        "screen": 4.15,
+        "phone": 4.59,
+        "pistol": 4.01,
+        "average": 3.85,
+    },
+    "iou_acc_50": {
+        "car": 0.972,
+        "chair": 0.956,
+        "faucet": 0.964,
+        "screen": 0.961,
+        "phone": 0.958,
+        "pistol": 0.961,
+        "average": 0.964,
+    },
     "invalid_rate": {"average": 0.08},
     "outlier_rate": {"average": 0.08},
-}  # fmt: skip
+}
 #: The paper's figure -> the key of ours it is compared with (carried in the JSON report).
 READINGS = {
     "Table 1 e_distance [px]": "center_crop_px_mean",
@@ -116,8 +165,10 @@ def format_tables(name: str, res: dict) -> str:
     """The paper's Table 1 and 2 layout, ours beside the paper's where the figures compare."""
     cols = [*OBJECT_NAMES, "average"]
     size = res.get("image_size")
-    rows = [f"== {name} test split ({res['average']['count']} crops) ==",
-            f"{'metric':<34}" + "".join(f"{c:>16}" for c in cols)]  # fmt: skip
+    rows = [
+        f"== {name} test split ({res['average']['count']} crops) ==",
+        f"{'metric':<34}" + "".join(f"{c:>16}" for c in cols),
+    ]
 
     def row(label: str, key: str, scale: float = 1.0) -> None:
         vals = []

@@ -18,8 +18,9 @@ PAPER_IMAGE = (256, 256)
 
 
 @torch.no_grad()
-def predict(model: PoseNet, crops: np.ndarray, cls: np.ndarray, scale: np.ndarray,
-            batch: int = 512) -> dict[str, np.ndarray]:  # fmt: skip
+def predict(
+    model: PoseNet, crops: np.ndarray, cls: np.ndarray, scale: np.ndarray, batch: int = 512
+) -> dict[str, np.ndarray]:
     """Network outputs for arrays of crops: uv_unit (N, 2), p (N, 3), theta (N,)."""
     model.eval()
     uv, p, th = [], [], []

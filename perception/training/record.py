@@ -22,9 +22,21 @@ from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import DATA_ENV, REPO_ROOT, WEIGHTS_DIR, data_root, git_commit
 
 #: Averages the manifest keeps of each test split.
-RECORD_KEYS = ("count", "center_px_mean", "center_256_px_mean", "center_crop_px_mean",
-               "distance_pct_mean", "rotation_deg_mean", "rotation_deg_median", "outlier_rate",
-               "invalid_rate", "iou_mean", "iou_acc_50", "add_recall", "add_s_recall")  # fmt: skip
+RECORD_KEYS = (
+    "count",
+    "center_px_mean",
+    "center_256_px_mean",
+    "center_crop_px_mean",
+    "distance_pct_mean",
+    "rotation_deg_mean",
+    "rotation_deg_median",
+    "outlier_rate",
+    "invalid_rate",
+    "iou_mean",
+    "iou_acc_50",
+    "add_recall",
+    "add_s_recall",
+)
 #: Images of each shipped test split (`make data`).
 SHIPPED_TEST_IMAGES = {"paper": 1000, "headcam": 500}
 #: The splits a record covers, by kind of crop box.
@@ -84,8 +96,9 @@ def record_command(args: Namespace) -> str:
     return " ".join(parts)
 
 
-def record_in_manifest(report: dict, weights: Path, boxes: str, command: str,
-                       manifest_path: Path | None = None) -> str:  # fmt: skip
+def record_in_manifest(
+    report: dict, weights: Path, boxes: str, command: str, manifest_path: Path | None = None
+) -> str:
     """Store a report's test averages in the manifest entry of the shipped `weights` (and, with
     detector boxes, the detection AP in the detector's entry). Returns the variant's name.
 
@@ -106,24 +119,37 @@ def record_in_manifest(report: dict, weights: Path, boxes: str, command: str,
             + ", ".join(e.get("file", "?") for e in nets.values())
         )
     splits = {d: {k: report[d]["average"][k] for k in RECORD_KEYS} for d in DISTS if d in report}
-    provenance = {"command": command, "weights_sha256": sha256_file(weights),
-                  "commit": git_commit()}  # fmt: skip
+    provenance = {
+        "command": command,
+        "weights_sha256": sha256_file(weights),
+        "commit": git_commit(),
+    }
     if boxes == "gt":
         nets[variant]["test"] = {**provenance, **splits}
     else:
         nets[variant]["test_detector_boxes"] = {
-            **provenance, **splits, "ratio_to_gt_boxes": report["detector_to_gt_ratio"]
-        }  # fmt: skip
+            **provenance,
+            **splits,
+            "ratio_to_gt_boxes": report["detector_to_gt_ratio"],
+        }
         summary = report["detection_summary"]
         detector_sha = sha256_file(weights.parent / DEFAULT_WEIGHTS.name)
         manifest.setdefault("detector", {})["test"] = {
-            **provenance, "weights_sha256": detector_sha, "images": summary["images"],
-            "overall": summary["overall"], "per_class": report["detection"],
+            **provenance,
+            "weights_sha256": detector_sha,
+            "images": summary["images"],
+            "overall": summary["overall"],
+            "per_class": report["detection"],
             "missed": summary["missed"],
-            **{d: {"images": report[f"{d}_detection_summary"]["images"],
-                   "overall": report[f"{d}_detection_summary"]["overall"],
-                   "per_class": report[f"{d}_detection"]}
-               for d in DISTS if f"{d}_detection_summary" in report},
-        }  # fmt: skip
+            **{
+                d: {
+                    "images": report[f"{d}_detection_summary"]["images"],
+                    "overall": report[f"{d}_detection_summary"]["overall"],
+                    "per_class": report[f"{d}_detection"],
+                }
+                for d in DISTS
+                if f"{d}_detection_summary" in report
+            },
+        }
     write_manifest(manifest_path, manifest)
     return variant

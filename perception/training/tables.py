@@ -127,8 +127,13 @@ def detector_crops(
             if obj.visib_fract < min_visib or obj.T_C_O[2, 3] <= 0:
                 continue
             objects[obj.name] += 1
-            cands = [d for d in found if d.name == obj.name and d.score >= MATCH_SCORE
-                     and box_iou(d.box_xyxy, obj.box_xyxy) >= 0.5]  # fmt: skip
+            cands = [
+                d
+                for d in found
+                if d.name == obj.name
+                and d.score >= MATCH_SCORE
+                and box_iou(d.box_xyxy, obj.box_xyxy) >= 0.5
+            ]
             if not cands:
                 missed[obj.name] += 1
                 continue
@@ -137,8 +142,13 @@ def detector_crops(
     arrays = out.arrays()
     per_class: dict[str, dict[str, float]] = {}
     overall = coco_ap(gts, dets, MIN_VISIBLE_PX, per_class)
-    return arrays, {"detection": per_class, "overall": overall, "objects": objects,
-                    "missed": missed, "images": n}  # fmt: skip
+    return arrays, {
+        "detection": per_class,
+        "overall": overall,
+        "objects": objects,
+        "missed": missed,
+        "images": n,
+    }
 
 
 def _symmetry_set(name: str) -> list[metrics.Symmetry]:
@@ -242,9 +252,11 @@ def evaluate_split(
 
 def format_detection(det: dict) -> str:
     """Per-class COCO AP and match counts of `detector_crops`' report."""
-    rows = [f"== detection on {det['images']} test images (COCO AP, pycocotools) ==",
-            f"{'class':<10}{'box AP':>9}{'box AP50':>10}{'mask AP':>9}{'mask AP50':>11}"
-            f"{'objects':>9}{'missed':>8}"]  # fmt: skip
+    rows = [
+        f"== detection on {det['images']} test images (COCO AP, pycocotools) ==",
+        f"{'class':<10}{'box AP':>9}{'box AP50':>10}{'mask AP':>9}{'mask AP50':>11}"
+        f"{'objects':>9}{'missed':>8}",
+    ]
     for name in OBJECT_NAMES:
         a = det["detection"].get(name, {})
         rows.append(
@@ -253,9 +265,11 @@ def format_detection(det: dict) -> str:
             f"{det['objects'][name]:>9}{det['missed'][name]:>8}"
         )
     o = det["overall"]
-    rows.append(f"{'all':<10}{o['box_ap']:>9.3f}{o['box_ap50']:>10.3f}{o['mask_ap']:>9.3f}"
-                f"{o['mask_ap50']:>11.3f}{sum(det['objects'].values()):>9}"
-                f"{sum(det['missed'].values()):>8}")  # fmt: skip
+    rows.append(
+        f"{'all':<10}{o['box_ap']:>9.3f}{o['box_ap50']:>10.3f}{o['mask_ap']:>9.3f}"
+        f"{o['mask_ap50']:>11.3f}{sum(det['objects'].values()):>9}"
+        f"{sum(det['missed'].values()):>8}"
+    )
     return "\n".join(rows)
 
 

@@ -214,8 +214,12 @@ def connect(ray, address: str | None, workers: int) -> None:
     """
     quiet = {"logging_level": logging.ERROR}
     if address is None:
-        ray.init(num_cpus=workers, include_dashboard=False,
-                 object_store_memory=OBJECT_STORE_BYTES, **quiet)  # fmt: skip
+        ray.init(
+            num_cpus=workers,
+            include_dashboard=False,
+            object_store_memory=OBJECT_STORE_BYTES,
+            **quiet,
+        )
         return
     hint = "start one with `ray start --head` and pass the address it prints"
     if address != "auto" and not address.startswith("ray://"):

@@ -127,11 +127,28 @@ _GL: tuple[int, mujoco.GLContext] | None = None
 
 #: Model arrays uploaded into a render context (`mujoco.MjrContext`): meshes and textures.
 _ASSET_ARRAYS = (
-    "mesh_vertadr", "mesh_vertnum", "mesh_faceadr", "mesh_facenum", "mesh_normaladr",
-    "mesh_normalnum", "mesh_texcoordadr", "mesh_texcoordnum", "mesh_vert", "mesh_normal",
-    "mesh_texcoord", "mesh_face", "mesh_facenormal", "mesh_facetexcoord", "tex_type",
-    "tex_colorspace", "tex_height", "tex_width", "tex_nchannel", "tex_adr", "tex_data",
-)  # fmt: skip
+    "mesh_vertadr",
+    "mesh_vertnum",
+    "mesh_faceadr",
+    "mesh_facenum",
+    "mesh_normaladr",
+    "mesh_normalnum",
+    "mesh_texcoordadr",
+    "mesh_texcoordnum",
+    "mesh_vert",
+    "mesh_normal",
+    "mesh_texcoord",
+    "mesh_face",
+    "mesh_facenormal",
+    "mesh_facetexcoord",
+    "tex_type",
+    "tex_colorspace",
+    "tex_height",
+    "tex_width",
+    "tex_nchannel",
+    "tex_adr",
+    "tex_data",
+)
 
 
 def _render_sizes(m: mujoco.MjModel) -> tuple[int, ...]:

@@ -220,12 +220,24 @@ def _rounded(q: np.ndarray) -> list[float]:
 def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m posegrasp.world.resting", description=__doc__)
     names = [*OBJECT_NAMES, "all"]
-    p.add_argument("--object", default="all", type=arg(check_choice, names, "object"),
-                   help=f"one of {', '.join(OBJECT_NAMES)} or all (default all)")  # fmt: skip
-    p.add_argument("--drops", type=arg(check_int, 1, 4096, "--drops", base=int), default=96,
-                   help="random drops per object, 1..4096 (default 96)")  # fmt: skip
-    p.add_argument("--seed", type=arg(check_seed, "--seed", base=int), default=0,
-                   help="seed of the drops, 0..2**32-1 (default 0)")  # fmt: skip
+    p.add_argument(
+        "--object",
+        default="all",
+        type=arg(check_choice, names, "object"),
+        help=f"one of {', '.join(OBJECT_NAMES)} or all (default all)",
+    )
+    p.add_argument(
+        "--drops",
+        type=arg(check_int, 1, 4096, "--drops", base=int),
+        default=96,
+        help="random drops per object, 1..4096 (default 96)",
+    )
+    p.add_argument(
+        "--seed",
+        type=arg(check_seed, "--seed", base=int),
+        default=0,
+        help="seed of the drops, 0..2**32-1 (default 0)",
+    )
     p.add_argument("--write", action="store_true", help="store the poses in the object files")
     return p
 
