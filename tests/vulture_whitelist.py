@@ -63,3 +63,8 @@ _.shadowClip
 _.shadowScale
 _.fogStart
 _.fogEnd
+
+# The env's public API: gymnasium makes GraspEvalEnv from its string entry point
+# ("sim.env:GraspEvalEnv"), and users build actions with pose_action.
+_.GraspEvalEnv
+_.pose_action
