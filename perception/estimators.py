@@ -55,6 +55,21 @@ def _hybrid_global() -> PoseEstimator:
     return GlobalPoseEstimator.from_weights()
 
 
+def _hybrid_global_paper() -> PoseEstimator:
+    """`hybrid-global` for the paper's protocol (256x256 studio images, random backgrounds): the
+    detector fine-tuned on those images and the `paper` variant's nets."""
+    from perception.global_pose import GlobalPoseEstimator
+    from perception.hybrid import PAPER_POSENET, HybridPoseEstimator
+    from posegrasp.core.paths import WEIGHTS_DIR
+
+    hybrid = HybridPoseEstimator.from_weights(
+        detector_path=WEIGHTS_DIR / "paper_protocol" / "detector.pt",
+        posenet_path=PAPER_POSENET,
+        expert_paths=(),
+    )
+    return GlobalPoseEstimator(hybrid, name="hybrid-global-paper")
+
+
 #: Learned estimator factories by name.
 LEARNED_ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
     "hybrid": _hybrid,
@@ -62,4 +77,5 @@ LEARNED_ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
     "hybrid-paper": _hybrid_paper,
     "hybrid-refine": _hybrid_refine,
     "hybrid-global": _hybrid_global,
+    "hybrid-global-paper": _hybrid_global_paper,
 }

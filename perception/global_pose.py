@@ -141,6 +141,7 @@ class Verified:
         appearance: the colour correlation.
         edges: the share of the parts' outlines on image edges.
         source: ``codebook`` or ``nets``.
+        rank: where the start came from: 0 the nets, i >= 1 the codebook's i-th hypothesis.
     """
 
     T_C_O: np.ndarray
@@ -149,6 +150,7 @@ class Verified:
     appearance: float
     edges: float
     source: str
+    rank: int
 
 
 class GlobalPoseEstimator:
@@ -206,7 +208,7 @@ class GlobalPoseEstimator:
         box = _grown_box(det.mask, EDGE_MARGIN_PX) if view is not None else (0, 0, 1, 1)
         edge_distance = image_edges(rgb, box)
         out = []
-        for T, source in starts:
+        for rank, (T, source) in enumerate(starts):
             info = {"iou_after": 0.0}
             for _ in range(cfg.refine_passes):
                 T, info = self.refiner.refine(det.name, T, K, det.mask, rgb, occluder)
@@ -214,7 +216,7 @@ class GlobalPoseEstimator:
             edges = edge_score(pieces, T, K, edge_distance, box)
             iou = float(info["iou_after"])
             score = iou + cfg.appearance_weight * app + cfg.edge_weight * edges
-            out.append(Verified(T, score, iou, app, edges, source))
+            out.append(Verified(T, score, iou, app, edges, source, rank))
         out.sort(key=lambda v: -v.score)
         t2 = time.perf_counter()
         return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}

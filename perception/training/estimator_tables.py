@@ -26,8 +26,11 @@ MIN_VISIB = 0.5
 OUTLIER_DEG = 15.0
 
 
-def query_errors(estimator: PoseEstimator, root: Path, limit: int | None = None) -> list[dict]:
-    """One row per query of the test split under root: object, image, ``found``, and when found
+def query_errors(
+    estimator: PoseEstimator, root: Path, limit: int | None = None, targets_only: bool = False
+) -> list[dict]:
+    """One row per query of the test split under root (with `targets_only`, only each image's
+    episode target where its record names one): object, image, ``found``, and when found
     ``centre_px`` (the origin's pixel), ``distance_pct``, ``translation_pct``, ``rotation_deg``
     and ``ms`` (the estimate's wall time)."""
     ds = PoseDataset(root, "test")
@@ -38,6 +41,8 @@ def query_errors(estimator: PoseEstimator, root: Path, limit: int | None = None)
         T_W_C = np.asarray(s.extra.get("T_W_C", np.eye(4)), float)
         for obj in s.objects:
             if obj.visib_fract < MIN_VISIB or obj.T_C_O[2, 3] <= 0:
+                continue
+            if targets_only and obj.name != s.extra.get("target", obj.name):
                 continue
             obs = Observation(s.rgb, s.K, T_W_C, obj.name, int(s.seed))
             t0 = time.perf_counter()

@@ -273,14 +273,16 @@ def format_detection(det: dict) -> str:
     return "\n".join(rows)
 
 
-def _estimator_tables(name: str, roots: dict[str, Path], limit: int | None, json_path, log) -> int:
+def _estimator_tables(
+    name: str, roots: dict[str, Path], limit: int | None, targets: bool, json_path, log
+) -> int:
     """`--estimator`: the whole estimator on each split, per object (`estimator_tables`)."""
     from perception.estimators import LEARNED_ESTIMATORS
 
     estimator = LEARNED_ESTIMATORS[name]()
     report: dict = {"estimator": name}
     for d, root in roots.items():
-        rows = query_errors(estimator, root, limit)
+        rows = query_errors(estimator, root, limit, targets)
         report[d] = {"summary": summarise_queries(rows), "queries": rows}
         print(format_summary(f"{name} on {d}/test", report[d]["summary"]), file=log)
     if json_path is not None:
@@ -343,6 +345,11 @@ def main(argv: list[str] | None = None) -> int:
         f"{', '.join(LEARNED_ESTIMATORS)}",
     )
     p.add_argument(
+        "--targets",
+        action="store_true",
+        help="with --estimator: query only each image's episode target (the tier splits name one)",
+    )
+    p.add_argument(
         "--record",
         action="store_true",
         help="store the test averages in perception/weights/manifest.json: only the shipped "
@@ -361,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
         check_full_splits(dists)
     roots = {d: check_test_split(d) for d in dists}
     if args.estimator is not None:
-        return _estimator_tables(args.estimator, roots, args.limit, args.json, log)
+        return _estimator_tables(args.estimator, roots, args.limit, args.targets, args.json, log)
     model = load_posenet(args.weights)
     models = {} if args.success_model is None else load_models(args.success_model)
     report: dict = {}
