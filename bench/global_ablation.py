@@ -13,14 +13,18 @@ ablation then replays the choice offline:
 - the verification score's weights (colour correlation x edge agreement): mean and median
   rotation error of the chosen pose and its share over 15 deg;
 - K, the codebook hypotheses kept (the first K by codebook score, plus the nets' pose): the
-  chosen pose's errors and those of the best of the K (what a perfect score would pick).
+  chosen pose's errors and those of the best of the K (what a perfect score would pick);
+- a resting prior (the camera pose's gravity and the object's resting poses): starts further
+  than a tilt from every resting pose are passed over.
 """
 
 from __future__ import annotations
 
 import itertools
+import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
@@ -28,16 +32,19 @@ from tqdm import tqdm
 from perception.global_pose import GlobalPoseEstimator
 from perception.hybrid import detect_target
 from perception.metrics import rotation_error_deg
+from perception.support import snap_to_resting
 from perception.training.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
 from posegrasp.core.paths import data_root
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int
+from posegrasp.world.objects import load_object
 
 APPEARANCE = (0.0, 0.05, 0.1, 0.2)
 EDGES = (0.0, 0.1, 0.2, 0.3, 0.5, 1.0)
 KS = (0, 1, 2, 4, 6, 8, 12)
+TILTS = (5.0, 10.0, 20.0, 30.0)
 
 
 def record(split: str, subset: str, images: int) -> list[dict]:
@@ -49,6 +56,7 @@ def record(split: str, subset: str, images: int) -> list[dict]:
         s = ds[i]
         name = s.extra.get("target", s.objects[0].name)
         gt = next(o for o in s.objects if o.name == name)
+        T_W_C, model = np.asarray(s.extra["T_W_C"], float), load_object(name)
         target = detect_target(est.hybrid, Observation(s.rgb, s.K, np.eye(4), name, s.seed))
         if target.best is None:
             out.append({"image": i, "object": name, "detected": False})
@@ -68,6 +76,7 @@ def record(split: str, subset: str, images: int) -> list[dict]:
                         v.appearance,
                         v.edges,
                         rotation_error_deg(v.T_C_O[:3, :3], gt.T_C_O[:3, :3]),
+                        snap_to_resting(T_W_C[:3, :3] @ v.T_C_O[:3, :3], model)[2],
                     ]
                     for v in starts
                 ],
@@ -76,12 +85,18 @@ def record(split: str, subset: str, images: int) -> list[dict]:
     return out
 
 
-def _choose(rows: list[dict], wa: float, we: float, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation errors of the chosen start and of the best of the first k + 1 starts."""
+def _choose(
+    rows: list[dict], wa: float, we: float, k: int, max_tilt: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation errors of the chosen start and of the best of the first k + 1 starts; with
+    `max_tilt`, starts further than that from every resting pose [deg] are passed over while
+    any start is within it."""
     chosen, best = [], []
     for r in rows:
         c = np.array(r["starts"])[: k + 1]
         score = c[:, 0] + wa * c[:, 1] + we * c[:, 2]
+        if max_tilt is not None and (c[:, 4] <= max_tilt).any():
+            score = np.where(c[:, 4] <= max_tilt, score, -np.inf)
         chosen.append(c[np.argmax(score), 3])
         best.append(c[:, 3].min())
     return np.array(chosen), np.array(best)
@@ -120,11 +135,23 @@ def ablate(rows: list[dict]) -> dict:
                 "best_over_15_pct": float(100 * (b > 15).mean()),
             }
         )
+    tilts = []
+    for t in TILTS:
+        e, _ = _choose(found, 0.05, 0.3, 12, t)
+        tilts.append(
+            {
+                "max_tilt_deg": t,
+                "mean": float(e.mean()),
+                "median": float(np.median(e)),
+                "over_15_pct": float(100 * (e > 15).mean()),
+            }
+        )
     return {
         "targets": len(rows),
         "detected": len(found),
         "weights": weights,
         "k": ks,
+        "resting_prior": tilts,
         "median_verify_ms": float(np.median([r["ms"] for r in found])),
     }
 
@@ -137,9 +164,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--subset", default="val", help="the split's subset (default val)")
     p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=150)
     add_json_argument(p, "every start's scores and the ablation")
+    p.add_argument(
+        "--replay",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="replay the starts recorded in an earlier --json instead of measuring",
+    )
     args = p.parse_args(argv)
-    setup_rendering(threads=1)
-    rows = record(args.split, args.subset, args.images)
+    if args.replay is not None:
+        rows = json.loads(args.replay.read_text())["rows"]
+    else:
+        setup_rendering(threads=1)
+        rows = record(args.split, args.subset, args.images)
+        if args.json is not None:
+            write_json(args.json, {"rows": rows})
     res = ablate(rows)
     print(
         f"{args.split}/{args.subset}: {res['detected']} of {res['targets']} targets detected; "
@@ -156,6 +195,12 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"  K {k['k']:2d}: {k['chosen_mean']:6.2f} deg, {k['chosen_over_15_pct']:5.1f} % | "
             f"{k['best_mean']:6.2f} deg, {k['best_over_15_pct']:5.1f} %"
+        )
+    print("resting prior (camera pose + resting poses), a 0.05, e 0.3, K 12:")
+    for t in res["resting_prior"]:
+        print(
+            f"  tilt <= {t['max_tilt_deg']:4.0f} deg: mean {t['mean']:6.2f}  "
+            f"median {t['median']:5.2f}  > 15 deg {t['over_15_pct']:5.1f} %"
         )
     if args.json is not None:
         write_json(args.json, {"ablation": res, "rows": rows})

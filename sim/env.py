@@ -17,6 +17,7 @@ import numpy as np
 from gymnasium import spaces
 
 from posegrasp.core.errors import InvalidArgumentError, StateError, UnknownNameError
+from posegrasp.core.failures import check_failure_reason
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import mat_to_quat, quat_to_mat
 from posegrasp.core.validate import check_seed
@@ -307,7 +308,7 @@ class GraspEvalEnv(gym.Env):
         ep = self._episode
         if error is not None:
             result = ep.act(None, "env")
-            result.failure_reason = "invalid_action"
+            result.failure_reason = check_failure_reason("invalid_action")
             result.notes.append(error)
         else:
             result = ep.act(T, "env", neighbours=neighbours)

@@ -30,6 +30,7 @@ from posegrasp.core.cli import (
     write_json,
 )
 from posegrasp.core.errors import PosegraspError
+from posegrasp.core.failures import check_failure_reason
 from posegrasp.core.paths import DOCS_DIR
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import (
@@ -99,7 +100,7 @@ def _run_one(job: tuple[str, int, str, str, str | None, bool]) -> dict:
             "estimator": estimator,
             "tier": tier,
             "success": False,
-            "failure_reason": "error",
+            "failure_reason": check_failure_reason("error"),
             "notes": [str(exc)],
             "pose_error": None,
             "timings_ms": {},

@@ -23,7 +23,7 @@ from posegrasp.core.cli import (
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_seed
 from posegrasp.world import constants as C
-from posegrasp.world.camera import CameraRenderer, RenderOptions
+from posegrasp.world.camera import external_renderer
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.estimators import add_estimator_arguments, make_estimator
@@ -125,8 +125,8 @@ def _run(
     try:
         recorder = None
         if save is not None:
-            external = CameraRenderer(ep.scene.model, 480, 360, RenderOptions(shadows=False))
-            recorder = lambda scene: external.rgb(scene.data, "external")  # noqa: E731
+            external = external_renderer(ep.scene.model)
+            recorder = lambda scene: external.rgb(scene.data, C.EXTERNAL_CAMERA)  # noqa: E731
         obs, result = ep.run(estimator, recorder)
         if save is not None:
             _save(save, obs, result.T_C_O_est, ep, result, log or sys.stdout)

@@ -1,0 +1,93 @@
+"""Wall time of a whole estimate (every stage an estimator runs) on held-out episode images.
+
+    python bench/estimate_latency.py [--estimator hybrid-global] [--tier any-pose] [--images 30]
+        [--threads 2] [--json PATH]
+
+Renders the head-camera images of the first `--images` held-out episodes of the tier (objects in
+turn), warms the estimator up on the first, then times `estimate(obs)` on each: median and 90th
+percentile [ms], and the per-stage medians the estimator reports in ``info["timings_ms"]``.
+Target: the whole estimate at most 100 ms per object (median) on 2 cores.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from posegrasp.core.cli import ArgumentParser, add_json_argument, command, target, write_json
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_choice, check_int
+from posegrasp.world import constants as C
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.tiers import TIERS
+
+TARGET_MS = 100.0
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    from perception.estimators import LEARNED_ESTIMATORS
+
+    p = ArgumentParser(prog="python bench/estimate_latency.py", description=__doc__.split("\n")[0])
+    p.add_argument(
+        "--estimator",
+        default="hybrid-global",
+        type=arg(check_choice, list(LEARNED_ESTIMATORS), "learned estimator"),
+    )
+    p.add_argument("--tier", default="any-pose", type=arg(check_choice, list(TIERS), "tier"))
+    p.add_argument("--images", default=30, type=arg(check_int, 2, 10000, "--images", base=int))
+    p.add_argument("--threads", default=2, type=arg(check_int, 1, 64, "--threads", base=int))
+    add_json_argument(p, "the figures")
+    args = p.parse_args(argv)
+    setup_rendering(threads=args.threads)
+    from sim.episode import Episode, EpisodeConfig
+
+    estimator = LEARNED_ESTIMATORS[args.estimator]()
+    observations = []
+    for i in range(args.images):
+        ep = Episode(
+            OBJECT_NAMES[i % len(OBJECT_NAMES)],
+            C.EVAL_SEED_BASE + i // len(OBJECT_NAMES),
+            EpisodeConfig(tier=args.tier),
+        )
+        try:
+            observations.append(ep.observe())
+        finally:
+            ep.close()
+    estimator.estimate(observations[0])  # warm-up: weights, codebooks
+    times, stages = [], {}
+    for obs in observations[1:]:
+        t0 = time.perf_counter()
+        est = estimator.estimate(obs)
+        times.append((time.perf_counter() - t0) * 1000)
+        for k, v in est.info.get("timings_ms", {}).items():
+            stages.setdefault(k, []).append(v)
+    med, p90 = float(np.median(times)), float(np.percentile(times, 90))
+    res = {
+        "estimator": args.estimator,
+        "tier": args.tier,
+        "images": len(times),
+        "threads": args.threads,
+        "median_ms": med,
+        "p90_ms": p90,
+        "stage_median_ms": {k: float(np.median(v)) for k, v in stages.items()},
+    }
+    print(
+        f"{args.estimator} on {args.tier}, {len(times)} images, {args.threads} threads: "
+        f"median {med:.0f} ms, 90th percentile {p90:.0f} ms "
+        f"{target(f'median <= {TARGET_MS:.0f} ms', med <= TARGET_MS)}"
+    )
+    print(
+        "stages (median ms): "
+        + ", ".join(f"{k} {v:.1f}" for k, v in res["stage_median_ms"].items())
+    )
+    if args.json is not None:
+        write_json(args.json, res)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
