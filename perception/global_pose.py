@@ -45,7 +45,6 @@ from perception.codebook import (
 )
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target
 from perception.refine import PoseRefiner
-from perception.support import snap_to_resting
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root
@@ -65,9 +64,6 @@ class GlobalConfig:
         appearance_weight: weight of the colour correlation in the verification score.
         edge_weight: weight of the outlines' agreement with image edges in it.
         min_score: a best score below this withholds the estimate.
-        resting_prior_deg: when set, the object is taken to rest on a horizontal support (the
-            camera pose gives gravity): refined poses further than this from every one of its
-            resting poses [deg] lose to any that is within it (None: no such prior).
     """
 
     views: int = 1000
@@ -78,7 +74,6 @@ class GlobalConfig:
     appearance_weight: float = 0.05
     edge_weight: float = 0.3
     min_score: float = 0.0
-    resting_prior_deg: float | None = None
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -200,11 +195,9 @@ class GlobalPoseEstimator:
         K: np.ndarray,
         rgb: np.ndarray,
         occluder: np.ndarray | None,
-        T_world_cam: np.ndarray | None = None,
     ) -> tuple[list[Verified], dict[str, float]]:
         """Every hypothesis of one detection, refined and scored, best first, and the stage
-        times [ms] (``hypotheses``, ``verify``). `T_world_cam` is needed by the resting prior
-        (`GlobalConfig.resting_prior_deg`)."""
+        times [ms] (``hypotheses``, ``verify``)."""
         cfg = self.config
         t0 = time.perf_counter()
         starts: list[tuple[np.ndarray, str]] = [(det.T_C_O, "nets")]
@@ -228,11 +221,6 @@ class GlobalPoseEstimator:
             iou = float(info["iou_after"])
             score = iou + cfg.appearance_weight * app + cfg.edge_weight * edges
             out.append(Verified(T, score, iou, app, edges, source, rank))
-        if cfg.resting_prior_deg is not None and T_world_cam is not None:
-            model = load_object(det.name)
-            tilt = [snap_to_resting(T_world_cam[:3, :3] @ v.T_C_O[:3, :3], model)[2] for v in out]
-            if min(tilt) <= cfg.resting_prior_deg:
-                out = [v for v, a in zip(out, tilt, strict=True) if a <= cfg.resting_prior_deg]
         out.sort(key=lambda v: -v.score)
         t2 = time.perf_counter()
         return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}
@@ -244,7 +232,7 @@ class GlobalPoseEstimator:
         info, neighbours, best = target.info, target.neighbours, target.best
         if best is None:
             return Estimate(None, neighbours, info)
-        ranked, times = self.verify(best, obs.K, obs.rgb, target.occluder(), obs.T_world_cam)
+        ranked, times = self.verify(best, obs.K, obs.rgb, target.occluder())
         info["timings_ms"] |= times
         win = ranked[0]
         info["verify"] = {
