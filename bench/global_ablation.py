@@ -102,12 +102,6 @@ def _choose(
     return np.array(chosen), np.array(best)
 
 
-def _line(e: np.ndarray) -> str:
-    return (
-        f"mean {e.mean():6.2f}  median {np.median(e):5.2f}  > 15 deg {100 * (e > 15).mean():5.1f} %"
-    )
-
-
 def ablate(rows: list[dict]) -> dict:
     """The weight grid at K = 12 and the K sweep at the chosen weights."""
     found = [r for r in rows if r["detected"]]

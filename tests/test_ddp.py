@@ -30,16 +30,44 @@ REPO = Path(__file__).resolve().parent.parent
 #: this small learning rate (about 2e-2 at the default 2e-3, whose steps amplify them more).
 LOSS_RTOL = 2e-3
 #: 24 images, 2 crops each: 3 steps of 16 crops (8 per rank) per epoch, 2 epochs.
-TRAIN_ARGS = ["--variant", "ours", "--dists", "paper", "--epochs", "2", "--batch", "16",
-              "--lr", "2e-4", "--threads", "1", "--device", "cpu", "--no-resume"]  # fmt: skip
+TRAIN_ARGS = [
+    "--variant",
+    "ours",
+    "--dists",
+    "paper",
+    "--epochs",
+    "2",
+    "--batch",
+    "16",
+    "--lr",
+    "2e-4",
+    "--threads",
+    "1",
+    "--device",
+    "cpu",
+    "--no-resume",
+]
 
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("data")
     for split, count in (("train", 24), ("val", 4)):
-        args = ["--dist", "paper", "--split", split, "--count", str(count), "--width", "96",
-                "--height", "96", "--out", str(root / "paper"), "--quiet"]  # fmt: skip
+        args = [
+            "--dist",
+            "paper",
+            "--split",
+            split,
+            "--count",
+            str(count),
+            "--width",
+            "96",
+            "--height",
+            "96",
+            "--out",
+            str(root / "paper"),
+            "--quiet",
+        ]
         assert datagen_main(args) == 0
     return root
 
@@ -68,9 +96,21 @@ def test_two_processes_follow_one(data: Path, tmp_path: Path, monkeypatch, capsy
     monkeypatch.setenv("POSEGRASP_DATA", str(data))
     one, two = tmp_path / "one", tmp_path / "two"
     assert train_main([*TRAIN_ARGS, "--out", str(one), "--loss-log", str(one / "loss.jsonl")]) == 0
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node",
-           "2", "-m", "perception.training.train_posenet", *TRAIN_ARGS, "--out", str(two),
-           "--loss-log", str(two / "loss.jsonl")]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        "2",
+        "-m",
+        "perception.training.train_posenet",
+        *TRAIN_ARGS,
+        "--out",
+        str(two),
+        "--loss-log",
+        str(two / "loss.jsonl"),
+    ]
     env = {**os.environ, "POSEGRASP_DATA": str(data), "OMP_NUM_THREADS": "1"}
     res = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -94,16 +134,44 @@ def test_two_detector_processes_follow_one(tmp_path: Path) -> None:
     close: within 5 %)."""
     data = tmp_path / "headcam"
     for split, count in (("train", 4), ("val", 2)):
-        args = ["--dist", "headcam", "--split", split, "--count", str(count), "--width", "320",
-                "--height", "240", "--out", str(data), "--quiet"]  # fmt: skip
+        args = [
+            "--dist",
+            "headcam",
+            "--split",
+            split,
+            "--count",
+            str(count),
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--out",
+            str(data),
+            "--quiet",
+        ]
         assert datagen_main(args) == 0
     logs = []
     for n in (1, 2):
         out = tmp_path / f"ckpt{n}"
-        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node",
-               str(n), "-m", "perception.training.train_detector", "--smoke", "--data",
-               str(data), "--out", str(out), "--device", "cpu", "--loss-log",
-               str(out / "loss.jsonl")]  # fmt: skip
+        cmd = [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc-per-node",
+            str(n),
+            "-m",
+            "perception.training.train_detector",
+            "--smoke",
+            "--data",
+            str(data),
+            "--out",
+            str(out),
+            "--device",
+            "cpu",
+            "--loss-log",
+            str(out / "loss.jsonl"),
+        ]
         res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
         assert res.returncode == 0, res.stderr[-3000:]
         assert sorted(p.name for p in out.glob("*.pt")) == ["detector.pt"]

@@ -46,8 +46,17 @@ def image() -> np.ndarray:
 def tiny_headcam(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("headcam")
     for split, n in (("train", 4), ("val", 2)):
-        argv = ["--dist", "headcam", "--split", split, "--count", str(n), "--quiet",
-                "--out", str(root)]  # fmt: skip
+        argv = [
+            "--dist",
+            "headcam",
+            "--split",
+            split,
+            "--count",
+            str(n),
+            "--quiet",
+            "--out",
+            str(root),
+        ]
         assert datagen.main(argv) == 0
     return root
 
@@ -189,8 +198,18 @@ def test_training_smoke_checkpoint_resume_and_export(tiny_headcam: Path, tmp_pat
     first = train(cfg, max_steps=1)
     assert first["step"] == 1 and not first["finished"] and first["history"] == []
     state = torch.load(tmp_path / "ckpt" / "detector.pt", map_location="cpu", weights_only=False)
-    for key in ("model", "model_config", "optimizer", "train_config", "step", "epoch", "history",
-                "rng", "data_seeds", "commit"):  # fmt: skip
+    for key in (
+        "model",
+        "model_config",
+        "optimizer",
+        "train_config",
+        "step",
+        "epoch",
+        "history",
+        "rng",
+        "data_seeds",
+        "commit",
+    ):
         assert key in state, key
     assert state["step"] == 1 and state["epoch"] == 0
     assert DetectorConfig.from_dict(state["model_config"]) == cfg.detector
@@ -228,8 +247,16 @@ def test_training_smoke_checkpoint_resume_and_export(tiny_headcam: Path, tmp_pat
 def test_cli_smoke_and_errors(
     tiny_headcam: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    argv = ["--smoke", "--data", str(tiny_headcam), "--out", str(tmp_path / "c"),
-            "--export", "--weights-out", str(tmp_path / "w")]  # fmt: skip
+    argv = [
+        "--smoke",
+        "--data",
+        str(tiny_headcam),
+        "--out",
+        str(tmp_path / "c"),
+        "--export",
+        "--weights-out",
+        str(tmp_path / "w"),
+    ]
     assert main(argv) == 0
     assert (tmp_path / "w" / "detector.pt").is_file()
     assert "detector" in json.loads((tmp_path / "w" / "manifest.json").read_text())
@@ -239,9 +266,20 @@ def test_cli_smoke_and_errors(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(line.startswith("error: ") for line in err)
     assert "python -m perception.training.datagen" in err[1]
-    with pytest.raises(SystemExit) as exc:
-        main(["--batch", "x"])
-    assert exc.value.code == 2
+    for argv, needle in (
+        (["--batch", "x"], "invalid --batch 'x'; valid: integers 1..65536"),
+        (["--workers", "-1"], "invalid --workers -1; valid: integers 0..64"),
+        (["--workers", "65"], "invalid --workers 65; valid: integers 0..64"),
+        (["--threads", "0"], "invalid --threads 0; valid: integers 1..256"),
+        (["--lr=-1e-3"], "invalid --lr -0.001; valid: numbers in (0, 1]"),
+        (["--limit", "0"], "invalid --limit 0; valid: integers 1..100000000"),
+        (["--max-steps", "0"], "invalid --max-steps 0"),
+        (["--seed", "-1"], "invalid --seed -1"),
+    ):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and len(err.strip().splitlines()) == 1, argv
+        assert needle in err, (argv, err)
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / "detector.pt").write_bytes(b"junk")
     bad = ["--smoke", "--data", str(tiny_headcam), "--out", str(tmp_path / "bad")]
@@ -275,5 +313,8 @@ def test_mixed_data_and_fine_tuning_start(
     for k, v in model.state_dict().items():
         torch.testing.assert_close(v, state["model"][k].to(v.dtype), msg=k)
     with pytest.raises(AssetError, match="another detector architecture"):
-        start_from(build_detector(DetectorConfig(fpn_channels=32)), Path(result["checkpoint"]),
-                   DetectorConfig(fpn_channels=32))  # fmt: skip
+        start_from(
+            build_detector(DetectorConfig(fpn_channels=32)),
+            Path(result["checkpoint"]),
+            DetectorConfig(fpn_channels=32),
+        )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -17,6 +18,7 @@ from perception.training import export as export_weights
 from perception.training import train_posenet as train_mod
 from perception.training.crop_sets import CropConfig, build_crops
 from perception.training.dataset import parse_limit
+from perception.training.ddp import ONE_PROCESS
 from perception.training.losses import posenet_loss
 from perception.training.schedule import learning_rate
 from perception.training.tables import evaluate_split
@@ -32,8 +34,17 @@ def tiny_data(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
     for split, n_paper, n_head in (("train", 12, 4), ("val", 6, 2), ("test", 6, 2)):
         for dist, n in (("paper", n_paper), ("headcam", n_head)):
-            argv = ["--dist", dist, "--split", split, "--count", str(n), "--quiet",
-                    "--out", str(root / dist)]  # fmt: skip
+            argv = [
+                "--dist",
+                dist,
+                "--split",
+                split,
+                "--count",
+                str(n),
+                "--quiet",
+                "--out",
+                str(root / dist),
+            ]
             assert datagen.main(argv) == 0
     return root
 
@@ -135,8 +146,14 @@ def test_smoke_training_checkpoints_and_resumes(tiny_data, tmp_path, monkeypatch
     assert [h["epoch"] for h in more["history"]] == [1, 2]
     model = load_posenet(tmp_path / "posenet_ours.pt")
     report = evaluate_split(model, tiny_data / "paper")
-    assert {"center_px_mean", "distance_pct_mean", "rotation_deg_mean", "iou_acc",
-            "outlier_rate", "add_s_recall"} <= set(report["average"])  # fmt: skip
+    assert {
+        "center_px_mean",
+        "distance_pct_mean",
+        "rotation_deg_mean",
+        "iou_acc",
+        "outlier_rate",
+        "add_s_recall",
+    } <= set(report["average"])
     assert np.isfinite(report["average"]["distance_pct_mean"])
 
 
@@ -146,9 +163,13 @@ def test_fine_tune_records_its_lineage_and_exports_stages(tiny_data, tmp_path, m
     first = train(base, command="stage one")
     parent = torch.load(first["checkpoint"], weights_only=False)
     ft = replace(
-        SMOKE, out=tmp_path, dists=("headcam",), dist_limits=(("headcam", 3),),
-        init="posenet_ours_mixed", epochs=2,
-    )  # fmt: skip
+        SMOKE,
+        out=tmp_path,
+        dists=("headcam",),
+        dist_limits=(("headcam", 3),),
+        init="posenet_ours_mixed",
+        epochs=2,
+    )
     result = train(ft)
     ckpt = torch.load(result["checkpoint"], weights_only=False)
     assert result["checkpoint"].endswith("posenet_ours.pt")
@@ -161,9 +182,12 @@ def test_fine_tune_records_its_lineage_and_exports_stages(tiny_data, tmp_path, m
         "--limit headcam=3,12 --width 4 --lam 1 --init posenet_ours_mixed"
     )
     assert ckpt["data_seeds"] == {
-        "headcam": {"train": [0, 3], "val": [100_000_000, 100_000_002],
-                    "test": [200_000_000, 200_000_002]},
-    }  # fmt: skip
+        "headcam": {
+            "train": [0, 3],
+            "val": [100_000_000, 100_000_002],
+            "test": [200_000_000, 200_000_002],
+        },
+    }
     # The fine-tune starts from the parent's weights, not from a fresh initialisation.
     fresh = train(replace(ft, init=None, name="fresh", epochs=1))
     tuned = train(replace(ft, name="tuned", epochs=1))
@@ -249,6 +273,48 @@ def test_distillation_adds_the_teachers_outputs_as_a_target(tiny_data, tmp_path,
     assert np.isfinite(taught["history"][-1]["rotation_deg"])
 
 
+def test_bf16_and_channels_last_follow_fp32_and_are_recorded(tiny_data, tmp_path, monkeypatch):
+    monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
+    first = {}
+    for precision, channels_last in (("fp32", False), ("fp32", True), ("bf16", True)):
+        name = f"{precision}_{channels_last}"
+        log = tmp_path / f"{name}.jsonl"
+        cfg = replace(SMOKE, out=tmp_path, name=name, loss_log=log)
+        cfg = replace(cfg, precision=precision, channels_last=channels_last)
+        result = train(cfg)
+        ckpt = torch.load(result["checkpoint"], weights_only=False)
+        assert ckpt["train_config"]["precision"] == precision
+        assert ckpt["train_config"]["channels_last"] is channels_last
+        assert ("--precision bf16" in ckpt["command"]) is (precision == "bf16")
+        assert ("--channels-last" in ckpt["command"]) is channels_last
+        assert all(v.dtype != torch.bfloat16 for v in ckpt["model"].values())
+        first[name] = json.loads(log.read_text().splitlines()[0])["loss"]
+    # Same initialisation and batch: the layout changes only the order of sums, bf16 the
+    # rounding of the forward pass (8 bits of mantissa).
+    assert first["fp32_True"] == pytest.approx(first["fp32_False"], rel=1e-5)
+    assert first["bf16_True"] == pytest.approx(first["fp32_False"], rel=2e-2)
+
+
+def test_the_bf16_loss_and_gradients_are_fp32() -> None:
+    cfg = replace(SMOKE, precision="bf16", channels_last=True)
+    net = PoseNet(cfg.net_config()).to(memory_format=torch.channels_last)
+    crops = torch.randint(0, 256, (4, 64, 64, 3), dtype=torch.uint8)
+    batch = {
+        "crops": crops,
+        "cls": torch.tensor([0, 1, 2, 3]),
+        "scale": torch.full((4,), 0.15),
+        "uv_unit": torch.rand(4, 2),
+        "p": torch.tensor([[0.0, -0.7, 0.1]]).repeat(4, 1),
+        "theta": torch.zeros(4),
+    }
+    x = train_mod.training_inputs(cfg, batch, torch.Generator().manual_seed(0), ONE_PROCESS)
+    assert x.is_contiguous(memory_format=torch.channels_last)
+    loss, parts = train_mod.training_loss(cfg, net, None, x, batch)
+    assert loss.dtype == torch.float32 and np.isfinite(parts["total"])
+    loss.backward()
+    assert all(p.grad is not None and p.grad.dtype == torch.float32 for p in net.parameters())
+
+
 def test_fine_tune_from_a_missing_checkpoint_is_a_clear_error(tiny_data, tmp_path, monkeypatch):
     monkeypatch.setenv("POSEGRASP_DATA", str(tiny_data))
     with pytest.raises(AssetError, match="no checkpoint 'nope'"):
@@ -290,12 +356,22 @@ def test_parse_limit() -> None:
         (["--name", "a/b"], "--name must be a plain name"),
         (["--objects", "car,boat"], "valid: car, faucet, chair"),
         (["--width", "0"], "--width must be at least 1"),
+        (["--variant", "big"], "valid variants: paper, ours"),
+        (["--epochs", "0"], "invalid --epochs 0; valid: integers 1..10000"),
+        (["--batch", "x"], "invalid --batch 'x'; valid: integers 1..65536"),
+        (["--lr", "0"], "invalid --lr 0.0; valid: numbers in (0, 1]"),
+        (["--lr", "nan"], "invalid --lr nan"),
+        (["--threads", "0"], "invalid --threads 0; valid: integers 1..256"),
+        (["--device", "tpu"], "valid devices: auto, cpu, cuda"),
+        (["--precision", "fp16"], "valid precisions: fp32, bf16"),
+        (["--out", __file__], "a file, not a folder"),
     ],
 )
 def test_train_cli_bad_input(argv, needle, capsys) -> None:
     assert train_mod.main(argv) == 2
     err = capsys.readouterr().err
     assert needle in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1 and err.startswith("error: ")
 
 
 def test_one_net_per_object_sees_only_its_object(tiny_data, tmp_path, monkeypatch) -> None:

@@ -16,9 +16,11 @@ number of processes. Run without torchrun, a trainer is one process exactly as b
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -31,6 +33,8 @@ from posegrasp.core.errors import InvalidArgumentError
 
 #: The values of ``--device``: ``auto`` is ``cuda`` when a GPU is present, else ``cpu``.
 DEVICES = ("auto", "cpu", "cuda")
+#: Most torch CPU threads a process may be told to use (``--threads``).
+MAX_THREADS = 256
 #: How long a rank waits for the others (rank 0 validating and saving) [min].
 TIMEOUT_MIN = 60
 CPU = torch.device("cpu")
@@ -131,10 +135,14 @@ class GlobalBatchNorm2d(nn.BatchNorm2d):
     batch. Same parameters, buffers and state-dict keys; in eval mode it is `nn.BatchNorm2d`."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(N, C, H, W) -> (N, C, H, W), normalised by the mean and variance over all ranks."""
+        """(N, C, H, W) -> (N, C, H, W), normalised by the mean and variance over all ranks.
+
+        The statistics are summed in float32 whatever the input's precision (bfloat16 under
+        autocast); the output has the input's dtype."""
         if not self.training:
             return super().forward(x)
         all_reduce = _AllReduceSum.apply
+        dtype, x = x.dtype, x.float()  # x itself when it is float32
         c, dims = x.shape[1], (0, 2, 3)
         count = torch.tensor([x.numel() / c], dtype=x.dtype, device=x.device)
         sums = all_reduce(torch.cat([x.sum(dims), count]))
@@ -148,7 +156,7 @@ class GlobalBatchNorm2d(nn.BatchNorm2d):
             self.running_mean.mul_(1 - m).add_(m * mean)
             self.running_var.mul_(1 - m).add_(m * var * n / (n - 1))
         scale = self.weight / torch.sqrt(var + self.eps)
-        return centred * scale.view(1, c, 1, 1) + self.bias.view(1, c, 1, 1)
+        return (centred * scale.view(1, c, 1, 1) + self.bias.view(1, c, 1, 1)).to(dtype)
 
 
 class GlobalDropout(nn.Dropout):
@@ -231,3 +239,25 @@ def start(device: str = "auto", batch: int = 1) -> Ranks:
     dist.init_process_group(backend, timeout=timedelta(minutes=TIMEOUT_MIN))
     local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
     return Ranks(rank=rank, world=world, local_world=local_world, device=dev)
+
+
+@contextlib.contextmanager
+def joined(device: str = "auto", batch: int = 1) -> Iterator[Ranks]:
+    """This process's `Ranks` for the length of a run (`start`), leaving the process group at the
+    end, however the run ends.
+
+    Args:
+        device: one of `DEVICES`.
+        batch: the global batch, which the processes must divide evenly.
+
+    Yields:
+        This process's place in the run.
+
+    Raises:
+        InvalidArgumentError: a bad device, or a batch the processes cannot share evenly.
+    """
+    ranks = start(device, batch)
+    try:
+        yield ranks
+    finally:
+        ranks.close()

@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 from tqdm import tqdm
 
 from perception.detector import Detector
@@ -44,7 +44,7 @@ from perception.training.checkpoints import (
     seed_torch,
 )
 from perception.training.dataset import DATASETS, PoseDataset, load_info
-from perception.training.ddp import DEVICES, Ranks, resolve_device, start
+from perception.training.ddp import DEVICES, MAX_THREADS, Ranks, joined
 from perception.training.detection_data import (
     augment_shard,
     collate_list,
@@ -53,11 +53,28 @@ from perception.training.detection_data import (
 )
 from perception.training.detection_eval import evaluate_detector, pycocotools_api
 from perception.training.export_detector import TRAIN_COMMAND, export_detector
+from perception.training.loop import (
+    MAX_BATCH,
+    MAX_EPOCHS,
+    MAX_LIMIT,
+    MAX_LR,
+    Checkpointer,
+    check_learning_rate,
+)
 from perception.training.schedule import learning_rate, optimiser_step
-from posegrasp.core.cli import ArgumentParser, fail
-from posegrasp.core.errors import AssetError, InvalidArgumentError, PosegraspError
+from posegrasp.core.cli import ArgumentParser, add_out_argument, command
+from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import (
+    DEFAULT_WORKERS,
+    MAX_WORKERS,
+    arg,
+    check_choice,
+    check_int,
+    check_output_dir,
+    check_seed,
+)
 
 CHECKPOINT_NAME = "detector.pt"
 
@@ -165,15 +182,81 @@ def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None =
         AssetError: no data, or a corrupt checkpoint.
         InvalidArgumentError: a device that is not there, or a batch the processes cannot share.
     """
-    ranks = start(cfg.device, cfg.batch)
-    try:
+    with joined(cfg.device, cfg.batch) as ranks:
         return _train(cfg, ranks, resume, max_steps)
-    finally:
-        ranks.close()
+
+
+@dataclass
+class _Run:
+    """A run's model and optimiser, its plan and where it stands (updated as it trains).
+
+    Attributes:
+        model: the unwrapped detector (what a checkpoint holds).
+        opt: its optimiser.
+        ckpt: the checkpoint file.
+        steps_per_epoch, total_steps: the plan.
+        generator: the stream of image orders and augmentation.
+        step: optimiser steps done.
+        epoch0: whole epochs done when this process started.
+        history: per-epoch validation.
+        g_state: `generator`'s state at the checkpoint this process resumed, or None.
+        wall_s: wall time of the run before this process resumed it [s].
+    """
+
+    model: nn.Module
+    opt: torch.optim.Optimizer
+    ckpt: Path
+    steps_per_epoch: int
+    total_steps: int
+    generator: torch.Generator
+    step: int = 0
+    epoch0: int = 0
+    history: list[dict] = field(default_factory=list)
+    g_state: torch.Tensor | None = None
+    wall_s: float = 0.0
 
 
 def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int | None) -> dict:
+    """`train` in this process, its place in the run being `ranks`."""
     root = dataset_root(cfg)
+    train_set, parts, val_data = _datasets(cfg, root)
+    pycocotools_api()  # fail now, not after the first epoch, when pycocotools is missing
+    run = _start_run(cfg, ranks, resume, root, train_set, parts)
+    net = ranks.wrap(run.model)  # the model itself with one process
+    seeds = _data_seeds(cfg, root, train_set, parts, val_data)
+    ckpts = Checkpointer(
+        lambda epoch, wall: _save(cfg, run, ranks, seeds, epoch, wall),
+        cfg.checkpoint_minutes,
+        run.wall_s,
+    )
+    for epoch in range(run.epoch0, cfg.epochs):
+        losses = _train_epoch(cfg, run, net, train_set, epoch, ranks, ckpts, max_steps)
+        if max_steps is not None and max_steps <= run.step < (epoch + 1) * run.steps_per_epoch:
+            ckpts.save(epoch)
+            return _result(run, finished=False)
+        if ranks.main:  # rank 0 evaluates and saves; the others meet it at the next step
+            _validate(cfg, run, val_data, epoch, losses, ranks)
+            ckpts.save(epoch + 1)
+    return _result(run, finished=True)
+
+
+def _result(run: _Run, finished: bool) -> dict:
+    """What `train` returns."""
+    return {
+        "checkpoint": str(run.ckpt),
+        "history": run.history,
+        "step": run.step,
+        "finished": finished,
+    }
+
+
+def _datasets(cfg: DetectorTrainConfig, root: Path) -> tuple[Any, list, PoseDataset]:
+    """The run's training images (`training_images`: the whole mix and its parts) and its
+    validation dataset.
+
+    Raises:
+        AssetError: a split missing, fewer training images than a batch, or no val image.
+    """
     for split in ("train", "val"):
         if not (root / split).is_dir():
             raise AssetError(
@@ -191,7 +274,18 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
         )
     if len(val_data) == 0:
         raise AssetError(f"no completed val images under {root}; generate them first")
-    pycocotools_api()  # fail now, not after the first epoch, when pycocotools is missing
+    return train_set, parts, val_data
+
+
+def _start_run(
+    cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, root: Path, train_set: Any, parts: list
+) -> _Run:
+    """The seeded model and optimiser, fresh, started from `cfg.init`, or resumed from the run's
+    checkpoint (which also fixes how many of the training images the run uses).
+
+    Raises:
+        AssetError: a corrupt checkpoint, or one of another architecture or other data.
+    """
     seed_torch(cfg.seed, ranks.threads(cfg.threads))
     model = build_detector(cfg.detector)
     if cfg.init is not None:
@@ -200,48 +294,86 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
     out = cfg.out or checkpoint_dir()
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / CHECKPOINT_NAME
-    g = torch.Generator()
     step, epoch0, history, g_state, wall_s = 0, 0, [], None, 0.0
     if resume and ckpt.is_file():
-        try:
-            state = read_checkpoint(ckpt)
-            saved_cfg = state["model_config"]
-            n_saved = int(state["data_seeds"]["train_images"])
-        except Exception as exc:
-            raise AssetError(
-                f"checkpoint {ckpt} is corrupt ({exc}); delete it or pass --no-resume"
-            ) from exc
-        if DetectorConfig.from_dict(saved_cfg) != cfg.detector:
-            raise AssetError(
-                f"checkpoint {ckpt} has another architecture; pass --no-resume to start over "
-                "or --out to train elsewhere"
-            )
-        if len(parts) > 1 and n_saved != len(train_set):
-            raise AssetError(
-                f"checkpoint {ckpt} trained on {n_saved} images, the datasets now hold "
-                f"{len(train_set)}; pass --no-resume to start over"
-            )
-        if n_saved > len(train_set):
-            raise AssetError(
-                f"checkpoint {ckpt} trained on {n_saved} images, {root} now has "
-                f"{len(train_set)}; pass --no-resume to start over"
-            )
-        # The same images as before the interruption, even if the split has grown since.
-        train_set.n = n_saved
-        try:
-            step, epoch0, history = restore(state, model, opt)
-            g_state = state["rng"]["generator"]
-            wall_s = float(state.get("wall_s") or 0.0)
-        except Exception as exc:
-            raise AssetError(
-                f"checkpoint {ckpt} is corrupt ({exc}); delete it or pass --no-resume"
-            ) from exc
+        step, epoch0, history, g_state, wall_s = _resume(
+            cfg, ckpt, model, opt, root, train_set, parts
+        )
         if ranks.main:
             print(f"resuming {ckpt} at epoch {epoch0}, step {step}")
-    net = ranks.wrap(model)  # the model itself with one process
     steps_per_epoch = len(train_set) // cfg.batch
-    total_steps = cfg.epochs * steps_per_epoch
-    seeds = {
+    return _Run(
+        model=model,
+        opt=opt,
+        ckpt=ckpt,
+        steps_per_epoch=steps_per_epoch,
+        total_steps=cfg.epochs * steps_per_epoch,
+        generator=torch.Generator(),
+        step=step,
+        epoch0=epoch0,
+        history=history,
+        g_state=g_state,
+        wall_s=wall_s,
+    )
+
+
+def _resume(
+    cfg: DetectorTrainConfig,
+    ckpt: Path,
+    model: nn.Module,
+    opt: torch.optim.Optimizer,
+    root: Path,
+    train_set: Any,
+    parts: list,
+) -> tuple[int, int, list[dict], torch.Tensor, float]:
+    """Load the run's checkpoint into `model` and `opt` and limit `train_set` to the images it
+    trained on.
+
+    Returns:
+        (step, epoch, history, generator state, wall time [s]) to continue from.
+
+    Raises:
+        AssetError: a corrupt checkpoint, or one of another architecture or other data.
+    """
+    try:
+        state = read_checkpoint(ckpt)
+        saved_cfg = state["model_config"]
+        n_saved = int(state["data_seeds"]["train_images"])
+    except Exception as exc:
+        raise AssetError(
+            f"checkpoint {ckpt} is corrupt ({exc}); delete it or pass --no-resume"
+        ) from exc
+    if DetectorConfig.from_dict(saved_cfg) != cfg.detector:
+        raise AssetError(
+            f"checkpoint {ckpt} has another architecture; pass --no-resume to start over "
+            "or --out to train elsewhere"
+        )
+    if len(parts) > 1 and n_saved != len(train_set):
+        raise AssetError(
+            f"checkpoint {ckpt} trained on {n_saved} images, the datasets now hold "
+            f"{len(train_set)}; pass --no-resume to start over"
+        )
+    if n_saved > len(train_set):
+        raise AssetError(
+            f"checkpoint {ckpt} trained on {n_saved} images, {root} now has "
+            f"{len(train_set)}; pass --no-resume to start over"
+        )
+    # The same images as before the interruption, even if the split has grown since.
+    train_set.n = n_saved
+    try:
+        step, epoch, history = restore(state, model, opt)
+        return step, epoch, history, state["rng"]["generator"], float(state.get("wall_s") or 0.0)
+    except Exception as exc:
+        raise AssetError(
+            f"checkpoint {ckpt} is corrupt ({exc}); delete it or pass --no-resume"
+        ) from exc
+
+
+def _data_seeds(
+    cfg: DetectorTrainConfig, root: Path, train_set: Any, parts: list, val_data: PoseDataset
+) -> dict[str, Any]:
+    """Which data the run trains and validates on, as its checkpoint records it."""
+    return {
         "dataset": str(root),
         "dataset_seed_bases": load_info(root).get("seed_bases", {}),
         "train_images": len(train_set),
@@ -252,82 +384,187 @@ def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int 
         "seed": cfg.seed,
     }
 
-    wall0, started = wall_s, time.monotonic()
 
-    def save(epoch: int) -> None:
-        # Wall time of the run over all its resumptions.
-        header = {"kind": "detector", "wall_s": wall0 + time.monotonic() - started}
-        if ranks.main:
-            save_checkpoint(
-                ckpt, model, opt, model_config=cfg.detector.to_dict(), train_config=cfg.to_dict(),
-                step=step, epoch=epoch, history=history, rng=rng_state(g), data_seeds=seeds,
-                header=header,
-            )  # fmt: skip
+def _train_epoch(
+    cfg: DetectorTrainConfig,
+    run: _Run,
+    net: nn.Module,
+    train_set: Any,
+    epoch: int,
+    ranks: Ranks,
+    ckpts: Checkpointer,
+    max_steps: int | None,
+) -> list[float]:
+    """The steps of epoch `epoch` (0-based) not done yet, up to `max_steps` in all, saving the
+    checkpoint when it is due.
 
-    last_save = time.monotonic()
-    for epoch in range(epoch0, cfg.epochs):
-        g.manual_seed(cfg.seed * 1000 + epoch)
-        order = torch.randperm(len(train_set), generator=g).tolist()
-        done = step - epoch * steps_per_epoch  # batches of this epoch already done (resume)
-        if g_state is not None and done > 0:  # mid-epoch: continue the augmentation stream
-            g.set_state(g_state)
-        g_state = None
-        loader = torch.utils.data.DataLoader(
-            train_set,
-            batch_size=cfg.batch // ranks.world,
-            sampler=ranks.shard(order[done * cfg.batch : steps_per_epoch * cfg.batch]),
-            collate_fn=collate_list,
-            num_workers=cfg.workers,
-            generator=torch.Generator().manual_seed(cfg.seed),  # leaves the global RNG alone
+    The epoch's image order is drawn from the run's generator seeded by the epoch; a run resumed
+    mid-epoch skips the batches it has done and continues the augmentation stream where it
+    stopped.
+
+    Returns:
+        The loss of each step, averaged over the processes.
+    """
+    g = run.generator
+    g.manual_seed(cfg.seed * 1000 + epoch)
+    order = torch.randperm(len(train_set), generator=g).tolist()
+    done = run.step - epoch * run.steps_per_epoch  # batches of this epoch already done (resume)
+    if run.g_state is not None and done > 0:  # mid-epoch: continue the augmentation stream
+        g.set_state(run.g_state)
+    run.g_state = None
+    loader = torch.utils.data.DataLoader(
+        train_set,
+        batch_size=cfg.batch // ranks.world,
+        sampler=ranks.shard(order[done * cfg.batch : run.steps_per_epoch * cfg.batch]),
+        collate_fn=collate_list,
+        num_workers=cfg.workers,
+        generator=torch.Generator().manual_seed(cfg.seed),  # leaves the global RNG alone
+    )
+    run.model.train()
+    bar = tqdm(
+        loader,
+        desc=f"detector epoch {epoch + 1}/{cfg.epochs}",
+        initial=done,
+        total=run.steps_per_epoch,
+        mininterval=2.0,
+        disable=not ranks.main,
+    )
+    losses = []
+    for batch in bar:
+        if max_steps is not None and run.step >= max_steps:
+            break
+        parts, loss = _train_step(cfg, run, net, batch, epoch, ranks)
+        losses.append(loss)
+        if run.step % 10 == 0:
+            bar.set_postfix(
+                {k.removeprefix("loss_"): f"{float(v.detach()):.3f}" for k, v in parts.items()}
+            )
+        ckpts.save_if_due(epoch)
+    bar.close()
+    return losses
+
+
+def _train_step(
+    cfg: DetectorTrainConfig,
+    run: _Run,
+    net: nn.Module,
+    batch: list,
+    epoch: int,
+    ranks: Ranks,
+) -> tuple[dict[str, torch.Tensor], float]:
+    """One optimiser step on this rank's shard `batch` of (image, target) pairs.
+
+    Returns:
+        The parts of the loss on the shard, and the loss averaged over the processes.
+    """
+    images = augment_shard([image for image, _ in batch], run.generator, ranks)
+    targets = [{k: v.to(ranks.device) for k, v in t.items()} for _, t in batch]
+    parts = net(images, targets)
+    loss = sum(parts.values())
+    lr = learning_rate(run.step, run.total_steps, cfg.lr, cfg.warmup)
+    optimiser_step(run.model, run.opt, loss, lr, cfg.grad_clip)
+    run.step += 1
+    loss_all = ranks.mean(loss)  # over the processes (every rank takes part)
+    if cfg.loss_log is not None:
+        ranks.log(cfg.loss_log, step=run.step, epoch=epoch + 1, loss=loss_all, lr=lr)
+    return parts, loss_all
+
+
+def _validate(
+    cfg: DetectorTrainConfig,
+    run: _Run,
+    val_data: PoseDataset,
+    epoch: int,
+    losses: list[float],
+    ranks: Ranks,
+) -> None:
+    """COCO AP after epoch `epoch` (0-based) on the first val images: append to the history with
+    the epoch's mean training loss, and print the figures."""
+    det = Detector(
+        ranks.on_cpu(run.model), cfg.detector, score_threshold=cfg.detector.box_score_thresh
+    )
+    val = evaluate_detector(det, val_data, cfg.val_images, cfg.min_visible_px)
+    run.model.train()
+    mean_loss = float(np.mean(losses)) if losses else None
+    run.history.append({"epoch": epoch + 1, "step": run.step, "train_loss": mean_loss, **val})
+    print(
+        f"epoch {epoch + 1}: val box AP50 {val['box_ap50']:.3f}, mask AP50 "
+        f"{val['mask_ap50']:.3f}, box AP {val['box_ap']:.3f}, mask AP {val['mask_ap']:.3f} "
+        f"({val['images']} images)"
+    )
+
+
+def _save(
+    cfg: DetectorTrainConfig,
+    run: _Run,
+    ranks: Ranks,
+    seeds: dict[str, Any],
+    epoch: int,
+    wall_s: float,
+) -> None:
+    """Write the run's checkpoint (rank 0; the others do nothing)."""
+    if ranks.main:
+        save_checkpoint(
+            run.ckpt,
+            run.model,
+            run.opt,
+            model_config=cfg.detector.to_dict(),
+            train_config=cfg.to_dict(),
+            step=run.step,
+            epoch=epoch,
+            history=run.history,
+            rng=rng_state(run.generator),
+            data_seeds=seeds,
+            header={"kind": "detector", "wall_s": wall_s},
         )
-        model.train()
-        bar = tqdm(loader, desc=f"detector epoch {epoch + 1}/{cfg.epochs}", initial=done,
-                   total=steps_per_epoch, mininterval=2.0, disable=not ranks.main)  # fmt: skip
-        losses = []
-        for batch in bar:
-            if max_steps is not None and step >= max_steps:
-                break
-            images = augment_shard([image for image, _ in batch], g, ranks)
-            targets = [{k: v.to(ranks.device) for k, v in t.items()} for _, t in batch]
-            parts = net(images, targets)
-            loss = sum(parts.values())
-            lr = learning_rate(step, total_steps, cfg.lr, cfg.warmup)
-            optimiser_step(model, opt, loss, lr, cfg.grad_clip)
-            step += 1
-            losses.append(ranks.mean(loss))  # over the processes (every rank takes part)
-            if cfg.loss_log is not None:
-                ranks.log(cfg.loss_log, step=step, epoch=epoch + 1, loss=losses[-1], lr=lr)
-            if step % 10 == 0:
-                bar.set_postfix({k.removeprefix("loss_"): f"{float(v.detach()):.3f}"
-                                 for k, v in parts.items()})  # fmt: skip
-            if time.monotonic() - last_save > 60 * cfg.checkpoint_minutes:
-                save(epoch)
-                last_save = time.monotonic()
-        bar.close()
-        if max_steps is not None and step >= max_steps and step < (epoch + 1) * steps_per_epoch:
-            save(epoch)
-            return {"checkpoint": str(ckpt), "history": history, "step": step, "finished": False}
-        if not ranks.main:
-            continue  # rank 0 evaluates and saves; the others meet it at the next step
-        det = Detector(
-            ranks.on_cpu(model), cfg.detector, score_threshold=cfg.detector.box_score_thresh
-        )
-        val = evaluate_detector(det, val_data, cfg.val_images, cfg.min_visible_px)
-        model.train()
-        mean_loss = float(np.mean(losses)) if losses else None
-        history.append({"epoch": epoch + 1, "step": step, "train_loss": mean_loss, **val})
-        print(
-            f"epoch {epoch + 1}: val box AP50 {val['box_ap50']:.3f}, mask AP50 "
-            f"{val['mask_ap50']:.3f}, box AP {val['box_ap']:.3f}, mask AP {val['mask_ap']:.3f} "
-            f"({val['images']} images)"
-        )
-        save(epoch + 1)
-        last_save = time.monotonic()
-    return {"checkpoint": str(ckpt), "history": history, "step": step, "finished": True}
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
+    setup_rendering()
+    if args.smoke:
+        cfg = replace(
+            SMOKE,
+            data=args.data,
+            out=args.out,
+            seed=args.seed,
+            threads=args.threads or SMOKE.threads,
+            device=args.device,
+            loss_log=args.loss_log,
+        )
+    else:
+        cfg = DetectorTrainConfig(
+            data=args.data,
+            epochs=args.epochs,
+            batch=args.batch,
+            lr=args.lr,
+            limit=args.limit,
+            val_images=args.val_images,
+            workers=args.workers,
+            seed=args.seed,
+            out=args.out,
+            threads=args.threads,
+            device=args.device,
+            loss_log=args.loss_log,
+            init=args.init,
+            also=tuple(args.also.split(",")) if args.also else (),
+        )
+    result = train(cfg, resume=not args.no_resume, max_steps=args.max_steps)
+    if result["history"]:
+        print(json.dumps(result["history"][-1], sort_keys=True))
+    if args.export:
+        if not result["finished"]:
+            print("note: exporting an unfinished run", file=sys.stderr)
+        entry = export_detector(Path(result["checkpoint"]), args.weights_out)
+        print(f"wrote {args.weights_out / entry['file']} ({entry['bytes'] / 1e6:.1f} MB)")
+    return 0
+
+
+def _parser() -> ArgumentParser:
+    """The command line of `main`, its counts and rates checked while it is parsed."""
+    d = DetectorTrainConfig
     p = ArgumentParser(prog=TRAIN_COMMAND, description=__doc__.split("\n")[0])
     p.add_argument(
         "--data",
@@ -341,22 +578,72 @@ def main(argv: list[str] | None = None) -> int:
         help=f"more train data: a comma list of dataset folders, of: {', '.join(DATASETS)}",
     )
     p.add_argument("--init", type=Path, help="start from these detector weights (fine-tune)")
-    p.add_argument("--epochs", type=int, default=DetectorTrainConfig.epochs)
-    p.add_argument("--batch", type=int, default=DetectorTrainConfig.batch)
-    p.add_argument("--lr", type=float, default=DetectorTrainConfig.lr)
-    p.add_argument("--limit", type=int, default=None, help="at most this many train images")
-    p.add_argument("--val-images", type=int, default=DetectorTrainConfig.val_images)
-    p.add_argument("--workers", type=int, default=1, help="data-loading processes (0: none)")
     p.add_argument(
-        "--threads", type=int, default=None, help="torch threads per process (default: all cores)"
+        "--epochs",
+        type=arg(check_int, 1, MAX_EPOCHS, "--epochs", base=int),
+        default=d.epochs,
+        help=f"passes over the train split, 1..{MAX_EPOCHS} (default {d.epochs})",
     )
-    p.add_argument("--device", default="auto", help=f"one of: {', '.join(DEVICES)}")
+    p.add_argument(
+        "--batch",
+        type=arg(check_int, 1, MAX_BATCH, "--batch", base=int),
+        default=d.batch,
+        help=f"global batch of images, 1..{MAX_BATCH} (default {d.batch})",
+    )
+    p.add_argument(
+        "--lr",
+        type=arg(check_learning_rate, "--lr", base=float),
+        default=d.lr,
+        help=f"peak learning rate, in (0, {MAX_LR:g}] (default {d.lr:g})",
+    )
+    p.add_argument(
+        "--limit",
+        type=arg(check_int, 1, MAX_LIMIT, "--limit", base=int),
+        default=None,
+        help=f"at most this many train images, 1..{MAX_LIMIT} (default: all)",
+    )
+    p.add_argument(
+        "--val-images",
+        type=arg(check_int, 1, MAX_LIMIT, "--val-images", base=int),
+        default=d.val_images,
+        help=f"the AP evaluation uses this many val images (default {d.val_images})",
+    )
+    p.add_argument(
+        "--workers",
+        type=arg(check_int, 0, MAX_WORKERS, "--workers", base=int),
+        default=DEFAULT_WORKERS,
+        metavar="N",
+        help=f"data-loading processes, 0..{MAX_WORKERS} (0: load in the training process; "
+        f"default {DEFAULT_WORKERS})",
+    )
+    p.add_argument(
+        "--threads",
+        type=arg(check_int, 1, MAX_THREADS, "--threads", base=int),
+        default=None,
+        help=f"torch threads per process, 1..{MAX_THREADS} (default: the cores shared by the "
+        "processes)",
+    )
+    p.add_argument(
+        "--device",
+        type=arg(check_choice, DEVICES, "device"),
+        default="auto",
+        help=f"one of: {', '.join(DEVICES)}",
+    )
     p.add_argument(
         "--loss-log", type=Path, default=None, help="append one JSON line per step to this file"
     )
-    p.add_argument("--seed", type=int, default=DetectorTrainConfig.seed)
-    p.add_argument("--out", type=Path, help="checkpoint folder (default: <data>/checkpoints)")
-    p.add_argument("--max-steps", type=int, help="stop after this many steps (resumable)")
+    p.add_argument(
+        "--seed",
+        type=arg(check_seed, "--seed", base=int),
+        default=d.seed,
+        help=f"seed of initialisation, image order and augmentation (default {d.seed})",
+    )
+    add_out_argument(p, "the checkpoint (default: <data>/checkpoints)")
+    p.add_argument(
+        "--max-steps",
+        type=arg(check_int, 1, 2**62, "--max-steps", base=int),
+        help="stop after this many steps (resumable)",
+    )
     p.add_argument("--smoke", action="store_true", help="a tiny run that takes seconds")
     p.add_argument("--no-resume", action="store_true", help="start over")
     p.add_argument(
@@ -365,36 +652,13 @@ def main(argv: list[str] | None = None) -> int:
         help="after training, write perception/weights/detector.pt and its manifest "
         "entry (a finished run is not trained further)",
     )
-    p.add_argument("--weights-out", type=Path, default=WEIGHTS_DIR, help="export folder")
-    args = p.parse_args(argv)
-    setup_rendering()
-    try:
-        resolve_device(args.device)
-        if args.smoke:
-            cfg = replace(SMOKE, data=args.data, out=args.out, seed=args.seed,
-                          threads=args.threads or SMOKE.threads, device=args.device,
-                          loss_log=args.loss_log)  # fmt: skip
-        else:
-            cfg = DetectorTrainConfig(
-                data=args.data, epochs=args.epochs, batch=args.batch, lr=args.lr,
-                limit=args.limit, val_images=args.val_images, workers=args.workers,
-                seed=args.seed, out=args.out, threads=args.threads, device=args.device,
-                loss_log=args.loss_log, init=args.init,
-                also=tuple(args.also.split(",")) if args.also else (),
-            )  # fmt: skip
-        if args.max_steps is not None and args.max_steps < 1:
-            raise InvalidArgumentError(f"--max-steps must be >= 1, got {args.max_steps}")
-        result = train(cfg, resume=not args.no_resume, max_steps=args.max_steps)
-        if result["history"]:
-            print(json.dumps(result["history"][-1], sort_keys=True))
-        if args.export:
-            if not result["finished"]:
-                print("note: exporting an unfinished run", file=sys.stderr)
-            entry = export_detector(Path(result["checkpoint"]), args.weights_out)
-            print(f"wrote {args.weights_out / entry['file']} ({entry['bytes'] / 1e6:.1f} MB)")
-    except PosegraspError as exc:
-        return fail(str(exc))
-    return 0
+    p.add_argument(
+        "--weights-out",
+        type=arg(check_output_dir, "--weights-out", base=Path),
+        default=WEIGHTS_DIR,
+        help=f"export folder (default {WEIGHTS_DIR})",
+    )
+    return p
 
 
 if __name__ == "__main__":

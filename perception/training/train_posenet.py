@@ -8,6 +8,7 @@ epoch (`perception.training.posenet_eval`).
 
     python -m perception.training.train_posenet --variant ours --epochs 7
     python -m perception.training.train_posenet --smoke  # seconds, on whatever small data exists
+    python -m perception.training.train_posenet --precision bf16 --channels-last  # CPU bf16 steps
     torchrun --nproc-per-node 2 -m perception.training.train_posenet --variant ours --device cpu
 
 Under torchrun the run is data-parallel over the processes (`perception.training.ddp`): same
@@ -16,18 +17,28 @@ global batch, each rank its shard of it, rank 0 validating and writing the check
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
-import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 from tqdm import tqdm
 
-from perception.nets import CROP, ROTATIONS, VARIANTS, NetConfig, PoseNet, load_posenet, normalise
+from perception.nets import (
+    CROP,
+    ROTATIONS,
+    VARIANTS,
+    NetConfig,
+    PoseNet,
+    PoseOutput,
+    load_posenet,
+    normalise,
+)
 from perception.training.augment import photometric_jitter
 from perception.training.checkpoints import (
     config_dict,
@@ -39,15 +50,23 @@ from perception.training.checkpoints import (
 )
 from perception.training.crop_sets import CropConfig, data_seed_ranges, split_crops
 from perception.training.dataset import DATASETS, DISTS, parse_limit
-from perception.training.ddp import DEVICES, Ranks, resolve_device, start
+from perception.training.ddp import DEVICES, MAX_THREADS, Ranks, joined
+from perception.training.loop import (
+    MAX_BATCH,
+    MAX_EPOCHS,
+    MAX_LR,
+    Checkpointer,
+    check_learning_rate,
+)
 from perception.training.losses import posenet_loss
 from perception.training.manifest import shipped_stages
 from perception.training.posenet_eval import evaluate_arrays
 from perception.training.schedule import learning_rate, optimiser_step
-from posegrasp.core.cli import ArgumentParser, fail
-from posegrasp.core.errors import AssetError, InvalidArgumentError, PosegraspError
+from posegrasp.core.cli import ArgumentParser, add_out_argument, command
+from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import checkpoint_dir
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_choice, check_int
 from posegrasp.world.objects import OBJECT_NAMES
 
 #: The command line of this module.
@@ -56,6 +75,8 @@ TRAIN_COMMAND = "python -m perception.training.train_posenet"
 LINEAGE_KEYS = ("command", "init_from", "train_config", "epoch", "wall_s", "data_seeds", "commit")
 #: Gradient-norm clip of every step.
 GRAD_CLIP = 5.0
+#: Arithmetic of the training forward passes (``--precision``): fp32, or bf16 autocast.
+PRECISIONS = ("fp32", "bf16")
 
 
 @dataclass(frozen=True)
@@ -88,6 +109,11 @@ class PoseNetTrainConfig:
             processes, lr), or None.
         teacher: distillation: pose-net weights whose outputs on each training batch are a
             second target, weighted as the labels are (None: labels only).
+        precision: arithmetic of the training forward passes (`PRECISIONS`): "fp32", or
+            "bf16", under `torch.autocast` with bfloat16; the loss is computed in fp32 either way,
+            and validation runs in fp32.
+        channels_last: keep the model's weights and its input crops in channels-last memory
+            layout (`torch.channels_last`).
     """
 
     variant: str = "ours"
@@ -115,8 +141,11 @@ class PoseNetTrainConfig:
     device: str = "auto"
     loss_log: Path | None = None
     teacher: Path | None = None
+    precision: str = "fp32"
+    channels_last: bool = False
 
     def __post_init__(self) -> None:
+        check_choice(self.precision, PRECISIONS, "precision")
         if bad := sorted(set(self.objects) - set(OBJECT_NAMES)):
             raise InvalidArgumentError(f"unknown objects {bad}; valid: {', '.join(OBJECT_NAMES)}")
         self.net_config()  # checks variant, width, crop side and rotation output
@@ -171,6 +200,8 @@ def _command(cfg: PoseNetTrainConfig) -> str:
         (cfg.rotation != d.rotation, f"--rotation {cfg.rotation}"),
         (not cfg.augment, "--no-augment"),
         (not cfg.decay, "--constant-lr"),
+        (cfg.precision != d.precision, f"--precision {cfg.precision}"),
+        (cfg.channels_last, "--channels-last"),
         (bool(cfg.init), f"--init {cfg.init}"),
         (bool(cfg.name), f"--name {cfg.name}"),
     )
@@ -198,17 +229,71 @@ def train(cfg: PoseNetTrainConfig, resume: bool = True, command: str | None = No
             holds another architecture.
         InvalidArgumentError: a device that is not there, or a batch the processes cannot share.
     """
-    ranks = start(cfg.device, cfg.batch)
-    try:
+    with joined(cfg.device, cfg.batch) as ranks:
         return _train(cfg, ranks, resume, command)
-    finally:
-        ranks.close()
+
+
+@dataclass
+class _Run:
+    """A run's model and optimiser, its plan and where it stands (updated as it trains).
+
+    Attributes:
+        model: the unwrapped net (what a checkpoint holds).
+        opt: its optimiser.
+        ckpt: the checkpoint file.
+        lineage: the checkpoint's header: command, the run it started from, wall time.
+        data_seeds: which data the run trains on.
+        steps_per_epoch, total_steps: the plan.
+        step: optimiser steps done.
+        epoch0: whole epochs done when this process started.
+        history: per-epoch validation.
+    """
+
+    model: PoseNet
+    opt: torch.optim.Optimizer
+    ckpt: Path
+    lineage: dict[str, Any]
+    data_seeds: dict[str, Any]
+    steps_per_epoch: int
+    total_steps: int
+    step: int = 0
+    epoch0: int = 0
+    history: list[dict] = field(default_factory=list)
 
 
 def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | None) -> dict:
+    """`train` in this process, its place in the run being `ranks`."""
     seed_torch(cfg.seed, ranks.threads(cfg.threads))
+    tr, va, data_seeds = _training_crops(cfg, ranks)
+    run = _start_run(cfg, ranks, resume, command, data_seeds, len(tr["crops"]))
+    net = ranks.wrap(_laid_out(cfg, run.model))  # the model itself with one process
+    with torch.random.fork_rng():  # building the teacher leaves the run's random stream alone
+        teacher = load_posenet(cfg.teacher, verify=False) if cfg.teacher else None
+    if teacher is not None:
+        teacher = _laid_out(cfg, teacher).to(ranks.device)
+    wall_s = float(run.lineage.get("wall_s") or 0.0)  # over resumptions
+    ckpts = Checkpointer(
+        lambda epoch, wall: _save(cfg, run, ranks, epoch, wall), cfg.checkpoint_minutes, wall_s
+    )
+    g = torch.Generator().manual_seed(cfg.seed)
+    for epoch in range(run.epoch0, cfg.epochs):
+        _train_epoch(cfg, run, net, teacher, tr, epoch, g, ranks, ckpts)
+        if ranks.main:  # rank 0 validates and saves; the others meet it at the next step
+            _validate(run, va, epoch, ranks)
+            ckpts.save(epoch + 1)
+    return {"checkpoint": str(run.ckpt), "history": run.history}
+
+
+def _training_crops(cfg: PoseNetTrainConfig, ranks: Ranks) -> tuple[dict, dict, dict[str, Any]]:
+    """The run's train and val crops and the seeds of the images they come from.
+
+    Rank 0 cuts and caches the crops first; the other ranks then read its cache.
+
+    Raises:
+        AssetError: no data, or no training crops left.
+    """
     if not ranks.main:
-        ranks.barrier()  # rank 0 cuts and caches the crops first
+        ranks.barrier()
     limits = {d: _limit(cfg, d) for d in cfg.dists}
     tr, va = (split_crops(cfg.dists, part, cfg.crops, limits) for part in ("train", "val"))
     if ranks.main:
@@ -221,114 +306,330 @@ def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | N
         tr, va = ({k: v[np.isin(d["cls"], ids)] for k, v in d.items()} for d in (tr, va))
     if len(tr["crops"]) == 0:
         raise AssetError("no training crops; generate data first (`make data`)")
-    data_seeds = data_seed_ranges(cfg.dists, {d: n for d, n in limits.items() if n})
+    return tr, va, data_seed_ranges(cfg.dists, {d: n for d, n in limits.items() if n})
+
+
+def _start_run(
+    cfg: PoseNetTrainConfig,
+    ranks: Ranks,
+    resume: bool,
+    command: str | None,
+    data_seeds: dict[str, Any],
+    n_train: int,
+) -> _Run:
+    """The model and optimiser, fresh, started from `cfg.init`, or resumed from the run's own
+    checkpoint.
+
+    Args:
+        cfg: the run.
+        ranks: this process's place in it.
+        resume: continue from the run's checkpoint if it exists.
+        command: the command to record (None: the CLI command of `cfg`).
+        data_seeds: which data the run trains on.
+        n_train: training crops.
+
+    Raises:
+        AssetError: an `init` checkpoint that is missing or holds another architecture.
+    """
     model = PoseNet(cfg.net_config())
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    steps_per_epoch = max(1, len(tr["crops"]) // cfg.batch)
-    total_steps = cfg.epochs * steps_per_epoch
+    steps_per_epoch = max(1, n_train // cfg.batch)
     ckpt = checkpoint_path(cfg)
     ckpt.parent.mkdir(parents=True, exist_ok=True)
     lineage = {"command": command or _command(cfg), "init_from": None, "wall_s": 0.0}
     resuming = resume and ckpt.is_file()
     if cfg.init and not resuming:
-        src = _resolve_init(cfg.init, ckpt.parent)
-        parent = read_checkpoint(src)
-        if NetConfig(**parent["model_config"]) != model.cfg:  # older files: fields defaulted
-            raise AssetError(
-                f"{src} holds a {parent['model_config']} model, not {model.cfg.to_dict()}"
-            )
-        model.load_state_dict(parent["model"])
-        lineage["init_from"] = {
-            "checkpoint": src.name,
-            **{k: parent.get(k) for k in LINEAGE_KEYS},
-            "validation": parent["history"][-1] if parent.get("history") else None,
-            # Shipped weights carry no lineage of their own: their manifest's stages stand in.
-            "stages": shipped_stages(src),
-        }
-    step, epoch0, history = 0, 0, []
+        lineage["init_from"] = _start_from(model, _resolve_init(cfg.init, ckpt.parent))
+    run = _Run(model, opt, ckpt, lineage, data_seeds, steps_per_epoch, cfg.epochs * steps_per_epoch)
     if resuming:
         state = read_checkpoint(ckpt)
-        lineage = {k: state.get(k, v) for k, v in lineage.items()}
-        step, epoch0, history = restore(state, model, opt)
+        run.lineage = {k: state.get(k, v) for k, v in lineage.items()}
+        run.step, run.epoch0, run.history = restore(state, model, opt)
         if ranks.main:
-            print(f"resuming {ckpt} at epoch {epoch0}, step {step}")
-    net = ranks.wrap(model)  # the model itself with one process
-    with torch.random.fork_rng():  # building the teacher leaves the run's random stream alone
-        teacher = load_posenet(cfg.teacher, verify=False).to(ranks.device) if cfg.teacher else None
-    wall0, started = float(lineage.get("wall_s") or 0.0), time.monotonic()  # over resumptions
+            print(f"resuming {ckpt} at epoch {run.epoch0}, step {run.step}")
+    return run
 
-    def save(epoch: int) -> None:
-        lineage["wall_s"] = wall0 + time.monotonic() - started
-        if ranks.main:
-            save_checkpoint(
-                ckpt, model, opt, model_config=model.cfg.to_dict(), train_config=cfg.to_dict(),
-                step=step, epoch=epoch, history=history, rng=rng_state(), data_seeds=data_seeds,
-                header=lineage,
-            )  # fmt: skip
 
-    g = torch.Generator().manual_seed(cfg.seed)
-    last_save = time.monotonic()
-    for epoch in range(epoch0, cfg.epochs):
-        g.manual_seed(cfg.seed * 1000 + epoch)
-        order = torch.randperm(len(tr["crops"]), generator=g).numpy()
-        skip = step - epoch * steps_per_epoch  # batches of this epoch already done (resume)
-        model.train()
-        bar = tqdm(range(steps_per_epoch), desc=f"{cfg.variant} epoch {epoch + 1}/{cfg.epochs}",
-                   disable=not ranks.main)  # fmt: skip
-        for b in bar:
-            if b < skip:
-                continue
-            idx = ranks.shard(order[b * cfg.batch : (b + 1) * cfg.batch])  # this rank's shard
+def _start_from(model: PoseNet, src: Path) -> dict[str, Any]:
+    """Load the weights of the checkpoint or shipped file `src` into `model`; its record, which
+    the run keeps as its ``init_from``.
 
-            def batch(key: str, idx=idx) -> torch.Tensor:
-                return torch.from_numpy(tr[key][idx]).to(ranks.device)
+    Raises:
+        AssetError: `src` holds another architecture.
+    """
+    parent = read_checkpoint(src)
+    if NetConfig(**parent["model_config"]) != model.cfg:  # older files: fields defaulted
+        raise AssetError(f"{src} holds a {parent['model_config']} model, not {model.cfg.to_dict()}")
+    model.load_state_dict(parent["model"])
+    return {
+        "checkpoint": src.name,
+        **{k: parent.get(k) for k in LINEAGE_KEYS},
+        "validation": parent["history"][-1] if parent.get("history") else None,
+        # Shipped weights carry no lineage of their own: their manifest's stages stand in.
+        "stages": shipped_stages(src),
+    }
 
-            x = normalise(batch("crops"))
-            if cfg.augment:
-                x = photometric_jitter(x, g, ranks)
-            out = net(x, batch("cls"), batch("scale"))
-            loss, parts = posenet_loss(
-                out, batch("uv_unit"), batch("p"), batch("theta"), cfg.variant, cfg.lam
-            )
-            if teacher is not None:
-                with torch.no_grad():
-                    t = teacher(x, batch("cls"), batch("scale"))
-                loss = loss + posenet_loss(out, t.uv_unit, t.p, t.cs, cfg.variant, cfg.lam)[0]
-            lr = learning_rate(step, total_steps, cfg.lr, decay=cfg.decay)
-            optimiser_step(model, opt, loss, lr, GRAD_CLIP)
-            step += 1
-            if cfg.loss_log is not None:
-                loss_all = ranks.mean(loss)  # every rank takes part
-                ranks.log(cfg.loss_log, step=step, epoch=epoch + 1, loss=loss_all, lr=lr)
-            if b % 20 == 0:
-                bar.set_postfix({k: f"{v:.3f}" for k, v in parts.items()})
-            if time.monotonic() - last_save > 60 * cfg.checkpoint_minutes:
-                save(epoch)
-                last_save = time.monotonic()
-        if not ranks.main:
-            continue  # rank 0 validates and saves; the others meet it at the next step
-        val = evaluate_arrays(ranks.on_cpu(model), va)  # posenet_eval works on the CPU
-        history.append({"epoch": epoch + 1, "step": step, **val})
-        print(
-            f"epoch {epoch + 1}: val centre {val['center_px']:.2f} px, distance "
-            f"{val['distance_pct']:.2f} %, rotation {val['rotation_deg']:.2f} deg, "
-            f"outliers {val['outlier_rate']:.1%}"
+
+#: The crop-set arrays a training step takes.
+BATCH_KEYS = ("crops", "cls", "scale", "uv_unit", "p", "theta")
+
+
+def _laid_out(cfg: PoseNetTrainConfig, model: PoseNet) -> PoseNet:
+    """`model`, its weights moved to channels-last layout when the run asks for it (the same
+    parameter objects, so an optimiser over them still holds)."""
+    return model.to(memory_format=torch.channels_last) if cfg.channels_last else model
+
+
+def batch_tensors(tr: dict, idx: np.ndarray, device: torch.device) -> dict[str, torch.Tensor]:
+    """The rows `idx` of the crop set `tr` as the tensors a training step takes (`BATCH_KEYS`)."""
+    return {k: torch.from_numpy(tr[k][idx]).to(device) for k in BATCH_KEYS}
+
+
+def training_inputs(
+    cfg: PoseNetTrainConfig, batch: dict[str, torch.Tensor], g: torch.Generator, ranks: Ranks
+) -> torch.Tensor:
+    """The net's input for a shard of a batch: normalised, jittered from `g` when the run
+    augments, in channels-last layout when it asks for it."""
+    x = normalise(batch["crops"])
+    if cfg.augment:
+        x = photometric_jitter(x, g, ranks)
+    if cfg.channels_last:
+        x = x.contiguous(memory_format=torch.channels_last)
+    return x
+
+
+def training_loss(
+    cfg: PoseNetTrainConfig,
+    net: nn.Module,
+    teacher: nn.Module | None,
+    x: torch.Tensor,
+    batch: dict[str, torch.Tensor],
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """The training loss of a shard: the forward passes in the run's precision, the loss on
+    their outputs in fp32 (`posenet_loss`; plus the teacher's term when distilling).
+
+    Args:
+        cfg: the run.
+        net: the model to train (or its data-parallel wrapper).
+        teacher: distillation's teacher, or None.
+        x: the input (`training_inputs`).
+        batch: the shard's labels and classes (`BATCH_KEYS`).
+
+    Returns:
+        The loss, and its parts as numbers.
+    """
+    with _autocast(cfg, x.device):
+        out = net(x, batch["cls"], batch["scale"])
+    out = _fp32(out)
+    loss, parts = posenet_loss(
+        out, batch["uv_unit"], batch["p"], batch["theta"], cfg.variant, cfg.lam
+    )
+    if teacher is not None:
+        with torch.no_grad(), _autocast(cfg, x.device):
+            t = teacher(x, batch["cls"], batch["scale"])
+        t = _fp32(t)
+        loss = loss + posenet_loss(out, t.uv_unit, t.p, t.cs, cfg.variant, cfg.lam)[0]
+    return loss, parts
+
+
+def _autocast(
+    cfg: PoseNetTrainConfig, device: torch.device
+) -> contextlib.AbstractContextManager[Any]:
+    """bfloat16 autocast on `device` for a bf16 run; nothing for fp32."""
+    if cfg.precision == "bf16":
+        return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
+def _fp32(out: PoseOutput) -> PoseOutput:
+    """`out` in float32 (itself when it already is)."""
+    if all(t.dtype == torch.float32 for t in (out.uv_unit, out.p, out.cs)):
+        return out
+    return PoseOutput(out.uv_unit.float(), out.p.float(), out.cs.float())
+
+
+def _train_epoch(
+    cfg: PoseNetTrainConfig,
+    run: _Run,
+    net: nn.Module,
+    teacher: PoseNet | None,
+    tr: dict,
+    epoch: int,
+    g: torch.Generator,
+    ranks: Ranks,
+    ckpts: Checkpointer,
+) -> None:
+    """The steps of epoch `epoch` (0-based) not done yet, saving the checkpoint when it is due.
+
+    The epoch's order is drawn from `g` seeded by the epoch, so a run resumed mid-epoch skips
+    the batches it has done and continues with the same ones.
+    """
+    g.manual_seed(cfg.seed * 1000 + epoch)
+    order = torch.randperm(len(tr["crops"]), generator=g).numpy()
+    skip = run.step - epoch * run.steps_per_epoch  # batches of this epoch already done (resume)
+    run.model.train()
+    bar = tqdm(
+        range(run.steps_per_epoch),
+        desc=f"{cfg.variant} epoch {epoch + 1}/{cfg.epochs}",
+        disable=not ranks.main,
+    )
+    for b in bar:
+        if b < skip:
+            continue
+        idx = ranks.shard(order[b * cfg.batch : (b + 1) * cfg.batch])  # this rank's shard
+        batch = batch_tensors(tr, idx, ranks.device)
+        parts = _train_step(cfg, run, net, teacher, batch, epoch, g, ranks)
+        if b % 20 == 0:
+            bar.set_postfix({k: f"{v:.3f}" for k, v in parts.items()})
+        ckpts.save_if_due(epoch)
+
+
+def _train_step(
+    cfg: PoseNetTrainConfig,
+    run: _Run,
+    net: nn.Module,
+    teacher: PoseNet | None,
+    batch: dict[str, torch.Tensor],
+    epoch: int,
+    g: torch.Generator,
+    ranks: Ranks,
+) -> dict[str, float]:
+    """One optimiser step on this rank's shard `batch` of a global batch (`BATCH_KEYS`).
+
+    Returns:
+        The parts of the loss on the shard (`posenet_loss`).
+    """
+    x = training_inputs(cfg, batch, g, ranks)
+    loss, parts = training_loss(cfg, net, teacher, x, batch)
+    lr = learning_rate(run.step, run.total_steps, cfg.lr, decay=cfg.decay)
+    optimiser_step(run.model, run.opt, loss, lr, GRAD_CLIP)
+    run.step += 1
+    if cfg.loss_log is not None:
+        loss_all = ranks.mean(loss)  # every rank takes part
+        ranks.log(cfg.loss_log, step=run.step, epoch=epoch + 1, loss=loss_all, lr=lr)
+    return parts
+
+
+def _validate(run: _Run, va: dict, epoch: int, ranks: Ranks) -> None:
+    """Validate after epoch `epoch` (0-based): append to the history and print the figures."""
+    val = evaluate_arrays(ranks.on_cpu(run.model), va)  # posenet_eval works on the CPU
+    run.history.append({"epoch": epoch + 1, "step": run.step, **val})
+    print(
+        f"epoch {epoch + 1}: val centre {val['center_px']:.2f} px, distance "
+        f"{val['distance_pct']:.2f} %, rotation {val['rotation_deg']:.2f} deg, "
+        f"outliers {val['outlier_rate']:.1%}"
+    )
+
+
+def _save(cfg: PoseNetTrainConfig, run: _Run, ranks: Ranks, epoch: int, wall_s: float) -> None:
+    """Write the run's checkpoint (rank 0; the others only keep the wall time)."""
+    run.lineage["wall_s"] = wall_s
+    if ranks.main:
+        save_checkpoint(
+            run.ckpt,
+            run.model,
+            run.opt,
+            model_config=run.model.cfg.to_dict(),
+            train_config=cfg.to_dict(),
+            step=run.step,
+            epoch=epoch,
+            history=run.history,
+            rng=rng_state(),
+            data_seeds=run.data_seeds,
+            header=run.lineage,
         )
-        save(epoch + 1)
-        last_save = time.monotonic()
-    return {"checkpoint": str(ckpt), "history": history}
 
 
+@command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
+    setup_rendering()
+    dists = tuple(args.dists.split(","))
+    if any(d not in DATASETS for d in dists) or len(set(dists)) != len(dists):
+        raise InvalidArgumentError(
+            f"invalid --dists {args.dists!r}; a comma list of: {', '.join(DATASETS)}"
+        )
+    if args.width < 1 or args.lam < 0:
+        raise InvalidArgumentError("--width must be at least 1 and --lam at least 0")
+    if args.name is not None and (not args.name or "/" in args.name or args.name.endswith(".pt")):
+        raise InvalidArgumentError(
+            f"--name must be a plain name such as posenet_ours, got {args.name!r}"
+        )
+    limit, dist_limits = args.limit
+    cfg = PoseNetTrainConfig(  # NetConfig checks the crop side and rotation output
+        variant=args.variant,
+        dists=dists,
+        epochs=args.epochs,
+        batch=args.batch,
+        lr=args.lr,
+        limit=limit,
+        dist_limits=dist_limits,
+        init=args.init,
+        name=args.name,
+        out=args.out,
+        threads=args.threads,
+        device=args.device,
+        loss_log=args.loss_log,
+        width=args.width,
+        lam=args.lam,
+        objects=tuple(o for o in args.objects.split(",") if o),
+        augment=not args.no_augment,
+        decay=not args.constant_lr,
+        crops=CropConfig(size=args.crop),
+        rotation=args.rotation,
+        precision=args.precision,
+        channels_last=args.channels_last,
+    )
+    if args.smoke:
+        cfg = replace(
+            SMOKE,
+            variant=args.variant,
+            dists=dists,
+            out=args.out,
+            device=args.device,
+            loss_log=args.loss_log,
+            threads=args.threads,
+            precision=args.precision,
+            channels_last=args.channels_last,
+        )
+    result = train(cfg, resume=not args.no_resume)
+    print(json.dumps(result["history"][-1] if result["history"] else {}, sort_keys=True))
+    return 0
+
+
+def _parser() -> ArgumentParser:
+    """The command line of `main`, its counts, rates and choices checked while it is parsed."""
+    d = PoseNetTrainConfig
     p = ArgumentParser(prog=TRAIN_COMMAND, description=__doc__.split("\n")[0])
-    p.add_argument("--variant", default="ours", help=f"one of: {', '.join(VARIANTS)}")
-    p.add_argument("--epochs", type=int, default=PoseNetTrainConfig.epochs)
-    p.add_argument("--batch", type=int, default=PoseNetTrainConfig.batch)
-    p.add_argument("--lr", type=float, default=PoseNetTrainConfig.lr)
+    p.add_argument(
+        "--variant",
+        type=arg(check_choice, VARIANTS, "variant"),
+        default="ours",
+        help=f"one of: {', '.join(VARIANTS)}",
+    )
+    p.add_argument(
+        "--epochs",
+        type=arg(check_int, 1, MAX_EPOCHS, "--epochs", base=int),
+        default=d.epochs,
+        help=f"passes over the training crops, 1..{MAX_EPOCHS} (default {d.epochs})",
+    )
+    p.add_argument(
+        "--batch",
+        type=arg(check_int, 1, MAX_BATCH, "--batch", base=int),
+        default=d.batch,
+        help=f"global batch, 1..{MAX_BATCH} (default {d.batch})",
+    )
+    p.add_argument(
+        "--lr",
+        type=arg(check_learning_rate, "--lr", base=float),
+        default=d.lr,
+        help=f"peak learning rate, in (0, {MAX_LR:g}] (default {d.lr:g})",
+    )
     p.add_argument(
         "--limit",
-        default=None,
+        type=arg(parse_limit),
+        default=(None, ()),
         help="at most this many images per split: N for every distribution, or dist=N,...",
     )
     p.add_argument(
@@ -340,18 +641,25 @@ def main(argv: list[str] | None = None) -> int:
         "--init", default=None, help="start from this checkpoint's weights (name or path)"
     )
     p.add_argument("--name", default=None, help="checkpoint name (default: posenet_<variant>)")
+    add_out_argument(p, "the checkpoint (default: <data>/checkpoints)")
     p.add_argument(
-        "--out", type=Path, default=None, help="checkpoint folder (default: <data>/checkpoints)"
+        "--threads",
+        type=arg(check_int, 1, MAX_THREADS, "--threads", base=int),
+        default=None,
+        help=f"CPU threads per process, 1..{MAX_THREADS} (default: the cores shared by the "
+        "processes)",
     )
     p.add_argument(
-        "--threads", type=int, default=None, help="CPU threads per process (default: all cores)"
+        "--device",
+        type=arg(check_choice, DEVICES, "device"),
+        default="auto",
+        help=f"one of: {', '.join(DEVICES)}",
     )
-    p.add_argument("--device", default="auto", help=f"one of: {', '.join(DEVICES)}")
     p.add_argument(
         "--loss-log", type=Path, default=None, help="append one JSON line per step to this file"
     )
-    p.add_argument("--width", type=int, default=PoseNetTrainConfig.width, help="backbone width")
-    p.add_argument("--lam", type=float, default=PoseNetTrainConfig.lam, help="rotation weight")
+    p.add_argument("--width", type=int, default=d.width, help="backbone width")
+    p.add_argument("--lam", type=float, default=d.lam, help="rotation weight")
     p.add_argument("--crop", type=int, default=CROP, help=f"crop side [px] (default {CROP})")
     p.add_argument(
         "--rotation", default="view-roll", help=f"ours' rotation output: {', '.join(ROTATIONS)}"
@@ -359,41 +667,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--objects", default="", help="train one net on these objects (comma list)")
     p.add_argument("--no-augment", action="store_true", help="no photometric jitter")
     p.add_argument("--constant-lr", action="store_true", help="no learning-rate decay")
+    p.add_argument(
+        "--precision",
+        type=arg(check_choice, PRECISIONS, "precision"),
+        default=d.precision,
+        help=f"arithmetic of the forward passes, one of: {', '.join(PRECISIONS)} (bf16: "
+        f"bfloat16 autocast, the loss in fp32; default {d.precision})",
+    )
+    p.add_argument(
+        "--channels-last",
+        action="store_true",
+        help="weights and input crops in channels-last memory layout",
+    )
     p.add_argument("--smoke", action="store_true", help="a tiny run that takes seconds")
     p.add_argument("--no-resume", action="store_true", help="start over")
-    args = p.parse_args(argv)
-    setup_rendering()
-    if args.variant not in VARIANTS:
-        return fail(f"unknown variant {args.variant!r}; valid variants: {', '.join(VARIANTS)}")
-    dists = tuple(args.dists.split(","))
-    if any(d not in DATASETS for d in dists) or len(set(dists)) != len(dists):
-        return fail(f"invalid --dists {args.dists!r}; a comma list of: {', '.join(DATASETS)}")
-    if args.epochs < 1 or args.batch < 1 or args.width < 1 or args.lam < 0:
-        return fail("--epochs, --batch and --width must be at least 1 and --lam at least 0")
-    if args.name is not None and (not args.name or "/" in args.name or args.name.endswith(".pt")):
-        return fail(f"--name must be a plain name such as posenet_ours, got {args.name!r}")
-    try:
-        limit, dist_limits = parse_limit(args.limit)
-        resolve_device(args.device)
-        cfg = PoseNetTrainConfig(
-            variant=args.variant, dists=dists, epochs=args.epochs, batch=args.batch, lr=args.lr,
-            limit=limit, dist_limits=dist_limits, init=args.init, name=args.name, out=args.out,
-            threads=args.threads, device=args.device, loss_log=args.loss_log, width=args.width,
-            lam=args.lam, objects=tuple(o for o in args.objects.split(",") if o),
-            augment=not args.no_augment, decay=not args.constant_lr,
-            crops=CropConfig(size=args.crop), rotation=args.rotation,
-        )  # fmt: skip
-    except PosegraspError as exc:  # NetConfig checks the crop side and rotation output
-        return fail(str(exc))
-    if args.smoke:
-        cfg = replace(SMOKE, variant=args.variant, dists=dists, out=args.out, device=args.device,
-                      loss_log=args.loss_log, threads=args.threads)  # fmt: skip
-    try:
-        result = train(cfg, resume=not args.no_resume)
-    except PosegraspError as exc:
-        return fail(str(exc))
-    print(json.dumps(result["history"][-1] if result["history"] else {}, sort_keys=True))
-    return 0
+    return p
 
 
 if __name__ == "__main__":

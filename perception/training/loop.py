@@ -1,0 +1,65 @@
+"""What the loops of both trainers share: when a run writes its checkpoint, the wall time it has
+taken over all its resumptions, and the checks of their common command-line values."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+from posegrasp.core.errors import InvalidArgumentError
+
+#: Most epochs and largest global batch a command line accepts.
+MAX_EPOCHS = 10_000
+MAX_BATCH = 65_536
+#: Most images a run may be limited to (``--limit``).
+MAX_LIMIT = 100_000_000
+#: Largest peak learning rate a command line accepts.
+MAX_LR = 1.0
+
+
+def check_learning_rate(value: Any, name: str = "--lr") -> float:
+    """`value` as a peak learning rate: a finite number in (0, `MAX_LR`].
+
+    Raises:
+        InvalidArgumentError: anything else, in one line naming the option and the range.
+    """
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not ok or not math.isfinite(value) or not 0 < value <= MAX_LR:
+        raise InvalidArgumentError(f"invalid {name} {value!r}; valid: numbers in (0, {MAX_LR:g}]")
+    return float(value)
+
+
+class Checkpointer:
+    """When a run writes its checkpoint, and its wall time over all its resumptions.
+
+    The run saves whenever it is told (`save`: after each epoch, or when it stops) and at least
+    every `minutes` in between (`save_if_due`, called after each step).
+
+    Args:
+        save: writes the checkpoint of ``(epoch, wall_s)``: whole epochs done and the run's wall
+            time so far [s].
+        minutes: longest time between two saves during an epoch.
+        wall_s: wall time the run had taken before this process resumed it [s].
+    """
+
+    def __init__(self, save: Callable[[int, float], None], minutes: float, wall_s: float = 0.0):
+        self._save = save
+        self._seconds = 60 * minutes
+        self._wall0 = wall_s
+        self._started = self._last = time.monotonic()
+
+    def wall_s(self) -> float:
+        """The run's wall time so far, over all its resumptions [s]."""
+        return self._wall0 + time.monotonic() - self._started
+
+    def save(self, epoch: int) -> None:
+        """Write the checkpoint now, `epoch` whole epochs done."""
+        self._save(epoch, self.wall_s())
+        self._last = time.monotonic()
+
+    def save_if_due(self, epoch: int) -> None:
+        """Write the checkpoint if the last one is older than the interval."""
+        if time.monotonic() - self._last > self._seconds:
+            self.save(epoch)
