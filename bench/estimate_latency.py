@@ -16,7 +16,14 @@ import time
 
 import numpy as np
 
-from posegrasp.core.cli import ArgumentParser, add_json_argument, command, target, write_json
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    add_threads_argument,
+    command,
+    target,
+    write_json,
+)
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int
 from posegrasp.world import constants as C
@@ -39,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--tier", default="any-pose", type=arg(check_choice, list(TIERS), "tier"))
     p.add_argument("--images", default=30, type=arg(check_int, 2, 10000, "--images", base=int))
-    p.add_argument("--threads", default=2, type=arg(check_int, 1, 64, "--threads", base=int))
+    add_threads_argument(p)
     add_json_argument(p, "the figures")
     args = p.parse_args(argv)
     setup_rendering(threads=args.threads)

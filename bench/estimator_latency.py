@@ -34,6 +34,7 @@ from perception.hybrid import DEFAULT_POSENET, STAGES, HybridPoseEstimator
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
+    add_threads_argument,
     command,
     fail,
     summary_stream,
@@ -97,12 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         default=50,
         help="images per scene type, 1..10000 (default 50)",
     )
-    p.add_argument(
-        "--threads",
-        type=arg(check_int, 1, 64, "--threads", base=int),
-        default=2,
-        help="torch threads, 1..64 (default 2)",
-    )
+    add_threads_argument(p)
     p.add_argument(
         "--seed",
         type=arg(check_seed, "--seed", base=int),

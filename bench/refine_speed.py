@@ -38,6 +38,7 @@ from perception.training.dataset import PoseDataset
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
+    add_threads_argument,
     command,
     summary_stream,
     target,
@@ -146,12 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         default=3,
         help="timed runs per object, 1..100 (default 3)",
     )
-    p.add_argument(
-        "--threads",
-        type=arg(check_int, 1, 64, "--threads", base=int),
-        default=2,
-        help="torch threads, 1..64 (default 2)",
-    )
+    add_threads_argument(p)
     add_json_argument(p, "the figures")
     args = p.parse_args(argv)
     setup_rendering()

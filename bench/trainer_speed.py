@@ -55,6 +55,7 @@ from perception.training.train_posenet import (
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
+    add_threads_argument,
     command,
     summary_stream,
     write_json,
@@ -255,12 +256,7 @@ def _batches(text: str) -> list[int]:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python bench/trainer_speed.py", description=__doc__.split("\n")[0])
-    p.add_argument(
-        "--threads",
-        type=arg(check_int, 1, 64, "--threads", base=int),
-        default=2,
-        help="torch threads, 1..64 (default 2)",
-    )
+    add_threads_argument(p)
     p.add_argument(
         "--seconds",
         type=arg(check_int, 1, 600, "--seconds", base=int),

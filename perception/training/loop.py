@@ -9,6 +9,7 @@ from collections.abc import Callable
 from typing import Any
 
 from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.validate import arg, check_choice, check_int
 
 #: Most epochs and largest global batch a command line accepts.
 MAX_EPOCHS = 10_000
@@ -29,6 +30,48 @@ def check_learning_rate(value: Any, name: str = "--lr") -> float:
     if not ok or not math.isfinite(value) or not 0 < value <= MAX_LR:
         raise InvalidArgumentError(f"invalid {name} {value!r}; valid: numbers in (0, {MAX_LR:g}]")
     return float(value)
+
+
+def add_schedule_arguments(
+    parser, epochs: int, batch: int, lr: float, epoch_of: str, batch_of: str
+) -> None:
+    """Add ``--epochs``, ``--batch`` and ``--lr``, checked while parsing, with their defaults;
+    `epoch_of` and `batch_of` say what an epoch passes over and what a batch holds."""
+    parser.add_argument(
+        "--epochs",
+        type=arg(check_int, 1, MAX_EPOCHS, "--epochs", base=int),
+        default=epochs,
+        help=f"passes over {epoch_of}, 1..{MAX_EPOCHS} (default {epochs})",
+    )
+    parser.add_argument(
+        "--batch",
+        type=arg(check_int, 1, MAX_BATCH, "--batch", base=int),
+        default=batch,
+        help=f"global batch{batch_of}, 1..{MAX_BATCH} (default {batch})",
+    )
+    parser.add_argument(
+        "--lr",
+        type=arg(check_learning_rate, "--lr", base=float),
+        default=lr,
+        help=f"peak learning rate, in (0, {MAX_LR:g}] (default {lr:g})",
+    )
+
+
+def add_compute_arguments(parser, devices: tuple[str, ...], max_threads: int, what: str) -> None:
+    """Add ``--threads`` (`what` threads per process) and ``--device``, checked while parsing."""
+    parser.add_argument(
+        "--threads",
+        type=arg(check_int, 1, max_threads, "--threads", base=int),
+        default=None,
+        help=f"{what} threads per process, 1..{max_threads} (default: the cores shared by the "
+        "processes)",
+    )
+    parser.add_argument(
+        "--device",
+        type=arg(check_choice, devices, "device"),
+        default="auto",
+        help=f"one of: {', '.join(devices)}",
+    )
 
 
 class Checkpointer:

@@ -54,12 +54,10 @@ from perception.training.detection_data import (
 from perception.training.detection_eval import evaluate_detector, pycocotools_api
 from perception.training.export_detector import TRAIN_COMMAND, export_detector
 from perception.training.loop import (
-    MAX_BATCH,
-    MAX_EPOCHS,
     MAX_LIMIT,
-    MAX_LR,
     Checkpointer,
-    check_learning_rate,
+    add_compute_arguments,
+    add_schedule_arguments,
 )
 from perception.training.schedule import learning_rate, optimiser_step
 from posegrasp.core.cli import ArgumentParser, add_out_argument, command
@@ -70,7 +68,6 @@ from posegrasp.core.validate import (
     DEFAULT_WORKERS,
     MAX_WORKERS,
     arg,
-    check_choice,
     check_int,
     check_output_dir,
     check_seed,
@@ -578,24 +575,7 @@ def _parser() -> ArgumentParser:
         help=f"more train data: a comma list of dataset folders, of: {', '.join(DATASETS)}",
     )
     p.add_argument("--init", type=Path, help="start from these detector weights (fine-tune)")
-    p.add_argument(
-        "--epochs",
-        type=arg(check_int, 1, MAX_EPOCHS, "--epochs", base=int),
-        default=d.epochs,
-        help=f"passes over the train split, 1..{MAX_EPOCHS} (default {d.epochs})",
-    )
-    p.add_argument(
-        "--batch",
-        type=arg(check_int, 1, MAX_BATCH, "--batch", base=int),
-        default=d.batch,
-        help=f"global batch of images, 1..{MAX_BATCH} (default {d.batch})",
-    )
-    p.add_argument(
-        "--lr",
-        type=arg(check_learning_rate, "--lr", base=float),
-        default=d.lr,
-        help=f"peak learning rate, in (0, {MAX_LR:g}] (default {d.lr:g})",
-    )
+    add_schedule_arguments(p, d.epochs, d.batch, d.lr, "the train split", " of images")
     p.add_argument(
         "--limit",
         type=arg(check_int, 1, MAX_LIMIT, "--limit", base=int),
@@ -616,19 +596,7 @@ def _parser() -> ArgumentParser:
         help=f"data-loading processes, 0..{MAX_WORKERS} (0: load in the training process; "
         f"default {DEFAULT_WORKERS})",
     )
-    p.add_argument(
-        "--threads",
-        type=arg(check_int, 1, MAX_THREADS, "--threads", base=int),
-        default=None,
-        help=f"torch threads per process, 1..{MAX_THREADS} (default: the cores shared by the "
-        "processes)",
-    )
-    p.add_argument(
-        "--device",
-        type=arg(check_choice, DEVICES, "device"),
-        default="auto",
-        help=f"one of: {', '.join(DEVICES)}",
-    )
+    add_compute_arguments(p, DEVICES, MAX_THREADS, "torch")
     p.add_argument(
         "--loss-log", type=Path, default=None, help="append one JSON line per step to this file"
     )

@@ -52,11 +52,9 @@ from perception.training.crop_sets import CropConfig, data_seed_ranges, split_cr
 from perception.training.dataset import DATASETS, DISTS, parse_limit
 from perception.training.ddp import DEVICES, MAX_THREADS, Ranks, joined
 from perception.training.loop import (
-    MAX_BATCH,
-    MAX_EPOCHS,
-    MAX_LR,
     Checkpointer,
-    check_learning_rate,
+    add_compute_arguments,
+    add_schedule_arguments,
 )
 from perception.training.losses import posenet_loss
 from perception.training.manifest import shipped_stages
@@ -66,7 +64,7 @@ from posegrasp.core.cli import ArgumentParser, add_out_argument, command
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import checkpoint_dir
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import arg, check_choice, check_int
+from posegrasp.core.validate import arg, check_choice
 from posegrasp.world.objects import OBJECT_NAMES
 
 #: The command line of this module.
@@ -608,24 +606,7 @@ def _parser() -> ArgumentParser:
         default="ours",
         help=f"one of: {', '.join(VARIANTS)}",
     )
-    p.add_argument(
-        "--epochs",
-        type=arg(check_int, 1, MAX_EPOCHS, "--epochs", base=int),
-        default=d.epochs,
-        help=f"passes over the training crops, 1..{MAX_EPOCHS} (default {d.epochs})",
-    )
-    p.add_argument(
-        "--batch",
-        type=arg(check_int, 1, MAX_BATCH, "--batch", base=int),
-        default=d.batch,
-        help=f"global batch, 1..{MAX_BATCH} (default {d.batch})",
-    )
-    p.add_argument(
-        "--lr",
-        type=arg(check_learning_rate, "--lr", base=float),
-        default=d.lr,
-        help=f"peak learning rate, in (0, {MAX_LR:g}] (default {d.lr:g})",
-    )
+    add_schedule_arguments(p, d.epochs, d.batch, d.lr, "the training crops", "")
     p.add_argument(
         "--limit",
         type=arg(parse_limit),
@@ -642,19 +623,7 @@ def _parser() -> ArgumentParser:
     )
     p.add_argument("--name", default=None, help="checkpoint name (default: posenet_<variant>)")
     add_out_argument(p, "the checkpoint (default: <data>/checkpoints)")
-    p.add_argument(
-        "--threads",
-        type=arg(check_int, 1, MAX_THREADS, "--threads", base=int),
-        default=None,
-        help=f"CPU threads per process, 1..{MAX_THREADS} (default: the cores shared by the "
-        "processes)",
-    )
-    p.add_argument(
-        "--device",
-        type=arg(check_choice, DEVICES, "device"),
-        default="auto",
-        help=f"one of: {', '.join(DEVICES)}",
-    )
+    add_compute_arguments(p, DEVICES, MAX_THREADS, "CPU")
     p.add_argument(
         "--loss-log", type=Path, default=None, help="append one JSON line per step to this file"
     )

@@ -29,6 +29,7 @@ from posegrasp.core.validate import (
     MAX_WORKERS,
     STDOUT,
     arg,
+    check_int,
     check_json_output,
     check_output_dir,
     check_workers,
@@ -169,6 +170,17 @@ def add_out_argument(
         group.add_argument(
             alias, dest="out", type=arg(check_output_dir, alias, base=Path), help=argparse.SUPPRESS
         )
+
+
+def add_threads_argument(parser: argparse.ArgumentParser, default: int = 2) -> None:
+    """Add ``--threads N``: torch's compute threads, checked while parsing (the benchmarks time
+    on the machine's 2 cores by default)."""
+    parser.add_argument(
+        "--threads",
+        type=arg(check_int, 1, 64, "--threads", base=int),
+        default=default,
+        help=f"torch threads, 1..64 (default {default})",
+    )
 
 
 def verdict(met: bool) -> str:
