@@ -84,10 +84,13 @@ def _init_worker() -> None:
 
 
 def _run_one(job: tuple[str, int, str, str, str | None, bool]) -> dict:
+    """One episode of an evaluation, in whatever process runs it (this one, a pool worker, a Ray
+    worker started afresh after another died): it sets up rendering there first."""
     obj, seed, estimator, tier, noise, margin = job
     from grasping.execute import ExecutionConfig
     from sim.episode import EpisodeConfig, play_episode
 
+    setup_rendering()
     t = time.perf_counter()
     try:
         cfg = EpisodeConfig(tier=tier, execution=ExecutionConfig(measure_margin=margin))

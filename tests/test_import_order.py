@@ -74,3 +74,21 @@ def test_importing_the_packages_changes_no_environment_variable() -> None:
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split("\n")[:2] == ["[]", "False"]
+
+
+def test_an_evaluation_job_sets_up_its_own_process() -> None:
+    """A worker that never ran the evaluation's initializer (a Ray worker started afresh after
+    another died) still renders: each job sets up rendering in the process that runs it."""
+    code = textwrap.dedent(
+        """
+        from sim.evaluate import _run_one
+        d = _run_one(("phone", 1_000_000_000, "oracle", "isolated", None, False))
+        print(d["success"], d["failure_reason"])
+        """
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["True", "None"]

@@ -39,6 +39,8 @@ def setup_rendering(threads: int | None = None, preload_torch: bool = True) -> N
         preload_torch: import torch and torchvision now, when installed.
     """
     global _DONE
+    if _DONE and threads is None:
+        return
     default = "egl" if platform.system() == "Linux" else "glfw"
     os.environ.setdefault("MUJOCO_GL", default)
     if threads is not None:
