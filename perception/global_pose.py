@@ -214,8 +214,11 @@ class GlobalPoseEstimator:
         out = []
         for rank, (T, source) in enumerate(starts):
             info = {"iou_after": 0.0}
-            for _ in range(cfg.refine_passes):
-                T, info = self.refiner.refine(det.name, T, K, det.mask, rgb, occluder)
+            try:
+                for _ in range(cfg.refine_passes):
+                    T, info = self.refiner.refine(det.name, T, K, det.mask, rgb, occluder)
+            except InvalidArgumentError:
+                continue  # a start behind the camera: not a pose to verify
             app = appearance_score(pieces, colours, T, K, rgb, det.mask)
             edges = edge_score(pieces, T, K, edge_distance, box)
             iou = float(info["iou_after"])
@@ -234,6 +237,8 @@ class GlobalPoseEstimator:
             return Estimate(None, neighbours, info)
         ranked, times = self.verify(best, obs.K, obs.rgb, target.occluder())
         info["timings_ms"] |= times
+        if not ranked:
+            return Estimate(None, neighbours, info | {"verify": {"hypotheses": 0}})
         win = ranked[0]
         info["verify"] = {
             "confidence": win.score,
