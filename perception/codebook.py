@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from perception.geometry import r_corr
+from perception.overlay import mask_box
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.world.objects import load_object
 
@@ -236,6 +237,25 @@ def top_hypotheses(
     return kept
 
 
+def _far_to_near(
+    pieces: list[np.ndarray], T: np.ndarray, K: np.ndarray, origin: tuple[int, int]
+) -> list[tuple[int, np.ndarray]] | None:
+    """Each piece's projected hull at pose T, as (piece index, polygon in 1/16 px relative to
+    the pixel `origin`), far pieces first; None when a vertex lies behind the camera."""
+    depth, drawn = [], []
+    for piece in pieces:
+        X = piece @ T[:3, :3].T + T[:3, 3]
+        if X[:, 2].min() < 1e-3:
+            return None
+        depth.append(float(X[:, 2].mean()))
+        drawn.append(((X @ K.T)[:, :2] / X[:, 2:3] - np.array(origin)).astype(np.float32))
+    out = []
+    for i in np.argsort(depth)[::-1]:
+        hull = cv2.convexHull(drawn[i], returnPoints=False)[:, 0]
+        out.append((int(i), np.round(drawn[i][hull] * 16).astype(np.int32)))
+    return out
+
+
 def paint(
     pieces: list[np.ndarray],
     colours: np.ndarray,
@@ -247,21 +267,12 @@ def paint(
     `box` (x0, y0, x1, y1) [px]: colour image (h, w, 3) float32 and coverage (h, w) bool; None
     when a vertex lies behind the camera."""
     x0, y0, x1, y1 = box
+    polygons = _far_to_near(pieces, T, K, (x0, y0))
+    if polygons is None:
+        return None
     img = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
     cover = np.zeros((y1 - y0, x1 - x0), np.uint8)
-    depth = []
-    drawn = []
-    for piece in pieces:
-        X = piece @ T[:3, :3].T + T[:3, 3]
-        if X[:, 2].min() < 1e-3:
-            return None
-        uv = (X @ K.T)[:, :2] / X[:, 2:3] - np.array([x0, y0])
-        depth.append(float(X[:, 2].mean()))
-        drawn.append(uv)
-    for i in np.argsort(depth)[::-1]:
-        uv = drawn[i].astype(np.float32)
-        hull = cv2.convexHull(uv, returnPoints=False)[:, 0]
-        pts = np.round(uv[hull] * 16).astype(np.int32)
+    for i, pts in polygons:
         cv2.fillConvexPoly(img, pts, tuple(float(c) for c in colours[i]), cv2.LINE_8, 4)
         cv2.fillConvexPoly(cover, pts, 1, cv2.LINE_8, 4)
     return img, cover.view(bool)
@@ -274,14 +285,15 @@ def appearance_score(
     K: np.ndarray,
     rgb: np.ndarray,
     mask: np.ndarray,
+    box: tuple[int, int, int, int] | None = None,
 ) -> float:
     """Pearson correlation, over the mask's pixels the pose covers, of the pieces' colours drawn
     at pose T with the image (all three channels together): near 1 when the coloured parts
-    lie where the image shows those colours; 0 when undefined."""
-    ys, xs = np.nonzero(mask)
-    if xs.size == 0:
+    lie where the image shows those colours; 0 when undefined. `box` is the mask's box
+    (`perception.overlay.mask_box`), computed here when not given."""
+    box = box if box is not None else mask_box(mask)
+    if box is None:
         return 0.0
-    box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
     drawn = paint(pieces, colours, T, K, box)
     if drawn is None:
         return 0.0
@@ -303,18 +315,12 @@ def _id_map(
     """Which piece (1-based, 0: none) covers each pixel of the window `box` at pose T, far
     pieces drawn first; None when a vertex lies behind the camera."""
     x0, y0, x1, y1 = box
+    polygons = _far_to_near(pieces, T, K, (x0, y0))
+    if polygons is None:
+        return None
     ids = np.zeros((y1 - y0, x1 - x0), np.uint8)
-    depth, drawn = [], []
-    for piece in pieces:
-        X = piece @ T[:3, :3].T + T[:3, 3]
-        if X[:, 2].min() < 1e-3:
-            return None
-        depth.append(float(X[:, 2].mean()))
-        drawn.append((X @ K.T)[:, :2] / X[:, 2:3] - np.array([x0, y0]))
-    for i in np.argsort(depth)[::-1]:
-        uv = drawn[i].astype(np.float32)
-        hull = cv2.convexHull(uv, returnPoints=False)[:, 0]
-        cv2.fillConvexPoly(ids, np.round(uv[hull] * 16).astype(np.int32), int(i) + 1, cv2.LINE_8, 4)
+    for i, pts in polygons:
+        cv2.fillConvexPoly(ids, pts, i + 1, cv2.LINE_8, 4)
     return ids
 
 

@@ -44,6 +44,7 @@ from perception.codebook import (
     top_hypotheses,
 )
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target
+from perception.overlay import mask_box
 from perception.refine import PoseRefiner
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
@@ -87,16 +88,11 @@ class GlobalConfig:
 EDGE_MARGIN_PX = 10
 
 
-def _grown_box(mask: np.ndarray, margin: int) -> tuple[int, int, int, int]:
-    """The box (x0, y0, x1, y1) of a non-empty mask grown by `margin`, inside the image."""
-    ys, xs = np.nonzero(mask)
-    H, W = mask.shape
-    return (
-        max(0, int(xs.min()) - margin),
-        max(0, int(ys.min()) - margin),
-        min(W, int(xs.max()) + margin + 1),
-        min(H, int(ys.max()) + margin + 1),
-    )
+def _grown(box: tuple[int, int, int, int], margin: int, shape: tuple[int, ...]):
+    """`box` (x0, y0, x1, y1) grown by `margin` [px] on each side, inside an image of `shape`."""
+    x0, y0, x1, y1 = box
+    H, W = shape[:2]
+    return max(0, x0 - margin), max(0, y0 - margin), min(W, x1 + margin), min(H, y1 + margin)
 
 
 class CodebookCache:
@@ -209,7 +205,8 @@ class GlobalPoseEstimator:
                 starts.append((hypothesis_pose(book, i, view, K), "codebook"))
         t1 = time.perf_counter()
         pieces, colours = self.codebooks.source.pieces(det.name), self.colours(det.name)
-        box = _grown_box(det.mask, EDGE_MARGIN_PX) if view is not None else (0, 0, 1, 1)
+        tight = mask_box(det.mask) if view is not None else (0, 0, 1, 1)
+        box = _grown(tight, EDGE_MARGIN_PX, det.mask.shape)
         edge_distance = image_edges(rgb, box)
         out = []
         for rank, (T, source) in enumerate(starts):
@@ -219,7 +216,7 @@ class GlobalPoseEstimator:
                     T, info = self.refiner.refine(det.name, T, K, det.mask, rgb, occluder)
             except InvalidArgumentError:
                 continue  # a start behind the camera: not a pose to verify
-            app = appearance_score(pieces, colours, T, K, rgb, det.mask)
+            app = appearance_score(pieces, colours, T, K, rgb, det.mask, tight)
             edges = edge_score(pieces, T, K, edge_distance, box)
             iou = float(info["iou_after"])
             score = iou + cfg.appearance_weight * app + cfg.edge_weight * edges

@@ -30,11 +30,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from perception.codebook import ConvexParts
 from perception.metrics import rotation_error_deg
 from perception.overlay import mask_box, window_intrinsics
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.transforms import axis_angle, check_intrinsics, rigid_problem
-from posegrasp.world.objects import load_object
 
 _Opt = np.ndarray | None
 #: The refinement stops when a model vertex comes closer than this to the camera plane [m].
@@ -139,18 +139,16 @@ class PoseRefiner:
 
     def __init__(self, config: RefineConfig | None = None) -> None:
         self.config = config or RefineConfig()
-        self._parts: dict[str, list[np.ndarray]] = {}
+        self._parts = ConvexParts()
 
     def part_vertices(self, name: str) -> list[np.ndarray]:
-        """The vertices of each convex part of an object in O [m], each (n_i, 3); loaded once.
+        """The vertices of each convex part of an object in O [m], each (n_i, 3); loaded once
+        (`perception.codebook.ConvexParts`).
 
         Raises:
             UnknownNameError: name is not a known object (the message lists them).
         """
-        if name not in self._parts:
-            model = load_object(name)
-            self._parts[name] = [np.unique(p.mesh().vertices, axis=0) for p in model.parts]
-        return self._parts[name]
+        return self._parts.pieces(name)
 
     def refine(
         self,

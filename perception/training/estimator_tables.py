@@ -80,17 +80,17 @@ def summarise_queries(rows: list[dict]) -> dict[str, dict[str, float]]:
             continue
         hit = [r for r in sel if r["found"]]
         rot = np.array([r["rotation_deg"] for r in hit])
+
+        def mean(key: str, hit=hit) -> float:
+            return float(np.mean([r[key] for r in hit])) if hit else float("nan")
+
         out[name] = {
             "queries": len(sel),
             "found_pct": 100 * len(hit) / len(sel),
-            "centre_px": float(np.mean([r["centre_px"] for r in hit])) if hit else float("nan"),
-            "distance_pct": (
-                float(np.mean([r["distance_pct"] for r in hit])) if hit else float("nan")
-            ),
-            "translation_pct": (
-                float(np.mean([r["translation_pct"] for r in hit])) if hit else float("nan")
-            ),
-            "rotation_mean_deg": float(rot.mean()) if hit else float("nan"),
+            "centre_px": mean("centre_px"),
+            "distance_pct": mean("distance_pct"),
+            "translation_pct": mean("translation_pct"),
+            "rotation_mean_deg": mean("rotation_deg"),
             "rotation_median_deg": float(np.median(rot)) if hit else float("nan"),
             "over_15_deg_pct": float(100 * np.mean(rot > OUTLIER_DEG)) if hit else float("nan"),
             "median_ms": float(np.median([r["ms"] for r in sel])),
