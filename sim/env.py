@@ -1,13 +1,15 @@
 """`GraspEval-v0`: a gymnasium env in which one step is one grasp episode.
 
-Any pose estimator can be scored through it: the observation is the head-camera image with its
-intrinsics and pose, the requested object class and the height of the table top the object rests
-on (known scene geometry, in the world frame); the action is the estimated pose of that
-object in the camera frame (or "no estimate"); the step executes the grasp on that pose.
+Any pose estimator can be scored through it: the observation is the head-camera image (and,
+with ``obs_mode="rgbd"``, its depth image) with its intrinsics and pose, the requested object
+class and the height of the table top the object rests on (known scene geometry, in the world
+frame); the action is the estimated pose of that object in the camera frame (or "no estimate");
+the step executes the grasp on that pose.
 """
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any, ClassVar
@@ -16,16 +18,16 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from posegrasp.core.contract import transform_problem
 from posegrasp.core.errors import InvalidArgumentError, StateError, UnknownNameError
-from posegrasp.core.failures import check_failure_reason
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import mat_to_quat, quat_to_mat
-from posegrasp.core.validate import check_seed
+from posegrasp.core.validate import SEED_LIMIT, check_seed
 from posegrasp.world.camera import CameraRenderer, external_renderer
 from posegrasp.world.constants import EXTERNAL_CAMERA
-from posegrasp.world.objects import OBJECT_NAMES, check_object
+from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import check_tier
-from sim.episode import Episode, EpisodeConfig
+from sim.episode import Episode, EpisodeConfig, check_estimate
 
 #: Tolerance on the norm of the action's quaternion.
 UNIT_QUAT_TOL = 1e-3
@@ -40,30 +42,55 @@ ACTION_KEYS = ("has_estimate", "position", "quaternion")
 def pose_action(
     T_C_O: np.ndarray | None, neighbours: Sequence[tuple[str, np.ndarray]] = ()
 ) -> dict[str, Any]:
-    """The action that reports pose T_C_O (4x4, camera frame, metres), or no estimate, and,
-    when given, the other objects seen: (class, T_C_N) pairs, at most `MAX_NEIGHBOURS`."""
-    if len(neighbours) > MAX_NEIGHBOURS:
-        raise InvalidArgumentError(f"at most {MAX_NEIGHBOURS} neighbours, got {len(neighbours)}")
+    """The action that reports a pose, or no estimate, and the other objects seen.
+
+    Args:
+        T_C_O: the target's pose (4, 4) in the camera frame [m], or None for no estimate.
+        neighbours: the other objects seen, (class, T_C_N) pairs in the camera frame, at most
+            `MAX_NEIGHBOURS`.
+
+    Returns:
+        An action of `GraspEvalEnv.action_space` (``neighbours`` only when some are given).
+
+    Raises:
+        InvalidArgumentError: a pose that is not a finite 4x4 rigid transform (a rotation block
+            off orthonormal by more than `posegrasp.core.contract.ROTATION_TOL`, a reflection,
+            a last row other than (0, 0, 0, 1)), which no quaternion represents; a neighbour
+            that is not a (class, pose) pair; more than `MAX_NEIGHBOURS` neighbours.
+        UnknownNameError: a neighbour of an unknown class.
+    """
+    T, told, _ = check_estimate(T_C_O, neighbours)
+    poses = [("pose T_C_O", T)] if T is not None else []
+    poses += [(f"pose of neighbour {i} ({n!r})", pose) for i, (n, pose) in enumerate(told)]
+    for what, pose in poses:
+        if (problem := transform_problem(pose)) is not None:
+            raise InvalidArgumentError(f"{what}: {problem}")
+    if len(told) > MAX_NEIGHBOURS:
+        raise InvalidArgumentError(f"at most {MAX_NEIGHBOURS} neighbours, got {len(told)}")
     action: dict[str, Any] = {
         "has_estimate": 0,
         "position": np.zeros(3),
         "quaternion": np.array([1.0, 0, 0, 0]),
     }
-    if T_C_O is not None:
+    if T is not None:
         action |= {
             "has_estimate": 1,
-            "position": np.asarray(T_C_O[:3, 3], float).copy(),
-            "quaternion": mat_to_quat(T_C_O[:3, :3]),
+            "position": T[:3, 3].copy(),
+            "quaternion": mat_to_quat(T[:3, :3]),
         }
-    if neighbours:
-        n = len(neighbours)
+    if told:
         quats = np.tile([1.0, 0.0, 0.0, 0.0], (MAX_NEIGHBOURS, 1))
         pos = np.zeros((MAX_NEIGHBOURS, 3))
         ids = np.zeros(MAX_NEIGHBOURS, np.int64)
-        for i, (name, T) in enumerate(neighbours):
-            ids[i] = OBJECT_NAMES.index(check_object(name))
-            pos[i], quats[i] = np.asarray(T, float)[:3, 3], mat_to_quat(np.asarray(T)[:3, :3])
-        action["neighbours"] = {"count": n, "object": ids, "position": pos, "quaternion": quats}
+        for i, (name, pose) in enumerate(told):
+            ids[i] = OBJECT_NAMES.index(name)
+            pos[i], quats[i] = pose[:3, 3], mat_to_quat(pose[:3, :3])
+        action["neighbours"] = {
+            "count": len(told),
+            "object": ids,
+            "position": pos,
+            "quaternion": quats,
+        }
     return action
 
 
@@ -100,13 +127,44 @@ def _pose(pos: np.ndarray, quat: np.ndarray, what: str) -> tuple[np.ndarray | No
     return T, None
 
 
+def _rearm_env_checker(env: gym.Env) -> None:
+    """After a refused reset, let the `gymnasium.wrappers.PassiveEnvChecker` that called it
+    check the next reset instead.
+
+    `gymnasium.make` wraps the env in a PassiveEnvChecker, which marks its first reset checked
+    before calling it and keeps that reset's observation to compare with the first step's. A
+    first reset that raises leaves it marked but without that observation, and its first step
+    then fails with a TypeError inside gymnasium, however valid the later reset and step. The
+    checker is on the call stack of the refused reset (its ``reset`` called this env's); marking
+    it unchecked again makes the next successful reset the one it checks and keeps.
+    """
+    checker = getattr(gym.wrappers, "PassiveEnvChecker", None)
+    frame = sys._getframe(1)
+    for _ in range(16):
+        if frame is None or checker is None:
+            return
+        wrapper = frame.f_locals.get("self")
+        if (
+            isinstance(wrapper, checker)
+            and wrapper.env is env
+            and getattr(wrapper, "checked_reset", False)
+            and getattr(wrapper, "_previous_data", None) is None
+        ):
+            wrapper.checked_reset = False
+            return
+        frame = frame.f_back
+
+
 class GraspEvalEnv(gym.Env):
     """Score a 6D pose estimate by a simulated Fetch grasping the object on it.
 
     ## Description
     Each episode builds a seeded MuJoCo scene (Fetch in front of a table with one object),
     renders the head camera and asks the agent for the pose of the requested object. The single
-    step plans a grasp with mink on that pose and executes it in physics.
+    step plans a grasp with mink on that pose and executes it in physics. An episode is
+    `sim.episode.Episode` itself: with the same object, episode seed, tier and config, an env
+    episode and `sim.episode.play_episode` build the same scene, render the same image and, on
+    the same pose, grasp the same way.
 
     ## Action Space
     `Dict`: `has_estimate` (`Discrete(2)`, 0 = no estimate), `position` (`Box(3,)`, object
@@ -115,41 +173,73 @@ class GraspEvalEnv(gym.Env):
     estimator saw, which the planner keeps the gripper clear of: `Dict` of `count`
     (`Discrete(MAX_NEIGHBOURS + 1)`), `object` (`MultiDiscrete`, class indices), `position`
     (`Box(MAX_NEIGHBOURS, 3)`) and `quaternion` (`Box(MAX_NEIGHBOURS, 4)`); the first `count`
-    rows are used (`pose_action(T, neighbours)` builds it). `has_estimate` must be 0 or 1 (an int
-    or bool); positions and quaternions real arrays of their shapes.
+    rows are used (`pose_action(T, neighbours)` builds it from 4x4 poses). `has_estimate` must be
+    0 or 1 (an int or bool); positions and quaternions real arrays of their shapes.
 
     ## Observation Space
     `Dict`: `rgb` (`Box(H, W, 3)`, uint8), `K` (`Box(3, 3)`, intrinsics [px]), `T_world_cam`
     (`Box(4, 4)`, camera pose in the world, OpenCV convention), `object` (`Discrete(6)`, index
-    into `posegrasp.world.objects.OBJECT_NAMES`).
+    into `posegrasp.world.objects.OBJECT_NAMES`), `table_top_z` (`Box(1,)`, the table top's
+    height in the world [m]) and, with ``obs_mode="rgbd"``, `depth` (`Box(0, inf, (H, W))`,
+    float32: per pixel the z coordinate along the optical axis of the surface seen [m], as
+    `posegrasp.core.contract.Observation.depth`). The colour image is the same in both modes.
 
     ## Rewards
     1.0 when the object is lifted at least 0.10 m above the table and still held after a 2 s
     hold, else 0.0. `info` repeats it as `success` with `failure_reason`, the pose errors
-    (`pose_error`), `lift_height`, and with `timings=True` the wall-clock `timings_ms` (off by
-    default: wall-clock times differ between runs, and same-seed rollouts are identical).
+    (`pose_error`, with BOP's MSSD and MSPD), `pose_correct` (MSSD below 10 % of the diameter;
+    None without a valid estimate), `lift_height`, and with `timings=True` the wall-clock
+    `timings_ms` (off by default: wall-clock times differ between runs, and same-seed rollouts
+    are identical).
 
     ## Starting State
     The object at a random position and yaw on the table, the robot's base at a random pose
-    facing it, the head aimed at it; all drawn from the env's `np_random`.
+    facing it, the head aimed at it: the scene of the episode seed (below), built by
+    `posegrasp.world.scene.build_scene`.
+
+    ## Seeding
+    Every episode plays one *episode seed*, reported as ``info["episode_seed"]`` by `reset` and
+    `step`; the scene depends on the object, that seed, the tier and the config alone.
+
+    * ``reset(seed=s)`` plays episode seed ``s`` and reseeds `np_random` with ``s``.
+    * A later ``reset()`` without a seed plays the seed after the previous episode's:
+      ``s + 1``, ``s + 2``, ... (modulo 2**32).
+    * The first ``reset()`` of an env that was never given a seed draws its episode seed from
+      `np_random` (unseeded: fresh entropy); the later ones count on from it.
+    * ``options={"episode_seed": e}`` plays episode seed ``e`` whatever the seed (which still
+      reseeds `np_random`); the resets after it count on from ``e``.
+    * With ``object=None`` the class is drawn from `np_random`, after it is reseeded.
+
+    Hence `sim.evaluate`'s episode ``i`` of object ``X`` (``--objects X --seed-start S``, which
+    plays scene seed ``S + i``) is ``GraspEvalEnv(object=X).reset(seed=S + i)``, or the
+    ``i``-th reset after ``reset(seed=S)``, of an env with the same tier and the default
+    config and resolution; the env's ``success`` and ``T_C_O_true`` then match the report's for
+    the same pose. In a vector env, sub-env ``k`` of ``reset(seed=s)`` starts at ``s + k`` and
+    counts on by one, so sub-envs replay each other's seeds: give each its episodes with
+    ``options={"episode_seed": e}`` to cover seeds without repeats.
 
     ## Episode End
-    Terminated after the one step. An action that is not a finite pose with a unit quaternion
-    ends the episode as a failed grasp with `failure_reason = "invalid_action"` (and the
-    problem in `info["error"]`), as does a non-finite or non-unit neighbour pose; an action of
-    the wrong structure, shape or type (a string, NaN or 2 as `has_estimate`, complex numbers)
-    raises `InvalidArgumentError` (a ValueError). A bad `seed` (not in 0..2**32-1) or bad
-    `options` make `reset` raise before it builds anything; the env then has no episode and
-    `step` raises `StateError` until a reset succeeds.
+    Terminated after the one step. An action that is not a finite pose with a unit quaternion,
+    or whose position lies beyond `posegrasp.core.contract.MAX_POSE_DISTANCE` (10 m) of the
+    camera (poses are in metres), ends the episode as a failed grasp with
+    `failure_reason = "invalid_action"` (and the problem in `info["error"]`), as does such a
+    neighbour pose; an action of the wrong structure, shape or type (a string, NaN or 2 as
+    `has_estimate`, complex numbers) raises `InvalidArgumentError` (a ValueError). A bad `seed`
+    (not in 0..2**32-1) or bad `options` make `reset` raise before it builds anything; the env
+    then has no episode and `step` raises `StateError` until a reset succeeds (through
+    `gymnasium.make` too: its env checker then checks that later reset instead).
 
     ## Arguments
     `object`: a class name, or None to draw one per episode; `width`, `height`: head camera
     resolution; `render_mode`: None or "rgb_array" (external camera view); `config`: an
     `EpisodeConfig`; `timings`: add per-stage wall-clock timings to `info`; `tier`: the scene
-    tier (`posegrasp.world.tiers.TIERS`, default ``isolated``, or the config's).
+    tier (`posegrasp.world.tiers.TIERS`, default ``isolated``, or the config's); `obs_mode`:
+    ``rgb`` or ``rgbd`` (`sim.episode.OBS_MODES`; default ``rgb``, or the config's).
 
     ## Version History
-    * v0: first version.
+    * v0: first version; the depth observation (``obs_mode``), the episode-seed mapping above,
+      `pose_correct` and the units check on positions were added without a version change
+      (the defaults observe and act as before).
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -163,27 +253,31 @@ class GraspEvalEnv(gym.Env):
         config: EpisodeConfig | None = None,
         timings: bool = False,
         tier: str | None = None,
+        obs_mode: str | None = None,
     ) -> None:
         if object is not None and object not in OBJECT_NAMES:
             raise UnknownNameError("object", object, OBJECT_NAMES)
-        setup_rendering()
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise UnknownNameError("render mode", str(render_mode), self.metadata["render_modes"])
+        base = config or EpisodeConfig()
+        self.tier = check_tier(tier if tier is not None else base.tier)
+        mode = obs_mode if obs_mode is not None else base.obs_mode
+        self.config = replace(base, width=width, height=height, tier=self.tier, obs_mode=mode)
+        self.obs_mode = self.config.obs_mode
+        setup_rendering()
         self.object = object
         self.timings = timings
         self.render_mode = render_mode
-        base = config or EpisodeConfig()
-        self.tier = check_tier(tier if tier is not None else base.tier)
-        self.config = replace(base, width=width, height=height, tier=self.tier)
-        self.observation_space = spaces.Dict(
-            {
-                "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
-                "K": spaces.Box(-np.inf, np.inf, (3, 3), np.float64),
-                "T_world_cam": spaces.Box(-np.inf, np.inf, (4, 4), np.float64),
-                "object": spaces.Discrete(len(OBJECT_NAMES)),
-                "table_top_z": spaces.Box(-np.inf, np.inf, (1,), np.float64),
-            }
-        )
+        observations = {
+            "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
+            "K": spaces.Box(-np.inf, np.inf, (3, 3), np.float64),
+            "T_world_cam": spaces.Box(-np.inf, np.inf, (4, 4), np.float64),
+            "object": spaces.Discrete(len(OBJECT_NAMES)),
+            "table_top_z": spaces.Box(-np.inf, np.inf, (1,), np.float64),
+        }
+        if self.obs_mode == "rgbd":
+            observations["depth"] = spaces.Box(0.0, np.inf, (height, width), np.float32)
+        self.observation_space = spaces.Dict(observations)
         m = MAX_NEIGHBOURS
         neighbours = {
             "count": spaces.Discrete(m + 1),
@@ -202,6 +296,7 @@ class GraspEvalEnv(gym.Env):
         self._episode: Episode | None = None
         self._obs: dict[str, Any] = {}
         self._external: CameraRenderer | None = None
+        self._next_seed: int | None = None
 
     def _close_episode(self) -> None:
         if self._episode is not None:
@@ -214,12 +309,30 @@ class GraspEvalEnv(gym.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, Any], dict[str, Any]]:
-        """Start an episode. `options` may set `object` and `episode_seed`.
+        """Start an episode (which episode seed it plays: the class docstring's Seeding).
+
+        Args:
+            seed: the episode seed, and the seed of `np_random`; None for the seed after the
+                previous episode's.
+            options: may set `object` (a class name) and `episode_seed` (overrides `seed` as the
+                episode seed).
+
+        Returns:
+            The observation and ``{"object": class, "episode_seed": seed}``.
 
         Raises:
             InvalidArgumentError, UnknownNameError: a bad seed or options, found before any state
                 changes; a later `step` then asks for a reset.
         """
+        try:
+            return self._reset(seed, options)
+        except Exception:
+            _rearm_env_checker(self)
+            raise
+
+    def _reset(
+        self, seed: int | None, options: dict[str, Any] | None
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
         self._close_episode()
         if seed is not None:
             check_seed(seed, "seed")
@@ -236,7 +349,15 @@ class GraspEvalEnv(gym.Env):
         super().reset(seed=seed)
         if obj is None:
             obj = OBJECT_NAMES[int(self.np_random.integers(len(OBJECT_NAMES)))]
-        ep_seed = int(options.get("episode_seed", self.np_random.integers(2**31 - 1)))
+        if "episode_seed" in options:
+            ep_seed = int(options["episode_seed"])
+        elif seed is not None:
+            ep_seed = int(seed)
+        elif self._next_seed is not None:
+            ep_seed = self._next_seed
+        else:
+            ep_seed = int(self.np_random.integers(2**31 - 1))
+        self._next_seed = (ep_seed + 1) % SEED_LIMIT
         self._episode = Episode(obj, ep_seed, self.config)
         o = self._episode.observe()
         obs = {
@@ -246,8 +367,13 @@ class GraspEvalEnv(gym.Env):
             "object": OBJECT_NAMES.index(obj),
             "table_top_z": np.array([o.table_top_z], np.float64),
         }
+        if o.depth is not None:
+            obs["depth"] = o.depth
         self._obs = obs
-        return obs, {"object": obj, "episode_seed": ep_seed}
+        return self._copy_obs(), {"object": obj, "episode_seed": ep_seed}
+
+    def _copy_obs(self) -> dict[str, Any]:
+        return {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in self._obs.items()}
 
     def _parse_action(
         self, action: dict[str, Any]
@@ -301,21 +427,27 @@ class GraspEvalEnv(gym.Env):
         return out
 
     def step(self, action: dict[str, Any]):
-        """Grasp on the estimated pose; the episode ends."""
+        """Grasp on the estimated pose; the episode ends.
+
+        Raises:
+            InvalidArgumentError: an action of the wrong structure, shape or type.
+            StateError: no episode (no reset yet, or the last one was refused).
+        """
         if self._episode is None:
             raise StateError("no episode to act on: call reset() first")
         T, neighbours, error = self._parse_action(action)
+        if error is None:
+            error = check_estimate(T, neighbours)[2]  # e.g. a position in millimetres
         ep = self._episode
         if error is not None:
-            result = ep.act(None, "env")
-            result.failure_reason = check_failure_reason("invalid_action")
-            result.notes.append(error)
+            result = ep.reject(error, "env", T)
         else:
             result = ep.act(T, "env", neighbours=neighbours)
         info = {
             "success": result.success,
             "failure_reason": result.failure_reason,
             "pose_error": result.pose_error,
+            "pose_correct": result.pose_correct,
             "lift_height": result.lift_height,
             "object": result.object,
             "episode_seed": result.seed,
@@ -325,8 +457,7 @@ class GraspEvalEnv(gym.Env):
             info["timings_ms"] = result.timings_ms
         if error is not None:
             info["error"] = error
-        obs = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in self._obs.items()}
-        return obs, float(result.success), True, False, info
+        return self._copy_obs(), float(result.success), True, False, info
 
     def render(self) -> np.ndarray | None:
         """External-camera view of the current state (render_mode "rgb_array")."""

@@ -1,38 +1,63 @@
 """One grasp episode, written once: build a seeded scene, look, ask an estimator, grasp, score.
 
-`Episode(object, seed)` builds the scene; `observe()` renders the head camera; `act(T_C_O)`
-plans and executes a grasp on that *estimated* pose and returns an `EpisodeResult`. The
-gymnasium env and the CLIs wrap this class.
+`Episode(object, seed)` builds the scene; `observe()` renders the head camera (colour, and depth
+with ``obs_mode="rgbd"``); `act(T_C_O)` plans and executes a grasp on that *estimated* pose and
+returns an `EpisodeResult`. A pose that is not valid (`posegrasp.core.contract.pose_problem`)
+ends the episode as a failed grasp with ``invalid_action``. The gymnasium env and the CLIs wrap
+this class.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
 from grasping.execute import ExecutionConfig, Executor
-from grasping.planner import POSE_TOL, GraspPlanner, PlannerConfig, PlanningError
-from perception.metrics import error_components
-from posegrasp.core.contract import CONTRACT_VERSION, Estimate, Observation, PoseEstimator
-from posegrasp.core.errors import InvalidArgumentError, StateError
+from grasping.planner import GraspPlanner, PlannerConfig, PlanningError
+from perception.metrics import Symmetry, error_components, identity_symmetry
+from posegrasp.core.contract import (
+    CONTRACT_VERSION,
+    Estimate,
+    Observation,
+    PoseEstimator,
+    as_pose_array,
+    pose_problem,
+)
+from posegrasp.core.errors import InvalidArgumentError, StateError, UnknownNameError
 from posegrasp.core.failures import check_failure_reason
-from posegrasp.core.transforms import check_rigid
 from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, RenderOptions, T_world_cam, camera_intrinsics
-from posegrasp.world.objects import check_object
+from posegrasp.world.objects import ObjectModel, check_object
 from posegrasp.world.scene import Scene, SceneConfig, build_scene
 from posegrasp.world.tiers import DEFAULT_TIER, tier_scene
 from sim.estimators import PrivilegedEstimator
 
+#: What `Episode.observe` renders: ``rgb`` the colour image, ``rgbd`` also the depth image.
+OBS_MODES = ("rgb", "rgbd")
+#: An estimate is correct (``EpisodeResult.pose_correct``) when its MSSD is below this fraction
+#: of the object's diameter (BOP's MSSD, at the threshold of the ADD(-S) < 0.1 d test).
+POSE_CORRECT_MSSD = 0.1
+
 
 @dataclass(frozen=True)
 class EpisodeConfig:
-    """Everything that defines an episode besides object, seed and estimator; `tier` names the
-    scene preset (`posegrasp.world.tiers`) applied to `scene`."""
+    """Everything that defines an episode besides object, seed and estimator.
+
+    Attributes:
+        width, height: head-camera resolution [px].
+        shadows: render shadows.
+        scene, planner, execution: the scene, planner and executor settings.
+        tier: the scene preset (`posegrasp.world.tiers`) applied to `scene`.
+        obs_mode: what the observation holds, one of `OBS_MODES`: ``rgb`` the colour image,
+            ``rgbd`` also the depth image (`Observation.depth`).
+
+    Raises:
+        UnknownNameError: an obs_mode not in `OBS_MODES`.
+    """
 
     width: int = 640
     height: int = 480
@@ -41,13 +66,22 @@ class EpisodeConfig:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
     tier: str = DEFAULT_TIER
+    obs_mode: str = "rgb"
+
+    def __post_init__(self) -> None:
+        if self.obs_mode not in OBS_MODES:
+            raise UnknownNameError("observation mode", str(self.obs_mode), OBS_MODES)
 
 
 @dataclass
 class EpisodeResult:
-    """The outcome of one episode (all lengths [m], angles in the error dict in [deg]);
-    `friction_margin` is the lowest sliding friction at which the grasp still held, when
-    measured (`grasping.execute.Executor.friction_margin`)."""
+    """The outcome of one episode (all lengths [m], angles in the error dict in [deg]).
+
+    `pose_error` holds the estimate's errors (`pose_errors`), None without a valid estimate;
+    `pose_correct` whether its MSSD is below `POSE_CORRECT_MSSD` times the object's diameter
+    (None without a valid estimate); `friction_margin` is the lowest sliding friction at which
+    the grasp still held, when measured (`grasping.execute.Executor.friction_margin`).
+    """
 
     object: str
     seed: int
@@ -65,29 +99,119 @@ class EpisodeResult:
     estimate_info: dict[str, Any] = field(default_factory=dict)
     friction_margin: float | None = None
     scene: dict[str, Any] = field(default_factory=dict)
+    pose_correct: bool | None = None
 
     def to_json(self) -> dict[str, Any]:
-        """A JSON-serialisable dict."""
+        """A JSON-serialisable dict (strict JSON: an estimate with non-finite entries, which
+        ends as ``invalid_action``, is written as null)."""
         d = asdict(self)
         d["T_C_O_true"] = self.T_C_O_true.tolist()
-        d["T_C_O_est"] = None if self.T_C_O_est is None else self.T_C_O_est.tolist()
+        est = self.T_C_O_est
+        d["T_C_O_est"] = None if est is None or not np.all(np.isfinite(est)) else est.tolist()
         return d
 
 
-def pose_errors(T_est: np.ndarray, T_true: np.ndarray, pts: np.ndarray, diameter: float) -> dict:
-    """Pose errors of an estimate: translation [m] and [%], rotation [deg], ADD and ADD-S [m]."""
+def object_symmetries(model: ObjectModel) -> list[Symmetry]:
+    """An object's symmetries in `perception.metrics`' convention: the identity, then each
+    `ObjectModel.symmetries` T_O_O' as ``{"R": (3, 3), "t": (3, 1) [m]}``."""
+    return identity_symmetry() + [{"R": T[:3, :3], "t": T[:3, 3:4]} for T in model.symmetries]
+
+
+def pose_errors(
+    T_est: np.ndarray,
+    T_true: np.ndarray,
+    pts: np.ndarray,
+    diameter: float,
+    K: np.ndarray | None = None,
+    syms: list[Symmetry] | None = None,
+) -> dict[str, float]:
+    """Pose errors of an estimate against the truth, both T_C_O (4, 4) in the camera frame [m].
+
+    Args:
+        T_est, T_true: the estimated and the true pose.
+        pts: the object's model points in O, (N, 3) [m] (its mesh vertices).
+        diameter: the object's diameter [m].
+        K: the camera intrinsics (3, 3) [px]; without them no MSPD.
+        syms: the object's symmetry set (`object_symmetries`); None for none but the identity.
+
+    Returns:
+        ``translation_m``, ``translation_pct``, ``rotation_deg``, ``add_m``, ``adi_m`` (ADD-S),
+        ``add_rel_diameter``, the components of `perception.metrics.error_components`, BOP's
+        ``mssd_m`` and ``mssd_rel_diameter`` and, with K, ``mspd_px`` (left out when a model
+        point of either pose lies at or behind the camera plane, where BOP's MSPD is infinite).
+    """
     from perception import metrics
 
     R_e, t_e, R_g, t_g = T_est[:3, :3], T_est[:3, 3], T_true[:3, :3], T_true[:3, 3]
-    return {
+    syms = identity_symmetry() if syms is None else syms
+    add = metrics.add(R_e, t_e, R_g, t_g, pts)
+    mssd = metrics.mssd(R_e, t_e, R_g, t_g, pts, syms)
+    errors = {
         "translation_m": float(np.linalg.norm(t_e - t_g)),
         "translation_pct": float(metrics.translation_error_pct(t_e, t_g)),
         "rotation_deg": float(metrics.rotation_error_deg(R_e, R_g)),
-        "add_m": float(metrics.add(R_e, t_e, R_g, t_g, pts)),
+        "add_m": float(add),
         "adi_m": float(metrics.adi(R_e, t_e, R_g, t_g, pts)),
-        "add_rel_diameter": float(metrics.add(R_e, t_e, R_g, t_g, pts) / diameter),
+        "add_rel_diameter": float(add / diameter),
         **error_components(T_est, T_true),
+        "mssd_m": float(mssd),
+        "mssd_rel_diameter": float(mssd / diameter),
     }
+    if K is not None:
+        mspd = metrics.mspd(R_e, t_e, R_g, t_g, K, pts, syms)
+        if np.isfinite(mspd):
+            errors["mspd_px"] = float(mspd)
+    return errors
+
+
+def _describe(item: object) -> str:
+    """A short description of a value that should have been a (class, pose) pair."""
+    if isinstance(item, np.ndarray):
+        return f"a bare array of shape {item.shape}"
+    if isinstance(item, (tuple, list)):
+        kinds = ", ".join(type(x).__name__ for x in item[:3]) + (", ..." if len(item) > 3 else "")
+        return f"a {type(item).__name__} of {len(item)} ({kinds})"
+    return type(item).__name__
+
+
+def check_estimate(
+    T_C_O: object, neighbours: Iterable[tuple[str, object]] = ()
+) -> tuple[np.ndarray | None, list[tuple[str, np.ndarray]], str | None]:
+    """An estimate and its neighbours as float64 poses, and the first problem that makes them
+    an invalid action (`posegrasp.core.contract.pose_problem`), or None.
+
+    Args:
+        T_C_O: the target's estimated pose (4, 4) in the camera frame [m], or None.
+        neighbours: the other objects reported, (class, T_C_N) pairs in the camera frame.
+
+    Returns:
+        (T_C_O as float64 or None, [(class, T_C_N as float64)], one line naming the pose at
+        fault and what is wrong with it, or None).
+
+    Raises:
+        InvalidArgumentError: a pose that is not a real 4x4 array, or a neighbour that is not
+            a (class, pose) pair.
+        UnknownNameError: a neighbour of an unknown class.
+    """
+    T = None if T_C_O is None else as_pose_array(T_C_O, "estimated pose T_C_O")
+    problems = [] if T is None else [("estimated pose T_C_O", pose_problem(T))]
+    if isinstance(neighbours, (str, bytes, np.ndarray)) or not isinstance(neighbours, Iterable):
+        got = type(neighbours).__name__
+        raise InvalidArgumentError(
+            f"neighbours must be a sequence of (class, T_C_N) pairs, got {got}"
+        )
+    told = []
+    for i, item in enumerate(neighbours):
+        if not isinstance(item, (tuple, list)) or len(item) != 2 or not isinstance(item[0], str):
+            raise InvalidArgumentError(
+                f"neighbour {i} must be a (class, T_C_N) pair, got {_describe(item)}"
+            )
+        name = check_object(item[0])
+        what = f"pose of neighbour {i} ({name!r})"
+        told.append((name, as_pose_array(item[1], what)))
+        problems.append((what, pose_problem(told[-1][1])))
+    problem = next((f"{what}: {p}" for what, p in problems if p is not None), None)
+    return T, told, problem
 
 
 class Episode:
@@ -123,10 +247,18 @@ class Episode:
         return info
 
     def observe(self) -> Observation:
-        """Render the head camera and return what an estimator may see."""
+        """Render the head camera and return what an estimator may see: the colour image
+        (timed as ``render``) and, with ``obs_mode="rgbd"``, the depth image of the same camera
+        and state (`CameraRenderer.depth`, z along the optical axis [m], float32; timed as
+        ``render_depth``). The colour image is the same in both modes."""
         t = time.perf_counter()
         rgb = self.renderer.rgb(self.scene.data, C.HEAD_CAMERA)
         self.timings_ms["render"] = (time.perf_counter() - t) * 1000
+        depth = None
+        if self.cfg.obs_mode == "rgbd":
+            t = time.perf_counter()
+            depth = self.renderer.depth(self.scene.data, C.HEAD_CAMERA)
+            self.timings_ms["render_depth"] = (time.perf_counter() - t) * 1000
         return Observation(
             rgb,
             self.K.copy(),
@@ -134,6 +266,7 @@ class Episode:
             self.object,
             self.seed,
             table_top_z=float(self.scene.table_top_z),
+            depth=depth,
         )
 
     def act(
@@ -141,63 +274,50 @@ class Episode:
         T_C_O_est: np.ndarray | None,
         estimator: str = "external",
         recorder=None,
-        neighbours: Sequence[tuple[str, np.ndarray]] = (),
+        neighbours: Iterable[tuple[str, np.ndarray]] = (),
     ) -> EpisodeResult:
         """Grasp on an estimated pose (camera frame) and score it.
 
+        An estimate or a neighbour's pose that is not valid (`pose_problem`: non-finite, a
+        rotation block off orthonormal by more than 1e-6 or a reflection, an origin beyond 10 m
+        of the camera) ends the episode as a failed grasp with ``invalid_action`` and the
+        problem as its first note; nothing is planned.
+
         Args:
-            T_C_O_est: estimated pose of the target in the camera frame, or None (no estimate).
+            T_C_O_est: estimated pose of the target in the camera frame (4, 4) [m], or None (no
+                estimate).
             estimator: name recorded in the result.
             recorder: optional callable(scene) -> frame, called during execution.
             neighbours: the other objects the estimator reports, (class, T_C_N) pairs in the
                 camera frame; the planner keeps the gripper clear of them.
 
         Raises:
-            InvalidArgumentError: the estimate or a neighbour's pose is not a finite rigid
-                transform.
+            InvalidArgumentError: a pose that is not a real 4x4 array, or a neighbour that is
+                not a (class, pose) pair.
             UnknownNameError: a neighbour of an unknown class.
             StateError: the episode was already acted on.
         """
         if self._done:
             raise StateError("this episode is over; build a new one")
-        if T_C_O_est is not None:
-            check_rigid(T_C_O_est, "estimated pose T_C_O", tol=POSE_TOL)
-        neighbours = [
-            (check_object(n), check_rigid(T, f"pose of neighbour {n!r}", tol=POSE_TOL))
-            for n, T in neighbours
-        ]
+        T_C_O_est, neighbours, problem = check_estimate(T_C_O_est, neighbours)
+        if problem is not None:
+            return self.reject(problem, estimator, T_C_O_est)
         self._done = True
         timings = self.timings_ms
         notes: list[str] = []
-        errors = None
+        errors = correct = None
         if T_C_O_est is not None:
-            obj = self.scene.target.model
-            pts = np.asarray(obj.mesh.vertices)
-            errors = pose_errors(T_C_O_est, self.T_C_O_true, pts, obj.diameter)
+            errors = self.pose_errors(T_C_O_est)
+            correct = errors["mssd_rel_diameter"] < POSE_CORRECT_MSSD
 
         def result(success: bool, reason: str | None, part: str | None = None) -> EpisodeResult:
-            lift = self.scene.object_lowest_z() - self.scene.table_top_z
-            timings["total"] = sum(v for k, v in timings.items() if k not in ("total", "ik"))
-            return EpisodeResult(
-                self.object,
-                self.seed,
-                estimator,
-                self.cfg.tier,
-                success,
-                check_failure_reason(reason),
-                self.T_C_O_true,
-                None if T_C_O_est is None else np.asarray(T_C_O_est, float),
-                errors,
-                float(lift),
-                part,
-                dict(timings),
-                notes,
-                scene=self.scene_info(),
-            )
+            res = self._result(estimator, success, reason, T_C_O_est, errors, notes, part)
+            res.pose_correct = correct
+            return res
 
         if T_C_O_est is None:
             return result(False, "no_estimate")
-        T_world_O = self.T_world_cam @ np.asarray(T_C_O_est, float)
+        T_world_O = self.T_world_cam @ T_C_O_est
         t = time.perf_counter()
         try:
             planner = GraspPlanner(self.scene.model, config=self.cfg.planner)
@@ -218,6 +338,64 @@ class Episode:
         res = result(outcome.success, outcome.failure_reason, plan.candidate.part)
         res.friction_margin = outcome.friction_margin
         return res
+
+    def reject(
+        self, problem: str, estimator: str = "external", T_C_O_est: np.ndarray | None = None
+    ) -> EpisodeResult:
+        """End the episode as a failed grasp with ``invalid_action`` (nothing is planned): the
+        answer could not be grasped on, for the reason `problem` (the result's first note).
+
+        Args:
+            problem: one line saying what was wrong with the answer.
+            estimator: name recorded in the result.
+            T_C_O_est: the estimate as given (4, 4), recorded in the result, or None.
+
+        Raises:
+            StateError: the episode was already acted on.
+        """
+        if self._done:
+            raise StateError("this episode is over; build a new one")
+        self._done = True
+        return self._result(estimator, False, "invalid_action", T_C_O_est, None, [problem])
+
+    def pose_errors(self, T_C_O_est: np.ndarray) -> dict[str, float]:
+        """`pose_errors` of an estimate (4, 4) against this episode's true pose, with the
+        target's mesh vertices, diameter and symmetries and the head camera's K."""
+        obj = self.scene.target.model
+        pts = np.asarray(obj.mesh.vertices)
+        return pose_errors(
+            T_C_O_est, self.T_C_O_true, pts, obj.diameter, self.K, object_symmetries(obj)
+        )
+
+    def _result(
+        self,
+        estimator: str,
+        success: bool,
+        reason: str | None,
+        T_C_O_est: np.ndarray | None,
+        errors: dict[str, float] | None,
+        notes: list[str],
+        part: str | None = None,
+    ) -> EpisodeResult:
+        timings = self.timings_ms
+        lift = self.scene.object_lowest_z() - self.scene.table_top_z
+        timings["total"] = sum(v for k, v in timings.items() if k not in ("total", "ik"))
+        return EpisodeResult(
+            self.object,
+            self.seed,
+            estimator,
+            self.cfg.tier,
+            success,
+            check_failure_reason(reason),
+            self.T_C_O_true,
+            None if T_C_O_est is None else np.array(T_C_O_est, float),
+            errors,
+            float(lift),
+            part,
+            dict(timings),
+            notes,
+            scene=self.scene_info(),
+        )
 
     def estimate(
         self, estimator: PoseEstimator | PrivilegedEstimator, obs: Observation

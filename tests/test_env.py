@@ -36,6 +36,7 @@ def test_make_by_module_prefix_and_oracle_action_succeeds() -> None:
     assert reward == 1.0 and terminated and not truncated
     assert info["success"] and info["failure_reason"] is None
     assert info["pose_error"]["rotation_deg"] == pytest.approx(0.0, abs=1e-4)
+    assert info["pose_correct"] is True and info["pose_error"]["mssd_m"] < 1e-6
     assert "plan" in info["timings_ms"]
     env.close()
 

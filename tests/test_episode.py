@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
-from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.transforms import axis_angle
 from posegrasp.world import constants as C
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import OBJECT_NAMES, load_object
 from sim import evaluate, run_episode
-from sim.episode import Episode
+from sim.episode import POSE_CORRECT_MSSD, Episode, object_symmetries, pose_errors
 from sim.episode import play_episode as run
 from sim.estimators import NoisyOracleEstimator, OracleEstimator, make_estimator
 from sim.pose_noise import PoseNoise, perturb_pose
@@ -23,6 +24,9 @@ def test_oracle_episode_succeeds(name: str) -> None:
     assert r.success, (r.failure_reason, r.notes)
     assert r.failure_reason is None
     assert r.pose_error["translation_m"] == pytest.approx(0.0, abs=1e-12)
+    assert r.pose_error["mssd_m"] == pytest.approx(0.0, abs=1e-9)
+    assert r.pose_error["mspd_px"] == pytest.approx(0.0, abs=1e-6)
+    assert r.pose_correct is True and r.to_json()["pose_correct"] is True
     assert r.lift_height >= 0.10
 
 
@@ -46,15 +50,65 @@ def test_no_estimate_is_a_reported_failure() -> None:
     assert not r.success and r.failure_reason == "no_estimate"
 
 
-def test_invalid_estimate_is_rejected() -> None:
+def test_invalid_estimate_is_a_failed_grasp() -> None:
     ep = Episode("phone", 2)
     try:
         T = np.eye(4)
         T[1, 1] = np.nan
-        with pytest.raises(InvalidArgumentError):
-            ep.act(T)
+        r = ep.act(T)
     finally:
         ep.close()
+    assert not r.success and r.failure_reason == "invalid_action"
+    assert "NaN" in r.notes[0] and r.pose_error is None and r.pose_correct is None
+
+
+def _pose(t=(0.02, -0.01, 0.9)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = axis_angle(np.array([1.0, 0.4, -0.2]), 1.1)
+    T[:3, 3] = t
+    return T
+
+
+def test_pose_errors_hold_bop_mssd_and_mspd() -> None:
+    obj = load_object("car")
+    pts, K = np.asarray(obj.mesh.vertices), np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    T_true = _pose()
+    T_est = T_true.copy()
+    T_est[:3, 3] += [0.004, 0.0, 0.0]  # 4 mm along the camera's x at 0.9 m: 500 * 4 / z px
+    e = pose_errors(T_est, T_true, pts, obj.diameter, K, object_symmetries(obj))
+    assert e["mssd_m"] == pytest.approx(0.004)
+    assert e["mssd_rel_diameter"] == pytest.approx(0.004 / obj.diameter)
+    z = (pts @ T_true[:3, :3].T + T_true[:3, 3])[:, 2]
+    assert e["mspd_px"] == pytest.approx(500 * 0.004 / z.min())
+    assert "mspd_px" not in pose_errors(T_est, T_true, pts, obj.diameter)  # no K, no MSPD
+    behind = T_est.copy()
+    behind[2, 3] = -0.9
+    assert "mspd_px" not in pose_errors(behind, T_true, pts, obj.diameter, K)  # BOP's inf
+
+
+def test_mssd_takes_the_symmetries_and_sets_pose_correct() -> None:
+    obj = load_object("phone")
+    flip = np.eye(4)
+    flip[:3, :3] = axis_angle(np.array([0.0, 0.0, 1.0]), np.pi)
+    symmetric = dataclasses.replace(obj, symmetries=(flip,))
+    syms = object_symmetries(symmetric)
+    assert len(syms) == 2 and syms[1]["t"].shape == (3, 1)
+    pts, T_true = np.asarray(obj.mesh.vertices), _pose()
+    T_est = T_true @ flip  # the same appearance, if the object had that symmetry
+    plain = pose_errors(T_est, T_true, pts, obj.diameter, syms=object_symmetries(obj))
+    sym = pose_errors(T_est, T_true, pts, obj.diameter, syms=syms)
+    assert sym["mssd_m"] == pytest.approx(0.0, abs=1e-9) and plain["mssd_m"] > 0.1
+    ep = Episode("phone", 2)
+    try:
+        near, far = ep.T_C_O_true.copy(), ep.T_C_O_true.copy()
+        near[:3, 3] += [0.0, 0.0, 0.9 * POSE_CORRECT_MSSD * ep.scene.target.model.diameter]
+        far[:3, 3] += [0.0, 0.0, 1.1 * POSE_CORRECT_MSSD * ep.scene.target.model.diameter]
+        assert ep.pose_errors(near)["mssd_rel_diameter"] == pytest.approx(0.09)
+        r = ep.act(far, "test")
+    finally:
+        ep.close()
+    assert r.pose_error["mssd_rel_diameter"] == pytest.approx(0.11)
+    assert r.pose_correct is False and r.to_json()["pose_correct"] is False
 
 
 def test_fixed_noise_has_exact_magnitudes() -> None:
@@ -103,6 +157,7 @@ def test_run_episode_cli_json_to_stdout(capsys) -> None:
         "success",
         "failure_reason",
         "pose_error",
+        "pose_correct",
         "timings_ms",
     ):
         assert key in d

@@ -3,8 +3,13 @@
 Both sides import this module and nothing else of each other: the experiment (`sim.episode`,
 `sim.env`) hands an estimator an `Observation`, the estimator answers with an `Estimate`: the
 requested object's pose in the camera frame, the other objects it saw and a description. An
-observation holds only what a real robot has: the head-camera image, its intrinsics and pose,
-the requested class and the known table height. No ground truth is part of it.
+observation holds only what a real robot has: the head-camera image (and, when the episode asks
+for it, its depth image), its intrinsics and pose, the requested class and the known table
+height. No ground truth is part of it.
+
+What makes a pose valid (`pose_problem`) is part of the contract: a pose that is not one ends
+the episode as a failed grasp (``invalid_action``), so an estimator can check its answers with
+the same function.
 """
 
 from __future__ import annotations
@@ -14,9 +19,19 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from posegrasp.core.errors import InvalidArgumentError
+
 #: Version of this contract: raised when `Observation`, `Estimate` or `PoseEstimator` change in a
-#: way an estimator must follow. 1: ``estimate(obs) -> Estimate``.
-CONTRACT_VERSION = 1
+#: way an estimator must follow. 1: ``estimate(obs) -> Estimate``. 2: `Observation` gains the
+#: optional ``depth`` (None unless the episode's ``obs_mode`` is ``"rgbd"``); nothing else
+#: changed, so an estimator written for version 1 keeps working unchanged.
+CONTRACT_VERSION = 2
+
+#: Largest deviation ``max |R^T R - I|`` of a pose's rotation block from orthonormality.
+ROTATION_TOL = 1e-6
+#: Farthest a pose's origin may be from the camera [m]: the whole scene (room included) lies
+#: within a few metres of the head camera, so a pose beyond this is in other units.
+MAX_POSE_DISTANCE = 10.0
 
 
 @dataclass
@@ -31,6 +46,11 @@ class Observation:
         seed: the episode's seed (estimators that randomise seed themselves from it).
         table_top_z: height of the table top the object rests on, in the world [m] (known scene
             geometry), or None when unknown.
+        depth: depth image of the same camera at the same instant, shape (H, W), float32 [m]:
+            the z coordinate along the optical axis in the OpenCV camera frame of the surface
+            seen at each pixel (not the distance along the ray; BOP's convention, in metres), so
+            pixel (u, v) with depth z back-projects to ``z * K^-1 (u, v, 1)``. None unless the
+            episode renders it (``EpisodeConfig.obs_mode == "rgbd"``).
     """
 
     rgb: np.ndarray
@@ -39,6 +59,7 @@ class Observation:
     object: str
     seed: int
     table_top_z: float | None = None
+    depth: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -48,7 +69,8 @@ class Estimate:
     Attributes:
         T_C_O: the requested object's pose in the camera frame, shape (4, 4), OpenCV camera
             convention, metres; None when it has no estimate (the episode fails as
-            ``no_estimate``).
+            ``no_estimate``). A pose that is not valid (`pose_problem`) fails the episode as
+            ``invalid_action``.
         neighbours: the other objects it saw, as (class, T_C_N) pairs in the same frame; the
             robot keeps its gripper clear of them and of nothing else.
         info: a JSON-serialisable description of the estimate (detection score, timings, ...),
@@ -69,3 +91,74 @@ class PoseEstimator(Protocol):
     def estimate(self, obs: Observation) -> Estimate:
         """The requested object's pose, the neighbours seen and a description."""
         ...
+
+
+def as_pose_array(T: object, what: str = "pose") -> np.ndarray:
+    """``T`` as a float64 (4, 4) array, whatever its values.
+
+    Args:
+        T: a candidate pose.
+        what: how messages name it.
+
+    Raises:
+        InvalidArgumentError: T is not a real-valued array of shape (4, 4).
+    """
+    try:
+        arr = np.asarray(T)
+    except (TypeError, ValueError):  # ragged nested sequences
+        arr = None
+    if arr is None or arr.dtype.kind not in "iuf" or arr.shape != (4, 4):
+        got = type(T).__name__ if arr is None else f"{arr.dtype} array of shape {arr.shape}"
+        raise InvalidArgumentError(f"{what} must be a real 4x4 array (a pose, metres), got {got}")
+    return arr.astype(np.float64)
+
+
+def transform_problem(T: np.ndarray) -> str | None:
+    """What keeps a (4, 4) array from being a rigid transform, or None when it is one: finite
+    entries, last row (0, 0, 0, 1) and a rotation block R with ``max |R^T R - I| <=
+    ROTATION_TOL`` and det R = +1.
+
+    Args:
+        T: the transform, shape (4, 4) (`as_pose_array`).
+
+    Returns:
+        One line naming the problem and its measure, or None.
+    """
+    T = np.asarray(T, np.float64)
+    if not np.all(np.isfinite(T)):
+        return "contains NaN or infinite values"
+    if np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
+        return f"last row is {np.round(T[3], 6).tolist()}, not [0, 0, 0, 1]"
+    R = T[:3, :3]
+    deviation = float(np.abs(R.T @ R - np.eye(3)).max())
+    if deviation > ROTATION_TOL:
+        return (
+            f"rotation is not orthonormal (shear/scale): max |R^T R - I| = {deviation:.2e} > "
+            f"{ROTATION_TOL:g}"
+        )
+    if np.linalg.det(R) < 0.0:
+        return f"rotation is a reflection (det R = {np.linalg.det(R):.3f}), not a rotation"
+    return None
+
+
+def pose_problem(T: np.ndarray) -> str | None:
+    """What keeps a (4, 4) pose from being a valid estimate, or None when it is one: a rigid
+    transform (`transform_problem`) whose origin is at most `MAX_POSE_DISTANCE` from the camera
+    (poses are in metres).
+
+    Args:
+        T: the pose, shape (4, 4) (`as_pose_array`), camera frame [m].
+
+    Returns:
+        One line naming the problem and its measure, or None.
+    """
+    problem = transform_problem(T)
+    if problem is not None:
+        return problem
+    distance = float(np.linalg.norm(np.asarray(T, np.float64)[:3, 3]))
+    if distance > MAX_POSE_DISTANCE:
+        return (
+            f"position is {distance:.4g} m from the camera, beyond {MAX_POSE_DISTANCE:g} m: poses "
+            "are in metres; millimetres?"
+        )
+    return None

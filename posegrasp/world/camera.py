@@ -305,7 +305,18 @@ class CameraRenderer:
         return self._read_rgb(self._render(data, camera, ids=False))
 
     def depth(self, data: mujoco.MjData, camera: str | int) -> np.ndarray:
-        """Depth along the optical axis [m], shape (H, W), float32."""
+        """Metric depth image: per pixel, the z coordinate in the OpenCV camera frame of the
+        surface drawn there (along the optical axis, not the distance along the pixel's ray), so
+        pixel (u, v) back-projects to ``depth[v, u] * K^-1 (u, v, 1)``; the far clipping plane's
+        distance where nothing is drawn.
+
+        The scene is drawn as for `segmentation` (no blending), from the same camera and state
+        as `rgb`; the reverse-Z depth buffer is mapped back to metres with the float32 frustum
+        OpenGL used, in float64 (MuJoCo's own `mujoco.Renderer` conversion).
+
+        Returns:
+            Depth [m], shape (H, W), float32.
+        """
         ctx = self._render(data, camera, ids=True)  # no blending: exact depth at far range
         z = np.empty((self.height, self.width), np.float32)
         mujoco.mjr_readPixels(None, z, self._rect, ctx)
