@@ -9,9 +9,10 @@ For each tier, `oracle` and then `noisy-oracle` at sigma = (2.5 mm, 1 deg), (5 m
 measured), exactly as `python -m sim.evaluate --tier T --estimator noisy-oracle --noise
 S,S,D,D --margin` does; a seed draws the same standard normals at every level, so each level
 pairs with the one before (`sim.compare.curve`: lost and gained grasps, exact McNemar p). Each
-run's report is kept in `--out` as ``<tier>_<level>.json`` and a rerun reuses it, so an
-interrupted study resumes. Prints each tier's chain; `--plot` draws success (Wilson 95 % bars)
-against sigma for every tier in one figure.
+run's report is kept in `--out` as ``<tier>_<level>.json`` and a rerun reuses it; the run being
+made keeps its finished episodes in ``<tier>_<level>.journal.jsonl`` (`posegrasp.core.journal`),
+so a rerun after Ctrl-C or SIGTERM resumes within the level too. Prints each tier's chain;
+`--plot` draws success (Wilson 95 % bars) against sigma for every tier in one figure.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from posegrasp.core.cli import (
     write_json,
 )
 from posegrasp.core.files import atomic_write_json
+from posegrasp.core.journal import Interrupted, journal_path
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int, check_names, check_plot_path
 from posegrasp.world.constants import EVAL_SEED_BASE
@@ -65,17 +67,27 @@ def run_tier(tier: str, episodes: int, out: Path, workers: int = 1) -> list[dict
         if not path.is_file():
             estimator = "oracle" if noise is None else "noisy-oracle"
             print(f"{tier}: {estimator} {noise or ''}", file=sys.stderr)
-            report = evaluate(
-                list(OBJECT_NAMES),
-                episodes,
-                estimator,
-                EVAL_SEED_BASE,
-                workers,
-                tier,
-                noise=noise,
-                margin=True,
-            )
+            journal = journal_path(path, "evaluate", {})
+            try:
+                report = evaluate(
+                    list(OBJECT_NAMES),
+                    episodes,
+                    estimator,
+                    EVAL_SEED_BASE,
+                    workers,
+                    tier,
+                    noise=noise,
+                    margin=True,
+                    journal=journal,
+                    resume=journal.is_file(),
+                )
+            except Interrupted as exc:
+                raise Interrupted(
+                    f"interrupted: {exc.done} of {exc.total} episodes of {tier} {label} kept in "
+                    f"{exc.journal}; rerun the same command to resume"
+                ) from None
             atomic_write_json(path, report)
+            journal.unlink()
             print(f"wrote {path}", file=sys.stderr)
         paths.append(path)
     check_same_execution(paths)

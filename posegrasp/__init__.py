@@ -14,9 +14,15 @@ ENV_ENTRY_POINT = "sim.env:GraspEvalEnv"
 
 
 def register_envs() -> None:
-    """Register `GraspEval-v0` with gymnasium (idempotent)."""
+    """Register `GraspEval-v0` with gymnasium (idempotent).
+
+    `gymnasium.make` does not wrap it in gymnasium's `PassiveEnvChecker`: the env's tests run the
+    full `gymnasium.utils.env_checker.check_env` on it, and the passive checker (gymnasium 1.4)
+    marks its first reset checked before calling it, so after a refused first reset (a bad seed)
+    its first step failed with a TypeError however valid the next reset was.
+    """
     if ENV_ID not in gymnasium.envs.registry:
-        gymnasium.register(id=ENV_ID, entry_point=ENV_ENTRY_POINT)
+        gymnasium.register(id=ENV_ID, entry_point=ENV_ENTRY_POINT, disable_env_checker=True)
 
 
 register_envs()

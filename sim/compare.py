@@ -13,7 +13,6 @@ episodes both grasped comes with its paired bootstrap interval too.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from posegrasp.core.cli import (
 )
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.validate import arg, check_int, check_plot_path
+from sim.report_schema import read_report
 from sim.stats import (
     BOOTSTRAP,
     Outcome,
@@ -39,45 +39,35 @@ from sim.stats import (
 
 
 def load_report(path: Path) -> dict[tuple[str, str, int], Outcome]:
-    """(success, friction margin or None) by (object, tier, seed) of one evaluation report.
+    """(success, friction margin or None) by (object, tier, seed) of one evaluation report,
+    validated against the report schema (`sim.report_schema`) first.
 
     Raises:
-        InvalidArgumentError: unreadable, not an evaluation report, or a pair listed twice.
+        InvalidArgumentError: unreadable, not conforming to the schema (naming the field), or a
+            pair listed twice.
     """
-    try:
-        report = json.loads(Path(path).read_text())
-        episodes = report["episodes"]
-        tier = report.get("tier", "isolated")
-        out: dict[tuple[str, str, int], Outcome] = {}
-        for e in episodes:
-            key = (str(e["object"]), str(e.get("tier", tier)), int(e["seed"]))
-            if key in out:
-                raise InvalidArgumentError(f"{path} lists episode {key} twice")
-            margin = e.get("friction_margin")
-            out[key] = (bool(e["success"]), None if margin is None else float(margin))
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise InvalidArgumentError(
-            f"{path} is not a report of python -m sim.evaluate --json ({exc})"
-        ) from None
+    report = read_report(path)
+    out: dict[tuple[str, str, int], Outcome] = {}
+    for e in report["episodes"]:
+        key = (str(e["object"]), str(e["tier"]), int(e["seed"]))
+        if key in out:
+            raise InvalidArgumentError(f"{path} lists episode {key} twice")
+        margin = e.get("friction_margin")
+        out[key] = (bool(e["success"]), None if margin is None else float(margin))
     return out
 
 
 def check_same_execution(paths: list[Path]) -> None:
     """Refuse to pair reports whose grasps ran with different execution settings (the
-    ``execution`` record of `sim.evaluate`; a report without one is taken as it is).
+    ``execution`` record of `sim.evaluate`).
 
     Raises:
-        InvalidArgumentError: two reports record different settings, naming the first that
-            differs.
+        InvalidArgumentError: a report does not conform to the schema, or two record different
+            settings, naming the first that differs.
     """
     seen: tuple[Path, dict] | None = None
     for path in paths:
-        try:
-            settings = json.loads(Path(path).read_text()).get("execution")
-        except (OSError, ValueError, AttributeError):
-            continue  # load_report says what is wrong with it
-        if not isinstance(settings, dict):
-            continue
+        settings = read_report(path)["execution"]
         if seen is None:
             seen = (path, settings)
             continue
@@ -165,14 +155,14 @@ def curve(paths: list[Path], boot: int = BOOTSTRAP) -> list[dict]:
     pooled: dict[str, list[dict]] = {}
     for path in paths:
         outcomes = load_report(path)
-        report = json.loads(Path(path).read_text())
+        report = read_report(path)
         for e in report["episodes"]:
             pooled.setdefault(str(e["object"]), []).append(e)
         ok = sum(s for s, _ in outcomes.values())
         margins = [m for s, m in outcomes.values() if s and m is not None]
         row = {
             "report": str(path),
-            "label": report.get("noise") or report.get("estimator", "?"),
+            "label": report["noise"] or report["estimator"],
             "episodes": len(outcomes),
             "successes": int(ok),
             "friction_margin_mean": float(np.mean(margins)) if margins else None,
@@ -273,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = curve([args.a, args.b, *args.more], args.boot)
         print(format_curve(rows), file=log)
         if args.plot is not None:
-            tier = json.loads(Path(args.a).read_text()).get("tier", "?")
+            tier = read_report(args.a)["tier"]
             plot_curve(rows, args.plot, f"tier {tier}: paired runs on the same scenes")
         res: dict | list = rows
     else:

@@ -9,7 +9,6 @@ the step executes the grasp on that pose.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any, ClassVar
@@ -125,34 +124,6 @@ def _pose(pos: np.ndarray, quat: np.ndarray, what: str) -> tuple[np.ndarray | No
     T[:3, :3] = quat_to_mat(quat / np.linalg.norm(quat))
     T[:3, 3] = pos
     return T, None
-
-
-def _rearm_env_checker(env: gym.Env) -> None:
-    """After a refused reset, let the `gymnasium.wrappers.PassiveEnvChecker` that called it
-    check the next reset instead.
-
-    `gymnasium.make` wraps the env in a PassiveEnvChecker, which marks its first reset checked
-    before calling it and keeps that reset's observation to compare with the first step's. A
-    first reset that raises leaves it marked but without that observation, and its first step
-    then fails with a TypeError inside gymnasium, however valid the later reset and step. The
-    checker is on the call stack of the refused reset (its ``reset`` called this env's); marking
-    it unchecked again makes the next successful reset the one it checks and keeps.
-    """
-    checker = getattr(gym.wrappers, "PassiveEnvChecker", None)
-    frame = sys._getframe(1)
-    for _ in range(16):
-        if frame is None or checker is None:
-            return
-        wrapper = frame.f_locals.get("self")
-        if (
-            isinstance(wrapper, checker)
-            and wrapper.env is env
-            and getattr(wrapper, "checked_reset", False)
-            and getattr(wrapper, "_previous_data", None) is None
-        ):
-            wrapper.checked_reset = False
-            return
-        frame = frame.f_back
 
 
 class GraspEvalEnv(gym.Env):
@@ -324,11 +295,7 @@ class GraspEvalEnv(gym.Env):
             InvalidArgumentError, UnknownNameError: a bad seed or options, found before any state
                 changes; a later `step` then asks for a reset.
         """
-        try:
-            return self._reset(seed, options)
-        except Exception:
-            _rearm_env_checker(self)
-            raise
+        return self._reset(seed, options)
 
     def _reset(
         self, seed: int | None, options: dict[str, Any] | None

@@ -1,23 +1,34 @@
-"""The estimator registry of the experiment: the oracles and the learned estimators by name
-(`perception.estimators`).
+"""The estimator registry of the experiment: the oracles, the learned estimators by name
+(`perception.estimators`) and plug-ins.
 
 Real estimators implement `posegrasp.core.contract.PoseEstimator`. The oracles are the experiment's
 own instruments, not estimators a robot could run: they implement `PrivilegedEstimator` and are
 handed the true pose by the episode, which no other estimator ever sees.
+
+An estimator is named by a *spec*, which every ``--estimator`` option and `make_estimator` take:
+
+- a built-in name (`ESTIMATORS`);
+- ``package.module:factory``, a callable that returns an object implementing the contract (a
+  class, a function; ``factory`` may be dotted, ``module:Class.create``); the module must be
+  importable where the episodes run (installed, or on ``PYTHONPATH``);
+- the name of an entry point of the group `ENTRY_POINT_GROUP` that an installed package
+  declares, pointing at such a factory.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.metadata
 from collections.abc import Callable, Sequence
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from perception.estimators import LEARNED_ESTIMATORS
-from posegrasp.core.contract import Estimate, Observation, PoseEstimator
-from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
-from posegrasp.core.validate import arg, check_choice
+from posegrasp.core.contract import CONTRACT_VERSION, Estimate, Observation, PoseEstimator
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from posegrasp.core.validate import arg
 from sim.pose_noise import NOISE_FORMAT, PoseNoise, parse_noise, perturb_pose
 
 #: Other objects' poses: (class, T_C_N) pairs in the camera frame.
@@ -83,22 +94,132 @@ ESTIMATORS: dict[str, Callable[[], PoseEstimator | PrivilegedEstimator]] = {
 DEFAULT_ESTIMATOR = "hybrid"
 
 
-def make_estimator(
-    name: str, noise: PoseNoise | None = None
-) -> PoseEstimator | PrivilegedEstimator:
-    """The estimator called name; `noise` sets the errors of ``noisy-oracle``.
+#: The entry-point group through which installed packages offer estimators (each entry point
+#: names a factory, as ``package.module:factory``).
+ENTRY_POINT_GROUP = "posegrasp.estimators"
+
+
+def entry_point_estimators() -> dict[str, importlib.metadata.EntryPoint]:
+    """The estimators installed packages declare in `ENTRY_POINT_GROUP`, by name; a name that a
+    built-in estimator already has is left out (the built-in one wins)."""
+    eps = importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)
+    return {ep.name: ep for ep in sorted(eps, key=lambda e: e.name) if ep.name not in ESTIMATORS}
+
+
+def _spec_choices() -> list[str]:
+    return [*ESTIMATORS, *entry_point_estimators(), "package.module:factory"]
+
+
+def _load_factory(spec: str) -> Callable[[], Any]:
+    """The factory of a ``module:attr`` spec, imported.
 
     Raises:
-        UnknownNameError: name is not registered.
-        InvalidArgumentError: `noise` given for another estimator.
+        InvalidArgumentError: a malformed spec, a module that does not import, a missing
+            attribute or one that is not callable.
     """
-    if name not in ESTIMATORS:
-        raise UnknownNameError("estimator", name, ESTIMATORS)
+    module, _, attr = spec.partition(":")
+    if not module or not attr or ":" in attr:
+        raise InvalidArgumentError(
+            f"invalid estimator {spec!r}; a plug-in is package.module:factory"
+        )
+    try:
+        obj: Any = importlib.import_module(module)
+    except Exception as exc:  # any import failure of foreign code is one line
+        raise InvalidArgumentError(
+            f"estimator {spec!r}: cannot import {module!r} ({type(exc).__name__}: {exc}); "
+            "install its package or put it on PYTHONPATH"
+        ) from None
+    for part in attr.split("."):
+        if not hasattr(obj, part):
+            raise InvalidArgumentError(f"estimator {spec!r}: {module!r} has no {attr!r}")
+        obj = getattr(obj, part)
+    if not callable(obj):
+        raise InvalidArgumentError(f"estimator {spec!r}: {attr!r} is not callable")
+    return obj
+
+
+def check_estimator(estimator: Any, spec: str) -> PoseEstimator:
+    """`estimator` when it implements the contract: a ``name`` string and a callable
+    ``estimate``.
+
+    Raises:
+        InvalidArgumentError: it does not, naming what is missing and the contract version.
+    """
+    if isinstance(estimator, PrivilegedEstimator):
+        return estimator
+    missing = [
+        what
+        for what, ok in (
+            ("a callable estimate(obs)", callable(getattr(estimator, "estimate", None))),
+            ("a str name", isinstance(getattr(estimator, "name", None), str)),
+        )
+        if not ok
+    ]
+    if missing:
+        raise InvalidArgumentError(
+            f"estimator {spec!r} made a {type(estimator).__name__} without "
+            f"{' and '.join(missing)} (posegrasp.core.contract, version {CONTRACT_VERSION})"
+        )
+    return estimator
+
+
+def check_estimator_spec(spec: str) -> str:
+    """A spec (see the module docstring) returned as given once it resolves: a built-in or
+    entry-point name, or a ``module:factory`` whose factory imports (it is not called).
+
+    Raises:
+        UnknownNameError: a name that is neither built in nor installed, listing the valid ones.
+        InvalidArgumentError: a plug-in spec that does not import.
+    """
+    spec = str(spec)
+    if spec in ESTIMATORS:
+        return spec
+    if ":" in spec:
+        _load_factory(spec)
+        return spec
+    eps = entry_point_estimators()
+    if spec not in eps:
+        raise UnknownNameError("estimator", spec, _spec_choices())
+    return spec
+
+
+def make_estimator(
+    spec: str, noise: PoseNoise | None = None
+) -> PoseEstimator | PrivilegedEstimator:
+    """The estimator a spec names (see the module docstring): a built-in one, a plug-in's
+    ``package.module:factory`` or an installed entry point; `noise` sets the errors of
+    ``noisy-oracle``.
+
+    Raises:
+        UnknownNameError: an unknown name.
+        InvalidArgumentError: `noise` given for another estimator; a plug-in that does not
+            import, or whose factory fails or returns an object without the contract.
+    """
     if noise is not None:
-        if name != "noisy-oracle":
-            raise InvalidArgumentError(f"--noise applies to noisy-oracle only, not to {name}")
+        if spec != "noisy-oracle":
+            raise InvalidArgumentError(f"--noise applies to noisy-oracle only, not to {spec}")
         return NoisyOracleEstimator(noise)
-    return ESTIMATORS[name]()
+    if spec in ESTIMATORS:
+        return ESTIMATORS[spec]()
+    check_estimator_spec(spec)
+    if ":" in spec:
+        factory = _load_factory(spec)
+    else:
+        try:
+            factory = entry_point_estimators()[spec].load()
+        except Exception as exc:  # a broken installed package is one line
+            raise InvalidArgumentError(
+                f"estimator {spec!r}: its entry point does not load ({type(exc).__name__}: {exc})"
+            ) from None
+    try:
+        estimator = factory()
+    except PosegraspError:
+        raise
+    except Exception as exc:  # foreign code: its failure is one line, not a traceback
+        raise InvalidArgumentError(
+            f"estimator {spec!r}: its factory failed ({type(exc).__name__}: {exc})"
+        ) from None
+    return check_estimator(estimator, spec)
 
 
 def check_noise(spec: str) -> str:
@@ -118,7 +239,8 @@ def add_estimator_arguments(
     purpose: str | None = None,
     also: Sequence[str] = (),
 ) -> None:
-    """Add ``--estimator NAME`` (one of `ESTIMATORS`) and, with `noise`, ``--noise SIGMAS``
+    """Add ``--estimator SPEC`` (a built-in name, an installed entry point or
+    ``package.module:factory``; see the module docstring) and, with `noise`, ``--noise SIGMAS``
     (noisy-oracle's errors), both checked while parsing; `make_estimator` refuses ``--noise``
     for another estimator.
 
@@ -129,15 +251,19 @@ def add_estimator_arguments(
         purpose: what the estimator is for, shown before the list of names.
         also: further names the command accepts beside `ESTIMATORS`.
     """
-    names = [*ESTIMATORS, *also]
+    names = [*ESTIMATORS, *entry_point_estimators(), *also]
     lead = f"{purpose}; " if purpose else ""
     tail = "" if default is None else f" (default {default})"
+
+    def check(spec: str) -> str:
+        return spec if spec in also else check_estimator_spec(spec)
+
     parser.add_argument(
         "--estimator",
         default=default,
-        type=arg(check_choice, names, "estimator"),
-        metavar="NAME",
-        help=f"{lead}one of: {', '.join(names)}{tail}",
+        type=arg(check),
+        metavar="SPEC",
+        help=f"{lead}one of: {', '.join(names)}, or a plug-in package.module:factory{tail}",
     )
     if noise:
         parser.add_argument(

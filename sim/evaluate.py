@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from posegrasp.core.backends import add_backend_arguments, check_backend, run_map
+from posegrasp.core.backends import add_backend_arguments, check_backend
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
@@ -29,8 +29,10 @@ from posegrasp.core.cli import (
     summary_stream,
     write_json,
 )
+from posegrasp.core.contract import PoseEstimator
 from posegrasp.core.errors import PosegraspError
 from posegrasp.core.failures import check_failure_reason
+from posegrasp.core.journal import Journal, journal_path, run_journaled
 from posegrasp.core.paths import DOCS_DIR
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import (
@@ -45,23 +47,38 @@ from posegrasp.core.validate import (
 from posegrasp.world import constants as C
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
-from sim.estimators import add_estimator_arguments, make_estimator
+from sim.estimators import PrivilegedEstimator, add_estimator_arguments, make_estimator
 from sim.pose_noise import parse_noise
+from sim.report_schema import REPORT_SCHEMA
 from sim.stats import BOOTSTRAP, bootstrap_means, margin_error_correlation, wilson_interval
+
+#: An estimator as `evaluate` takes it: a spec (`sim.estimators`: a built-in name, an entry point
+#: or ``package.module:factory``) or an object implementing the contract.
+EstimatorRef = str | PoseEstimator | PrivilegedEstimator
 
 
 @functools.cache
-def _estimator(name: str, noise: str | None = None):
-    """One estimator per worker process (the hybrid one loads its weights once).
+def _estimator(spec: str, noise: str | None = None):
+    """One estimator per worker process and spec (the hybrid one loads its weights once)."""
+    return _one_thread(make_estimator(spec, None if noise is None else parse_noise(noise)))
 
-    A learned estimator computes on one thread, with any number of workers and on any backend:
+
+def _one_thread(estimator):
+    """A learned estimator computes on one thread, with any number of workers and on any backend:
     the nets' sums run in an order that depends on the thread count, so this keeps every
-    episode's pose, to the last bit, independent of how the evaluation was spread.
-    """
-    estimator = make_estimator(name, None if noise is None else parse_noise(noise))
+    episode's pose, to the last bit, independent of how the evaluation was spread."""
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(1)
     return estimator
+
+
+def _resolve(ref: EstimatorRef, noise: str | None):
+    return _estimator(ref, noise) if isinstance(ref, str) else _one_thread(ref)
+
+
+def estimator_label(ref: EstimatorRef) -> str:
+    """What a report calls the estimator: its spec, or an object's ``name``."""
+    return ref if isinstance(ref, str) else str(ref.name)
 
 
 def execution_settings() -> dict:
@@ -83,7 +100,7 @@ def _init_worker() -> None:
     setup_rendering(threads=1)
 
 
-def _run_one(job: tuple[str, int, str, str, str | None, bool]) -> dict:
+def _run_one(job: tuple) -> dict:
     """One episode of an evaluation, in whatever process runs it (this one, a pool worker, a Ray
     worker started afresh after another died): it sets up rendering there first."""
     obj, seed, estimator, tier, noise, margin = job
@@ -94,13 +111,13 @@ def _run_one(job: tuple[str, int, str, str, str | None, bool]) -> dict:
     t = time.perf_counter()
     try:
         cfg = EpisodeConfig(tier=tier, execution=ExecutionConfig(measure_margin=margin))
-        r = play_episode(obj, seed, _estimator(estimator, noise), cfg)
+        r = play_episode(obj, seed, _resolve(estimator, noise), cfg)
         d = r.to_json()
     except PosegraspError as exc:  # an episode never takes the evaluation down
         d = {
             "object": obj,
             "seed": seed,
-            "estimator": estimator,
+            "estimator": estimator_label(estimator),
             "tier": tier,
             "success": False,
             "failure_reason": check_failure_reason("error"),
@@ -139,6 +156,12 @@ def _group(episodes: list[dict]) -> dict:
             float(v) for v in np.percentile(boot, [2.5, 97.5])
         )
         out["margin_error_spearman"] = margin_error_correlation(episodes)
+    judged = [e for e in episodes if e.get("pose_correct") is not None]
+    out["pose_judged"] = len(judged)
+    out["pose_correct"] = sum(bool(e["pose_correct"]) for e in judged)
+    # The grasp and the pose disagree: held on a wrong pose, or dropped on a right one.
+    out["grasped_wrong_pose"] = sum(bool(e["success"]) and not e["pose_correct"] for e in judged)
+    out["missed_right_pose"] = sum(not e["success"] and bool(e["pose_correct"]) for e in judged)
     walls = [e["wall_ms"] for e in episodes]
     plans = [e["timings_ms"]["ik"] for e in episodes if "ik" in e.get("timings_ms", {})]
     out["episode_wall_ms_median"] = float(np.median(walls)) if walls else None
@@ -149,21 +172,43 @@ def _group(episodes: list[dict]) -> dict:
 def evaluate(
     objects: list[str],
     episodes: int,
-    estimator: str,
+    estimator: EstimatorRef,
     seed_start: int,
-    workers: int,
+    workers: int = 1,
     tier: str = DEFAULT_TIER,
     noise: str | None = None,
     margin: bool = False,
     backend: str = "local",
     address: str | None = None,
+    journal: Path | None = None,
+    resume: bool = False,
 ) -> dict:
-    """Run episodes (objects x seeds) of one tier and aggregate per object and overall; `noise`
-    (`sim.pose_noise.NOISE_FORMAT`) sets the errors of ``noisy-oracle``; `margin` measures each
-    successful grasp's friction margin. `backend` and `address` say where the episodes run
-    (`posegrasp.core.backends.run_map`); on Ray each episode records the ``node`` that ran it."""
+    """Run episodes (objects x seeds) of one tier and aggregate per object and overall.
+
+    Args:
+        objects: the target classes; episode i of object X plays scene seed ``seed_start + i``.
+        episodes: episodes per object.
+        estimator: a spec (`sim.estimators`) or an object implementing the contract
+            (`posegrasp.core.contract.PoseEstimator`); with more than one worker an object is
+            pickled to the workers with every episode, so a heavy one is better given by spec.
+        seed_start: the first scene seed.
+        workers: processes (or Ray CPUs) running episodes.
+        tier: the scene tier (`posegrasp.world.tiers.TIERS`).
+        noise: the errors of ``noisy-oracle`` (`sim.pose_noise.NOISE_FORMAT`).
+        margin: measure each successful grasp's friction margin.
+        backend, address: where the episodes run (`posegrasp.core.backends.run_map`); on Ray each
+            episode records the ``node`` that ran it.
+        journal: keep every finished episode in this JSON-lines file as it returns
+            (`posegrasp.core.journal`); removed by the caller once the report is written.
+        resume: run only the episodes the journal does not hold yet.
+
+    Raises:
+        Interrupted: Ctrl-C or SIGTERM; with a journal, its line says how to resume.
+    """
     check_tier(tier)
+    label = estimator_label(estimator)
     n_jobs = len(objects) * episodes
+    protocol = run_protocol(objects, episodes, label, seed_start, tier, noise, margin)
     workers, note = effective_workers(workers, n_jobs)
     if note:
         print(note, file=sys.stderr)
@@ -174,35 +219,79 @@ def evaluate(
         for i in range(episodes)
     )
     t = time.perf_counter()
-    results = []
-    for d, node in run_map(
+    ordered = run_journaled(
         _run_one,
         jobs,
+        n_jobs,
+        Journal(journal, "evaluate", protocol) if journal else None,
+        resume,
         backend=backend,
         workers=workers,
         address=address,
         desc="episodes",
         initializer=_init_worker,
-        with_node=True,
-        total=n_jobs,
-    ):
-        if node is not None:
-            d["node"] = node
-        results.append(d)
-    wall = time.perf_counter() - t
-    per_object = {o: _group([r for r in results if r["object"] == o]) for o in objects}
+    )
+    return make_report(
+        ordered,
+        objects,
+        label,
+        tier,
+        seed_start,
+        episodes,
+        noise=noise,
+        workers=workers,
+        wall_s=time.perf_counter() - t,
+    )
+
+
+def make_report(
+    episodes: list[dict],
+    objects: list[str],
+    estimator: str,
+    tier: str,
+    seed_start: int,
+    episodes_per_object: int,
+    noise: str | None = None,
+    workers: int = 1,
+    wall_s: float = 0.0,
+) -> dict:
+    """The report (schema `REPORT_SCHEMA`) of finished episodes: the protocol, the aggregates per
+    object and overall, and the episodes in run order."""
     return {
+        "schema": REPORT_SCHEMA,
         "estimator": estimator,
         "tier": tier,
         "noise": noise,
         "execution": execution_settings(),
         "seed_start": seed_start,
-        "episodes_per_object": episodes,
+        "episodes_per_object": episodes_per_object,
         "workers": workers,
-        "wall_s": wall,
-        "per_object": per_object,
-        "overall": _group(results),
-        "episodes": results,
+        "wall_s": wall_s,
+        "per_object": {o: _group([e for e in episodes if e["object"] == o]) for o in objects},
+        "overall": _group(episodes),
+        "episodes": episodes,
+    }
+
+
+def run_protocol(
+    objects: list[str],
+    episodes: int,
+    estimator: str,
+    seed_start: int,
+    tier: str,
+    noise: str | None,
+    margin: bool,
+) -> dict:
+    """What defines an evaluation's results: a resumed run must have the same."""
+    return {
+        "objects": list(objects),
+        "episodes_per_object": episodes,
+        "estimator": estimator,
+        "seed_start": seed_start,
+        "tier": tier,
+        "noise": noise,
+        "margin": margin,
+        "execution": execution_settings(),
     }
 
 
@@ -369,6 +458,12 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PATH",
         help="tolerance curves to overlay (JSON of python -m sim.tolerance)",
     )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="finish an interrupted run of the same arguments from its journal (beside the --json "
+        "file, else under the data folder's runs/)",
+    )
     add_backend_arguments(p)
     args = p.parse_args(argv)
     setup_rendering()
@@ -380,6 +475,16 @@ def main(argv: list[str] | None = None) -> int:
     if isinstance(tolerance, Path):
         tolerance = check_tolerance_file(tolerance) if args.plot and tolerance.is_file() else None
     _estimator(args.estimator, args.noise)  # fails fast (missing weights)
+    protocol = run_protocol(
+        args.objects,
+        args.episodes,
+        args.estimator,
+        args.seed_start,
+        args.tier,
+        args.noise,
+        args.margin,
+    )
+    journal = journal_path(args.json, "evaluate", protocol)
     report = evaluate(
         args.objects,
         args.episodes,
@@ -391,6 +496,8 @@ def main(argv: list[str] | None = None) -> int:
         args.margin,
         args.backend,
         args.address,
+        journal=journal,
+        resume=args.resume,
     )
     log = summary_stream(args.json)
     print(format_report(report), file=log)
@@ -399,6 +506,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {args.plot}", file=log)
     if args.json is not None:
         write_json(args.json, report)
+    Path(journal).unlink(missing_ok=True)  # the report now holds every episode
     return 0
 
 

@@ -45,6 +45,7 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
 from sim.estimators import DEFAULT_ESTIMATOR, add_estimator_arguments
+from sim.report_schema import validate_report
 from sim.evaluate import evaluate, format_report
 from sim.stats import BOOTSTRAP, bootstrap_means, mcnemar_exact
 
@@ -252,7 +253,10 @@ def main(argv: list[str] | None = None) -> int:
             )
     failed = False
     for name in names:
-        report = run_gate(name, GATE_EPISODES, args.workers, args.backend, args.address)
+        report = validate_report(
+            run_gate(name, GATE_EPISODES, args.workers, args.backend, args.address),
+            f"the gate's run of {name}",
+        )
         print(format_report(report))
         if args.write:
             baselines[name] = baseline_of(report)

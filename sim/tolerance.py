@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from posegrasp.core.backends import add_backend_arguments, check_backend, run_map
+from posegrasp.core.backends import add_backend_arguments, check_backend
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
@@ -28,6 +28,7 @@ from posegrasp.core.cli import (
     summary_stream,
     write_json,
 )
+from posegrasp.core.journal import Journal, journal_path, run_journaled
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import (
     arg,
@@ -96,9 +97,13 @@ def study(
     tier: str = DEFAULT_TIER,
     backend: str = "local",
     address: str | None = None,
+    journal: Path | None = None,
+    resume: bool = False,
 ) -> dict:
     """Run the study on one tier and return {object: {kind: {levels, rates, tolerance}}};
-    `backend` and `address` say where the episodes run (`posegrasp.core.backends.run_map`)."""
+    `backend` and `address` say where the episodes run (`posegrasp.core.backends.run_map`);
+    `journal` keeps every finished episode, and `resume` runs only those it lacks
+    (`posegrasp.core.journal`)."""
     check_tier(tier)
     n_jobs = len(objects) * sum(map(len, LEVELS.values())) * episodes
     workers, note = effective_workers(workers, n_jobs)
@@ -111,16 +116,17 @@ def study(
         for v in vals
         for i in range(episodes)
     )
-    results = list(
-        run_map(
-            _job,
-            jobs,
-            backend=backend,
-            workers=workers,
-            address=address,
-            desc="episodes",
-            total=n_jobs,
-        )
+    protocol = study_protocol(objects, episodes, seed_start, tier)
+    results = run_journaled(
+        _job,
+        jobs,
+        n_jobs,
+        Journal(journal, "tolerance", protocol) if journal else None,
+        resume,
+        backend=backend,
+        workers=workers,
+        address=address,
+        desc="episodes",
     )
     out: dict = {}
     for o in objects:
@@ -136,6 +142,17 @@ def study(
                 "tolerance": tolerance_of(list(vals), rates),
             }
     return out
+
+
+def study_protocol(objects: list[str], episodes: int, seed_start: int, tier: str) -> dict:
+    """What defines a study's results: a resumed one must have the same."""
+    return {
+        "objects": list(objects),
+        "episodes": episodes,
+        "seed_start": seed_start,
+        "tier": tier,
+        "levels": LEVELS,
+    }
 
 
 def plot(result: dict, path: Path) -> None:
@@ -203,14 +220,29 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PATH",
         help=f"plot of the curves (.png, .pdf or .svg; default {DEFAULT_PLOT})",
     )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="finish an interrupted study of the same arguments from its journal (beside --json)",
+    )
     add_backend_arguments(p)
     args = p.parse_args(argv)
     setup_rendering()
     objects = args.objects or [args.object or "phone"]
     check_seed(args.seed_start, "--seed-start", args.episodes)
     check_backend(args.backend, args.address)
+    protocol = study_protocol(objects, args.episodes, args.seed_start, args.tier)
+    journal = journal_path(args.json, "tolerance", protocol)
     result = study(
-        objects, args.episodes, args.seed_start, args.workers, args.tier, args.backend, args.address
+        objects,
+        args.episodes,
+        args.seed_start,
+        args.workers,
+        args.tier,
+        args.backend,
+        args.address,
+        journal=journal,
+        resume=args.resume,
     )
     log = summary_stream(args.json)
     plot(result, args.plot)
@@ -220,6 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"tolerance = error where success drops below {THRESHOLD:.0%}", file=log)
     print(f"wrote {args.plot}", file=log)
     write_json(args.json, result)
+    journal.unlink(missing_ok=True)  # the curves now hold every episode
     return 0
 
 

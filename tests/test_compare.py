@@ -11,6 +11,32 @@ import pytest
 from posegrasp.core.errors import InvalidArgumentError
 from sim import compare as cmp
 from sim import stats
+from sim.evaluate import make_report
+
+
+def _episode(obj: str, seed: int, tier: str, ok: bool, margin: float | None) -> dict:
+    """An episode record as `sim.evaluate` writes it (schema `sim.report_schema`)."""
+    return {
+        "object": obj,
+        "seed": seed,
+        "estimator": "x",
+        "tier": tier,
+        "success": ok,
+        "failure_reason": None if ok else "missed",
+        "friction_margin": margin if ok else None,
+        "pose_error": None,
+        "notes": [],
+        "timings_ms": {},
+        "wall_ms": 1.0,
+    }
+
+
+def _write(path: Path, eps: list[dict], tier: str, noise: str | None = None, **fields) -> Path:
+    objects = sorted({e["object"] for e in eps})
+    report = make_report(eps, objects, "x", tier, 1, max(1, len(eps)), noise=noise)
+    report.update(fields)
+    path.write_text(json.dumps(report))
+    return path
 
 
 def _report(
@@ -19,22 +45,8 @@ def _report(
     tier: str = "isolated",
     execution: dict | None = None,
 ) -> Path:
-    eps = [
-        {
-            "object": o,
-            "seed": s,
-            "tier": tier,
-            "success": ok,
-            "failure_reason": None,
-            "friction_margin": 0.2 + 0.01 * s if ok else None,
-        }
-        for (o, s), ok in successes.items()
-    ]
-    report = {"tier": tier, "episodes": eps}
-    if execution is not None:
-        report["execution"] = execution
-    path.write_text(json.dumps(report))
-    return path
+    eps = [_episode(o, s, tier, ok, 0.2 + 0.01 * s) for (o, s), ok in successes.items()]
+    return _write(path, eps, tier, **({} if execution is None else {"execution": execution}))
 
 
 def test_mcnemar_exact_by_hand() -> None:
@@ -124,12 +136,17 @@ def test_runs_of_other_execution_settings_are_not_paired(tmp_path: Path, capsys)
     a = _report(tmp_path / "a.json", outcomes, execution=fast)
     b = _report(tmp_path / "b.json", outcomes, execution={**fast, "transit": "dynamic"})
     c = _report(tmp_path / "c.json", outcomes, execution=fast)
-    old = _report(tmp_path / "old.json", outcomes)  # recorded before reports said
+    old = _report(tmp_path / "old.json", outcomes)
+    report = json.loads(old.read_text())
+    del report["execution"]  # as recorded before reports said
+    old.write_text(json.dumps(report))
     assert cmp.main([str(a), str(b), "--boot", "200"]) == 2
     err = capsys.readouterr().err.strip()
     assert "transit: 'kinematic' against 'dynamic'" in err and len(err.splitlines()) == 1
     assert cmp.main([str(a), str(c), "--boot", "200"]) == 0
-    assert cmp.main([str(a), str(old), "--boot", "200"]) == 0
+    # A report without the record does not pair with anything: the reader names the field.
+    assert cmp.main([str(a), str(old), "--boot", "200"]) == 2
+    assert "lacks the field execution" in capsys.readouterr().err
     assert cmp.main([str(a), str(c), str(b), "--curve", "--boot", "200"]) == 2
 
 
@@ -168,13 +185,8 @@ def test_curve_chains_paired_comparisons(tmp_path: Path, capsys) -> None:
     """Three runs on the same scenes: each is compared with the one before; a plot is drawn."""
     paths = []
     for k, lost in enumerate((0, 1, 8)):
-        eps = [
-            {"object": "phone", "seed": s, "success": s >= lost, "friction_margin": 0.2}
-            for s in range(40)
-        ]
-        path = tmp_path / f"r{k}.json"
-        path.write_text(json.dumps({"tier": "hard", "noise": f"{k},{k},{k},{k}", "episodes": eps}))
-        paths.append(path)
+        eps = [_episode("phone", s, "hard", s >= lost, 0.2) for s in range(40)]
+        paths.append(_write(tmp_path / f"r{k}.json", eps, "hard", noise=f"{k},{k},{k},{k}"))
     png = tmp_path / "curve.png"
     assert cmp.main(["--curve", *map(str, paths), "--plot", str(png)]) == 0
     out = capsys.readouterr().out
@@ -184,3 +196,25 @@ def test_curve_chains_paired_comparisons(tmp_path: Path, capsys) -> None:
     # Three reports without --curve, or --plot alone, are refused.
     assert cmp.main([*map(str, paths)]) == 2
     assert cmp.main([str(paths[0]), str(paths[1]), "--plot", str(png)]) == 2
+
+
+def test_compare_validates_each_report_and_names_the_field(tmp_path: Path, capsys) -> None:
+    good = _report(tmp_path / "a.json", {("phone", 1): True, ("phone", 2): False})
+    cases = {
+        "overall.successes": lambda r: r["overall"].pop("successes"),
+        "episodes[1].seed": lambda r: r["episodes"][1].pop("seed"),
+        "schema": lambda r: r.pop("schema"),
+    }
+    for field, damage in cases.items():
+        report = json.loads(good.read_text())
+        damage(report)
+        bad = tmp_path / "bad.json"
+        bad.write_text(json.dumps(report))
+        assert cmp.main([str(good), str(bad)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and field.split(".")[-1].split("[")[0] in err, err
+    report = json.loads(good.read_text())
+    report["episodes"][0]["success"] = "yes"
+    bad.write_text(json.dumps(report))
+    assert cmp.main([str(good), str(bad)]) == 2
+    assert "episodes[0].success: 'yes' is not of type 'boolean'" in capsys.readouterr().err

@@ -26,6 +26,7 @@ import itertools
 import logging
 import multiprocessing as mp
 import os
+import signal
 import socket
 import sys
 import threading
@@ -155,11 +156,27 @@ def run_map(
             ray.shutdown()
 
 
+def _pool_init(initializer: Callable[..., None] | None, initargs: tuple) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if initializer is not None:
+        initializer(*initargs)
+
+
 def _local_map(fn, jobs, workers, chunk, initializer, initargs, ordered) -> Iterator[Any]:
     if workers <= 1:
         yield from map(fn, jobs)
         return
-    with mp.get_context("spawn").Pool(workers, initializer, initargs) as pool:
+    # The workers leave Ctrl-C to this process, which stops the run in one line (its pool is
+    # terminated on the way out) instead of a traceback from every worker: they start with
+    # SIGINT ignored (inherited), and keep it so.
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
+    try:
+        pool = mp.get_context("spawn").Pool(workers, _pool_init, (initializer, initargs))
+    finally:
+        if in_main:
+            signal.signal(signal.SIGINT, previous)
+    with pool:
         imap = pool.imap if ordered else pool.imap_unordered
         # Pool.imap queues its whole input at once: fed in windows, a long stream of jobs is
         # never held in memory.
@@ -253,7 +270,7 @@ def connect(ray, address: str | None, workers: int) -> None:
         raise BackendError(f"cannot connect to a Ray cluster at {address}: {first}; {hint}")
 
 
-def _by_name(fn: Callable | None) -> Callable | None:
+def by_import_name(fn: Callable | None) -> Callable | None:
     """`fn` from its module's import name when it was defined in a module run as a script
     (``python -m sim.evaluate`` runs as ``__main__``, which a Ray worker cannot import)."""
     main = sys.modules["__main__"]
@@ -283,7 +300,7 @@ def _ray_map(ray, fn, jobs, workers, chunk, initializer, initargs, ordered, bar)
     task = ray.remote(_run_chunk).options(
         num_cpus=1, max_retries=MAX_RETRIES, scheduling_strategy="SPREAD"
     )
-    payload = ray.put((uuid.uuid4().hex, _by_name(fn), _by_name(initializer), initargs))
+    payload = ray.put((uuid.uuid4().hex, by_import_name(fn), by_import_name(initializer), initargs))
     pending: dict[Any, int] = {}
     done: dict[int, tuple[list, str]] = {}
     submit, emit = 0, 0

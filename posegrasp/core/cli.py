@@ -24,6 +24,7 @@ from typing import Any, NoReturn, TextIO
 
 from posegrasp.core.errors import PosegraspError
 from posegrasp.core.files import atomic_write_json
+from posegrasp.core.journal import INTERRUPTED_EXIT, Interrupted
 from posegrasp.core.validate import (
     DEFAULT_WORKERS,
     MAX_WORKERS,
@@ -53,7 +54,8 @@ def fail(message: str, status: int = 2) -> int:
 def command(main: Callable[..., int]) -> Callable[..., int]:
     """Decorate a command's ``main(argv) -> int`` so that it always returns its exit status.
 
-    A `PosegraspError` becomes one ``error:`` line on stderr and status 2 (`fail`); argparse's
+    A `PosegraspError` becomes one ``error:`` line on stderr and status 2 (`fail`); Ctrl-C or
+    SIGTERM one line (for a journaled run, the command that resumes it) and status 130; argparse's
     exit (``--help``: 0, a bad argument, already reported in one line: 2) becomes its status. The
     decorated function is a console-script entry point as it is (``sys.exit(main())``).
 
@@ -70,6 +72,12 @@ def command(main: Callable[..., int]) -> Callable[..., int]:
             return main(*args, **kwargs)
         except PosegraspError as exc:
             return fail(str(exc))
+        except Interrupted as exc:  # a journaled run: the line says how to resume
+            print(str(exc), file=sys.stderr)
+            return INTERRUPTED_EXIT
+        except KeyboardInterrupt:
+            print("interrupted", file=sys.stderr)
+            return INTERRUPTED_EXIT
         except SystemExit as exc:
             if exc.code is None or isinstance(exc.code, int):
                 return exc.code or 0

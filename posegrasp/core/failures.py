@@ -15,8 +15,10 @@ FAILURE_REASONS: dict[str, str] = {
     "missed": "after closing, not both fingers touch the object",
     "slipped": "after lift and hold, the object is below 0.10 m or no longer between the fingers",
     "disturbed": "the object was held, but another object moved over 3 cm or tilted over 30 deg",
-    "invalid_action": "the env's action was not a finite pose with a unit quaternion (the "
-    "problem is in info['error'])",
+    "invalid_action": "the estimate or the env's action was not a valid pose: non-finite, a "
+    "rotation off orthonormal by more than 1e-6 or a reflection, a position beyond 10 m of the "
+    "camera (metres, not millimetres), or a non-unit quaternion (the cause is the episode's first "
+    "note and, in the env, info['error'])",
     "error": "the episode raised an error, recorded in its notes (sim.evaluate keeps going)",
 }
 

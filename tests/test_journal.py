@@ -1,0 +1,175 @@
+"""Runs that survive interruption (`posegrasp.core.journal`): the journal keeps what finished,
+a resumed run gives the report an uninterrupted one gives, and Ctrl-C or SIGTERM on a real
+`sim.evaluate` stops it in one line that says how to resume."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.journal import (
+    INTERRUPTED_EXIT,
+    Interrupted,
+    Journal,
+    journal_path,
+    run_journaled,
+)
+
+REPO = Path(__file__).resolve().parent.parent
+PROTOCOL = {"estimator": "oracle", "seeds": [1, 2, 3]}
+
+
+def _square(x: int) -> dict:
+    return {"x": x, "y": x * x}
+
+
+def test_a_journal_keeps_units_and_resumes_past_a_cut_line(tmp_path: Path) -> None:
+    path = tmp_path / "run.journal.jsonl"
+    j = Journal(path, "evaluate", PROTOCOL)
+    assert j.start(resume=False) == []
+    j.append({"key": 0, "result": 1})
+    j.append({"key": 1, "result": 2})
+    j.close()
+    with path.open("a") as f:
+        f.write('{"key": 2, "res')  # the interruption cut this line short
+    again = Journal(path, "evaluate", PROTOCOL)
+    assert [u["key"] for u in again.start(resume=True)] == [0, 1]
+    again.append({"key": 2, "result": 3})
+    again.close()
+    lines = path.read_text().splitlines()
+    assert len(lines) == 4 and json.loads(lines[-1]) == {"key": 2, "result": 3}
+    again.finish()
+    assert not path.exists()
+
+
+def test_a_journal_is_never_overwritten_or_mixed(tmp_path: Path) -> None:
+    path = tmp_path / "run.jsonl"
+    Journal(path, "evaluate", PROTOCOL).start(resume=False)
+    with pytest.raises(InvalidArgumentError, match="--resume"):
+        Journal(path, "evaluate", PROTOCOL).start(resume=False)
+    with pytest.raises(InvalidArgumentError, match="differs in seeds"):
+        Journal(path, "evaluate", {**PROTOCOL, "seeds": [4]}).start(resume=True)
+    with pytest.raises(InvalidArgumentError, match="not a journal of a tolerance run"):
+        Journal(path, "tolerance", PROTOCOL).start(resume=True)
+    with pytest.raises(InvalidArgumentError, match="nothing to resume"):
+        Journal(tmp_path / "none.jsonl", "evaluate", PROTOCOL).start(resume=True)
+
+
+def test_journal_paths_sit_beside_the_report_or_in_the_data_folder(tmp_path, monkeypatch) -> None:
+    assert journal_path(tmp_path / "out.json", "evaluate", PROTOCOL) == tmp_path / (
+        "out.journal.jsonl"
+    )
+    monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path))
+    p = journal_path("-", "evaluate", PROTOCOL)
+    assert p.parent == tmp_path / "runs" and p == journal_path(None, "evaluate", PROTOCOL)
+    assert p != journal_path(None, "evaluate", {**PROTOCOL, "seeds": [9]})
+
+
+def test_a_resumed_map_runs_only_the_rest(tmp_path: Path) -> None:
+    path = tmp_path / "j.jsonl"
+    full = run_journaled(_square, range(6), 6)
+    j = Journal(path, "square", PROTOCOL)
+    j.start(resume=False)
+    for k in (0, 1, 4):
+        j.append({"key": k, "result": _square(k)})
+    j.close()
+    calls = []
+
+    def counted(x: int) -> dict:
+        calls.append(x)
+        return _square(x)
+
+    resumed = run_journaled(counted, range(6), 6, Journal(path, "square", PROTOCOL), resume=True)
+    assert resumed == full and calls == [2, 3, 5]
+
+
+def test_an_interrupt_inside_a_journaled_map_names_the_resume(tmp_path: Path) -> None:
+    def stop(x: int) -> dict:
+        if x == 2:
+            raise KeyboardInterrupt
+        return _square(x)
+
+    path = tmp_path / "j.jsonl"
+    with pytest.raises(Interrupted, match="2 of 5 finished .* resume with: .*--resume"):
+        run_journaled(stop, range(5), 5, Journal(path, "square", PROTOCOL))
+    assert len(path.read_text().splitlines()) == 3  # the header and two units
+
+
+def _strip(report: dict) -> dict:
+    """A report without what differs between runs of one protocol: wall-clock times and the
+    worker count."""
+    out = {k: v for k, v in report.items() if k not in ("wall_s", "workers")}
+    out["episodes"] = [
+        {k: v for k, v in e.items() if k not in ("wall_ms", "timings_ms")} for e in out["episodes"]
+    ]
+    for g in [out["overall"], *out["per_object"].values()]:
+        for k in ("episode_wall_ms_median", "planning_ms_median"):
+            g.pop(k)
+    return out
+
+
+def _evaluate_cmd(out: Path, *extra: str) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "sim.evaluate",
+        "--estimator",
+        "noisy-oracle",
+        "--objects",
+        "phone,car",
+        "--episodes",
+        "4",
+        "--json",
+        str(out),
+        *extra,
+    ]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_evaluation_resumes_to_the_uninterrupted_report(tmp_path, sig) -> None:
+    env = {**os.environ, "MUJOCO_GL": "egl", "POSEGRASP_DATA": str(tmp_path)}
+    whole = tmp_path / "whole.json"
+    subprocess.run(_evaluate_cmd(whole), env=env, cwd=REPO, check=True, capture_output=True)
+    out = tmp_path / "cut.json"
+    journal = tmp_path / "cut.journal.jsonl"
+    proc = subprocess.Popen(
+        _evaluate_cmd(out, "--workers", "2"),
+        env=env,
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        if journal.is_file() and len(journal.read_text().splitlines()) >= 3:  # 2 episodes kept
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be interrupted"
+    sent = time.monotonic()
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert time.monotonic() - sent < 15, "the run took too long to stop"
+    assert proc.returncode == INTERRUPTED_EXIT
+    lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln and "episodes" not in ln[:9]]
+    assert len(lines) == 1 and "resume with:" in lines[0] and "--resume" in lines[0], err
+    assert "Traceback" not in err and not out.exists()
+    kept = len(journal.read_text().splitlines()) - 1
+    assert 2 <= kept < 8
+    # Starting anew over the unfinished run is refused; --resume finishes it.
+    again = subprocess.run(_evaluate_cmd(out), env=env, cwd=REPO, capture_output=True, text=True)
+    assert again.returncode == 2 and "--resume" in again.stderr
+    subprocess.run(
+        _evaluate_cmd(out, "--resume"), env=env, cwd=REPO, check=True, capture_output=True
+    )
+    assert not journal.exists()
+    assert _strip(json.loads(out.read_text())) == _strip(json.loads(whole.read_text()))

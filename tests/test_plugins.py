@@ -1,0 +1,182 @@
+"""Plug-in estimators (`sim.estimators`): ``package.module:factory`` and the entry-point group on
+every command that takes ``--estimator``, the Python `evaluate` taking an estimator object, and
+the example package in examples/ installed and scored as a user would."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from posegrasp.core.contract import Estimate
+from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
+from sim import estimators as E
+from sim.evaluate import evaluate
+from sim.report_schema import validate_report
+
+REPO = Path(__file__).resolve().parent.parent
+EXAMPLE = REPO / "examples" / "crude-estimator"
+SPEC = "posegrasp_crude:CrudeTableEstimator"
+SEED = 1_000_000_000
+
+
+class NoEstimate:
+    name = "nothing"
+
+    def estimate(self, obs) -> Estimate:
+        return Estimate(None, info={"note": "never sees anything"})
+
+
+def no_estimate() -> NoEstimate:
+    return NoEstimate()
+
+
+def wrong_kind() -> object:
+    return object()
+
+
+def failing() -> NoEstimate:
+    raise RuntimeError("GPU not found")
+
+
+@pytest.fixture
+def example_on_path(monkeypatch):
+    monkeypatch.syspath_prepend(str(EXAMPLE))
+
+
+def test_a_factory_spec_makes_the_estimator(example_on_path) -> None:
+    est = E.make_estimator(SPEC)
+    assert est.name == "crude" and callable(est.estimate)
+    assert E.check_estimator_spec(SPEC) == SPEC
+    assert E.make_estimator("tests.test_plugins:no_estimate").name == "nothing"
+
+
+@pytest.mark.parametrize(
+    "spec, needle",
+    [
+        ("nope_pkg:Factory", "cannot import 'nope_pkg'"),
+        ("tests.test_plugins:missing", "has no 'missing'"),
+        ("tests.test_plugins:SEED", "is not callable"),
+        ("tests.test_plugins:", "package.module:factory"),
+        ("tests.test_plugins:wrong_kind", "without a callable estimate(obs) and a str name"),
+        ("tests.test_plugins:failing", "its factory failed (RuntimeError: GPU not found)"),
+    ],
+)
+def test_a_bad_plugin_is_one_line(spec: str, needle: str) -> None:
+    with pytest.raises(InvalidArgumentError) as err:
+        E.make_estimator(spec)
+    assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+def test_an_unknown_name_lists_the_choices() -> None:
+    with pytest.raises(UnknownNameError, match=r"package\.module:factory") as err:
+        E.check_estimator_spec("myest")
+    assert "hybrid-global" in str(err.value)
+
+
+@pytest.mark.parametrize("module", ["sim.evaluate", "sim.run_episode", "sim.gate"])
+def test_every_command_refuses_a_bad_plugin_in_one_line(module: str) -> None:
+    run = subprocess.run(
+        [sys.executable, "-m", module, "--estimator", "nope_pkg:Factory"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "MUJOCO_GL": "egl"},
+    )
+    assert run.returncode == 2
+    assert run.stderr.count("\n") == 1 and "cannot import 'nope_pkg'" in run.stderr
+
+
+def test_evaluate_takes_an_estimator_object_and_a_spec_alike(example_on_path) -> None:
+    from posegrasp_crude import CrudeTableEstimator
+
+    by_object = evaluate(["phone"], 2, CrudeTableEstimator(), SEED, tier="isolated")
+    by_spec = evaluate(["phone"], 2, SPEC, SEED, tier="isolated")
+    validate_report(by_object)
+    assert by_object["estimator"] == "crude" and by_spec["estimator"] == SPEC
+
+    def outcome(r: dict) -> list[dict]:
+        return [{k: v for k, v in e.items() if k not in ("wall_ms", "timings_ms")} for e in r]
+
+    assert outcome(by_object["episodes"]) == outcome(by_spec["episodes"])
+    none = evaluate(["car"], 1, NoEstimate(), SEED, tier="isolated")
+    assert none["overall"]["failure_reasons"] == {"no_estimate": 1}
+
+
+@pytest.mark.slow
+def test_the_example_package_installs_and_is_scored_by_name(tmp_path: Path) -> None:
+    """pip installs examples/crude-estimator (to a folder on PYTHONPATH, as into any
+    environment); its entry point then names it on the command line, and evaluate and the gate
+    score it with the episodes the factory spec gives."""
+    site = tmp_path / "site"
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-build-isolation",
+            "--target",
+            str(site),
+            str(EXAMPLE),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(site),
+        "MUJOCO_GL": "egl",
+        "POSEGRASP_DATA": str(tmp_path),
+    }
+
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-m", *args], cwd=REPO, env=env, capture_output=True, text=True
+        )
+
+    by_name = run(
+        "sim.evaluate",
+        "--estimator",
+        "crude",
+        "--objects",
+        "phone,car",
+        "--episodes",
+        "3",
+        "--json",
+        str(tmp_path / "a.json"),
+    )
+    assert by_name.returncode == 0, by_name.stderr
+    by_spec = run(
+        "sim.evaluate",
+        "--estimator",
+        SPEC,
+        "--objects",
+        "phone,car",
+        "--episodes",
+        "3",
+        "--json",
+        str(tmp_path / "b.json"),
+        "--workers",
+        "2",
+    )
+    assert by_spec.returncode == 0, by_spec.stderr
+    a, b = (json.loads((tmp_path / f).read_text()) for f in ("a.json", "b.json"))
+    keep = ("object", "seed", "success", "failure_reason", "T_C_O_est", "pose_error")
+    assert [{k: e[k] for k in keep} for e in a["episodes"]] == [
+        {k: e[k] for k in keep} for e in b["episodes"]
+    ]
+    assert run("sim.compare", str(tmp_path / "a.json"), str(tmp_path / "b.json")).returncode == 0
+    baseline = tmp_path / "gate.json"
+    wrote = run(
+        "sim.gate", "--write", "--estimator", "crude", "--baseline", str(baseline), "--workers", "2"
+    )
+    assert wrote.returncode == 0, wrote.stderr
+    gated = run("sim.gate", "--estimator", "crude", "--baseline", str(baseline), "--workers", "2")
+    assert gated.returncode == 0 and "crude: PASS" in gated.stdout, gated.stdout + gated.stderr
