@@ -45,8 +45,8 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
 from sim.estimators import DEFAULT_ESTIMATOR, add_estimator_arguments
-from sim.report_schema import validate_report
 from sim.evaluate import evaluate, format_report
+from sim.report_schema import validate_report
 from sim.stats import BOOTSTRAP, bootstrap_means, mcnemar_exact
 
 BASELINE = Path(__file__).resolve().parent / "gate_baseline.json"
