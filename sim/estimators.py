@@ -28,7 +28,7 @@ import numpy as np
 from perception.estimators import LEARNED_ESTIMATORS
 from posegrasp.core.contract import CONTRACT_VERSION, Estimate, Observation, PoseEstimator
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
-from posegrasp.core.validate import arg
+from posegrasp.core.validate import arg, check_choice
 from sim.pose_noise import NOISE_FORMAT, PoseNoise, parse_noise, perturb_pose
 
 #: Other objects' poses: (class, T_C_N) pairs in the camera frame.
@@ -273,3 +273,20 @@ def add_estimator_arguments(
             metavar="SIGMAS",
             help=f"noisy-oracle's Gaussian sigmas: {NOISE_FORMAT}",
         )
+
+
+#: What an observation holds (`sim.episode.OBS_MODES`, repeated here so that parsing a command line
+#: imports no episode machinery; a test keeps the two equal).
+OBS_MODES = ("rgb", "rgbd")
+
+
+def add_obs_mode_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--obs-mode {rgb,rgbd}``: ``rgbd`` hands the estimator the head camera's depth image
+    too (`posegrasp.core.contract.Observation.depth`)."""
+    parser.add_argument(
+        "--obs-mode",
+        default="rgb",
+        type=arg(check_choice, OBS_MODES, "observation mode"),
+        help="what the estimator sees: rgb (default) or rgbd (adds depth, float32 metres, z along "
+        "the optical axis)",
+    )

@@ -47,7 +47,12 @@ from posegrasp.core.validate import (
 from posegrasp.world import constants as C
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
-from sim.estimators import PrivilegedEstimator, add_estimator_arguments, make_estimator
+from sim.estimators import (
+    PrivilegedEstimator,
+    add_estimator_arguments,
+    add_obs_mode_argument,
+    make_estimator,
+)
 from sim.pose_noise import parse_noise
 from sim.report_schema import REPORT_SCHEMA
 from sim.stats import BOOTSTRAP, bootstrap_means, margin_error_correlation, wilson_interval
@@ -103,14 +108,16 @@ def _init_worker() -> None:
 def _run_one(job: tuple) -> dict:
     """One episode of an evaluation, in whatever process runs it (this one, a pool worker, a Ray
     worker started afresh after another died): it sets up rendering there first."""
-    obj, seed, estimator, tier, noise, margin = job
+    obj, seed, estimator, tier, noise, margin, obs_mode = job
     from grasping.execute import ExecutionConfig
     from sim.episode import EpisodeConfig, play_episode
 
     setup_rendering()
     t = time.perf_counter()
     try:
-        cfg = EpisodeConfig(tier=tier, execution=ExecutionConfig(measure_margin=margin))
+        cfg = EpisodeConfig(
+            tier=tier, execution=ExecutionConfig(measure_margin=margin), obs_mode=obs_mode
+        )
         r = play_episode(obj, seed, _resolve(estimator, noise), cfg)
         d = r.to_json()
     except PosegraspError as exc:  # an episode never takes the evaluation down
@@ -182,6 +189,7 @@ def evaluate(
     address: str | None = None,
     journal: Path | None = None,
     resume: bool = False,
+    obs_mode: str = "rgb",
 ) -> dict:
     """Run episodes (objects x seeds) of one tier and aggregate per object and overall.
 
@@ -201,6 +209,7 @@ def evaluate(
         journal: keep every finished episode in this JSON-lines file as it returns
             (`posegrasp.core.journal`); removed by the caller once the report is written.
         resume: run only the episodes the journal does not hold yet.
+        obs_mode: what the estimator sees (`sim.episode.OBS_MODES`): ``rgbd`` adds depth.
 
     Raises:
         Interrupted: Ctrl-C or SIGTERM; with a journal, its line says how to resume.
@@ -208,13 +217,13 @@ def evaluate(
     check_tier(tier)
     label = estimator_label(estimator)
     n_jobs = len(objects) * episodes
-    protocol = run_protocol(objects, episodes, label, seed_start, tier, noise, margin)
+    protocol = run_protocol(objects, episodes, label, seed_start, tier, noise, margin, obs_mode)
     workers, note = effective_workers(workers, n_jobs)
     if note:
         print(note, file=sys.stderr)
     # Made as the workers take them, never all at once.
     jobs = (
-        (o, seed_start + i, estimator, tier, noise, margin)
+        (o, seed_start + i, estimator, tier, noise, margin, obs_mode)
         for o in objects
         for i in range(episodes)
     )
@@ -241,6 +250,7 @@ def evaluate(
         noise=noise,
         workers=workers,
         wall_s=time.perf_counter() - t,
+        obs_mode=obs_mode,
     )
 
 
@@ -254,6 +264,7 @@ def make_report(
     noise: str | None = None,
     workers: int = 1,
     wall_s: float = 0.0,
+    obs_mode: str = "rgb",
 ) -> dict:
     """The report (schema `REPORT_SCHEMA`) of finished episodes: the protocol, the aggregates per
     object and overall, and the episodes in run order."""
@@ -262,6 +273,7 @@ def make_report(
         "estimator": estimator,
         "tier": tier,
         "noise": noise,
+        "obs_mode": obs_mode,
         "execution": execution_settings(),
         "seed_start": seed_start,
         "episodes_per_object": episodes_per_object,
@@ -281,6 +293,7 @@ def run_protocol(
     tier: str,
     noise: str | None,
     margin: bool,
+    obs_mode: str = "rgb",
 ) -> dict:
     """What defines an evaluation's results: a resumed run must have the same."""
     return {
@@ -291,6 +304,7 @@ def run_protocol(
         "tier": tier,
         "noise": noise,
         "margin": margin,
+        "obs_mode": obs_mode,
         "execution": execution_settings(),
     }
 
@@ -427,6 +441,7 @@ def main(argv: list[str] | None = None) -> int:
         help=f"episodes per object, 1..{MAX_EPISODES}",
     )
     add_estimator_arguments(p)
+    add_obs_mode_argument(p)
     p.add_argument(
         "--seed-start",
         type=arg(check_seed, "--seed-start", base=int),
@@ -483,6 +498,7 @@ def main(argv: list[str] | None = None) -> int:
         args.tier,
         args.noise,
         args.margin,
+        args.obs_mode,
     )
     journal = journal_path(args.json, "evaluate", protocol)
     report = evaluate(
@@ -498,6 +514,7 @@ def main(argv: list[str] | None = None) -> int:
         args.address,
         journal=journal,
         resume=args.resume,
+        obs_mode=args.obs_mode,
     )
     log = summary_stream(args.json)
     print(format_report(report), file=log)

@@ -26,7 +26,7 @@ from posegrasp.world import constants as C
 from posegrasp.world.camera import external_renderer
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
-from sim.estimators import add_estimator_arguments, make_estimator
+from sim.estimators import add_estimator_arguments, add_obs_mode_argument, make_estimator
 from sim.pose_noise import parse_noise
 
 
@@ -117,10 +117,11 @@ def _run(
     save: Path | None,
     tier: str = DEFAULT_TIER,
     log: TextIO | None = None,
+    obs_mode: str = "rgb",
 ):
     from sim.episode import Episode, EpisodeConfig
 
-    ep = Episode(obj, seed, EpisodeConfig(tier=tier))
+    ep = Episode(obj, seed, EpisodeConfig(tier=tier, obs_mode=obs_mode))
     external = None
     try:
         recorder = None
@@ -185,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         "trained on)",
     )
     add_estimator_arguments(p)
+    add_obs_mode_argument(p)
     p.add_argument(
         "--tier",
         default=DEFAULT_TIER,
@@ -203,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     log = summary_stream(args.json)
     noise = None if args.noise is None else parse_noise(args.noise)
     estimator = make_estimator(args.estimator, noise)
-    result = _run(args.object, args.seed, estimator, args.out, args.tier, log)
+    result = _run(args.object, args.seed, estimator, args.out, args.tier, log, args.obs_mode)
     if args.seed < C.DATA_SEED_LIMIT and args.estimator.startswith("hybrid"):
         print(
             f"note: seed {args.seed} is in the data generator's range (< {C.DATA_SEED_LIMIT}); "

@@ -180,3 +180,25 @@ def test_the_example_package_installs_and_is_scored_by_name(tmp_path: Path) -> N
     assert wrote.returncode == 0, wrote.stderr
     gated = run("sim.gate", "--estimator", "crude", "--baseline", str(baseline), "--workers", "2")
     assert gated.returncode == 0 and "crude: PASS" in gated.stdout, gated.stdout + gated.stderr
+
+
+class SeesDepth:
+    """Records whether the observation held a depth image of the image's size."""
+
+    name = "sees-depth"
+
+    def estimate(self, obs) -> Estimate:
+        d = obs.depth
+        ok = d is not None and d.shape == obs.rgb.shape[:2] and d.dtype.name == "float32"
+        return Estimate(None, info={"depth": bool(ok)})
+
+
+def test_rgbd_runs_hand_the_estimator_depth() -> None:
+    from sim import episode
+
+    assert E.OBS_MODES == episode.OBS_MODES
+    rgb = evaluate(["phone"], 1, SeesDepth(), SEED, tier="isolated")
+    rgbd = evaluate(["phone"], 1, SeesDepth(), SEED, tier="isolated", obs_mode="rgbd")
+    assert rgb["episodes"][0]["estimate_info"] == {"depth": False}
+    assert rgbd["episodes"][0]["estimate_info"] == {"depth": True}
+    assert rgbd["obs_mode"] == "rgbd" and validate_report(rgbd)
