@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from perception import metrics
 from posegrasp.core.backends import add_backend_arguments, check_backend
 from posegrasp.core.cli import (
     ArgumentParser,
@@ -30,13 +31,15 @@ from posegrasp.core.cli import (
     write_json,
 )
 from posegrasp.core.contract import PoseEstimator
-from posegrasp.core.errors import PosegraspError
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.failures import check_failure_reason
+from posegrasp.core.files import sha256_file
 from posegrasp.core.journal import Journal, journal_path, run_journaled
 from posegrasp.core.paths import DOCS_DIR
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import (
     arg,
+    check_input_file,
     check_int,
     check_names,
     check_plot_path,
@@ -47,7 +50,9 @@ from posegrasp.core.validate import (
 from posegrasp.world import constants as C
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
+from sim.bop_results import BopPosesEstimator
 from sim.estimators import (
+    DEFAULT_ESTIMATOR,
     PrivilegedEstimator,
     add_estimator_arguments,
     add_obs_mode_argument,
@@ -424,36 +429,116 @@ def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = Non
     plt.close(fig)
 
 
+def _episodes_of(args) -> BopPosesEstimator | None:
+    """Fill in the episodes the command line leaves open: the defaults, or, with ``--poses``,
+    those of the export ``--from`` names (then the estimator is the CSV's poses).
+
+    Raises:
+        InvalidArgumentError: ``--poses`` without ``--from`` or with an option that would choose
+            other episodes or another estimator, or ``--from`` alone.
+    """
+    chosen = {
+        "--objects": args.objects,
+        "--episodes": args.episodes,
+        "--seed-start": args.seed_start,
+        "--tier": args.tier,
+        "--estimator": args.estimator,
+        "--noise": args.noise,
+    }
+    if args.poses is None:
+        if args.export is not None:
+            raise InvalidArgumentError("--from names the export of --poses; give both")
+        args.objects = args.objects or list(OBJECT_NAMES)
+        args.episodes = args.episodes or 50
+        args.seed_start = C.EVAL_SEED_BASE if args.seed_start is None else args.seed_start
+        args.tier = args.tier or DEFAULT_TIER
+        args.estimator = args.estimator or DEFAULT_ESTIMATOR
+        return None
+    if args.export is None:
+        raise InvalidArgumentError("--poses needs --from DIR, the export the CSV answers")
+    if given := [k for k, v in chosen.items() if v is not None]:
+        raise InvalidArgumentError(
+            f"--poses grasps on the export's episodes with the CSV's poses; leave out "
+            f"{', '.join(given)}"
+        )
+    estimator = BopPosesEstimator(args.poses, args.export)
+    export = estimator.export
+    digest = sha256_file(args.poses)[:12]
+    estimator.name = f"bop:{Path(args.poses).name}@{digest}"
+    args.objects, args.episodes = list(export.objects), export.episodes
+    args.seed_start, args.tier = export.seed_start, export.tier
+    return estimator
+
+
+def poses_record(estimator: BopPosesEstimator, csv_path: Path, report: dict) -> dict:
+    """Where the poses of a ``--poses`` run came from, and their BOP scores over its episodes:
+    AR_MSSD and AR_MSPD (BOP 2019's thresholds; a target with no row counts as a miss), and the
+    rows the CSV had for the targets."""
+    eps = report["episodes"]
+
+    def err(e: dict, key: str) -> float | None:
+        pe = e.get("pose_error") or {}
+        return pe.get(key)
+
+    width = 640
+    return {
+        "csv": str(csv_path),
+        "csv_sha256": sha256_file(csv_path),
+        "export": str(estimator.export.root),
+        "targets": len(eps),
+        "targets_with_a_row": sum(e["T_C_O_est"] is not None for e in eps),
+        "ar_mssd": metrics.ar_mssd([err(e, "mssd_rel_diameter") for e in eps], 1.0),
+        "ar_mspd": metrics.ar_mspd([err(e, "mspd_px") for e in eps], width),
+    }
+
+
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(prog="python -m sim.evaluate", description=__doc__.split("\n")[0])
     p.add_argument(
         "--objects",
-        default=list(OBJECT_NAMES),
+        default=None,
         type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
-        help=f"'all' or a comma list of {', '.join(OBJECT_NAMES)}",
+        help=f"'all' (default) or a comma list of {', '.join(OBJECT_NAMES)}",
     )
     p.add_argument(
         "--episodes",
         type=arg(check_int, 1, MAX_EPISODES, "--episodes", base=int),
-        default=50,
-        help=f"episodes per object, 1..{MAX_EPISODES}",
+        default=None,
+        help=f"episodes per object, 1..{MAX_EPISODES} (default 50)",
     )
-    add_estimator_arguments(p)
+    add_estimator_arguments(p, default=None)
+    p.add_argument(
+        "--poses",
+        type=arg(check_input_file, "--poses"),
+        default=None,
+        metavar="CSV",
+        help="grasp on the poses of this BOP results CSV instead of running an estimator; the "
+        "episodes are those of the export --from names",
+    )
+    p.add_argument(
+        "--from",
+        dest="export",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="with --poses: the BOP export of python -m sim.export_bop that the CSV answers",
+    )
     add_obs_mode_argument(p)
     p.add_argument(
         "--seed-start",
         type=arg(check_seed, "--seed-start", base=int),
-        default=C.EVAL_SEED_BASE,
-        help="first scene seed (default: held-out scenes, never rendered as training data)",
+        default=None,
+        help=f"first scene seed (default {C.EVAL_SEED_BASE}: held-out scenes, never rendered as "
+        "training data)",
     )
     add_workers_argument(p, what="at most one per episode and core")
     p.add_argument(
         "--tier",
-        default=DEFAULT_TIER,
+        default=None,
         type=arg(check_tier),
-        help=f"scene tier, one of: {', '.join(TIERS)}",
+        help=f"scene tier, one of: {', '.join(TIERS)} (default {DEFAULT_TIER})",
     )
     p.add_argument(
         "--margin", action="store_true", help="measure each grasp's friction margin (slower)"
@@ -482,6 +567,7 @@ def main(argv: list[str] | None = None) -> int:
     add_backend_arguments(p)
     args = p.parse_args(argv)
     setup_rendering()
+    poses = _episodes_of(args)
     check_seed(args.seed_start, "--seed-start", args.episodes)
     check_backend(args.backend, args.address)
     if args.noise is not None:
@@ -489,11 +575,13 @@ def main(argv: list[str] | None = None) -> int:
     tolerance = args.tolerance  # the checked curves, or the default file's path
     if isinstance(tolerance, Path):
         tolerance = check_tolerance_file(tolerance) if args.plot and tolerance.is_file() else None
-    _estimator(args.estimator, args.noise)  # fails fast (missing weights)
+    estimator = poses or args.estimator
+    if poses is None:
+        _estimator(args.estimator, args.noise)  # fails fast (missing weights)
     protocol = run_protocol(
         args.objects,
         args.episodes,
-        args.estimator,
+        estimator_label(estimator),
         args.seed_start,
         args.tier,
         args.noise,
@@ -504,7 +592,7 @@ def main(argv: list[str] | None = None) -> int:
     report = evaluate(
         args.objects,
         args.episodes,
-        args.estimator,
+        estimator,
         args.seed_start,
         args.workers,
         args.tier,
@@ -516,6 +604,8 @@ def main(argv: list[str] | None = None) -> int:
         resume=args.resume,
         obs_mode=args.obs_mode,
     )
+    if poses is not None:
+        report["poses"] = poses_record(poses, args.poses, report)
     log = summary_stream(args.json)
     print(format_report(report), file=log)
     if args.plot is not None:

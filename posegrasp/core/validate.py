@@ -155,6 +155,15 @@ def check_json_output(path: str | Path, option: str = "--json") -> Path | str:
     return check_output_file(path, option)
 
 
+def check_input_file(path: str | Path, option: str) -> Path:
+    """An existing, readable file."""
+    path = Path(path)
+    if not path.is_file():
+        what = "a folder" if path.is_dir() else "no such file"
+        raise InvalidArgumentError(f"invalid {option} {str(path)!r}: {what}")
+    return path
+
+
 def check_json_file(path: str | Path, option: str) -> Any:
     """The content of an existing JSON file."""
     try:
