@@ -174,6 +174,7 @@ def _group(episodes: list[dict]) -> dict:
     # The grasp and the pose disagree: held on a wrong pose, or dropped on a right one.
     out["grasped_wrong_pose"] = sum(bool(e["success"]) and not e["pose_correct"] for e in judged)
     out["missed_right_pose"] = sum(not e["success"] and bool(e["pose_correct"]) for e in judged)
+    out.update(bop_scores(episodes))
     walls = [e["wall_ms"] for e in episodes]
     plans = [e["timings_ms"]["ik"] for e in episodes if "ik" in e.get("timings_ms", {})]
     out["episode_wall_ms_median"] = float(np.median(walls)) if walls else None
@@ -314,6 +315,10 @@ def run_protocol(
     }
 
 
+def _ar(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
 def format_report(report: dict) -> str:
     """The report as a table."""
     rows = [
@@ -322,7 +327,7 @@ def format_report(report: dict) -> str:
         f"seeds from {report['seed_start']}, {report['workers']} worker(s), "
         f"{report['wall_s']:.1f} s wall",
         f"{'object':<8} {'success':>8} {'rate':>6} {'wilson 95%':>15} {'t med mm':>9} "
-        f"{'r med deg':>9} {'plan ms':>8} {'ep ms':>7}  failures",
+        f"{'r med deg':>9} {'AR_MSSD':>7} {'AR_MSPD':>7} {'plan ms':>8} {'ep ms':>7}  failures",
     ]
     items = [*report["per_object"].items(), ("overall", report["overall"])]
     for name, g in items:
@@ -333,9 +338,16 @@ def format_report(report: dict) -> str:
             f"[{g['wilson_low']:.3f}, {g['wilson_high']:.3f}] "
             f"{'-' if tm is None else f'{tm * 1000:.1f}':>9} "
             f"{'-' if rm is None else f'{rm:.2f}':>9} "
+            f"{_ar(g['ar_mssd']):>7} {_ar(g['ar_mspd']):>7} "
             f"{g['planning_ms_median'] or 0:>8.1f} {g['episode_wall_ms_median'] or 0:>7.0f}  "
             + ", ".join(f"{k}: {v}" for k, v in g["failure_reasons"].items())
         )
+    o = report["overall"]
+    rows.append(
+        f"pose right (BOP MSSD < 0.1 diameter) in {o['pose_correct']} of {o['pose_judged']} "
+        f"estimates; grasped with a wrong pose: {o['grasped_wrong_pose']}; missed with a right "
+        f"pose: {o['missed_right_pose']}"
+    )
     margins = [(n, g) for n, g in items if "friction_margin_mean" in g]
     if margins:
         rows.append("friction margin (lowest sliding friction that still holds; lower is firmer):")
@@ -470,25 +482,36 @@ def _episodes_of(args) -> BopPosesEstimator | None:
     return estimator
 
 
-def poses_record(estimator: BopPosesEstimator, csv_path: Path, report: dict) -> dict:
-    """Where the poses of a ``--poses`` run came from, and their BOP scores over its episodes:
-    AR_MSSD and AR_MSPD (BOP 2019's thresholds; a target with no row counts as a miss), and the
-    rows the CSV had for the targets."""
-    eps = report["episodes"]
+#: The head camera's width the episodes render at [px] (BOP scales MSPD's thresholds by it).
+IMAGE_WIDTH = 640
+
+
+def bop_scores(episodes: list[dict]) -> dict[str, float | None]:
+    """BOP 2019's average recalls of the episodes' estimates: AR_MSSD (thresholds 0.05..0.5 of
+    the diameter) and AR_MSPD (5..50 px at 640 px width); an episode without an estimate, or
+    whose MSPD is infinite, counts as a miss. None for no episodes."""
+    if not episodes:
+        return {"ar_mssd": None, "ar_mspd": None}
 
     def err(e: dict, key: str) -> float | None:
-        pe = e.get("pose_error") or {}
-        return pe.get(key)
+        return (e.get("pose_error") or {}).get(key)
 
-    width = 640
+    return {
+        "ar_mssd": metrics.ar_mssd([err(e, "mssd_rel_diameter") for e in episodes], 1.0),
+        "ar_mspd": metrics.ar_mspd([err(e, "mspd_px") for e in episodes], IMAGE_WIDTH),
+    }
+
+
+def poses_record(estimator: BopPosesEstimator, csv_path: Path, report: dict) -> dict:
+    """Where the poses of a ``--poses`` run came from: the CSV (and its hash), the export, and
+    how many of the export's targets the CSV had a row for."""
+    eps = report["episodes"]
     return {
         "csv": str(csv_path),
         "csv_sha256": sha256_file(csv_path),
         "export": str(estimator.export.root),
         "targets": len(eps),
         "targets_with_a_row": sum(e["T_C_O_est"] is not None for e in eps),
-        "ar_mssd": metrics.ar_mssd([err(e, "mssd_rel_diameter") for e in eps], 1.0),
-        "ar_mspd": metrics.ar_mspd([err(e, "mspd_px") for e in eps], width),
     }
 
 
