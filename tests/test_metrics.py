@@ -287,3 +287,143 @@ def test_input_validation() -> None:
         m.mssd(np.eye(3), np.zeros(3), np.eye(3), np.zeros(3), pts, [{"R": np.eye(3)}])
     with pytest.raises(ValueError, match="at least one"):
         m.mssd(np.eye(3), np.zeros(3), np.eye(3), np.zeros(3), pts, [])
+
+
+# --------------------------------------------------------------------------- BOP sets and AR
+
+
+def test_symmetry_set_discretises_a_continuous_symmetry_as_bop_does() -> None:
+    offset = np.array([0.01, -0.02, 0.0])
+    syms = m.symmetry_set(continuous=[{"axis": [0.0, 0.0, 2.0], "offset": offset}])
+    # ceil(pi / 0.01) = 315 rotations by 2 pi k / 315 about z through the offset point.
+    assert len(syms) == 315
+    for k in (0, 1, 100, 314):
+        np.testing.assert_allclose(syms[k]["R"], rot_z(2.0 * math.pi * k / 315), atol=1e-12)
+        # The axis through the offset is fixed by every one.
+        p = offset + np.array([0.0, 0.0, 0.3])
+        np.testing.assert_allclose(syms[k]["R"] @ p + syms[k]["t"][:, 0], p, atol=1e-15)
+    # With a discrete half turn about x, each discretised rotation follows it (discrete-major).
+    flip = np.eye(4)
+    flip[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    both = m.symmetry_set([flip], [{"axis": [0, 0, 1], "offset": [0, 0, 0]}])
+    assert len(both) == 630
+    np.testing.assert_allclose(both[315 + 7]["R"], rot_z(2 * math.pi * 7 / 315) @ flip[:3, :3])
+    assert (
+        len(
+            m.symmetry_set(
+                continuous=[{"axis": [1, 0, 0], "offset": [0, 0, 0]}], max_sym_disc_step=0.5
+            )
+        )
+        == 7
+    )
+
+
+def test_symmetries_from_models_info_reads_mm() -> None:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = rot_z(math.pi), [10.0, 0.0, 0.0]
+    syms = m.symmetries_from_models_info({"symmetries_discrete": [list(T.reshape(-1))]})
+    assert len(syms) == 2
+    np.testing.assert_allclose(syms[0]["R"], np.eye(3))
+    np.testing.assert_allclose(syms[1]["t"][:, 0], [0.01, 0.0, 0.0])
+    assert len(m.symmetries_from_models_info({})) == 1
+
+
+def test_mssd_and_mspd_with_a_continuous_symmetry_by_hand() -> None:
+    # A ring of radius r about z, facing the camera at depth z0, turned by a about its axis.
+    r, z0, a = 0.05, 0.8, 0.3
+    angles = np.linspace(0.0, 2.0 * math.pi, 360, endpoint=False)
+    pts = np.stack([r * np.cos(angles), r * np.sin(angles), np.zeros_like(angles)], axis=1)
+    t = np.array([0.0, 0.0, z0])
+    syms = m.symmetry_set(continuous=[{"axis": [0, 0, 1], "offset": [0, 0, 0]}])
+    # The nearest discretised turn leaves |a - 2 pi k / 315|; every point moves by its chord.
+    step = 2.0 * math.pi / 315
+    residual = abs(a - round(a / step) * step)
+    chord = 2.0 * r * math.sin(residual / 2.0)
+    assert m.mssd(rot_z(a), t, np.eye(3), t, pts, syms) == pytest.approx(chord, rel=1e-9)
+    assert m.mssd(rot_z(a), t, np.eye(3), t, pts, m.identity_symmetry()) == pytest.approx(
+        2.0 * r * math.sin(a / 2.0), rel=1e-9
+    )
+    # In the image the ring is a circle of radius f r / z0: the same chord, scaled by f / z0.
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    assert m.mspd(rot_z(a), t, np.eye(3), t, K, pts, syms) == pytest.approx(
+        500.0 / z0 * chord, rel=1e-9
+    )
+
+
+def test_average_recall_by_hand() -> None:
+    # Thresholds 0.05..0.5 x diameter 1: 0.01 passes all 10, 0.12 passes 0.15..0.5 (8),
+    # 0.32 passes 0.35..0.5 (4), a missing estimate none.
+    assert m.ar_mssd([0.01, 0.12, 0.32, None], 1.0) == pytest.approx(22 / 40)
+    # Per-object diameters: 0.12 of a 0.5 m object is 0.24 of it: passes 0.25..0.5 (6).
+    assert m.ar_mssd([0.01, 0.12], [1.0, 0.5]) == pytest.approx(16 / 20)
+    # MSPD at 640 px: 4 px passes all, 22 px 25..50 (6), nan none; at 1280 px wide 22 px passes
+    # the thresholds 30..100 (8).
+    assert m.ar_mspd([4.0, 22.0, float("nan")]) == pytest.approx(16 / 30)
+    assert m.ar_mspd([22.0], image_width=1280) == pytest.approx(8 / 10)
+    # VSD: one image with errors 0.12 at every tau passes 8 of 10 thresholds at each tau.
+    assert m.ar_vsd([[0.12] * 10, None]) == pytest.approx(80 / 200)
+    assert m.average_recall([0.2, 0.4], [0.3]) == 0.5
+    with pytest.raises(InvalidArgumentError, match="must not be empty"):
+        m.ar_mssd([], 1.0)
+    with pytest.raises(InvalidArgumentError, match="one column per tau"):
+        m.ar_vsd([[0.1, 0.2]])
+
+
+# --------------------------------------------------------------------------- VSD
+
+SQUARE_FACES = np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def square(half: float) -> np.ndarray:
+    """A square of side 2 half [m] in the object's xy-plane (two triangles, SQUARE_FACES)."""
+    return np.array(
+        [[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]]
+    )
+
+
+K100 = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]])
+
+
+def test_render_depth_of_a_square_by_hand() -> None:
+    # Side 0.205 m at 1 m: u from 39.75 to 60.25, so the pixels 40..60 in both directions.
+    d = m.render_depth(square(0.1025), SQUARE_FACES, np.eye(3), [0.0, 0.0, 1.0], K100, 100, 100)
+    assert np.count_nonzero(d) == 21 * 21
+    np.testing.assert_allclose(d[40:61, 40:61], 1.0, rtol=1e-12)
+    # Tilted by 30 deg about y: the depth at each covered pixel is the plane's along its ray.
+    R = Rotation.from_euler("y", 30, degrees=True).as_matrix()
+    d = m.render_depth(square(0.1), SQUARE_FACES, R, [0.0, 0.0, 1.0], K100, 100, 100)
+    ys, xs = np.nonzero(d)
+    n = R[:, 2]  # the plane through (0, 0, 1) with normal n: n . (z ray) = n . (0, 0, 1)
+    ray = np.stack([(xs - 50) / 100, (ys - 50) / 100, np.ones_like(xs, float)], axis=1)
+    np.testing.assert_allclose(d[ys, xs], n[2] / (ray @ n), rtol=1e-12)
+    # Behind the camera: nothing.
+    assert not m.render_depth(
+        square(0.1), SQUARE_FACES, np.eye(3), [0, 0, -1.0], K100, 100, 100
+    ).any()
+
+
+def test_vsd_by_hand() -> None:
+    verts = square(0.1025)
+    diam = 2 * 0.1025 * math.sqrt(2.0)
+    t_gt = np.array([0.0, 0.0, 1.0])
+    test = m.render_depth(verts, SQUARE_FACES, np.eye(3), t_gt, K100, 100, 100)
+    same = m.vsd(np.eye(3), t_gt, np.eye(3), t_gt, test, K100, verts, SQUARE_FACES, diam)
+    np.testing.assert_array_equal(same, np.zeros(10))
+    # 5 cm further: 19 x 19 pixels (u from 40.24 to 59.76), all inside the true 21 x 21, each
+    # 0.05..0.0505 m (0.172..0.175 diameters) off: wrong at tau 0.05..0.15, right from 0.2;
+    # the 80 pixels of the true square it leaves are wrong at every tau.
+    e = m.vsd(
+        np.eye(3),
+        np.array([0.0, 0.0, 1.05]),
+        np.eye(3),
+        t_gt,
+        test,
+        K100,
+        verts,
+        SQUARE_FACES,
+        diam,
+    )
+    np.testing.assert_allclose(e, [1.0] * 3 + [80 / 441] * 7, rtol=1e-12)
+    # Out of the image: nothing of it is visible, the error is 1.
+    far = m.vsd(np.eye(3), [5.0, 0, 1], np.eye(3), t_gt, test, K100, verts, SQUARE_FACES, diam)
+    np.testing.assert_array_equal(far, np.ones(10))

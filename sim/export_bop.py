@@ -1,0 +1,428 @@
+"""Export the head-camera views of an evaluation's episodes as a BOP dataset.
+
+    python -m sim.export_bop --tier T --objects car,phone --episodes N [--seed-start S] \
+        --out DIR [--no-gt]
+
+Any estimator that reads BOP datasets can then estimate the poses of these images offline and
+hand back a BOP results CSV, which `sim.bop_results` turns into the estimates of the very same
+episodes (``sim.evaluate`` with the same tier, objects, episodes and seed start). Episode i of
+object X is scene seed ``S + i``, built by `sim.episode.Episode` and rendered by its
+``observe()``, so each RGB image is byte for byte what a live estimator gets, and each depth
+image that of ``--obs-mode rgbd`` to the depth step.
+
+Layout of ``DIR`` (BOP toolkit, docs/bop_datasets_format.md; millimetres in every BOP file)::
+
+    DIR/camera.json                         fx, fy, cx, cy, width, height, depth_scale
+    DIR/models/models_info.json             diameter, min_*, size_* [mm], symmetries_discrete
+    DIR/models/obj_<obj_id:06d>.ply         the six objects' meshes [mm] (vertex colours)
+    DIR/test/<scene_id:06d>/rgb/<im_id:06d>.png        the head-camera image, 640x480
+    DIR/test/<scene_id:06d>/depth/<im_id:06d>.png      z-depth, uint16, mm = value * depth_scale
+    DIR/test/<scene_id:06d>/scene_camera.json          cam_K, depth_scale, cam_R_w2c, cam_t_w2c
+    DIR/test/<scene_id:06d>/scene_gt.json              cam_R_m2c, cam_t_m2c, obj_id (not --no-gt)
+    DIR/test/<scene_id:06d>/scene_gt_info.json         bbox_*, px_count_*, visib_fract (ditto)
+    DIR/test_targets_bop19.json             per image: the episode's target (inst_count 1)
+    DIR/posegrasp_episodes.json             the episodes: tier, seeds, objects, image ids
+
+One scene per target object, ``scene_id`` = the target's BOP ``obj_id`` (1..6 in
+`posegrasp.world.objects.OBJECT_NAMES` order), and ``im_id`` = the episode index i (seed
+``S + i``). ``scene_gt`` lists every object of the scene, the target first, then the others in
+the scene's order; ``scene_gt_info`` follows BOP's public test sets: the visible mask is the
+object's pixels in a segmentation render, the full silhouette the object rendered alone
+(outside the image too), ``px_count_valid`` its pixels with depth. Depth beyond
+``65535 * depth_scale`` mm (or no surface) is 0, BOP's missing depth.
+
+A folder holds one export: the same arguments again rewrite the same bytes (which completes an
+interrupted export; the map file says ``"complete": false`` until the last file is written), other
+arguments or other files are refused.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import sys
+import zlib
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from perception.training.annotations import full_silhouette
+from perception.training.bop import (
+    MM_PER_M,
+    PNG_LEVEL,
+    bbox_xywh,
+    obj_id,
+    pose_to_bop,
+    rgb_path,
+    scene_dir,
+    write_bytes,
+    write_json,
+    write_png,
+)
+from perception.training.writer import write_models
+from posegrasp.core.cli import ArgumentParser, add_out_argument, command
+from posegrasp.core.contract import CONTRACT_VERSION
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.paths import git_commit
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.transforms import invert_transform
+from posegrasp.core.validate import arg, check_int, check_names, check_seed
+from posegrasp.world import constants as C
+from posegrasp.world.camera import body_mask
+from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
+from sim.bop_results import EXPORT_FORMAT, EXPORT_VERSION, MAP_FILE
+from sim.episode import Episode, EpisodeConfig
+
+#: BOP split the images go to.
+SPLIT = "test"
+#: Depth PNG unit [mm per value]: 0.1 mm steps up to 6.5535 m.
+DEPTH_SCALE = 0.1
+#: Most episodes per object (as ``sim.evaluate``).
+MAX_EPISODES = 100_000
+#: A geom group MuJoCo's default visualisation options do not draw (groups 0-2 are drawn).
+_HIDDEN_GROUP = 5
+#: BOP's box of an object with no visible pixel (scripts/calc_gt_info.py).
+_NO_BOX = [-1, -1, -1, -1]
+
+
+def image_ids(obj: str, index: int) -> tuple[int, int]:
+    """(scene_id, im_id) of episode `index` of target `obj`: (its BOP obj_id, index)."""
+    return obj_id(obj), index
+
+
+def depth_path(sdir: Path, im_id: int) -> Path:
+    """Depth image of image im_id of the scene folder sdir."""
+    return sdir / "depth" / f"{im_id:06d}.png"
+
+
+def png16_bytes(image: np.ndarray) -> bytes:
+    """PNG of a grey 16-bit image (BOP's depth images): every row unfiltered, one zlib stream.
+
+    Args:
+        image: shape (H, W), uint16.
+    """
+    img = np.asarray(image)
+    if img.dtype != np.uint16 or img.ndim != 2 or img.size == 0:
+        raise InvalidArgumentError(f"expected a non-empty (H, W) uint16 image, got {img.shape}")
+    h, w = img.shape
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        crc = struct.pack(">I", zlib.crc32(kind + body))
+        return struct.pack(">I", len(body)) + kind + body + crc
+
+    rows = np.zeros((h, 1 + 2 * w), np.uint8)  # leading 0: filter type None
+    rows[:, 1:] = img.astype(">u2").view(np.uint8).reshape(h, 2 * w)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(rows.tobytes(), PNG_LEVEL))
+        + chunk(b"IEND", b"")
+    )
+
+
+def depth_to_png(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.ndarray:
+    """BOP depth values of a z-depth image: ``round(depth [mm] / depth_scale)``.
+
+    Args:
+        depth_m: depth along the optical axis, shape (H, W) [m].
+        depth_scale: mm per value.
+
+    Returns:
+        Shape (H, W), uint16; 0 where the depth is not finite, not positive or out of range.
+    """
+    v = np.asarray(depth_m, np.float64) * (MM_PER_M / depth_scale)
+    ok = np.isfinite(v) & (v > 0) & (v < 65535.5)
+    return np.where(ok, np.round(np.where(ok, v, 0.0)), 0).astype(np.uint16)
+
+
+def execution_settings() -> dict[str, Any]:
+    """The grasp execution's settings (`grasping.execute.ExecutionConfig`, without the margin
+    switch), as JSON reads them back: what ``sim.evaluate`` reports record."""
+    from grasping.execute import ExecutionConfig
+
+    settings = asdict(ExecutionConfig())
+    del settings["measure_margin"]
+    return json.loads(json.dumps(settings))
+
+
+def export_protocol(
+    objects: list[str], episodes: int, seed_start: int, tier: str, ground_truth: bool
+) -> dict[str, Any]:
+    """What defines an export's files: a folder holds one export, rewritten only by the same."""
+    return {
+        "format": EXPORT_FORMAT,
+        "version": EXPORT_VERSION,
+        "tier": tier,
+        "objects": list(objects),
+        "episodes": episodes,
+        "seed_start": seed_start,
+        "ground_truth": ground_truth,
+        "depth_scale": DEPTH_SCALE,
+        "camera": C.HEAD_CAMERA,
+        "width": EpisodeConfig.width,
+        "height": EpisodeConfig.height,
+    }
+
+
+def _describe(p: dict[str, Any]) -> str:
+    objects = p.get("objects")
+    objects = ",".join(objects) if isinstance(objects, list) else objects
+    gt = "with" if p.get("ground_truth") else "without"
+    return (
+        f"tier {p.get('tier')}, objects {objects}, {p.get('episodes')} episodes from seed "
+        f"{p.get('seed_start')}, {gt} ground truth"
+    )
+
+
+def check_out_folder(out: Path, protocol: dict[str, Any]) -> None:
+    """Refuse a folder that holds anything but an export with the same protocol.
+
+    Raises:
+        InvalidArgumentError: one line saying what the folder holds.
+    """
+    out = Path(out)
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    try:
+        old = json.loads((out / MAP_FILE).read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        raise InvalidArgumentError(
+            f"--out {out} holds files but no readable {MAP_FILE}, so not a posegrasp BOP "
+            "export; give an empty or new folder"
+        ) from None
+    same = isinstance(old, dict) and all(old.get(k) == v for k, v in protocol.items())
+    if not same:
+        what = _describe(old) if isinstance(old, dict) else "an unreadable map"
+        raise InvalidArgumentError(
+            f"--out {out} holds another export ({what}); give the same arguments to rewrite "
+            f"it, or an empty or new folder for {_describe(protocol)}"
+        )
+
+
+def _object_masks(ep: Episode) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(visible, full) masks inside the image of each object of an episode's scene, target
+    first, shape (H, W) bool: its pixels in a segmentation render of the scene, and in one with
+    every other geom hidden."""
+    model, data = ep.scene.model, ep.scene.data
+    seg = ep.renderer.segmentation(data, C.HEAD_CAMERA)
+    groups = model.geom_group.copy()
+    masks = []
+    try:
+        for placed in ep.scene.objects:
+            visible = body_mask(model, seg, placed.body)
+            own = model.geom_bodyid == model.body(placed.body).id
+            model.geom_group[:] = np.where(own, groups, _HIDDEN_GROUP)
+            alone = ep.renderer.segmentation(data, C.HEAD_CAMERA)
+            masks.append((visible, body_mask(model, alone, placed.body) | visible))
+    finally:
+        model.geom_group[:] = groups
+    return masks
+
+
+def _gt_info(
+    name: str, T_C_O: np.ndarray, K: np.ndarray, visible: np.ndarray, full: np.ndarray, depth
+) -> dict[str, Any]:
+    """One object's scene_gt_info entry (BOP scripts/calc_gt_info.py's keys and conventions)."""
+    px_all, bbox_obj = full_silhouette(load_object(name), T_C_O, K, full)
+    px_visib = int(visible.sum())
+    return {
+        "bbox_obj": bbox_obj if px_visib else _NO_BOX,
+        "bbox_visib": bbox_xywh(visible) if px_visib else _NO_BOX,
+        "px_count_all": int(px_all),
+        "px_count_valid": int((full & (depth > 0)).sum()),
+        "px_count_visib": px_visib,
+        "visib_fract": px_visib / px_all if px_all else 0.0,
+    }
+
+
+def _export_image(
+    ep: Episode, ground_truth: bool
+) -> tuple[np.ndarray, np.ndarray, dict, list, list]:
+    """RGB (H, W, 3) uint8, depth values (H, W) uint16, and the scene_camera, scene_gt and
+    scene_gt_info entries of the head-camera view of an episode observing ``rgbd``."""
+    obs = ep.observe()
+    depth = depth_to_png(obs.depth)
+    T_C_W = invert_transform(obs.T_world_cam)
+    camera = {
+        "cam_K": [float(x) for x in obs.K.reshape(-1)],
+        "depth_scale": DEPTH_SCALE,
+        "cam_R_w2c": [float(x) for x in T_C_W[:3, :3].reshape(-1)],
+        "cam_t_w2c": [float(x) * MM_PER_M for x in T_C_W[:3, 3]],
+    }
+    gts, infos = [], []
+    if ground_truth:
+        poses = [(ep.object, ep.T_C_O_true), *ep.true_neighbours()]
+        for (name, T), (visible, full) in zip(poses, _object_masks(ep), strict=True):
+            gts.append({**pose_to_bop(T), "obj_id": obj_id(name)})
+            infos.append(_gt_info(name, T, obs.K, visible, full, depth))
+    return obs.rgb, depth, camera, gts, infos
+
+
+def _write_index(
+    out: Path, scenes: dict[int, dict[str, dict[str, Any]]], images: list[dict], gt: bool
+) -> None:
+    """The per-scene JSON files (scene_camera, and with gt scene_gt and scene_gt_info),
+    test_targets_bop19.json and camera.json of an export's images."""
+    for scene_id, files in scenes.items():
+        for kind, content in files.items():
+            if gt or kind == "scene_camera":
+                write_json(scene_dir(out, SPLIT, scene_id) / f"{kind}.json", content)
+    targets = [
+        {
+            "im_id": im["im_id"],
+            "inst_count": 1,
+            "obj_id": obj_id(im["object"]),
+            "scene_id": im["scene_id"],
+        }
+        for im in images
+    ]
+    targets.sort(key=lambda t: (t["scene_id"], t["im_id"]))
+    write_json(out / "test_targets_bop19.json", targets)
+    first = next(iter(scenes.values()))["scene_camera"]
+    K = np.reshape(next(iter(first.values()))["cam_K"], (3, 3))
+    camera = {
+        "cx": float(K[0, 2]),
+        "cy": float(K[1, 2]),
+        "fx": float(K[0, 0]),
+        "fy": float(K[1, 1]),
+        "width": EpisodeConfig.width,
+        "height": EpisodeConfig.height,
+        "depth_scale": DEPTH_SCALE,
+    }
+    write_json(out / "camera.json", camera)
+
+
+def export_bop(
+    out: Path,
+    objects: list[str],
+    episodes: int,
+    seed_start: int = C.EVAL_SEED_BASE,
+    tier: str = DEFAULT_TIER,
+    ground_truth: bool = True,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Write the head-camera views of the episodes objects x range(episodes) as a BOP dataset.
+
+    Args:
+        out: the dataset folder (created; an existing one must hold the same export).
+        objects: the target classes; episode i of object X is scene seed ``seed_start + i``.
+        episodes: episodes per object.
+        seed_start: the first scene seed.
+        tier: the scene tier (`posegrasp.world.tiers.TIERS`).
+        ground_truth: write scene_gt.json and scene_gt_info.json.
+        progress: show a progress bar.
+
+    Returns:
+        The map file's content (`sim.bop_results.MAP_FILE`).
+
+    Raises:
+        InvalidArgumentError: out holds other files or another export; a bad argument.
+    """
+    check_tier(tier)
+    if not objects or len(set(objects)) != len(objects):
+        raise InvalidArgumentError(f"objects must be distinct and at least one, got {objects}")
+    for o in objects:
+        obj_id(o)
+    check_int(episodes, 1, MAX_EPISODES, "episodes")
+    check_seed(seed_start, "seed start", episodes)
+    out = Path(out)
+    protocol = export_protocol(objects, episodes, seed_start, tier, ground_truth)
+    check_out_folder(out, protocol)
+    jobs = [(o, i) for o in objects for i in range(episodes)]
+    info = {
+        **protocol,
+        "complete": False,
+        "commit": git_commit(),
+        "contract_version": CONTRACT_VERSION,
+        "execution": execution_settings(),
+        "layout": "scene_id = BOP obj_id of the target, im_id = episode index i (seed "
+        "seed_start + i); scene_gt: the target first, then the other objects",
+        "images": [
+            {"scene_id": image_ids(o, i)[0], "im_id": i, "object": o, "seed": seed_start + i}
+            for o, i in jobs
+        ],
+    }
+    write_json(out / MAP_FILE, info)  # first: an interrupted export is known by it
+    write_models(out)
+    scenes: dict[int, dict[str, dict[str, Any]]] = {}
+    cfg = EpisodeConfig(tier=tier, obs_mode="rgbd")
+    for obj, i in tqdm(jobs, desc="images", unit="image", disable=not progress, dynamic_ncols=True):
+        scene_id, im_id = image_ids(obj, i)
+        ep = Episode(obj, seed_start + i, cfg)
+        try:
+            rgb, depth, camera, gts, infos = _export_image(ep, ground_truth)
+        finally:
+            ep.close()
+        sdir = scene_dir(out, SPLIT, scene_id)
+        write_png(rgb_path(sdir, im_id), rgb)
+        write_bytes(depth_path(sdir, im_id), png16_bytes(depth))
+        files = scenes.setdefault(
+            scene_id, {"scene_camera": {}, "scene_gt": {}, "scene_gt_info": {}}
+        )
+        files["scene_camera"][str(im_id)] = camera
+        files["scene_gt"][str(im_id)] = gts
+        files["scene_gt_info"][str(im_id)] = infos
+    _write_index(out, scenes, info["images"], ground_truth)
+    info["complete"] = True
+    write_json(out / MAP_FILE, info)
+    return info
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python -m sim.export_bop", description=__doc__.split("\n")[0])
+    p.add_argument(
+        "--tier",
+        default=DEFAULT_TIER,
+        type=arg(check_tier),
+        help=f"scene tier, one of: {', '.join(TIERS)} (default {DEFAULT_TIER})",
+    )
+    p.add_argument(
+        "--objects",
+        default=list(OBJECT_NAMES),
+        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
+        help=f"'all' or a comma list of {', '.join(OBJECT_NAMES)}",
+    )
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 1, MAX_EPISODES, "--episodes", base=int),
+        default=50,
+        help=f"episodes per object, 1..{MAX_EPISODES} (default 50)",
+    )
+    p.add_argument(
+        "--seed-start",
+        type=arg(check_seed, "--seed-start", base=int),
+        default=C.EVAL_SEED_BASE,
+        help="first scene seed, as sim.evaluate's (default: its held-out scenes)",
+    )
+    add_out_argument(p, "the BOP dataset and its map file", required=True)
+    p.add_argument(
+        "--no-gt",
+        action="store_true",
+        help="leave out scene_gt.json and scene_gt_info.json, as BOP's public test sets do",
+    )
+    args = p.parse_args(argv)
+    check_seed(args.seed_start, "--seed-start", args.episodes)
+    protocol = export_protocol(
+        args.objects, args.episodes, args.seed_start, args.tier, not args.no_gt
+    )
+    check_out_folder(args.out, protocol)  # before any rendering
+    setup_rendering()
+    info = export_bop(
+        args.out, args.objects, args.episodes, args.seed_start, args.tier, not args.no_gt
+    )
+    n = len(info["images"])
+    print(
+        f"wrote {n} image(s) to {args.out}: {_describe(protocol)} "
+        f"(seeds {args.seed_start}..{args.seed_start + args.episodes - 1})"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,187 @@
+"""The BOP export of evaluation episodes: its files, and that they are the episodes' views."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from perception.training.bop import read_png
+from posegrasp.core.contract import Observation
+from posegrasp.world import constants as C
+from sim import export_bop as xb
+from sim.bop_results import MAP_FILE, BopPosesEstimator, read_export
+from sim.episode import Episode, EpisodeConfig
+
+OBJECTS = ["car", "phone"]
+SEED = C.EVAL_SEED_BASE
+TIER = "isolated"
+
+
+@pytest.fixture(scope="module")
+def export(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("bop") / "export"
+    xb.export_bop(out, OBJECTS, 1, SEED, TIER, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    eps = {o: Episode(o, SEED, EpisodeConfig(tier=TIER)) for o in OBJECTS}
+    yield eps
+    for ep in eps.values():
+        ep.close()
+
+
+def scene(export: Path, obj: str) -> Path:
+    return export / "test" / f"{xb.image_ids(obj, 0)[0]:06d}"
+
+
+def load(path: Path):
+    return json.loads(path.read_text())
+
+
+def test_the_export_files_parse_and_have_bop_keys(export: Path) -> None:
+    assert set(load(export / "camera.json")) == {
+        "cx",
+        "cy",
+        "fx",
+        "fy",
+        "width",
+        "height",
+        "depth_scale",
+    }
+    info = load(export / "models" / "models_info.json")
+    assert sorted(info) == [str(i) for i in range(1, 7)]
+    for entry in info.values():
+        assert {"diameter", "min_x", "min_y", "min_z", "size_x", "size_y", "size_z"} <= set(entry)
+        assert (export / "models" / "obj_000001.ply").read_bytes().startswith(b"ply\n")
+    targets = load(export / "test_targets_bop19.json")
+    assert targets == [
+        {"im_id": 0, "inst_count": 1, "obj_id": 1, "scene_id": 1},
+        {"im_id": 0, "inst_count": 1, "obj_id": 4, "scene_id": 4},
+    ]
+    for obj in OBJECTS:
+        sdir = scene(export, obj)
+        cam = load(sdir / "scene_camera.json")["0"]
+        assert set(cam) == {"cam_K", "depth_scale", "cam_R_w2c", "cam_t_w2c"}
+        gt = load(sdir / "scene_gt.json")["0"]
+        assert [set(g) for g in gt] == [{"cam_R_m2c", "cam_t_m2c", "obj_id"}]
+        (gi,) = load(sdir / "scene_gt_info.json")["0"]
+        keys = {"bbox_obj", "bbox_visib", "px_count_all", "px_count_valid", "px_count_visib"}
+        assert set(gi) == keys | {"visib_fract"}
+        # Isolated and in view: all but the few pixels the table top hides where the object
+        # rests on it are visible, and the depth covers the whole silhouette.
+        assert gi["px_count_all"] == gi["px_count_valid"] > 500
+        assert gi["px_count_visib"] == pytest.approx(gi["visib_fract"] * gi["px_count_all"])
+        assert 0.99 < gi["visib_fract"] <= 1.0
+        x, y, w, h = gi["bbox_visib"]
+        assert 0 <= x and x + w < 640 and 0 <= y and y + h < 480
+    ex = read_export(export)
+    assert (ex.tier, ex.seed_start, ex.objects, ex.episodes) == (TIER, SEED, tuple(OBJECTS), 1)
+    assert load(export / MAP_FILE)["complete"] is True
+
+
+def test_the_rgb_is_what_the_episode_observes(export: Path, episodes) -> None:
+    for obj, ep in episodes.items():
+        rgb = read_png(scene(export, obj) / "rgb" / "000000.png", export, None)
+        np.testing.assert_array_equal(rgb, ep.observe().rgb)
+
+
+def test_the_depth_png_is_the_rendered_depth_within_its_step(export: Path, episodes) -> None:
+    for obj, ep in episodes.items():
+        sdir = scene(export, obj)
+        png = cv2.imread(str(sdir / "depth" / "000000.png"), cv2.IMREAD_UNCHANGED)
+        assert png.dtype == np.uint16 and png.shape == (480, 640)
+        scale = load(sdir / "scene_camera.json")["0"]["depth_scale"]
+        depth_mm = ep.renderer.depth(ep.scene.data, C.HEAD_CAMERA).astype(np.float64) * 1000.0
+        valid = png > 0
+        assert valid.mean() > 0.99  # the room closes the view
+        err = np.abs(png[valid] * scale - depth_mm[valid])
+        assert err.max() <= scale / 2 + 1e-6 * depth_mm[valid].max()
+
+
+def test_scene_gt_holds_the_true_pose_in_mm(export: Path, episodes) -> None:
+    for obj, ep in episodes.items():
+        (gt,) = load(scene(export, obj) / "scene_gt.json")["0"]
+        assert gt["obj_id"] == xb.image_ids(obj, 0)[0]
+        np.testing.assert_allclose(
+            np.reshape(gt["cam_R_m2c"], (3, 3)), ep.T_C_O_true[:3, :3], rtol=0, atol=1e-15
+        )
+        np.testing.assert_allclose(gt["cam_t_m2c"], ep.T_C_O_true[:3, 3] * 1000, atol=1e-12)
+
+
+def test_a_csv_of_the_export_gt_gives_the_true_poses(
+    export: Path, episodes, tmp_path: Path
+) -> None:
+    lines = ["scene_id,im_id,obj_id,score,R,t,time"]
+    for obj in OBJECTS:
+        sid = xb.image_ids(obj, 0)[0]
+        for g in load(scene(export, obj) / "scene_gt.json")["0"]:
+            R = " ".join(repr(x) for x in g["cam_R_m2c"])
+            t = " ".join(repr(x) for x in g["cam_t_m2c"])
+            lines.append(f"{sid},0,{g['obj_id']},1.0,{R},{t},-1")
+    csv = tmp_path / "gt.csv"
+    csv.write_text("\n".join(lines) + "\n")
+    est = BopPosesEstimator(csv, export)
+    for obj, ep in episodes.items():
+        o = ep.observe()
+        e = est.estimate(Observation(o.rgb, o.K, o.T_world_cam, obj, SEED))
+        np.testing.assert_allclose(e.T_C_O, ep.T_C_O_true, rtol=0, atol=1e-12)
+        assert e.neighbours == () and e.info["score"] == 1.0
+
+
+def test_no_gt_and_a_second_export_into_the_same_folder(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "nogt"
+    args = ["--tier", TIER, "--objects", "car", "--episodes", "1", "--out", str(out)]
+    assert xb.main([*args, "--no-gt"]) == 0
+    sdir = out / "test" / "000001"
+    assert sorted(p.name for p in sdir.iterdir()) == ["depth", "rgb", "scene_camera.json"]
+    assert (out / "test_targets_bop19.json").is_file()
+    assert read_export(out).ground_truth is False
+    # The same export again rewrites the same bytes.
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert xb.main([*args, "--no-gt"]) == 0
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    capsys.readouterr()
+    assert xb.main(args) == 2  # with ground truth: another export
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --out") and "holds another export" in err
+    assert "without ground truth" in err and "\n" not in err
+
+
+def test_a_folder_of_other_files_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "notes.txt").write_text("mine")
+    protocol = xb.export_protocol(["car"], 1, SEED, TIER, True)
+    with pytest.raises(xb.InvalidArgumentError, match="not a posegrasp BOP export"):
+        xb.check_out_folder(tmp_path, protocol)
+
+
+@pytest.mark.parametrize(
+    ("args", "named"),
+    [
+        (["--tier", "nope"], "valid tiers: isolated, clutter"),
+        (["--objects", "car,boat"], "valid objects: car, faucet"),
+        (["--episodes", "0"], "--episodes 0; valid: integers 1..100000"),
+        (["--seed-start", "-1"], "--seed-start -1; valid: integers 0.."),
+    ],
+)
+def test_a_bad_argument_is_one_line_naming_the_valid_choices(
+    tmp_path: Path, capsys, args: list[str], named: str
+) -> None:
+    out = tmp_path / "out"
+    assert xb.main([*args, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and named in err and "\n" not in err
+    assert not out.exists()
+
+
+def test_png16_bytes_decode_to_the_same_values() -> None:
+    img = np.arange(12 * 7, dtype=np.uint16).reshape(12, 7) * 777
+    back = cv2.imdecode(np.frombuffer(xb.png16_bytes(img), np.uint8), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(back, img)
+    d = xb.depth_to_png(np.array([[0.5, np.inf], [7.0, 0.0]]))
+    np.testing.assert_array_equal(d, [[5000, 0], [0, 0]])
