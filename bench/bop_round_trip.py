@@ -79,6 +79,10 @@ def write_csv(root: Path, path: Path, noise: PoseNoise | None) -> int:
     return len(rows) - 1
 
 
+def _ar(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
 def _same(a: dict, b: dict) -> int:
     """Episodes (by object and seed) whose success and failure reason agree."""
     key = {(e["object"], e["seed"]): (e["success"], e["failure_reason"]) for e in a["episodes"]}
@@ -140,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
         reports[label] = (path, r)
     table = {"tier": args.tier, "episodes_per_object": args.episodes, "runs": {}}
     print(
-        f"{'run':<14} {'success':>9} {'wilson 95%':>15} {'AR_MSSD':>8} {'AR_MSPD':>8}  paired",
+        f"{'run':<14} {'success':>9} {'wilson 95%':>15} {'AR_MSSD':>8} {'AR_MSPD':>8} "
+        f"{'AR_VSD':>7}  paired",
         file=log,
     )
     for label, (path, r) in reports.items():
@@ -152,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             "wilson": [lo, hi],
             "ar_mssd": g["ar_mssd"],
             "ar_mspd": g["ar_mspd"],
+            "ar_vsd": r.get("poses", {}).get("ar_vsd"),
         }
         paired = ""
         if label.endswith(".csv"):
@@ -169,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         table["runs"][label] = row
         print(
             f"{label:<14} {g['successes']:>4}/{g['episodes']:<4} [{lo:.3f}, {hi:.3f}] "
-            f"{row['ar_mssd']:8.3f} {row['ar_mspd']:8.3f}  {paired}",
+            f"{row['ar_mssd']:8.3f} {row['ar_mspd']:8.3f} {_ar(row['ar_vsd']):>7}  {paired}",
             file=log,
         )
     if args.json is not None:

@@ -373,3 +373,59 @@ class BopPosesEstimator:
             **where,
         }
         return Estimate(target.T_C_O.copy(), neighbours, info)
+
+
+# --- VSD against the export's depth ----------------------------------------------------------
+
+
+def vsd_errors(export: ExportEpisodes, episodes: list[dict[str, Any]]) -> list[list[float] | None]:
+    """BOP's VSD of each episode's estimate against its exported depth image (one error per
+    tau, `perception.metrics.BOP_VSD_TAUS`), None for an episode without an estimate.
+
+    Args:
+        export: the export the episodes ran (its depth images and cameras are read).
+        episodes: the episodes as a report holds them (object, seed, T_C_O_true, T_C_O_est).
+
+    Raises:
+        AssetError: a depth image or camera file of the export is missing or unreadable.
+    """
+    import cv2
+
+    from perception import metrics
+    from perception.training.bop import read_json, scene_dir
+    from posegrasp.world.objects import load_object
+
+    cameras: dict[int, dict[str, Any]] = {}
+    out: list[list[float] | None] = []
+    for e in episodes:
+        if e.get("T_C_O_est") is None:
+            out.append(None)
+            continue
+        scene_id, im_id = export.images[(e["object"], int(e["seed"]))]
+        sdir = scene_dir(export.root, "test", scene_id)
+        if scene_id not in cameras:
+            cameras[scene_id] = read_json(sdir / "scene_camera.json", export.root, "test")
+        cam = cameras[scene_id][str(im_id)]
+        path = sdir / "depth" / f"{im_id:06d}.png"
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None or raw.dtype != np.uint16:
+            from posegrasp.core.errors import AssetError
+
+            raise AssetError(f"{path} is not a 16-bit depth image of the export")
+        depth = raw.astype(np.float64) * float(cam["depth_scale"]) / MM_PER_M
+        K = np.asarray(cam["cam_K"], np.float64).reshape(3, 3)
+        model = load_object(e["object"])
+        T_gt, T_est = np.asarray(e["T_C_O_true"]), np.asarray(e["T_C_O_est"])
+        err = metrics.vsd(
+            T_est[:3, :3],
+            T_est[:3, 3],
+            T_gt[:3, :3],
+            T_gt[:3, 3],
+            depth,
+            K,
+            np.asarray(model.mesh.vertices),
+            np.asarray(model.mesh.faces),
+            model.diameter,
+        )
+        out.append([float(v) for v in err])
+    return out

@@ -117,6 +117,17 @@ def object_symmetries(model: ObjectModel) -> list[Symmetry]:
     return identity_symmetry() + [{"R": T[:3, :3], "t": T[:3, 3:4]} for T in model.symmetries]
 
 
+def execution_settings() -> dict[str, Any]:
+    """The grasp execution's settings every episode runs with (`ExecutionConfig`, without the
+    margin switch, which reports record apart), as they read back from JSON: two reports with
+    different settings are different experiments and do not pair."""
+    import json
+
+    settings = asdict(ExecutionConfig())
+    del settings["measure_margin"]
+    return json.loads(json.dumps(settings))
+
+
 def pose_errors(
     T_est: np.ndarray,
     T_true: np.ndarray,

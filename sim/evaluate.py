@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-import json
 import sys
 import time
 from collections import Counter
@@ -50,7 +49,8 @@ from posegrasp.core.validate import (
 from posegrasp.world import constants as C
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
-from sim.bop_results import BopPosesEstimator
+from sim.bop_results import BopPosesEstimator, vsd_errors
+from sim.episode import execution_settings
 from sim.estimators import (
     DEFAULT_ESTIMATOR,
     PrivilegedEstimator,
@@ -89,19 +89,6 @@ def _resolve(ref: EstimatorRef, noise: str | None):
 def estimator_label(ref: EstimatorRef) -> str:
     """What a report calls the estimator: its spec, or an object's ``name``."""
     return ref if isinstance(ref, str) else str(ref.name)
-
-
-def execution_settings() -> dict:
-    """The grasp execution's settings every episode runs with (`ExecutionConfig`, without the
-    margin switch, which reports record apart), as they read back from JSON: two reports with
-    different settings are different experiments and do not pair."""
-    from dataclasses import asdict
-
-    from grasping.execute import ExecutionConfig
-
-    settings = asdict(ExecutionConfig())
-    del settings["measure_margin"]
-    return json.loads(json.dumps(settings))
 
 
 def _init_worker() -> None:
@@ -503,15 +490,21 @@ def bop_scores(episodes: list[dict]) -> dict[str, float | None]:
 
 
 def poses_record(estimator: BopPosesEstimator, csv_path: Path, report: dict) -> dict:
-    """Where the poses of a ``--poses`` run came from: the CSV (and its hash), the export, and
-    how many of the export's targets the CSV had a row for."""
+    """Where the poses of a ``--poses`` run came from (the CSV and its hash, the export), how many
+    of the export's targets the CSV had a row for, and BOP's AR_VSD of the poses against the
+    export's depth images; each episode gains its ``vsd`` errors (one per tau, None without an
+    estimate)."""
     eps = report["episodes"]
+    vsd = vsd_errors(estimator.export, eps)
+    for e, err in zip(eps, vsd, strict=True):
+        e["vsd"] = err
     return {
         "csv": str(csv_path),
         "csv_sha256": sha256_file(csv_path),
         "export": str(estimator.export.root),
         "targets": len(eps),
         "targets_with_a_row": sum(e["T_C_O_est"] is not None for e in eps),
+        "ar_vsd": metrics.ar_vsd(vsd),
     }
 
 
@@ -631,6 +624,13 @@ def main(argv: list[str] | None = None) -> int:
         report["poses"] = poses_record(poses, args.poses, report)
     log = summary_stream(args.json)
     print(format_report(report), file=log)
+    if poses is not None:
+        rec = report["poses"]
+        print(
+            f"BOP route: {rec['targets_with_a_row']} of {rec['targets']} targets had a row in "
+            f"{rec['csv']}; AR_VSD {rec['ar_vsd']:.3f}",
+            file=log,
+        )
     if args.plot is not None:
         plot_success_vs_error(report, args.plot, tolerance)
         print(f"wrote {args.plot}", file=log)

@@ -42,7 +42,6 @@ import json
 import struct
 import sys
 import zlib
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -75,7 +74,7 @@ from posegrasp.world.camera import body_mask
 from posegrasp.world.objects import OBJECT_NAMES, load_object
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.bop_results import EXPORT_FORMAT, EXPORT_VERSION, MAP_FILE
-from sim.episode import Episode, EpisodeConfig
+from sim.episode import Episode, EpisodeConfig, execution_settings
 
 #: BOP split the images go to.
 SPLIT = "test"
@@ -137,16 +136,6 @@ def depth_to_png(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.nd
     v = np.asarray(depth_m, np.float64) * (MM_PER_M / depth_scale)
     ok = np.isfinite(v) & (v > 0) & (v < 65535.5)
     return np.where(ok, np.round(np.where(ok, v, 0.0)), 0).astype(np.uint16)
-
-
-def execution_settings() -> dict[str, Any]:
-    """The grasp execution's settings (`grasping.execute.ExecutionConfig`, without the margin
-    switch), as JSON reads them back: what ``sim.evaluate`` reports record."""
-    from grasping.execute import ExecutionConfig
-
-    settings = asdict(ExecutionConfig())
-    del settings["measure_margin"]
-    return json.loads(json.dumps(settings))
 
 
 def export_protocol(

@@ -82,7 +82,7 @@ def test_an_evaluation_job_sets_up_its_own_process() -> None:
     code = textwrap.dedent(
         """
         from sim.evaluate import _run_one
-        d = _run_one(("phone", 1_000_000_000, "oracle", "isolated", None, False))
+        d = _run_one(("phone", 1_000_000_000, "oracle", "isolated", None, False, "rgb"))
         print(d["success"], d["failure_reason"])
         """
     )

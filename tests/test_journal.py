@@ -98,7 +98,7 @@ def test_an_interrupt_inside_a_journaled_map_names_the_resume(tmp_path: Path) ->
         return _square(x)
 
     path = tmp_path / "j.jsonl"
-    with pytest.raises(Interrupted, match="2 of 5 finished .* resume with: .*--resume"):
+    with pytest.raises(Interrupted, match=r"2 of 5 finished .* resume with: .*--resume"):
         run_journaled(stop, range(5), 5, Journal(path, "square", PROTOCOL))
     assert len(path.read_text().splitlines()) == 3  # the header and two units
 

@@ -56,6 +56,7 @@ _.ctrl_home  # Scene: the control vector that holds the home posture
 _.decode_torch  # batched, differentiable decode, checked against perception.geometry.decode
 _.pose_loss_4d  # the paper's eq. 7 as one function
 _.load_sample  # one sample of a split without building a PoseDataset
+_.symmetries_from_models_info  # BOP models_info.json symmetries as a metrics symmetry set
 
 # Fields of a MuJoCo render context set from a model (read by MuJoCo, not by Python).
 _.lineWidth
