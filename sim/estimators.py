@@ -256,7 +256,12 @@ def add_estimator_arguments(
     tail = "" if default is None else f" (default {default})"
 
     def check(spec: str) -> str:
-        return spec if spec in also else check_estimator_spec(spec)
+        if spec in also:
+            return spec
+        try:
+            return check_estimator_spec(spec)
+        except UnknownNameError:
+            raise UnknownNameError("estimator", spec, [*also, *_spec_choices()]) from None
 
     parser.add_argument(
         "--estimator",
