@@ -10,6 +10,11 @@ approach axis), and every object symmetry maps the set onto itself.
 Those hand-designed segments serve the canonical resting pose. Every other resting pose of the
 object (`posegrasp.world.resting`) gets the grasps from above that `grasping.top_grasps` generates
 from the parts, so that every pose an object can lie in has candidates.
+
+A user object made from a mesh (``python -m sim.add_object``) carries its candidates, generated
+for every resting pose and checked in physics when it was made (`grasping.mesh_grasps`); they are
+read from it as they are (their set already covers the object all round, both finger orders
+included), and reach the planner through the same `grasp_candidates`.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ import numpy as np
 from grasping.top_grasps import top_grasps
 from posegrasp.core.errors import UnknownNameError
 from posegrasp.core.transforms import quat_to_mat
-from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
+from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, check_object, load_object
 
 
 @dataclass(frozen=True)
@@ -32,7 +37,7 @@ class GraspCandidate:
     Attributes:
         T_O_G: pose of the grasp site in O, shape (4, 4), translations in [m].
         width: extent of the part between the finger pads [m].
-        part: name of the grasped part.
+        part: name of the grasped part ("mesh" for a user object).
         pose: the resting pose it was made for (`ObjectModel.resting_poses`).
     """
 
@@ -133,13 +138,36 @@ def _segment_candidates(obj: ObjectModel, pose: str) -> list[GraspCandidate]:
     return out
 
 
-@functools.cache
+#: The part a user object's candidates name (it is one mesh).
+MESH_PART = "mesh"
+
+
 def grasp_candidates(name: str) -> tuple[GraspCandidate, ...]:
-    """The grasp candidates of an object class, in its frame O.
+    """The grasp candidates of an object class, built-in or user object, in its frame O; the
+    same tuple while the object is unchanged.
 
     Raises:
         UnknownNameError: name is not a known object.
     """
-    if name not in OBJECT_NAMES:
-        raise UnknownNameError("object", name, OBJECT_NAMES)
+    if name in OBJECT_NAMES:
+        return _builtin_candidates(name)
+    check_object(name)
+    return _stored_candidates(load_object(name))
+
+
+@functools.cache
+def _builtin_candidates(name: str) -> tuple[GraspCandidate, ...]:
     return tuple(_candidates_for(load_object(name)))
+
+
+_STORED: dict[tuple[str, str], tuple[GraspCandidate, ...]] = {}
+
+
+def _stored_candidates(obj: ObjectModel) -> tuple[GraspCandidate, ...]:
+    """A user object's stored candidates, cached by name and revision."""
+    key = (obj.name, obj.revision)
+    if key not in _STORED:
+        _STORED[key] = tuple(
+            GraspCandidate(g.T_O_G, g.width, MESH_PART, g.pose) for g in obj.grasps
+        )
+    return _STORED[key]

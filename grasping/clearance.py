@@ -31,10 +31,16 @@ MARGIN = 0.01
 SAMPLES = 1500
 
 
-@functools.cache
 def surface_points(name: str) -> np.ndarray:
-    """Points on the surface of object class `name`, in its frame O [m], (SAMPLES, 3); the same
-    points on every call (sampled with a fixed seed)."""
+    """Points on the surface of object class `name`, in its frame O [m], (SAMPLES + vertices,
+    3); the same points on every call while the object is unchanged (sampled with a fixed
+    seed)."""
+    return _surface_points(name, load_object(name).revision)
+
+
+@functools.cache
+def _surface_points(name: str, revision: str) -> np.ndarray:
+    del revision  # the cache key: a user object made again is sampled again
     mesh = load_object(name).mesh
     pts, _ = trimesh.sample.sample_surface(mesh, SAMPLES, seed=0)
     return np.vstack([np.asarray(mesh.vertices), np.asarray(pts)])

@@ -24,7 +24,7 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_seed
 from posegrasp.world import constants as C
 from posegrasp.world.camera import external_renderer
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import object_names
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.estimators import add_estimator_arguments, add_obs_mode_argument, make_estimator
 from sim.pose_noise import parse_noise
@@ -174,8 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--object",
         default="phone",
-        type=arg(check_choice, OBJECT_NAMES, "object"),
-        help=f"one of: {', '.join(OBJECT_NAMES)}",
+        type=arg(check_choice, object_names(), "object"),
+        help=f"one of: {', '.join(object_names())} (user objects: python -m sim.add_object)",
     )
     p.add_argument(
         "--seed",

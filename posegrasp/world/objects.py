@@ -1,9 +1,14 @@
-"""The six known objects: one JSON definition each (`scenes/objects/`) drives both the MuJoCo
-bodies and a trimesh mesh in the object's own frame.
+"""The known objects: the six built-in ones, whose JSON definitions (`scenes/objects/`) drive both
+the MuJoCo bodies and a trimesh mesh in the object's own frame, and the user objects made from
+meshes (`posegrasp.world.user_objects`, ``python -m sim.add_object``).
 
 The object frame O has its origin at the centre of the object's 3D bounding box, z up in its
 canonical resting pose and x along its length (docs/DESIGN.md §4). Definitions may be written in any
-frame with z up; loading shifts every part so that the bounding-box centre is the origin.
+frame with z up; loading shifts every part so that the bounding-box centre is the origin. A user
+object's meshes are stored in O already.
+
+`OBJECT_NAMES` are the built-in objects (the classes the learned estimators know); `object_names()`
+adds the user objects found, and `check_object` and `load_object` take either kind.
 """
 
 from __future__ import annotations
@@ -21,7 +26,16 @@ from posegrasp.core.errors import AssetError, UnknownNameError
 from posegrasp.core.paths import SCENES_DIR
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world.robot import WORLD_CONAFFINITY, WORLD_CONTYPE
+from posegrasp.world.user_objects import (
+    MeshGeometry,
+    StoredGrasp,
+    description_revision,
+    read_user_object,
+    user_object_names,
+)
+from posegrasp.world.user_objects import objects_dir as user_objects_dir
 
+#: The built-in objects, in their fixed order (class ids of the learned estimators and of BOP).
 OBJECT_NAMES: tuple[str, ...] = ("car", "faucet", "chair", "phone", "screen", "pistol")
 OBJECTS_DIR = SCENES_DIR / "objects"
 
@@ -30,14 +44,24 @@ VISUAL_GROUP = 2
 COLLISION_GROUP = 3
 
 
+def object_names() -> tuple[str, ...]:
+    """Every known object: the built-in ones (`OBJECT_NAMES`, in their order), then the user
+    objects found in the user objects directory (`posegrasp.world.user_objects`), sorted. A user
+    folder named like a built-in object is left out: a built-in name always means the built-in."""
+    return OBJECT_NAMES + tuple(n for n in user_object_names() if n not in OBJECT_NAMES)
+
+
 def check_object(name: str) -> str:
-    """`name` when it is a known object class.
+    """`name` when it is a known object class, built-in or user object.
 
     Raises:
-        UnknownNameError: otherwise, listing the classes.
+        UnknownNameError: otherwise, listing the classes (`object_names()`).
     """
-    if name not in OBJECT_NAMES:
-        raise UnknownNameError("object", str(name), OBJECT_NAMES)
+    if name in OBJECT_NAMES:
+        return name
+    names = object_names()
+    if name not in names:
+        raise UnknownNameError("object", str(name), names)
     return name
 
 
@@ -124,20 +148,29 @@ def _parse_part(raw: dict[str, Any], obj: str) -> Part:
 
 @dataclass(frozen=True)
 class ObjectModel:
-    """A known object: parts in its own frame, physical properties, symmetries, resting poses.
+    """A known object: its shape in its own frame, physical properties, symmetries, resting poses.
+
+    A built-in object is made of primitive `parts`; a user object (`geometry` set, `parts`
+    empty) of a visual mesh and convex collision hulls with an explicit mass distribution, and
+    carries its grasp candidates (`grasps`).
 
     Attributes:
-        name: class name, one of `OBJECT_NAMES`.
+        name: class name, one of `object_names()`.
         description: what it looks like, and which features make its pose observable.
-        parts: primitives in O (origin at the bounding-box centre).
+        parts: primitives in O (origin at the bounding-box centre); empty for a user object.
         mass: total mass [kg].
         friction: MuJoCo friction (sliding, torsional, rolling).
         symmetries: proper rotational symmetries besides the identity, each a 4x4 T_O_O'
-            (appearance included; every object here is designed to have none).
+            (appearance included; every built-in object is designed to have none; a continuous
+            symmetry of a user object is discretised, `user_objects.symmetry_transforms`).
         resting_poses: name -> orientation of O on a horizontal support, wxyz; the first is
             the canonical pose, the others were found by physics (`posegrasp.world.resting`).
         ungraspable: resting poses in which the Fetch gripper cannot take the object from above
             (no grasp candidate fits; `grasping.candidates` is tested against this list).
+        geometry: a user object's meshes and mass distribution; None for a built-in object.
+        grasps: a user object's grasp candidates, every resting pose's; () for a built-in one.
+        revision: a user object's description hash (caches of it are keyed by it); "" for a
+            built-in object.
     """
 
     name: str
@@ -148,10 +181,16 @@ class ObjectModel:
     symmetries: tuple[np.ndarray, ...] = ()
     resting_poses: dict[str, np.ndarray] = field(default_factory=dict)
     ungraspable: tuple[str, ...] = ()
+    geometry: MeshGeometry | None = None
+    grasps: tuple[StoredGrasp, ...] = ()
+    revision: str = ""
 
     @functools.cached_property
     def mesh(self) -> trimesh.Trimesh:
-        """All parts as one triangle mesh in O [m] (parts are concatenated, not fused)."""
+        """The object as a triangle mesh in O [m]: a built-in object's parts concatenated (not
+        fused), a user object's visual mesh."""
+        if self.geometry is not None:
+            return self.geometry.visual
         return trimesh.util.concatenate([p.mesh() for p in self.parts])
 
     @property
@@ -177,7 +216,11 @@ class ObjectModel:
         """Add the object as a free body to spec's worldbody.
 
         Visual geoms (group 2, no contact, no mass) carry the colours; collision geoms
-        (group 3, hidden) carry mass and friction.
+        (group 3, hidden) carry friction and, for a built-in object, the mass (uniform
+        density over its colliding parts). A user object's visual mesh and each of its convex
+        hulls are mesh geoms (the assets are added once per spec and shared by its copies), and
+        its body's mass, centre of mass and inertia are set explicitly from its hulls: MuJoCo's
+        own inertia of a visual mesh that is not watertight would be wrong.
 
         Args:
             spec: the scene spec.
@@ -194,6 +237,9 @@ class ObjectModel:
         body.quat = list(map(float, quat))
         joint = body.add_freejoint()
         joint.name = instance + "/free"
+        if self.geometry is not None:
+            self._add_mesh_geoms(spec, body, instance)
+            return body
         volume = sum(p.volume for p in self.parts if p.collision)
         density = self.mass / volume
         gtype = {
@@ -224,6 +270,51 @@ class ObjectModel:
                 col.condim = 4
         return body
 
+    def _add_mesh_geoms(self, spec: mujoco.MjSpec, body: mujoco.MjsBody, instance: str) -> None:
+        """A user object's visual mesh, collision hulls and explicit inertia on `body`."""
+        g = self.geometry
+        assert g is not None
+        prefix = f"{self.name}.{g.key}"
+        if spec.mesh(prefix + "/visual") is None:
+            _add_mesh_asset(spec, prefix + "/visual", g.visual)
+            for i, hull in enumerate(g.hulls):
+                _add_mesh_asset(spec, f"{prefix}/hull{i:03d}", hull)
+        vis = body.add_geom()
+        vis.name = f"{instance}/visual"
+        vis.type = mujoco.mjtGeom.mjGEOM_MESH
+        vis.meshname = prefix + "/visual"
+        vis.rgba = g.rgba
+        vis.group, vis.contype, vis.conaffinity = VISUAL_GROUP, 0, 0
+        vis.density = 0.0
+        for i in range(len(g.hulls)):
+            col = body.add_geom()
+            col.name = f"{instance}/hull{i:03d}"
+            col.type = mujoco.mjtGeom.mjGEOM_MESH
+            col.meshname = f"{prefix}/hull{i:03d}"
+            col.rgba = [0.5, 0.5, 0.5, 0.0]
+            col.group = COLLISION_GROUP
+            col.contype, col.conaffinity = WORLD_CONTYPE, WORLD_CONAFFINITY
+            col.density = 0.0
+            col.friction = list(self.friction)
+            col.condim = 4
+        inertia = g.inertia
+        body.explicitinertial = True
+        body.mass = float(self.mass)
+        body.ipos = list(map(float, g.com))
+        body.fullinertia = [
+            float(inertia[i, j]) for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+        ]
+
+
+def _add_mesh_asset(spec: mujoco.MjSpec, name: str, mesh: trimesh.Trimesh) -> None:
+    """A mesh asset from a trimesh mesh [m]. Its inertia is taken as a shell: the asset's own
+    volume is never used (the body's inertia is explicit) and need not be defined."""
+    asset = spec.add_mesh()
+    asset.name = name
+    asset.uservert = np.asarray(mesh.vertices, np.float32).ravel()
+    asset.userface = np.asarray(mesh.faces, np.int32).ravel()
+    asset.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL
+
 
 def _centred(parts: list[Part]) -> list[Part]:
     lo = np.min([p.mesh().bounds[0] for p in parts], axis=0)
@@ -232,16 +323,45 @@ def _centred(parts: list[Part]) -> list[Part]:
     return [Part(p.name, p.type, p.pos - c, p.quat, p.size, p.rgba, p.collision) for p in parts]
 
 
-@functools.cache
 def load_object(name: str) -> ObjectModel:
-    """The object called name, read from `scenes/objects/<name>.json`.
+    """The object called name: a built-in one read from `scenes/objects/<name>.json`, or a user
+    object read from its folder (`posegrasp.world.user_objects`). The same model is returned
+    while the files are unchanged.
 
     Raises:
-        UnknownNameError: name is not one of `OBJECT_NAMES`.
+        UnknownNameError: name is not one of `object_names()`.
         AssetError: the definition file is missing or malformed.
     """
-    if name not in OBJECT_NAMES:
-        raise UnknownNameError("object", name, OBJECT_NAMES)
+    if name in OBJECT_NAMES:
+        return _load_builtin(name)
+    check_object(name)
+    return _load_user(name, str(user_objects_dir()), description_revision(name))
+
+
+@functools.lru_cache(maxsize=32)
+def _load_user(name: str, folder: str, revision: str) -> ObjectModel:
+    """A user object's model; the arguments besides `name` key the cache (a rewritten
+    description, or another objects directory, is read afresh)."""
+    del folder
+    rec = read_user_object(name)
+    return ObjectModel(
+        name=name,
+        description=str(rec.description.get("description", "")),
+        parts=(),
+        mass=rec.mass,
+        friction=rec.friction,
+        symmetries=rec.symmetries,
+        resting_poses=rec.resting_poses,
+        ungraspable=rec.ungraspable,
+        geometry=rec.geometry,
+        grasps=rec.grasps,
+        revision=revision,
+    )
+
+
+@functools.cache
+def _load_builtin(name: str) -> ObjectModel:
+    """A built-in object, read from `scenes/objects/<name>.json`."""
     path = OBJECTS_DIR / f"{name}.json"
     try:
         raw = json.loads(path.read_text())

@@ -9,7 +9,9 @@ that ended in it.
 
 `python -m posegrasp.world.resting --object phone` prints what the drops find;
 `--write` stores it in `scenes/objects/<name>.json` (`resting_poses`), the pose the object was
-designed to stand in first (the canonical one, used by the `isolated` tier).
+designed to stand in first (the canonical one, used by the `isolated` tier). The functions take an
+object's name or any `ObjectModel`, so a mesh object being made (`sim.add_object`) is dropped
+the same way.
 """
 
 from __future__ import annotations
@@ -29,10 +31,10 @@ from posegrasp.core.paths import SCENES_DIR
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.core.validate import arg, check_choice, check_int, check_seed
-from posegrasp.world.objects import OBJECT_NAMES, check_object, load_object
+from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, check_object, load_object
 
 #: A plane with the world's contact class (`scenes/world.xml`, class "world") and its options.
-_PLANE_XML = """<mujoco>
+PLANE_XML = """<mujoco>
   <option timestep="0.002" integrator="implicitfast" cone="elliptic" impratio="10"/>
   <worldbody>
     <geom name="plane" type="plane" size="20 20 0.05" contype="1" conaffinity="3" condim="3"
@@ -78,9 +80,15 @@ def upright_quat(up: np.ndarray) -> np.ndarray:
     return q
 
 
-def _drop_model(name: str, quats: np.ndarray, spacing: float) -> tuple[mujoco.MjModel, list[str]]:
-    obj = load_object(name)
-    spec = mujoco.MjSpec.from_string(_PLANE_XML)
+def _model(obj: str | ObjectModel) -> ObjectModel:
+    """The object itself, or the known object of that name (UnknownNameError otherwise)."""
+    return obj if isinstance(obj, ObjectModel) else load_object(check_object(obj))
+
+
+def _drop_model(
+    obj: ObjectModel, quats: np.ndarray, spacing: float
+) -> tuple[mujoco.MjModel, list[str]]:
+    spec = mujoco.MjSpec.from_string(PLANE_XML)
     bodies = []
     side = int(np.ceil(np.sqrt(len(quats))))
     for i, q in enumerate(quats):
@@ -91,10 +99,11 @@ def _drop_model(name: str, quats: np.ndarray, spacing: float) -> tuple[mujoco.Mj
     return spec.compile(), bodies
 
 
-def _settle(name: str, quats: np.ndarray, seconds: float) -> np.ndarray:
+def _settle(obj: str | ObjectModel, quats: np.ndarray, seconds: float) -> np.ndarray:
     """Up directions in O (n, 3) after dropping copies of the object with orientations quats."""
-    spacing = 1.5 * load_object(name).diameter + 0.1
-    model, bodies = _drop_model(name, quats, spacing)
+    obj = _model(obj)
+    spacing = 1.5 * obj.diameter + 0.1
+    model, bodies = _drop_model(obj, quats, spacing)
     data = mujoco.MjData(model)
     mujoco.mj_step(model, data, nstep=round(seconds / model.opt.timestep))
     return np.array([data.body(b).xmat.reshape(3, 3)[2] for b in bodies])
@@ -115,7 +124,9 @@ def _cluster(ups: np.ndarray) -> list[tuple[np.ndarray, int]]:
     return out
 
 
-def _axis_name(up: np.ndarray, taken: set[str]) -> str:
+def axis_name(up: np.ndarray, taken: set[str]) -> str:
+    """``up_<sign><axis>`` after the axis of O nearest the up direction `up` (3,), with a
+    number appended when `taken` holds that name already."""
     k = int(np.argmax(np.abs(up)))
     base = f"up_{'+' if up[k] > 0 else '-'}{'xyz'[k]}"
     name, n = base, 2
@@ -125,22 +136,30 @@ def _axis_name(up: np.ndarray, taken: set[str]) -> str:
 
 
 def find_resting_poses(
-    name: str, drops: int = 96, seed: int = 0, seconds: float = 3.0, progress: bool = False
+    name: str | ObjectModel,
+    drops: int = 96,
+    seed: int = 0,
+    seconds: float = 3.0,
+    progress: bool = False,
+    settled: bool = False,
 ) -> list[RestingPose]:
-    """The stable resting poses of object `name`, most frequent first.
+    """The stable resting poses of an object, most frequent first.
 
     Args:
-        name: object class.
+        name: object class, or the object itself.
         drops: random orientations dropped.
         seed: seed of the orientations.
         seconds: simulated time each drop is given to come to rest [s].
         progress: show a progress bar.
+        settled: describe each pose by the up direction its stability check ends in (the mean
+            over the four yaws) instead of its cluster's mean; an object that rocks a little
+            before it rests is then described where it rests.
 
     Raises:
         UnknownNameError: an unknown object.
         InvalidArgumentError: drops < 1.
     """
-    check_object(name)
+    obj = _model(name)
     if drops < 1:
         raise InvalidArgumentError(f"drops must be at least 1, got {drops}")
     rng = np.random.default_rng(seed)
@@ -148,8 +167,8 @@ def find_resting_poses(
     quats /= np.linalg.norm(quats, axis=1, keepdims=True)
     ups = []
     batch = 16
-    for i in tqdm(range(0, drops, batch), desc=f"drops {name}", disable=not progress):
-        ups.append(_settle(name, quats[i : i + batch], seconds))
+    for i in tqdm(range(0, drops, batch), desc=f"drops {obj.name}", disable=not progress):
+        ups.append(_settle(obj, quats[i : i + batch], seconds))
     clusters = _cluster(np.vstack(ups))
     found: list[RestingPose] = []
     taken: set[str] = set()
@@ -158,17 +177,29 @@ def find_resting_poses(
         if share < MIN_SHARE:
             continue
         quat = upright_quat(up)
-        if not is_stable(name, quat):
+        after = _stability(obj, quat)
+        if after is None:
             continue
-        pose_name = _axis_name(up, taken)
+        if settled:
+            up = after / np.linalg.norm(after)
+            quat = upright_quat(up)
+        pose_name = axis_name(up, taken)
         taken.add(pose_name)
         found.append(RestingPose(pose_name, quat, up, share))
     return found
 
 
-def is_stable(name: str, quat: np.ndarray, seconds: float = 1.0) -> bool:
-    """Whether object `name` placed on a plane in orientation quat (wxyz) keeps its up direction
-    within `STABLE_DEG` for `seconds`, at four yaws."""
+def is_stable(name: str | ObjectModel, quat: np.ndarray, seconds: float = 1.0) -> bool:
+    """Whether an object (its class, or the object itself) placed on a plane in orientation quat
+    (wxyz) keeps its up direction within `STABLE_DEG` for `seconds`, at four yaws."""
+    return _stability(name, quat, seconds) is not None
+
+
+def _stability(
+    name: str | ObjectModel, quat: np.ndarray, seconds: float = 1.0
+) -> np.ndarray | None:
+    """The mean up direction (in O) the object ends in after `is_stable`'s test, None when it
+    does not keep its up direction."""
     up = quat_to_mat(np.asarray(quat, float))[2]
     yaws = np.deg2rad([0.0, 90.0, 180.0, 270.0])
     placed = []
@@ -178,7 +209,9 @@ def is_stable(name: str, quat: np.ndarray, seconds: float = 1.0) -> bool:
         placed.append(q)
     after = _settle(name, np.array(placed), seconds)
     cos = after @ up
-    return bool(np.all(cos > np.cos(np.deg2rad(STABLE_DEG))))
+    if not np.all(cos > np.cos(np.deg2rad(STABLE_DEG))):
+        return None
+    return after.mean(axis=0)
 
 
 def merged_poses(name: str, found: list[RestingPose]) -> list[dict]:

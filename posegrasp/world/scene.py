@@ -18,7 +18,7 @@ from posegrasp.core.paths import SCENES_DIR
 from posegrasp.core.transforms import quat_mul, yaw_quat
 from posegrasp.world import constants as C
 from posegrasp.world.layout import sample_layout
-from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
+from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, check_object, load_object
 from posegrasp.world.occlusion import occlusion
 from posegrasp.world.robot import RobotConfig, fetch_spec, home_qpos_ctrl
 
@@ -281,11 +281,12 @@ def build_scene(
     """Build and settle a seeded scene.
 
     Args:
-        objects: the target object's class, or several classes (the first is the target).
+        objects: the target object's class, or several classes (the first is the target);
+            built-in or user objects (`posegrasp.world.objects.object_names()`).
         seed: seed of every random choice; the same seed gives the same scene.
         config: sampling ranges; `SceneConfig()` by default.
         distractors: explicit distractor classes; None draws `config.n_distractors` classes
-            other than the requested ones.
+            among the built-in ones other than the requested ones.
 
     Returns:
         The settled scene, robot holding its home posture with the head aimed at the target.
@@ -301,8 +302,7 @@ def build_scene(
     if not names:
         raise InvalidArgumentError(f"no object given; valid objects: {', '.join(OBJECT_NAMES)}")
     for n in [*names, *(distractors or [])]:
-        if n not in OBJECT_NAMES:
-            raise UnknownNameError("object", n, OBJECT_NAMES)
+        check_object(n)
     rng = np.random.default_rng(seed)
     if distractors is None:
         pool = [n for n in OBJECT_NAMES if n not in names]

@@ -1,0 +1,216 @@
+"""Grasps from above of a mesh object in one resting pose, for the Fetch parallel gripper.
+
+For the resting pose's up direction `u` (in O), the gripper comes straight down (-u) and closes
+along a horizontal direction `y`. Closing directions are tried every `ANGLE_STEP_DEG` over a half
+turn, and grasp lines every `SLIDE_STEP` across the object; along each line the fingers take what
+lies in their slab (the pads' 27 mm, grown by the clearance), at depths below its top from
+`DEPTHS`. A grasp is kept when
+
+- what lies between the pads is `MIN_WIDTH`..`MAX_WIDTH` across (the finger travel, less room for
+  the pads: `grasping.top_grasps.MAX_WIDTH`),
+- the fingers keep clear of the object where they sweep as they close and pass on the way down, the
+  palm keeps clear of it (`grasping.top_grasps.clear`), and the fingertips stay
+  `TABLE_CLEARANCE` above the table,
+- the surface is antipodal where the pads touch it: the outward normals there (nine in ten of
+  them) lie within `CONE_DEG` of the closing direction on either side (the friction cone, with a
+  margin), over a patch that spans at least `MIN_PATCH` along the pads.
+
+The points are sampled on the collision hulls (what the fingers meet in physics), their normals
+are the hulls'. The score, lower being better, is the horizontal distance of the centre of mass
+from the grasp line (the lever gravity turns the object about the fingers with) plus penalties
+for normals far from the closing direction and for a shallow hold.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from grasping.top_grasps import (
+    CLEARANCE,
+    FINGER_X,
+    FINGER_Z,
+    MAX_WIDTH,
+    MIN_WIDTH,
+    clear,
+)
+
+#: Closing directions are tried every this many degrees over a half turn.
+ANGLE_STEP_DEG = 15.0
+#: Grasp lines are this far apart across the object [m].
+SLIDE_STEP = 0.006
+#: How far below the top of what the pads hold the grasp site sits, deepest first [m]; a site
+#: never sits lower than keeps the fingertips `TABLE_CLEARANCE` above the table.
+DEPTHS = (0.035, 0.025, 0.017, 0.010)
+#: The fingertips stay at least this above the table [m] (the planner keeps the fingers 5 mm
+#: from it, and the object may settle a little tilted).
+TABLE_CLEARANCE = 0.008
+#: Outward normals where the pads touch must lie within this of the closing direction [deg].
+CONE_DEG = 25.0
+#: Points within this of the outermost one on a side are where that pad touches [m].
+CONTACT_BAND = 0.002
+#: The contact patch must span at least this along the pads (vertically or across) [m].
+MIN_PATCH = 0.004
+#: Surface samples on the hulls.
+SAMPLES = 12000
+
+
+@dataclass(frozen=True)
+class Antipodal:
+    """A grasp from above.
+
+    Attributes:
+        T_O_G: grasp-site pose in O (x approach = -up, y closing), shape (4, 4) [m].
+        width: extent of the object between the pads [m].
+        score: lower is better (`score_grasp`).
+        com_arm: horizontal distance of the centre of mass from the grasp line [m].
+        cone_deg: the largest angle between a contact normal and the closing direction [deg].
+        depth: how far the fingertips reach below the top of what the pads hold [m].
+    """
+
+    T_O_G: np.ndarray
+    width: float
+    score: float
+    com_arm: float
+    cone_deg: float
+    depth: float
+
+
+def hull_points(hulls: list[trimesh.Trimesh], samples: int = SAMPLES, seed: int = 0):
+    """Points on the hulls' surfaces with their outward normals, the same on every call.
+
+    Returns:
+        (points (N, 3) [m], normals (N, 3)): area-weighted samples of every hull's faces plus
+        the hulls' vertices (with their vertex normals).
+    """
+    mesh = trimesh.util.concatenate(hulls)
+    pts, faces = trimesh.sample.sample_surface(mesh, samples, seed=seed)
+    normals = np.asarray(mesh.face_normals)[faces]
+    return (
+        np.vstack([pts, np.asarray(mesh.vertices)]),
+        np.vstack([normals, np.asarray(mesh.vertex_normals)]),
+    )
+
+
+def _frame(approach: np.ndarray, y: np.ndarray, site: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([approach, y, np.cross(approach, y)])
+    T[:3, 3] = site
+    return T
+
+
+def antipodal_grasps(
+    points: np.ndarray,
+    normals: np.ndarray,
+    up: np.ndarray,
+    com: np.ndarray,
+) -> list[Antipodal]:
+    """Every grasp from above that passes the checks of the module, best first.
+
+    Args:
+        points: surface points of the collision geometry in O (N, 3) [m].
+        normals: their outward unit normals (N, 3).
+        up: the resting pose's up direction in O (3,).
+        com: centre of mass in O (3,) [m].
+
+    Returns:
+        The grasps, lowest score first; one finger order each (the gripper is symmetric under
+        a half turn about its approach).
+    """
+    u = np.asarray(up, float) / np.linalg.norm(up)
+    h = points @ u
+    low = float(h.min())
+    # A horizontal basis (e1, e2) of the plane normal to u.
+    e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    approach = -u
+    cos_cone = math.cos(math.radians(CONE_DEG))
+    out: list[Antipodal] = []
+    for k in range(round(180.0 / ANGLE_STEP_DEG)):
+        theta = math.radians(k * ANGLE_STEP_DEG)
+        y = math.cos(theta) * e1 + math.sin(theta) * e2
+        z = np.cross(approach, y)  # across the pads, horizontal
+        py, pz = points @ y, points @ z
+        ny = normals @ y
+        for s in np.arange(pz.min(), pz.max() + 1e-9, SLIDE_STEP):
+            slab = np.abs(pz - s) <= FINGER_Z + CLEARANCE
+            if slab.sum() < 10:
+                continue
+            top = float(h[slab].max())
+            for depth in DEPTHS:
+                site_h = max(top - depth, low + FINGER_X[1] + TABLE_CLEARANCE)
+                tip_h = site_h - FINGER_X[1]
+                # What the pads take: the slab from the fingertips up (the palm check covers
+                # what lies above the fingers).
+                held = slab & (h >= tip_h - CLEARANCE)
+                if held.sum() < 10:
+                    continue
+                ymin, ymax = float(py[held].min()), float(py[held].max())
+                width = ymax - ymin
+                if not MIN_WIDTH <= width <= MAX_WIDTH:
+                    continue
+                pad = held & (h <= site_h - FINGER_X[0])
+                plus = pad & (py >= ymax - CONTACT_BAND)
+                minus = pad & (py <= ymin + CONTACT_BAND)
+                if plus.sum() < 3 or minus.sum() < 3:
+                    continue
+                c_plus = float(np.percentile(ny[plus], 10))
+                c_minus = float(np.percentile(-ny[minus], 10))
+                if min(c_plus, c_minus) < cos_cone:
+                    continue
+                if min(_span(points[plus], u, z), _span(points[minus], u, z)) < MIN_PATCH:
+                    continue
+                centre_y = (ymin + ymax) / 2
+                site = centre_y * y + s * z + site_h * u
+                T = _frame(approach, y, site)
+                if not clear(T, width, points, site_h - low):
+                    continue
+                arm = abs(float((com - site) @ z))
+                cone = math.degrees(math.acos(min(c_plus, c_minus, 1.0)))
+                reach = top - tip_h
+                out.append(Antipodal(T, width, score_grasp(arm, cone, reach), arm, cone, reach))
+                break
+    out.sort(key=lambda g: g.score)
+    return out
+
+
+def score_grasp(com_arm: float, cone_deg: float, reach: float) -> float:
+    """A grasp's score (lower is better): the centre of mass's lever [m], plus 1 mm for every
+    3 degrees the contact normals lean off the closing direction, plus 1 mm for every 2 mm the
+    pads hold less than 25 mm of the object's height."""
+    return com_arm + 0.001 * cone_deg / 3.0 + 0.5 * max(0.0, 0.025 - reach)
+
+
+def _span(pts: np.ndarray, up: np.ndarray, across: np.ndarray) -> float:
+    """The larger of the extents of points along `up` and along `across` [m]."""
+    return max(float(np.ptp(pts @ up)), float(np.ptp(pts @ across)))
+
+
+def distinct(grasps: list[Antipodal], keep: int, min_dist: float = 0.008) -> list[Antipodal]:
+    """At most `keep` grasps, best first, each at least `min_dist` from the kept ones' sites or
+    closing along a direction at least 20 degrees off theirs."""
+    out: list[Antipodal] = []
+    cos20 = math.cos(math.radians(20.0))
+    for g in grasps:
+        if len(out) >= keep:
+            break
+        near = any(
+            np.linalg.norm(g.T_O_G[:3, 3] - o.T_O_G[:3, 3]) < min_dist
+            and abs(float(g.T_O_G[:3, 1] @ o.T_O_G[:3, 1])) > cos20
+            for o in out
+        )
+        if not near:
+            out.append(g)
+    return out
+
+
+def flipped(T_O_G: np.ndarray) -> np.ndarray:
+    """The same grasp with the fingers swapped: a half turn about the approach (4, 4)."""
+    F = T_O_G.copy()
+    F[:3, 1] *= -1.0
+    F[:3, 2] *= -1.0
+    return F

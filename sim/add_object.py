@@ -1,0 +1,558 @@
+"""Make a mesh into a posegrasp object, usable by every command that takes an object.
+
+    python -m sim.add_object MESH --name NAME --units {m,mm} [--scale S]
+        [--mass KG | --density KG_M3] [--friction MU] [--symmetry SPEC ...] [--force]
+
+Reads an OBJ, STL, PLY or GLB file (trimesh), and writes the object's folder into the user objects
+directory (`posegrasp.world.user_objects`: ``$POSEGRASP_OBJECTS``, else
+``~/.local/share/posegrasp/objects``): the visual mesh; convex collision hulls from CoACD, its
+parameters recorded; mass (given, or density times the hulls' volume) and inertia from the hulls,
+also for a mesh that is not watertight; the stable resting poses, found by dropping it
+(`posegrasp.world.resting`); for every resting pose, grasp candidates for the Fetch gripper
+(antipodal pairs, checked by closing the gripper in physics; `grasping.mesh_grasps`); its
+symmetries, detected or given, in BOP's models_info form; and a preview sheet. Then
+``python -m sim.run_episode --object NAME`` grasps it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import sys
+import time
+from importlib.metadata import version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from grasping.antipodal import hull_points
+from grasping.mesh_grasps import KEEP, PoseGrasps, mesh_grasps
+from grasping.top_grasps import FINGER_X, MAX_WIDTH
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    summary_stream,
+    write_json,
+)
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.files import sha256_file
+from posegrasp.core.paths import git_commit
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_float, check_input_file, check_int, check_seed
+from posegrasp.world import meshes as M
+from posegrasp.world.objects import OBJECT_NAMES, ObjectModel
+from posegrasp.world.resting import CLUSTER_DEG, axis_name, find_resting_poses, upright_quat
+from posegrasp.world.user_objects import (
+    FORMAT_VERSION,
+    PREVIEW_FILE,
+    MeshGeometry,
+    check_object_name,
+    object_folder,
+    objects_dir,
+    write_object_folder,
+)
+from sim.object_preview import preview_sheet
+
+#: Density when neither --mass nor --density is given [kg/m^3] (a solid plastic part).
+DEFAULT_DENSITY = 500.0
+#: MuJoCo friction of the object (sliding, torsional, rolling), the built-in objects'.
+DEFAULT_FRICTION = (1.0, 0.01, 0.0005)
+#: Random drops that find the resting poses.
+DEFAULT_DROPS = 96
+#: Name of the canonical resting pose.
+CANONICAL = "canonical"
+#: Directions of the mesh file's frame `--up` may name.
+UP_CHOICES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
+
+
+def check_new_name(name: str) -> str:
+    """A name a new user object may take: valid (`check_object_name`) and not a built-in one.
+
+    Raises:
+        InvalidArgumentError: otherwise.
+    """
+    if name in OBJECT_NAMES:
+        raise InvalidArgumentError(
+            f"--name {name!r} is a built-in object ({', '.join(OBJECT_NAMES)}); choose another"
+        )
+    return check_object_name(name)
+
+
+def _load() -> list[float] | None:
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:
+        return None
+
+
+def _narrowest(points: np.ndarray, up: np.ndarray) -> float:
+    """The object's smallest horizontal width over closing directions, resting with `up` (in
+    its frame) up, above the fingertips' lowest reach [m]."""
+    u = up / np.linalg.norm(up)
+    h = points @ u
+    keep = points[h >= h.min() + FINGER_X[1] + 0.008]
+    if len(keep) < 3:
+        keep = points
+    e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    widths = []
+    for k in range(36):
+        t = math.pi * k / 36
+        widths.append(float(np.ptp(keep @ (math.cos(t) * e1 + math.sin(t) * e2))))
+    return min(widths)
+
+
+def make_object(
+    mesh_path: Path,
+    name: str,
+    units: str,
+    scale: float = 1.0,
+    mass: float | None = None,
+    density: float | None = None,
+    friction: float | None = None,
+    symmetry: list[str] | None = None,
+    drops: int = DEFAULT_DROPS,
+    seed: int = 0,
+    keep: int = KEEP,
+    force: bool = False,
+    up: str = "auto",
+    log=sys.stdout,
+) -> dict[str, Any]:
+    """Make the object and write its folder; what `main` does.
+
+    Args:
+        mesh_path: the mesh file.
+        name: the new object's name (`check_new_name`).
+        units: the file's length unit, one of `posegrasp.world.meshes.UNITS`.
+        scale: factor applied after the units.
+        mass: total mass [kg]; or
+        density: density [kg/m^3] (`DEFAULT_DENSITY` when neither is given).
+        friction: sliding friction coefficient (`DEFAULT_FRICTION`'s when None).
+        symmetry: ``--symmetry`` specifications (`posegrasp.world.meshes.given_symmetries`);
+            None detects them.
+        drops: random drops that find the resting poses.
+        seed: seed of the drops and of every sampling.
+        keep: grasps kept per resting pose.
+        force: replace an existing user object of that name.
+        up: the direction of the mesh file's frame that points up in the canonical resting
+            pose (one of `UP_CHOICES`); "auto" takes +z when the mesh rests graspably so, else
+            the graspable pose most drops end in.
+        log: where progress lines go.
+
+    Returns:
+        The object's description (its object.json) with ``folder``.
+
+    Raises:
+        InvalidArgumentError: the mesh cannot become an object (one line saying why).
+    """
+    t_start = time.perf_counter()
+    load_start = _load()
+    timings: dict[str, float] = {}
+    check_new_name(name)
+    if object_folder(name).exists() and not force:
+        raise InvalidArgumentError(
+            f"a user object {name!r} exists in {objects_dir()}; give --force to replace it"
+        )
+    if mass is not None and density is not None:
+        raise InvalidArgumentError("give --mass or --density, not both")
+
+    def say(text: str) -> None:
+        print(text, file=log, flush=True)
+
+    # The mesh, in metres, centred (frame S: the file's axes).
+    t = time.perf_counter()
+    raw = M.read_mesh(mesh_path)
+    visual_s, _ = M.centred(M.scaled_mesh(raw, units, scale, mesh_path.name))
+    rgba = M.mesh_colour(raw)
+    ext = visual_s.extents
+    say(
+        f"read {mesh_path.name}: {len(visual_s.faces)} triangles, "
+        f"{'watertight' if visual_s.is_watertight else 'not watertight'}, "
+        f"{ext[0] * 1000:.0f} x {ext[1] * 1000:.0f} x {ext[2] * 1000:.0f} mm"
+    )
+    timings["read"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    say("convex decomposition (CoACD) ...")
+    dec = M.decompose(visual_s, seed=seed)
+    timings["decomposition"] = time.perf_counter() - t
+    say(f"  {len(dec.hulls)} hulls in {dec.seconds:.1f} s")
+    props_s = M.mass_properties(
+        dec.hulls, mass=mass, density=None if mass is not None else (density or DEFAULT_DENSITY)
+    )
+    say(
+        f"  mass {props_s.mass * 1000:.0f} g"
+        + (" (given)" if mass is not None else f" ({props_s.density:g} kg/m^3 x hull volume)")
+        + f", hull volume {props_s.volume * 1e6:.0f} cm^3"
+    )
+    fr = DEFAULT_FRICTION if friction is None else (friction, *DEFAULT_FRICTION[1:])
+    obj_s = ObjectModel(
+        name=name,
+        description="",
+        parts=(),
+        mass=props_s.mass,
+        friction=fr,
+        geometry=MeshGeometry("s", visual_s, tuple(dec.hulls), rgba, props_s.com, props_s.inertia),
+    )
+
+    t = time.perf_counter()
+    found = find_resting_poses(obj_s, drops=drops, seed=seed, progress=True, settled=True)
+    timings["resting_poses"] = time.perf_counter() - t
+    if not found:
+        raise InvalidArgumentError(
+            f"cannot use {mesh_path.name}: it comes to rest in no stable pose on a plane "
+            "(it rolls, or rocks without settling)"
+        )
+    say(f"  {len(found)} resting poses ({sum(p.share for p in found) * 100:.0f} % of the drops)")
+
+    t = time.perf_counter()
+    by_pose = {f"p{i}": p.quat for i, p in enumerate(found)}
+    grasps_s = mesh_grasps(obj_s, by_pose, keep=keep, progress=True)
+    timings["grasps"] = time.perf_counter() - t
+    graspable = [i for i, p in enumerate(found) if grasps_s[f"p{i}"].grasps]
+    if not graspable:
+        points, _ = hull_points(list(dec.hulls), 4000, seed)
+        narrow = min(_narrowest(points, p.up) for p in found)
+        generated = sum(g.generated for g in grasps_s.values())
+        if generated == 0 and narrow > MAX_WIDTH:
+            raise InvalidArgumentError(
+                f"cannot grasp {mesh_path.name}: too wide for the gripper in every resting pose "
+                f"(narrowest {narrow * 1000:.0f} mm across; the fingers take at most "
+                f"{MAX_WIDTH * 1000:.0f} mm)"
+            )
+        raise InvalidArgumentError(
+            f"cannot grasp {mesh_path.name}: no grasp from above holds in any resting pose "
+            f"({generated} antipodal grasps tried in {len(found)} poses)"
+        )
+
+    # The canonical pose: the one --up names, or the mesh as it stands in its file when that is
+    # a graspable resting pose, else the graspable pose most drops end in.
+    cos = math.cos(math.radians(CLUSTER_DEG))
+    axis = np.eye(3)["xyz".index((up if up != "auto" else "+z")[1])]
+    axis = axis * (-1.0 if up.startswith("-") else 1.0)
+    as_given = [i for i in graspable if found[i].up @ axis > cos]
+    if up != "auto" and not as_given:
+        rests = ", ".join(f"({', '.join(f'{v:+.2f}' for v in found[i].up)})" for i in graspable)
+        raise InvalidArgumentError(
+            f"--up {up}: {mesh_path.name} does not rest graspably with {up} up; the graspable "
+            f"resting poses have up (file frame) {rests}"
+        )
+    canon = as_given[0] if as_given else max(graspable, key=lambda i: found[i].share)
+    why = (
+        f"{up if up != 'auto' else '+z'} of the mesh file up"
+        if as_given
+        else "the graspable pose most drops end in"
+    )
+    T_O_S = M.canonical_frame(visual_s, found[canon].up)
+    R = T_O_S[:3, :3]
+    visual = visual_s.copy()
+    visual.apply_transform(T_O_S)
+    hulls = [h.copy() for h in dec.hulls]
+    for h in hulls:
+        h.apply_transform(T_O_S)
+    props = M.transform_inertia(props_s, T_O_S)
+
+    rest = sorted((i for i in range(len(found)) if i != canon), key=lambda i: -found[i].share)
+    order = [canon, *rest]
+    poses: list[dict[str, Any]] = []
+    taken: set[str] = {CANONICAL}
+    stored: dict[str, list[dict[str, Any]]] = {}
+    drawn: dict[str, list[tuple[np.ndarray, float]]] = {}
+    for i in order:
+        up = R @ found[i].up
+        pname = CANONICAL if i == canon else axis_name(up, taken)
+        taken.add(pname)
+        quat = np.array([1.0, 0.0, 0.0, 0.0]) if i == canon else upright_quat(up)
+        pg: PoseGrasps = grasps_s[f"p{i}"]
+        entry = {
+            "name": pname,
+            "quat": [round(float(v), 6) for v in quat],
+            "share": round(found[i].share, 3),
+            "up": [round(float(v), 6) for v in up],
+            "graspable": bool(pg.grasps),
+            "grasp_search": {
+                "generated": pg.generated,
+                "checked": pg.checked,
+                "outcomes": dict(pg.outcomes),
+            },
+        }
+        poses.append(entry)
+        stored[pname] = []
+        drawn[pname] = []
+        for k, g in enumerate(pg.grasps):
+            T = T_O_S @ g.T_O_G
+            stored[pname].append(
+                {
+                    "T_O_G": [[round(float(v), 7) for v in row] for row in T],
+                    "width": round(g.width, 5),
+                    "score": round(g.score, 5),
+                    "robust": g.robust,
+                }
+            )
+            if k % 2 == 0:
+                drawn[pname].append((T, g.width))
+
+    t = time.perf_counter()
+    if symmetry:
+        syms = M.given_symmetries(symmetry, visual_s).transformed(T_O_S)
+    else:
+        syms = M.detect_symmetries(visual, seed=seed)
+    timings["symmetries"] = time.perf_counter() - t
+    bounds = visual.bounds
+    diameter = ObjectModel(
+        name,
+        "",
+        (),
+        props.mass,
+        fr,
+        geometry=MeshGeometry("d", visual, tuple(hulls), rgba, props.com, props.inertia),
+    ).diameter
+    models_info = {
+        "diameter": round(diameter * 1000, 4),
+        "min_x": round(float(bounds[0, 0]) * 1000, 4),
+        "min_y": round(float(bounds[0, 1]) * 1000, 4),
+        "min_z": round(float(bounds[0, 2]) * 1000, 4),
+        "size_x": round(float(visual.extents[0]) * 1000, 4),
+        "size_y": round(float(visual.extents[1]) * 1000, 4),
+        "size_z": round(float(visual.extents[2]) * 1000, 4),
+        **syms.models_info(),
+    }
+
+    t = time.perf_counter()
+    obj = ObjectModel(
+        name=name,
+        description="",
+        parts=(),
+        mass=props.mass,
+        friction=fr,
+        resting_poses={p["name"]: np.asarray(p["quat"]) for p in poses},
+        geometry=MeshGeometry("preview", visual, tuple(hulls), rgba, props.com, props.inertia),
+    )
+    title = (
+        f"{name}: {mesh_path.name}, {len(hulls)} hulls, {props.mass * 1000:.0f} g, "
+        f"symmetries {syms.describe()}"
+    )
+    png = preview_sheet(obj, poses, drawn, title)
+    timings["preview"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_start
+
+    description: dict[str, Any] = {
+        "format": FORMAT_VERSION,
+        "name": name,
+        "description": f"made from {mesh_path.name}",
+        "units": units,
+        "scale": scale,
+        "source": {
+            "file": str(mesh_path.resolve()),
+            "sha256": sha256_file(mesh_path),
+            "triangles": len(raw.faces),
+            "watertight": bool(visual_s.is_watertight),
+        },
+        "T_O_source": [
+            [round(float(v), 9) for v in row] for row in T_O_S @ _centring(raw, units, scale)
+        ],
+        "mass": props.mass,
+        "mass_from": "given" if mass is not None else "density x hull volume",
+        "density": props.density,
+        "hull_volume": props.volume,
+        "centre_of_mass": [float(v) for v in props.com],
+        "inertia": [[float(v) for v in row] for row in props.inertia],
+        "friction": list(fr),
+        "rgba": [round(float(v), 4) for v in rgba],
+        "decomposition": {
+            "tool": dec.tool,
+            "parameters": dec.parameters,
+            "hulls": len(hulls),
+            "seconds": round(dec.seconds, 2),
+        },
+        "symmetries": {
+            "source": "given" if symmetry else "detected",
+            "given": symmetry or [],
+            "summary": syms.describe(),
+            "errors_rel_diameter": [round(e, 5) for e in syms.errors],
+        },
+        "models_info": models_info,
+        "resting_poses": poses,
+        "canonical_pose": why,
+        "resting_search": {"drops": drops, "seed": seed},
+        "grasps": stored,
+        "grasp_search": {"kept_per_pose": keep, "both_finger_orders": True},
+        "timings_s": {k: round(v, 2) for k, v in timings.items()},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "load_at_start": load_start,
+            "load_at_end": _load(),
+            "platform": platform.platform(),
+        },
+        "tools": {
+            "posegrasp": git_commit(),
+            "trimesh": version("trimesh"),
+            "mujoco": version("mujoco"),
+            "coacd": version("coacd"),
+        },
+    }
+    folder = write_object_folder(name, description, visual, hulls, png, replace=force)
+    description["folder"] = str(folder)
+    _report(description, log)
+    return description
+
+
+def _centring(raw: trimesh.Trimesh, units: str, scale: float) -> np.ndarray:
+    """T_S_file (4, 4): the file's coordinates to the centred frame S, in metres."""
+    v = np.asarray(raw.vertices, float) * M.UNITS[units] * scale
+    T = np.eye(4) * M.UNITS[units] * scale
+    T[3, 3] = 1.0
+    T[:3, 3] = -(v.min(axis=0) + v.max(axis=0)) / 2
+    return T
+
+
+def _report(d: dict[str, Any], log) -> None:
+    """What was found, one line per item."""
+    poses = d["resting_poses"]
+    lines = [
+        f"object {d['name']} written to {d['folder']}",
+        f"  hulls        {d['decomposition']['hulls']} "
+        f"(CoACD {d['decomposition']['tool']['version']})",
+        f"  mass         {d['mass'] * 1000:.0f} g ({d['mass_from']})",
+        f"  symmetries   {d['symmetries']['summary']}",
+        f"  resting poses {len(poses)} ({sum(not p['graspable'] for p in poses)} not graspable); "
+        f"canonical: {poses[0]['name']} ({d['canonical_pose']})",
+    ]
+    for p in poses:
+        s = p["grasp_search"]
+        lines.append(
+            f"    {p['name']:12s} share {p['share'] * 100:4.0f} %  "
+            f"{len(d['grasps'][p['name']]):3d} candidates  "
+            f"({s['generated']} generated, {s['checked']} checked: "
+            + ", ".join(f"{k} {v}" for k, v in sorted(s["outcomes"].items()))
+            + ")"
+        )
+    t = d["timings_s"]
+    lines.append(
+        "  time         "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in t.items())
+        + f"; load {d['machine']['load_at_start']} -> {d['machine']['load_at_end']}"
+    )
+    lines.append(f"  preview      {Path(d['folder']) / PREVIEW_FILE}")
+    lines.append(
+        f"  try it       python -m sim.run_episode --object {d['name']} --estimator oracle"
+    )
+    print("\n".join(lines), file=log)
+
+
+def _parser() -> ArgumentParser:
+    p = ArgumentParser(
+        prog="python -m sim.add_object", description=__doc__.split("\n\n")[0].strip()
+    )
+    p.add_argument(
+        "mesh",
+        type=arg(check_input_file, "MESH", base=Path),
+        metavar="MESH",
+        help="an OBJ, STL, PLY or GLB file",
+    )
+    p.add_argument(
+        "--name",
+        required=True,
+        type=arg(check_new_name),
+        help="the object's name: lower-case letters, digits, '_' or '-'",
+    )
+    p.add_argument("--units", required=True, choices=sorted(M.UNITS), help="the file's length unit")
+    p.add_argument(
+        "--scale",
+        type=arg(check_float, 1e-6, 1e6, "--scale", base=float),
+        default=1.0,
+        help="factor applied after the units (default 1)",
+    )
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "--mass",
+        type=arg(check_float, 1e-3, 20.0, "--mass", base=float),
+        help="total mass [kg], 0.001..20",
+    )
+    group.add_argument(
+        "--density",
+        type=arg(check_float, 1.0, 25000.0, "--density", base=float),
+        help=f"density [kg/m^3], 1..25000 (default {DEFAULT_DENSITY:g}): mass = "
+        "density x the volume of the collision hulls",
+    )
+    p.add_argument(
+        "--friction",
+        type=arg(check_float, 0.1, 2.0, "--friction", base=float),
+        help=f"sliding friction coefficient, 0.1..2 (default {DEFAULT_FRICTION[0]})",
+    )
+    p.add_argument(
+        "--symmetry",
+        action="append",
+        metavar="SPEC",
+        help="a symmetry about an axis of the mesh file through its centre, instead of "
+        "detecting them: AXIS:N (AXIS x, y or z; N 2..60, or inf for any angle); "
+        "repeat for several; 'none' for none",
+    )
+    p.add_argument(
+        "--drops",
+        type=arg(check_int, 16, 1024, "--drops", base=int),
+        default=DEFAULT_DROPS,
+        help=f"random drops that find the resting poses, 16..1024 (default {DEFAULT_DROPS})",
+    )
+    p.add_argument(
+        "--keep",
+        type=arg(check_int, 1, 32, "--keep", base=int),
+        default=KEEP,
+        help=f"grasps kept per resting pose, 1..32 (default {KEEP}; each with both finger orders)",
+    )
+    p.add_argument(
+        "--seed",
+        type=arg(check_seed, "--seed", base=int),
+        default=0,
+        help="seed of the drops and samplings (default 0)",
+    )
+    p.add_argument(
+        "--up",
+        choices=UP_CHOICES,
+        default="auto",
+        help="the direction of the mesh file's frame that points up in the canonical resting "
+        "pose (the isolated tier's); auto (default): +z when the mesh rests graspably so, else "
+        "the graspable pose most drops end in",
+    )
+    p.add_argument("--force", action="store_true", help="replace a user object of that name")
+    add_json_argument(p, "the object's description")
+    return p
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
+    if args.symmetry and "none" in args.symmetry and len(args.symmetry) > 1:
+        raise InvalidArgumentError("--symmetry none cannot be combined with other symmetries")
+    setup_rendering()
+    log = summary_stream(args.json)
+    d = make_object(
+        args.mesh,
+        args.name,
+        args.units,
+        args.scale,
+        args.mass,
+        args.density,
+        args.friction,
+        args.symmetry,
+        args.drops,
+        args.seed,
+        args.keep,
+        args.force,
+        args.up,
+        log,
+    )
+    if args.json is not None:
+        write_json(args.json, json.loads(json.dumps(d)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
