@@ -59,7 +59,7 @@ from sim.estimators import (
     make_estimator,
 )
 from sim.pose_noise import parse_noise
-from sim.report_schema import REPORT_SCHEMA
+from sim.report_schema import REPORT_SCHEMA, validate_report
 from sim.stats import BOOTSTRAP, bootstrap_means, margin_error_correlation, wilson_interval
 
 #: An estimator as `evaluate` takes it: a spec (`sim.estimators`: a built-in name, an entry point
@@ -259,23 +259,26 @@ def make_report(
     wall_s: float = 0.0,
     obs_mode: str = "rgb",
 ) -> dict:
-    """The report (schema `REPORT_SCHEMA`) of finished episodes: the protocol, the aggregates per
-    object and overall, and the episodes in run order."""
-    return {
-        "schema": REPORT_SCHEMA,
-        "estimator": estimator,
-        "tier": tier,
-        "noise": noise,
-        "obs_mode": obs_mode,
-        "execution": execution_settings(),
-        "seed_start": seed_start,
-        "episodes_per_object": episodes_per_object,
-        "workers": workers,
-        "wall_s": wall_s,
-        "per_object": {o: _group([e for e in episodes if e["object"] == o]) for o in objects},
-        "overall": _group(episodes),
-        "episodes": episodes,
-    }
+    """The report (schema `REPORT_SCHEMA`, checked) of finished episodes: the protocol, the
+    aggregates per object and overall, and the episodes in run order."""
+    return validate_report(
+        {
+            "schema": REPORT_SCHEMA,
+            "estimator": estimator,
+            "tier": tier,
+            "noise": noise,
+            "obs_mode": obs_mode,
+            "execution": execution_settings(),
+            "seed_start": seed_start,
+            "episodes_per_object": episodes_per_object,
+            "workers": workers,
+            "wall_s": wall_s,
+            "per_object": {o: _group([e for e in episodes if e["object"] == o]) for o in objects},
+            "overall": _group(episodes),
+            "episodes": episodes,
+        },
+        "the evaluation's report",
+    )
 
 
 def run_protocol(
