@@ -45,9 +45,11 @@ SLIDE_STEP = 0.006
 #: How far below the top of what the pads hold the grasp site sits, deepest first [m]; a site
 #: never sits lower than keeps the fingertips `TABLE_CLEARANCE` above the table.
 DEPTHS = (0.035, 0.025, 0.017, 0.010)
-#: The fingertips stay at least this above the table [m] (the planner keeps the fingers 5 mm
-#: from it, and the object may settle a little tilted).
-TABLE_CLEARANCE = 0.008
+#: The fingertips stay at least this above the table [m]: the planner keeps the fingers 5 mm
+#: from it and passes over a candidate whose open fingertips would come within 6 mm of it at the
+#: estimated pose (`grasping.candidates.MESH_TABLE_MARGIN`), and an object settles a few degrees
+#: off its stored resting pose.
+TABLE_CLEARANCE = 0.012
 #: Outward normals where the pads touch must lie within this of the closing direction [deg].
 CONE_DEG = 25.0
 #: Points within this of the outermost one on a side are where that pad touches [m].

@@ -39,12 +39,17 @@ class GraspCandidate:
         width: extent of the part between the finger pads [m].
         part: name of the grasped part ("mesh" for a user object).
         pose: the resting pose it was made for (`ObjectModel.resting_poses`).
+        table_margin: when set, the planner passes over the candidate if at the estimated pose
+            the open fingertips would come closer than this to the table [m] (a user object's
+            candidates, made for one resting pose, met tilted when the object lies in a pose
+            near it); None: no such check (the built-in objects' designed candidates).
     """
 
     T_O_G: np.ndarray
     width: float
     part: str
     pose: str = ""
+    table_margin: float | None = None
 
 
 @dataclass(frozen=True)
@@ -140,6 +145,9 @@ def _segment_candidates(obj: ObjectModel, pose: str) -> list[GraspCandidate]:
 
 #: The part a user object's candidates name (it is one mesh).
 MESH_PART = "mesh"
+#: The closest a user object's candidate may bring the open fingertips to the table at the
+#: estimated pose [m] (`GraspCandidate.table_margin`; the planner keeps the fingers 5 mm off it).
+MESH_TABLE_MARGIN = 0.006
 
 
 def grasp_candidates(name: str) -> tuple[GraspCandidate, ...]:
@@ -168,6 +176,7 @@ def _stored_candidates(obj: ObjectModel) -> tuple[GraspCandidate, ...]:
     key = (obj.name, obj.revision)
     if key not in _STORED:
         _STORED[key] = tuple(
-            GraspCandidate(g.T_O_G, g.width, MESH_PART, g.pose) for g in obj.grasps
+            GraspCandidate(g.T_O_G, g.width, MESH_PART, g.pose, MESH_TABLE_MARGIN)
+            for g in obj.grasps
         )
     return _STORED[key]

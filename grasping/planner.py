@@ -10,6 +10,7 @@ free joint are frozen with a `DofFreezingTask` constraint.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -20,6 +21,7 @@ import numpy as np
 
 from grasping.candidates import GraspCandidate, grasp_candidates
 from grasping.clearance import intrusion
+from grasping.top_grasps import FINGER_OUTER_Y, FINGER_X, FINGER_Z
 from posegrasp.core.errors import PosegraspError
 from posegrasp.core.failures import check_failure_reason
 from posegrasp.core.transforms import check_rigid
@@ -150,6 +152,7 @@ class GraspPlanner:
         config: PlannerConfig | None = None,
     ) -> None:
         self.model = model
+        self.table_geom = table_geom
         self.cfg = config or PlannerConfig()
         self.configuration = mink.Configuration(model)
         self.qadr = np.array([model.joint(j).qposadr[0] for j in PLANNED_JOINTS])
@@ -217,6 +220,23 @@ class GraspPlanner:
             )
         return self.configuration.q[self.qadr].copy()
 
+    @functools.cached_property
+    def table_top_z(self) -> float:
+        """Height of the table's top surface in the world [m] (the table does not move)."""
+        data = mujoco.MjData(self.model)
+        mujoco.mj_kinematics(self.model, data)
+        g = self.model.geom(self.table_geom)
+        R = data.geom_xmat[g.id].reshape(3, 3)
+        return float(data.geom_xpos[g.id][2] + np.abs(R[2]) @ g.size)
+
+    def _tips_low(self, T: np.ndarray, margin: float) -> bool:
+        """Whether the open fingertips at grasp pose T (4, 4) come within margin of the table."""
+        corners = np.array(
+            [[FINGER_X[1], sy * FINGER_OUTER_Y, sz * FINGER_Z] for sy in (-1, 1) for sz in (-1, 1)]
+        )
+        z = corners @ T[2, :3] + T[2, 3]
+        return bool(z.min() < self.table_top_z + margin)
+
     def order_candidates(
         self,
         T_world_O: np.ndarray,
@@ -224,8 +244,9 @@ class GraspPlanner:
         q: np.ndarray,
         neighbours: Sequence[tuple[str, np.ndarray]] = (),
     ) -> list[tuple[GraspCandidate, np.ndarray]]:
-        """Candidates in world frame that approach from above (within `max_approach_tilt`), best
-        first: those clear of the known `neighbours` ((class, T_world_N) pairs,
+        """Candidates in world frame that approach from above (within `max_approach_tilt`) and,
+        those with a `GraspCandidate.table_margin`, keep the open fingertips that far above
+        the table; best first: those clear of the known `neighbours` ((class, T_world_N) pairs,
         `grasping.clearance`) before the others; among them the gripper's z axis pointing away
         from the robot (no wrist flip needed), then the grasp point nearest the robot."""
         base_xy = q[self.qadr[:2]]
@@ -234,6 +255,8 @@ class GraspPlanner:
         for c in candidates:
             T = T_world_O @ c.T_O_G
             if -T[2, 0] < min_down:
+                continue
+            if c.table_margin is not None and self._tips_low(T, c.table_margin):
                 continue
             radial = T[:2, 3] - base_xy
             dist = float(np.linalg.norm(radial))

@@ -46,7 +46,13 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_float, check_input_file, check_int, check_seed
 from posegrasp.world import meshes as M
 from posegrasp.world.objects import OBJECT_NAMES, ObjectModel
-from posegrasp.world.resting import CLUSTER_DEG, axis_name, find_resting_poses, upright_quat
+from posegrasp.world.resting import (
+    CLUSTER_DEG,
+    RestingPose,
+    axis_name,
+    find_resting_poses,
+    upright_quat,
+)
 from posegrasp.world.user_objects import (
     FORMAT_VERSION,
     PREVIEW_FILE,
@@ -66,6 +72,9 @@ DEFAULT_FRICTION = (1.0, 0.01, 0.0005)
 DEFAULT_DROPS = 96
 #: Name of the canonical resting pose.
 CANONICAL = "canonical"
+#: Resting poses whose up directions are closer than this are one [deg] (the rarer one's share
+#: goes to the other): a candidate made for one would be met tilted in the other.
+MERGE_DEG = 15.0
 #: Directions of the mesh file's frame `--up` may name.
 UP_CHOICES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
 
@@ -81,6 +90,20 @@ def check_new_name(name: str) -> str:
             f"--name {name!r} is a built-in object ({', '.join(OBJECT_NAMES)}); choose another"
         )
     return check_object_name(name)
+
+
+def _merged(found: list[RestingPose]) -> list[RestingPose]:
+    """Resting poses with those within `MERGE_DEG` of a more frequent one folded into it."""
+    cos = math.cos(math.radians(MERGE_DEG))
+    kept: list[RestingPose] = []
+    for p in sorted(found, key=lambda p: -p.share):
+        near = next((k for k, q in enumerate(kept) if p.up @ q.up > cos), None)
+        if near is None:
+            kept.append(p)
+        else:
+            q = kept[near]
+            kept[near] = RestingPose(q.name, q.quat, q.up, q.share + p.share)
+    return kept
 
 
 def _load() -> list[float] | None:
@@ -209,6 +232,7 @@ def make_object(
             f"cannot use {mesh_path.name}: it comes to rest in no stable pose on a plane "
             "(it rolls, or rocks without settling)"
         )
+    found = _merged(found)
     say(f"  {len(found)} resting poses ({sum(p.share for p in found) * 100:.0f} % of the drops)")
 
     t = time.perf_counter()
