@@ -11,9 +11,10 @@ lies in their slab (the pads' 27 mm, grown by the clearance), at depths below it
 - the fingers keep clear of the object where they sweep as they close and pass on the way down, the
   palm keeps clear of it (`grasping.top_grasps.clear`), and the fingertips stay
   `TABLE_CLEARANCE` above the table,
-- the surface is antipodal where the pads touch it: the outward normals there (nine in ten of
-  them) lie within `CONE_DEG` of the closing direction on either side (the friction cone, with a
-  margin), over a patch that spans at least `MIN_PATCH` along the pads.
+- the surface is antipodal where the pads touch it (the outermost `CONTACT_BAND` of the surface
+  facing each pad): the outward normals there (nine in ten of them) lie within `CONE_DEG` of the
+  closing direction on either side (the friction cone, with a margin), over a patch that spans
+  at least `MIN_PATCH` along the pads.
 
 The points are sampled on the collision hulls (what the fingers meet in physics), their normals
 are the hulls'. The score, lower being better, is the horizontal distance of the centre of mass
@@ -156,8 +157,10 @@ def antipodal_grasps(
                 if not MIN_WIDTH <= width <= MAX_WIDTH:
                     continue
                 pad = held & (h <= site_h - FINGER_X[0])
-                plus = pad & (py >= ymax - CONTACT_BAND)
-                minus = pad & (py <= ymin + CONTACT_BAND)
+                # Where the pads touch: the outermost surface facing each pad (a surface facing
+                # away, such as the inside of a thin wall, lies behind it).
+                plus = pad & (py >= ymax - CONTACT_BAND) & (ny > 0)
+                minus = pad & (py <= ymin + CONTACT_BAND) & (ny < 0)
                 if plus.sum() < 3 or minus.sum() < 3:
                     continue
                 c_plus = float(np.percentile(ny[plus], 10))

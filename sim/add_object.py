@@ -72,8 +72,9 @@ DEFAULT_FRICTION = (1.0, 0.01, 0.0005)
 DEFAULT_DROPS = 96
 #: Name of the canonical resting pose.
 CANONICAL = "canonical"
-#: Resting poses whose up directions are closer than this are one [deg] (the rarer one's share
-#: goes to the other): a candidate made for one would be met tilted in the other.
+#: Resting poses whose up directions are closer than this, up to the object's symmetries, are
+#: one [deg] (the rarer one's share goes to the other): a candidate made for one would be met
+#: tilted in the other.
 MERGE_DEG = 15.0
 #: Directions of the mesh file's frame `--up` may name.
 UP_CHOICES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
@@ -92,12 +93,49 @@ def check_new_name(name: str) -> str:
     return check_object_name(name)
 
 
-def _merged(found: list[RestingPose]) -> list[RestingPose]:
-    """Resting poses with those within `MERGE_DEG` of a more frequent one folded into it."""
-    cos = math.cos(math.radians(MERGE_DEG))
+def check_coacd(spec: str) -> tuple[str, Any]:
+    """``KEY=VALUE``: one CoACD parameter (`posegrasp.world.meshes.COACD_DEFAULTS`), the value
+    of the default's type.
+
+    Raises:
+        InvalidArgumentError: an unknown key or a value of the wrong type.
+    """
+    key, sep, text = str(spec).partition("=")
+    if not sep or key not in M.COACD_DEFAULTS:
+        raise InvalidArgumentError(
+            f"invalid --coacd {spec!r}; valid: KEY=VALUE with KEY one of "
+            + ", ".join(M.COACD_DEFAULTS)
+        )
+    default = M.COACD_DEFAULTS[key]
+    try:
+        if isinstance(default, bool):
+            if text not in ("true", "false"):
+                raise ValueError(text)
+            value: Any = text == "true"
+        else:
+            value = type(default)(text)
+    except ValueError:
+        raise InvalidArgumentError(
+            f"invalid --coacd {spec!r}: {key} takes a {type(default).__name__} "
+            f"(default {str(default).lower() if isinstance(default, bool) else default})"
+        ) from None
+    return key, value
+
+
+def _merged(
+    found: list[RestingPose], syms: M.Symmetries, prefer: np.ndarray | None = None
+) -> list[RestingPose]:
+    """Resting poses with those within `MERGE_DEG` of a more frequent one, up to the object's
+    symmetries, folded into it (a symmetric object lies the same way in both); a pose whose up
+    direction is within `CLUSTER_DEG` of `prefer` (3,) is kept before any other."""
+    cos = math.cos(math.radians(CLUSTER_DEG))
+
+    def first(p: RestingPose) -> tuple[bool, float]:
+        return (prefer is None or not p.up @ prefer > cos, -p.share)
+
     kept: list[RestingPose] = []
-    for p in sorted(found, key=lambda p: -p.share):
-        near = next((k for k, q in enumerate(kept) if p.up @ q.up > cos), None)
+    for p in sorted(found, key=first):
+        near = next((k for k, q in enumerate(kept) if syms.angle_deg(p.up, q.up) < MERGE_DEG), None)
         if near is None:
             kept.append(p)
         else:
@@ -145,6 +183,7 @@ def make_object(
     keep: int = KEEP,
     force: bool = False,
     up: str = "auto",
+    coacd: dict[str, Any] | None = None,
     log=sys.stdout,
 ) -> dict[str, Any]:
     """Make the object and write its folder; what `main` does.
@@ -166,6 +205,8 @@ def make_object(
         up: the direction of the mesh file's frame that points up in the canonical resting
             pose (one of `UP_CHOICES`); "auto" takes +z when the mesh rests graspably so, else
             the graspable pose most drops end in.
+        coacd: CoACD parameters that replace `posegrasp.world.meshes.COACD_DEFAULTS`' (the
+            seed is `seed` unless given).
         log: where progress lines go.
 
     Returns:
@@ -202,8 +243,15 @@ def make_object(
     timings["read"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    syms_s = (
+        M.given_symmetries(symmetry, visual_s) if symmetry else M.detect_symmetries(visual_s, seed)
+    )
+    timings["symmetries"] = time.perf_counter() - t
+    say(f"  symmetries: {syms_s.describe()}")
+
+    t = time.perf_counter()
     say("convex decomposition (CoACD) ...")
-    dec = M.decompose(visual_s, seed=seed)
+    dec = M.decompose(visual_s, **{"seed": seed, **(coacd or {})})
     timings["decomposition"] = time.perf_counter() - t
     say(f"  {len(dec.hulls)} hulls in {dec.seconds:.1f} s")
     props_s = M.mass_properties(
@@ -232,7 +280,9 @@ def make_object(
             f"cannot use {mesh_path.name}: it comes to rest in no stable pose on a plane "
             "(it rolls, or rocks without settling)"
         )
-    found = _merged(found)
+    axis = np.eye(3)["xyz".index((up if up != "auto" else "+z")[1])]
+    axis = axis * (-1.0 if up.startswith("-") else 1.0)
+    found = _merged(found, syms_s, axis)
     say(f"  {len(found)} resting poses ({sum(p.share for p in found) * 100:.0f} % of the drops)")
 
     t = time.perf_counter()
@@ -258,8 +308,6 @@ def make_object(
     # The canonical pose: the one --up names, or the mesh as it stands in its file when that is
     # a graspable resting pose, else the graspable pose most drops end in.
     cos = math.cos(math.radians(CLUSTER_DEG))
-    axis = np.eye(3)["xyz".index((up if up != "auto" else "+z")[1])]
-    axis = axis * (-1.0 if up.startswith("-") else 1.0)
     as_given = [i for i in graspable if found[i].up @ axis > cos]
     if up != "auto" and not as_given:
         rests = ", ".join(f"({', '.join(f'{v:+.2f}' for v in found[i].up)})" for i in graspable)
@@ -322,12 +370,7 @@ def make_object(
             if k % 2 == 0:
                 drawn[pname].append((T, g.width))
 
-    t = time.perf_counter()
-    if symmetry:
-        syms = M.given_symmetries(symmetry, visual_s).transformed(T_O_S)
-    else:
-        syms = M.detect_symmetries(visual, seed=seed)
-    timings["symmetries"] = time.perf_counter() - t
+    syms = syms_s.transformed(T_O_S)
     bounds = visual.bounds
     diameter = ObjectModel(
         name,
@@ -544,6 +587,14 @@ def _parser() -> ArgumentParser:
         "pose (the isolated tier's); auto (default): +z when the mesh rests graspably so, else "
         "the graspable pose most drops end in",
     )
+    p.add_argument(
+        "--coacd",
+        action="append",
+        type=arg(check_coacd),
+        metavar="KEY=VALUE",
+        help="a parameter of the convex decomposition (repeat for several; recorded in the "
+        "object): " + ", ".join(f"{k} (default {v})" for k, v in M.COACD_DEFAULTS.items()),
+    )
     p.add_argument("--force", action="store_true", help="replace a user object of that name")
     add_json_argument(p, "the object's description")
     return p
@@ -571,6 +622,7 @@ def main(argv: list[str] | None = None) -> int:
         args.keep,
         args.force,
         args.up,
+        dict(args.coacd or []),
         log,
     )
     if args.json is not None:

@@ -77,7 +77,9 @@ def read_mesh(path: Path | str) -> trimesh.Trimesh:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InvalidArgumentError(f"cannot read {path}: {first}") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise InvalidArgumentError(f"cannot use {path}: it holds no triangles")
+        raise InvalidArgumentError(
+            f"cannot use {path.name}: it holds no triangles (empty, or not a mesh file)"
+        )
     return loaded
 
 
@@ -415,6 +417,25 @@ class Symmetries:
             parts.append(f"{len(self.discrete)} discrete")
         return ", ".join(parts) + f" ({self.source})"
 
+    def rotations(self, steps: int = 72) -> list[np.ndarray]:
+        """The rotation parts (3, 3) of the symmetries, identity included, a continuous one
+        taken every 360 / `steps` degrees (and composed with each discrete one)."""
+        disc = [np.eye(3)] + [np.asarray(T)[:3, :3] for T in self.discrete]
+        if not self.continuous:
+            return disc
+        out = []
+        for a, _ in self.continuous:
+            for k in range(steps):
+                Rc = _axis_rotation(a, 2 * math.pi * k / steps)
+                out += [Rc @ Rd for Rd in disc]
+        return out
+
+    def angle_deg(self, u: np.ndarray, v: np.ndarray) -> float:
+        """The smallest angle [deg] between direction v and a symmetric image of direction u:
+        how far apart two resting poses with these up directions are, up to symmetry."""
+        cos = max(float((R @ u) @ v) for R in self.rotations())
+        return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+
     def transformed(self, T: np.ndarray) -> Symmetries:
         """The same symmetries in the frame of the mesh moved by T (4, 4)."""
         Ti = np.linalg.inv(T)
@@ -440,6 +461,7 @@ def detect_symmetries(mesh: trimesh.Trimesh, seed: int = 0) -> Symmetries:
     c = surface_centre(mesh)
     axes = _distinct([*_principal_axes(mesh, c), *np.eye(3)])
     for a in axes:
+        a = a if a[int(np.argmax(np.abs(a)))] > 0 else -a  # an axis's sign means nothing
         if all(tester.holds(_about(a, ang, c)) for ang in CONTINUOUS_TEST_ANGLES):
             errors = [max(tester.error(_about(a, ang, c)) for ang in CONTINUOUS_TEST_ANGLES)]
             flips = []
