@@ -69,3 +69,18 @@ _.fogEnd
 # ("sim.env:GraspEvalEnv"), and users build actions with pose_action.
 _.GraspEvalEnv
 _.pose_action
+
+# Fields of MuJoCo spec elements set from Python (read by MuJoCo when the model compiles).
+_.meshname
+_.explicitinertial
+_.ipos
+_.fullinertia
+_.uservert
+_.userface
+_.fromto
+_.copy_during_attach
+
+# Public API used by the tests and by users: a finished run's journal removed; the outcomes a
+# checked grasp can have (documentation of grasping.grasp_check's results).
+_.finish
+_.OUTCOMES
