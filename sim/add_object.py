@@ -107,18 +107,20 @@ def check_coacd(spec: str) -> tuple[str, Any]:
             + ", ".join(M.COACD_DEFAULTS)
         )
     default = M.COACD_DEFAULTS[key]
-    try:
-        if isinstance(default, bool):
-            if text not in ("true", "false"):
-                raise ValueError(text)
-            value: Any = text == "true"
-        else:
+    value: Any = None
+    if isinstance(default, bool):
+        if text in ("true", "false"):
+            value = text == "true"
+    else:
+        try:
             value = type(default)(text)
-    except ValueError:
+        except ValueError:
+            value = None
+    if value is None:
         raise InvalidArgumentError(
             f"invalid --coacd {spec!r}: {key} takes a {type(default).__name__} "
             f"(default {str(default).lower() if isinstance(default, bool) else default})"
-        ) from None
+        )
     return key, value
 
 
