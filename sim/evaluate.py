@@ -16,6 +16,7 @@ import sys
 import time
 from collections import Counter
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -97,7 +98,19 @@ def _init_worker() -> None:
     setup_rendering(threads=1)
 
 
-def _run_one(job: tuple) -> dict:
+class EpisodeJob(NamedTuple):
+    """One episode of an evaluation, as a worker receives it."""
+
+    object: str
+    seed: int
+    estimator: EstimatorRef
+    tier: str
+    noise: str | None = None
+    margin: bool = False
+    obs_mode: str = "rgb"
+
+
+def _run_one(job: EpisodeJob) -> dict:
     """One episode of an evaluation, in whatever process runs it (this one, a pool worker, a Ray
     worker started afresh after another died): it sets up rendering there first."""
     obj, seed, estimator, tier, noise, margin, obs_mode = job
@@ -216,7 +229,7 @@ def evaluate(
         print(note, file=sys.stderr)
     # Made as the workers take them, never all at once.
     jobs = (
-        (o, seed_start + i, estimator, tier, noise, margin, obs_mode)
+        EpisodeJob(o, seed_start + i, estimator, tier, noise, margin, obs_mode)
         for o in objects
         for i in range(episodes)
     )

@@ -24,7 +24,7 @@ from ray.cluster_utils import Cluster
 from perception.training.datagen import main as datagen_main
 from perception.training.writer import WALL_TIME_FILE
 from posegrasp.core.backends import default_chunk, run_map
-from sim.evaluate import _run_one, evaluate
+from sim.evaluate import EpisodeJob, _run_one, evaluate
 
 REPO = Path(__file__).resolve().parent.parent
 OBJECTS = ["phone", "car"]
@@ -191,9 +191,7 @@ class TestOnALocalRay:
     def test_a_killed_worker_is_retried(self, local_report: dict, tmp_path: Path) -> None:
         marker = tmp_path / "killed"
         jobs = [
-            (o, SEED + i, "oracle", "isolated", None, False)
-            for o in OBJECTS
-            for i in range(EPISODES)
+            EpisodeJob(o, SEED + i, "oracle", "isolated") for o in OBJECTS for i in range(EPISODES)
         ]
         results = list(
             run_map(functools.partial(_die_once, str(marker)), jobs, backend="ray", chunk=2)

@@ -81,8 +81,8 @@ def test_an_evaluation_job_sets_up_its_own_process() -> None:
     another died) still renders: each job sets up rendering in the process that runs it."""
     code = textwrap.dedent(
         """
-        from sim.evaluate import _run_one
-        d = _run_one(("phone", 1_000_000_000, "oracle", "isolated", None, False, "rgb"))
+        from sim.evaluate import EpisodeJob, _run_one
+        d = _run_one(EpisodeJob("phone", 1_000_000_000, "oracle", "isolated"))
         print(d["success"], d["failure_reason"])
         """
     )
