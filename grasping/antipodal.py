@@ -10,10 +10,10 @@ lies in their slab (the pads' 27 mm, grown by the clearance), at depths below it
   the pads: `grasping.top_grasps.MAX_WIDTH`),
 - the fingers keep clear of the object where they sweep as they close and pass on the way down, the
   palm keeps clear of it (`grasping.top_grasps.clear`), and the fingertips stay
-  `TABLE_CLEARANCE` above the table,
+  `TABLE_CLEARANCE` above the table (`MIN_TABLE_CLEARANCE` for a pose that has no grasp so),
 - the surface is antipodal where the pads touch it (the outermost `CONTACT_BAND` of the surface
-  facing each pad): the outward normals there (nine in ten of them) lie within `CONE_DEG` of the
-  closing direction on either side (the friction cone, with a margin), over a patch that spans
+  facing each pad): the mean outward normal there lies within `CONE_DEG` of the closing
+  direction on either side (inside the friction cone, with a margin), over a patch that spans
   at least `MIN_PATCH` along the pads.
 
 The points are sampled on the collision hulls (what the fingers meet in physics), their normals
@@ -51,14 +51,20 @@ DEPTHS = (0.035, 0.025, 0.017, 0.010)
 #: estimated pose (`grasping.candidates.MESH_TABLE_MARGIN`), and an object settles a few degrees
 #: off its stored resting pose.
 TABLE_CLEARANCE = 0.012
-#: Outward normals where the pads touch must lie within this of the closing direction [deg].
-CONE_DEG = 25.0
+#: The least fingertip clearance, taken for a pose that has no grasp with `TABLE_CLEARANCE` (an
+#: object lying less than about 3 cm high) [m].
+MIN_TABLE_CLEARANCE = 0.008
+#: The mean outward normal where a pad touches must lie within this of the closing direction
+#: [deg] (the friction cone of the coefficient 1 is 45 deg).
+CONE_DEG = 30.0
 #: Points within this of the outermost one on a side are where that pad touches [m].
 CONTACT_BAND = 0.002
 #: The contact patch must span at least this along the pads (vertically or across) [m].
 MIN_PATCH = 0.004
 #: Surface samples on the hulls.
-SAMPLES = 12000
+SAMPLES = 16000
+#: A sample deeper than this inside another hull is not on the object's surface [m].
+INSIDE = 0.0005
 
 
 @dataclass(frozen=True)
@@ -83,19 +89,25 @@ class Antipodal:
 
 
 def hull_points(hulls: list[trimesh.Trimesh], samples: int = SAMPLES, seed: int = 0):
-    """Points on the hulls' surfaces with their outward normals, the same on every call.
+    """Points on the outer surface of the union of the hulls with their outward normals, the
+    same on every call: area-weighted samples of every hull's faces, less those lying inside
+    another hull by more than `INSIDE` (where hulls meet, inside the object).
 
     Returns:
-        (points (N, 3) [m], normals (N, 3)): area-weighted samples of every hull's faces plus
-        the hulls' vertices (with their vertex normals).
+        (points (N, 3) [m], normals (N, 3)).
     """
     mesh = trimesh.util.concatenate(hulls)
     pts, faces = trimesh.sample.sample_surface(mesh, samples, seed=seed)
+    pts = np.asarray(pts)
     normals = np.asarray(mesh.face_normals)[faces]
-    return (
-        np.vstack([pts, np.asarray(mesh.vertices)]),
-        np.vstack([normals, np.asarray(mesh.vertex_normals)]),
-    )
+    owner = np.repeat(np.arange(len(hulls)), [len(h.faces) for h in hulls])[faces]
+    inside = np.zeros(len(pts), bool)
+    for j, hull in enumerate(hulls):
+        n = np.asarray(hull.face_normals)
+        d = np.einsum("ij,ij->i", n, np.asarray(hull.triangles)[:, 0])
+        depth = (pts @ n.T - d).max(axis=1)
+        inside |= (depth < -INSIDE) & (owner != j)
+    return pts[~inside], normals[~inside]
 
 
 def _frame(approach: np.ndarray, y: np.ndarray, site: np.ndarray) -> np.ndarray:
@@ -110,6 +122,7 @@ def antipodal_grasps(
     normals: np.ndarray,
     up: np.ndarray,
     com: np.ndarray,
+    table_clearance: float = TABLE_CLEARANCE,
 ) -> list[Antipodal]:
     """Every grasp from above that passes the checks of the module, best first.
 
@@ -118,6 +131,7 @@ def antipodal_grasps(
         normals: their outward unit normals (N, 3).
         up: the resting pose's up direction in O (3,).
         com: centre of mass in O (3,) [m].
+        table_clearance: how far above the table the fingertips stay [m].
 
     Returns:
         The grasps, lowest score first; one finger order each (the gripper is symmetric under
@@ -145,7 +159,7 @@ def antipodal_grasps(
                 continue
             top = float(h[slab].max())
             for depth in DEPTHS:
-                site_h = max(top - depth, low + FINGER_X[1] + TABLE_CLEARANCE)
+                site_h = max(top - depth, low + FINGER_X[1] + table_clearance)
                 tip_h = site_h - FINGER_X[1]
                 # What the pads take: the slab from the fingertips up (the palm check covers
                 # what lies above the fingers).
@@ -163,8 +177,8 @@ def antipodal_grasps(
                 minus = pad & (py <= ymin + CONTACT_BAND) & (ny < 0)
                 if plus.sum() < 3 or minus.sum() < 3:
                     continue
-                c_plus = float(np.percentile(ny[plus], 10))
-                c_minus = float(np.percentile(-ny[minus], 10))
+                c_plus = float(_mean_dir(normals[plus]) @ y)
+                c_minus = float(-_mean_dir(normals[minus]) @ y)
                 if min(c_plus, c_minus) < cos_cone:
                     continue
                 if min(_span(points[plus], u, z), _span(points[minus], u, z)) < MIN_PATCH:
@@ -188,6 +202,12 @@ def score_grasp(com_arm: float, cone_deg: float, reach: float) -> float:
     3 degrees the contact normals lean off the closing direction, plus 1 mm for every 2 mm the
     pads hold less than 25 mm of the object's height."""
     return com_arm + 0.001 * cone_deg / 3.0 + 0.5 * max(0.0, 0.025 - reach)
+
+
+def _mean_dir(normals: np.ndarray) -> np.ndarray:
+    """The mean of unit normals, normalised (3,)."""
+    m = normals.mean(axis=0)
+    return m / max(float(np.linalg.norm(m)), 1e-12)
 
 
 def _span(pts: np.ndarray, up: np.ndarray, across: np.ndarray) -> float:

@@ -1,6 +1,7 @@
 """Grasp candidates of a mesh object for each of its resting poses: generated, checked, ranked.
 
-For every resting pose, the antipodal grasps from above (`grasping.antipodal`) are thinned to
+For every resting pose, the antipodal grasps from above (`grasping.antipodal`; with the fingertips
+nearer the table when there are none) are thinned to
 `CHECKED` distinct ones, best score first, and each is closed and lifted in physics
 (`grasping.grasp_check`) as generated and with the hand put off it by `PERTURBATIONS` (errors of
 the size a noisy pose estimate makes). A grasp is kept when it holds as generated; the kept ones
@@ -17,7 +18,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from grasping.antipodal import antipodal_grasps, distinct, flipped, hull_points
+from grasping.antipodal import (
+    MIN_TABLE_CLEARANCE,
+    antipodal_grasps,
+    distinct,
+    flipped,
+    hull_points,
+)
 from grasping.grasp_check import CheckConfig, check_grasps
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.transforms import quat_to_mat
@@ -116,6 +123,8 @@ def mesh_grasps(
     for name, quat in tqdm(resting.items(), desc="grasps", disable=not progress):
         up = quat_to_mat(np.asarray(quat, float))[2]
         found = antipodal_grasps(points, normals, up, g.com)
+        if not found:  # lying low: let the fingertips come nearer the table
+            found = antipodal_grasps(points, normals, up, g.com, MIN_TABLE_CLEARANCE)
         tried = distinct(found, checked)
         res = PoseGrasps(name, generated=len(found), checked=len(tried))
         out[name] = res

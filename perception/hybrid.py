@@ -315,7 +315,8 @@ class TargetDetections:
         found: every detection of that class.
         others: the detections of the other classes.
         info: the estimate's description so far: ``detected``, ``timings_ms`` and, when found,
-            ``class``, ``score``, ``box_xyxy``, ``uv`` and ``detections``.
+            ``class``, ``score``, ``box_xyxy``, ``uv`` and ``detections``; for a class the nets
+            were not trained on, ``note`` says so.
         neighbours: the other classes' poses, (class, T_C_N) pairs.
     """
 
@@ -332,13 +333,14 @@ class TargetDetections:
 
 
 def detect_target(estimator: HybridPoseEstimator, obs: Observation) -> TargetDetections:
-    """Detect once and split the detections around ``obs.object``.
-
-    Raises:
-        UnknownNameError: obs.object is not a known object.
-    """
+    """Detect once and split the detections around ``obs.object``; an object the nets were not
+    trained on (a user object) is not looked for, and ``info["note"]`` says why."""
     if obs.object not in OBJECT_NAMES:
-        raise UnknownNameError("object", obs.object, OBJECT_NAMES)
+        note = (
+            f"the learned estimators know the six objects they were trained on "
+            f"({', '.join(OBJECT_NAMES)}), not {obs.object!r}"
+        )
+        return TargetDetections(None, [], [], {"detected": False, "note": note}, ())
     found, others, timings = estimator.estimate_split(
         obs.rgb, obs.K, classes=(obs.object,), others=True
     )

@@ -22,6 +22,7 @@ import os
 import platform
 import sys
 import time
+from collections import Counter
 from importlib.metadata import version
 from pathlib import Path
 from typing import Any
@@ -302,9 +303,11 @@ def make_object(
                 f"(narrowest {narrow * 1000:.0f} mm across; the fingers take at most "
                 f"{MAX_WIDTH * 1000:.0f} mm)"
             )
+        outcomes = sum((g.outcomes for g in grasps_s.values()), Counter())
+        tried = ", ".join(f"{k} {v}" for k, v in sorted(outcomes.items())) or "none checked"
         raise InvalidArgumentError(
             f"cannot grasp {mesh_path.name}: no grasp from above holds in any resting pose "
-            f"({generated} antipodal grasps tried in {len(found)} poses)"
+            f"({generated} antipodal grasps found in {len(found)} poses; in physics: {tried})"
         )
 
     # The canonical pose: the one --up names, or the mesh as it stands in its file when that is

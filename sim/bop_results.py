@@ -27,7 +27,7 @@ from perception.training.bop import MM_PER_M, obj_id, obj_name
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.validate import check_int, check_seed
-from posegrasp.world.objects import OBJECT_NAMES, check_object
+from posegrasp.world.objects import check_object, object_names
 from posegrasp.world.tiers import check_tier
 
 #: The export's map file: its episodes and how they map to BOP scene and image ids.
@@ -230,8 +230,9 @@ def _row(
     scene_id = _integer(fields[cols["scene_id"]], "scene_id", where)
     im_id = _integer(fields[cols["im_id"]], "im_id", where)
     oid = _integer(fields[cols["obj_id"]], "obj_id", where)
-    if not 1 <= oid <= len(OBJECT_NAMES):
-        names = ", ".join(f"{i + 1} {n}" for i, n in enumerate(OBJECT_NAMES))
+    known = object_names()
+    if not 1 <= oid <= len(known):
+        names = ", ".join(f"{i + 1} {n}" for i, n in enumerate(known))
         raise InvalidArgumentError(f"{where}: unknown obj_id {oid}; valid obj_ids: {names}")
     if (scene_id, im_id) not in export.image_ids:
         scenes = sorted({s for s, _ in export.image_ids})

@@ -24,7 +24,7 @@ from posegrasp.core.transforms import mat_to_quat, quat_to_mat
 from posegrasp.core.validate import SEED_LIMIT, check_seed
 from posegrasp.world.camera import CameraRenderer, external_renderer
 from posegrasp.world.constants import EXTERNAL_CAMERA
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import OBJECT_NAMES, object_names
 from posegrasp.world.tiers import check_tier
 from sim.episode import Episode, EpisodeConfig, check_estimate
 
@@ -78,11 +78,12 @@ def pose_action(
             "quaternion": mat_to_quat(T[:3, :3]),
         }
     if told:
+        classes = object_names()
         quats = np.tile([1.0, 0.0, 0.0, 0.0], (MAX_NEIGHBOURS, 1))
         pos = np.zeros((MAX_NEIGHBOURS, 3))
         ids = np.zeros(MAX_NEIGHBOURS, np.int64)
         for i, (name, pose) in enumerate(told):
-            ids[i] = OBJECT_NAMES.index(name)
+            ids[i] = classes.index(name)
             pos[i], quats[i] = pose[:3, 3], mat_to_quat(pose[:3, :3])
         action["neighbours"] = {
             "count": len(told),
@@ -149,8 +150,9 @@ class GraspEvalEnv(gym.Env):
 
     ## Observation Space
     `Dict`: `rgb` (`Box(H, W, 3)`, uint8), `K` (`Box(3, 3)`, intrinsics [px]), `T_world_cam`
-    (`Box(4, 4)`, camera pose in the world, OpenCV convention), `object` (`Discrete(6)`, index
-    into `posegrasp.world.objects.OBJECT_NAMES`), `table_top_z` (`Box(1,)`, the table top's
+    (`Box(4, 4)`, camera pose in the world, OpenCV convention), `object` (`Discrete(n)`, index
+    into `GraspEvalEnv.classes`: the six built-in objects in `OBJECT_NAMES` order, then the user
+    objects installed when the env was made), `table_top_z` (`Box(1,)`, the table top's
     height in the world [m]) and, with ``obs_mode="rgbd"``, `depth` (`Box(0, inf, (H, W))`,
     float32: per pixel the z coordinate along the optical axis of the surface seen [m], as
     `posegrasp.core.contract.Observation.depth`). The colour image is the same in both modes.
@@ -201,7 +203,8 @@ class GraspEvalEnv(gym.Env):
     `gymnasium.make` too: its env checker then checks that later reset instead).
 
     ## Arguments
-    `object`: a class name, or None to draw one per episode; `width`, `height`: head camera
+    `object`: a class name, built-in or user object (`python -m sim.add_object`), or None to
+    draw one of the built-in ones per episode; `width`, `height`: head camera
     resolution; `render_mode`: None or "rgb_array" (external camera view); `config`: an
     `EpisodeConfig`; `timings`: add per-stage wall-clock timings to `info`; `tier`: the scene
     tier (`posegrasp.world.tiers.TIERS`, default ``isolated``, or the config's); `obs_mode`:
@@ -226,8 +229,11 @@ class GraspEvalEnv(gym.Env):
         tier: str | None = None,
         obs_mode: str | None = None,
     ) -> None:
-        if object is not None and object not in OBJECT_NAMES:
-            raise UnknownNameError("object", object, OBJECT_NAMES)
+        #: The class indices of the observation and of neighbours: the built-in objects, then
+        #: the user objects installed when the env was made (`object_names()`).
+        self.classes = object_names()
+        if object is not None and object not in self.classes:
+            raise UnknownNameError("object", object, self.classes)
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise UnknownNameError("render mode", str(render_mode), self.metadata["render_modes"])
         base = config or EpisodeConfig()
@@ -243,7 +249,7 @@ class GraspEvalEnv(gym.Env):
             "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
             "K": spaces.Box(-np.inf, np.inf, (3, 3), np.float64),
             "T_world_cam": spaces.Box(-np.inf, np.inf, (4, 4), np.float64),
-            "object": spaces.Discrete(len(OBJECT_NAMES)),
+            "object": spaces.Discrete(len(self.classes)),
             "table_top_z": spaces.Box(-np.inf, np.inf, (1,), np.float64),
         }
         if self.obs_mode == "rgbd":
@@ -252,7 +258,7 @@ class GraspEvalEnv(gym.Env):
         m = MAX_NEIGHBOURS
         neighbours = {
             "count": spaces.Discrete(m + 1),
-            "object": spaces.MultiDiscrete([len(OBJECT_NAMES)] * m),
+            "object": spaces.MultiDiscrete([len(self.classes)] * m),
             "position": spaces.Box(-10.0, 10.0, (m, 3), np.float64),
             "quaternion": spaces.Box(-1.0, 1.0, (m, 4), np.float64),
         }
@@ -309,8 +315,8 @@ class GraspEvalEnv(gym.Env):
         if unknown := sorted(map(str, set(options) - set(OPTIONS))):
             raise InvalidArgumentError(f"unknown options {unknown}; valid: {', '.join(OPTIONS)}")
         obj = options.get("object", self.object)
-        if obj is not None and (not isinstance(obj, str) or obj not in OBJECT_NAMES):
-            raise UnknownNameError("object", str(obj), OBJECT_NAMES)
+        if obj is not None and (not isinstance(obj, str) or obj not in self.classes):
+            raise UnknownNameError("object", str(obj), self.classes)
         if "episode_seed" in options:
             check_seed(options["episode_seed"], "episode_seed")
         super().reset(seed=seed)
@@ -331,7 +337,7 @@ class GraspEvalEnv(gym.Env):
             "rgb": o.rgb,
             "K": o.K,
             "T_world_cam": o.T_world_cam,
-            "object": OBJECT_NAMES.index(obj),
+            "object": self.classes.index(obj),
             "table_top_z": np.array([o.table_top_z], np.float64),
         }
         if o.depth is not None:
@@ -382,15 +388,15 @@ class GraspEvalEnv(gym.Env):
         quat = _real(value["quaternion"], (m, 4), "neighbours quaternion")
         out = []
         for i in range(n):
-            if not 0 <= ids[i] < len(OBJECT_NAMES):
+            if not 0 <= ids[i] < len(self.classes):
                 raise InvalidArgumentError(
                     f"action neighbours object {int(ids[i])} is not a class index "
-                    f"0..{len(OBJECT_NAMES) - 1}"
+                    f"0..{len(self.classes) - 1}"
                 )
             T, error = _pose(pos[i], quat[i], f"neighbour {i}")
             if error is not None:
                 return error
-            out.append((OBJECT_NAMES[int(ids[i])], T))
+            out.append((self.classes[int(ids[i])], T))
         return out
 
     def step(self, action: dict[str, Any]):

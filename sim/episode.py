@@ -434,11 +434,14 @@ class Episode:
         self, estimator: PoseEstimator | PrivilegedEstimator, recorder=None
     ) -> tuple[Observation, EpisodeResult]:
         """Observe, ask the estimator (`estimate`), act; the result carries the estimate's
-        ``info`` as ``estimate_info``."""
+        ``info`` as ``estimate_info``, and the ``note`` of an estimate without a pose among its
+        notes."""
         obs = self.observe()
         est = self.estimate(estimator, obs)
         res = self.act(est.T_C_O, estimator.name, recorder=recorder, neighbours=est.neighbours)
         res.estimate_info = dict(est.info)
+        if est.T_C_O is None and isinstance(est.info.get("note"), str):
+            res.notes.append(est.info["note"])
         return obs, res
 
     def true_neighbours(self) -> list[tuple[str, np.ndarray]]:

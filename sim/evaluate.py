@@ -15,6 +15,7 @@ import itertools
 import sys
 import time
 from collections import Counter
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -41,15 +42,14 @@ from posegrasp.core.validate import (
     arg,
     check_input_file,
     check_int,
-    check_names,
     check_plot_path,
     check_seed,
     check_tolerance_file,
     effective_workers,
 )
 from posegrasp.world import constants as C
-from posegrasp.world.objects import OBJECT_NAMES
-from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
+from posegrasp.world.objects import OBJECT_NAMES, check_objects
+from posegrasp.world.tiers import DEFAULT_TIER, TIERS, add_pool_argument, check_tier
 from sim.bop_results import BopPosesEstimator, vsd_errors
 from sim.episode import execution_settings
 from sim.estimators import (
@@ -108,20 +108,25 @@ class EpisodeJob(NamedTuple):
     noise: str | None = None
     margin: bool = False
     obs_mode: str = "rgb"
+    pool: tuple[str, ...] = ()
 
 
 def _run_one(job: EpisodeJob) -> dict:
     """One episode of an evaluation, in whatever process runs it (this one, a pool worker, a Ray
     worker started afresh after another died): it sets up rendering there first."""
-    obj, seed, estimator, tier, noise, margin, obs_mode = job
+    obj, seed, estimator, tier, noise, margin, obs_mode, pool = job
     from grasping.execute import ExecutionConfig
+    from posegrasp.world.scene import SceneConfig
     from sim.episode import EpisodeConfig, play_episode
 
     setup_rendering()
     t = time.perf_counter()
     try:
         cfg = EpisodeConfig(
-            tier=tier, execution=ExecutionConfig(measure_margin=margin), obs_mode=obs_mode
+            scene=SceneConfig(distractor_pool=pool),
+            tier=tier,
+            execution=ExecutionConfig(measure_margin=margin),
+            obs_mode=obs_mode,
         )
         r = play_episode(obj, seed, _resolve(estimator, noise), cfg)
         d = r.to_json()
@@ -196,6 +201,7 @@ def evaluate(
     journal: Path | None = None,
     resume: bool = False,
     obs_mode: str = "rgb",
+    pool: Sequence[str] = (),
 ) -> dict:
     """Run episodes (objects x seeds) of one tier and aggregate per object and overall.
 
@@ -216,6 +222,8 @@ def evaluate(
             (`posegrasp.core.journal`); removed by the caller once the report is written.
         resume: run only the episodes the journal does not hold yet.
         obs_mode: what the estimator sees (`sim.episode.OBS_MODES`): ``rgbd`` adds depth.
+        pool: the classes the tier's distractors are drawn from, built-in or user objects
+            (`posegrasp.world.scene.SceneConfig.distractor_pool`); empty for the built-in ones.
 
     Raises:
         Interrupted: Ctrl-C or SIGTERM; with a journal, its line says how to resume.
@@ -223,13 +231,16 @@ def evaluate(
     check_tier(tier)
     label = estimator_label(estimator)
     n_jobs = len(objects) * episodes
-    protocol = run_protocol(objects, episodes, label, seed_start, tier, noise, margin, obs_mode)
+    pool = tuple(pool)
+    protocol = run_protocol(
+        objects, episodes, label, seed_start, tier, noise, margin, obs_mode, pool
+    )
     workers, note = effective_workers(workers, n_jobs)
     if note:
         print(note, file=sys.stderr)
     # Made as the workers take them, never all at once.
     jobs = (
-        EpisodeJob(o, seed_start + i, estimator, tier, noise, margin, obs_mode)
+        EpisodeJob(o, seed_start + i, estimator, tier, noise, margin, obs_mode, pool)
         for o in objects
         for i in range(episodes)
     )
@@ -257,6 +268,7 @@ def evaluate(
         workers=workers,
         wall_s=time.perf_counter() - t,
         obs_mode=obs_mode,
+        pool=pool,
     )
 
 
@@ -271,9 +283,12 @@ def make_report(
     workers: int = 1,
     wall_s: float = 0.0,
     obs_mode: str = "rgb",
+    pool: Sequence[str] = (),
 ) -> dict:
     """The report (schema `REPORT_SCHEMA`, checked) of finished episodes: the protocol, the
-    aggregates per object and overall, and the episodes in run order."""
+    aggregates per object and overall, and the episodes in run order; ``distractor_pool`` only
+    when the distractors came from a pool of the caller's."""
+    extra = {"distractor_pool": list(pool)} if pool else {}
     return validate_report(
         {
             "schema": REPORT_SCHEMA,
@@ -289,6 +304,7 @@ def make_report(
             "per_object": {o: _group([e for e in episodes if e["object"] == o]) for o in objects},
             "overall": _group(episodes),
             "episodes": episodes,
+            **extra,
         },
         "the evaluation's report",
     )
@@ -303,8 +319,10 @@ def run_protocol(
     noise: str | None,
     margin: bool,
     obs_mode: str = "rgb",
+    pool: Sequence[str] = (),
 ) -> dict:
     """What defines an evaluation's results: a resumed run must have the same."""
+    extra = {"distractor_pool": list(pool)} if pool else {}
     return {
         "objects": list(objects),
         "episodes_per_object": episodes,
@@ -315,6 +333,7 @@ def run_protocol(
         "margin": margin,
         "obs_mode": obs_mode,
         "execution": execution_settings(),
+        **extra,
     }
 
 
@@ -459,6 +478,7 @@ def _episodes_of(args) -> BopPosesEstimator | None:
         "--tier": args.tier,
         "--estimator": args.estimator,
         "--noise": args.noise,
+        "--pool": args.pool or None,
     }
     if args.poses is None:
         if args.export is not None:
@@ -531,9 +551,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--objects",
         default=None,
-        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
-        help=f"'all' (default) or a comma list of {', '.join(OBJECT_NAMES)}",
+        type=arg(check_objects, "--objects"),
+        help=f"'all' (default: {', '.join(OBJECT_NAMES)}) or a comma list of objects, built-in "
+        "or user objects (python -m sim.add_object)",
     )
+    add_pool_argument(p)
     p.add_argument(
         "--episodes",
         type=arg(check_int, 1, MAX_EPISODES, "--episodes", base=int),
@@ -619,6 +641,7 @@ def main(argv: list[str] | None = None) -> int:
         args.noise,
         args.margin,
         args.obs_mode,
+        args.pool,
     )
     journal = journal_path(args.json, "evaluate", protocol)
     report = evaluate(
@@ -635,6 +658,7 @@ def main(argv: list[str] | None = None) -> int:
         journal=journal,
         resume=args.resume,
         obs_mode=args.obs_mode,
+        pool=args.pool,
     )
     if poses is not None:
         report["poses"] = poses_record(poses, args.poses, report)

@@ -68,10 +68,10 @@ from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import git_commit
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import invert_transform
-from posegrasp.core.validate import arg, check_int, check_names, check_seed
+from posegrasp.core.validate import arg, check_int, check_seed
 from posegrasp.world import constants as C
 from posegrasp.world.camera import body_mask
-from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.objects import OBJECT_NAMES, check_objects, load_object
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.bop_results import EXPORT_FORMAT, EXPORT_VERSION, MAP_FILE
 from sim.episode import Episode, EpisodeConfig, execution_settings
@@ -336,7 +336,7 @@ def export_bop(
         ],
     }
     write_json(out / MAP_FILE, info)  # first: an interrupted export is known by it
-    write_models(out)
+    write_models(out, [*OBJECT_NAMES, *(o for o in objects if o not in OBJECT_NAMES)])
     scenes: dict[int, dict[str, dict[str, Any]]] = {}
     cfg = EpisodeConfig(tier=tier, obs_mode="rgbd")
     for obj, i in tqdm(jobs, desc="images", unit="image", disable=not progress, dynamic_ncols=True):
@@ -374,8 +374,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--objects",
         default=list(OBJECT_NAMES),
-        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
-        help=f"'all' or a comma list of {', '.join(OBJECT_NAMES)}",
+        type=arg(check_objects, "--objects"),
+        help=f"'all' (default: {', '.join(OBJECT_NAMES)}) or a comma list of objects, built-in or "
+        "user objects",
     )
     p.add_argument(
         "--episodes",

@@ -33,7 +33,7 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int, check_output_file, check_seed
 from posegrasp.world import constants as C  # importing sim defaults MUJOCO_GL to egl
 from posegrasp.world.camera import CameraRenderer, RenderOptions, check_resolution
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import OBJECT_NAMES, object_names
 from posegrasp.world.scene import SceneConfig, build_scene
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
 from sim.episode import Episode, EpisodeConfig, pose_errors
@@ -95,9 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--object",
         default="phone",
-        type=arg(check_choice, OBJECT_NAMES, "object"),
+        type=arg(check_choice, object_names(), "object"),
         metavar="NAME",
-        help=f"target object, one of: {', '.join(OBJECT_NAMES)} (default: phone)",
+        help=f"target object, one of: {', '.join(object_names())} (default: phone)",
     )
     p.add_argument(
         "--seed",

@@ -25,7 +25,7 @@ from posegrasp.core.validate import arg, check_choice, check_seed
 from posegrasp.world import constants as C
 from posegrasp.world.camera import external_renderer
 from posegrasp.world.objects import object_names
-from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
+from posegrasp.world.tiers import DEFAULT_TIER, TIERS, add_pool_argument, check_tier
 from sim.estimators import add_estimator_arguments, add_obs_mode_argument, make_estimator
 from sim.pose_noise import parse_noise
 
@@ -118,10 +118,13 @@ def _run(
     tier: str = DEFAULT_TIER,
     log: TextIO | None = None,
     obs_mode: str = "rgb",
+    pool: tuple[str, ...] = (),
 ):
+    from posegrasp.world.scene import SceneConfig
     from sim.episode import Episode, EpisodeConfig
 
-    ep = Episode(obj, seed, EpisodeConfig(tier=tier, obs_mode=obs_mode))
+    cfg = EpisodeConfig(scene=SceneConfig(distractor_pool=pool), tier=tier, obs_mode=obs_mode)
+    ep = Episode(obj, seed, cfg)
     external = None
     try:
         recorder = None
@@ -193,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
         type=arg(check_tier),
         help=f"scene tier, one of: {', '.join(TIERS)}",
     )
+    add_pool_argument(p)
     add_json_argument(p, "the episode")
     add_out_argument(
         p,
@@ -205,7 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     log = summary_stream(args.json)
     noise = None if args.noise is None else parse_noise(args.noise)
     estimator = make_estimator(args.estimator, noise)
-    result = _run(args.object, args.seed, estimator, args.out, args.tier, log, args.obs_mode)
+    result = _run(
+        args.object, args.seed, estimator, args.out, args.tier, log, args.obs_mode, args.pool
+    )
     if args.seed < C.DATA_SEED_LIMIT and args.estimator.startswith("hybrid"):
         print(
             f"note: seed {args.seed} is in the data generator's range (< {C.DATA_SEED_LIMIT}); "

@@ -34,12 +34,11 @@ from posegrasp.core.validate import (
     arg,
     check_choice,
     check_int,
-    check_names,
     check_plot_path,
     check_seed,
     effective_workers,
 )
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import check_objects, object_names
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 
 #: Error kinds and the magnitudes tried, in report units (mm or deg).
@@ -185,13 +184,13 @@ def main(argv: list[str] | None = None) -> int:
     which = p.add_mutually_exclusive_group()
     which.add_argument(
         "--object",
-        type=arg(check_choice, OBJECT_NAMES, "object"),
-        help=f"one of: {', '.join(OBJECT_NAMES)} (default: phone)",
+        type=arg(check_choice, object_names(), "object"),
+        help=f"one of: {', '.join(object_names())} (default: phone)",
     )
     which.add_argument(
         "--objects",
-        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
-        help="'all' or a comma list",
+        type=arg(check_objects, "--objects"),
+        help="'all' (the built-in objects) or a comma list of objects, built-in or user objects",
     )
     p.add_argument(
         "--episodes",

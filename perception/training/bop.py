@@ -46,7 +46,7 @@ import numpy as np
 
 from posegrasp.core.errors import AssetError, UnknownNameError
 from posegrasp.core.transforms import make_transform
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import object_names
 
 IMAGES_PER_SCENE = 1000
 MM_PER_M = 1000.0
@@ -63,17 +63,20 @@ SCENE_FILES = ("scene_gt", "scene_camera", "scene_gt_info", "scene_posegrasp")
 
 
 def obj_id(name: str) -> int:
-    """BOP object id of a class: 1..6 in `OBJECT_NAMES` order."""
-    if name not in OBJECT_NAMES:
-        raise UnknownNameError("object", name, OBJECT_NAMES)
-    return OBJECT_NAMES.index(name) + 1
+    """BOP object id of a class: 1..6 for the built-in objects in `OBJECT_NAMES` order, then the
+    user objects installed, 7 upward in `object_names()` order (an export records its own)."""
+    names = object_names()
+    if name not in names:
+        raise UnknownNameError("object", name, names)
+    return names.index(name) + 1
 
 
 def obj_name(oid: int) -> str:
-    """Class of a BOP object id."""
-    if not 1 <= oid <= len(OBJECT_NAMES):
-        raise UnknownNameError("object id", str(oid), [str(i + 1) for i in range(6)])
-    return OBJECT_NAMES[oid - 1]
+    """Class of a BOP object id (`obj_id`)."""
+    names = object_names()
+    if not 1 <= oid <= len(names):
+        raise UnknownNameError("object id", str(oid), [str(i + 1) for i in range(len(names))])
+    return names[oid - 1]
 
 
 def split_index(index: int) -> tuple[int, int]:

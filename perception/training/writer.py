@@ -7,10 +7,12 @@ from its records.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trimesh
 
 from perception.training.annotations import annotate
 from perception.training.bop import (
@@ -31,7 +33,7 @@ from perception.training.bop import (
     write_same,
 )
 from perception.training.generators import RenderedImage
-from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
 
 
 def write_sample(
@@ -76,18 +78,26 @@ def merge_scene(root: Path, split: str, scene_id: int) -> int:
     return len(records)
 
 
-def write_models(root: Path) -> None:
-    """BOP models (PLY in mm with vertex colours) and models_info.json for every object."""
+def _coloured_meshes(obj: ObjectModel) -> list[tuple[trimesh.Trimesh, np.ndarray]]:
+    """The object's meshes in O [m] with their RGBA: a built-in object's parts, a user object's
+    visual mesh."""
+    if obj.geometry is not None:
+        return [(obj.geometry.visual, np.asarray(obj.geometry.rgba))]
+    return [(part.mesh(), np.asarray(part.rgba)) for part in obj.parts]
+
+
+def write_models(root: Path, names: Sequence[str] = OBJECT_NAMES) -> None:
+    """BOP models (PLY in mm with vertex colours) and models_info.json for the objects `names`
+    (the built-in ones by default; user objects too)."""
     info = {}
-    for name in OBJECT_NAMES:
+    for name in names:
         obj = load_object(name)
         verts, normals, colours, faces = [], [], [], []
         offset = 0
-        for part in obj.parts:
-            m = part.mesh()
+        for m, rgba in _coloured_meshes(obj):
             verts.append(np.asarray(m.vertices))
             normals.append(np.asarray(m.vertex_normals))
-            rgb = np.clip(np.round(np.asarray(part.rgba[:3]) * 255), 0, 255).astype(np.uint8)
+            rgb = np.clip(np.round(rgba[:3] * 255), 0, 255).astype(np.uint8)
             colours.append(np.tile(rgb, (len(m.vertices), 1)))
             faces.append(np.asarray(m.faces) + offset)
             offset += len(m.vertices)

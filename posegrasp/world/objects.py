@@ -25,6 +25,7 @@ import trimesh
 from posegrasp.core.errors import AssetError, UnknownNameError
 from posegrasp.core.paths import SCENES_DIR
 from posegrasp.core.transforms import quat_to_mat
+from posegrasp.core.validate import check_names
 from posegrasp.world.robot import WORLD_CONAFFINITY, WORLD_CONTYPE
 from posegrasp.world.user_objects import (
     MeshGeometry,
@@ -63,6 +64,19 @@ def check_object(name: str) -> str:
     if name not in names:
         raise UnknownNameError("object", str(name), names)
     return name
+
+
+def check_objects(spec: str, option: str = "--objects") -> list[str]:
+    """A list of objects from the command line: 'all' for the built-in ones (`OBJECT_NAMES`; a
+    run's episodes never change with the user objects installed), or a comma list of distinct
+    known objects, built-in or user objects, mixed.
+
+    Raises:
+        InvalidArgumentError, UnknownNameError: otherwise, in one line listing the objects.
+    """
+    if spec == "all":
+        return list(OBJECT_NAMES)
+    return check_names(spec, object_names(), "object", option)
 
 
 @dataclass(frozen=True)

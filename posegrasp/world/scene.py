@@ -18,7 +18,13 @@ from posegrasp.core.paths import SCENES_DIR
 from posegrasp.core.transforms import quat_mul, yaw_quat
 from posegrasp.world import constants as C
 from posegrasp.world.layout import sample_layout
-from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, check_object, load_object
+from posegrasp.world.objects import (
+    OBJECT_NAMES,
+    ObjectModel,
+    check_object,
+    load_object,
+    object_names,
+)
 from posegrasp.world.occlusion import occlusion
 from posegrasp.world.robot import RobotConfig, fetch_spec, home_qpos_ctrl
 
@@ -55,6 +61,8 @@ class SceneConfig:
         occlusion: when set, the accepted range of the share of the target's silhouette that
             the other objects hide from the head camera (`posegrasp.world.occlusion`); layouts are
             drawn again (from the same seed's stream) until one falls in it.
+        distractor_pool: the classes distractors are drawn from (built-in or user objects);
+            empty for the built-in ones (`OBJECT_NAMES`). The target's own classes are left out.
     """
 
     n_distractors: int = 0
@@ -75,6 +83,7 @@ class SceneConfig:
     camera_distance: tuple[float, float] | None = None
     occluders: int = 0
     occlusion: tuple[float, float] | None = None
+    distractor_pool: tuple[str, ...] = ()
     robot: RobotConfig = field(default_factory=RobotConfig)
 
 
@@ -164,8 +173,7 @@ def _sample_positions(
             return [p for p, _ in placed]
     raise InvalidArgumentError(
         f"cannot place {len(objs)} objects on the table without overlap; "
-        f"use fewer distractors (valid: 0..{len(OBJECT_NAMES) - 1}; the most crowded "
-        "layouts do not always fit)"
+        "use fewer or smaller distractors (the most crowded layouts do not always fit)"
     )
 
 
@@ -286,7 +294,8 @@ def build_scene(
         seed: seed of every random choice; the same seed gives the same scene.
         config: sampling ranges; `SceneConfig()` by default.
         distractors: explicit distractor classes; None draws `config.n_distractors` classes
-            among the built-in ones other than the requested ones.
+            from `config.distractor_pool` (the built-in ones when empty) other than the
+            requested ones.
 
     Returns:
         The settled scene, robot holding its home posture with the head aimed at the target.
@@ -300,12 +309,12 @@ def build_scene(
         raise UnknownNameError("resting pose mode", cfg.resting_pose, RESTING_MODES)
     names = [objects] if isinstance(objects, str) else list(objects)
     if not names:
-        raise InvalidArgumentError(f"no object given; valid objects: {', '.join(OBJECT_NAMES)}")
-    for n in [*names, *(distractors or [])]:
+        raise InvalidArgumentError(f"no object given; valid objects: {', '.join(object_names())}")
+    for n in [*names, *(distractors or []), *cfg.distractor_pool]:
         check_object(n)
     rng = np.random.default_rng(seed)
     if distractors is None:
-        pool = [n for n in OBJECT_NAMES if n not in names]
+        pool = [n for n in (cfg.distractor_pool or OBJECT_NAMES) if n not in names]
         want = cfg.n_distractors
         if cfg.distractor_count is not None:
             want = int(rng.integers(cfg.distractor_count[0], cfg.distractor_count[1] + 1))

@@ -11,9 +11,12 @@
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import dataclass, fields, replace
 
 from posegrasp.core.errors import UnknownNameError
+from posegrasp.core.validate import arg
+from posegrasp.world.objects import check_objects
 from posegrasp.world.scene import SceneConfig
 
 
@@ -87,3 +90,21 @@ def check_tier(name: str) -> str:
     if name not in TIERS:
         raise UnknownNameError("tier", name, TIERS)
     return name
+
+
+def check_pool(spec: str) -> tuple[str, ...]:
+    """A distractor pool from the command line (`check_objects`); 'all' is the built-in ones."""
+    return tuple(check_objects(spec, "--pool"))
+
+
+def add_pool_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--pool LIST``: the objects the clutter and hard tiers draw distractors from
+    (`SceneConfig.distractor_pool`), built-in or user objects; the built-in ones by default."""
+    parser.add_argument(
+        "--pool",
+        default=(),
+        type=arg(check_pool),
+        metavar="LIST",
+        help="'all' (default: the built-in objects) or a comma list of objects, built-in or "
+        "user objects, that the clutter and hard tiers draw distractors from",
+    )
