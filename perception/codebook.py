@@ -52,7 +52,8 @@ class SilhouetteSource(Protocol):
 
 
 class ConvexParts:
-    """The silhouette source of the built-in objects: their convex primitive parts."""
+    """The convex pieces of any object: a built-in object's primitive parts, a user object's
+    collision hulls (`python -m sim.add_object`)."""
 
     def __init__(self) -> None:
         self._cache: dict[str, list[np.ndarray]] = {}
@@ -60,7 +61,12 @@ class ConvexParts:
     def pieces(self, name: str) -> list[np.ndarray]:
         if name not in self._cache:
             model = load_object(name)
-            self._cache[name] = [np.unique(p.mesh().vertices, axis=0) for p in model.parts]
+            meshes = (
+                model.geometry.hulls
+                if model.geometry is not None
+                else [p.mesh() for p in model.parts]
+            )
+            self._cache[name] = [np.unique(np.asarray(m.vertices), axis=0) for m in meshes]
         return self._cache[name]
 
 

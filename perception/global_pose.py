@@ -182,7 +182,12 @@ class GlobalPoseEstimator:
     def colours(self, name: str) -> np.ndarray:
         """RGB of each convex part of `name`, (parts, 3) in [0, 1]."""
         if name not in self._colours:
-            self._colours[name] = np.array([p.rgba[:3] for p in load_object(name).parts])
+            obj = load_object(name)
+            if obj.geometry is not None:  # one colour over every hull
+                rgb = [obj.geometry.rgba[:3]] * len(obj.geometry.hulls)
+            else:
+                rgb = [p.rgba[:3] for p in obj.parts]
+            self._colours[name] = np.array(rgb)
         return self._colours[name]
 
     def verify(

