@@ -1,7 +1,7 @@
 """Grasp success against pose noise on every tier: the paired noise curve, one line per tier.
 
-    python bench/noise_curves.py [--tiers all] [--episodes 50] [--workers N] [--out out/noise] \
-        [--plot docs/noise_curves_tiers.png] [--json PATH]
+    python bench/noise_curves.py [--tiers all] [--objects all] [--episodes 50] [--workers N] \
+        [--out out/noise] [--plot docs/noise_curves_tiers.png] [--json PATH]
 
 For each tier, `oracle` and then `noisy-oracle` at sigma = (2.5 mm, 1 deg), (5 mm, 2 deg),
 (10 mm, 4 deg) and (20 mm, 8 deg) on all four error components run on the same held-out scenes
@@ -11,13 +11,17 @@ S,S,D,D --margin` does; a seed draws the same standard normals at every level, s
 pairs with the one before (`sim.compare.curve`: lost and gained grasps, exact McNemar p). Each
 run's report is kept in `--out` as ``<tier>_<level>.json`` and a rerun reuses it; the run being
 made keeps its finished episodes in ``<tier>_<level>.journal.jsonl`` (`posegrasp.core.journal`),
-so a rerun after Ctrl-C or SIGTERM resumes within the level too. Prints each tier's chain;
+so a rerun after Ctrl-C or SIGTERM resumes within the level too (a kept report of other
+`--objects` is refused: give another `--out`). `--objects` takes built-in and user objects
+(`python -m sim.add_object`). Prints each tier's chain;
 `--plot` draws success (Wilson 95 % bars) against sigma for every tier in one figure.
 """
 
 from __future__ import annotations
 
+import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from posegrasp.core.cli import (
@@ -29,12 +33,13 @@ from posegrasp.core.cli import (
     summary_stream,
     write_json,
 )
+from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.files import atomic_write_json
 from posegrasp.core.journal import Interrupted, journal_path
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int, check_names, check_plot_path
 from posegrasp.world.constants import EVAL_SEED_BASE
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import OBJECT_NAMES, check_objects
 from posegrasp.world.tiers import TIERS
 from sim.compare import check_same_execution, curve, format_curve
 from sim.evaluate import evaluate
@@ -58,19 +63,28 @@ def _tick(noise: str | None) -> str:
     return f"{mm} mm, {deg} deg"
 
 
-def run_tier(tier: str, episodes: int, out: Path, workers: int = 1) -> list[dict]:
-    """The tier's chain of reports (run on `workers` processes, or read back when already in
-    `out`)."""
+def run_tier(
+    tier: str, episodes: int, out: Path, workers: int = 1, objects: Sequence[str] = OBJECT_NAMES
+) -> list[dict]:
+    """The tier's chain of reports on `objects` (run on `workers` processes, or read back when
+    already in `out`)."""
     paths = []
     for label, noise in LEVELS:
         path = out / f"{tier}_{label}.json"
-        if not path.is_file():
+        if path.is_file():
+            kept = list(json.loads(path.read_text())["per_object"])
+            if kept != list(objects):
+                raise InvalidArgumentError(
+                    f"{path} holds a run on {', '.join(kept)}, not {', '.join(objects)}; give "
+                    "another --out"
+                )
+        else:
             estimator = "oracle" if noise is None else "noisy-oracle"
             print(f"{tier}: {estimator} {noise or ''}", file=sys.stderr)
             journal = journal_path(path, "evaluate", {})
             try:
                 report = evaluate(
-                    list(OBJECT_NAMES),
+                    list(objects),
                     episodes,
                     estimator,
                     EVAL_SEED_BASE,
@@ -119,7 +133,8 @@ def plot(chains: dict[str, list[dict]], path: Path) -> None:
     ax.set_xticks(np.arange(len(LEVELS)), [_tick(noise) for _, noise in LEVELS], fontsize=8)
     ax.set_xlabel("sigma of each error component (along and across the ray, in and out of plane)")
     ax.set_ylabel("grasp success [%]")
-    ax.set_title("noisy-oracle on 300 paired scenes per tier", fontsize=10)
+    n = next(iter(chains.values()))[0]["episodes"] if chains else 0
+    ax.set_title(f"noisy-oracle on {n} paired scenes per tier", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -136,6 +151,12 @@ def main(argv: list[str] | None = None) -> int:
         type=tiers,
         default=list(TIERS),
         help="'all' or a comma list of " + ", ".join(TIERS),
+    )
+    p.add_argument(
+        "--objects",
+        type=arg(check_objects, "--objects"),
+        default=list(OBJECT_NAMES),
+        help="'all' (default: the built-in objects) or a comma list of objects, built-in or user",
     )
     p.add_argument(
         "--episodes",
@@ -159,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     chains = {}
     for tier in args.tiers:
-        chains[tier] = run_tier(tier, args.episodes, args.out, args.workers)
+        chains[tier] = run_tier(tier, args.episodes, args.out, args.workers, args.objects)
         print(f"tier {tier}:\n{format_curve(chains[tier])}\n", file=log)
     if args.plot is not None:
         plot(chains, args.plot)

@@ -1,17 +1,17 @@
 """Meshes posegrasp did not make, from packages on PyPI, made into objects, grasped by the oracle.
 
     python bench/public_meshes.py [--episodes 100] [--tiers isolated,any-pose,clutter] \
-        [--workers 2] [--out out/public_meshes] [--json PATH]
+        [--workers 2] [--out out/public] [--json PATH]
 
 Each mesh comes out of a pinned wheel of the package that ships it (``pip download --no-deps``
-into ``<out>/wheels``, the member read from the zip): robosuite's can and milk carton (STL in
-metres), and pybullet's duck (OBJ, scaled by 0.05 as its URDF does) and mug (OBJ in metres). Each
-becomes a user object in ``<out>/objects`` by ``python -m sim.add_object`` with its defaults
-(timed, one object at a time), then the oracle grasps it on `--episodes` held-out episodes per
-tier (seeds from `posegrasp.world.constants.EVAL_SEED_BASE`), exactly as ``POSEGRASP_OBJECTS=<out>/
-objects python -m sim.evaluate --objects NAME --tier T --estimator oracle`` does. Made objects and
-reports already in `--out` are reused, so a rerun after an interruption goes on where it stopped.
-Prints one row per mesh: source, size, watertight or not, hulls, resting poses (graspable),
+into ``<out>/wheels``, the member read from the zip): robosuite's can, milk carton and bottle
+(STL in metres), and pybullet's duck (OBJ, scaled by 0.05 as its URDF does) and mug (OBJ in
+metres). Each becomes a user object in ``<out>/objects`` by ``python -m sim.add_object`` with its
+defaults (timed, one object at a time), then the oracle grasps it on `--episodes` held-out
+episodes per tier (seeds from `posegrasp.world.constants.EVAL_SEED_BASE`), exactly as
+``POSEGRASP_OBJECTS=<out>/objects python -m sim.evaluate --objects NAME --tier T --estimator
+oracle`` does. Made objects and reports already in `--out` are reused, so a rerun after an
+interruption goes on where it stopped. Prints one row per mesh: source, size, watertight or not, hulls, resting poses (graspable),
 candidates, add_object time and oracle success per tier.
 """
 
@@ -64,6 +64,7 @@ class PublicMesh:
 MESHES: tuple[PublicMesh, ...] = (
     PublicMesh("can", "robosuite", "1.5.2", "robosuite/models/assets/objects/meshes/can.stl"),
     PublicMesh("milk", "robosuite", "1.5.2", "robosuite/models/assets/objects/meshes/milk.stl"),
+    PublicMesh("bottle", "robosuite", "1.5.2", "robosuite/models/assets/objects/meshes/bottle.stl"),
     PublicMesh("duck", "pybullet", "3.2.7", "pybullet_data/duck.obj", scale=0.05),
     PublicMesh("mug", "pybullet", "3.2.7", "pybullet_data/objects/mug.obj"),
 )

@@ -240,7 +240,7 @@ def make_object(
     ext = visual_s.extents
     say(
         f"read {mesh_path.name}: {len(visual_s.faces)} triangles, "
-        f"{'watertight' if visual_s.is_watertight else 'not watertight'}, "
+        f"{'watertight' if raw.is_watertight else 'not watertight'}, "
         f"{ext[0] * 1000:.0f} x {ext[1] * 1000:.0f} x {ext[2] * 1000:.0f} mm"
     )
     timings["read"] = time.perf_counter() - t
@@ -424,7 +424,7 @@ def make_object(
             "file": str(mesh_path.resolve()),
             "sha256": sha256_file(mesh_path),
             "triangles": len(raw.faces),
-            "watertight": bool(visual_s.is_watertight),
+            "watertight": bool(raw.is_watertight),
         },
         "T_O_source": [
             [round(float(v), 9) for v in row] for row in T_O_S @ _centring(raw, units, scale)
