@@ -11,8 +11,8 @@ defaults (timed, one object at a time), then the oracle grasps it on `--episodes
 episodes per tier (seeds from `posegrasp.world.constants.EVAL_SEED_BASE`), exactly as
 ``POSEGRASP_OBJECTS=<out>/objects python -m sim.evaluate --objects NAME --tier T --estimator
 oracle`` does. Made objects and reports already in `--out` are reused, so a rerun after an
-interruption goes on where it stopped. Prints one row per mesh: source, size, watertight or not, hulls, resting poses (graspable),
-candidates, add_object time and oracle success per tier.
+interruption goes on where it stopped. Prints one row per mesh: source, size, watertight or
+not, hulls, resting poses (graspable), candidates, add_object time and oracle success per tier.
 """
 
 from __future__ import annotations
