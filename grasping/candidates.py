@@ -15,19 +15,36 @@ A user object made from a mesh (``python -m sim.add_object``) carries its candid
 for every resting pose and checked in physics when it was made (`grasping.mesh_grasps`); they are
 read from it as they are (their set already covers the object all round, both finger orders
 included), and reach the planner through the same `grasp_candidates`.
+
+A built-in object's candidates can come from that generator too (source ``generated``: its convex
+parts stand for hulls, every graspable resting pose gets its checked grasps), so the two sources
+can be paired on the same episodes; they are made once and kept under the data folder
+(``$POSEGRASP_DATA/candidates``), keyed by the object's definition and the generator's code.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from grasping import antipodal, grasp_check, mesh_grasps
 from grasping.top_grasps import top_grasps
 from posegrasp.core.errors import UnknownNameError
+from posegrasp.core.files import atomic_write_json
+from posegrasp.core.paths import data_root
 from posegrasp.core.transforms import quat_to_mat
-from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, check_object, load_object
+from posegrasp.world.objects import (
+    OBJECT_NAMES,
+    OBJECTS_DIR,
+    ObjectModel,
+    check_object,
+    load_object,
+)
 
 
 @dataclass(frozen=True)
@@ -150,14 +167,29 @@ MESH_PART = "mesh"
 MESH_TABLE_MARGIN = 0.006
 
 
-def grasp_candidates(name: str) -> tuple[GraspCandidate, ...]:
+#: Where a built-in object's candidates come from: its designed segments (the default), or the
+#: generator of a user object's (`grasping.mesh_grasps`). A user object's are generated either way.
+CANDIDATE_SOURCES = ("designed", "generated")
+#: The part generated candidates name.
+GENERATED_PART = "generated"
+
+
+def grasp_candidates(name: str, source: str = "designed") -> tuple[GraspCandidate, ...]:
     """The grasp candidates of an object class, built-in or user object, in its frame O; the
     same tuple while the object is unchanged.
 
+    Args:
+        name: the object.
+        source: for a built-in object, one of `CANDIDATE_SOURCES`.
+
     Raises:
-        UnknownNameError: name is not a known object.
+        UnknownNameError: name is not a known object, or an unknown source.
     """
+    if source not in CANDIDATE_SOURCES:
+        raise UnknownNameError("candidate source", source, CANDIDATE_SOURCES)
     if name in OBJECT_NAMES:
+        if source == "generated":
+            return generated_candidates(name)
         return _builtin_candidates(name)
     check_object(name)
     return _stored_candidates(load_object(name))
@@ -166,6 +198,48 @@ def grasp_candidates(name: str) -> tuple[GraspCandidate, ...]:
 @functools.cache
 def _builtin_candidates(name: str) -> tuple[GraspCandidate, ...]:
     return tuple(_candidates_for(load_object(name)))
+
+
+def _generator_key(name: str) -> str:
+    """What a built-in object's generated candidates depend on: its definition and the
+    generator's code (a change to either makes them anew)."""
+    h = hashlib.sha256((OBJECTS_DIR / f"{name}.json").read_bytes())
+    for module in (antipodal, grasp_check, mesh_grasps):
+        h.update(Path(module.__file__).read_bytes())
+    return h.hexdigest()[:16]
+
+
+@functools.cache
+def generated_candidates(name: str, progress: bool = False) -> tuple[GraspCandidate, ...]:
+    """A built-in object's candidates made by the generator of user objects, for every graspable
+    resting pose (about half a minute per object the first time; then read from the data
+    folder)."""
+    path = data_root() / "candidates" / f"{name}_{_generator_key(name)}.json"
+    try:
+        rows = json.loads(path.read_text())
+    except (OSError, ValueError):
+        obj = load_object(name)
+        resting = {k: q for k, q in obj.resting_poses.items() if k not in obj.ungraspable}
+        made = mesh_grasps.mesh_grasps(obj, resting, progress=progress)
+        rows = [
+            {"pose": pose, "T_O_G": g.T_O_G.tolist(), "width": g.width}
+            for pose, res in made.items()
+            for g in res.grasps
+        ]
+        try:
+            atomic_write_json(path, rows)
+        except OSError:
+            pass  # a read-only data folder: made again by the next process
+    return tuple(
+        GraspCandidate(
+            np.asarray(r["T_O_G"], float),
+            float(r["width"]),
+            GENERATED_PART,
+            r["pose"],
+            MESH_TABLE_MARGIN,
+        )
+        for r in rows
+    )
 
 
 _STORED: dict[tuple[str, str], tuple[GraspCandidate, ...]] = {}

@@ -16,6 +16,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
+import trimesh
 from tqdm import tqdm
 
 from grasping.antipodal import (
@@ -26,7 +27,6 @@ from grasping.antipodal import (
     hull_points,
 )
 from grasping.grasp_check import CheckConfig, check_grasps
-from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world.objects import ObjectModel
 
@@ -91,6 +91,18 @@ def _perturbed(T_O_G: np.ndarray, p: tuple[float, float, float, float]) -> np.nd
     return T_O_G @ D
 
 
+def convex_pieces(obj: ObjectModel) -> tuple[list[trimesh.Trimesh], np.ndarray]:
+    """What the fingers meet and where the mass is: a user object's collision hulls and centre
+    of mass, or a built-in object's colliding primitive parts (each convex) and the centre of
+    their volume (its density is uniform over them), in O [m]."""
+    if obj.geometry is not None:
+        return list(obj.geometry.hulls), np.asarray(obj.geometry.com, float)
+    parts = [p for p in obj.parts if p.collision]
+    volumes = np.array([p.volume for p in parts])
+    centres = np.array([p.pos for p in parts], float)
+    return [p.mesh() for p in parts], volumes @ centres / volumes.sum()
+
+
 def mesh_grasps(
     obj: ObjectModel,
     resting: dict[str, np.ndarray],
@@ -102,7 +114,8 @@ def mesh_grasps(
     """The grasp candidates of a mesh object for each resting pose.
 
     Args:
-        obj: a mesh object (`ObjectModel.geometry` set), in any frame.
+        obj: the object, in any frame: a mesh object's hulls, or a built-in object's convex
+            parts (`convex_pieces`).
         resting: resting pose name -> orientation of O on a plane, wxyz.
         checked: distinct grasps checked in physics per pose.
         keep: grasps kept per pose (each returned with both finger orders).
@@ -112,19 +125,15 @@ def mesh_grasps(
     Returns:
         pose name -> its grasps (empty when none holds).
 
-    Raises:
-        InvalidArgumentError: obj has no mesh geometry.
     """
-    g = obj.geometry
-    if g is None:
-        raise InvalidArgumentError(f"{obj.name} is not a mesh object; its grasps are designed")
-    points, normals = hull_points(list(g.hulls))
+    hulls, com = convex_pieces(obj)
+    points, normals = hull_points(hulls)
     out: dict[str, PoseGrasps] = {}
     for name, quat in tqdm(resting.items(), desc="grasps", disable=not progress):
         up = quat_to_mat(np.asarray(quat, float))[2]
-        found = antipodal_grasps(points, normals, up, g.com)
+        found = antipodal_grasps(points, normals, up, com)
         if not found:  # lying low: let the fingertips come nearer the table
-            found = antipodal_grasps(points, normals, up, g.com, MIN_TABLE_CLEARANCE)
+            found = antipodal_grasps(points, normals, up, com, MIN_TABLE_CLEARANCE)
         tried = distinct(found, checked)
         res = PoseGrasps(name, generated=len(found), checked=len(tried))
         out[name] = res

@@ -90,6 +90,8 @@ class PlannerConfig:
         posture_cost: PostureTask cost per planned joint group (base xy, base yaw, torso, arm).
         max_approach_tilt: candidates whose approach, at the estimated pose, leans more than
             this from straight down are not tried [rad].
+        candidates: where a built-in object's candidates come from
+            (`grasping.candidates.CANDIDATE_SOURCES`: ``designed`` or ``generated``).
     """
 
     pregrasp_offset: float = 0.10
@@ -108,6 +110,7 @@ class PlannerConfig:
     max_drive: float = 2.0
     posture_cost: tuple[float, float, float, float] = (0.05, 0.05, 0.01, 0.002)
     max_approach_tilt: float = float(np.deg2rad(30.0))
+    candidates: str = "designed"
 
 
 @dataclass
@@ -337,7 +340,8 @@ class GraspPlanner:
         self.posture.set_target(target)
         tried = 0
         last = ""
-        ordered = self.order_candidates(T_world_O, grasp_candidates(name), q_start, neighbours)
+        cands = grasp_candidates(name, self.cfg.candidates)
+        ordered = self.order_candidates(T_world_O, cands, q_start, neighbours)
         if not ordered:
             raise PlanningError(
                 "no_grasp", f"no grasp of the {name} approaches from above in this pose"

@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from grasping.candidates import CANDIDATE_SOURCES, generated_candidates
 from perception import metrics
 from posegrasp.core.backends import add_backend_arguments, check_backend
 from posegrasp.core.cli import (
@@ -40,6 +41,7 @@ from posegrasp.core.paths import DOCS_DIR
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import (
     arg,
+    check_choice,
     check_input_file,
     check_int,
     check_plot_path,
@@ -109,13 +111,15 @@ class EpisodeJob(NamedTuple):
     margin: bool = False
     obs_mode: str = "rgb"
     pool: tuple[str, ...] = ()
+    candidates: str = "designed"
 
 
 def _run_one(job: EpisodeJob) -> dict:
     """One episode of an evaluation, in whatever process runs it (this one, a pool worker, a Ray
     worker started afresh after another died): it sets up rendering there first."""
-    obj, seed, estimator, tier, noise, margin, obs_mode, pool = job
+    obj, seed, estimator, tier, noise, margin, obs_mode, pool, candidates = job
     from grasping.execute import ExecutionConfig
+    from grasping.planner import PlannerConfig
     from posegrasp.world.scene import SceneConfig
     from sim.episode import EpisodeConfig, play_episode
 
@@ -124,6 +128,7 @@ def _run_one(job: EpisodeJob) -> dict:
     try:
         cfg = EpisodeConfig(
             scene=SceneConfig(distractor_pool=pool),
+            planner=PlannerConfig(candidates=candidates),
             tier=tier,
             execution=ExecutionConfig(measure_margin=margin),
             obs_mode=obs_mode,
@@ -202,6 +207,7 @@ def evaluate(
     resume: bool = False,
     obs_mode: str = "rgb",
     pool: Sequence[str] = (),
+    candidates: str = "designed",
 ) -> dict:
     """Run episodes (objects x seeds) of one tier and aggregate per object and overall.
 
@@ -224,6 +230,8 @@ def evaluate(
         obs_mode: what the estimator sees (`sim.episode.OBS_MODES`): ``rgbd`` adds depth.
         pool: the classes the tier's distractors are drawn from, built-in or user objects
             (`posegrasp.world.scene.SceneConfig.distractor_pool`); empty for the built-in ones.
+        candidates: where the built-in objects' grasp candidates come from
+            (`grasping.candidates.CANDIDATE_SOURCES`); generated ones are made here first.
 
     Raises:
         Interrupted: Ctrl-C or SIGTERM; with a journal, its line says how to resume.
@@ -232,15 +240,20 @@ def evaluate(
     label = estimator_label(estimator)
     n_jobs = len(objects) * episodes
     pool = tuple(pool)
+    check_choice(candidates, CANDIDATE_SOURCES, "candidate source")
     protocol = run_protocol(
-        objects, episodes, label, seed_start, tier, noise, margin, obs_mode, pool
+        objects, episodes, label, seed_start, tier, noise, margin, obs_mode, pool, candidates
     )
+    if candidates == "generated":  # made once, before the workers read them
+        for o in objects:
+            if o in OBJECT_NAMES:
+                generated_candidates(o, progress=True)
     workers, note = effective_workers(workers, n_jobs)
     if note:
         print(note, file=sys.stderr)
     # Made as the workers take them, never all at once.
     jobs = (
-        EpisodeJob(o, seed_start + i, estimator, tier, noise, margin, obs_mode, pool)
+        EpisodeJob(o, seed_start + i, estimator, tier, noise, margin, obs_mode, pool, candidates)
         for o in objects
         for i in range(episodes)
     )
@@ -269,6 +282,7 @@ def evaluate(
         wall_s=time.perf_counter() - t,
         obs_mode=obs_mode,
         pool=pool,
+        candidates=candidates,
     )
 
 
@@ -284,11 +298,13 @@ def make_report(
     wall_s: float = 0.0,
     obs_mode: str = "rgb",
     pool: Sequence[str] = (),
+    candidates: str = "designed",
 ) -> dict:
     """The report (schema `REPORT_SCHEMA`, checked) of finished episodes: the protocol, the
     aggregates per object and overall, and the episodes in run order; ``distractor_pool`` only
-    when the distractors came from a pool of the caller's."""
-    extra = {"distractor_pool": list(pool)} if pool else {}
+    when the distractors came from a pool of the caller's, ``candidates`` only when the built-in
+    objects' candidates were generated."""
+    extra = _optional(pool, candidates)
     return validate_report(
         {
             "schema": REPORT_SCHEMA,
@@ -310,6 +326,14 @@ def make_report(
     )
 
 
+def _optional(pool: Sequence[str], candidates: str) -> dict:
+    """The protocol's entries that are left out at their defaults (older reports lack them)."""
+    out: dict = {"distractor_pool": list(pool)} if pool else {}
+    if candidates != "designed":
+        out["candidates"] = candidates
+    return out
+
+
 def run_protocol(
     objects: list[str],
     episodes: int,
@@ -320,9 +344,10 @@ def run_protocol(
     margin: bool,
     obs_mode: str = "rgb",
     pool: Sequence[str] = (),
+    candidates: str = "designed",
 ) -> dict:
     """What defines an evaluation's results: a resumed run must have the same."""
-    extra = {"distractor_pool": list(pool)} if pool else {}
+    extra = _optional(pool, candidates)
     return {
         "objects": list(objects),
         "episodes_per_object": episodes,
@@ -557,6 +582,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_pool_argument(p)
     p.add_argument(
+        "--candidates",
+        default="designed",
+        type=arg(check_choice, CANDIDATE_SOURCES, "candidate source"),
+        help="the built-in objects' grasp candidates: designed (default) or generated (by the "
+        "generator of user objects' candidates, made once and kept in the data folder)",
+    )
+    p.add_argument(
         "--episodes",
         type=arg(check_int, 1, MAX_EPISODES, "--episodes", base=int),
         default=None,
@@ -642,6 +674,7 @@ def main(argv: list[str] | None = None) -> int:
         args.margin,
         args.obs_mode,
         args.pool,
+        args.candidates,
     )
     journal = journal_path(args.json, "evaluate", protocol)
     report = evaluate(
@@ -659,6 +692,7 @@ def main(argv: list[str] | None = None) -> int:
         resume=args.resume,
         obs_mode=args.obs_mode,
         pool=args.pool,
+        candidates=args.candidates,
     )
     if poses is not None:
         report["poses"] = poses_record(poses, args.poses, report)

@@ -79,6 +79,41 @@ def phone_scene():
     return build_scene("phone", 11)
 
 
+def test_an_unknown_candidate_source_is_one_line() -> None:
+    with pytest.raises(UnknownNameError, match=r"candidate source 'found'.*designed, generated"):
+        grasp_candidates("phone", "found")
+
+
+def test_evaluate_refuses_an_unknown_candidate_source_in_one_line(capsys) -> None:
+    from sim.evaluate import main as evaluate_main
+
+    assert evaluate_main(["--candidates", "found", "--episodes", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "designed, generated" in err[0]
+
+
+@pytest.mark.slow
+def test_generated_candidates_of_a_built_in_object(tmp_path, monkeypatch) -> None:
+    """The generator of user objects' candidates makes a built-in object's from its convex
+    parts, for every graspable resting pose, and keeps them in the data folder."""
+    from grasping import candidates as gc
+
+    monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path))
+    gc.generated_candidates.cache_clear()
+    made = grasp_candidates("phone", "generated")
+    obj = load_object("phone")
+    graspable = set(obj.resting_poses) - set(obj.ungraspable)
+    assert {c.pose for c in made} == graspable
+    assert all(c.part == gc.GENERATED_PART and c.table_margin is not None for c in made)
+    kept = list((tmp_path / "candidates").glob("phone_*.json"))
+    assert len(kept) == 1
+    gc.generated_candidates.cache_clear()
+    again = grasp_candidates("phone", "generated")  # read back, not made again
+    assert [c.T_O_G.tolist() for c in again] == [c.T_O_G.tolist() for c in made]
+    # The designed ones stay the default.
+    assert gc.GENERATED_PART not in {c.part for c in grasp_candidates("phone")}
+
+
 def test_planner_reaches_true_pose(phone_scene) -> None:
     s = phone_scene
     plan = GraspPlanner(s.model).plan("phone", s.object_pose(), s.data.qpos.copy())
