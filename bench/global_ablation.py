@@ -3,6 +3,7 @@ of the score, measured on a validation split (never on a test split).
 
     python bench/global_ablation.py [--split headcam_any-pose] [--subset val] [--images 150]
         [--json PATH]
+    python bench/global_ablation.py --keeps 0,1,2,3,4 [--images 150]
 
 For every image's target detection (the shipped detector; the target is the split's requested
 object, ``target`` in the image record, else its first object), every start of
@@ -16,6 +17,11 @@ ablation then replays the choice offline:
   chosen pose's errors and those of the best of the K (what a perfect score would pick);
 - a resting prior (the camera pose's gravity and the object's resting poses): starts further
   than a tilt from every resting pose are passed over.
+
+With `--keeps`, it measures instead the verification that refines every start once, scores them
+and gives the second refiner run only to the best few (`GlobalConfig.keep_after_first`; 0 is
+every start twice): for each value, the chosen pose's rotation errors and the verification's time
+per detection (median, one thread), each value on the same images with the same detections.
 """
 
 from __future__ import annotations
@@ -45,6 +51,17 @@ APPEARANCE = (0.0, 0.05, 0.1, 0.2)
 EDGES = (0.0, 0.1, 0.2, 0.3, 0.5, 1.0)
 KS = (0, 1, 2, 4, 6, 8, 12)
 TILTS = (5.0, 10.0, 20.0, 30.0)
+
+
+def check_int_list(spec: str) -> list[int]:
+    """A comma list of whole numbers 0..13."""
+    out = []
+    for v in str(spec).split(","):
+        try:
+            out.append(int(v))
+        except ValueError:
+            out.append(v)  # refused below with the valid range
+    return [check_int(v, 0, 13, "--keeps") for v in out]
 
 
 def record(split: str, subset: str, images: int) -> list[dict]:
@@ -80,6 +97,44 @@ def record(split: str, subset: str, images: int) -> list[dict]:
                     ]
                     for v in starts
                 ],
+            }
+        )
+    return out
+
+
+def keep_sweep(split: str, subset: str, images: int, keeps: list[int]) -> list[dict]:
+    """Per `keep_after_first` value: the chosen pose's rotation errors and the verification's
+    time on the split's first `images` target detections."""
+    from perception.global_pose import GlobalConfig
+
+    est = GlobalPoseEstimator.from_weights()
+    ds = PoseDataset(data_root() / split, subset)
+    cases = []
+    for i in tqdm(range(min(images, len(ds))), desc="detections", leave=False):
+        s = ds[i]
+        name = s.extra.get("target", s.objects[0].name)
+        gt = next(o for o in s.objects if o.name == name)
+        target = detect_target(est.hybrid, Observation(s.rgb, s.K, np.eye(4), name, s.seed))
+        if target.best is not None:
+            cases.append((target.best, s.K, s.rgb, target.occluder(), gt.T_C_O))
+    out = []
+    for keep in keeps:
+        est.config = GlobalConfig(keep_after_first=keep)
+        errors, ms = [], []
+        for det, K, rgb, occluder, T_true in tqdm(cases, desc=f"keep {keep}", leave=False):
+            t0 = time.perf_counter()
+            ranked, _ = est.verify(det, K, rgb, occluder)
+            ms.append((time.perf_counter() - t0) * 1000)
+            errors.append(rotation_error_deg(ranked[0].T_C_O[:3, :3], T_true[:3, :3]))
+        e = np.array(errors)
+        out.append(
+            {
+                "keep_after_first": keep,
+                "detections": len(cases),
+                "mean": float(e.mean()),
+                "median": float(np.median(e)),
+                "over_15_pct": float(100 * (e > 15).mean()),
+                "verify_ms_median": float(np.median(ms)),
             }
         )
     return out
@@ -159,6 +214,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=150)
     add_json_argument(p, "every start's scores and the ablation")
     p.add_argument(
+        "--keeps",
+        type=arg(check_int_list),
+        default=None,
+        metavar="LIST",
+        help="instead, measure these keep_after_first values (comma list of 0..13)",
+    )
+    p.add_argument(
         "--replay",
         type=Path,
         default=None,
@@ -166,6 +228,19 @@ def main(argv: list[str] | None = None) -> int:
         help="replay the starts recorded in an earlier --json instead of measuring",
     )
     args = p.parse_args(argv)
+    if args.keeps is not None:
+        setup_rendering(threads=1)
+        sweep = keep_sweep(args.split, args.subset, args.images, args.keeps)
+        print(f"{args.split}/{args.subset}, {sweep[0]['detections']} detections:")
+        for k in sweep:
+            print(
+                f"  keep {k['keep_after_first']:2d}: mean {k['mean']:6.2f}  median "
+                f"{k['median']:5.2f}  > 15 deg {k['over_15_pct']:5.1f} %  verify "
+                f"{k['verify_ms_median']:.0f} ms"
+            )
+        if args.json is not None:
+            write_json(args.json, {"keeps": sweep})
+        return 0
     if args.replay is not None:
         rows = json.loads(args.replay.read_text())["rows"]
     else:

@@ -62,6 +62,8 @@ class GlobalConfig:
         hypotheses: codebook hypotheses refined per detection (the nets' pose comes on top).
         min_angle_deg: hypotheses differ by at least this rotation [deg].
         refine_passes: refiner runs per hypothesis.
+        keep_after_first: after the first refiner run and scoring, only this many of the best
+            hypotheses get the further runs and are scored again (0: all of them).
         appearance_weight: weight of the colour correlation in the verification score.
         edge_weight: weight of the outlines' agreement with image edges in it.
         min_score: a best score below this withholds the estimate.
@@ -72,6 +74,7 @@ class GlobalConfig:
     hypotheses: int = 12
     min_angle_deg: float = 15.0
     refine_passes: int = 2
+    keep_after_first: int = 0
     appearance_weight: float = 0.05
     edge_weight: float = 0.3
     min_score: float = 0.0
@@ -80,6 +83,8 @@ class GlobalConfig:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
             if int(getattr(self, key)) < 1:
                 raise InvalidArgumentError(f"GlobalConfig.{key} must be >= 1")
+        if int(self.keep_after_first) < 0:
+            raise InvalidArgumentError("GlobalConfig.keep_after_first must be >= 0 (0: all)")
         if not (0 <= self.min_angle_deg < 180 and np.isfinite(self.appearance_weight)):
             raise InvalidArgumentError("GlobalConfig.min_angle_deg must be in [0, 180)")
 
@@ -213,20 +218,28 @@ class GlobalPoseEstimator:
         tight = mask_box(det.mask) if view is not None else (0, 0, 1, 1)
         box = _grown(tight, EDGE_MARGIN_PX, det.mask.shape)
         edge_distance = image_edges(rgb, box)
-        out = []
-        for rank, (T, source) in enumerate(starts):
+
+        def refined(T: np.ndarray, source: str, rank: int, passes: int) -> Verified | None:
             info = {"iou_after": 0.0}
             try:
-                for _ in range(cfg.refine_passes):
+                for _ in range(passes):
                     T, info = self.refiner.refine(det.name, T, K, det.mask, rgb, occluder)
             except InvalidArgumentError:
-                continue  # a start behind the camera: not a pose to verify
+                return None  # a start behind the camera: not a pose to verify
             app = appearance_score(pieces, colours, T, K, rgb, det.mask, tight)
             edges = edge_score(pieces, T, K, edge_distance, box)
             iou = float(info["iou_after"])
             score = iou + cfg.appearance_weight * app + cfg.edge_weight * edges
-            out.append(Verified(T, score, iou, app, edges, source, rank))
+            return Verified(T, score, iou, app, edges, source, rank)
+
+        first = 1 if cfg.keep_after_first else cfg.refine_passes
+        out = [v for r, (T, s) in enumerate(starts) if (v := refined(T, s, r, first)) is not None]
         out.sort(key=lambda v: -v.score)
+        if cfg.keep_after_first and cfg.refine_passes > 1:
+            kept = out[: cfg.keep_after_first]
+            again = [refined(v.T_C_O, v.source, v.rank, cfg.refine_passes - 1) for v in kept]
+            out = [v for v in again if v is not None]
+            out.sort(key=lambda v: -v.score)
         t2 = time.perf_counter()
         return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}
 

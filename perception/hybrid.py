@@ -43,7 +43,7 @@ from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from posegrasp.core.paths import WEIGHTS_DIR
 from posegrasp.core.transforms import check_intrinsics, rigid_problem
-from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.objects import OBJECT_NAMES, check_object, load_object
 
 DEFAULT_POSENET = WEIGHTS_DIR / "posenet_ours.pt"
 #: The `paper` variant's shipped nets (estimator ``hybrid-paper``).
@@ -334,8 +334,13 @@ class TargetDetections:
 
 def detect_target(estimator: HybridPoseEstimator, obs: Observation) -> TargetDetections:
     """Detect once and split the detections around ``obs.object``; an object the nets were not
-    trained on (a user object) is not looked for, and ``info["note"]`` says why."""
+    trained on (a user object) is not looked for, and ``info["note"]`` says why.
+
+    Raises:
+        UnknownNameError: obs.object is no known object at all.
+    """
     if obs.object not in OBJECT_NAMES:
+        check_object(obs.object)
         note = (
             f"the learned estimators know the six objects they were trained on "
             f"({', '.join(OBJECT_NAMES)}), not {obs.object!r}"
