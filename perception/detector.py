@@ -25,7 +25,6 @@ from perception.detector_net import DetectorConfig, build_detector
 from perception.integrity import load_checked
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR
-from posegrasp.world.objects import OBJECT_NAMES
 
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
 REBUILD_HINT = (
@@ -41,7 +40,7 @@ class Detection:
     """One detected object.
 
     Attributes:
-        name: object class, one of `OBJECT_NAMES`.
+        name: object class, one of the detector's `DetectorConfig.classes`.
         score: classification score in [0, 1].
         box_xyxy: (x0, y0, x1, y1) [px], pixel (0, 0) centred at (0, 0), float64, shape (4,).
         mask: visible-part mask of the image, shape (H, W), bool.
@@ -51,11 +50,6 @@ class Detection:
     score: float
     box_xyxy: np.ndarray
     mask: np.ndarray = field(repr=False)
-
-    @property
-    def obj_id(self) -> int:
-        """BOP object id (1..6), the model's label."""
-        return OBJECT_NAMES.index(self.name) + 1
 
 
 def to_model_box(box_xyxy: np.ndarray) -> np.ndarray:
@@ -228,11 +222,11 @@ class Detector:
         dets = []
         for i in order:
             label = int(labels[i])
-            if not 1 <= label <= len(OBJECT_NAMES):
+            if not 1 <= label <= len(self.cfg.classes):
                 continue
             dets.append(
                 Detection(
-                    name=OBJECT_NAMES[label - 1],
+                    name=self.cfg.classes[label - 1],
                     score=float(scores[i]),
                     box_xyxy=from_model_box(boxes[i]),
                     mask=(masks[i, 0] >= self.mask_threshold).numpy(),

@@ -4,8 +4,10 @@ and fast on a CPU (docs/DESIGN.md §7).
 The model is torchvision's own `MaskRCNN` with a light backbone: a ResNet-style stack of basic
 blocks (widths `DetectorConfig.widths`, strides 8, 16 and 32 feed a feature pyramid, plus the
 usual max-pooled level at stride 64), narrow box and mask heads, few proposals, and a reduced
-input size (a 640x480 image is resized to 320x240 inside the model). Labels are BOP object ids:
-0 is background, 1..6 follow `posegrasp.world.objects.OBJECT_NAMES`.
+input size (a 640x480 image is resized to 320x240 inside the model). Label 0 is background and
+label k the k-th of `DetectorConfig.classes`: the six built-in objects in
+`posegrasp.world.objects.OBJECT_NAMES` order (their BOP object ids), then any user objects a
+detector was fine-tuned on.
 
 Inference on images, the box conventions and loading weights live in `perception.detector`.
 """
@@ -13,7 +15,8 @@ Inference on images, the box conventions and loading weights live in `perception
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import asdict, dataclass
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import torch
@@ -36,7 +39,8 @@ class DetectorConfig:
     model input unless stated.
 
     Attributes:
-        n_classes: classes including background (1 + number of objects; label = BOP obj_id).
+        n_classes: classes including background (1 + len(classes)).
+        classes: the objects the labels 1.. name, in order.
         widths: channels of the backbone stages at strides 4, 8, 16 and 32 (stem: widths[0]).
         blocks: basic residual blocks per stage (the first of each stage has stride 2).
         fpn_channels: channels of every feature-pyramid level (and of the RPN and RoI heads).
@@ -57,6 +61,7 @@ class DetectorConfig:
     """
 
     n_classes: int = 1 + len(OBJECT_NAMES)
+    classes: tuple[str, ...] = OBJECT_NAMES
     widths: tuple[int, int, int, int] = (32, 48, 96, 160)
     blocks: tuple[int, int, int, int] = (1, 1, 2, 1)
     fpn_channels: int = 64
@@ -81,6 +86,10 @@ class DetectorConfig:
     def __post_init__(self) -> None:
         if self.n_classes < 2:
             raise InvalidArgumentError(f"n_classes must be >= 2, got {self.n_classes}")
+        if self.n_classes != 1 + len(self.classes) or len(set(self.classes)) != len(self.classes):
+            raise InvalidArgumentError(
+                f"classes must be {self.n_classes - 1} distinct names, got {list(self.classes)}"
+            )
         if len(self.widths) != 4 or len(self.blocks) != 4 or min(self.blocks) < 1:
             raise InvalidArgumentError("widths and blocks need 4 entries each, blocks >= 1")
         if len(self.anchor_sizes) != 4:
@@ -89,6 +98,11 @@ class DetectorConfig:
             raise InvalidArgumentError(
                 f"need 0 < min_size <= max_size, got {self.min_size}, {self.max_size}"
             )
+
+    def widened(self, names: Sequence[str]) -> DetectorConfig:
+        """This config with `names` added to its classes (those it has already are kept)."""
+        classes = (*self.classes, *(n for n in names if n not in self.classes))
+        return replace(self, classes=classes, n_classes=1 + len(classes))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (stored in checkpoints and weight files)."""

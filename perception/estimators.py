@@ -70,6 +70,32 @@ def _hybrid_global_paper() -> PoseEstimator:
     return GlobalPoseEstimator(hybrid, name="hybrid-global-paper")
 
 
+#: The detector fine-tuned on user objects, in the user objects directory.
+USER_DETECTOR = "detector.pt"
+
+
+def _hybrid_global_user() -> PoseEstimator:
+    """`hybrid-global` with the detector fine-tuned on user objects (``detector.pt`` in the user
+    objects directory, written by ``python -m perception.training.train_detector --objects LIST
+    --init perception/weights/detector.pt --export --weights-out DIR``): a user object's
+    hypotheses come from its codebook alone (the nets know the six built-in objects, whose poses
+    join as before)."""
+    from perception.global_pose import GlobalPoseEstimator
+    from perception.hybrid import HybridPoseEstimator
+    from posegrasp.core.errors import AssetError
+    from posegrasp.world.user_objects import objects_dir
+
+    path = objects_dir() / USER_DETECTOR
+    if not path.is_file():
+        raise AssetError(
+            f"no detector for user objects in {objects_dir()}; train one with python -m "
+            "perception.training.train_detector --objects LIST --init "
+            f"perception/weights/detector.pt --export --weights-out {objects_dir()}"
+        )
+    hybrid = HybridPoseEstimator.from_weights(detector_path=path)
+    return GlobalPoseEstimator(hybrid, name="hybrid-global-user")
+
+
 #: Learned estimator factories by name.
 LEARNED_ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
     "hybrid": _hybrid,
@@ -78,4 +104,5 @@ LEARNED_ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
     "hybrid-refine": _hybrid_refine,
     "hybrid-global": _hybrid_global,
     "hybrid-global-paper": _hybrid_global_paper,
+    "hybrid-global-user": _hybrid_global_user,
 }

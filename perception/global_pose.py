@@ -43,13 +43,14 @@ from perception.codebook import (
     image_edges,
     top_hypotheses,
 )
+from perception.detector import Detection
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target
 from perception.overlay import mask_box
 from perception.refine import PoseRefiner
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root
-from posegrasp.world.objects import load_object
+from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 
 @dataclass(frozen=True)
@@ -197,16 +198,19 @@ class GlobalPoseEstimator:
 
     def verify(
         self,
-        det: PoseDetection,
+        det: PoseDetection | Detection,
         K: np.ndarray,
         rgb: np.ndarray,
         occluder: np.ndarray | None,
     ) -> tuple[list[Verified], dict[str, float]]:
         """Every hypothesis of one detection, refined and scored, best first, and the stage
-        times [ms] (``hypotheses``, ``verify``)."""
+        times [ms] (``hypotheses``, ``verify``). A detection without the nets' pose (of an object
+        they were not trained on) starts from the codebook alone."""
         cfg = self.config
         t0 = time.perf_counter()
-        starts: list[tuple[np.ndarray, str]] = [(det.T_C_O, "nets")]
+        starts: list[tuple[np.ndarray, str]] = []
+        if isinstance(det, PoseDetection):
+            starts.append((det.T_C_O, "nets"))
         view = frame_mask(det.mask)
         if view is not None:
             book = self.codebooks.get(det.name)
@@ -243,14 +247,33 @@ class GlobalPoseEstimator:
         t2 = time.perf_counter()
         return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}
 
+    def _user_target(
+        self, obs: Observation
+    ) -> tuple[Detection | None, tuple[tuple[str, np.ndarray], ...], dict, np.ndarray | None]:
+        """A user object's best detection (by a detector fine-tuned on it), the built-in
+        neighbours' poses, the description so far and where other detections may hide it."""
+        dets, poses, timings = self.hybrid.detections_and_poses(obs.rgb, obs.K)
+        mine = [d for d in dets if d.name == obs.object]
+        best = max(mine, key=lambda d: d.score) if mine else None
+        info: dict = {"detected": best is not None, "timings_ms": dict(timings)}
+        if best is not None:
+            info |= {"class": best.name, "score": best.score, "detections": len(dets)}
+        neighbours = tuple((p.name, p.T_C_O.copy()) for p in poses)
+        masks = [d.mask for d in dets if d is not best]
+        return best, neighbours, info, (np.logical_or.reduce(masks) if masks else None)
+
     def estimate(self, obs: Observation) -> Estimate:
         """The verified pose of obs.object (None when not detected or below `min_score`), the
         other detections and the description of the estimate."""
-        target = detect_target(self.hybrid, obs)
-        info, neighbours, best = target.info, target.neighbours, target.best
+        if obs.object not in OBJECT_NAMES and obs.object in self.hybrid.detector.cfg.classes:
+            best, neighbours, info, occluder = self._user_target(obs)
+        else:
+            target = detect_target(self.hybrid, obs)
+            best, neighbours, info = target.best, target.neighbours, target.info
+            occluder = target.occluder()
         if best is None:
             return Estimate(None, neighbours, info)
-        ranked, times = self.verify(best, obs.K, obs.rgb, target.occluder())
+        ranked, times = self.verify(best, obs.K, obs.rgb, occluder)
         info["timings_ms"] |= times
         if not ranked:
             return Estimate(None, neighbours, info | {"verify": {"hypotheses": 0}})

@@ -214,6 +214,22 @@ class HybridPoseEstimator:
         timings["total"] = float(sum(timings[k] for k in STAGES))
         return found, other, timings
 
+    def detections_and_poses(
+        self, rgb: np.ndarray, K: np.ndarray
+    ) -> tuple[list[Detection], list[PoseDetection], dict[str, float]]:
+        """Detect once: every detection, of any class the detector knows (user objects too when
+        it was fine-tuned on them), the poses of those the nets know, and the stage times [ms].
+        """
+        rgb = check_rgb(rgb)
+        K = check_intrinsics(K)
+        timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+        t0 = time.perf_counter()
+        dets = self.detector.detect(rgb)
+        timings["detect"] = (time.perf_counter() - t0) * 1000.0
+        poses = self._poses(rgb, K, dets, timings, dets)
+        timings["total"] = float(sum(timings[k] for k in STAGES))
+        return dets, poses, timings
+
     def _poses(
         self,
         rgb: np.ndarray,
@@ -223,11 +239,14 @@ class HybridPoseEstimator:
         scene: Sequence[Detection] = (),
     ) -> list[PoseDetection]:
         """Crop, nets and decode for some detections (`scene`: all the image's detections, whose
-        masks may hide an object); adds each stage's time to `timings`."""
+        masks may hide an object); adds each stage's time to `timings`. A detection of a class
+        the nets were not trained on (a detector fine-tuned on user objects) gets no pose."""
         t1 = time.perf_counter()
         kept: list[tuple[Detection, tuple[float, float, float]]] = []
         crops = []
         for d in dets:
+            if d.name not in OBJECT_NAMES:
+                continue
             x0, y0, x1, y1 = d.box_xyxy
             if not (np.all(np.isfinite(d.box_xyxy)) and x1 > x0 and y1 > y0):
                 continue
@@ -238,7 +257,7 @@ class HybridPoseEstimator:
         outs = []
         if kept:
             x = normalise(torch.from_numpy(np.stack(crops)))
-            cls = torch.tensor([d.obj_id - 1 for d, _ in kept])
+            cls = torch.tensor([OBJECT_NAMES.index(d.name) for d, _ in kept])
             size = torch.tensor([box[2] / K[0, 0] for _, box in kept], dtype=torch.float32)
             with torch.inference_mode():
                 for net in (self.posenet, *self.experts):

@@ -47,12 +47,11 @@ from posegrasp.core.validate import (
     arg,
     check_choice,
     check_int,
-    check_names,
     check_output_dir,
     check_output_file,
 )
 from posegrasp.world.camera import check_resolution
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import check_objects
 from posegrasp.world.tiers import TIERS, check_tier
 
 #: Exit status of a generation that failed on the way (a full disk ...).
@@ -91,8 +90,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--objects",
         default="all",
-        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
-        help="'all' or a comma list, e.g. phone,car",
+        type=arg(check_objects, "--objects"),
+        help="'all' (the six built-in objects) or a comma list of targets, e.g. phone,car; "
+        "--dist headcam takes user objects too (python -m sim.add_object)",
     )
     p.add_argument("--width", type=int, default=None, help="image width (256 paper, 640 headcam)")
     p.add_argument("--height", type=int, default=None, help="image height (256 / 480)")

@@ -7,6 +7,7 @@ photometric only: no flips, since some objects are chiral (the faucet's spout, t
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +28,11 @@ class DetectionSet(torch.utils.data.Dataset):
     An item is ``(image, target)`` already scaled to the model's input size as the model's own
     transform would (`input_transform`), so that the work happens in the loading process:
     image (3, h, w) float32 in [0, 1], target a dict with ``boxes`` (N, 4) float32 in
-    torchvision's pixel convention, ``labels`` (N,) int64 BOP object ids and ``masks``
-    (N, h, w) uint8. Instances with fewer than `min_visible_px` visible pixels (at full
-    resolution) are left out (N may be 0: a negative image).
+    torchvision's pixel convention, ``labels`` (N,) int64, the objects' places in
+    `DetectorConfig.classes` counted from 1 (for the built-in objects their BOP object ids), and
+    ``masks`` (N, h, w) uint8. Instances with fewer than `min_visible_px` visible pixels (at full
+    resolution), and objects not among the classes, are left out (N may be 0: a negative
+    image).
     """
 
     def __init__(
@@ -43,6 +46,7 @@ class DetectionSet(torch.utils.data.Dataset):
         self.data = PoseDataset(root, split)
         self.n = len(self.data) if limit is None else min(limit, len(self.data))
         self.min_visible_px = min_visible_px
+        self.classes = cfg.classes
         self.transform = input_transform(cfg)
 
     def __len__(self) -> int:
@@ -50,13 +54,19 @@ class DetectionSet(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         s = self.data[i]
-        keep = [o for o in s.objects if int(o.mask_visib.sum()) >= self.min_visible_px]
+        keep = [
+            o
+            for o in s.objects
+            if o.name in self.classes and int(o.mask_visib.sum()) >= self.min_visible_px
+        ]
         h, w = s.rgb.shape[:2]
         boxes = np.array([to_model_box(box_xyxy(o.mask_visib)) for o in keep]).reshape(-1, 4)
         masks = np.array([o.mask_visib for o in keep], np.uint8).reshape(-1, h, w)
         target = {
             "boxes": torch.from_numpy(boxes).float(),
-            "labels": torch.tensor([o.obj_id for o in keep], dtype=torch.int64),
+            "labels": torch.tensor(
+                [self.classes.index(o.name) + 1 for o in keep], dtype=torch.int64
+            ),
             "masks": torch.from_numpy(masks),
         }
         return self.transform.resize(image_tensor(s.rgb), target)
@@ -119,8 +129,17 @@ def start_from(model: torch.nn.Module, path: Path, cfg: DetectorConfig) -> None:
         AssetError: the file is missing or corrupt, or holds another architecture.
     """
     parent, parent_cfg, _ = load_detector_model(Path(path), verify=False)
-    if parent_cfg != cfg:
+    n = len(parent_cfg.classes)
+    same = replace(cfg, classes=cfg.classes[:n], n_classes=1 + n)
+    if parent_cfg != same or cfg.classes[:n] != parent_cfg.classes:
         raise AssetError(f"{path} holds another detector architecture than this run's")
-    model.load_state_dict(
-        {k: v.float() if v.is_floating_point() else v for k, v in parent.state_dict().items()}
-    )
+    state = model.state_dict()
+    for k, v in parent.state_dict().items():
+        v = v.float() if v.is_floating_point() else v
+        if v.shape != state[k].shape:  # a class head widened for new classes: its first rows
+            rows = v.shape[0]
+            v = torch.cat([v, state[k][rows:]]) if v.shape[1:] == state[k].shape[1:] else None
+            if v is None:
+                raise AssetError(f"{path}: {k} does not fit this run's detector")
+        state[k] = v
+    model.load_state_dict(state)

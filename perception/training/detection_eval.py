@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import contextlib
 import io
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from perception.detector import Detection, Detector, to_model_box
+from perception.training.bop import obj_name
 from perception.training.dataset import PoseDataset, Sample
 from posegrasp.core.errors import AssetError
 from posegrasp.world.objects import OBJECT_NAMES
@@ -37,6 +39,7 @@ def coco_ap(
     dets: list[list[Detection]],
     min_visible_px: int,
     per_class: dict[str, dict[str, float]] | None = None,
+    classes: Sequence[str] = OBJECT_NAMES,
 ) -> dict[str, float]:
     """COCO box and mask AP of detections against ground truth, by pycocotools' COCOeval.
 
@@ -48,6 +51,8 @@ def coco_ap(
         min_visible_px: see gts.
         per_class: when given, filled with class name -> ``box_ap``, ``box_ap50``, ``mask_ap``,
             ``mask_ap50`` of that class alone.
+        classes: the categories (the detector's classes); ground truth of other objects is
+            left out.
 
     Returns:
         ``box_ap50``, ``box_ap`` (IoU 0.5:0.95), ``mask_ap50``, ``mask_ap`` in [0, 1]; 0 when
@@ -63,13 +68,15 @@ def coco_ap(
         h, w = gt[0][1].shape if gt else (dd[0].mask.shape if dd else (1, 1))
         images.append({"id": i, "height": int(h), "width": int(w)})
         for oid, m in gt:
+            if (name := obj_name(int(oid))) not in classes:
+                continue
             r = rle(m)
             area = int(m.sum())
             anns.append(
                 {
                     "id": len(anns) + 1,
                     "image_id": i,
-                    "category_id": int(oid),
+                    "category_id": classes.index(name) + 1,
                     "segmentation": r,
                     "area": float(area),
                     "bbox": mask_utils.toBbox(r).tolist(),
@@ -78,10 +85,10 @@ def coco_ap(
             )
         for d in dd:
             x0, y0, x1, y1 = to_model_box(d.box_xyxy)
-            common = {"image_id": i, "category_id": d.obj_id, "score": d.score}
+            common = {"image_id": i, "category_id": classes.index(d.name) + 1, "score": d.score}
             box_res.append({**common, "bbox": [x0, y0, x1 - x0, y1 - y0]})
             seg_res.append({**common, "segmentation": rle(d.mask)})
-    cats = [{"id": k + 1, "name": n} for k, n in enumerate(OBJECT_NAMES)]
+    cats = [{"id": k + 1, "name": n} for k, n in enumerate(classes)]
     out: dict[str, float] = {}
     with contextlib.redirect_stdout(io.StringIO()):  # pycocotools prints progress
         gt_api = COCO()
@@ -98,13 +105,13 @@ def coco_ap(
             out[f"{kind}_ap"] = float(ev.stats[0])
             out[f"{kind}_ap50"] = float(ev.stats[1])
             if per_class is not None:
-                for name, (ap, ap50) in _per_class_ap(ev).items():
+                for name, (ap, ap50) in _per_class_ap(ev, classes).items():
                     per_class.setdefault(name, {})[f"{kind}_ap"] = ap
                     per_class[name][f"{kind}_ap50"] = ap50
     return out
 
 
-def _per_class_ap(ev: Any) -> dict[str, tuple[float, float]]:
+def _per_class_ap(ev: Any, classes: Sequence[str]) -> dict[str, tuple[float, float]]:
     """(AP at IoU 0.5:0.95, AP50) per class from an accumulated COCOeval: the mean of its
     precision table over IoU thresholds and recall points, all areas, at most 100 detections;
     -1 for a class without ground truth (pycocotools' convention)."""
@@ -115,7 +122,7 @@ def _per_class_ap(ev: Any) -> dict[str, tuple[float, float]]:
         valid = pk > -1
         ap = float(pk[valid].mean()) if valid.any() else -1.0
         p50 = pk[0][pk[0] > -1]
-        out[OBJECT_NAMES[cat - 1]] = (ap, float(p50.mean()) if p50.size else -1.0)
+        out[classes[cat - 1]] = (ap, float(p50.mean()) if p50.size else -1.0)
     return out
 
 
@@ -134,4 +141,5 @@ def evaluate_detector(
         s = data[i]
         gts.append(visible_objects(s))
         dets.append(detector.detect(s.rgb))
-    return coco_ap(gts, dets, min_visible_px) | {"images": len(gts)}
+    classes = detector.cfg.classes
+    return coco_ap(gts, dets, min_visible_px, classes=classes) | {"images": len(gts)}

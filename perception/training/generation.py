@@ -116,6 +116,12 @@ class GenConfig:
 # --- the run ---------------------------------------------------------------------------------
 
 
+def _classes(cfg: GenConfig) -> list[str]:
+    """The objects a split's images may show: the six built-in ones (the distractors) and the
+    user objects it takes as targets."""
+    return [*OBJECT_NAMES, *(o for o in cfg.objects if o not in OBJECT_NAMES)]
+
+
 def _check_info(cfg: GenConfig) -> dict[str, Any]:
     """info.json of the dataset folder updated for this run; errors if arguments conflict."""
     path = cfg.out / "info.json"
@@ -149,7 +155,7 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
             "width": cfg.width,
             "height": cfg.height,
             "images_per_scene": bop.IMAGES_PER_SCENE,
-            "objects": {str(bop.obj_id(n)): n for n in OBJECT_NAMES},
+            "objects": {str(bop.obj_id(n)): n for n in _classes(cfg)},
             "units": (
                 "BOP files (scene_gt cam_t_m2c, scene_camera cam_t_w2c, models) in millimetres; "
                 "scene_posegrasp.json and records in metres; pixels with (0, 0) the centre of "
@@ -222,7 +228,7 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
     started = time.monotonic()
     cfg.out.mkdir(parents=True, exist_ok=True)
     info = _check_info(cfg)
-    write_models(cfg.out)
+    write_models(cfg.out, _classes(cfg))
     _write_info(cfg, info, max(cfg.count, info["splits"].get(cfg.split, {}).get("count", 0)))
     todo = [i for i in range(cfg.count) if not _done(cfg, i)]
     groups: dict[int, list[int]] = {}  # the samples still to render per generator scene

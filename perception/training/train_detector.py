@@ -72,6 +72,7 @@ from posegrasp.core.validate import (
     check_output_dir,
     check_seed,
 )
+from posegrasp.world.objects import check_objects
 
 CHECKPOINT_NAME = "detector.pt"
 
@@ -530,6 +531,7 @@ def main(argv: list[str] | None = None) -> int:
             threads=args.threads or SMOKE.threads,
             device=args.device,
             loss_log=args.loss_log,
+            init=args.init,
         )
     else:
         cfg = DetectorTrainConfig(
@@ -548,6 +550,8 @@ def main(argv: list[str] | None = None) -> int:
             init=args.init,
             also=tuple(args.also.split(",")) if args.also else (),
         )
+    if args.objects:
+        cfg = replace(cfg, detector=cfg.detector.widened(args.objects))
     result = train(cfg, resume=not args.no_resume, max_steps=args.max_steps)
     if result["history"]:
         print(json.dumps(result["history"][-1], sort_keys=True))
@@ -575,6 +579,14 @@ def _parser() -> ArgumentParser:
         help=f"more train data: a comma list of dataset folders, of: {', '.join(DATASETS)}",
     )
     p.add_argument("--init", type=Path, help="start from these detector weights (fine-tune)")
+    p.add_argument(
+        "--objects",
+        type=arg(check_objects, "--objects"),
+        default=None,
+        metavar="LIST",
+        help="user objects to detect besides the six built-in ones (comma list; with --init, "
+        "the class heads of those weights are widened for them)",
+    )
     add_schedule_arguments(p, d.epochs, d.batch, d.lr, "the train split", " of images")
     p.add_argument(
         "--limit",
