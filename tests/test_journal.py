@@ -91,6 +91,23 @@ def test_a_resumed_map_runs_only_the_rest(tmp_path: Path) -> None:
     assert resumed == full and calls == [2, 3, 5]
 
 
+def test_a_run_that_fails_before_anything_finished_leaves_no_journal(tmp_path: Path) -> None:
+    """An error before the first result (an unreachable cluster, say) leaves nothing to resume,
+    so the same command can run again; one after it keeps what finished."""
+
+    def failing_jobs(after: int):
+        yield from range(after)
+        raise InvalidArgumentError("cannot reach the cluster")
+
+    path = tmp_path / "j.jsonl"
+    with pytest.raises(InvalidArgumentError):
+        run_journaled(_square, failing_jobs(0), 3, Journal(path, "square", PROTOCOL))
+    assert not path.exists()
+    with pytest.raises(InvalidArgumentError):
+        run_journaled(_square, failing_jobs(2), 3, Journal(path, "square", PROTOCOL))
+    assert path.exists()
+
+
 def test_an_interrupt_inside_a_journaled_map_names_the_resume(tmp_path: Path) -> None:
     def stop(x: int) -> dict:
         if x == 2:

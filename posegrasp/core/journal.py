@@ -218,6 +218,8 @@ def run_journaled(
 
     Raises:
         Interrupted: Ctrl-C or SIGTERM; with a journal, its message is the line that resumes.
+        Any error of the run itself (an unreachable cluster ...); a journal that holds no
+        finished result then is removed, so the same command can simply be run again.
     """
     from posegrasp.core.backends import by_import_name, run_map
 
@@ -245,6 +247,10 @@ def run_journaled(
             raise
         hint = resume_hint(journal.path, len(results), total)
         raise Interrupted(hint, journal.path, len(results), total) from exc
+    except BaseException:
+        if journal and not results:  # failed before anything finished: nothing to resume
+            journal.finish()
+        raise
     finally:
         if journal:
             journal.close()
