@@ -4,15 +4,16 @@ on the CSV's poses, and check that the route changes nothing.
     python bench/bop_round_trip.py [--tier isolated] [--objects all] [--episodes 20] \
         [--workers N] [--out out/bop_round_trip] [--json PATH]
 
-Writes `python -m sim.export_bop` of the episodes to ``--out``/export and two CSVs from the
-export's own ground truth: ``truth.csv`` (the true poses) and ``turned.csv`` (each target turned
+Writes `python -m sim.export_bop` of the episodes to ``--out``/<tier>/export and two CSVs from
+the export's own ground truth: ``truth.csv`` (the true poses) and ``turned.csv`` (each target turned
 by exactly `TURN_DEG` out of the image plane, about a seeded random direction: the draw of
 `noisy-oracle` with fixed errors, `sim.pose_noise.PoseNoise(mode="fixed")`). Then it grasps
 four times on the same scenes: on ``truth.csv`` and with ``oracle``, on ``turned.csv`` and with
 that ``noisy-oracle``, and pairs each CSV run with its estimator episode by episode
 (`sim.compare`). The CSVs print R with 9 decimals and t in mm with 6, as BOP results do. Every
-report is kept in ``--out``; the table gives success, Wilson 95 % intervals, AR_MSSD and AR_MSPD,
-the paired comparison and how many episodes had the same outcome.
+report is kept in ``--out``/<tier> (each tier its own folder); the table gives success, Wilson
+95 % intervals, AR_MSSD and AR_MSPD, the paired comparison and how many episodes had the same
+outcome.
 """
 
 from __future__ import annotations
@@ -121,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     setup_rendering()
     from sim.bop_results import BopPosesEstimator
 
-    out, log = args.out, summary_stream(args.json)
+    out, log = args.out / args.tier, summary_stream(args.json)
     root = out / "export"
     export_bop(root, args.objects, args.episodes, EVAL_SEED_BASE, args.tier)
     csvs = {"truth": out / "truth.csv", "turned": out / "turned.csv"}
