@@ -209,11 +209,19 @@ def _generator_key(name: str) -> str:
     return h.hexdigest()[:16]
 
 
-@functools.cache
+_GENERATED: dict[str, tuple[GraspCandidate, ...]] = {}
+
+
 def generated_candidates(name: str, progress: bool = False) -> tuple[GraspCandidate, ...]:
     """A built-in object's candidates made by the generator of user objects, for every graspable
-    resting pose (about half a minute per object the first time; then read from the data
-    folder)."""
+    resting pose (about half a minute per object the first time, with a progress bar when
+    `progress`; then read from the data folder), kept in memory by name."""
+    if name not in _GENERATED:
+        _GENERATED[name] = _read_or_make(name, progress)
+    return _GENERATED[name]
+
+
+def _read_or_make(name: str, progress: bool) -> tuple[GraspCandidate, ...]:
     path = data_root() / "candidates" / f"{name}_{_generator_key(name)}.json"
     try:
         rows = json.loads(path.read_text())

@@ -52,21 +52,18 @@ class SilhouetteSource(Protocol):
 
 
 class ConvexParts:
-    """The convex pieces of any object: a built-in object's primitive parts, a user object's
-    collision hulls (`python -m sim.add_object`)."""
+    """The convex pieces of any object (`ObjectModel.convex_pieces`): a built-in object's
+    primitive parts, a user object's collision hulls (`python -m sim.add_object`)."""
 
     def __init__(self) -> None:
         self._cache: dict[str, list[np.ndarray]] = {}
 
     def pieces(self, name: str) -> list[np.ndarray]:
         if name not in self._cache:
-            model = load_object(name)
-            meshes = (
-                model.geometry.hulls
-                if model.geometry is not None
-                else [p.mesh() for p in model.parts]
-            )
-            self._cache[name] = [np.unique(np.asarray(m.vertices), axis=0) for m in meshes]
+            self._cache[name] = [
+                np.unique(np.asarray(m.vertices), axis=0)
+                for m, _ in load_object(name).convex_pieces()
+            ]
         return self._cache[name]
 
 

@@ -186,14 +186,11 @@ class GlobalPoseEstimator:
         return cls(HybridPoseEstimator.from_weights(), config)
 
     def colours(self, name: str) -> np.ndarray:
-        """RGB of each convex part of `name`, (parts, 3) in [0, 1]."""
+        """RGB of each convex piece of `name` (`ObjectModel.convex_pieces`, the source's order),
+        (pieces, 3) in [0, 1]."""
         if name not in self._colours:
-            obj = load_object(name)
-            if obj.geometry is not None:  # one colour over every hull
-                rgb = [obj.geometry.rgba[:3]] * len(obj.geometry.hulls)
-            else:
-                rgb = [p.rgba[:3] for p in obj.parts]
-            self._colours[name] = np.array(rgb)
+            pieces = load_object(name).convex_pieces()
+            self._colours[name] = np.array([rgba[:3] for _, rgba in pieces])
         return self._colours[name]
 
     def verify(

@@ -99,7 +99,7 @@ def test_generated_candidates_of_a_built_in_object(tmp_path, monkeypatch) -> Non
     from grasping import candidates as gc
 
     monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path))
-    gc.generated_candidates.cache_clear()
+    monkeypatch.setattr(gc, "_GENERATED", {})
     made = grasp_candidates("phone", "generated")
     obj = load_object("phone")
     graspable = set(obj.resting_poses) - set(obj.ungraspable)
@@ -107,7 +107,7 @@ def test_generated_candidates_of_a_built_in_object(tmp_path, monkeypatch) -> Non
     assert all(c.part == gc.GENERATED_PART and c.table_margin is not None for c in made)
     kept = list((tmp_path / "candidates").glob("phone_*.json"))
     assert len(kept) == 1
-    gc.generated_candidates.cache_clear()
+    gc._GENERATED.clear()
     again = grasp_candidates("phone", "generated")  # read back, not made again
     assert [c.T_O_G.tolist() for c in again] == [c.T_O_G.tolist() for c in made]
     # The designed ones stay the default.

@@ -207,6 +207,14 @@ class ObjectModel:
             return self.geometry.visual
         return trimesh.util.concatenate([p.mesh() for p in self.parts])
 
+    def convex_pieces(self) -> list[tuple[trimesh.Trimesh, np.ndarray]]:
+        """The object as convex pieces in O [m], each with its RGBA (4,): a built-in object's
+        primitive parts, a user object's collision hulls in the object's colour."""
+        if self.geometry is not None:
+            rgba = np.asarray(self.geometry.rgba, float)
+            return [(h, rgba) for h in self.geometry.hulls]
+        return [(p.mesh(), np.asarray(p.rgba, float)) for p in self.parts]
+
     @property
     def extents(self) -> np.ndarray:
         """Bounding-box size along x, y, z of O [m], shape (3,)."""
