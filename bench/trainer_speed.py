@@ -1,7 +1,8 @@
-"""Training speed of the pose nets on this machine: samples/s of PoseNet training steps.
+"""Training speed of the nets on this machine: samples/s of PoseNet and detector training steps.
 
-    python bench/trainer_speed.py [--threads 2] [--seconds 8] [--rounds 2]
-                                  [--batches 32,64,128,256] [--data DIR] [--cut-images 300]
+    python bench/trainer_speed.py [--nets posenet,detector] [--threads 2] [--seconds 8]
+                                  [--rounds 2] [--batches 32,64,128,256]
+                                  [--detector-batches 2,4,8] [--data DIR] [--cut-images 300]
                                   [--json PATH]
 
 Model step: for the ours and the paper variant (the shipped width), times the trainer's own
@@ -23,6 +24,12 @@ written) from the first ``--cut-images`` rendered images of a dataset there; if 
 rendered images either, it says so. The data path's share of each step (medians of both parts)
 is reported alongside.
 
+Detector: the detector trainer's step (`perception.training.train_detector.detection_loss`, then
+the same optimiser step) on real head-camera images and their targets
+(`perception.training.detection_data.DetectionSet`, the first rendered split found under the data
+root, photometric augmentation as in training), starting from the shipped detector weights, at each
+of ``--detector-batches`` in the same four arithmetics; images/s.
+
 One process; torch threads 2 unless told otherwise. ``--json PATH`` writes the figures.
 """
 
@@ -38,12 +45,15 @@ from typing import Any
 import numpy as np
 import torch
 
+from perception.detector_net import build_detector
 from perception.nets import CROP, PoseNet
 from perception.training.crop_sets import CropConfig, CropSet, random_boxes
 from perception.training.dataset import DATASETS, PoseDataset
 from perception.training.ddp import ONE_PROCESS
+from perception.training.detection_data import DetectionSet, augment_shard, start_from
 from perception.training.loop import MAX_BATCH
 from perception.training.schedule import optimiser_step
+from perception.training.train_detector import DetectorTrainConfig, detection_loss
 from perception.training.train_posenet import (
     BATCH_KEYS,
     GRAD_CLIP,
@@ -61,7 +71,7 @@ from posegrasp.core.cli import (
     write_json,
 )
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.core.paths import data_root
+from posegrasp.core.paths import WEIGHTS_DIR, data_root
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int
 
@@ -74,6 +84,10 @@ MODES = {
 }
 VARIANTS = ("ours", "paper")
 BATCHES = (32, 64, 128, 256)
+DETECTOR_BATCHES = (2, 4, 8)
+#: Images held for the detector's steps (the batches cycle through them).
+DETECTOR_IMAGES = 24
+NETS = ("posenet", "detector")
 #: Untimed steps before each configuration's timing.
 WARMUP_STEPS = 3
 #: The end-to-end batch: the shipped "ours" stages'.
@@ -218,6 +232,52 @@ def real_crops(root: Path, cut_images: int) -> tuple[dict | None, str]:
     return None, f"no crop cache and no rendered images under {root}: end to end not measured"
 
 
+def detector_images(root: Path, n: int) -> tuple[list | None, str]:
+    """The first `n` (image, target) pairs of the first head-camera split rendered under `root`,
+    as the detector trainer loads them, and where they come from (None and why not, if none)."""
+    cfg = DetectorTrainConfig()
+    for split in ("train", "val", "test"):
+        for name in DATASETS:
+            if name == "paper" or not (root / name / split).is_dir():
+                continue
+            ds = DetectionSet(root / name, split, cfg.min_visible_px, cfg.detector)
+            if len(ds) == 0:
+                continue
+            items = [ds[i] for i in range(min(n, len(ds)))]
+            return items, f"the first {len(items)} images of {name}/{split} under {root}"
+    return None, f"no rendered head-camera images under {root}: the detector is not measured"
+
+
+def time_detector_step(cfg: DetectorTrainConfig, items: list, seconds: float) -> dict:
+    """Images/s of the detector trainer's step under `cfg` on `items` (cycled through in
+    batches), from the shipped weights: the batch over the median step time, and the mean's."""
+    torch.manual_seed(0)
+    model = build_detector(cfg.detector)
+    start_from(model, WEIGHTS_DIR / "detector.pt", cfg.detector)
+    if cfg.channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    model.train()
+    opt = torch.optim.AdamW(model.parameters(), lr=LR, weight_decay=cfg.weight_decay)
+    g = torch.Generator().manual_seed(0)
+    done = 0
+
+    def step() -> None:
+        nonlocal done
+        batch = [items[(done * cfg.batch + j) % len(items)] for j in range(cfg.batch)]
+        images = augment_shard([image for image, _ in batch], g, ONE_PROCESS)
+        loss, _ = detection_loss(cfg, model, images, [t for _, t in batch], ONE_PROCESS.device)
+        optimiser_step(model, opt, loss, LR, cfg.grad_clip)
+        done += 1
+
+    times = _timed(step, seconds)
+    return {
+        "samples_per_s": cfg.batch / float(np.median(times)),
+        "samples_per_s_mean": cfg.batch / float(np.mean(times)),
+        "steps": len(times),
+        "load_average_1min": os.getloadavg()[0],
+    }
+
+
 def _in_rounds(configs: dict, timing, rounds: int) -> list[tuple[Any, dict[str, float]]]:
     """``timing(cfg)`` of every configuration in each of `rounds` rounds over all of them, and of
     each the round with the most samples/s: a burst of other processes on a shared machine then
@@ -232,67 +292,39 @@ def _in_rounds(configs: dict, timing, rounds: int) -> list[tuple[Any, dict[str, 
     return list(best.items())
 
 
-def _table(rows: dict[str, dict[str, dict[str, float]]], batches: list[int], log) -> None:
-    """Print samples/s: one line per variant and arithmetic, one column per batch."""
-    head = f"{'variant':8}{'arithmetic':20}" + "".join(f"{f'batch {b}':>11}" for b in batches)
+def _table(
+    rows: dict[str, dict[str, dict[str, float]]], batches: list[int], log, digits: int = 0
+) -> None:
+    """Print samples/s with `digits` decimals: one line per net and arithmetic, one column per
+    batch."""
+    head = f"{'net':10}{'arithmetic':20}" + "".join(f"{f'batch {b}':>11}" for b in batches)
     print(head, file=log)
     for key, per_batch in rows.items():
-        variant, mode = key.split("/")
-        cells = "".join(f"{per_batch[str(b)]['samples_per_s']:>11.0f}" for b in batches)
-        print(f"{variant:8}{mode:20}{cells}", file=log)
+        net, mode = key.split("/")
+        cells = "".join(f"{per_batch[str(b)]['samples_per_s']:>11.{digits}f}" for b in batches)
+        print(f"{net:10}{mode:20}{cells}", file=log)
 
 
-def _batches(text: str) -> list[int]:
-    """``--batches``: a comma list of batches, each 1..`MAX_BATCH`."""
+def _batches(text: str, name: str = "--batches") -> list[int]:
+    """`name`: a comma list of batches, each 1..`MAX_BATCH`."""
     try:
-        return [check_int(int(b), 1, MAX_BATCH, "--batches") for b in text.split(",")]
+        return [check_int(int(b), 1, MAX_BATCH, name) for b in text.split(",")]
     except ValueError:
         raise InvalidArgumentError(
-            f"invalid --batches {text!r}; valid: a comma list of integers 1..{MAX_BATCH}"
+            f"invalid {name} {text!r}; valid: a comma list of integers 1..{MAX_BATCH}"
         ) from None
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/trainer_speed.py", description=__doc__.split("\n")[0])
-    add_threads_argument(p)
-    p.add_argument(
-        "--seconds",
-        type=arg(check_int, 1, 600, "--seconds", base=int),
-        default=8,
-        help="timed seconds per configuration over all rounds, 1..600 (default 8)",
-    )
-    p.add_argument(
-        "--batches",
-        type=arg(_batches),
-        default=list(BATCHES),
-        help=f"comma list of batches (default {','.join(map(str, BATCHES))})",
-    )
-    p.add_argument(
-        "--data",
-        type=Path,
-        default=None,
-        help="data root of the end-to-end crops (default: the data root)",
-    )
-    p.add_argument(
-        "--cut-images",
-        type=arg(check_int, 1, 100_000, "--cut-images", base=int),
-        default=300,
-        help="without a crop cache: images to cut the end-to-end crops from (default 300)",
-    )
-    p.add_argument(
-        "--rounds",
-        type=arg(check_int, 1, 10, "--rounds", base=int),
-        default=2,
-        help="rounds over all configurations, each timing them for --seconds / --rounds; the "
-        "fastest round counts (default 2)",
-    )
-    add_json_argument(p, "the figures")
-    args = p.parse_args(argv)
-    setup_rendering()
-    torch.set_num_threads(args.threads)
-    log = summary_stream(args.json)
+def _nets(text: str) -> list[str]:
+    """``--nets``: a comma list of `NETS`."""
+    nets = [n for n in text.split(",") if n]
+    if not nets or any(n not in NETS for n in nets):
+        raise InvalidArgumentError(f"invalid --nets {text!r}; a comma list of: {', '.join(NETS)}")
+    return nets
+
+
+def _posenet(args, log) -> dict:
+    """The PoseNet figures: every variant, arithmetic and batch, then end to end."""
     print(
         f"PoseNet training steps, {args.threads} threads, {args.seconds} s per configuration, "
         f"load average {os.getloadavg()[0]:.1f}; samples/s of the model step",
@@ -329,18 +361,96 @@ def main(argv: list[str] | None = None) -> int:
                 f"({r['data_share']:.0%})",
                 file=log,
             )
-    if args.json is not None:
-        write_json(
-            args.json,
-            {
-                "threads": args.threads,
-                "seconds": args.seconds,
-                "rounds": args.rounds,
-                "load_average_1min": os.getloadavg()[0],
-                "model_step": rows,
-                "end_to_end": {"source": source, "batch": E2E_BATCH, "modes": e2e},
-            },
+    return {
+        "model_step": rows,
+        "end_to_end": {"source": source, "batch": E2E_BATCH, "modes": e2e},
+    }
+
+
+def _detector(args, log) -> dict:
+    """The detector figures: every arithmetic and batch on real images."""
+    items, source = detector_images(args.data or data_root(), DETECTOR_IMAGES)
+    print(f"detector training steps, images/s: {source}", file=log)
+    rows: dict[str, dict[str, dict[str, float]]] = {}
+    if items is not None:
+        configs = {
+            (f"detector/{mode}", str(b)): DetectorTrainConfig(
+                batch=b, precision=precision, channels_last=channels_last
+            )
+            for mode, (precision, channels_last) in MODES.items()
+            for b in args.detector_batches
+        }
+        per_round = args.seconds / args.rounds
+        timed = _in_rounds(
+            configs, lambda cfg: time_detector_step(cfg, items, per_round), args.rounds
         )
+        for key, r in timed:
+            rows.setdefault(key[0], {})[key[1]] = r
+        _table(rows, args.detector_batches, log, digits=1)
+    return {"source": source, "step": rows}
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/trainer_speed.py", description=__doc__.split("\n")[0])
+    p.add_argument(
+        "--nets",
+        type=arg(_nets),
+        default=list(NETS),
+        help=f"comma list of the nets to time, of: {', '.join(NETS)} (default both)",
+    )
+    add_threads_argument(p)
+    p.add_argument(
+        "--seconds",
+        type=arg(check_int, 1, 600, "--seconds", base=int),
+        default=8,
+        help="timed seconds per configuration over all rounds, 1..600 (default 8)",
+    )
+    p.add_argument(
+        "--batches",
+        type=arg(_batches),
+        default=list(BATCHES),
+        help=f"PoseNet: comma list of batches (default {','.join(map(str, BATCHES))})",
+    )
+    p.add_argument(
+        "--detector-batches",
+        type=arg(_batches, "--detector-batches"),
+        default=list(DETECTOR_BATCHES),
+        help="detector: comma list of batches of images "
+        f"(default {','.join(map(str, DETECTOR_BATCHES))})",
+    )
+    p.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="data root of the real crops and images (default: the data root)",
+    )
+    p.add_argument(
+        "--cut-images",
+        type=arg(check_int, 1, 100_000, "--cut-images", base=int),
+        default=300,
+        help="without a crop cache: images to cut the end-to-end crops from (default 300)",
+    )
+    p.add_argument(
+        "--rounds",
+        type=arg(check_int, 1, 10, "--rounds", base=int),
+        default=2,
+        help="rounds over all configurations, each timing them for --seconds / --rounds; the "
+        "fastest round counts (default 2)",
+    )
+    add_json_argument(p, "the figures")
+    args = p.parse_args(argv)
+    setup_rendering()
+    torch.set_num_threads(args.threads)
+    log = summary_stream(args.json)
+    out: dict[str, Any] = {"threads": args.threads, "seconds": args.seconds, "rounds": args.rounds}
+    if "posenet" in args.nets:
+        out |= _posenet(args, log)
+    if "detector" in args.nets:
+        out["detector"] = _detector(args, log)
+    if args.json is not None:
+        write_json(args.json, out | {"load_average_1min": os.getloadavg()[0]})
     return 0
 
 

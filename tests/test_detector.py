@@ -318,3 +318,40 @@ def test_mixed_data_and_fine_tuning_start(
             Path(result["checkpoint"]),
             DetectorConfig(fpn_channels=32),
         )
+
+
+def test_bf16_and_channels_last_training_follows_fp32_and_is_recorded(
+    tiny_headcam: Path, tmp_path: Path
+) -> None:
+    first = {}
+    for precision, channels_last in (("fp32", False), ("bf16", True)):
+        name = f"{precision}_{channels_last}"
+        log = tmp_path / f"{name}.jsonl"
+        cfg = replace(SMOKE, data=tiny_headcam, out=tmp_path / name, loss_log=log)
+        result = train(replace(cfg, precision=precision, channels_last=channels_last))
+        entry = export_detector(Path(result["checkpoint"]), tmp_path / f"w_{name}")
+        assert entry["train_config"]["precision"] == precision
+        assert ("--precision bf16" in entry["command"]) is (precision == "bf16")
+        assert ("--channels-last" in entry["command"]) is channels_last
+        ckpt = torch.load(result["checkpoint"], weights_only=False)
+        assert all(v.dtype == torch.float32 for v in ckpt["model"].values() if v.is_floating_point())
+        first[name] = json.loads(log.read_text().splitlines()[0])["loss"]
+    # Same weights and batch: bf16 rounds the forward pass (8 bits of mantissa) and no more.
+    assert first["bf16_True"] == pytest.approx(first["fp32_False"], rel=5e-2)
+
+
+def test_the_detector_loss_under_bf16_is_fp32_with_fp32_gradients(tiny_headcam: Path) -> None:
+    from perception.training.detection_data import DetectionSet
+    from perception.training.train_detector import detection_loss
+
+    cfg = replace(SMOKE, precision="bf16", channels_last=True)
+    model = build_detector(cfg.detector).to(memory_format=torch.channels_last).train()
+    items = [DetectionSet(tiny_headcam, "train", 100, cfg.detector)[i] for i in range(2)]
+    loss, parts = detection_loss(
+        cfg, model, [x for x, _ in items], [t for _, t in items], torch.device("cpu")
+    )
+    assert loss.dtype == torch.float32 and torch.isfinite(loss)
+    assert set(parts) >= {"loss_classifier", "loss_box_reg", "loss_mask"}
+    loss.backward()
+    grads = [p.grad for p in model.parameters() if p.requires_grad and p.grad is not None]
+    assert grads and all(g.dtype == torch.float32 for g in grads)

@@ -27,6 +27,8 @@ TRAIN_COMMAND = "python -m perception.training.train_detector"
 def _command(tc: dict[str, Any]) -> str:
     """The training command of a run's train config (the options it changed)."""
     parts = [TRAIN_COMMAND]
+    if tc.get("data"):
+        parts.append(f"--data {tc['data']}")
     if tc.get("also"):
         parts.append(f"--also {','.join(tc['also'])}")
     if tc.get("init"):
@@ -34,8 +36,14 @@ def _command(tc: dict[str, Any]) -> str:
     if tc.get("limit"):
         parts.append(f"--limit {tc['limit']}")
     parts.append(f"--epochs {tc['epochs']}")
+    if tc.get("batch") not in (None, 4):
+        parts.append(f"--batch {tc['batch']}")
     if tc.get("lr") not in (None, 1e-3):
         parts.append(f"--lr {tc['lr']:g}")
+    if tc.get("precision", "fp32") != "fp32":
+        parts.append(f"--precision {tc['precision']}")
+    if tc.get("channels_last"):
+        parts.append("--channels-last")
     return " ".join([*parts, "--export"])
 
 

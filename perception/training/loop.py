@@ -1,12 +1,16 @@
 """What the loops of both trainers share: when a run writes its checkpoint, the wall time it has
-taken over all its resumptions, and the checks of their common command-line values."""
+taken over all its resumptions, the arithmetic of their forward passes, and the checks of their
+common command-line values."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable
 from typing import Any
+
+import torch
 
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.validate import arg, check_choice, check_int
@@ -18,6 +22,15 @@ MAX_BATCH = 65_536
 MAX_LIMIT = 100_000_000
 #: Largest peak learning rate a command line accepts.
 MAX_LR = 1.0
+#: Arithmetic of the training forward passes (``--precision``): fp32, or bf16 autocast.
+PRECISIONS = ("fp32", "bf16")
+
+
+def autocast(precision: str, device: torch.device) -> contextlib.AbstractContextManager[Any]:
+    """bfloat16 autocast on `device` for a bf16 run; nothing for fp32."""
+    if precision == "bf16":
+        return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
+    return contextlib.nullcontext()
 
 
 def check_learning_rate(value: Any, name: str = "--lr") -> float:
@@ -71,6 +84,23 @@ def add_compute_arguments(parser, devices: tuple[str, ...], max_threads: int, wh
         type=arg(check_choice, devices, "device"),
         default="auto",
         help=f"one of: {', '.join(devices)}",
+    )
+
+
+def add_arithmetic_arguments(parser, precision: str, laid_out: str) -> None:
+    """Add ``--precision`` (default `precision`) and ``--channels-last`` (`laid_out` in
+    channels-last memory layout), checked while parsing."""
+    parser.add_argument(
+        "--precision",
+        type=arg(check_choice, PRECISIONS, "precision"),
+        default=precision,
+        help=f"arithmetic of the forward passes, one of: {', '.join(PRECISIONS)} (bf16: "
+        f"bfloat16 autocast, the loss in fp32; default {precision})",
+    )
+    parser.add_argument(
+        "--channels-last",
+        action="store_true",
+        help=f"{laid_out} in channels-last memory layout",
     )
 
 

@@ -13,6 +13,7 @@ ships the weights (`perception.training.export_detector`).
     python -m perception.training.train_detector                  # train (resumes when interrupted)
     python -m perception.training.train_detector --export  # finish training, ship the weights
     python -m perception.training.train_detector --smoke --data DIR --out DIR   # seconds, tiny data
+    python -m perception.training.train_detector --precision bf16   # CPU bf16 forward passes
     torchrun --nproc-per-node 2 -m perception.training.train_detector --device cpu   # 2 processes
 
 Under torchrun the run is data-parallel (`perception.training.ddp`): the same global batch, each
@@ -55,9 +56,12 @@ from perception.training.detection_eval import evaluate_detector, pycocotools_ap
 from perception.training.export_detector import TRAIN_COMMAND, export_detector
 from perception.training.loop import (
     MAX_LIMIT,
+    PRECISIONS,
     Checkpointer,
+    add_arithmetic_arguments,
     add_compute_arguments,
     add_schedule_arguments,
+    autocast,
 )
 from perception.training.schedule import learning_rate, optimiser_step
 from posegrasp.core.cli import ArgumentParser, add_out_argument, command
@@ -68,6 +72,7 @@ from posegrasp.core.validate import (
     DEFAULT_WORKERS,
     MAX_WORKERS,
     arg,
+    check_choice,
     check_int,
     check_output_dir,
     check_seed,
@@ -107,6 +112,11 @@ class DetectorTrainConfig:
             run's; validation stays on ``data``'s val split.
         init: shipped detector weights or a detector checkpoint whose weights start the run
             (fine-tuning: fresh optimiser and schedule); None starts from random weights.
+        precision: arithmetic of the training forward passes (`perception.training.loop.
+            PRECISIONS`): "fp32", or "bf16" under `torch.autocast` with bfloat16 (the losses
+            summed in fp32).
+        channels_last: keep the model's weights in channels-last memory layout (and so the
+            feature maps the convolutions make).
     """
 
     data: Path | None = None
@@ -129,8 +139,11 @@ class DetectorTrainConfig:
     loss_log: Path | None = None
     also: tuple[str, ...] = ()
     init: Path | None = None
+    precision: str = "fp32"
+    channels_last: bool = False
 
     def __post_init__(self) -> None:
+        check_choice(self.precision, PRECISIONS, "precision")
         bad = [d for d in self.also if d not in DATASETS]
         if bad or len(set(self.also)) != len(self.also):
             raise InvalidArgumentError(
@@ -288,6 +301,8 @@ def _start_run(
     model = build_detector(cfg.detector)
     if cfg.init is not None:
         start_from(model, cfg.init, cfg.detector)
+    if cfg.channels_last:  # the same parameter objects, so the optimiser below holds them
+        model = model.to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     out = cfg.out or checkpoint_dir()
     out.mkdir(parents=True, exist_ok=True)
@@ -457,8 +472,7 @@ def _train_step(
     """
     images = augment_shard([image for image, _ in batch], run.generator, ranks)
     targets = [{k: v.to(ranks.device) for k, v in t.items()} for _, t in batch]
-    parts = net(images, targets)
-    loss = sum(parts.values())
+    loss, parts = detection_loss(cfg, net, images, targets, ranks.device)
     lr = learning_rate(run.step, run.total_steps, cfg.lr, cfg.warmup)
     optimiser_step(run.model, run.opt, loss, lr, cfg.grad_clip)
     run.step += 1
@@ -466,6 +480,26 @@ def _train_step(
     if cfg.loss_log is not None:
         ranks.log(cfg.loss_log, step=run.step, epoch=epoch + 1, loss=loss_all, lr=lr)
     return parts, loss_all
+
+
+def detection_loss(
+    cfg: DetectorTrainConfig,
+    net: nn.Module,
+    images: list[torch.Tensor],
+    targets: list[dict[str, torch.Tensor]],
+    device: torch.device,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The training loss of a shard of augmented images: the forward pass in the run's precision
+    (with channels-last weights the convolutions lay out their feature maps so too), its parts and
+    their sum in fp32.
+
+    Returns:
+        The loss, and its parts (Mask R-CNN's: objectness, RPN boxes, classes, boxes, masks).
+    """
+    with autocast(cfg.precision, device):
+        parts = net(images, targets)
+    parts = {k: v.float() for k, v in parts.items()}
+    return sum(parts.values()), parts
 
 
 def _validate(
@@ -532,6 +566,8 @@ def main(argv: list[str] | None = None) -> int:
             device=args.device,
             loss_log=args.loss_log,
             init=args.init,
+            precision=args.precision,
+            channels_last=args.channels_last,
         )
     else:
         cfg = DetectorTrainConfig(
@@ -549,6 +585,8 @@ def main(argv: list[str] | None = None) -> int:
             loss_log=args.loss_log,
             init=args.init,
             also=tuple(args.also.split(",")) if args.also else (),
+            precision=args.precision,
+            channels_last=args.channels_last,
         )
     if args.objects:
         cfg = replace(cfg, detector=cfg.detector.widened(args.objects))
@@ -609,6 +647,7 @@ def _parser() -> ArgumentParser:
         f"default {DEFAULT_WORKERS})",
     )
     add_compute_arguments(p, DEVICES, MAX_THREADS, "torch")
+    add_arithmetic_arguments(p, d.precision, "weights (and so the feature maps)")
     p.add_argument(
         "--loss-log", type=Path, default=None, help="append one JSON line per step to this file"
     )

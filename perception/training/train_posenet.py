@@ -17,7 +17,6 @@ global batch, each rank its shard of it, rank 0 validating and writing the check
 
 from __future__ import annotations
 
-import contextlib
 import json
 import sys
 from dataclasses import dataclass, field, replace
@@ -52,9 +51,12 @@ from perception.training.crop_sets import CropConfig, data_seed_ranges, split_cr
 from perception.training.dataset import DATASETS, DISTS, parse_limit
 from perception.training.ddp import DEVICES, MAX_THREADS, Ranks, joined
 from perception.training.loop import (
+    PRECISIONS,
     Checkpointer,
+    add_arithmetic_arguments,
     add_compute_arguments,
     add_schedule_arguments,
+    autocast,
 )
 from perception.training.losses import posenet_loss
 from perception.training.manifest import shipped_stages
@@ -73,8 +75,6 @@ TRAIN_COMMAND = "python -m perception.training.train_posenet"
 LINEAGE_KEYS = ("command", "init_from", "train_config", "epoch", "wall_s", "data_seeds", "commit")
 #: Gradient-norm clip of every step.
 GRAD_CLIP = 5.0
-#: Arithmetic of the training forward passes (``--precision``): fp32, or bf16 autocast.
-PRECISIONS = ("fp32", "bf16")
 
 
 @dataclass(frozen=True)
@@ -416,27 +416,18 @@ def training_loss(
     Returns:
         The loss, and its parts as numbers.
     """
-    with _autocast(cfg, x.device):
+    with autocast(cfg.precision, x.device):
         out = net(x, batch["cls"], batch["scale"])
     out = _fp32(out)
     loss, parts = posenet_loss(
         out, batch["uv_unit"], batch["p"], batch["theta"], cfg.variant, cfg.lam
     )
     if teacher is not None:
-        with torch.no_grad(), _autocast(cfg, x.device):
+        with torch.no_grad(), autocast(cfg.precision, x.device):
             t = teacher(x, batch["cls"], batch["scale"])
         t = _fp32(t)
         loss = loss + posenet_loss(out, t.uv_unit, t.p, t.cs, cfg.variant, cfg.lam)[0]
     return loss, parts
-
-
-def _autocast(
-    cfg: PoseNetTrainConfig, device: torch.device
-) -> contextlib.AbstractContextManager[Any]:
-    """bfloat16 autocast on `device` for a bf16 run; nothing for fp32."""
-    if cfg.precision == "bf16":
-        return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
-    return contextlib.nullcontext()
 
 
 def _fp32(out: PoseOutput) -> PoseOutput:
@@ -636,18 +627,7 @@ def _parser() -> ArgumentParser:
     p.add_argument("--objects", default="", help="train one net on these objects (comma list)")
     p.add_argument("--no-augment", action="store_true", help="no photometric jitter")
     p.add_argument("--constant-lr", action="store_true", help="no learning-rate decay")
-    p.add_argument(
-        "--precision",
-        type=arg(check_choice, PRECISIONS, "precision"),
-        default=d.precision,
-        help=f"arithmetic of the forward passes, one of: {', '.join(PRECISIONS)} (bf16: "
-        f"bfloat16 autocast, the loss in fp32; default {d.precision})",
-    )
-    p.add_argument(
-        "--channels-last",
-        action="store_true",
-        help="weights and input crops in channels-last memory layout",
-    )
+    add_arithmetic_arguments(p, d.precision, "weights and input crops")
     p.add_argument("--smoke", action="store_true", help="a tiny run that takes seconds")
     p.add_argument("--no-resume", action="store_true", help="start over")
     return p
