@@ -334,7 +334,9 @@ def test_bf16_and_channels_last_training_follows_fp32_and_is_recorded(
         assert ("--precision bf16" in entry["command"]) is (precision == "bf16")
         assert ("--channels-last" in entry["command"]) is channels_last
         ckpt = torch.load(result["checkpoint"], weights_only=False)
-        assert all(v.dtype == torch.float32 for v in ckpt["model"].values() if v.is_floating_point())
+        assert all(
+            v.dtype == torch.float32 for v in ckpt["model"].values() if v.is_floating_point()
+        )
         first[name] = json.loads(log.read_text().splitlines()[0])["loss"]
     # Same weights and batch: bf16 rounds the forward pass (8 bits of mantissa) and no more.
     assert first["bf16_True"] == pytest.approx(first["fp32_False"], rel=5e-2)
