@@ -410,12 +410,16 @@ def test_missing_and_corrupt_weights(tmp_path) -> None:
 def test_detector_boxes_evaluation(tiny_data) -> None:
     """End-to-end crops from the shipped detector: matched objects, COCO AP per class."""
     from perception.detector import DEFAULT_WEIGHTS, Detector
-    from perception.training.tables import detector_crops
+    from perception.training.tables import detector_crops, format_detection
 
     detector = Detector.from_weights(DEFAULT_WEIGHTS, score_threshold=0.05)
     data, det = detector_crops(tiny_data / "headcam", detector)
     n_obj = sum(det["objects"].values())
     assert n_obj >= 2 and len(data["crops"]) == n_obj - sum(det["missed"].values())
+    # Each tiny head-camera image names its target; the targets missed are among the missed.
+    assert 1 <= det["targets"] <= det["images"]
+    assert 0 <= det["targets_missed"] <= min(det["targets"], sum(det["missed"].values()))
+    assert "episode targets found" in format_detection(det)
     assert data["crops"].shape[1:] == (64, 64, 3) and data["crops"].dtype == np.uint8
     assert set(det["detection"]) == set(OBJECT_NAMES)
     for a in det["detection"].values():

@@ -110,7 +110,9 @@ def detector_crops(
         objects only), and a detection report: ``detection`` (class name -> COCO ``box_ap``,
         ``box_ap50``, ``mask_ap``, ``mask_ap50`` over every object of the images), ``overall``
         (the same over all classes), ``objects`` and ``missed`` (per class: objects to match and
-        objects without a matching detection).
+        objects without a matching detection), and ``targets`` and ``targets_missed``: of the
+        images whose record names an episode target at least `min_visib` visible, how many, and
+        in how many that target has no matching detection.
     """
     ds = PoseDataset(root, "test")
     n = len(ds) if limit is None else min(limit, len(ds))
@@ -118,6 +120,7 @@ def detector_crops(
     gts, dets = [], []
     objects = dict.fromkeys(OBJECT_NAMES, 0)
     missed = dict.fromkeys(OBJECT_NAMES, 0)
+    targets = targets_missed = 0
     for i in tqdm(range(n), desc=f"detector {root.name}/test", leave=False):
         s = ds[i]
         found = detector.detect(s.rgb)
@@ -127,6 +130,8 @@ def detector_crops(
             if obj.visib_fract < min_visib or obj.T_C_O[2, 3] <= 0:
                 continue
             objects[obj.name] += 1
+            is_target = bool(obj.extra.get("target"))
+            targets += is_target
             cands = [
                 d
                 for d in found
@@ -136,6 +141,7 @@ def detector_crops(
             ]
             if not cands:
                 missed[obj.name] += 1
+                targets_missed += is_target
                 continue
             d = max(cands, key=lambda d: d.score)
             out.add(s.rgb, s.K, obj, square_box(d.box_xyxy, scale=DEFAULT_CROP_SCALE))
@@ -147,6 +153,8 @@ def detector_crops(
         "overall": overall,
         "objects": objects,
         "missed": missed,
+        "targets": targets,
+        "targets_missed": targets_missed,
         "images": n,
     }
 
@@ -270,6 +278,12 @@ def format_detection(det: dict) -> str:
         f"{o['mask_ap50']:>11.3f}{sum(det['objects'].values()):>9}"
         f"{sum(det['missed'].values()):>8}"
     )
+    if det.get("targets"):
+        found = det["targets"] - det["targets_missed"]
+        rows.append(
+            f"episode targets found (IoU >= 0.5): {found} of {det['targets']} "
+            f"({100 * found / det['targets']:.1f} %)"
+        )
     return "\n".join(rows)
 
 
