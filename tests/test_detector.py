@@ -357,3 +357,23 @@ def test_the_detector_loss_under_bf16_is_fp32_with_fp32_gradients(tiny_headcam: 
     loss.backward()
     grads = [p.grad for p in model.parameters() if p.requires_grad and p.grad is not None]
     assert grads and all(g.dtype == torch.float32 for g in grads)
+
+
+def test_a_fine_tuning_stage_keeps_the_stages_of_the_weights_it_replaces(
+    tiny_headcam: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "weights"
+    base = train(replace(SMOKE, data=tiny_headcam, out=tmp_path / "base"))
+    first = export_detector(Path(base["checkpoint"]), out)
+    assert "stages" not in first  # trained from scratch: one stage, the entry itself
+    tuned = train(
+        replace(SMOKE, data=tiny_headcam, out=tmp_path / "tuned", init=out / "detector.pt")
+    )
+    second = export_detector(Path(tuned["checkpoint"]), out)
+    assert [s["command"] for s in second["stages"]] == [first["command"], second["command"]]
+    assert "--init" in second["command"] and second["stages"][0]["wall_s"] == first["wall_s"]
+    again = train(
+        replace(SMOKE, data=tiny_headcam, out=tmp_path / "again", init=out / "detector.pt")
+    )
+    third = export_detector(Path(again["checkpoint"]), out)
+    assert len(third["stages"]) == 3 and third["stages"][:2] == second["stages"]

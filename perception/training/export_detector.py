@@ -47,6 +47,12 @@ def _command(tc: dict[str, Any]) -> str:
     return " ".join([*parts, "--export"])
 
 
+def _stage(entry: dict[str, Any]) -> dict[str, Any]:
+    """What a manifest entry keeps of one training stage."""
+    keys = ("command", "data_seeds", "epochs_done", "wall_s", "validation", "trained_at_commit")
+    return {k: entry.get(k) for k in keys}
+
+
 def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, Any]:
     """Write the shipped weights (float16 state dict, model config) and their manifest entry.
 
@@ -95,6 +101,10 @@ def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, 
     }
     manifest_path = out_dir / MANIFEST_NAME
     manifest = read_manifest(manifest_path)
+    previous = manifest.get("detector")
+    if previous and tc.get("init") and Path(tc["init"]).resolve() == path.resolve():
+        # A stage fine-tuned from the weights it replaces: keep the stages before it.
+        entry["stages"] = [*(previous.get("stages") or [_stage(previous)]), _stage(entry)]
     manifest["detector"] = entry
     write_manifest(manifest_path, manifest)
     return entry
