@@ -359,7 +359,7 @@ def test_the_detector_loss_under_bf16_is_fp32_with_fp32_gradients(tiny_headcam: 
     assert grads and all(g.dtype == torch.float32 for g in grads)
 
 
-def test_a_fine_tuning_stage_keeps_the_stages_of_the_weights_it_replaces(
+def test_a_stage_fine_tuned_from_shipped_weights_keeps_their_stages(
     tiny_headcam: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "weights"
@@ -375,5 +375,11 @@ def test_a_fine_tuning_stage_keeps_the_stages_of_the_weights_it_replaces(
     again = train(
         replace(SMOKE, data=tiny_headcam, out=tmp_path / "again", init=out / "detector.pt")
     )
-    third = export_detector(Path(again["checkpoint"]), out)
+    # Exported into another folder (as the tiers' detector is), the stages come along.
+    third = export_detector(Path(again["checkpoint"]), tmp_path / "elsewhere")
     assert len(third["stages"]) == 3 and third["stages"][:2] == second["stages"]
+    # Started from a checkpoint, not from shipped weights: nothing to carry.
+    fresh = train(
+        replace(SMOKE, data=tiny_headcam, out=tmp_path / "fresh", init=Path(base["checkpoint"]))
+    )
+    assert "stages" not in export_detector(Path(fresh["checkpoint"]), tmp_path / "other")

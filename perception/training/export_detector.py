@@ -53,6 +53,18 @@ def _stage(entry: dict[str, Any]) -> dict[str, Any]:
     return {k: entry.get(k) for k in keys}
 
 
+def _init_entry(init: str | None) -> dict[str, Any] | None:
+    """The manifest entry of the shipped detector a run started from (`init`: a
+    ``detector.pt`` whose folder's manifest records it), or None."""
+    if not init or Path(init).name != WEIGHTS_NAME:
+        return None
+    manifest_path = Path(init).parent / MANIFEST_NAME
+    if not manifest_path.is_file():
+        return None
+    entry = read_manifest(manifest_path).get("detector")
+    return entry if isinstance(entry, dict) and entry.get("file") == WEIGHTS_NAME else None
+
+
 def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, Any]:
     """Write the shipped weights (float16 state dict, model config) and their manifest entry.
 
@@ -99,12 +111,11 @@ def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, 
         "validation": validation,
         "trained_at_commit": state["commit"],
     }
+    previous = _init_entry(tc.get("init"))
+    if previous is not None:  # fine-tuned from shipped weights: keep the stages that made them
+        entry["stages"] = [*(previous.get("stages") or [_stage(previous)]), _stage(entry)]
     manifest_path = out_dir / MANIFEST_NAME
     manifest = read_manifest(manifest_path)
-    previous = manifest.get("detector")
-    if previous and tc.get("init") and Path(tc["init"]).resolve() == path.resolve():
-        # A stage fine-tuned from the weights it replaces: keep the stages before it.
-        entry["stages"] = [*(previous.get("stages") or [_stage(previous)]), _stage(entry)]
     manifest["detector"] = entry
     write_manifest(manifest_path, manifest)
     return entry
