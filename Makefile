@@ -34,7 +34,7 @@ DATA_COUNTS := paper:train:20000 paper:val:1000 paper:test:1000 \
 	headcam:train:160000 headcam:val:500 headcam:test:500
 # Head-camera test scenes of the tiers (folders headcam_<tier>), for accuracy per tier.
 TIER_COUNTS := hard:train:3000 hard:val:300 hard:test:500 clutter:test:300 any-pose:test:300 \
-	far:train:20000 far:val:300 far:test:300
+	any-pose:train:3000 far:train:20000 far:val:300 far:test:300
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
 	  $(PY) -m perception.training.datagen --dist $$dist --split $$split --count $$count --workers 2 \
@@ -80,6 +80,10 @@ weights: data
 	$(PY) -m perception.training.train_detector --also paper --limit 2500 --epochs 1 --lr 0.0005 \
 	  --init perception/weights/detector.pt --out $(CKPT)/detector_paper --export \
 	  --weights-out perception/weights/paper_protocol
+	$(PY) -m perception.training.train_detector --data $${POSEGRASP_DATA:-data}/headcam_hard \
+	  --also headcam_any-pose,headcam --limit 3000 --epochs 3 --lr 0.0005 --precision bf16 \
+	  --channels-last --init perception/weights/detector.pt --out $(CKPT)/detector_tiers --export \
+	  --weights-out perception/weights/tiers
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record

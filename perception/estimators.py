@@ -77,7 +77,7 @@ USER_DETECTOR = "detector.pt"
 def _hybrid_global_user() -> PoseEstimator:
     """`hybrid-global` with the detector fine-tuned on user objects (``detector.pt`` in the user
     objects directory, written by ``python -m perception.training.train_detector --objects LIST
-    --init perception/weights/detector.pt --export --weights-out DIR``): a user object's
+    --init perception/weights/tiers/detector.pt --export --weights-out DIR``): a user object's
     hypotheses come from its codebook alone (the nets know the six built-in objects, whose poses
     join as before)."""
     from perception.global_pose import GlobalPoseEstimator
@@ -90,7 +90,7 @@ def _hybrid_global_user() -> PoseEstimator:
         raise AssetError(
             f"no detector for user objects in {objects_dir()}; train one with python -m "
             "perception.training.train_detector --objects LIST --init "
-            f"perception/weights/detector.pt --export --weights-out {objects_dir()}"
+            f"perception/weights/tiers/detector.pt --export --weights-out {objects_dir()}"
         )
     hybrid = HybridPoseEstimator.from_weights(detector_path=path)
     return GlobalPoseEstimator(hybrid, name="hybrid-global-user")

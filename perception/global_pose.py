@@ -2,7 +2,7 @@
 
 The learned 4D-NET knows upright objects seen from the head camera; on any other orientation it
 is far off. This estimator does not ask it to learn the sphere. Per detection of the requested
-class (the shipped Mask R-CNN):
+class (the shipped Mask R-CNN fine-tuned on the tiers' scenes, `TIERS_DETECTOR`):
 
 1. **Hypotheses**: the viewpoint codebook (`perception.codebook`) matches the detected mask
    against silhouettes of the object over all of SO(3) and gives the `GlobalConfig.hypotheses`
@@ -49,8 +49,12 @@ from perception.overlay import mask_box
 from perception.refine import PoseRefiner
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.core.paths import data_root
+from posegrasp.core.paths import WEIGHTS_DIR, data_root
 from posegrasp.world.objects import OBJECT_NAMES, load_object
+
+#: The detector fine-tuned on the tiers' scenes (any resting pose, partly hidden objects), in a
+#: folder with a manifest of its own; the other estimators keep the head-camera detector.
+TIERS_DETECTOR = WEIGHTS_DIR / "tiers" / "detector.pt"
 
 
 @dataclass(frozen=True)
@@ -181,9 +185,12 @@ class GlobalPoseEstimator:
         self._colours: dict[str, np.ndarray] = {}
 
     @classmethod
-    def from_weights(cls, config: GlobalConfig | None = None) -> GlobalPoseEstimator:
-        """With the shipped detector and nets."""
-        return cls(HybridPoseEstimator.from_weights(), config)
+    def from_weights(
+        cls, config: GlobalConfig | None = None, detector_path: Path = TIERS_DETECTOR
+    ) -> GlobalPoseEstimator:
+        """With the shipped nets and the detector fine-tuned on the tiers' scenes (or the one
+        at `detector_path`)."""
+        return cls(HybridPoseEstimator.from_weights(detector_path=detector_path), config)
 
     def colours(self, name: str) -> np.ndarray:
         """RGB of each convex piece of `name` (`ObjectModel.convex_pieces`, the source's order),

@@ -164,6 +164,17 @@ def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) ->
     assert sha256_file(paper / "detector.pt") == entries["detector.pt"]["sha256"]
     integrity.verify_weights(paper / "detector.pt")
     assert "--also paper" in entries["detector.pt"]["command"]
+    # So has hybrid-global's detector, fine-tuned on the tiers' scenes from the shipped one,
+    # whose stages it records.
+    tiers = WEIGHTS_DIR / "tiers"
+    entries = integrity.manifest_entries(json.loads((tiers / "manifest.json").read_text()))
+    assert sorted(entries) == [p.name for p in tiers.glob("*.pt")] == ["detector.pt"]
+    integrity.verify_weights(tiers / "detector.pt")
+    stages = entries["detector.pt"]["stages"]
+    assert "--also headcam_any-pose,headcam" in stages[-1]["command"]
+    assert all(s["wall_s"] > 0 for s in stages)
+    total = sum(p.stat().st_size for p in WEIGHTS_DIR.rglob("*.pt"))
+    assert total <= 30e6, f"the shipped weights total {total / 1e6:.1f} MB, over 30 MB"
     f = tmp_path / "w.bin"
     f.write_bytes(b"abc")
     before = files._sha256.cache_info().misses
