@@ -203,6 +203,9 @@ class PoseRefiner:
             sil, X_O, p, n = c
             if iou_before is None:
                 iou_before = _iou(sil, win)
+            if len(p) < 12:  # too little visible outline to compare (hidden or off the window)
+                info |= {"iterations": it, "points": len(p), "edge_points": 0}
+                break
             use_edges = win.rgb is not None and it >= cfg.mask_only_iterations
             r, J, n_edge = _residuals(T, Kw, X_O, p, n, win, cfg, use_edges)
             info |= {"iterations": it + 1, "points": len(p), "edge_points": n_edge}

@@ -159,3 +159,15 @@ def test_the_episode_adapter_refines_with_the_detected_mask() -> None:
     assert rotation_error_deg(T[:3, :3], T_true[:3, :3]) < rotation_error_deg(
         T0[:3, :3], T_true[:3, :3]
     )
+
+
+def test_a_start_drawn_off_the_window_keeps_the_pose() -> None:
+    """A start whose outline lies outside the mask's window leaves no contour point to compare:
+    the refiner stops and returns the start unchanged, it does not fail."""
+    T_true = true_pose()
+    mask, rgb = render("phone", T_true)
+    T0 = T_true.copy()
+    T0[:3, 3] += (0.5, 0.0, 0.0)  # far to the side, still in front of the camera
+    T, info = PoseRefiner().refine("phone", T0, K, mask, rgb)
+    assert np.array_equal(T, T0)
+    assert info["points"] < 12 and info["rotation_deg"] == 0 and info["shift_m"] == 0
