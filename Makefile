@@ -30,7 +30,7 @@ bench: setup
 	$(PY) bench/sim_speed.py
 
 # Training data (outside git: $$POSEGRASP_DATA, else data/) and the shipped weights, from scratch.
-DATA_COUNTS := paper:train:20000 paper:val:1000 paper:test:1000 \
+DATA_COUNTS := paper:train:40000 paper:val:1000 paper:test:1000 \
 	headcam:train:160000 headcam:val:500 headcam:test:500
 # Head-camera test scenes of the tiers (folders headcam_<tier>), for accuracy per tier.
 TIER_COUNTS := hard:train:3000 hard:val:300 hard:test:500 clutter:test:300 any-pose:test:300 \
@@ -69,10 +69,8 @@ weights: data
 	  --lr 0.0003 --init posenet_ours_ft120k
 	$(PY) -m perception.training.train_posenet --variant ours --dists headcam,headcam_hard \
 	  --limit headcam=5000 --epochs 5 --lr 0.0005 --init posenet_ours_head --name posenet_ours_hard
-	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 12 \
-	  --name posenet_paper_base
-	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 6 --batch 32 \
-	  --lr 0.0005 --init posenet_paper_base
+	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 10 --batch 64 \
+	  --precision bf16
 	$(PY) -m perception.training.export --plot docs/training_curves.png
 	$(PY) -m perception.training.train_detector --epochs 8 --out $(CKPT)/detector_base
 	$(PY) -m perception.training.train_detector --also headcam_hard --limit 2500 --epochs 1 \

@@ -56,7 +56,7 @@ GATE_TIER = "hard"
 #: evaluation's.
 GATE_SEED_START = 1_500_000_000
 WEIGHTS = (
-    "perception/weights/detector.pt",
+    "perception/weights/tiers/detector.pt",
     "perception/weights/posenet_ours.pt",
     "perception/weights/posenet_ours_hard.pt",
 )
