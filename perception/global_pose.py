@@ -9,8 +9,10 @@ class (the shipped Mask R-CNN fine-tuned on the tiers' scenes, `TIERS_DETECTOR`)
    best poses that differ by at least `GlobalConfig.min_angle_deg`; the hybrid nets' own pose
    joins them.
 2. **Refinement**: each is refined by the render-and-compare refiner (`perception.refine`)
-   against the detected mask and the image, `GlobalConfig.refine_passes` times (its basin is
-   about 10-15 deg; the codebook's grid puts one hypothesis within it).
+   against the detected mask and the image (its basin is about 10-15 deg; the codebook's grid
+   puts one hypothesis within it); after one run all are scored and the
+   `GlobalConfig.keep_after_first` best get the further runs (`GlobalConfig.refine_passes` in
+   all).
 3. **Verification**: each refined pose is scored by its silhouette IoU with the visible mask,
    plus `GlobalConfig.appearance_weight` times the correlation of the parts' colours drawn at
    that pose with the image (`perception.codebook.appearance_score`), plus
@@ -79,7 +81,7 @@ class GlobalConfig:
     hypotheses: int = 12
     min_angle_deg: float = 15.0
     refine_passes: int = 2
-    keep_after_first: int = 0
+    keep_after_first: int = 2
     appearance_weight: float = 0.05
     edge_weight: float = 0.3
     min_score: float = 0.0
