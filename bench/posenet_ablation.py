@@ -6,6 +6,7 @@ same budget, and scored on the held-out test split.
     python bench/posenet_ablation.py --study forgetting [--epochs 5] [--json PATH]
     python bench/posenet_ablation.py --study rotation [--epochs 5] [--json PATH]
     python bench/posenet_ablation.py --study ensemble [--epochs 5] [--json PATH]
+    python bench/posenet_ablation.py --study arithmetic [--epochs 5] [--json PATH]
 
 Studies:
 - ``per-object``: the paper trains one 2D-NET and one 4D-NET per object. Here each object gets
@@ -34,6 +35,11 @@ Studies:
   head-camera test split: the two base runs of ``ours`` (same recipe, two seeds), and the
   shipped `ours` with the shipped hard-tier expert (`posenet_ours_hard.pt`), both of which
   `hybrid` already runs on every detection (it keeps one of the two poses).
+- ``arithmetic``: the base run of ``ours`` (fp32, batch 128) against the same run in bf16
+  autocast, in bf16 with channels-last weights, and in bf16 at batch 64 (same seed, data and
+  epochs): what the faster arithmetic costs in accuracy, beside each run's end-to-end training
+  speed (samples stepped per second of its recorded wall time, validation included), on the
+  head-camera test split.
 
 Runs checkpoint as they go (`<data>/checkpoints/ablation/`) and a rerun resumes them; a finished
 run is not retrained. Test crops are `perception.training.tables`' (`TEST_CROPS`): the same
@@ -54,6 +60,7 @@ import numpy as np
 import torch
 
 from perception.nets import PoseOutput, load_posenet
+from perception.training.checkpoints import read_checkpoint
 from perception.training.crop_sets import build_crops
 from perception.training.generation import GENERATOR_VERSIONS
 from perception.training.posenet_eval import evaluate_arrays
@@ -72,7 +79,7 @@ from posegrasp.core.validate import arg, check_choice, check_int
 from posegrasp.world.objects import OBJECT_NAMES
 
 COLUMNS = ("center_crop_px", "center_px", "distance_pct", "rotation_deg")
-STUDIES = ("per-object", "ours", "forgetting", "rotation", "ensemble")
+STUDIES = ("per-object", "ours", "forgetting", "rotation", "ensemble", "arithmetic")
 
 
 def _scores(model, data: dict, rows: np.ndarray) -> dict[str, float]:
@@ -159,6 +166,30 @@ def ours_study(out: Path, epochs: int) -> dict:
             )
         res[label] = _per_object(lambda o, m=model: m, data[side])
         res[label]["checkpoint"] = str(checkpoint_path(cfg))
+    return res
+
+
+def arithmetic_study(out: Path, epochs: int) -> dict:
+    """The base `ours` run in fp32 and with each faster arithmetic, scored alike; each result also
+    holds ``samples_per_s``, the run's samples stepped over its recorded wall time."""
+    base = _ours_base(out, epochs)
+    bf16 = replace(base, precision="bf16", name=f"ours_bf16_e{epochs}")
+    runs = {
+        "fp32, batch 128 (base)": base,
+        "bf16, batch 128": bf16,
+        "bf16 + channels_last, batch 128": replace(
+            bf16, channels_last=True, name=f"ours_bf16_cl_e{epochs}"
+        ),
+        "bf16, batch 64": replace(bf16, batch=64, name=f"ours_bf16_b64_e{epochs}"),
+    }
+    data = build_crops(data_root() / "headcam", "test", TEST_CROPS)
+    res = {}
+    for label, cfg in runs.items():
+        model = _train(cfg)
+        state = read_checkpoint(checkpoint_path(cfg))
+        res[label] = _per_object(lambda o, m=model: m, data)
+        res[label]["checkpoint"] = str(checkpoint_path(cfg))
+        res[label]["samples_per_s"] = state["step"] * cfg.batch / max(state["wall_s"], 1e-9)
     return res
 
 
@@ -265,6 +296,8 @@ def _print(results: dict, log: TextIO | None = None) -> None:
                 f"{r['distance_pct']:.2f} | {r['rotation_deg']:.2f} | {r['outlier_rate']:.1%} |",
                 file=log,
             )
+        if "samples_per_s" in per:
+            print(f"| {label} | training speed | {per['samples_per_s']:.0f} samples/s |", file=log)
 
 
 @command
@@ -295,6 +328,8 @@ def main(argv: list[str] | None = None) -> int:
         results = rotation_study(out, args.epochs)
     elif args.study == "ensemble":
         results = ensemble_study(out, args.epochs)
+    elif args.study == "arithmetic":
+        results = arithmetic_study(out, args.epochs)
     else:
         results = ours_study(out, args.epochs)
     _print(results, summary_stream(args.json))
