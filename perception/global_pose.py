@@ -209,8 +209,9 @@ class GlobalPoseEstimator:
         rgb: np.ndarray,
         occluder: np.ndarray | None,
     ) -> tuple[list[Verified], dict[str, float]]:
-        """Every hypothesis of one detection, refined and scored, best first, and the stage
-        times [ms] (``hypotheses``, ``verify``). A detection without the nets' pose (of an object
+        """Every hypothesis of one detection, refined and scored, best first (with
+        `GlobalConfig.keep_after_first`, the ones refined further first), and the stage times
+        [ms] (``hypotheses``, ``verify``). A detection without the nets' pose (of an object
         they were not trained on) starts from the codebook alone."""
         cfg = self.config
         t0 = time.perf_counter()
@@ -246,10 +247,10 @@ class GlobalPoseEstimator:
         out = [v for r, (T, s) in enumerate(starts) if (v := refined(T, s, r, first)) is not None]
         out.sort(key=lambda v: -v.score)
         if cfg.keep_after_first and cfg.refine_passes > 1:
-            kept = out[: cfg.keep_after_first]
+            # The best few, refined further, rank above the rest (refined once), which stay listed.
+            kept, rest = out[: cfg.keep_after_first], out[cfg.keep_after_first :]
             again = [refined(v.T_C_O, v.source, v.rank, cfg.refine_passes - 1) for v in kept]
-            out = [v for v in again if v is not None]
-            out.sort(key=lambda v: -v.score)
+            out = sorted((v for v in again if v is not None), key=lambda v: -v.score) + rest
         t2 = time.perf_counter()
         return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}
 

@@ -9,7 +9,12 @@ from perception.metrics import error_components
 from posegrasp.core.cli import ArgumentParser
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
-from sim.estimators import NoisyOracleEstimator, add_estimator_arguments, make_estimator
+from sim.estimators import (
+    DEFAULT_ESTIMATOR,
+    NoisyOracleEstimator,
+    add_estimator_arguments,
+    make_estimator,
+)
 from sim.pose_noise import NOISE_FORMAT, parse_noise
 
 
@@ -34,7 +39,7 @@ def test_the_shared_arguments_check_estimator_and_noise_while_parsing(capsys) ->
     add_estimator_arguments(p)
     args = p.parse_args(["--estimator", "noisy-oracle", "--noise", "5,5,2,2@3"])
     assert (args.estimator, args.noise) == ("noisy-oracle", "5,5,2,2@3")  # kept as given
-    assert p.parse_args([]).estimator == "hybrid" and p.parse_args([]).noise is None
+    assert p.parse_args([]).estimator == DEFAULT_ESTIMATOR and p.parse_args([]).noise is None
     for argv, words in ((["--noise", "5,5"], NOISE_FORMAT), (["--estimator", "x"], "oracle, ")):
         with pytest.raises(SystemExit) as exc:
             p.parse_args(argv)
