@@ -20,8 +20,12 @@ ablation then replays the choice offline:
 
 With `--keeps`, it measures instead the verification that refines every start once, scores them
 and gives the second refiner run only to the best few (`GlobalConfig.keep_after_first`; 0 is
-every start twice): for each value, the chosen pose's rotation errors and the verification's time
-per detection (median, one thread), each value on the same images with the same detections.
+every start twice); with `--grows`, the codebook's extra framings of a mask another detection
+touches (`GlobalConfig.occluded_grow`): for each setting, the chosen pose's rotation errors, those
+of the best verified start, the chosen translation's error and the verification's time per
+detection (median, one thread), each setting on the same images with the same detections.
+
+    python bench/global_ablation.py --split headcam_hard --grows "none;1.4;1.5;1.3,1.6"
 """
 
 from __future__ import annotations
@@ -35,13 +39,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from perception.global_pose import GlobalPoseEstimator
+from perception.global_pose import GlobalConfig, GlobalPoseEstimator
 from perception.hybrid import detect_target
 from perception.metrics import rotation_error_deg
 from perception.support import snap_to_resting
 from perception.training.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
+from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int
@@ -51,6 +56,26 @@ APPEARANCE = (0.0, 0.05, 0.1, 0.2)
 EDGES = (0.0, 0.1, 0.2, 0.3, 0.5, 1.0)
 KS = (0, 1, 2, 4, 6, 8, 12)
 TILTS = (5.0, 10.0, 20.0, 30.0)
+
+
+def check_grow_lists(spec: str) -> list[tuple[float, ...]]:
+    """';'-separated comma lists of growth factors in (1, 4], or 'none' (the mask's own box)."""
+    out = []
+    for group in str(spec).split(";"):
+        if group.strip() == "none":
+            out.append(())
+            continue
+        try:
+            g = tuple(float(v) for v in group.split(","))
+        except ValueError:
+            g = ()
+        if not g or not all(1 < v <= 4 for v in g):
+            raise InvalidArgumentError(
+                f"--grows takes ';'-separated comma lists of factors in (1, 4] or 'none', "
+                f"got {group!r}"
+            )
+        out.append(g)
+    return out
 
 
 def check_int_list(spec: str) -> list[int]:
@@ -102,11 +127,12 @@ def record(split: str, subset: str, images: int) -> list[dict]:
     return out
 
 
-def keep_sweep(split: str, subset: str, images: int, keeps: list[int]) -> list[dict]:
-    """Per `keep_after_first` value: the chosen pose's rotation errors and the verification's
-    time on the split's first `images` target detections."""
-    from perception.global_pose import GlobalConfig
-
+def config_sweep(
+    split: str, subset: str, images: int, configs: dict[str, GlobalConfig]
+) -> list[dict]:
+    """Per verification setting: the chosen pose's rotation errors, those of the best of its
+    verified starts, its translation error and the verification's time, on the split's first
+    `images` target detections (each setting on the same detections)."""
     est = GlobalPoseEstimator.from_weights()
     ds = PoseDataset(data_root() / split, subset)
     cases = []
@@ -118,22 +144,30 @@ def keep_sweep(split: str, subset: str, images: int, keeps: list[int]) -> list[d
         if target.best is not None:
             cases.append((target.best, s.K, s.rgb, target.occluder(), gt.T_C_O))
     out = []
-    for keep in keeps:
-        est.config = GlobalConfig(keep_after_first=keep)
-        errors, ms = [], []
-        for det, K, rgb, occluder, T_true in tqdm(cases, desc=f"keep {keep}", leave=False):
+    for label, cfg in configs.items():
+        est.config = cfg
+        errors, best, shift, ms = [], [], [], []
+        for det, K, rgb, occluder, T_true in tqdm(cases, desc=label, leave=False):
             t0 = time.perf_counter()
             ranked, _ = est.verify(det, K, rgb, occluder)
             ms.append((time.perf_counter() - t0) * 1000)
             errors.append(rotation_error_deg(ranked[0].T_C_O[:3, :3], T_true[:3, :3]))
-        e = np.array(errors)
+            best.append(min(rotation_error_deg(v.T_C_O[:3, :3], T_true[:3, :3]) for v in ranked))
+            t, t_true = ranked[0].T_C_O[:3, 3], T_true[:3, 3]
+            shift.append(100 * np.linalg.norm(t - t_true) / np.linalg.norm(t_true))
+        e, b = np.array(errors), np.array(best)
         out.append(
             {
-                "keep_after_first": keep,
+                "setting": label,
+                "keep_after_first": cfg.keep_after_first,
+                "occluded_grow": list(cfg.occluded_grow),
                 "detections": len(cases),
                 "mean": float(e.mean()),
                 "median": float(np.median(e)),
                 "over_15_pct": float(100 * (e > 15).mean()),
+                "best_mean": float(b.mean()),
+                "best_over_15_pct": float(100 * (b > 15).mean()),
+                "translation_pct": float(np.mean(shift)),
                 "verify_ms_median": float(np.median(ms)),
             }
         )
@@ -221,6 +255,14 @@ def main(argv: list[str] | None = None) -> int:
         help="instead, measure these keep_after_first values (comma list of 0..13)",
     )
     p.add_argument(
+        "--grows",
+        type=arg(check_grow_lists),
+        default=None,
+        metavar="LISTS",
+        help="instead, measure these occluded_grow settings (';'-separated comma lists of "
+        "factors 1..4, 'none' for the mask's own box alone)",
+    )
+    p.add_argument(
         "--replay",
         type=Path,
         default=None,
@@ -228,18 +270,26 @@ def main(argv: list[str] | None = None) -> int:
         help="replay the starts recorded in an earlier --json instead of measuring",
     )
     args = p.parse_args(argv)
-    if args.keeps is not None:
+    if args.keeps is not None or args.grows is not None:
         setup_rendering(threads=1)
-        sweep = keep_sweep(args.split, args.subset, args.images, args.keeps)
+        if args.keeps is not None:
+            configs = {f"keep {k}": GlobalConfig(keep_after_first=k) for k in args.keeps}
+        else:
+            configs = {
+                f"grow {','.join(map(str, g)) or 'none'}": GlobalConfig(occluded_grow=g)
+                for g in args.grows
+            }
+        sweep = config_sweep(args.split, args.subset, args.images, configs)
         print(f"{args.split}/{args.subset}, {sweep[0]['detections']} detections:")
         for k in sweep:
             print(
-                f"  keep {k['keep_after_first']:2d}: mean {k['mean']:6.2f}  median "
-                f"{k['median']:5.2f}  > 15 deg {k['over_15_pct']:5.1f} %  verify "
-                f"{k['verify_ms_median']:.0f} ms"
+                f"  {k['setting']:16s}: mean {k['mean']:6.2f}  median {k['median']:5.2f}  "
+                f"> 15 deg {k['over_15_pct']:5.1f} %  (best start {k['best_mean']:6.2f}, "
+                f"{k['best_over_15_pct']:5.1f} %)  translation {k['translation_pct']:5.2f} %  "
+                f"verify {k['verify_ms_median']:.0f} ms"
             )
         if args.json is not None:
-            write_json(args.json, {"keeps": sweep})
+            write_json(args.json, {"sweep": sweep})
         return 0
     if args.replay is not None:
         rows = json.loads(args.replay.read_text())["rows"]

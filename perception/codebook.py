@@ -158,10 +158,12 @@ class Codebook:
         with np.load(path) as z:
             return cls(name, z["rotations"], z["bits"], z["side"], z["offset"])
 
-    def match(self, mask_bits: np.ndarray) -> np.ndarray:
-        """Silhouette IoU of a packed observed mask with every template, (N,)."""
+    def match(self, mask_bits: np.ndarray, hidden_bits: np.ndarray | None = None) -> np.ndarray:
+        """Silhouette IoU of a packed observed mask with every template, (N,); template pixels
+        in `hidden_bits` (where something else may hide the object) do not count against it."""
         inter = np.bitwise_count(self.bits & mask_bits).sum(1, dtype=np.int64)
-        union = np.bitwise_count(self.bits | mask_bits).sum(1, dtype=np.int64)
+        drawn = self.bits if hidden_bits is None else self.bits & ~hidden_bits
+        union = np.bitwise_count(drawn | mask_bits).sum(1, dtype=np.int64)
         return inter / np.maximum(union, 1)
 
 
@@ -180,12 +182,25 @@ class MaskView:
     Attributes:
         bits: the packed silhouette, (SILHOUETTE_PX**2 / 64,) uint64.
         centre: the centre of the mask's box in the image [px], (2,).
-        side: the longer side of the mask's box [px].
+        side: the longer side of the box it is framed by [px] (the mask's own box, or one grown
+            towards an occluder).
+        hidden: packed pixels where something else may hide the object, or None.
     """
 
     bits: np.ndarray
     centre: np.ndarray
     side: float
+    hidden: np.ndarray | None = None
+
+
+def _framed(image: np.ndarray, centre: np.ndarray, side: float) -> np.ndarray:
+    """A bool image (H, W) drawn into the templates' square around a box of `side` at `centre`."""
+    S = SILHOUETTE_PX
+    k = FILL * S / side
+    # Pixel centres at integer coordinates in both: canvas = (image - centre) * k + S / 2.
+    A = np.array([[k, 0.0, S / 2 - k * centre[0]], [0.0, k, S / 2 - k * centre[1]]])
+    m = cv2.warpAffine(image.astype(np.float32), A, (S, S), flags=cv2.INTER_LINEAR)
+    return _pack(m >= 0.5)
 
 
 def frame_mask(mask: np.ndarray) -> MaskView | None:
@@ -196,12 +211,36 @@ def frame_mask(mask: np.ndarray) -> MaskView | None:
     lo = np.array([xs.min(), ys.min()], float) - 0.5  # pixel edges
     hi = np.array([xs.max(), ys.max()], float) + 0.5
     centre, s = (lo + hi) / 2, float(max(hi - lo))
-    S = SILHOUETTE_PX
-    k = FILL * S / s
-    # Pixel centres at integer coordinates in both: canvas = (image - centre) * k + S / 2.
-    A = np.array([[k, 0.0, S / 2 - k * centre[0]], [0.0, k, S / 2 - k * centre[1]]])
-    m = cv2.warpAffine(mask.astype(np.float32), A, (S, S), flags=cv2.INTER_LINEAR)
-    return MaskView(_pack(m >= 0.5), centre, s)
+    return MaskView(_framed(mask, centre, s), centre, s)
+
+
+def occluded_views(
+    mask: np.ndarray, occluder: np.ndarray | None, view: MaskView, grow: tuple[float, ...]
+) -> list[MaskView]:
+    """Where an occluder touches the mask, the mask framed as if the object went on behind it:
+    its box side times each factor of `grow`, the box moved towards the occluder so that its far
+    edge stays; each view carries the occluder's pixels as hidden. The unchanged framing comes
+    first (factor 1, hidden pixels included). Empty when nothing touches the mask."""
+    if occluder is None or not grow:
+        return []
+    near = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    touch = near & occluder & ~mask
+    if np.count_nonzero(touch) < 3:
+        return []
+    ys, xs = np.nonzero(touch)
+    d = np.array([xs.mean(), ys.mean()]) - view.centre
+    if (n := float(np.linalg.norm(d))) < 1e-6:
+        return []
+    d /= n
+    hidden = occluder & ~mask
+    out = []
+    for g in (1.0, *grow):
+        side = view.side * g
+        centre = view.centre + d * (side - view.side) / 2
+        out.append(
+            MaskView(_framed(mask, centre, side), centre, side, _framed(hidden, centre, side))
+        )
+    return out
 
 
 def hypothesis_pose(book: Codebook, index: int, view: MaskView, K: np.ndarray) -> np.ndarray:
@@ -226,10 +265,11 @@ def top_hypotheses(
     order = np.argsort(-scores, kind="stable")[:pool]
     kept: list[int] = []
     cos_min = math.cos(math.radians(min_angle_deg))
+    n = len(rotations)  # scores may hold several framings of the same templates, one after another
     for i in order:
         ok = True
         for j in kept:
-            c = (np.trace(rotations[i] @ rotations[j].T) - 1) / 2
+            c = (np.trace(rotations[i % n] @ rotations[j % n].T) - 1) / 2
             if c > cos_min:
                 ok = False
                 break

@@ -7,7 +7,8 @@ class (the shipped Mask R-CNN fine-tuned on the tiers' scenes, `TIERS_DETECTOR`)
 1. **Hypotheses**: the viewpoint codebook (`perception.codebook`) matches the detected mask
    against silhouettes of the object over all of SO(3) and gives the `GlobalConfig.hypotheses`
    best poses that differ by at least `GlobalConfig.min_angle_deg`; the hybrid nets' own pose
-   joins them.
+   joins them. A mask another detection touches is also framed as if the object went on behind
+   it (`GlobalConfig.occluded_grow`, `perception.codebook.occluded_views`).
 2. **Refinement**: each is refined by the render-and-compare refiner (`perception.refine`)
    against the detected mask and the image (its basin is about 10-15 deg; the codebook's grid
    puts one hypothesis within it); after one run all are scored and the
@@ -43,6 +44,7 @@ from perception.codebook import (
     frame_mask,
     hypothesis_pose,
     image_edges,
+    occluded_views,
     top_hypotheses,
 )
 from perception.detector import Detection
@@ -74,6 +76,9 @@ class GlobalConfig:
         appearance_weight: weight of the colour correlation in the verification score.
         edge_weight: weight of the outlines' agreement with image edges in it.
         min_score: a best score below this withholds the estimate.
+        occluded_grow: where another detection touches the mask, the codebook also matches it
+            framed by boxes this many times its own, grown towards the occluder, with the
+            occluder's pixels not held against a template (empty: the mask's own box only).
     """
 
     views: int = 1000
@@ -85,6 +90,7 @@ class GlobalConfig:
     appearance_weight: float = 0.05
     edge_weight: float = 0.3
     min_score: float = 0.0
+    occluded_grow: tuple[float, ...] = (1.3, 1.6)
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -94,6 +100,8 @@ class GlobalConfig:
             raise InvalidArgumentError("GlobalConfig.keep_after_first must be >= 0 (0: all)")
         if not (0 <= self.min_angle_deg < 180 and np.isfinite(self.appearance_weight)):
             raise InvalidArgumentError("GlobalConfig.min_angle_deg must be in [0, 180)")
+        if not all(1 < g <= 4 for g in self.occluded_grow):
+            raise InvalidArgumentError("GlobalConfig.occluded_grow factors must lie in (1, 4]")
 
 
 #: Image edges are searched in the mask's box grown by this much [px].
@@ -221,9 +229,11 @@ class GlobalPoseEstimator:
         view = frame_mask(det.mask)
         if view is not None:
             book = self.codebooks.get(det.name)
-            scores = book.match(view.bits)
+            views = occluded_views(det.mask, occluder, view, cfg.occluded_grow) or [view]
+            scores = np.concatenate([book.match(v.bits, v.hidden) for v in views])
+            n = len(book.rotations)
             for i in top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg):
-                starts.append((hypothesis_pose(book, i, view, K), "codebook"))
+                starts.append((hypothesis_pose(book, i % n, views[i // n], K), "codebook"))
         t1 = time.perf_counter()
         pieces, colours = self.codebooks.source.pieces(det.name), self.colours(det.name)
         tight = mask_box(det.mask) if view is not None else (0, 0, 1, 1)
