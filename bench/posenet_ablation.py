@@ -186,9 +186,10 @@ def arithmetic_study(out: Path, epochs: int) -> dict:
     res = {}
     for label, cfg in runs.items():
         model = _train(cfg)
-        state = read_checkpoint(checkpoint_path(cfg))
+        path = checkpoint_path(cfg)
+        state = read_checkpoint(path)
         res[label] = _per_object(lambda o, m=model: m, data)
-        res[label]["checkpoint"] = str(checkpoint_path(cfg))
+        res[label]["checkpoint"] = str(path)
         res[label]["samples_per_s"] = state["step"] * cfg.batch / max(state["wall_s"], 1e-9)
     return res
 

@@ -223,8 +223,9 @@ def occluded_views(
     first (factor 1, hidden pixels included). Empty when nothing touches the mask."""
     if occluder is None or not grow:
         return []
+    hidden = occluder & ~mask
     near = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    touch = near & occluder & ~mask
+    touch = near & hidden
     if np.count_nonzero(touch) < 3:
         return []
     ys, xs = np.nonzero(touch)
@@ -232,9 +233,8 @@ def occluded_views(
     if (n := float(np.linalg.norm(d))) < 1e-6:
         return []
     d /= n
-    hidden = occluder & ~mask
-    out = []
-    for g in (1.0, *grow):
+    out = [MaskView(view.bits, view.centre, view.side, _framed(hidden, view.centre, view.side))]
+    for g in grow:
         side = view.side * g
         centre = view.centre + d * (side - view.side) / 2
         out.append(

@@ -209,8 +209,6 @@ class PoseRefiner:
             use_edges = win.rgb is not None and it >= cfg.mask_only_iterations
             r, J, n_edge = _residuals(T, Kw, X_O, p, n, win, cfg, use_edges)
             info |= {"iterations": it + 1, "points": len(p), "edge_points": n_edge}
-            if len(r) < 12:
-                break
             w = np.minimum(1.0, cfg.huber_px / np.maximum(np.abs(r), 1e-9))
             cost = float(np.mean(w * r * r * (2 - w)))
             if last is not None and cost > last[3] and not use_edges:
