@@ -23,6 +23,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Protocol
 
@@ -41,6 +42,8 @@ FILL = 0.875
 #: The virtual camera of the templates: focal length [px] and distance to the origin [m].
 TEMPLATE_F = 1000.0
 TEMPLATE_Z = 1.0
+#: Templates matched at a time (a block of their bits stays in the cache).
+MATCH_BLOCK = 512
 
 
 class SilhouetteSource(Protocol):
@@ -158,12 +161,37 @@ class Codebook:
         with np.load(path) as z:
             return cls(name, z["rotations"], z["bits"], z["side"], z["offset"])
 
+    @cached_property
+    def counts(self) -> np.ndarray:
+        """Pixels of each template's silhouette, (N,) int64."""
+        return np.bitwise_count(self.bits).sum(1, dtype=np.int64)
+
     def match(self, mask_bits: np.ndarray, hidden_bits: np.ndarray | None = None) -> np.ndarray:
         """Silhouette IoU of a packed observed mask with every template, (N,); template pixels
-        in `hidden_bits` (where something else may hide the object) do not count against it."""
-        inter = np.bitwise_count(self.bits & mask_bits).sum(1, dtype=np.int64)
-        drawn = self.bits if hidden_bits is None else self.bits & ~hidden_bits
-        union = np.bitwise_count(drawn | mask_bits).sum(1, dtype=np.int64)
+        in `hidden_bits` (where something else may hide the object) do not count against it.
+
+        With T a template, M the mask and H the hidden pixels outside it, the union is
+        ``|T| - |T & H| + |M| - |T & M|``: only the intersections are counted, a block of
+        templates at a time so that the block stays in the cache."""
+        mask_bits = np.ascontiguousarray(mask_bits, np.uint64)
+        hidden = None
+        if hidden_bits is not None:
+            hidden = np.asarray(hidden_bits, np.uint64) & ~mask_bits
+        inter = np.empty(len(self.bits), np.int64)
+        covered = np.zeros(len(self.bits), np.int64)
+        buf = np.empty((MATCH_BLOCK, self.bits.shape[1]), np.uint64)
+        for a in range(0, len(self.bits), MATCH_BLOCK):
+            block = self.bits[a : a + MATCH_BLOCK]
+            out = buf[: len(block)]
+            inter[a : a + len(block)] = np.bitwise_count(
+                np.bitwise_and(block, mask_bits, out=out)
+            ).sum(1)
+            if hidden is not None:
+                covered[a : a + len(block)] = np.bitwise_count(
+                    np.bitwise_and(block, hidden, out=out)
+                ).sum(1)
+        size = int(np.bitwise_count(mask_bits).sum())
+        union = self.counts - covered + size - inter
         return inter / np.maximum(union, 1)
 
 
@@ -262,22 +290,23 @@ def top_hypotheses(
 ) -> list[int]:
     """Indices of up to `k` best-scoring templates, each at least `min_angle_deg` in rotation
     from every better one kept (greedy non-maximum suppression over the best `pool`)."""
-    order = np.argsort(-scores, kind="stable")[:pool]
-    kept: list[int] = []
-    cos_min = math.cos(math.radians(min_angle_deg))
+    if len(scores) > pool:  # the stable sort's first `pool`, without sorting all of them
+        bar = np.partition(scores, len(scores) - pool)[len(scores) - pool]
+        best = np.flatnonzero(scores >= bar)
+        order = best[np.argsort(-scores[best], kind="stable")[:pool]]
+    else:
+        order = np.argsort(-scores, kind="stable")
     n = len(rotations)  # scores may hold several framings of the same templates, one after another
-    for i in order:
-        ok = True
-        for j in kept:
-            c = (np.trace(rotations[i % n] @ rotations[j % n].T) - 1) / 2
-            if c > cos_min:
-                ok = False
-                break
-        if ok:
-            kept.append(int(i))
+    R = rotations[order % n].reshape(len(order), 9)
+    # cos of the angle between rotations a and b: (trace(R_a R_b^T) - 1) / 2
+    near = (R @ R.T - 1) / 2 > math.cos(math.radians(min_angle_deg))
+    kept: list[int] = []
+    for a in range(len(order)):
+        if not near[a, kept].any():
+            kept.append(a)
             if len(kept) == k:
                 break
-    return kept
+    return [int(order[a]) for a in kept]
 
 
 def _far_to_near(

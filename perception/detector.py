@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 from torchvision.models.detection import MaskRCNN
+from torchvision.models.detection.transform import resize_boxes
 
 from perception.detector_net import DetectorConfig, build_detector
 from perception.integrity import load_checked
@@ -180,13 +181,14 @@ class Detector:
             model = build_detector(cfg)
         return cls(model, cfg, **kwargs)
 
-    def _forward(self, rgb: np.ndarray) -> dict[str, torch.Tensor]:
+    def _forward(self, rgb: np.ndarray, paste: bool = True) -> dict[str, torch.Tensor]:
         """`MaskRCNN.forward` in eval mode, with the resize moved before the normalisation.
 
         The model's transform normalises the full image and then resizes it; both are linear
         (bilinear weights sum to 1), so resizing first with the transform's own `resize` gives
         the same input while normalising 4x fewer pixels. The second resize inside the transform
-        is then the identity. Boxes and masks come back at the original resolution.
+        is then the identity. Boxes come back at the original resolution; masks too with
+        `paste`, else as the mask head's (N, 1, M, M) probabilities (`paste_mask` places one).
         """
         m = self.model
         small, _ = m.transform.resize(image_tensor(rgb), None)
@@ -194,7 +196,11 @@ class Detector:
         features = m.backbone(images.tensors)
         proposals, _ = m.rpn(images, features)
         dets, _ = m.roi_heads(features, proposals, images.image_sizes)
-        return m.transform.postprocess(dets, images.image_sizes, [rgb.shape[:2]])[0]
+        if paste:
+            return m.transform.postprocess(dets, images.image_sizes, [rgb.shape[:2]])[0]
+        out = dict(dets[0])
+        out["boxes"] = resize_boxes(out["boxes"], images.image_sizes[0], rgb.shape[:2])
+        return out
 
     @torch.inference_mode()
     def detect(self, rgb: np.ndarray) -> list[Detection]:
@@ -210,7 +216,7 @@ class Detector:
             InvalidArgumentError: rgb is not an (H, W, 3) uint8 array with H, W >= 1.
         """
         rgb = check_rgb(rgb)
-        out = self._forward(rgb)
+        out = self._forward(rgb, paste=False)
         scores = out["scores"].numpy()
         order = np.argsort(-scores, kind="stable")
         order = order[scores[order] >= self.score_threshold]
@@ -229,7 +235,31 @@ class Detector:
                     name=self.cfg.classes[label - 1],
                     score=float(scores[i]),
                     box_xyxy=from_model_box(boxes[i]),
-                    mask=(masks[i, 0] >= self.mask_threshold).numpy(),
+                    mask=paste_mask(masks[i, 0], out["boxes"][i], rgb.shape[:2])
+                    >= self.mask_threshold,
                 )
             )
         return dets
+
+
+def paste_mask(mask: torch.Tensor, box: torch.Tensor, shape: tuple[int, int]) -> np.ndarray:
+    """One mask head output (M, M) placed in an image of `shape` (H, W) as torchvision's
+    ``paste_masks_in_image`` places it (padded by one cell, the box grown to match, resized
+    bilinearly to the box's whole pixels), drawn only for this detection and without the
+    image-sized float copies: (H, W) float32 probabilities, zero outside the box."""
+    M = mask.shape[-1]
+    scale = (M + 2) / M
+    padded = torch.nn.functional.pad(mask[None, None], (1, 1, 1, 1))
+    cx, cy = (box[0] + box[2]) * 0.5, (box[1] + box[3]) * 0.5
+    hw, hh = (box[2] - box[0]) * 0.5 * scale, (box[3] - box[1]) * 0.5 * scale
+    x0, y0, x1, y1 = (int(v) for v in torch.stack([cx - hw, cy - hh, cx + hw, cy + hh]).long())
+    w, h = max(x1 - x0 + 1, 1), max(y1 - y0 + 1, 1)
+    drawn = torch.nn.functional.interpolate(
+        padded, size=(h, w), mode="bilinear", align_corners=False
+    )
+    H, W = shape
+    out = np.zeros((H, W), np.float32)
+    u0, u1, v0, v1 = max(x0, 0), min(x1 + 1, W), max(y0, 0), min(y1 + 1, H)
+    if u1 > u0 and v1 > v0:
+        out[v0:v1, u0:u1] = drawn[0, 0, v0 - y0 : v1 - y0, u0 - x0 : u1 - x0].numpy()
+    return out

@@ -11,7 +11,14 @@ import pytest
 import torch
 from torchvision.models.detection import MaskRCNN
 
-from perception.detector import Detection, Detector, from_model_box, image_tensor, to_model_box
+from perception.detector import (
+    Detection,
+    Detector,
+    from_model_box,
+    image_tensor,
+    paste_mask,
+    to_model_box,
+)
 from perception.detector_net import (
     DetectorConfig,
     build_detector,
@@ -94,6 +101,20 @@ def test_fast_path_equals_the_plain_forward(detector: Detector, image: np.ndarra
     torch.testing.assert_close(ref["boxes"], fast["boxes"], atol=1e-3, rtol=0)
     torch.testing.assert_close(ref["scores"], fast["scores"], atol=1e-5, rtol=0)
     torch.testing.assert_close(ref["masks"], fast["masks"], atol=1e-4, rtol=0)
+
+
+def test_masks_pasted_per_detection_equal_torchvision_s(
+    detector: Detector, image: np.ndarray
+) -> None:
+    """`detect` pastes each kept mask alone (`paste_mask`); torchvision pastes every one into
+    a full-size float image. The probabilities agree exactly."""
+    with torch.inference_mode():
+        full = detector._forward(image)
+        raw = detector._forward(image, paste=False)
+    assert len(raw["scores"]) > 0 and torch.equal(full["boxes"], raw["boxes"])
+    for i in range(len(raw["scores"])):
+        pasted = paste_mask(raw["masks"][i, 0], raw["boxes"][i], image.shape[:2])
+        np.testing.assert_array_equal(pasted, full["masks"][i, 0].numpy())
 
 
 def test_thresholds_and_max_detections(image: np.ndarray) -> None:
