@@ -20,12 +20,14 @@ ablation then replays the choice offline:
 
 With `--keeps`, it measures instead the verification that refines every start once, scores them
 and gives the second refiner run only to the best few (`GlobalConfig.keep_after_first`; 0 is
-every start twice); with `--grows`, the codebook's extra framings of a mask another detection
+every start twice); with `--tilts`, the resting prior (`GlobalConfig.resting_tilt_deg`, with the
+image's camera pose); with `--grows`, the codebook's extra framings of a mask another detection
 touches (`GlobalConfig.occluded_grow`): for each setting, the chosen pose's rotation errors, those
 of the best verified start, the chosen translation's error and the verification's time per
 detection (median, one thread), each setting on the same images with the same detections.
 
     python bench/global_ablation.py --split headcam_hard --grows "none;1.4;1.5;1.3,1.6"
+    python bench/global_ablation.py --split headcam_hard --tilts none,5,10,20
 """
 
 from __future__ import annotations
@@ -75,6 +77,25 @@ def check_grow_lists(spec: str) -> list[tuple[float, ...]]:
                 f"got {group!r}"
             )
         out.append(g)
+    return out
+
+
+def check_tilt_list(spec: str) -> list[float | None]:
+    """A comma list of angles in (0, 180) [deg] or ``none``."""
+    out: list[float | None] = []
+    for v in str(spec).split(","):
+        if v.strip() == "none":
+            out.append(None)
+            continue
+        try:
+            t = float(v)
+        except ValueError:
+            t = float("nan")
+        if not 0 < t < 180:
+            raise InvalidArgumentError(
+                f"--tilts takes a comma list of angles in (0, 180) or 'none', got {v!r}"
+            )
+        out.append(t)
     return out
 
 
@@ -142,14 +163,15 @@ def config_sweep(
         gt = next(o for o in s.objects if o.name == name)
         target = detect_target(est.hybrid, Observation(s.rgb, s.K, np.eye(4), name, s.seed))
         if target.best is not None:
-            cases.append((target.best, s.K, s.rgb, target.occluder(), gt.T_C_O))
+            R_W_C = np.asarray(s.extra["T_W_C"], float)[:3, :3] if "T_W_C" in s.extra else None
+            cases.append((target.best, s.K, s.rgb, target.occluder(), gt.T_C_O, R_W_C))
     out = []
     for label, cfg in configs.items():
         est.config = cfg
         errors, best, shift, ms = [], [], [], []
-        for det, K, rgb, occluder, T_true in tqdm(cases, desc=label, leave=False):
+        for det, K, rgb, occluder, T_true, R_W_C in tqdm(cases, desc=label, leave=False):
             t0 = time.perf_counter()
-            ranked, _ = est.verify(det, K, rgb, occluder)
+            ranked, _ = est.verify(det, K, rgb, occluder, R_W_C)
             ms.append((time.perf_counter() - t0) * 1000)
             errors.append(rotation_error_deg(ranked[0].T_C_O[:3, :3], T_true[:3, :3]))
             best.append(min(rotation_error_deg(v.T_C_O[:3, :3], T_true[:3, :3]) for v in ranked))
@@ -161,6 +183,7 @@ def config_sweep(
                 "setting": label,
                 "keep_after_first": cfg.keep_after_first,
                 "occluded_grow": list(cfg.occluded_grow),
+                "resting_tilt_deg": cfg.resting_tilt_deg,
                 "detections": len(cases),
                 "mean": float(e.mean()),
                 "median": float(np.median(e)),
@@ -263,6 +286,14 @@ def main(argv: list[str] | None = None) -> int:
         "factors 1..4, 'none' for the mask's own box alone)",
     )
     p.add_argument(
+        "--tilts",
+        type=arg(check_tilt_list),
+        default=None,
+        metavar="LIST",
+        help="instead, measure these resting_tilt_deg settings (comma list of degrees in "
+        "(0, 180), 'none' for no resting prior)",
+    )
+    p.add_argument(
         "--replay",
         type=Path,
         default=None,
@@ -270,10 +301,15 @@ def main(argv: list[str] | None = None) -> int:
         help="replay the starts recorded in an earlier --json instead of measuring",
     )
     args = p.parse_args(argv)
-    if args.keeps is not None or args.grows is not None:
+    if args.keeps is not None or args.grows is not None or args.tilts is not None:
         setup_rendering(threads=1)
         if args.keeps is not None:
             configs = {f"keep {k}": GlobalConfig(keep_after_first=k) for k in args.keeps}
+        elif args.tilts is not None:
+            configs = {
+                f"tilt {t if t is not None else 'none'}": GlobalConfig(resting_tilt_deg=t)
+                for t in args.tilts
+            }
         else:
             configs = {
                 f"grow {','.join(map(str, g)) or 'none'}": GlobalConfig(occluded_grow=g)

@@ -44,6 +44,8 @@ TEMPLATE_F = 1000.0
 TEMPLATE_Z = 1.0
 #: Templates matched at a time (a block of their bits stays in the cache).
 MATCH_BLOCK = 512
+#: A mask with pixels this close to the image's edge [px] counts as cut off by it.
+EDGE_BAND_PX = 2
 
 
 class SilhouetteSource(Protocol):
@@ -242,32 +244,58 @@ def frame_mask(mask: np.ndarray) -> MaskView | None:
     return MaskView(_framed(mask, centre, s), centre, s)
 
 
+def _beyond_image(shape: tuple[int, ...], centre: np.ndarray, side: float) -> np.ndarray:
+    """Packed pixels of the templates' square around a box of `side` at `centre` that lie
+    beyond an image of `shape`."""
+    return ~_framed(np.ones(shape[:2], bool), centre, side)
+
+
+def _edge_touch(mask: np.ndarray, band: int = EDGE_BAND_PX) -> np.ndarray:
+    """Where the mask meets the image's edge: its pixels in the outer `band` rows and columns
+    (a detector's mask may stop a pixel short of the edge), moved out of the image, (n, 2)
+    [px]."""
+    H, W = mask.shape
+    cols = (-1, mask[:, :band].any(1)), (W, mask[:, W - band :].any(1))
+    rows = (-1, mask[:band].any(0)), (H, mask[H - band :].any(0))
+    pts = [np.stack([np.full(np.count_nonzero(m), u), np.flatnonzero(m)], 1) for u, m in cols]
+    pts += [np.stack([np.flatnonzero(m), np.full(np.count_nonzero(m), v)], 1) for v, m in rows]
+    return np.concatenate(pts).astype(float)
+
+
 def occluded_views(
     mask: np.ndarray, occluder: np.ndarray | None, view: MaskView, grow: tuple[float, ...]
 ) -> list[MaskView]:
-    """Where an occluder touches the mask, the mask framed as if the object went on behind it:
-    its box side times each factor of `grow`, the box moved towards the occluder so that its far
-    edge stays; each view carries the occluder's pixels as hidden. The unchanged framing comes
-    first (factor 1, hidden pixels included). Empty when nothing touches the mask."""
-    if occluder is None or not grow:
+    """Where an occluder or the image's edge touches the mask, the mask framed as if the object
+    went on behind it: its box side times each factor of `grow`, the box moved towards where it
+    is cut off so that its far edge stays; each view carries the occluder's pixels and those
+    beyond the image as hidden. The unchanged framing comes first (factor 1, hidden pixels
+    included). Empty when nothing touches the mask."""
+    if not grow:
         return []
-    hidden = occluder & ~mask
-    near = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    touch = near & hidden
-    if np.count_nonzero(touch) < 3:
+    hidden = np.zeros(mask.shape, bool) if occluder is None else occluder & ~mask
+    touch = []
+    if occluder is not None:
+        near = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        ys, xs = np.nonzero(near & hidden)
+        if len(xs) >= 3:
+            touch.append(np.stack([xs, ys], 1).astype(float))
+    if len(edge := _edge_touch(mask)) >= 3:
+        touch.append(edge)
+    if not touch:
         return []
-    ys, xs = np.nonzero(touch)
-    d = np.array([xs.mean(), ys.mean()]) - view.centre
+    d = np.concatenate(touch).mean(0) - view.centre
     if (n := float(np.linalg.norm(d))) < 1e-6:
         return []
     d /= n
-    out = [MaskView(view.bits, view.centre, view.side, _framed(hidden, view.centre, view.side))]
+
+    def hidden_bits(centre: np.ndarray, side: float) -> np.ndarray:
+        return _framed(hidden, centre, side) | _beyond_image(mask.shape, centre, side)
+
+    out = [MaskView(view.bits, view.centre, view.side, hidden_bits(view.centre, view.side))]
     for g in grow:
         side = view.side * g
         centre = view.centre + d * (side - view.side) / 2
-        out.append(
-            MaskView(_framed(mask, centre, side), centre, side, _framed(hidden, centre, side))
-        )
+        out.append(MaskView(_framed(mask, centre, side), centre, side, hidden_bits(centre, side)))
     return out
 
 

@@ -58,7 +58,7 @@ def _hybrid_global() -> PoseEstimator:
 def _hybrid_global_paper() -> PoseEstimator:
     """`hybrid-global` for the paper's protocol (256x256 studio images, random backgrounds): the
     detector fine-tuned on those images and the `paper` variant's nets."""
-    from perception.global_pose import GlobalPoseEstimator
+    from perception.global_pose import GlobalConfig, GlobalPoseEstimator
     from perception.hybrid import PAPER_POSENET, HybridPoseEstimator
     from posegrasp.core.paths import WEIGHTS_DIR
 
@@ -67,7 +67,9 @@ def _hybrid_global_paper() -> PoseEstimator:
         posenet_path=PAPER_POSENET,
         expert_paths=(),
     )
-    return GlobalPoseEstimator(hybrid, name="hybrid-global-paper")
+    # No gravity in the paper's studio images: any orientation is as likely as any other.
+    config = GlobalConfig(resting_tilt_deg=None)
+    return GlobalPoseEstimator(hybrid, config, name="hybrid-global-paper")
 
 
 #: The detector fine-tuned on user objects, in the user objects directory.

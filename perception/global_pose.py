@@ -7,8 +7,8 @@ class (the shipped Mask R-CNN fine-tuned on the tiers' scenes, `TIERS_DETECTOR`)
 1. **Hypotheses**: the viewpoint codebook (`perception.codebook`) matches the detected mask
    against silhouettes of the object over all of SO(3) and gives the `GlobalConfig.hypotheses`
    best poses that differ by at least `GlobalConfig.min_angle_deg`; the hybrid nets' own pose
-   joins them. A mask another detection touches is also framed as if the object went on behind
-   it (`GlobalConfig.occluded_grow`, `perception.codebook.occluded_views`).
+   joins them. A mask another detection or the image's edge touches is also framed as if the
+   object went on behind it (`GlobalConfig.occluded_grow`, `perception.codebook.occluded_views`).
 2. **Refinement**: each is refined by the render-and-compare refiner (`perception.refine`)
    against the detected mask and the image (its basin is about 10-15 deg; the codebook's grid
    puts one hypothesis within it); after one run all are scored and the
@@ -18,11 +18,14 @@ class (the shipped Mask R-CNN fine-tuned on the tiers' scenes, `TIERS_DETECTOR`)
    plus `GlobalConfig.appearance_weight` times the correlation of the parts' colours drawn at
    that pose with the image (`perception.codebook.appearance_score`), plus
    `GlobalConfig.edge_weight` times the share of the parts' outlines that lie on image edges
-   (`perception.codebook.edge_score`); the best one wins. Its
-   score is reported as the estimate's confidence; below `GlobalConfig.min_score` the estimate
-   is withheld (``no_estimate``).
+   (`perception.codebook.edge_score`); the best one wins. Objects rest on something: with the
+   camera's pose, a refined pose within `GlobalConfig.resting_tilt_deg` of one of the object's
+   resting poses (any turn about the vertical) wins over one that is not. Its score is reported
+   as the estimate's confidence; below `GlobalConfig.min_score` the estimate is withheld
+   (``no_estimate``).
 
-Inputs are the image, K and the requested class only: no table, no depth, no camera pose.
+Inputs are the image, K, the camera's pose (for gravity only) and the requested class: no table,
+no depth.
 Codebooks are built once per object and grid and cached under the data folder
 (``$POSEGRASP_DATA/codebooks``).
 """
@@ -51,6 +54,7 @@ from perception.detector import Detection
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target
 from perception.overlay import mask_box
 from perception.refine import PoseRefiner
+from perception.support import snap_to_resting
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, data_root
@@ -76,9 +80,14 @@ class GlobalConfig:
         appearance_weight: weight of the colour correlation in the verification score.
         edge_weight: weight of the outlines' agreement with image edges in it.
         min_score: a best score below this withholds the estimate.
-        occluded_grow: where another detection touches the mask, the codebook also matches it
-            framed by boxes this many times its own, grown towards the occluder, with the
-            occluder's pixels not held against a template (empty: the mask's own box only).
+        occluded_grow: where another detection or the image's edge touches the mask, the
+            codebook also matches it framed by boxes this many times its own, grown towards
+            where it is cut off, with the occluder's pixels and those beyond the image not held
+            against a template (empty: the mask's own box only).
+        resting_tilt_deg: with the camera's pose known, refined starts within this rotation of
+            one of the object's resting poses (any turn about the vertical) rank above the
+            others, so a pose the object could not rest in wins only when no start could
+            (None: no such preference, as for images without gravity).
     """
 
     views: int = 1000
@@ -91,6 +100,7 @@ class GlobalConfig:
     edge_weight: float = 0.3
     min_score: float = 0.0
     occluded_grow: tuple[float, ...] = (1.3, 1.6)
+    resting_tilt_deg: float | None = 10.0
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -100,6 +110,8 @@ class GlobalConfig:
             raise InvalidArgumentError("GlobalConfig.keep_after_first must be >= 0 (0: all)")
         if not (0 <= self.min_angle_deg < 180 and np.isfinite(self.appearance_weight)):
             raise InvalidArgumentError("GlobalConfig.min_angle_deg must be in [0, 180)")
+        if self.resting_tilt_deg is not None and not 0 < self.resting_tilt_deg < 180:
+            raise InvalidArgumentError("GlobalConfig.resting_tilt_deg must be in (0, 180) or None")
         if not all(1 < g <= 4 for g in self.occluded_grow):
             raise InvalidArgumentError("GlobalConfig.occluded_grow factors must lie in (1, 4]")
 
@@ -158,6 +170,7 @@ class Verified:
         edges: the share of the parts' outlines on image edges.
         source: ``codebook`` or ``nets``.
         rank: where the start came from: 0 the nets, i >= 1 the codebook's i-th hypothesis.
+        tilt: rotation to the nearest resting pose [deg] (0 when the camera pose is unknown).
     """
 
     T_C_O: np.ndarray
@@ -167,6 +180,17 @@ class Verified:
     edges: float
     source: str
     rank: int
+    tilt: float = 0.0
+
+    def key(self, max_tilt: float | None) -> tuple[bool, float]:
+        """Sort key, best last: within `max_tilt` of a resting pose (when given), then score."""
+        return (max_tilt is None or self.tilt <= max_tilt, self.score)
+
+
+def rank_verified(verified: list[Verified], max_tilt: float | None) -> list[Verified]:
+    """Best first: those within `max_tilt` of a resting pose (all when None) before the others,
+    each group by decreasing score (ties keep their order)."""
+    return sorted(verified, key=lambda v: v.key(max_tilt), reverse=True)
 
 
 class GlobalPoseEstimator:
@@ -216,12 +240,17 @@ class GlobalPoseEstimator:
         K: np.ndarray,
         rgb: np.ndarray,
         occluder: np.ndarray | None,
+        R_W_C: np.ndarray | None = None,
     ) -> tuple[list[Verified], dict[str, float]]:
         """Every hypothesis of one detection, refined and scored, best first (with
-        `GlobalConfig.keep_after_first`, the ones refined further first), and the stage times
-        [ms] (``hypotheses``, ``verify``). A detection without the nets' pose (of an object
-        they were not trained on) starts from the codebook alone."""
+        `GlobalConfig.keep_after_first`, the ones refined further first; with the camera's
+        rotation in the world `R_W_C` and `GlobalConfig.resting_tilt_deg`, those near a resting
+        pose before the others), and the stage times [ms] (``hypotheses``, ``verify``). A
+        detection without the nets' pose (of an object they were not trained on) starts from
+        the codebook alone."""
         cfg = self.config
+        model = load_object(det.name)
+        max_tilt = cfg.resting_tilt_deg if R_W_C is not None and model.resting_poses else None
         t0 = time.perf_counter()
         starts: list[tuple[np.ndarray, str]] = []
         if isinstance(det, PoseDetection):
@@ -251,16 +280,22 @@ class GlobalPoseEstimator:
             edges = edge_score(pieces, T, K, edge_distance, box)
             iou = float(info["iou_after"])
             score = iou + cfg.appearance_weight * app + cfg.edge_weight * edges
-            return Verified(T, score, iou, app, edges, source, rank)
+            tilt = 0.0
+            if max_tilt is not None:
+                tilt = snap_to_resting(R_W_C @ T[:3, :3], model)[2]
+            return Verified(T, score, iou, app, edges, source, rank, tilt)
+
+        def best_first(vs: list[Verified]) -> list[Verified]:
+            return rank_verified(vs, max_tilt)
 
         first = 1 if cfg.keep_after_first else cfg.refine_passes
         out = [v for r, (T, s) in enumerate(starts) if (v := refined(T, s, r, first)) is not None]
-        out.sort(key=lambda v: -v.score)
+        out = best_first(out)
         if cfg.keep_after_first and cfg.refine_passes > 1:
             # The best few, refined further, rank above the rest (refined once), which stay listed.
             kept, rest = out[: cfg.keep_after_first], out[cfg.keep_after_first :]
             again = [refined(v.T_C_O, v.source, v.rank, cfg.refine_passes - 1) for v in kept]
-            out = sorted((v for v in again if v is not None), key=lambda v: -v.score) + rest
+            out = best_first([v for v in again if v is not None]) + rest
         t2 = time.perf_counter()
         return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}
 
@@ -290,7 +325,8 @@ class GlobalPoseEstimator:
             occluder = target.occluder()
         if best is None:
             return Estimate(None, neighbours, info)
-        ranked, times = self.verify(best, obs.K, obs.rgb, occluder)
+        R_W_C = np.asarray(obs.T_world_cam, float)[:3, :3]
+        ranked, times = self.verify(best, obs.K, obs.rgb, occluder, R_W_C)
         info["timings_ms"] |= times
         if not ranked:
             return Estimate(None, neighbours, info | {"verify": {"hypotheses": 0}})
@@ -301,6 +337,7 @@ class GlobalPoseEstimator:
             "appearance": win.appearance,
             "edges": win.edges,
             "source": win.source,
+            "tilt_deg": win.tilt,
             "hypotheses": len(ranked),
             "config": asdict(self.config),
         }
