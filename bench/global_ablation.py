@@ -20,11 +20,13 @@ ablation then replays the choice offline:
 
 With `--keeps`, it measures instead the verification that refines every start once, scores them
 and gives the second refiner run only to the best few (`GlobalConfig.keep_after_first`; 0 is
-every start twice); with `--tilts`, the resting prior (`GlobalConfig.resting_tilt_deg`, with the
-image's camera pose); with `--grows`, the codebook's extra framings of a mask another detection
-touches (`GlobalConfig.occluded_grow`): for each setting, the chosen pose's rotation errors, those
-of the best verified start, the chosen translation's error and the verification's time per
-detection (median, one thread), each setting on the same images with the same detections.
+every start twice); with `--screens`, a first run of fewer refiner steps for every start
+(`GlobalConfig.screen_iterations`); with `--tilts`, the resting prior
+(`GlobalConfig.resting_tilt_deg`, with the image's camera pose); with `--grows`, the codebook's
+extra framings of a mask another detection touches (`GlobalConfig.occluded_grow`): for each
+setting, the chosen pose's rotation errors, those of the best verified start, the chosen
+translation's error and the verification's time per detection (median, one thread), each setting
+on the same images with the same detections.
 
     python bench/global_ablation.py --split headcam_hard --grows "none;1.4;1.5;1.3,1.6"
     python bench/global_ablation.py --split headcam_hard --tilts none,5,10,20
@@ -99,15 +101,20 @@ def check_tilt_list(spec: str) -> list[float | None]:
     return out
 
 
-def check_int_list(spec: str) -> list[int]:
-    """A comma list of whole numbers 0..13."""
+def check_int_list(spec: str, hi: int = 13, flag: str = "--keeps") -> list[int]:
+    """A comma list of whole numbers 0..hi."""
     out = []
     for v in str(spec).split(","):
         try:
             out.append(int(v))
         except ValueError:
             out.append(v)  # refused below with the valid range
-    return [check_int(v, 0, 13, "--keeps") for v in out]
+    return [check_int(v, 0, hi, flag) for v in out]
+
+
+def check_screen_list(spec: str) -> list[int]:
+    """A comma list of refiner steps 0..6."""
+    return check_int_list(spec, 6, "--screens")
 
 
 def record(split: str, subset: str, images: int) -> list[dict]:
@@ -184,6 +191,7 @@ def config_sweep(
                 "keep_after_first": cfg.keep_after_first,
                 "occluded_grow": list(cfg.occluded_grow),
                 "resting_tilt_deg": cfg.resting_tilt_deg,
+                "screen_iterations": cfg.screen_iterations,
                 "detections": len(cases),
                 "mean": float(e.mean()),
                 "median": float(np.median(e)),
@@ -286,6 +294,14 @@ def main(argv: list[str] | None = None) -> int:
         "factors 1..4, 'none' for the mask's own box alone)",
     )
     p.add_argument(
+        "--screens",
+        type=arg(check_screen_list),
+        default=None,
+        metavar="LIST",
+        help="instead, measure these screen_iterations values (comma list of 0..6, 0 for the "
+        "refiner's full run)",
+    )
+    p.add_argument(
         "--tilts",
         type=arg(check_tilt_list),
         default=None,
@@ -301,10 +317,12 @@ def main(argv: list[str] | None = None) -> int:
         help="replay the starts recorded in an earlier --json instead of measuring",
     )
     args = p.parse_args(argv)
-    if args.keeps is not None or args.grows is not None or args.tilts is not None:
+    if any(v is not None for v in (args.keeps, args.grows, args.tilts, args.screens)):
         setup_rendering(threads=1)
         if args.keeps is not None:
             configs = {f"keep {k}": GlobalConfig(keep_after_first=k) for k in args.keeps}
+        elif args.screens is not None:
+            configs = {f"screen {k}": GlobalConfig(screen_iterations=k) for k in args.screens}
         elif args.tilts is not None:
             configs = {
                 f"tilt {t if t is not None else 'none'}": GlobalConfig(resting_tilt_deg=t)

@@ -173,8 +173,9 @@ class Codebook:
         in `hidden_bits` (where something else may hide the object) do not count against it.
 
         With T a template, M the mask and H the hidden pixels outside it, the union is
-        ``|T| - |T & H| + |M| - |T & M|``: only the intersections are counted, a block of
-        templates at a time so that the block stays in the cache."""
+        ``|T| - |T & H| + |M| - |T & M|``: only the intersections are counted (at most
+        `SILHOUETTE_PX`**2 pixels: 16-bit sums), a block of templates at a time so that the
+        block stays in the cache."""
         mask_bits = np.ascontiguousarray(mask_bits, np.uint64)
         hidden = None
         if hidden_bits is not None:
@@ -185,13 +186,11 @@ class Codebook:
         for a in range(0, len(self.bits), MATCH_BLOCK):
             block = self.bits[a : a + MATCH_BLOCK]
             out = buf[: len(block)]
-            inter[a : a + len(block)] = np.bitwise_count(
-                np.bitwise_and(block, mask_bits, out=out)
-            ).sum(1)
+            both = np.bitwise_and(block, mask_bits, out=out)
+            inter[a : a + len(block)] = np.bitwise_count(both).sum(1, dtype=np.uint16)
             if hidden is not None:
-                covered[a : a + len(block)] = np.bitwise_count(
-                    np.bitwise_and(block, hidden, out=out)
-                ).sum(1)
+                both = np.bitwise_and(block, hidden, out=out)
+                covered[a : a + len(block)] = np.bitwise_count(both).sum(1, dtype=np.uint16)
         size = int(np.bitwise_count(mask_bits).sum())
         union = self.counts - covered + size - inter
         return inter / np.maximum(union, 1)

@@ -33,7 +33,7 @@ Codebooks are built once per object and grid and cached under the data folder
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +84,9 @@ class GlobalConfig:
             codebook also matches it framed by boxes this many times its own, grown towards
             where it is cut off, with the occluder's pixels and those beyond the image not held
             against a template (empty: the mask's own box only).
+        screen_iterations: refiner steps of the first run that every start gets, before the
+            scoring that picks the `keep_after_first` best for the further runs (0: the
+            refiner's full run; used only with `keep_after_first`).
         resting_tilt_deg: with the camera's pose known, refined starts within this rotation of
             one of the object's resting poses (any turn about the vertical) rank above the
             others, so a pose the object could not rest in wins only when no start could
@@ -100,12 +103,15 @@ class GlobalConfig:
     edge_weight: float = 0.3
     min_score: float = 0.0
     occluded_grow: tuple[float, ...] = (1.3, 1.6)
+    screen_iterations: int = 2
     resting_tilt_deg: float | None = 10.0
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
             if int(getattr(self, key)) < 1:
                 raise InvalidArgumentError(f"GlobalConfig.{key} must be >= 1")
+        if int(self.screen_iterations) < 0:
+            raise InvalidArgumentError("GlobalConfig.screen_iterations must be >= 0 (0: all)")
         if int(self.keep_after_first) < 0:
             raise InvalidArgumentError("GlobalConfig.keep_after_first must be >= 0 (0: all)")
         if not (0 <= self.min_angle_deg < 180 and np.isfinite(self.appearance_weight)):
@@ -215,6 +221,7 @@ class GlobalPoseEstimator:
         self.config = config or GlobalConfig()
         self.codebooks = codebooks or CodebookCache(self.config.views, self.config.inplane)
         self.refiner = PoseRefiner()
+        self._screens: dict[int, PoseRefiner] = {}
         self.name = name
         self._colours: dict[str, np.ndarray] = {}
 
@@ -233,6 +240,15 @@ class GlobalPoseEstimator:
             pieces = load_object(name).convex_pieces()
             self._colours[name] = np.array([rgba[:3] for _, rgba in pieces])
         return self._colours[name]
+
+    def _screen(self, iterations: int) -> PoseRefiner:
+        """The refiner of the first run: the full one, or one with fewer steps."""
+        if iterations <= 0 or iterations >= self.refiner.config.iterations:
+            return self.refiner
+        if iterations not in self._screens:
+            cfg = replace(self.refiner.config, iterations=iterations)
+            self._screens[iterations] = PoseRefiner(cfg)
+        return self._screens[iterations]
 
     def verify(
         self,
@@ -269,11 +285,13 @@ class GlobalPoseEstimator:
         box = _grown(tight, EDGE_MARGIN_PX, det.mask.shape)
         edge_distance = image_edges(rgb, box)
 
-        def refined(T: np.ndarray, source: str, rank: int, passes: int) -> Verified | None:
+        def refined(
+            T: np.ndarray, source: str, rank: int, passes: int, refiner: PoseRefiner
+        ) -> Verified | None:
             info = {"iou_after": 0.0}
             try:
                 for _ in range(passes):
-                    T, info = self.refiner.refine(det.name, T, K, det.mask, rgb, occluder)
+                    T, info = refiner.refine(det.name, T, K, det.mask, rgb, occluder)
             except InvalidArgumentError:
                 return None  # a start behind the camera: not a pose to verify
             app = appearance_score(pieces, colours, T, K, rgb, det.mask, tight)
@@ -288,13 +306,20 @@ class GlobalPoseEstimator:
         def best_first(vs: list[Verified]) -> list[Verified]:
             return rank_verified(vs, max_tilt)
 
-        first = 1 if cfg.keep_after_first else cfg.refine_passes
-        out = [v for r, (T, s) in enumerate(starts) if (v := refined(T, s, r, first)) is not None]
+        first, screen = cfg.refine_passes, self.refiner
+        if cfg.keep_after_first:
+            first, screen = 1, self._screen(cfg.screen_iterations)
+        out = [
+            v
+            for r, (T, s) in enumerate(starts)
+            if (v := refined(T, s, r, first, screen)) is not None
+        ]
         out = best_first(out)
-        if cfg.keep_after_first and cfg.refine_passes > 1:
+        if cfg.keep_after_first and (cfg.refine_passes > 1 or screen is not self.refiner):
             # The best few, refined further, rank above the rest (refined once), which stay listed.
             kept, rest = out[: cfg.keep_after_first], out[cfg.keep_after_first :]
-            again = [refined(v.T_C_O, v.source, v.rank, cfg.refine_passes - 1) for v in kept]
+            more = cfg.refine_passes - (screen is self.refiner)
+            again = [refined(v.T_C_O, v.source, v.rank, more, self.refiner) for v in kept]
             out = best_first([v for v in again if v is not None]) + rest
         t2 = time.perf_counter()
         return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}

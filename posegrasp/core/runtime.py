@@ -9,7 +9,11 @@ render. It
 - loads torch, torch._dynamo and torchvision, when installed, before the first GL context exists:
   importing them once a MuJoCo GL context exists crashes the process (inside triton), so a user
   who renders first and loads a network afterwards would otherwise crash;
-- optionally pins the compute threads (`threads`): torch's, OpenMP's and Mesa's rasteriser's.
+- optionally pins the compute threads (`threads`): torch's, OpenMP's and Mesa's rasteriser's;
+- runs the OpenBLAS that numpy, SciPy and OpenCV bring on one thread. Their matrices here are
+  small (the refiner's 6x6 solves and Jacobian products); a second OpenBLAS thread only spins
+  for a while after each call, taking a core from the torch threads that run next (the detector
+  then took twice as long right after a verification).
 
 Rendering without it raises `StateError` naming this function.
 """
@@ -53,6 +57,9 @@ def setup_rendering(threads: int | None = None, preload_torch: bool = True) -> N
 
     if threads is not None and "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(threads)
+    import threadpoolctl
+
+    threadpoolctl.threadpool_limits(limits=1, user_api="blas")
     _DONE = True
 
 
