@@ -4,8 +4,9 @@
         [--threads 2] [--json PATH]
 
 Renders the head-camera images of the first `--images` held-out episodes of the tier (objects in
-turn), warms the estimator up on the first of each object (loading its codebook), then times `estimate(obs)` on each: median and 90th
-percentile [ms], and the per-stage medians the estimator reports in ``info["timings_ms"]``.
+turn), warms the estimator up on the first of each object (loading its codebook), then times
+`estimate(obs)` on each: median and 90th percentile [ms], and the per-stage medians the estimator
+reports in ``info["timings_ms"]``.
 Target: the whole estimate at most 100 ms per object (median) on 2 cores.
 """
 

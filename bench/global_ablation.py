@@ -22,7 +22,8 @@ With `--keeps`, it measures instead the verification that refines every start on
 and gives the second refiner run only to the best few (`GlobalConfig.keep_after_first`; 0 is
 every start twice); with `--screens`, a first run of fewer refiner steps for every start
 (`GlobalConfig.screen_iterations`); with `--tilts`, the resting prior
-(`GlobalConfig.resting_tilt_deg`, with the image's camera pose); with `--grows`, the codebook's
+(`GlobalConfig.resting_tilt_deg`, with the image's camera pose); with `--snaps`, the winner's
+snap onto its resting pose (`GlobalConfig.resting_snap`); with `--grows`, the codebook's
 extra framings of a mask another detection touches (`GlobalConfig.occluded_grow`): for each
 setting, the chosen pose's rotation errors, those of the best verified start, the chosen
 translation's error and the verification's time per detection (median, one thread), each setting
@@ -192,6 +193,7 @@ def config_sweep(
                 "occluded_grow": list(cfg.occluded_grow),
                 "resting_tilt_deg": cfg.resting_tilt_deg,
                 "screen_iterations": cfg.screen_iterations,
+                "resting_snap": cfg.resting_snap,
                 "detections": len(cases),
                 "mean": float(e.mean()),
                 "median": float(np.median(e)),
@@ -302,6 +304,12 @@ def main(argv: list[str] | None = None) -> int:
         "refiner's full run)",
     )
     p.add_argument(
+        "--snaps",
+        action="store_true",
+        help="instead, measure the winner's snap onto its resting pose off and on "
+        "(GlobalConfig.resting_snap)",
+    )
+    p.add_argument(
         "--tilts",
         type=arg(check_tilt_list),
         default=None,
@@ -317,9 +325,11 @@ def main(argv: list[str] | None = None) -> int:
         help="replay the starts recorded in an earlier --json instead of measuring",
     )
     args = p.parse_args(argv)
-    if any(v is not None for v in (args.keeps, args.grows, args.tilts, args.screens)):
+    if args.snaps or any(v is not None for v in (args.keeps, args.grows, args.tilts, args.screens)):
         setup_rendering(threads=1)
-        if args.keeps is not None:
+        if args.snaps:
+            configs = {f"snap {k}": GlobalConfig(resting_snap=k == "on") for k in ("off", "on")}
+        elif args.keeps is not None:
             configs = {f"keep {k}": GlobalConfig(keep_after_first=k) for k in args.keeps}
         elif args.screens is not None:
             configs = {f"screen {k}": GlobalConfig(screen_iterations=k) for k in args.screens}

@@ -20,9 +20,10 @@ class (the shipped Mask R-CNN fine-tuned on the tiers' scenes, `TIERS_DETECTOR`)
    `GlobalConfig.edge_weight` times the share of the parts' outlines that lie on image edges
    (`perception.codebook.edge_score`); the best one wins. Objects rest on something: with the
    camera's pose, a refined pose within `GlobalConfig.resting_tilt_deg` of one of the object's
-   resting poses (any turn about the vertical) wins over one that is not. Its score is reported
-   as the estimate's confidence; below `GlobalConfig.min_score` the estimate is withheld
-   (``no_estimate``).
+   resting poses (any turn about the vertical) wins over one that is not, and is then turned
+   onto that resting pose and refined once more turning about the vertical only
+   (`GlobalConfig.resting_snap`). Its score is reported as the estimate's confidence; below
+   `GlobalConfig.min_score` the estimate is withheld (``no_estimate``).
 
 Inputs are the image, K, the camera's pose (for gravity only) and the requested class: no table,
 no depth.
@@ -33,6 +34,7 @@ Codebooks are built once per object and grid and cached under the data folder
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -58,7 +60,7 @@ from perception.support import snap_to_resting
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, data_root
-from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
 
 #: The detector fine-tuned on the tiers' scenes (any resting pose, partly hidden objects), in a
 #: folder with a manifest of its own; the other estimators keep the head-camera detector.
@@ -91,6 +93,8 @@ class GlobalConfig:
             one of the object's resting poses (any turn about the vertical) rank above the
             others, so a pose the object could not rest in wins only when no start could
             (None: no such preference, as for images without gravity).
+        resting_snap: a winner within `resting_tilt_deg` of a resting pose is then turned onto
+            it (its heading kept) and refined again, one run, turning about the vertical only.
     """
 
     views: int = 1000
@@ -103,8 +107,9 @@ class GlobalConfig:
     edge_weight: float = 0.3
     min_score: float = 0.0
     occluded_grow: tuple[float, ...] = (1.3, 1.6)
-    screen_iterations: int = 2
+    screen_iterations: int = 0
     resting_tilt_deg: float | None = 10.0
+    resting_snap: bool = True
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -121,6 +126,9 @@ class GlobalConfig:
         if not all(1 < g <= 4 for g in self.occluded_grow):
             raise InvalidArgumentError("GlobalConfig.occluded_grow factors must lie in (1, 4]")
 
+
+#: A winner snapped onto its resting pose is kept unless its IoU with the mask drops by more.
+SNAP_IOU_DROP = 0.02
 
 #: Image edges are searched in the mask's box grown by this much [px].
 EDGE_MARGIN_PX = 10
@@ -241,6 +249,24 @@ class GlobalPoseEstimator:
             self._colours[name] = np.array([rgba[:3] for _, rgba in pieces])
         return self._colours[name]
 
+    def _snapped(
+        self,
+        win: Verified,
+        R_W_C: np.ndarray,
+        model: ObjectModel,
+        refined: Callable[..., Verified | None],
+    ) -> Verified:
+        """The winner turned onto its nearest resting pose (its heading kept) and refined again,
+        one run, turning about the vertical only; the winner itself when that fits the mask
+        worse by more than `SNAP_IOU_DROP`."""
+        T = win.T_C_O.copy()
+        T[:3, :3] = R_W_C.T @ snap_to_resting(R_W_C @ T[:3, :3], model)[0]
+        up = R_W_C[2].copy()  # the world's vertical in the camera frame
+        snapped = refined(T, win.source, win.rank, 1, self.refiner, up)
+        if snapped is None or snapped.iou < win.iou - SNAP_IOU_DROP:
+            return win
+        return snapped
+
     def _screen(self, iterations: int) -> PoseRefiner:
         """The refiner of the first run: the full one, or one with fewer steps."""
         if iterations <= 0 or iterations >= self.refiner.config.iterations:
@@ -286,12 +312,17 @@ class GlobalPoseEstimator:
         edge_distance = image_edges(rgb, box)
 
         def refined(
-            T: np.ndarray, source: str, rank: int, passes: int, refiner: PoseRefiner
+            T: np.ndarray,
+            source: str,
+            rank: int,
+            passes: int,
+            refiner: PoseRefiner,
+            axis: np.ndarray | None = None,
         ) -> Verified | None:
             info = {"iou_after": 0.0}
             try:
                 for _ in range(passes):
-                    T, info = refiner.refine(det.name, T, K, det.mask, rgb, occluder)
+                    T, info = refiner.refine(det.name, T, K, det.mask, rgb, occluder, axis)
             except InvalidArgumentError:
                 return None  # a start behind the camera: not a pose to verify
             app = appearance_score(pieces, colours, T, K, rgb, det.mask, tight)
@@ -321,6 +352,9 @@ class GlobalPoseEstimator:
             more = cfg.refine_passes - (screen is self.refiner)
             again = [refined(v.T_C_O, v.source, v.rank, more, self.refiner) for v in kept]
             out = best_first([v for v in again if v is not None]) + rest
+        if cfg.resting_snap and max_tilt is not None and out and out[0].tilt <= max_tilt:
+            assert R_W_C is not None
+            out[0] = self._snapped(out[0], R_W_C, model, refined)
         t2 = time.perf_counter()
         return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}
 

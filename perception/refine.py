@@ -158,6 +158,7 @@ class PoseRefiner:
         mask: np.ndarray,
         rgb: np.ndarray | None = None,
         occluder: np.ndarray | None = None,
+        axis: np.ndarray | None = None,
     ) -> tuple[np.ndarray, dict]:
         """Refine one pose estimate.
 
@@ -169,6 +170,8 @@ class PoseRefiner:
             rgb: the image, shape (H, W, 3), uint8; None refines against the mask alone.
             occluder: pixels where something else may hide the object (e.g. the other detected
                 objects' masks), shape (H, W), bool; None: nothing.
+            axis: turn the object only about this axis (unit, camera frame; e.g. the vertical
+                of an object resting on a level surface); None: any rotation.
 
         Returns:
             (T_C_O (4, 4), info): the refined pose (the input when the refinement is rejected)
@@ -179,12 +182,17 @@ class PoseRefiner:
 
         Raises:
             UnknownNameError: an unknown object name.
-            InvalidArgumentError: a pose that is not rigid or lies behind the camera, a bad K, or
-                a mask, image or occluder of the wrong shape or type.
+            InvalidArgumentError: a pose that is not rigid or lies behind the camera, a bad K, a
+                mask, image or occluder of the wrong shape or type, or an axis that is not a unit
+                vector.
         """
         t_start = time.perf_counter()
         parts = self.part_vertices(name)
         T0, K, mask, rgb, occluder = _check_inputs(T_C_O, K, mask, rgb, occluder)
+        if axis is not None:
+            axis = np.asarray(axis, np.float64)
+            if axis.shape != (3,) or not abs(float(np.linalg.norm(axis)) - 1.0) < 1e-6:
+                raise InvalidArgumentError(f"axis must be a unit 3-vector, got {axis!r}")
         info: dict = {"iterations": 0, "points": 0, "edge_points": 0, "accepted": False}
         if (box := mask_box(mask)) is None:
             info |= {"iou_before": 0.0, "iou_after": 0.0, "reason": "empty mask"}
@@ -208,6 +216,8 @@ class PoseRefiner:
                 break
             use_edges = win.rgb is not None and it >= cfg.mask_only_iterations
             r, J, n_edge = _residuals(T, Kw, X_O, p, n, win, cfg, use_edges)
+            if axis is not None:  # one rotation parameter: the turn about the axis
+                J = np.column_stack([J[:, :3] @ axis, J[:, 3:]])
             info |= {"iterations": it + 1, "points": len(p), "edge_points": n_edge}
             w = np.minimum(1.0, cfg.huber_px / np.maximum(np.abs(r), 1e-9))
             cost = float(np.mean(w * r * r * (2 - w)))
@@ -219,7 +229,9 @@ class PoseRefiner:
                 g = (J * w[:, None]).T @ r
                 last = (T.copy(), H, g, cost)
                 lam = max(lam / 2, 1e-6)
-            step = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(6), g)
+            step = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(len(g)), g)
+            if axis is not None:
+                step = np.concatenate([step[0] * axis, step[1:]])
             T = T.copy()
             if (angle := float(np.linalg.norm(step[:3]))) > 0:
                 T[:3, :3] = axis_angle(step[:3], angle) @ T[:3, :3]

@@ -93,6 +93,25 @@ def test_an_occluded_part_of_the_mask_is_not_held_against_the_pose() -> None:
     assert full_iou("screen", T, T_true) > full_iou("screen", T0, T_true)
 
 
+def test_turning_about_one_axis_only() -> None:
+    """Started off in heading only, about the object's vertical (its z axis, in the camera frame),
+    the refiner restricted to that axis turns about it alone and recovers the heading."""
+    T_true = true_pose(20.0)
+    mask, rgb = render("car", T_true)
+    up = T_true[:3, 2].copy()
+    T0 = T_true.copy()
+    T0[:3, :3] = axis_angle(up, np.radians(6.0)) @ T_true[:3, :3]
+    T0[:3, 3] += (0.004, -0.003, 0.01)
+    T, info = PoseRefiner().refine("car", T0, K, mask, rgb, axis=up)
+    assert info["accepted"]
+    turn = T[:3, :3] @ T0[:3, :3].T  # the rotation applied, about `up` only
+    np.testing.assert_allclose(turn @ up, up, atol=1e-9)
+    assert rotation_error_deg(T[:3, :3], T_true[:3, :3]) < 1.0
+    assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.004
+    with pytest.raises(InvalidArgumentError, match="unit 3-vector"):
+        PoseRefiner().refine("car", T0, K, mask, rgb, axis=np.array([0.0, 0.0, 2.0]))
+
+
 def test_an_empty_mask_keeps_the_pose() -> None:
     T0 = true_pose()
     T, info = PoseRefiner().refine("phone", T0, K, np.zeros((480, 640), bool))
