@@ -22,12 +22,12 @@ With `--keeps`, it measures instead the verification that refines every start on
 and gives the second refiner run only to the best few (`GlobalConfig.keep_after_first`; 0 is
 every start twice); with `--screens`, a first run of fewer refiner steps for every start
 (`GlobalConfig.screen_iterations`); with `--tilts`, the resting prior
-(`GlobalConfig.resting_tilt_deg`, with the image's camera pose); with `--snaps`, the winner's
-snap onto its resting pose (`GlobalConfig.resting_snap`); with `--grows`, the codebook's
-extra framings of a mask another detection touches (`GlobalConfig.occluded_grow`): for each
-setting, the chosen pose's rotation errors, those of the best verified start, the chosen
-translation's error and the verification's time per detection (median, one thread), each setting
-on the same images with the same detections.
+(`GlobalConfig.resting_tilt_deg`, with the image's camera pose); with `--snaps`, how many of the
+best starts are snapped onto their resting poses (`GlobalConfig.snap_candidates`); with
+`--grows`, the codebook's extra framings of a mask another detection touches
+(`GlobalConfig.occluded_grow`): for each setting, the chosen pose's rotation errors, those of the
+best verified start, the chosen translation's error and the verification's time per detection
+(median, one thread), each setting on the same images with the same detections.
 
     python bench/global_ablation.py --split headcam_hard --grows "none;1.4;1.5;1.3,1.6"
     python bench/global_ablation.py --split headcam_hard --tilts none,5,10,20
@@ -113,6 +113,11 @@ def check_int_list(spec: str, hi: int = 13, flag: str = "--keeps") -> list[int]:
     return [check_int(v, 0, hi, flag) for v in out]
 
 
+def check_snap_list(spec: str) -> list[int]:
+    """A comma list of snapped starts 0..13."""
+    return check_int_list(spec, 13, "--snaps")
+
+
 def check_screen_list(spec: str) -> list[int]:
     """A comma list of refiner steps 0..6."""
     return check_int_list(spec, 6, "--screens")
@@ -193,7 +198,7 @@ def config_sweep(
                 "occluded_grow": list(cfg.occluded_grow),
                 "resting_tilt_deg": cfg.resting_tilt_deg,
                 "screen_iterations": cfg.screen_iterations,
-                "resting_snap": cfg.resting_snap,
+                "snap_candidates": cfg.snap_candidates,
                 "detections": len(cases),
                 "mean": float(e.mean()),
                 "median": float(np.median(e)),
@@ -305,9 +310,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument(
         "--snaps",
-        action="store_true",
-        help="instead, measure the winner's snap onto its resting pose off and on "
-        "(GlobalConfig.resting_snap)",
+        type=arg(check_snap_list),
+        default=None,
+        metavar="LIST",
+        help="instead, measure these snap_candidates values (comma list of 0..13, 0: no snap)",
     )
     p.add_argument(
         "--tilts",
@@ -325,10 +331,11 @@ def main(argv: list[str] | None = None) -> int:
         help="replay the starts recorded in an earlier --json instead of measuring",
     )
     args = p.parse_args(argv)
-    if args.snaps or any(v is not None for v in (args.keeps, args.grows, args.tilts, args.screens)):
+    sweeps = (args.keeps, args.grows, args.tilts, args.screens, args.snaps)
+    if any(v is not None for v in sweeps):
         setup_rendering(threads=1)
-        if args.snaps:
-            configs = {f"snap {k}": GlobalConfig(resting_snap=k == "on") for k in ("off", "on")}
+        if args.snaps is not None:
+            configs = {f"snap {k}": GlobalConfig(snap_candidates=k) for k in args.snaps}
         elif args.keeps is not None:
             configs = {f"keep {k}": GlobalConfig(keep_after_first=k) for k in args.keeps}
         elif args.screens is not None:

@@ -20,10 +20,11 @@ class (the shipped Mask R-CNN fine-tuned on the tiers' scenes, `TIERS_DETECTOR`)
    `GlobalConfig.edge_weight` times the share of the parts' outlines that lie on image edges
    (`perception.codebook.edge_score`); the best one wins. Objects rest on something: with the
    camera's pose, a refined pose within `GlobalConfig.resting_tilt_deg` of one of the object's
-   resting poses (any turn about the vertical) wins over one that is not, and is then turned
-   onto that resting pose and refined once more turning about the vertical only
-   (`GlobalConfig.resting_snap`). Its score is reported as the estimate's confidence; below
-   `GlobalConfig.min_score` the estimate is withheld (``no_estimate``).
+   resting poses (any turn about the vertical) wins over one that is not; the best few that
+   could be resting are turned onto their resting poses and refined once more turning about the
+   vertical only, and the best of those wins (`GlobalConfig.snap_candidates`). The winner's
+   score is reported as the estimate's confidence; below `GlobalConfig.min_score` the estimate
+   is withheld (``no_estimate``).
 
 Inputs are the image, K, the camera's pose (for gravity only) and the requested class: no table,
 no depth.
@@ -93,8 +94,13 @@ class GlobalConfig:
             one of the object's resting poses (any turn about the vertical) rank above the
             others, so a pose the object could not rest in wins only when no start could
             (None: no such preference, as for images without gravity).
-        resting_snap: a winner within `resting_tilt_deg` of a resting pose is then turned onto
-            it (its heading kept) and refined again, one run, turning about the vertical only.
+        snap_candidates: with `resting_tilt_deg`, this many of the best refined starts within
+            `snap_tilt_deg` of a resting pose are each turned onto it (heading kept) and refined
+            again, one run, turning about the vertical only; the best of these wins (0: none).
+            A start off by a few degrees is often mostly tilted, so it is snapped, not passed
+            over.
+        snap_tilt_deg: the largest tilt from a resting pose [deg] a start may have to be
+            snapped.
     """
 
     views: int = 1000
@@ -107,9 +113,10 @@ class GlobalConfig:
     edge_weight: float = 0.3
     min_score: float = 0.0
     occluded_grow: tuple[float, ...] = (1.3, 1.6)
-    screen_iterations: int = 0
+    screen_iterations: int = 2
     resting_tilt_deg: float | None = 10.0
-    resting_snap: bool = True
+    snap_candidates: int = 5
+    snap_tilt_deg: float = 25.0
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -117,6 +124,10 @@ class GlobalConfig:
                 raise InvalidArgumentError(f"GlobalConfig.{key} must be >= 1")
         if int(self.screen_iterations) < 0:
             raise InvalidArgumentError("GlobalConfig.screen_iterations must be >= 0 (0: all)")
+        if int(self.snap_candidates) < 0 or not 0 < self.snap_tilt_deg < 180:
+            raise InvalidArgumentError(
+                "GlobalConfig.snap_candidates must be >= 0 and snap_tilt_deg in (0, 180)"
+            )
         if int(self.keep_after_first) < 0:
             raise InvalidArgumentError("GlobalConfig.keep_after_first must be >= 0 (0: all)")
         if not (0 <= self.min_angle_deg < 180 and np.isfinite(self.appearance_weight)):
@@ -127,8 +138,10 @@ class GlobalConfig:
             raise InvalidArgumentError("GlobalConfig.occluded_grow factors must lie in (1, 4]")
 
 
-#: A winner snapped onto its resting pose is kept unless its IoU with the mask drops by more.
-SNAP_IOU_DROP = 0.02
+#: A start snapped onto its resting pose is kept unless its verification score drops by more
+#: (the score, not the IoU alone: the detector's mask is often fitted a little better by a tilt
+#: that the image's edges refute).
+SNAP_SCORE_DROP = 0.05
 
 #: Image edges are searched in the mask's box grown by this much [px].
 EDGE_MARGIN_PX = 10
@@ -255,16 +268,16 @@ class GlobalPoseEstimator:
         R_W_C: np.ndarray,
         model: ObjectModel,
         refined: Callable[..., Verified | None],
-    ) -> Verified:
-        """The winner turned onto its nearest resting pose (its heading kept) and refined again,
-        one run, turning about the vertical only; the winner itself when that fits the mask
-        worse by more than `SNAP_IOU_DROP`."""
+    ) -> Verified | None:
+        """A refined start turned onto its nearest resting pose (its heading kept) and refined
+        again, one run, turning about the vertical only; None when its score drops by more than
+        `SNAP_SCORE_DROP`."""
         T = win.T_C_O.copy()
         T[:3, :3] = R_W_C.T @ snap_to_resting(R_W_C @ T[:3, :3], model)[0]
         up = R_W_C[2].copy()  # the world's vertical in the camera frame
         snapped = refined(T, win.source, win.rank, 1, self.refiner, up)
-        if snapped is None or snapped.iou < win.iou - SNAP_IOU_DROP:
-            return win
+        if snapped is None or snapped.score < win.score - SNAP_SCORE_DROP:
+            return None
         return snapped
 
     def _screen(self, iterations: int) -> PoseRefiner:
@@ -352,9 +365,16 @@ class GlobalPoseEstimator:
             more = cfg.refine_passes - (screen is self.refiner)
             again = [refined(v.T_C_O, v.source, v.rank, more, self.refiner) for v in kept]
             out = best_first([v for v in again if v is not None]) + rest
-        if cfg.resting_snap and max_tilt is not None and out and out[0].tilt <= max_tilt:
+        if cfg.snap_candidates and max_tilt is not None:
+            # The best few that could be resting, each snapped onto its resting pose; the
+            # snapped ones then compete on their scores alone, ahead of the rest.
             assert R_W_C is not None
-            out[0] = self._snapped(out[0], R_W_C, model, refined)
+            pool = [v for v in out if v.tilt <= cfg.snap_tilt_deg][: cfg.snap_candidates]
+            snapped = [s for v in pool if (s := self._snapped(v, R_W_C, model, refined))]
+            if snapped:
+                out = rank_verified(snapped, max_tilt) + [
+                    v for v in out if all(v is not p for p in pool)
+                ]
         t2 = time.perf_counter()
         return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}
 
