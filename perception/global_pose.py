@@ -96,9 +96,10 @@ class GlobalConfig:
             (None: no such preference, as for images without gravity).
         snap_candidates: with `resting_tilt_deg`, this many of the best refined starts within
             `snap_tilt_deg` of a resting pose are each turned onto it (heading kept) and refined
-            again, one run, turning about the vertical only; the best of these wins (0: none).
-            A start off by a few degrees is often mostly tilted, so it is snapped, not passed
-            over.
+            again, one run, turning about the vertical only; the best of these wins (0: none)
+            unless all of them score more than `SNAP_SCORE_DROP` below the best pose of all (the
+            object is not resting). A start off by a few degrees is often mostly tilted, so it is
+            snapped, not passed over.
         snap_tilt_deg: the largest tilt from a resting pose [deg] a start may have to be
             snapped.
     """
@@ -140,7 +141,8 @@ class GlobalConfig:
 
 #: A start snapped onto its resting pose is kept unless its verification score drops by more
 #: (the score, not the IoU alone: the detector's mask is often fitted a little better by a tilt
-#: that the image's edges refute).
+#: that the image's edges refute); the snapped starts win only if the best of them scores
+#: within this much of the best pose of all.
 SNAP_SCORE_DROP = 0.05
 
 #: Image edges are searched in the mask's box grown by this much [px].
@@ -367,11 +369,13 @@ class GlobalPoseEstimator:
             out = best_first([v for v in again if v is not None]) + rest
         if cfg.snap_candidates and max_tilt is not None:
             # The best few that could be resting, each snapped onto its resting pose; the
-            # snapped ones then compete on their scores alone, ahead of the rest.
+            # snapped ones then compete on their scores alone, ahead of the rest, unless every
+            # one of them scores well below the best pose found (the object is not resting).
             assert R_W_C is not None
             pool = [v for v in out if v.tilt <= cfg.snap_tilt_deg][: cfg.snap_candidates]
             snapped = [s for v in pool if (s := self._snapped(v, R_W_C, model, refined))]
-            if snapped:
+            best = max(v.score for v in out)
+            if snapped and max(v.score for v in snapped) >= best - SNAP_SCORE_DROP:
                 out = rank_verified(snapped, max_tilt) + [
                     v for v in out if all(v is not p for p in pool)
                 ]
