@@ -39,7 +39,9 @@ import itertools
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -277,6 +279,51 @@ def ablate(rows: list[dict]) -> dict:
     }
 
 
+def _named(name: str, fmt=str) -> Callable[[Any], str]:
+    """Labels a setting: ``name value`` (``none`` for None or an empty list)."""
+    return lambda v: f"{name} {fmt(v) if v not in (None, ()) else 'none'}"
+
+
+#: The settings --FLAG sweeps: GlobalConfig field, parser, metavar, help, label of a value.
+SWEEPS: dict[str, tuple[str, Callable, str, str, Callable[[Any], str]]] = {
+    "keeps": (
+        "keep_after_first",
+        check_int_list,
+        "LIST",
+        "comma list of 0..13",
+        _named("keep"),
+    ),
+    "grows": (
+        "occluded_grow",
+        check_grow_lists,
+        "LISTS",
+        "';'-separated comma lists of factors 1..4, 'none' for the mask's own box alone",
+        _named("grow", lambda g: ",".join(map(str, g))),
+    ),
+    "screens": (
+        "screen_iterations",
+        check_screen_list,
+        "LIST",
+        "comma list of 0..6, 0 for the refiner's full run",
+        _named("screen"),
+    ),
+    "snaps": (
+        "snap_candidates",
+        check_snap_list,
+        "LIST",
+        "comma list of 0..13, 0: no snap",
+        _named("snap"),
+    ),
+    "tilts": (
+        "resting_tilt_deg",
+        check_tilt_list,
+        "LIST",
+        "comma list of degrees in (0, 180), 'none' for no resting prior",
+        _named("tilt"),
+    ),
+}
+
+
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
@@ -285,44 +332,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--subset", default="val", help="the split's subset (default val)")
     p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=150)
     add_json_argument(p, "every start's scores and the ablation")
-    p.add_argument(
-        "--keeps",
-        type=arg(check_int_list),
-        default=None,
-        metavar="LIST",
-        help="instead, measure these keep_after_first values (comma list of 0..13)",
-    )
-    p.add_argument(
-        "--grows",
-        type=arg(check_grow_lists),
-        default=None,
-        metavar="LISTS",
-        help="instead, measure these occluded_grow settings (';'-separated comma lists of "
-        "factors 1..4, 'none' for the mask's own box alone)",
-    )
-    p.add_argument(
-        "--screens",
-        type=arg(check_screen_list),
-        default=None,
-        metavar="LIST",
-        help="instead, measure these screen_iterations values (comma list of 0..6, 0 for the "
-        "refiner's full run)",
-    )
-    p.add_argument(
-        "--snaps",
-        type=arg(check_snap_list),
-        default=None,
-        metavar="LIST",
-        help="instead, measure these snap_candidates values (comma list of 0..13, 0: no snap)",
-    )
-    p.add_argument(
-        "--tilts",
-        type=arg(check_tilt_list),
-        default=None,
-        metavar="LIST",
-        help="instead, measure these resting_tilt_deg settings (comma list of degrees in "
-        "(0, 180), 'none' for no resting prior)",
-    )
+    for flag, (field, check, metavar, text, _) in SWEEPS.items():
+        p.add_argument(
+            f"--{flag}",
+            type=arg(check),
+            default=None,
+            metavar=metavar,
+            help=f"instead, measure these {field} settings ({text})",
+        )
     p.add_argument(
         "--replay",
         type=Path,
@@ -331,25 +348,11 @@ def main(argv: list[str] | None = None) -> int:
         help="replay the starts recorded in an earlier --json instead of measuring",
     )
     args = p.parse_args(argv)
-    sweeps = (args.keeps, args.grows, args.tilts, args.screens, args.snaps)
-    if any(v is not None for v in sweeps):
+    chosen = [flag for flag in SWEEPS if getattr(args, flag) is not None]
+    if chosen:
         setup_rendering(threads=1)
-        if args.snaps is not None:
-            configs = {f"snap {k}": GlobalConfig(snap_candidates=k) for k in args.snaps}
-        elif args.keeps is not None:
-            configs = {f"keep {k}": GlobalConfig(keep_after_first=k) for k in args.keeps}
-        elif args.screens is not None:
-            configs = {f"screen {k}": GlobalConfig(screen_iterations=k) for k in args.screens}
-        elif args.tilts is not None:
-            configs = {
-                f"tilt {t if t is not None else 'none'}": GlobalConfig(resting_tilt_deg=t)
-                for t in args.tilts
-            }
-        else:
-            configs = {
-                f"grow {','.join(map(str, g)) or 'none'}": GlobalConfig(occluded_grow=g)
-                for g in args.grows
-            }
+        field, _, _, _, label = SWEEPS[chosen[0]]
+        configs = {label(v): GlobalConfig(**{field: v}) for v in getattr(args, chosen[0])}
         sweep = config_sweep(args.split, args.subset, args.images, configs)
         print(f"{args.split}/{args.subset}, {sweep[0]['detections']} detections:")
         for k in sweep:

@@ -221,12 +221,27 @@ def _painted(name: str, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cover, rgb
 
 
+def _global_on_one_detection(name: str, mask: np.ndarray, nets_pose: np.ndarray, folder):
+    """`hybrid-global` on a small codebook (cached in `folder`) whose detector finds one object,
+    with `mask` and the nets' pose `nets_pose`."""
+    from perception.global_pose import CodebookCache, GlobalConfig, GlobalPoseEstimator
+    from perception.hybrid import PoseDetection
+
+    det = PoseDetection(name, 0.9, np.zeros(4), mask, nets_pose, np.zeros(2), (0, 0, 1), {})
+
+    class OneDetection:
+        def estimate_split(self, rgb, K, classes=None, others=False):
+            return [det], [], {"total": 1.0}
+
+    cfg = GlobalConfig(views=300, inplane=18, hypotheses=6)
+    books = CodebookCache(cfg.views, cfg.inplane, folder=folder)
+    return GlobalPoseEstimator(OneDetection(), cfg, books)  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize("nets_off", ["turned", "behind"])
 def test_the_global_estimator_recovers_what_the_nets_missed(tmp_path, nets_off: str) -> None:
     """The nets' pose 90 deg off (or not even in front of the camera): the codebook's hypotheses,
     refined and verified, still give the pose; the estimate names its source and confidence."""
-    from perception.global_pose import CodebookCache, GlobalConfig, GlobalPoseEstimator
-    from perception.hybrid import PoseDetection
 
     name = "pistol"
     T = np.eye(4)
@@ -237,15 +252,7 @@ def test_the_global_estimator_recovers_what_the_nets_missed(tmp_path, nets_off: 
     wrong[:3, :3] = rot_x(np.pi / 2) @ T[:3, :3]
     if nets_off == "behind":
         wrong[2, 3] = -0.5
-    det = PoseDetection(name, 0.9, np.zeros(4), mask, wrong, np.zeros(2), (0, 0, 1), {})
-
-    class OneDetection:
-        def estimate_split(self, rgb, K, classes=None, others=False):
-            return [det], [], {"total": 1.0}
-
-    cfg = GlobalConfig(views=300, inplane=18, hypotheses=6)
-    books = CodebookCache(cfg.views, cfg.inplane, folder=tmp_path)
-    est = GlobalPoseEstimator(OneDetection(), cfg, books)  # type: ignore[arg-type]
+    est = _global_on_one_detection(name, mask, wrong, tmp_path)
     e = est.estimate(Observation(rgb, K, np.eye(4), name, 0))
     assert e.T_C_O is not None
     assert rotation_error_deg(e.T_C_O[:3, :3], T[:3, :3]) < 3.0
@@ -273,8 +280,6 @@ def test_a_pose_the_object_could_rest_in_ranks_first() -> None:
 def test_the_global_estimator_reports_how_far_its_pose_is_from_resting(tmp_path) -> None:
     """The pistol lying in a resting pose, seen from a camera whose pose is known: the estimate
     is right and, snapped onto that resting pose, reports no tilt from it."""
-    from perception.global_pose import CodebookCache, GlobalConfig, GlobalPoseEstimator
-    from perception.hybrid import PoseDetection
     from posegrasp.core.transforms import quat_to_mat
 
     name = "pistol"
@@ -287,15 +292,7 @@ def test_the_global_estimator_reports_how_far_its_pose_is_from_resting(tmp_path)
     mask, rgb = _painted(name, T)
     wrong = T.copy()
     wrong[:3, :3] = rot_x(np.pi / 2) @ T[:3, :3]
-    det = PoseDetection(name, 0.9, np.zeros(4), mask, wrong, np.zeros(2), (0, 0, 1), {})
-
-    class OneDetection:
-        def estimate_split(self, rgb, K, classes=None, others=False):
-            return [det], [], {"total": 1.0}
-
-    cfg = GlobalConfig(views=300, inplane=18, hypotheses=6)
-    books = CodebookCache(cfg.views, cfg.inplane, folder=tmp_path)
-    est = GlobalPoseEstimator(OneDetection(), cfg, books)  # type: ignore[arg-type]
+    est = _global_on_one_detection(name, mask, wrong, tmp_path)
     T_W_C = np.eye(4)
     T_W_C[:3, :3] = R_W_C
     e = est.estimate(Observation(rgb, K, T_W_C, name, 0))
