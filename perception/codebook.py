@@ -243,12 +243,6 @@ def frame_mask(mask: np.ndarray) -> MaskView | None:
     return MaskView(_framed(mask, centre, s), centre, s)
 
 
-def _beyond_image(shape: tuple[int, ...], centre: np.ndarray, side: float) -> np.ndarray:
-    """Packed pixels of the templates' square around a box of `side` at `centre` that lie
-    beyond an image of `shape`."""
-    return ~_framed(np.ones(shape[:2], bool), centre, side)
-
-
 def _edge_touch(mask: np.ndarray, band: int = EDGE_BAND_PX) -> np.ndarray:
     """Where the mask meets the image's edge: its pixels in the outer `band` rows and columns
     (a detector's mask may stop a pixel short of the edge), moved out of the image, (n, 2)
@@ -287,8 +281,11 @@ def occluded_views(
         return []
     d /= n
 
+    image = np.ones(mask.shape, bool)
+
     def hidden_bits(centre: np.ndarray, side: float) -> np.ndarray:
-        return _framed(hidden, centre, side) | _beyond_image(mask.shape, centre, side)
+        """The occluder's pixels and those beyond the image, framed."""
+        return _framed(hidden, centre, side) | ~_framed(image, centre, side)
 
     out = [MaskView(view.bits, view.centre, view.side, hidden_bits(view.centre, view.side))]
     for g in grow:

@@ -211,15 +211,15 @@ class Verified:
     rank: int
     tilt: float = 0.0
 
-    def key(self, max_tilt: float | None) -> tuple[bool, float]:
-        """Sort key, best last: within `max_tilt` of a resting pose (when given), then score."""
-        return (max_tilt is None or self.tilt <= max_tilt, self.score)
-
 
 def rank_verified(verified: list[Verified], max_tilt: float | None) -> list[Verified]:
     """Best first: those within `max_tilt` of a resting pose (all when None) before the others,
     each group by decreasing score (ties keep their order)."""
-    return sorted(verified, key=lambda v: v.key(max_tilt), reverse=True)
+    return sorted(
+        verified,
+        key=lambda v: (max_tilt is None or v.tilt <= max_tilt, v.score),
+        reverse=True,
+    )
 
 
 class GlobalPoseEstimator:
@@ -349,9 +349,6 @@ class GlobalPoseEstimator:
                 tilt = snap_to_resting(R_W_C @ T[:3, :3], model)[2]
             return Verified(T, score, iou, app, edges, source, rank, tilt)
 
-        def best_first(vs: list[Verified]) -> list[Verified]:
-            return rank_verified(vs, max_tilt)
-
         first, screen = cfg.refine_passes, self.refiner
         if cfg.keep_after_first:
             first, screen = 1, self._screen(cfg.screen_iterations)
@@ -360,13 +357,13 @@ class GlobalPoseEstimator:
             for r, (T, s) in enumerate(starts)
             if (v := refined(T, s, r, first, screen)) is not None
         ]
-        out = best_first(out)
+        out = rank_verified(out, max_tilt)
         if cfg.keep_after_first and (cfg.refine_passes > 1 or screen is not self.refiner):
             # The best few, refined further, rank above the rest (refined once), which stay listed.
             kept, rest = out[: cfg.keep_after_first], out[cfg.keep_after_first :]
             more = cfg.refine_passes - (screen is self.refiner)
             again = [refined(v.T_C_O, v.source, v.rank, more, self.refiner) for v in kept]
-            out = best_first([v for v in again if v is not None]) + rest
+            out = rank_verified([v for v in again if v is not None], max_tilt) + rest
         if cfg.snap_candidates and max_tilt is not None:
             # The best few that could be resting, each snapped onto its resting pose; the
             # snapped ones then compete on their scores alone, ahead of the rest, unless every
@@ -374,8 +371,8 @@ class GlobalPoseEstimator:
             assert R_W_C is not None
             pool = [v for v in out if v.tilt <= cfg.snap_tilt_deg][: cfg.snap_candidates]
             snapped = [s for v in pool if (s := self._snapped(v, R_W_C, model, refined))]
-            best = max(v.score for v in out)
-            if snapped and max(v.score for v in snapped) >= best - SNAP_SCORE_DROP:
+            top = max((v.score for v in out), default=0.0)
+            if snapped and max(v.score for v in snapped) >= top - SNAP_SCORE_DROP:
                 out = rank_verified(snapped, max_tilt) + [
                     v for v in out if all(v is not p for p in pool)
                 ]
