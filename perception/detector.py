@@ -151,11 +151,14 @@ class Detector:
         self.score_threshold = float(score_threshold)
         self.mask_threshold = float(mask_threshold)
         self.max_detections = max_detections
-        # Low-scoring boxes are dropped inside the model, before the mask head runs.
-        self.model.roi_heads.score_thresh = max(cfg.box_score_thresh, self.score_threshold)
+        self._model_threshold(self.score_threshold)
         self.model.roi_heads.detections_per_img = min(
             cfg.box_detections_per_img, max_detections or cfg.box_detections_per_img
         )
+
+    def _model_threshold(self, score_threshold: float) -> None:
+        """Low-scoring boxes are dropped inside the model, before the mask head runs."""
+        self.model.roi_heads.score_thresh = max(self.cfg.box_score_thresh, score_threshold)
 
     @classmethod
     def from_weights(
@@ -203,23 +206,32 @@ class Detector:
         return out
 
     @torch.inference_mode()
-    def detect(self, rgb: np.ndarray) -> list[Detection]:
+    def detect(self, rgb: np.ndarray, score_threshold: float | None = None) -> list[Detection]:
         """Find the objects in an image.
 
         Args:
             rgb: image, shape (H, W, 3), uint8.
+            score_threshold: this call's threshold instead of the detector's.
 
         Returns:
             Detections sorted by decreasing score; empty when nothing scores above the threshold.
 
         Raises:
-            InvalidArgumentError: rgb is not an (H, W, 3) uint8 array with H, W >= 1.
+            InvalidArgumentError: rgb is not an (H, W, 3) uint8 array with H, W >= 1, or the
+                score_threshold is not finite.
         """
         rgb = check_rgb(rgb)
-        out = self._forward(rgb, paste=False)
+        threshold = self.score_threshold if score_threshold is None else float(score_threshold)
+        if not np.isfinite(threshold):
+            raise InvalidArgumentError(f"score_threshold must be finite, got {score_threshold}")
+        self._model_threshold(threshold)
+        try:
+            out = self._forward(rgb, paste=False)
+        finally:
+            self._model_threshold(self.score_threshold)
         scores = out["scores"].numpy()
         order = np.argsort(-scores, kind="stable")
-        order = order[scores[order] >= self.score_threshold]
+        order = order[scores[order] >= threshold]
         if self.max_detections is not None:
             order = order[: self.max_detections]
         boxes = out["boxes"].numpy()

@@ -102,6 +102,10 @@ class GlobalConfig:
             snapped, not passed over.
         snap_tilt_deg: the largest tilt from a resting pose [deg] a start may have to be
             snapped.
+        target_score: the detector score a detection of the requested object needs (the
+            other detections, the planner's obstacles and the occluders, need the detector's
+            own threshold); a partly hidden object often scores lower, and the verification
+            reports how well the pose fits (None: the detector's threshold for all).
     """
 
     views: int = 1000
@@ -118,6 +122,7 @@ class GlobalConfig:
     resting_tilt_deg: float | None = 10.0
     snap_candidates: int = 5
     snap_tilt_deg: float = 25.0
+    target_score: float | None = 0.3
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -135,6 +140,8 @@ class GlobalConfig:
             raise InvalidArgumentError("GlobalConfig.min_angle_deg must be in [0, 180)")
         if self.resting_tilt_deg is not None and not 0 < self.resting_tilt_deg < 180:
             raise InvalidArgumentError("GlobalConfig.resting_tilt_deg must be in (0, 180) or None")
+        if self.target_score is not None and not 0 <= self.target_score <= 1:
+            raise InvalidArgumentError("GlobalConfig.target_score must be in [0, 1] or None")
         if not all(1 < g <= 4 for g in self.occluded_grow):
             raise InvalidArgumentError("GlobalConfig.occluded_grow factors must lie in (1, 4]")
 
@@ -400,7 +407,7 @@ class GlobalPoseEstimator:
         if obs.object not in OBJECT_NAMES and obs.object in self.hybrid.detector.cfg.classes:
             best, neighbours, info, occluder = self._user_target(obs)
         else:
-            target = detect_target(self.hybrid, obs)
+            target = detect_target(self.hybrid, obs, self.config.target_score)
             best, neighbours, info = target.best, target.neighbours, target.info
             occluder = target.occluder()
         if best is None:

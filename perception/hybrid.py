@@ -189,9 +189,11 @@ class HybridPoseEstimator:
         K: np.ndarray,
         classes: Collection[str] | None = None,
         others: bool = False,
+        wanted_score: float | None = None,
     ) -> tuple[list[PoseDetection], list[PoseDetection], dict[str, float]]:
         """Detect once; poses of the detections of `classes` (all when None) and, with `others`,
-        of the remaining detections in a second pass of the nets.
+        of the remaining detections in a second pass of the nets. With `wanted_score`, a
+        detection of `classes` needs that score and the others the detector's threshold.
 
         Returns:
             (poses of `classes`, poses of the other detections (empty without `others`),
@@ -205,7 +207,15 @@ class HybridPoseEstimator:
                     raise UnknownNameError("object", c, OBJECT_NAMES)
         timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         t0 = time.perf_counter()
-        dets = self.detector.detect(rgb)
+        floor = self.detector.score_threshold
+        if wanted_score is None:
+            dets = self.detector.detect(rgb)
+        else:
+            dets = [
+                d
+                for d in self.detector.detect(rgb, min(floor, wanted_score))
+                if d.score >= (wanted_score if classes is None or d.name in classes else floor)
+            ]
         timings["detect"] = (time.perf_counter() - t0) * 1000.0
         wanted = dets if classes is None else [d for d in dets if d.name in classes]
         found = self._poses(rgb, K, wanted, timings, dets)
@@ -351,9 +361,12 @@ class TargetDetections:
         return np.logical_or.reduce(masks) if masks else None
 
 
-def detect_target(estimator: HybridPoseEstimator, obs: Observation) -> TargetDetections:
-    """Detect once and split the detections around ``obs.object``; an object the nets were not
-    trained on (a user object) is not looked for, and ``info["note"]`` says why.
+def detect_target(
+    estimator: HybridPoseEstimator, obs: Observation, target_score: float | None = None
+) -> TargetDetections:
+    """Detect once and split the detections around ``obs.object`` (a detection of it needs
+    `target_score`, when given, and the others the detector's threshold); an object the nets
+    were not trained on (a user object) is not looked for, and ``info["note"]`` says why.
 
     Raises:
         UnknownNameError: obs.object is no known object at all.
@@ -366,7 +379,7 @@ def detect_target(estimator: HybridPoseEstimator, obs: Observation) -> TargetDet
         )
         return TargetDetections(None, [], [], {"detected": False, "note": note}, ())
     found, others, timings = estimator.estimate_split(
-        obs.rgb, obs.K, classes=(obs.object,), others=True
+        obs.rgb, obs.K, classes=(obs.object,), others=True, wanted_score=target_score
     )
     info: dict = {"detected": bool(found), "timings_ms": dict(timings)}
     neighbours = tuple((d.name, d.T_C_O.copy()) for d in others)

@@ -125,6 +125,16 @@ def test_thresholds_and_max_detections(image: np.ndarray) -> None:
         Detector.random(max_detections=0)
 
 
+def test_a_call_may_use_its_own_threshold(image: np.ndarray) -> None:
+    strict = Detector.random(score_threshold=1.01)
+    loose = Detector.random(score_threshold=0.0)
+    got = strict.detect(image, 0.0)
+    assert got and [d.score for d in got] == [d.score for d in loose.detect(image)]
+    assert strict.detect(image) == []  # the detector's own threshold is back
+    with pytest.raises(InvalidArgumentError, match="finite"):
+        strict.detect(image, float("nan"))
+
+
 @pytest.mark.parametrize(
     ("bad", "match"),
     [

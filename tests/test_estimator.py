@@ -101,6 +101,26 @@ def test_nothing_detected_gives_an_empty_list(head_image: tuple[np.ndarray, np.n
     assert none.T_C_O is None and none.info["detected"] is False
 
 
+def test_a_wanted_score_lowers_the_bar_for_the_requested_class_alone(head_image) -> None:
+    """With `wanted_score`, the requested class's detections need that score and the others
+    the detector's threshold, from one detection pass."""
+    rgb, K = head_image
+    low = HybridPoseEstimator.with_random_weights(seed=0, score_threshold=0.0)
+    high = HybridPoseEstimator.with_random_weights(seed=0, score_threshold=1.01)
+    found = low.detector.detect(rgb)
+    name = found[0].name
+    absent = next(n for n in OBJECT_NAMES if n not in {d.name for d in found})
+    want, _, _ = low.estimate_split(rgb, K, classes=(name,))
+    got, _, _ = high.estimate_split(rgb, K, classes=(name,), wanted_score=0.0)
+    assert want and [d.score for d in got] == [d.score for d in want]
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(a.T_C_O, b.T_C_O)
+    _, other, _ = low.estimate_split(rgb, K, classes=(absent,), others=True)
+    _, rest, _ = high.estimate_split(rgb, K, classes=(absent,), others=True, wanted_score=0.0)
+    assert other and rest == []  # the other classes keep the detector's threshold
+    assert high.estimate_split(rgb, K, classes=(name,))[0] == []
+
+
 def test_class_filter(estimator: HybridPoseEstimator, head_image) -> None:
     rgb, K = head_image
     found = estimator.estimate(rgb, K)
