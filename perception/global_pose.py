@@ -122,7 +122,7 @@ class GlobalConfig:
     resting_tilt_deg: float | None = 10.0
     snap_candidates: int = 5
     snap_tilt_deg: float = 25.0
-    target_score: float | None = 0.3
+    target_score: float | None = None
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
