@@ -332,6 +332,7 @@ class GlobalPoseEstimator:
         tight = mask_box(det.mask) if view is not None else (0, 0, 1, 1)
         box = _grown(tight, EDGE_MARGIN_PX, det.mask.shape)
         edge_distance = image_edges(rgb, box)
+        target = self.refiner.prepare(K, det.mask, rgb, occluder)  # the screening one's too
 
         def refined(
             T: np.ndarray,
@@ -344,7 +345,7 @@ class GlobalPoseEstimator:
             info = {"iou_after": 0.0}
             try:
                 for _ in range(passes):
-                    T, info = refiner.refine(det.name, T, K, det.mask, rgb, occluder, axis)
+                    T, info = refiner.refine_prepared(det.name, T, target, axis)
             except InvalidArgumentError:
                 return None  # a start behind the camera: not a pose to verify
             app = appearance_score(pieces, colours, T, K, rgb, det.mask, tight)

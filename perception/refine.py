@@ -130,6 +130,18 @@ def _window(
     return _Window(int(x0), int(y0), m, sdf, hidden, rgb)
 
 
+@dataclass(frozen=True)
+class RefineTarget:
+    """What poses are refined against, validated and prepared once for any number of starts
+    (`PoseRefiner.prepare`): the intrinsics, and the working window around the mask with its
+    distance field (None for an empty mask), cut with `margins` (`RefineConfig.margin`,
+    `RefineConfig.occluder_margin_px`)."""
+
+    K: np.ndarray
+    window: _Window | None
+    margins: tuple[float, int]
+
+
 class PoseRefiner:
     """Refines pose estimates of the known objects against masks and images.
 
@@ -187,18 +199,64 @@ class PoseRefiner:
                 vector.
         """
         t_start = time.perf_counter()
+        self.part_vertices(name)  # an unknown name fails before the inputs are checked
+        _check_pose(T_C_O)
+        target = self.prepare(K, mask, rgb, occluder)
+        return self.refine_prepared(name, T_C_O, target, axis, t_start)
+
+    def prepare(
+        self,
+        K: np.ndarray,
+        mask: np.ndarray,
+        rgb: np.ndarray | None = None,
+        occluder: np.ndarray | None = None,
+    ) -> RefineTarget:
+        """Check and prepare what `refine_prepared` refines poses against (arguments as in
+        `refine`), once for every start on the same detection.
+
+        Raises:
+            InvalidArgumentError: as `refine` for K, the mask, the image and the occluder.
+        """
+        K, mask, rgb, occluder = _check_inputs(K, mask, rgb, occluder)
+        cfg = self.config
+        box = mask_box(mask)
+        win = None if box is None else _window(mask, box, rgb, occluder, cfg)
+        return RefineTarget(K, win, (cfg.margin, cfg.occluder_margin_px))
+
+    def refine_prepared(
+        self,
+        name: str,
+        T_C_O: np.ndarray,
+        target: RefineTarget,
+        axis: np.ndarray | None = None,
+        t_start: float | None = None,
+    ) -> tuple[np.ndarray, dict]:
+        """`refine` against a prepared target (`prepare`, by a refiner of the same margins);
+        the same results.
+
+        Raises:
+            UnknownNameError: an unknown object name.
+            InvalidArgumentError: a pose that is not rigid or lies behind the camera, an axis
+                that is not a unit vector, or a target prepared with other margins.
+        """
+        t_start = time.perf_counter() if t_start is None else t_start
         parts = self.part_vertices(name)
-        T0, K, mask, rgb, occluder = _check_inputs(T_C_O, K, mask, rgb, occluder)
+        T0 = _check_pose(T_C_O)
+        cfg = self.config
+        if target.margins != (cfg.margin, cfg.occluder_margin_px):
+            raise InvalidArgumentError(
+                f"the target was prepared with margins {target.margins}, this refiner uses "
+                f"{(cfg.margin, cfg.occluder_margin_px)}"
+            )
         if axis is not None:
             axis = np.asarray(axis, np.float64)
             if axis.shape != (3,) or not abs(float(np.linalg.norm(axis)) - 1.0) < 1e-6:
                 raise InvalidArgumentError(f"axis must be a unit 3-vector, got {axis!r}")
         info: dict = {"iterations": 0, "points": 0, "edge_points": 0, "accepted": False}
-        if (box := mask_box(mask)) is None:
+        if (win := target.window) is None:
             info |= {"iou_before": 0.0, "iou_after": 0.0, "reason": "empty mask"}
             return T0.copy(), info | {"time_ms": (time.perf_counter() - t_start) * 1000}
-        win = _window(mask, box, rgb, occluder, cfg := self.config)
-        Kw = window_intrinsics(K, win.x0, win.y0)
+        Kw = window_intrinsics(target.K, win.x0, win.y0)
         verts = np.concatenate(parts)
         slices = np.cumsum([0] + [len(p) for p in parts])
         T, lam = T0.copy(), 1e-3
@@ -260,15 +318,20 @@ class PoseRefiner:
         return (T if accepted else T0.copy()), info
 
 
-def _check_inputs(
-    T_C_O: np.ndarray, K: np.ndarray, mask: np.ndarray, rgb: _Opt, occluder: _Opt
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, _Opt, _Opt]:
-    """Validated float64 pose and K, bool mask and occluder, uint8 image."""
+def _check_pose(T_C_O: np.ndarray) -> np.ndarray:
+    """The validated float64 pose: rigid, its origin in front of the camera."""
     if (problem := rigid_problem(T_C_O, 1e-4)) is not None:
         raise InvalidArgumentError(f"T_C_O {problem}")
     T = np.asarray(T_C_O, np.float64)
     if T[2, 3] <= 0:
         raise InvalidArgumentError(f"T_C_O must lie in front of the camera, got z = {T[2, 3]} m")
+    return T
+
+
+def _check_inputs(
+    K: np.ndarray, mask: np.ndarray, rgb: _Opt, occluder: _Opt
+) -> tuple[np.ndarray, np.ndarray, _Opt, _Opt]:
+    """Validated float64 K, bool mask and occluder, uint8 image."""
     K = check_intrinsics(K)
     mask = np.asarray(mask)
     if mask.ndim != 2 or mask.dtype != bool or min(mask.shape) < 2:
@@ -285,7 +348,7 @@ def _check_inputs(
                 f"{key} must be a {np.dtype(dtype)} array of shape {shape} (the mask's H, W), "
                 f"got shape {arr.shape} dtype {arr.dtype}"
             )
-    return T, K, mask, rgb, occluder
+    return K, mask, rgb, occluder
 
 
 def _iou(sil: np.ndarray, win: _Window) -> float:
