@@ -31,7 +31,6 @@ import cv2
 import numpy as np
 
 from perception.geometry import r_corr
-from perception.overlay import mask_box
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.world.objects import load_object
 
@@ -44,6 +43,8 @@ TEMPLATE_F = 1000.0
 TEMPLATE_Z = 1.0
 #: Templates matched at a time (a block of their bits stays in the cache).
 MATCH_BLOCK = 512
+#: Width of the edge agreement's fall-off with the distance to an image edge [px].
+EDGE_SIGMA_PX = 1.5
 #: A mask with pixels this close to the image's edge [px] counts as cut off by it.
 EDGE_BAND_PX = 2
 
@@ -352,64 +353,62 @@ def _far_to_near(
     return out
 
 
-def paint(
-    pieces: list[np.ndarray],
+def _appearance(
+    ids: np.ndarray,
     colours: np.ndarray,
-    T: np.ndarray,
-    K: np.ndarray,
-    box: tuple[int, int, int, int],
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """The pieces at pose T drawn in their colours (far pieces first) into the image window
-    `box` (x0, y0, x1, y1) [px]: colour image (h, w, 3) float32 and coverage (h, w) bool; None
-    when a vertex lies behind the camera."""
-    x0, y0, x1, y1 = box
-    polygons = _far_to_near(pieces, T, K, (x0, y0))
-    if polygons is None:
-        return None
-    img = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
-    cover = np.zeros((y1 - y0, x1 - x0), np.uint8)
-    for i, pts in polygons:
-        cv2.fillConvexPoly(img, pts, tuple(float(c) for c in colours[i]), cv2.LINE_8, 4)
-        cv2.fillConvexPoly(cover, pts, 1, cv2.LINE_8, 4)
-    return img, cover.view(bool)
-
-
-def appearance_score(
-    pieces: list[np.ndarray],
-    colours: np.ndarray,
-    T: np.ndarray,
-    K: np.ndarray,
     rgb: np.ndarray,
     mask: np.ndarray,
-    box: tuple[int, int, int, int] | None = None,
+    box: tuple[int, int, int, int],
 ) -> float:
-    """Pearson correlation, over the mask's pixels the pose covers, of the pieces' colours drawn
-    at pose T with the image (all three channels together): near 1 when the coloured parts
-    lie where the image shows those colours; 0 when undefined. `box` is the mask's box
-    (`perception.overlay.mask_box`), computed here when not given."""
-    box = box if box is not None else mask_box(mask)
-    if box is None:
-        return 0.0
-    drawn = paint(pieces, colours, T, K, box)
-    if drawn is None:
-        return 0.0
-    img, cover = drawn
-    sel = cover & mask[box[1] : box[3], box[0] : box[2]]
+    """Pearson correlation, over the mask's pixels the pose covers, of the pieces' colours (as
+    float32) drawn by the id map `ids` (`id_map` of the window `box`) with the image (all
+    three channels together): near 1 when the coloured parts lie where the image shows those
+    colours; 0 when undefined."""
+    x0, y0, x1, y1 = box
+    sel = (ids != 0) & mask[y0:y1, x0:x1]
     if np.count_nonzero(sel) < 20:
         return 0.0
-    a = img[sel].reshape(-1).astype(np.float64)
-    b = rgb[box[1] : box[3], box[0] : box[2]][sel].reshape(-1).astype(np.float64)
+    a = colours.astype(np.float32)[ids[sel] - 1].reshape(-1).astype(np.float64)
+    b = rgb[y0:y1, x0:x1][sel].reshape(-1).astype(np.float64)
     a -= a.mean()
     b -= b.mean()
     den = math.sqrt(float(a @ a) * float(b @ b))
     return float(a @ b / den) if den > 0 else 0.0
 
 
-def _id_map(
+def verification_scores(
+    pieces: list[np.ndarray],
+    colours: np.ndarray,
+    T: np.ndarray,
+    K: np.ndarray,
+    rgb: np.ndarray,
+    mask: np.ndarray,
+    edge_distance: np.ndarray,
+    box: tuple[int, int, int, int],
+) -> tuple[float, float]:
+    """How well pose T agrees with the image, from one drawing of the pieces in the window
+    `box` (x0, y0, x1, y1) [px], which holds the mask:
+
+    - appearance: the Pearson correlation, over the mask's pixels the pose covers, of the
+      pieces' colours (`colours`, (pieces, 3) in [0, 1]) with the image;
+    - edges: how well the pieces' outlines (every boundary between pieces and with the
+      background) lie on image edges, `edge_distance` being `image_edges` of the same window:
+      the mean of exp(-d^2 / 2 sigma^2) over the outline pixels, sigma `EDGE_SIGMA_PX`, in
+      [0, 1].
+
+    Both are 0 when undefined (too few pixels, or a vertex behind the camera)."""
+    ids = id_map(pieces, T, K, box)
+    if ids is None:
+        return 0.0, 0.0
+    return _appearance(ids, colours, rgb, mask, box), _edges(ids, edge_distance)
+
+
+def id_map(
     pieces: list[np.ndarray], T: np.ndarray, K: np.ndarray, box: tuple[int, int, int, int]
 ) -> np.ndarray | None:
-    """Which piece (1-based, 0: none) covers each pixel of the window `box` at pose T, far
-    pieces drawn first; None when a vertex lies behind the camera."""
+    """Which piece (1-based, 0: none) covers each pixel of the window `box` (x0, y0, x1, y1)
+    [px] at pose T, far pieces drawn first, (h, w) uint8; None when a vertex lies behind the
+    camera."""
     x0, y0, x1, y1 = box
     polygons = _far_to_near(pieces, T, K, (x0, y0))
     if polygons is None:
@@ -429,24 +428,12 @@ def image_edges(rgb: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
     return cv2.distanceTransform((edges == 0).astype(np.uint8), cv2.DIST_L2, 3)
 
 
-def edge_score(
-    pieces: list[np.ndarray],
-    T: np.ndarray,
-    K: np.ndarray,
-    edge_distance: np.ndarray,
-    box: tuple[int, int, int, int],
-    sigma_px: float = 1.5,
-) -> float:
-    """How well the pieces' outlines at pose T (every boundary between pieces and with the
-    background, in the window `box`) lie on image edges (`image_edges` of the same window):
-    the mean of exp(-d^2 / 2 sigma^2) over the outline pixels, in [0, 1]."""
-    ids = _id_map(pieces, T, K, box)
-    if ids is None:
-        return 0.0
+def _edges(ids: np.ndarray, edge_distance: np.ndarray) -> float:
+    """The edge agreement of `verification_scores` from the id map of its window."""
     outline = np.zeros(ids.shape, bool)
     outline[:, 1:] |= ids[:, 1:] != ids[:, :-1]
     outline[1:, :] |= ids[1:, :] != ids[:-1, :]
     d = edge_distance[outline]
     if d.size < 10:
         return 0.0
-    return float(np.mean(np.exp(-(d * d) / (2 * sigma_px * sigma_px))))
+    return float(np.mean(np.exp(-(d * d) / (2 * EDGE_SIGMA_PX * EDGE_SIGMA_PX))))

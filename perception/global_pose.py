@@ -16,13 +16,13 @@ class (the shipped Mask R-CNN fine-tuned on the tiers' scenes, `TIERS_DETECTOR`)
    all).
 3. **Verification**: each refined pose is scored by its silhouette IoU with the visible mask,
    plus `GlobalConfig.appearance_weight` times the correlation of the parts' colours drawn at
-   that pose with the image (`perception.codebook.appearance_score`), plus
-   `GlobalConfig.edge_weight` times the share of the parts' outlines that lie on image edges
-   (`perception.codebook.edge_score`); the best one wins. Objects rest on something: with the
-   camera's pose, a refined pose within `GlobalConfig.resting_tilt_deg` of one of the object's
-   resting poses (any turn about the vertical) wins over one that is not; the best few that
-   could be resting are turned onto their resting poses and refined once more turning about the
-   vertical only, and the best of those wins (`GlobalConfig.snap_candidates`). The winner's
+   that pose with the image, plus `GlobalConfig.edge_weight` times the share of the parts'
+   outlines that lie on image edges (both `perception.codebook.verification_scores`); the best
+   one wins. Objects rest on something: with the camera's pose, a refined pose within
+   `GlobalConfig.resting_tilt_deg` of one of the object's resting poses (any turn about the
+   vertical) wins over one that is not; the best few that could be resting are turned onto
+   their resting poses and refined once more turning about the vertical only, and the best of
+   those wins (`GlobalConfig.snap_candidates`). The winner's
    score is reported as the estimate's confidence; below `GlobalConfig.min_score` the estimate
    is withheld (``no_estimate``).
 
@@ -45,13 +45,12 @@ from perception.codebook import (
     Codebook,
     ConvexParts,
     SilhouetteSource,
-    appearance_score,
-    edge_score,
     frame_mask,
     hypothesis_pose,
     image_edges,
     occluded_views,
     top_hypotheses,
+    verification_scores,
 )
 from perception.detector import Detection
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target
@@ -348,8 +347,9 @@ class GlobalPoseEstimator:
                     T, info = refiner.refine_prepared(det.name, T, target, axis)
             except InvalidArgumentError:
                 return None  # a start behind the camera: not a pose to verify
-            app = appearance_score(pieces, colours, T, K, rgb, det.mask, tight)
-            edges = edge_score(pieces, T, K, edge_distance, box)
+            app, edges = verification_scores(
+                pieces, colours, T, K, rgb, det.mask, edge_distance, box
+            )
             iou = float(info["iou_after"])
             score = iou + cfg.appearance_weight * app + cfg.edge_weight * edges
             tilt = 0.0

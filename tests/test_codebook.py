@@ -9,15 +9,14 @@ import pytest
 from perception.codebook import (
     Codebook,
     ConvexParts,
-    appearance_score,
-    edge_score,
     frame_mask,
     hypothesis_pose,
+    id_map,
     image_edges,
     occluded_views,
-    paint,
     sphere_rotations,
     top_hypotheses,
+    verification_scores,
 )
 from perception.metrics import rotation_error_deg
 from posegrasp.core.contract import Observation
@@ -31,6 +30,17 @@ K = intrinsics(np.deg2rad(50), 640, 480)
 @pytest.fixture(scope="module")
 def book() -> Codebook:
     return Codebook.build("car", 400, 18)
+
+
+def paint(pieces, colours: np.ndarray, T: np.ndarray, K: np.ndarray, box):
+    """The pieces at T drawn in their colours into the window `box`: (colour image (h, w, 3),
+    coverage (h, w) bool), or None when a vertex is behind the camera."""
+    ids = id_map(pieces, T, K, box)
+    if ids is None:
+        return None
+    cover = ids != 0
+    img = np.where(cover[..., None], colours.astype(np.float32)[ids.astype(int) - 1], 0)
+    return img, cover
 
 
 def _random_rotations(n: int, seed: int) -> np.ndarray:
@@ -187,13 +197,18 @@ def test_the_true_pose_scores_higher_on_edges_and_colours() -> None:
     ys, xs = np.nonzero(cover)
     box = (int(xs.min()) - 5, int(ys.min()) - 5, int(xs.max()) + 6, int(ys.max()) + 6)
     dist = image_edges(rgb, box)
-    assert edge_score(pieces, T, K, dist, box) > edge_score(pieces, flipped, K, dist, box)
-    assert appearance_score(pieces, colours, T, K, rgb, cover) > 0.95
+
+    def scores(pose: np.ndarray) -> tuple[float, float]:
+        return verification_scores(pieces, colours, pose, K, rgb, cover, dist, box)
+
+    assert scores(T)[1] > scores(flipped)[1]
+    assert scores(T)[0] > 0.95
     tilted = T.copy()
     tilted[:3, :3] = rot_y(np.deg2rad(25)) @ T[:3, :3]
-    assert appearance_score(pieces, colours, tilted, K, rgb, cover) < appearance_score(
-        pieces, colours, T, K, rgb, cover
-    )
+    assert scores(tilted)[0] < scores(T)[0]
+    behind = T.copy()
+    behind[2, 3] = -0.5
+    assert scores(behind) == (0.0, 0.0)
 
 
 def _painted(name: str, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
