@@ -33,7 +33,7 @@ bench: setup
 DATA_COUNTS := paper:train:40000 paper:val:1000 paper:test:1000 \
 	headcam:train:160000 headcam:val:500 headcam:test:500
 # Head-camera test scenes of the tiers (folders headcam_<tier>), for accuracy per tier.
-TIER_COUNTS := hard:train:3000 hard:val:300 hard:test:500 clutter:test:300 any-pose:test:300 \
+TIER_COUNTS := hard:train:9000 hard:val:300 hard:test:500 clutter:test:300 any-pose:test:300 \
 	any-pose:train:3000 far:train:20000 far:val:300 far:test:300
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
@@ -68,7 +68,7 @@ weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 2 --dists headcam,headcam_far \
 	  --lr 0.0003 --init posenet_ours_ft120k
 	$(PY) -m perception.training.train_posenet --variant ours --dists headcam,headcam_hard \
-	  --limit headcam=5000 --epochs 5 --lr 0.0005 --init posenet_ours_head --name posenet_ours_hard
+	  --limit headcam=5000,headcam_hard=3000 --epochs 5 --lr 0.0005 --init posenet_ours_head --name posenet_ours_hard
 	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 10 --batch 64 \
 	  --precision bf16
 	$(PY) -m perception.training.export --plot docs/training_curves.png
@@ -82,6 +82,10 @@ weights: data
 	  --also headcam_any-pose,headcam --limit 3000 --epochs 3 --lr 0.0005 --precision bf16 \
 	  --channels-last --init perception/weights/detector.pt --out $(CKPT)/detector_tiers --export \
 	  --weights-out perception/weights/tiers
+	$(PY) -m perception.training.train_detector --data $${POSEGRASP_DATA:-data}/headcam_hard \
+	  --also headcam_any-pose,headcam --limit 9000 --epochs 1 --lr 0.0003 --precision bf16 \
+	  --channels-last --init perception/weights/tiers/detector.pt --out $(CKPT)/detector_tiers2 \
+	  --export --weights-out perception/weights/tiers
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record

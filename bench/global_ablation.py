@@ -23,7 +23,9 @@ and gives the second refiner run only to the best few (`GlobalConfig.keep_after_
 every start twice); with `--screens`, a first run of fewer refiner steps for every start
 (`GlobalConfig.screen_iterations`); with `--tilts`, the resting prior
 (`GlobalConfig.resting_tilt_deg`, with the image's camera pose); with `--snaps`, how many of the
-best starts are snapped onto their resting poses (`GlobalConfig.snap_candidates`); with
+best starts are snapped onto their resting poses (`GlobalConfig.snap_candidates`), with
+`--snap-steps`, the refiner steps of a snapped start's run (`GlobalConfig.snap_iterations`);
+with `--passes`, the full refiner runs of the best few (`GlobalConfig.refine_passes`); with
 `--grows`, the codebook's extra framings of a mask another detection touches
 (`GlobalConfig.occluded_grow`): for each setting, the chosen pose's rotation errors, those of the
 best verified start, the chosen translation's error and the verification's time per detection
@@ -125,6 +127,16 @@ def check_screen_list(spec: str) -> list[int]:
     return check_int_list(spec, 6, "--screens")
 
 
+def check_snap_steps(spec: str) -> list[int]:
+    """A comma list of refiner steps 1..6."""
+    return [check_int(v, 1, 6, "--snap-steps") for v in check_int_list(spec, 6, "--snap-steps")]
+
+
+def check_passes(spec: str) -> list[int]:
+    """A comma list of refiner runs 1..3."""
+    return [check_int(v, 1, 3, "--passes") for v in check_int_list(spec, 3, "--passes")]
+
+
 def record(split: str, subset: str, images: int) -> list[dict]:
     """Per target: each start's rank, IoU, colour and edge scores and rotation error [deg]."""
     est = GlobalPoseEstimator.from_weights()
@@ -201,6 +213,8 @@ def config_sweep(
                 "resting_tilt_deg": cfg.resting_tilt_deg,
                 "screen_iterations": cfg.screen_iterations,
                 "snap_candidates": cfg.snap_candidates,
+                "snap_iterations": cfg.snap_iterations,
+                "refine_passes": cfg.refine_passes,
                 "detections": len(cases),
                 "mean": float(e.mean()),
                 "median": float(np.median(e)),
@@ -314,6 +328,20 @@ SWEEPS: dict[str, tuple[str, Callable, str, str, Callable[[Any], str]]] = {
         "comma list of 0..13, 0: no snap",
         _named("snap"),
     ),
+    "snap_steps": (
+        "snap_iterations",
+        check_snap_steps,
+        "LIST",
+        "comma list of 1..6",
+        _named("snap steps"),
+    ),
+    "passes": (
+        "refine_passes",
+        check_passes,
+        "LIST",
+        "comma list of 1..3",
+        _named("passes"),
+    ),
     "tilts": (
         "resting_tilt_deg",
         check_tilt_list,
@@ -334,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     add_json_argument(p, "every start's scores and the ablation")
     for flag, (field, check, metavar, text, _) in SWEEPS.items():
         p.add_argument(
-            f"--{flag}",
+            f"--{flag.replace('_', '-')}",
             type=arg(check),
             default=None,
             metavar=metavar,

@@ -101,6 +101,8 @@ class GlobalConfig:
             snapped, not passed over.
         snap_tilt_deg: the largest tilt from a resting pose [deg] a start may have to be
             snapped.
+        snap_iterations: refiner steps of a snapped start's run (turning about the vertical
+            only, it has four unknowns, not six).
         target_score: the detector score a detection of the requested object needs (the
             other detections, the planner's obstacles and the occluders, need the detector's
             own threshold); a partly hidden object often scores lower, and the verification
@@ -121,12 +123,15 @@ class GlobalConfig:
     resting_tilt_deg: float | None = 10.0
     snap_candidates: int = 5
     snap_tilt_deg: float = 25.0
+    snap_iterations: int = 6
     target_score: float | None = None
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
             if int(getattr(self, key)) < 1:
                 raise InvalidArgumentError(f"GlobalConfig.{key} must be >= 1")
+        if int(self.snap_iterations) < 1:
+            raise InvalidArgumentError("GlobalConfig.snap_iterations must be >= 1")
         if int(self.screen_iterations) < 0:
             raise InvalidArgumentError("GlobalConfig.screen_iterations must be >= 0 (0: all)")
         if int(self.snap_candidates) < 0 or not 0 < self.snap_tilt_deg < 180:
@@ -283,13 +288,13 @@ class GlobalPoseEstimator:
         T = win.T_C_O.copy()
         T[:3, :3] = R_W_C.T @ snap_to_resting(R_W_C @ T[:3, :3], model)[0]
         up = R_W_C[2].copy()  # the world's vertical in the camera frame
-        snapped = refined(T, win.source, win.rank, 1, self.refiner, up)
+        snapped = refined(T, win.source, win.rank, 1, self._screen(self.config.snap_iterations), up)
         if snapped is None or snapped.score < win.score - SNAP_SCORE_DROP:
             return None
         return snapped
 
     def _screen(self, iterations: int) -> PoseRefiner:
-        """The refiner of the first run: the full one, or one with fewer steps."""
+        """The full refiner, or one with fewer steps (0: the full one)."""
         if iterations <= 0 or iterations >= self.refiner.config.iterations:
             return self.refiner
         if iterations not in self._screens:
