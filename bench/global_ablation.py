@@ -25,11 +25,13 @@ every start twice); with `--screens`, a first run of fewer refiner steps for eve
 (`GlobalConfig.resting_tilt_deg`, with the image's camera pose); with `--snaps`, how many of the
 best starts are snapped onto their resting poses (`GlobalConfig.snap_candidates`), with
 `--snap-steps`, the refiner steps of a snapped start's run (`GlobalConfig.snap_iterations`);
-with `--passes`, the full refiner runs of the best few (`GlobalConfig.refine_passes`); with
-`--grows`, the codebook's extra framings of a mask another detection touches
-(`GlobalConfig.occluded_grow`): for each setting, the chosen pose's rotation errors, those of the
-best verified start, the chosen translation's error and the verification's time per detection
-(median, one thread), each setting on the same images with the same detections.
+with `--rests`, the extra codebook hypotheses among the templates that could be resting
+(`GlobalConfig.resting_hypotheses`); with `--passes`, the full refiner runs of the best few
+(`GlobalConfig.refine_passes`); with `--grows`, the codebook's extra framings of a mask another
+detection touches (`GlobalConfig.occluded_grow`): for each setting, the chosen pose's rotation
+errors, those of the best verified start, the chosen translation's error and the verification's
+time per detection (median, one thread), each setting on the same images with the same
+detections.
 
     python bench/global_ablation.py --split headcam_hard --grows "none;1.4;1.5;1.3,1.6"
     python bench/global_ablation.py --split headcam_hard --tilts none,5,10,20
@@ -132,6 +134,11 @@ def check_snap_steps(spec: str) -> list[int]:
     return [check_int(v, 1, 6, "--snap-steps") for v in check_int_list(spec, 6, "--snap-steps")]
 
 
+def check_rest_list(spec: str) -> list[int]:
+    """A comma list of resting hypotheses 0..24."""
+    return check_int_list(spec, 24, "--rests")
+
+
 def check_passes(spec: str) -> list[int]:
     """A comma list of refiner runs 1..3."""
     return [check_int(v, 1, 3, "--passes") for v in check_int_list(spec, 3, "--passes")]
@@ -215,6 +222,7 @@ def config_sweep(
                 "snap_candidates": cfg.snap_candidates,
                 "snap_iterations": cfg.snap_iterations,
                 "refine_passes": cfg.refine_passes,
+                "resting_hypotheses": cfg.resting_hypotheses,
                 "detections": len(cases),
                 "mean": float(e.mean()),
                 "median": float(np.median(e)),
@@ -334,6 +342,13 @@ SWEEPS: dict[str, tuple[str, Callable, str, str, Callable[[Any], str]]] = {
         "LIST",
         "comma list of 1..6",
         _named("snap steps"),
+    ),
+    "rests": (
+        "resting_hypotheses",
+        check_rest_list,
+        "LIST",
+        "comma list of 0..24",
+        _named("rests"),
     ),
     "passes": (
         "refine_passes",

@@ -310,6 +310,24 @@ def hypothesis_pose(book: Codebook, index: int, view: MaskView, K: np.ndarray) -
     return T
 
 
+def resting_templates(
+    book: Codebook,
+    view: MaskView,
+    K: np.ndarray,
+    up_C: np.ndarray,
+    ups_O: np.ndarray,
+    tilt_deg: float,
+) -> np.ndarray:
+    """Which templates, framed by `view`, give a pose within `tilt_deg` of resting: the
+    object's axis that would point up (any of `ups_O`, (k, 3) in O, one per resting pose)
+    within that angle of the world's vertical `up_C` (in the camera frame); (N,) bool. The
+    ray's correction is taken at the view's centre (within a degree or two of each template's
+    own)."""
+    w = r_corr(view.centre, K).T @ up_C  # the vertical in the template camera's frame
+    up_O = np.einsum("nji,j->ni", book.rotations, w)  # ... in each template's object frame
+    return (up_O @ ups_O.T).max(1) >= math.cos(math.radians(tilt_deg))
+
+
 def top_hypotheses(
     scores: np.ndarray, rotations: np.ndarray, k: int, min_angle_deg: float, pool: int = 400
 ) -> list[int]:

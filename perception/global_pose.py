@@ -34,6 +34,7 @@ Codebooks are built once per object and grid and cached under the data folder
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -44,11 +45,13 @@ import numpy as np
 from perception.codebook import (
     Codebook,
     ConvexParts,
+    MaskView,
     SilhouetteSource,
     frame_mask,
     hypothesis_pose,
     image_edges,
     occluded_views,
+    resting_templates,
     top_hypotheses,
     verification_scores,
 )
@@ -60,6 +63,7 @@ from perception.support import snap_to_resting
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, data_root
+from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
 
 #: The detector fine-tuned on the tiers' scenes (any resting pose, partly hidden objects), in a
@@ -101,6 +105,10 @@ class GlobalConfig:
             snapped, not passed over.
         snap_tilt_deg: the largest tilt from a resting pose [deg] a start may have to be
             snapped.
+        resting_hypotheses: with `resting_tilt_deg` and the camera's pose, this many more
+            codebook hypotheses, the best among the templates that give a pose within
+            `resting_tilt_deg` of resting (and `min_angle_deg` from the others): under
+            occlusion a partial mask fits many poses an object could not rest in (0: none).
         snap_iterations: refiner steps of a snapped start's run (turning about the vertical
             only, it has four unknowns, not six).
         target_score: the detector score a detection of the requested object needs (the
@@ -124,12 +132,15 @@ class GlobalConfig:
     snap_candidates: int = 5
     snap_tilt_deg: float = 25.0
     snap_iterations: int = 6
+    resting_hypotheses: int = 0
     target_score: float | None = None
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
             if int(getattr(self, key)) < 1:
                 raise InvalidArgumentError(f"GlobalConfig.{key} must be >= 1")
+        if int(self.resting_hypotheses) < 0:
+            raise InvalidArgumentError("GlobalConfig.resting_hypotheses must be >= 0")
         if int(self.snap_iterations) < 1:
             raise InvalidArgumentError("GlobalConfig.snap_iterations must be >= 1")
         if int(self.screen_iterations) < 0:
@@ -293,6 +304,43 @@ class GlobalPoseEstimator:
             return None
         return snapped
 
+    def _resting_hypotheses(
+        self,
+        book: Codebook,
+        model: ObjectModel,
+        views: list[MaskView],
+        scores: np.ndarray,
+        top: list[int],
+        K: np.ndarray,
+        R_W_C: np.ndarray,
+    ) -> list[int]:
+        """The best `GlobalConfig.resting_hypotheses` templates (of `scores`, every framing's
+        in turn) that give a pose within `GlobalConfig.resting_tilt_deg` of resting, each
+        `GlobalConfig.min_angle_deg` from the others and from those in `top`."""
+        cfg = self.config
+        n = len(book.rotations)
+        ups = np.array([quat_to_mat(np.asarray(q, float))[2] for q in model.resting_poses.values()])
+        assert cfg.resting_tilt_deg is not None
+        keep = np.concatenate(
+            [resting_templates(book, v, K, R_W_C[2], ups, cfg.resting_tilt_deg) for v in views]
+        )
+        if not keep.any():
+            return []
+        want = cfg.resting_hypotheses + len(top)
+        found = top_hypotheses(
+            np.where(keep, scores, -np.inf), book.rotations, want, cfg.min_angle_deg
+        )
+        R = book.rotations
+        cos_min = math.cos(math.radians(cfg.min_angle_deg))
+        new = [
+            i
+            for i in found
+            if np.isfinite(scores[i])
+            and keep[i]
+            and all((np.trace(R[i % n] @ R[j % n].T) - 1) / 2 <= cos_min for j in top)
+        ]
+        return new[: cfg.resting_hypotheses]
+
     def _screen(self, iterations: int) -> PoseRefiner:
         """The full refiner, or one with fewer steps (0: the full one)."""
         if iterations <= 0 or iterations >= self.refiner.config.iterations:
@@ -329,7 +377,11 @@ class GlobalPoseEstimator:
             views = occluded_views(det.mask, occluder, view, cfg.occluded_grow) or [view]
             scores = np.concatenate([book.match(v.bits, v.hidden) for v in views])
             n = len(book.rotations)
-            for i in top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg):
+            top = top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg)
+            if cfg.resting_hypotheses and max_tilt is not None:
+                assert R_W_C is not None
+                top += self._resting_hypotheses(book, model, views, scores, top, K, R_W_C)
+            for i in top:
                 starts.append((hypothesis_pose(book, i % n, views[i // n], K), "codebook"))
         t1 = time.perf_counter()
         pieces, colours = self.codebooks.source.pieces(det.name), self.colours(det.name)

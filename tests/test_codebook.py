@@ -21,7 +21,7 @@ from perception.codebook import (
 from perception.metrics import rotation_error_deg
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.core.transforms import intrinsics, rot_x, rot_y, rot_z
+from posegrasp.core.transforms import intrinsics, quat_to_mat, rot_x, rot_y, rot_z
 from posegrasp.world.objects import load_object
 
 K = intrinsics(np.deg2rad(50), 640, 480)
@@ -172,6 +172,23 @@ def test_an_empty_mask_frames_to_nothing() -> None:
     assert frame_mask(np.zeros((48, 64), bool)) is None
 
 
+def test_the_templates_that_could_rest_are_those_near_a_resting_pose(book: Codebook) -> None:
+    """`resting_templates` (vertical axes compared) agrees with `snap_to_resting` (rotations
+    compared, any heading) on every template seen at the image's centre."""
+    from perception.codebook import MaskView, resting_templates
+    from perception.support import snap_to_resting
+
+    model = load_object("car")
+    R_W_C = rot_x(np.deg2rad(-120)) @ rot_z(np.deg2rad(20))  # a camera looking down at a table
+    ups = np.array([quat_to_mat(np.asarray(q, float))[2] for q in model.resting_poses.values()])
+    view = MaskView(np.zeros(1, np.uint64), np.array([K[0, 2], K[1, 2]]), 100.0)
+    near = resting_templates(book, view, K, R_W_C[2], ups, 20.0)
+    tilt = np.array([snap_to_resting(R_W_C @ R, model)[2] for R in book.rotations])
+    clear = np.abs(tilt - 20.0) > 0.5
+    assert 0 < near.sum() < len(near)
+    np.testing.assert_array_equal(near[clear], tilt[clear] <= 20.0)
+
+
 def test_codebooks_round_trip_through_disk(book: Codebook, tmp_path) -> None:
     path = tmp_path / "car.npz"
     book.save(path)
@@ -221,7 +238,7 @@ def _painted(name: str, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cover, rgb
 
 
-def _global_on_one_detection(name: str, mask: np.ndarray, nets_pose: np.ndarray, folder):
+def _global_on_one_detection(name: str, mask: np.ndarray, nets_pose: np.ndarray, folder, **config):
     """`hybrid-global` on a small codebook (cached in `folder`) whose detector finds one object,
     with `mask` and the nets' pose `nets_pose`."""
     from perception.global_pose import CodebookCache, GlobalConfig, GlobalPoseEstimator
@@ -233,7 +250,7 @@ def _global_on_one_detection(name: str, mask: np.ndarray, nets_pose: np.ndarray,
         def estimate_split(self, rgb, K, classes=None, others=False, wanted_score=None):
             return [det], [], {"total": 1.0}
 
-    cfg = GlobalConfig(views=300, inplane=18, hypotheses=6)
+    cfg = GlobalConfig(views=300, inplane=18, hypotheses=6, **config)
     books = CodebookCache(cfg.views, cfg.inplane, folder=folder)
     return GlobalPoseEstimator(OneDetection(), cfg, books)  # type: ignore[arg-type]
 
@@ -299,3 +316,33 @@ def test_the_global_estimator_reports_how_far_its_pose_is_from_resting(tmp_path)
     assert e.T_C_O is not None
     assert rotation_error_deg(e.T_C_O[:3, :3], T[:3, :3]) < 3.0
     assert e.info["verify"]["tilt_deg"] < 1e-3
+
+
+def test_resting_hypotheses_are_new_and_could_rest(tmp_path) -> None:
+    """The extra hypotheses lie among the templates that could rest, each `min_angle_deg` from
+    the codebook's own best and from one another."""
+    from perception.codebook import resting_templates
+
+    name = "pistol"
+    model = load_object(name)
+    R_W_C = rot_x(np.deg2rad(-120))
+    T = np.eye(4)
+    T[:3, :3] = (
+        R_W_C.T @ rot_z(np.deg2rad(35)) @ quat_to_mat(next(iter(model.resting_poses.values())))
+    )
+    T[:3, 3] = [0.03, 0.01, 0.8]
+    mask, _ = _painted(name, T)
+    est = _global_on_one_detection(name, mask, T, tmp_path, resting_hypotheses=4)
+    book, cfg = est.codebooks.get(name), est.config
+    view = frame_mask(mask)
+    scores = book.match(view.bits, view.hidden)
+    top = top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg)
+    extra = est._resting_hypotheses(book, model, [view], scores, top, K, R_W_C)
+    assert 0 < len(extra) <= 4
+    ups = np.array([quat_to_mat(np.asarray(q, float))[2] for q in model.resting_poses.values()])
+    near = resting_templates(book, view, K, R_W_C[2], ups, cfg.resting_tilt_deg)
+    assert near[extra].all()
+    R = book.rotations
+    for a, i in enumerate(extra):
+        for j in top + extra[:a]:
+            assert rotation_error_deg(R[i], R[j]) >= cfg.min_angle_deg - 1e-6
