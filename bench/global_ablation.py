@@ -25,7 +25,9 @@ every start twice); with `--screens`, a first run of fewer refiner steps for eve
 (`GlobalConfig.resting_tilt_deg`, with the image's camera pose); with `--snaps`, how many of the
 best starts are snapped onto their resting poses (`GlobalConfig.snap_candidates`), with
 `--snap-steps`, the refiner steps of a snapped start's run (`GlobalConfig.snap_iterations`);
-with `--rests`, the extra codebook hypotheses among the templates that could be resting
+with `--appearances` and `--edge-weights`, the verification score's weights
+(`GlobalConfig.appearance_weight`, `GlobalConfig.edge_weight`) with the rest as shipped; with
+`--rests`, the extra codebook hypotheses among the templates that could be resting
 (`GlobalConfig.resting_hypotheses`); with `--passes`, the full refiner runs of the best few
 (`GlobalConfig.refine_passes`); with `--grows`, the codebook's extra framings of a mask another
 detection touches (`GlobalConfig.occluded_grow`): for each setting, the chosen pose's rotation
@@ -134,6 +136,22 @@ def check_snap_steps(spec: str) -> list[int]:
     return [check_int(v, 1, 6, "--snap-steps") for v in check_int_list(spec, 6, "--snap-steps")]
 
 
+def check_weight_list(spec: str, flag: str) -> list[float]:
+    """A comma list of score weights in [0, 10]."""
+    out = []
+    for v in str(spec).split(","):
+        try:
+            w = float(v)
+        except ValueError:
+            w = float("nan")
+        if not 0 <= w <= 10:
+            raise InvalidArgumentError(
+                f"{flag} takes a comma list of weights in [0, 10], got {v!r}"
+            )
+        out.append(w)
+    return out
+
+
 def check_rest_list(spec: str) -> list[int]:
     """A comma list of resting hypotheses 0..24."""
     return check_int_list(spec, 24, "--rests")
@@ -154,7 +172,9 @@ def record(split: str, subset: str, images: int) -> list[dict]:
         name = s.extra.get("target", s.objects[0].name)
         gt = next(o for o in s.objects if o.name == name)
         T_W_C, model = np.asarray(s.extra["T_W_C"], float), load_object(name)
-        target = detect_target(est.hybrid, Observation(s.rgb, s.K, np.eye(4), name, s.seed))
+        target = detect_target(
+            est.hybrid, Observation(s.rgb, s.K, np.eye(4), name, s.seed), est.config.target_score
+        )
         if target.best is None:
             out.append({"image": i, "object": name, "detected": False})
             continue
@@ -195,7 +215,9 @@ def config_sweep(
         s = ds[i]
         name = s.extra.get("target", s.objects[0].name)
         gt = next(o for o in s.objects if o.name == name)
-        target = detect_target(est.hybrid, Observation(s.rgb, s.K, np.eye(4), name, s.seed))
+        target = detect_target(
+            est.hybrid, Observation(s.rgb, s.K, np.eye(4), name, s.seed), est.config.target_score
+        )
         if target.best is not None:
             R_W_C = np.asarray(s.extra["T_W_C"], float)[:3, :3] if "T_W_C" in s.extra else None
             cases.append((target.best, s.K, s.rgb, target.occluder(), gt.T_C_O, R_W_C))
@@ -223,6 +245,8 @@ def config_sweep(
                 "snap_iterations": cfg.snap_iterations,
                 "refine_passes": cfg.refine_passes,
                 "resting_hypotheses": cfg.resting_hypotheses,
+                "appearance_weight": cfg.appearance_weight,
+                "edge_weight": cfg.edge_weight,
                 "detections": len(cases),
                 "mean": float(e.mean()),
                 "median": float(np.median(e)),
@@ -342,6 +366,20 @@ SWEEPS: dict[str, tuple[str, Callable, str, str, Callable[[Any], str]]] = {
         "LIST",
         "comma list of 1..6",
         _named("snap steps"),
+    ),
+    "appearances": (
+        "appearance_weight",
+        lambda spec: check_weight_list(spec, "--appearances"),
+        "LIST",
+        "comma list of weights in [0, 10]",
+        _named("appearance"),
+    ),
+    "edge_weights": (
+        "edge_weight",
+        lambda spec: check_weight_list(spec, "--edge-weights"),
+        "LIST",
+        "comma list of weights in [0, 10]",
+        _named("edges"),
     ),
     "rests": (
         "resting_hypotheses",
