@@ -133,7 +133,7 @@ class GlobalConfig:
     snap_tilt_deg: float = 25.0
     snap_iterations: int = 6
     resting_hypotheses: int = 0
-    target_score: float | None = None
+    target_score: float | None = 0.3
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
