@@ -27,7 +27,8 @@ best starts are snapped onto their resting poses (`GlobalConfig.snap_candidates`
 `--snap-steps`, the refiner steps of a snapped start's run (`GlobalConfig.snap_iterations`);
 with `--appearances` and `--edge-weights`, the verification score's weights
 (`GlobalConfig.appearance_weight`, `GlobalConfig.edge_weight`) with the rest as shipped; with
-`--rests`, the extra codebook hypotheses among the templates that could be resting
+`--ks`, the codebook hypotheses per detection (`GlobalConfig.hypotheses`); with `--rests`, the
+extra codebook hypotheses among the templates that could be resting
 (`GlobalConfig.resting_hypotheses`); with `--passes`, the full refiner runs of the best few
 (`GlobalConfig.refine_passes`); with `--grows`, the codebook's extra framings of a mask another
 detection touches (`GlobalConfig.occluded_grow`): for each setting, the chosen pose's rotation
@@ -152,6 +153,11 @@ def check_weight_list(spec: str, flag: str) -> list[float]:
     return out
 
 
+def check_k_list(spec: str) -> list[int]:
+    """A comma list of codebook hypotheses 1..48."""
+    return [check_int(v, 1, 48, "--ks") for v in check_int_list(spec, 48, "--ks")]
+
+
 def check_rest_list(spec: str) -> list[int]:
     """A comma list of resting hypotheses 0..24."""
     return check_int_list(spec, 24, "--rests")
@@ -245,6 +251,7 @@ def config_sweep(
                 "snap_iterations": cfg.snap_iterations,
                 "refine_passes": cfg.refine_passes,
                 "resting_hypotheses": cfg.resting_hypotheses,
+                "hypotheses": cfg.hypotheses,
                 "appearance_weight": cfg.appearance_weight,
                 "edge_weight": cfg.edge_weight,
                 "detections": len(cases),
@@ -380,6 +387,13 @@ SWEEPS: dict[str, tuple[str, Callable, str, str, Callable[[Any], str]]] = {
         "LIST",
         "comma list of weights in [0, 10]",
         _named("edges"),
+    ),
+    "ks": (
+        "hypotheses",
+        check_k_list,
+        "LIST",
+        "comma list of 1..48",
+        _named("K"),
     ),
     "rests": (
         "resting_hypotheses",
