@@ -111,6 +111,8 @@ class GlobalConfig:
             occlusion a partial mask fits many poses an object could not rest in (0: none).
         snap_iterations: refiner steps of a snapped start's run (turning about the vertical
             only, it has four unknowns, not six).
+        neighbour_experts: the other detections' poses (the planner's obstacles) come from the
+            nets and their expert, as `hybrid`'s (False: from the main net alone, faster).
         target_score: the detector score a detection of the requested object needs (the
             other detections, the planner's obstacles and the occluders, need the detector's
             own threshold); a partly hidden object often scores lower, and the verification
@@ -134,6 +136,7 @@ class GlobalConfig:
     snap_iterations: int = 6
     resting_hypotheses: int = 0
     target_score: float | None = 0.3
+    neighbour_experts: bool = False
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -465,7 +468,8 @@ class GlobalPoseEstimator:
         if obs.object not in OBJECT_NAMES and obs.object in self.hybrid.detector.cfg.classes:
             best, neighbours, info, occluder = self._user_target(obs)
         else:
-            target = detect_target(self.hybrid, obs, self.config.target_score)
+            cfg = self.config
+            target = detect_target(self.hybrid, obs, cfg.target_score, cfg.neighbour_experts)
             best, neighbours, info = target.best, target.neighbours, target.info
             occluder = target.occluder()
         if best is None:

@@ -190,10 +190,12 @@ class HybridPoseEstimator:
         classes: Collection[str] | None = None,
         others: bool = False,
         wanted_score: float | None = None,
+        others_experts: bool = True,
     ) -> tuple[list[PoseDetection], list[PoseDetection], dict[str, float]]:
         """Detect once; poses of the detections of `classes` (all when None) and, with `others`,
         of the remaining detections in a second pass of the nets. With `wanted_score`, a
         detection of `classes` needs that score and the others the detector's threshold.
+        Without `others_experts`, the other detections get the main net's pose alone.
 
         Returns:
             (poses of `classes`, poses of the other detections (empty without `others`),
@@ -220,7 +222,7 @@ class HybridPoseEstimator:
         wanted = dets if classes is None else [d for d in dets if d.name in classes]
         found = self._poses(rgb, K, wanted, timings, dets)
         rest = [d for d in dets if classes is not None and d.name not in classes] if others else []
-        other = self._poses(rgb, K, rest, timings, dets) if rest else []
+        other = self._poses(rgb, K, rest, timings, dets, others_experts) if rest else []
         timings["total"] = float(sum(timings[k] for k in STAGES))
         return found, other, timings
 
@@ -247,6 +249,7 @@ class HybridPoseEstimator:
         dets: list[Detection],
         timings: dict[str, float],
         scene: Sequence[Detection] = (),
+        experts: bool = True,
     ) -> list[PoseDetection]:
         """Crop, nets and decode for some detections (`scene`: all the image's detections, whose
         masks may hide an object); adds each stage's time to `timings`. A detection of a class
@@ -270,7 +273,7 @@ class HybridPoseEstimator:
             cls = torch.tensor([OBJECT_NAMES.index(d.name) for d, _ in kept])
             size = torch.tensor([box[2] / K[0, 0] for _, box in kept], dtype=torch.float32)
             with torch.inference_mode():
-                for net in (self.posenet, *self.experts):
+                for net in (self.posenet, *(self.experts if experts else ())):
                     out = net(x, cls, size)
                     outs.append([t.double().numpy() for t in (out.uv_unit, out.p, out.theta)])
         t3 = time.perf_counter()
@@ -362,11 +365,15 @@ class TargetDetections:
 
 
 def detect_target(
-    estimator: HybridPoseEstimator, obs: Observation, target_score: float | None = None
+    estimator: HybridPoseEstimator,
+    obs: Observation,
+    target_score: float | None = None,
+    others_experts: bool = True,
 ) -> TargetDetections:
     """Detect once and split the detections around ``obs.object`` (a detection of it needs
-    `target_score`, when given, and the others the detector's threshold); an object the nets
-    were not trained on (a user object) is not looked for, and ``info["note"]`` says why.
+    `target_score`, when given, and the others the detector's threshold; without
+    `others_experts` the others get the main net's pose alone); an object the nets were not
+    trained on (a user object) is not looked for, and ``info["note"]`` says why.
 
     Raises:
         UnknownNameError: obs.object is no known object at all.
@@ -379,7 +386,12 @@ def detect_target(
         )
         return TargetDetections(None, [], [], {"detected": False, "note": note}, ())
     found, others, timings = estimator.estimate_split(
-        obs.rgb, obs.K, classes=(obs.object,), others=True, wanted_score=target_score
+        obs.rgb,
+        obs.K,
+        classes=(obs.object,),
+        others=True,
+        wanted_score=target_score,
+        others_experts=others_experts,
     )
     info: dict = {"detected": bool(found), "timings_ms": dict(timings)}
     neighbours = tuple((d.name, d.T_C_O.copy()) for d in others)

@@ -247,7 +247,7 @@ def _global_on_one_detection(name: str, mask: np.ndarray, nets_pose: np.ndarray,
     det = PoseDetection(name, 0.9, np.zeros(4), mask, nets_pose, np.zeros(2), (0, 0, 1), {})
 
     class OneDetection:
-        def estimate_split(self, rgb, K, classes=None, others=False, wanted_score=None):
+        def estimate_split(self, rgb, K, classes=None, others=False, **_):
             return [det], [], {"total": 1.0}
 
     cfg = GlobalConfig(views=300, inplane=18, hypotheses=6, **config)

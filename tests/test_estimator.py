@@ -121,6 +121,28 @@ def test_a_wanted_score_lowers_the_bar_for_the_requested_class_alone(head_image)
     assert high.estimate_split(rgb, K, classes=(name,))[0] == []
 
 
+def test_the_other_detections_may_skip_the_expert(head_image) -> None:
+    """Without `others_experts`, the other detections' poses are the main net's alone (as an
+    estimator without experts gives them); the requested class's keep the expert's choice."""
+    rgb, K = head_image
+    base = HybridPoseEstimator.with_random_weights(seed=0, score_threshold=0.0)
+    expert = HybridPoseEstimator.with_random_weights(seed=5).posenet
+    est = HybridPoseEstimator(base.detector, base.posenet, experts=[expert])
+    found = est.detector.detect(rgb)
+    name = found[0].name
+    absent = next(n for n in OBJECT_NAMES if n not in {d.name for d in found})
+    _, fast, _ = est.estimate_split(rgb, K, classes=(absent,), others=True, others_experts=False)
+    _, ref, _ = base.estimate_split(rgb, K, classes=(absent,), others=True)
+    assert fast and [d.score for d in fast] == [d.score for d in ref]
+    for a, b in zip(fast, ref, strict=True):
+        np.testing.assert_allclose(a.T_C_O, b.T_C_O)
+    kept, _, _ = est.estimate_split(rgb, K, classes=(name,), others=True, others_experts=False)
+    full, _, _ = est.estimate_split(rgb, K, classes=(name,), others=True)
+    assert kept
+    for a, b in zip(kept, full, strict=True):
+        np.testing.assert_allclose(a.T_C_O, b.T_C_O)
+
+
 def test_class_filter(estimator: HybridPoseEstimator, head_image) -> None:
     rgb, K = head_image
     found = estimator.estimate(rgb, K)

@@ -164,7 +164,7 @@ def test_the_episode_adapter_refines_with_the_detected_mask() -> None:
     )
 
     class Stub:
-        def estimate_split(self, rgb, K, classes=None, others=False, wanted_score=None):
+        def estimate_split(self, rgb, K, classes=None, others=False, **_):
             return [det], [], {"total": 1.0}
 
     est = HybridEpisodeEstimator(Stub(), refine=True)  # type: ignore[arg-type]
