@@ -24,26 +24,16 @@ from perception.global_pose import TIERS_DETECTOR
 from perception.metrics import box_iou
 from perception.training.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
-from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import arg, check_int
+from posegrasp.core.validate import arg, check_float_list, check_int
 
 MIN_VISIB = 0.5
 
 
 def check_scores(spec: str) -> list[float]:
-    """A comma list of scores in (0, 1]."""
-    out = []
-    for v in str(spec).split(","):
-        try:
-            s = float(v)
-        except ValueError:
-            s = float("nan")
-        if not 0 < s <= 1:
-            raise InvalidArgumentError(f"--scores takes a comma list in (0, 1], got {v!r}")
-        out.append(s)
-    return sorted(set(out), reverse=True)
+    """A comma list of scores in 0.01..1, highest first."""
+    return sorted(set(check_float_list(spec, 0.01, 1.0, "--scores")), reverse=True)
 
 
 def measure(detector: Detector, data: PoseDataset, n: int, scores: list[float]) -> dict:

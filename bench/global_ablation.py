@@ -63,7 +63,7 @@ from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import arg, check_int
+from posegrasp.core.validate import arg, check_float_list, check_int
 from posegrasp.world.objects import load_object
 
 APPEARANCE = (0.0, 0.05, 0.1, 0.2)
@@ -138,19 +138,8 @@ def check_snap_steps(spec: str) -> list[int]:
 
 
 def check_weight_list(spec: str, flag: str) -> list[float]:
-    """A comma list of score weights in [0, 10]."""
-    out = []
-    for v in str(spec).split(","):
-        try:
-            w = float(v)
-        except ValueError:
-            w = float("nan")
-        if not 0 <= w <= 10:
-            raise InvalidArgumentError(
-                f"{flag} takes a comma list of weights in [0, 10], got {v!r}"
-            )
-        out.append(w)
-    return out
+    """A comma list of score weights in 0..10."""
+    return check_float_list(spec, 0.0, 10.0, flag)
 
 
 def check_k_list(spec: str) -> list[int]:

@@ -29,6 +29,7 @@ from posegrasp.core.paths import REPO_ROOT, WEIGHTS_DIR
 from posegrasp.core.validate import (
     STDOUT,
     check_float,
+    check_float_list,
     check_json_output,
     check_names,
     check_output_file,
@@ -267,6 +268,8 @@ def test_workers_are_capped_by_jobs_and_cores_with_a_note() -> None:
         (check_json_output, ("out/",), "invalid --json 'out/': it is a folder"),
         (check_float, (float("nan"), 0.0, 1.0, "--x"), "numbers 0..1"),
         (check_float, (True, 0.0, 1.0, "--x"), "numbers 0..1"),
+        (check_float_list, ("0.5,x", 0.0, 1.0, "--x"), "invalid --x 'x'; valid: numbers 0..1"),
+        (check_float_list, ("0.5,2", 0.0, 1.0, "--x"), "invalid --x 2.0; valid: numbers 0..1"),
         (check_plot_path, ("p.xyz",), ".png, .pdf, .svg"),
         (parse_intrinsics, ("1e30,1e30,320,240",), "within +-100000"),
         (parse_intrinsics, ("500,-500,320,240",), "positive focal lengths"),

@@ -54,6 +54,18 @@ def check_float(value: Any, lo: float, hi: float, name: str) -> float:
     return float(value)
 
 
+def check_float_list(spec: str, lo: float, hi: float, name: str) -> list[float]:
+    """A comma list of finite numbers, each in lo..hi (inclusive; `check_float`)."""
+    out = []
+    for v in str(spec).split(","):
+        try:
+            number: Any = float(v)
+        except ValueError:
+            number = v  # refused below with the valid range
+        out.append(check_float(number, lo, hi, name))
+    return out
+
+
 def check_seed(value: Any, name: str = "seed", count: int = 1) -> int:
     """A seed (or the first of `count` consecutive seeds) in 0..2**32 - 1."""
     seed = check_int(value, 0, SEED_LIMIT - 1, name)
