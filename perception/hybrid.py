@@ -209,10 +209,10 @@ class HybridPoseEstimator:
                     raise UnknownNameError("object", c, OBJECT_NAMES)
         timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         t0 = time.perf_counter()
-        floor = self.detector.score_threshold
         if wanted_score is None:
             dets = self.detector.detect(rgb)
         else:
+            floor = self.detector.score_threshold
             dets = [
                 d
                 for d in self.detector.detect(rgb, min(floor, wanted_score))
