@@ -111,15 +111,15 @@ def check_tilt_list(spec: str) -> list[float | None]:
     return out
 
 
-def check_int_list(spec: str, hi: int = 13, flag: str = "--keeps") -> list[int]:
-    """A comma list of whole numbers 0..hi."""
+def check_int_list(spec: str, hi: int = 13, flag: str = "--keeps", lo: int = 0) -> list[int]:
+    """A comma list of whole numbers lo..hi."""
     out = []
     for v in str(spec).split(","):
         try:
             out.append(int(v))
         except ValueError:
             out.append(v)  # refused below with the valid range
-    return [check_int(v, 0, hi, flag) for v in out]
+    return [check_int(v, lo, hi, flag) for v in out]
 
 
 def check_snap_list(spec: str) -> list[int]:
@@ -134,17 +134,12 @@ def check_screen_list(spec: str) -> list[int]:
 
 def check_snap_steps(spec: str) -> list[int]:
     """A comma list of refiner steps 1..6."""
-    return [check_int(v, 1, 6, "--snap-steps") for v in check_int_list(spec, 6, "--snap-steps")]
-
-
-def check_weight_list(spec: str, flag: str) -> list[float]:
-    """A comma list of score weights in 0..10."""
-    return check_float_list(spec, 0.0, 10.0, flag)
+    return check_int_list(spec, 6, "--snap-steps", lo=1)
 
 
 def check_k_list(spec: str) -> list[int]:
     """A comma list of codebook hypotheses 1..48."""
-    return [check_int(v, 1, 48, "--ks") for v in check_int_list(spec, 48, "--ks")]
+    return check_int_list(spec, 48, "--ks", lo=1)
 
 
 def check_rest_list(spec: str) -> list[int]:
@@ -154,7 +149,7 @@ def check_rest_list(spec: str) -> list[int]:
 
 def check_passes(spec: str) -> list[int]:
     """A comma list of refiner runs 1..3."""
-    return [check_int(v, 1, 3, "--passes") for v in check_int_list(spec, 3, "--passes")]
+    return check_int_list(spec, 3, "--passes", lo=1)
 
 
 def record(split: str, subset: str, images: int) -> list[dict]:
@@ -365,14 +360,14 @@ SWEEPS: dict[str, tuple[str, Callable, str, str, Callable[[Any], str]]] = {
     ),
     "appearances": (
         "appearance_weight",
-        lambda spec: check_weight_list(spec, "--appearances"),
+        lambda spec: check_float_list(spec, 0.0, 10.0, "--appearances"),
         "LIST",
         "comma list of weights in [0, 10]",
         _named("appearance"),
     ),
     "edge_weights": (
         "edge_weight",
-        lambda spec: check_weight_list(spec, "--edge-weights"),
+        lambda spec: check_float_list(spec, 0.0, 10.0, "--edge-weights"),
         "LIST",
         "comma list of weights in [0, 10]",
         _named("edges"),

@@ -328,6 +328,12 @@ def resting_templates(
     return (up_O @ ups_O.T).max(1) >= math.cos(math.radians(tilt_deg))
 
 
+def rotation_cosines(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """cos of the angle between every rotation of A (a, 3, 3) and every one of B (b, 3, 3):
+    (trace(R_a R_b^T) - 1) / 2, (a, b)."""
+    return (A.reshape(len(A), 9) @ B.reshape(len(B), 9).T - 1) / 2
+
+
 def top_hypotheses(
     scores: np.ndarray, rotations: np.ndarray, k: int, min_angle_deg: float, pool: int = 400
 ) -> list[int]:
@@ -340,9 +346,8 @@ def top_hypotheses(
     else:
         order = np.argsort(-scores, kind="stable")
     n = len(rotations)  # scores may hold several framings of the same templates, one after another
-    R = rotations[order % n].reshape(len(order), 9)
-    # cos of the angle between rotations a and b: (trace(R_a R_b^T) - 1) / 2
-    near = (R @ R.T - 1) / 2 > math.cos(math.radians(min_angle_deg))
+    R = rotations[order % n]
+    near = rotation_cosines(R, R) > math.cos(math.radians(min_angle_deg))
     kept: list[int] = []
     for a in range(len(order)):
         if not near[a, kept].any():

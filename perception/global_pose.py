@@ -52,6 +52,7 @@ from perception.codebook import (
     image_edges,
     occluded_views,
     resting_templates,
+    rotation_cosines,
     top_hypotheses,
     verification_scores,
 )
@@ -334,15 +335,12 @@ class GlobalPoseEstimator:
             np.where(keep, scores, -np.inf), book.rotations, want, cfg.min_angle_deg
         )
         R = book.rotations
-        cos_min = math.cos(math.radians(cfg.min_angle_deg))
-        new = [
-            i
-            for i in found
-            if np.isfinite(scores[i])
-            and keep[i]
-            and all((np.trace(R[i % n] @ R[j % n].T) - 1) / 2 <= cos_min for j in top)
-        ]
-        return new[: cfg.resting_hypotheses]
+        found = [i for i in found if keep[i]]
+        if not found or not top:
+            return found[: cfg.resting_hypotheses]
+        near = rotation_cosines(R[np.array(found) % n], R[np.array(top) % n])
+        new = np.array(found)[~(near > math.cos(math.radians(cfg.min_angle_deg))).any(1)]
+        return [int(i) for i in new[: cfg.resting_hypotheses]]
 
     def _screen(self, iterations: int) -> PoseRefiner:
         """The full refiner, or one with fewer steps (0: the full one)."""
@@ -439,8 +437,8 @@ class GlobalPoseEstimator:
             assert R_W_C is not None
             pool = [v for v in out if v.tilt <= cfg.snap_tilt_deg][: cfg.snap_candidates]
             snapped = [s for v in pool if (s := self._snapped(v, R_W_C, model, refined))]
-            top = max((v.score for v in out), default=0.0)
-            if snapped and max(v.score for v in snapped) >= top - SNAP_SCORE_DROP:
+            best_score = max((v.score for v in out), default=0.0)
+            if snapped and max(v.score for v in snapped) >= best_score - SNAP_SCORE_DROP:
                 out = rank_verified(snapped, max_tilt) + [
                     v for v in out if all(v is not p for p in pool)
                 ]
