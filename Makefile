@@ -86,6 +86,8 @@ weights: data
 	  --also headcam_any-pose,headcam --limit 9000 --epochs 1 --lr 0.0003 --precision bf16 \
 	  --channels-last --init perception/weights/tiers/detector.pt --out $(CKPT)/detector_tiers2 \
 	  --export --weights-out perception/weights/tiers
+	$(PY) -m perception.training.train_masknet --epochs 3 --channels-last --out $(CKPT)/masknet \
+	  --export
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record

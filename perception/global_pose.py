@@ -58,6 +58,7 @@ from perception.codebook import (
 )
 from perception.detector import Detection
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target
+from perception.mask_net import MaskRefiner
 from perception.overlay import mask_box
 from perception.refine import PoseRefiner
 from perception.support import snap_to_resting
@@ -114,6 +115,10 @@ class GlobalConfig:
             only, it has four unknowns, not six).
         neighbour_experts: the other detections' poses (the planner's obstacles) come from the
             nets and their expert, as `hybrid`'s (False: from the main net alone, faster).
+        mask_net: the requested object's mask is redrawn at the image's full resolution by the
+            mask net (`perception.mask_net`) before its hypotheses and refinement: the
+            detector's coarse mask loses thin parts and puts the outline a pixel or two off,
+            which the fit turns into distance along the viewing ray (False: the detector's).
         target_score: the detector score a detection of the requested object needs (the
             other detections, the planner's obstacles and the occluders, need the detector's
             own threshold); a partly hidden object often scores lower, and the verification
@@ -138,6 +143,7 @@ class GlobalConfig:
     resting_hypotheses: int = 0
     target_score: float | None = 0.3
     neighbour_experts: bool = False
+    mask_net: bool = True
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -257,6 +263,8 @@ class GlobalPoseEstimator:
         codebooks: where codebooks come from (default: built from the convex parts and cached
             in the data folder).
         name: the name results carry.
+        masks: the mask net that redraws the target's mask (`GlobalConfig.mask_net`; default:
+            the shipped one when the config asks for it).
     """
 
     def __init__(
@@ -265,9 +273,13 @@ class GlobalPoseEstimator:
         config: GlobalConfig | None = None,
         codebooks: CodebookCache | None = None,
         name: str = "hybrid-global",
+        masks: MaskRefiner | None = None,
     ) -> None:
         self.hybrid = hybrid
         self.config = config or GlobalConfig()
+        if masks is None and self.config.mask_net:
+            masks = MaskRefiner.from_weights()
+        self.masks = masks if self.config.mask_net else None
         self.codebooks = codebooks or CodebookCache(self.config.views, self.config.inplane)
         self.refiner = PoseRefiner()
         self._screens: dict[int, PoseRefiner] = {}
@@ -472,6 +484,10 @@ class GlobalPoseEstimator:
             occluder = target.occluder()
         if best is None:
             return Estimate(None, neighbours, info)
+        if self.masks is not None and best.name in OBJECT_NAMES:
+            t0 = time.perf_counter()
+            best = replace(best, mask=self.masks.refine(obs.rgb, best.mask))
+            info["timings_ms"]["mask"] = (time.perf_counter() - t0) * 1000
         R_W_C = np.asarray(obs.T_world_cam, float)[:3, :3]
         ranked, times = self.verify(best, obs.K, obs.rgb, occluder, R_W_C)
         info["timings_ms"] |= times

@@ -1,0 +1,444 @@
+"""Train the mask net (`perception.mask_net`) on the tiers' rendered scenes, and measure it on
+held-out images with the detector's own masks.
+
+    python -m perception.training.train_masknet --epochs 3 --channels-last --export
+    python -m perception.training.train_masknet --evaluate --split test --images 300
+
+Each visible object of a training image (at least `MIN_VISIBLE_PX` visible pixels) gives one
+window around its true visible mask, its centre and side jittered as a detector's box would be.
+The windows are cut once into a cache (``$POSEGRASP_DATA/masknet``). The coarse input is drawn on
+the batch from the true mask (`degrade`): averaged onto a coarse grid and drawn back, thresholded
+at a random level, its thin parts opened away at random, shifted by a pixel or two. The loss is
+the binary cross-entropy with the true mask's coverage of each window pixel.
+
+A run checkpoints after every epoch and every few minutes (``--out``) and resumes from there;
+``--export`` writes ``perception/weights/tiers/masknet.pt`` and its manifest entry (``mask_net``:
+command, data, validation, wall time).
+"""
+
+from __future__ import annotations
+
+import math
+import shlex
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from perception.mask_net import (
+    DEFAULT_MASKNET,
+    MaskNet,
+    MaskNetConfig,
+    MaskRefiner,
+    cut,
+    net_input,
+    window_of,
+)
+from perception.training.checkpoints import (
+    config_dict,
+    read_checkpoint,
+    restore,
+    rng_state,
+    save_atomically,
+    save_checkpoint,
+    seed_torch,
+)
+from perception.training.dataset import PoseDataset
+from perception.training.loop import (
+    Checkpointer,
+    add_arithmetic_arguments,
+    add_schedule_arguments,
+    autocast,
+)
+from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
+from posegrasp.core.cli import ArgumentParser, command, write_json
+from posegrasp.core.errors import AssetError, InvalidArgumentError
+from posegrasp.core.paths import data_root
+from posegrasp.core.validate import arg, check_int
+
+#: Objects with fewer visible pixels give no training window.
+MIN_VISIBLE_PX = 100
+#: The splits a run trains on by default and how many images of each.
+DEFAULT_SOURCES = (("headcam_hard", 6000), ("headcam_any-pose", 2000), ("headcam", 2000))
+VAL_SOURCE = ("headcam_hard", 500)
+
+
+@dataclass(frozen=True)
+class MaskTrainConfig:
+    """One training run.
+
+    Attributes:
+        sources: (split folder, images) pairs of training scenes.
+        val: (split folder, images) of the validation scenes (their ``val`` split).
+        epochs, batch, lr: the schedule (one-cycle, AdamW).
+        seed: of the windows' jitter, the batches' order and the coarse masks.
+        precision, channels_last: the arithmetic (`perception.training.loop`).
+        out: checkpoint folder.
+        net: the net.
+    """
+
+    sources: tuple[tuple[str, int], ...] = DEFAULT_SOURCES
+    val: tuple[str, int] = VAL_SOURCE
+    epochs: int = 3
+    batch: int = 32
+    lr: float = 2e-3
+    seed: int = 0
+    precision: str = "bf16"
+    channels_last: bool = True
+    out: Path = Path("data/checkpoints/masknet")
+    net: MaskNetConfig = field(default_factory=MaskNetConfig)
+
+
+def _jittered_window(
+    mask: np.ndarray, margin: float, rng: np.random.Generator
+) -> tuple[int, int, int] | None:
+    """`window_of` the mask, its centre moved by up to ~5 % of its side and its side scaled by
+    ~8 % at random (a detector's box is a little off)."""
+    win = window_of(mask, margin)
+    if win is None:
+        return None
+    x0, y0, side = win
+    new = max(8, round(side * math.exp(rng.normal(0, 0.08))))
+    dx, dy = rng.normal(0, 0.05 * side, 2)
+    return (
+        round(x0 + (side - new) / 2 + dx),
+        round(y0 + (side - new) / 2 + dy),
+        new,
+    )
+
+
+def build_cache(
+    folder: str, split: str, images: int, net: MaskNetConfig, seed: int
+) -> dict[str, np.ndarray]:
+    """The windows of the first `images` images of a split, cut once and kept in
+    ``$POSEGRASP_DATA/masknet``: ``rgb`` (N, S, S, 3) uint8, ``target`` (N, S, S) uint8 (the
+    true visible mask's coverage of each pixel, 0-255) and ``cls`` (N,) the class names.
+
+    Raises:
+        AssetError: the split is missing (the message names ``make data``).
+    """
+    root = data_root() / folder
+    S = net.size
+    path = data_root() / "masknet" / f"{folder}_{split}_{images}_{S}_{net.margin}_{seed}.npz"
+    if path.is_file():
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    try:
+        data = PoseDataset(root, split)
+    except (OSError, KeyError, ValueError) as exc:
+        raise AssetError(
+            f"no {split} split in {root} ({exc}); render it with `make data`"
+        ) from None
+    n = min(images, len(data))
+    rgbs, targets, names = [], [], []
+    for i in tqdm(range(n), desc=f"windows of {folder}/{split}", mininterval=5):
+        sample = data[i]
+        rng = np.random.default_rng([seed, i])
+        for obj in sample.objects:
+            if int(obj.mask_visib.sum()) < MIN_VISIBLE_PX:
+                continue
+            win = _jittered_window(obj.mask_visib, net.margin, rng)
+            assert win is not None
+            rgbs.append(cut(sample.rgb, win, S))
+            cover = cut(obj.mask_visib.astype(np.float32), win, S)
+            targets.append(np.round(cover * 255).astype(np.uint8))
+            names.append(obj.name)
+    cache = {"rgb": np.stack(rgbs), "target": np.stack(targets), "cls": np.array(names)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **cache)
+    tmp.replace(path)
+    return cache
+
+
+def degrade(target: torch.Tensor, g: torch.Generator) -> torch.Tensor:
+    """Coarse masks (B, S, S) in {0, 1} drawn from true coverages (B, S, S) in [0, 1], as the
+    detector draws them: averaged onto a grid of 10-32 cells across the window and drawn back
+    bilinearly, thresholded at 0.35-0.65, thin parts opened away (kernel 1, 3 or 5 px) in half
+    of them, shifted by up to 2 px."""
+    B, S, _ = target.shape
+    x = target[:, None].float()
+    out = torch.empty_like(x)
+    groups = torch.randint(0, 4, (B,), generator=g)
+    for k in range(4):  # a few grid sizes per batch
+        idx = (groups == k).nonzero()[:, 0]
+        if len(idx) == 0:
+            continue
+        cells = int(torch.randint(10, 33, (1,), generator=g))
+        low = torch.nn.functional.adaptive_avg_pool2d(x[idx], cells)
+        out[idx] = torch.nn.functional.interpolate(
+            low, size=(S, S), mode="bilinear", align_corners=False
+        )
+    level = 0.35 + 0.3 * torch.rand(B, 1, 1, 1, generator=g)
+    coarse = (out >= level).float()
+    opened = torch.rand(B, generator=g) < 0.5
+    kernel = int(torch.randint(0, 3, (1,), generator=g)) * 2 + 1
+    if kernel > 1 and opened.any():
+        pad = kernel // 2
+        sub = coarse[opened]
+        eroded = -torch.nn.functional.max_pool2d(-sub, kernel, 1, pad)
+        coarse[opened] = torch.nn.functional.max_pool2d(eroded, kernel, 1, pad)
+    dx, dy = (int(v) for v in torch.randint(-2, 3, (2,), generator=g))
+    return torch.roll(coarse[:, 0], shifts=(dy, dx), dims=(1, 2))
+
+
+def _iou(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """Per-window IoU of boolean masks (B, S, S)."""
+    inter = (pred & truth).flatten(1).sum(1).float()
+    union = (pred | truth).flatten(1).sum(1).float()
+    return torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(inter))
+
+
+@torch.inference_mode()
+def validate(net: MaskNet, val: dict[str, np.ndarray], seed: int) -> dict[str, float]:
+    """Mean IoU with the true mask (coverage >= 0.5) of the degraded input and of the net's
+    mask, on the validation windows (their coarse masks seeded, the same every epoch)."""
+    net.eval()
+    g = torch.Generator().manual_seed(seed)
+    before, after = [], []
+    for i in range(0, len(val["rgb"]), 256):
+        t = torch.as_tensor(val["target"][i : i + 256]).float() / 255
+        coarse = degrade(t, g)
+        logits = net(net_input(val["rgb"][i : i + 256], coarse.numpy()))[:, 0]
+        truth = t >= 0.5
+        before.append(_iou(coarse >= 0.5, truth))
+        after.append(_iou(logits >= 0, truth))
+    return {
+        "coarse_iou": float(torch.cat(before).mean()),
+        "iou": float(torch.cat(after).mean()),
+    }
+
+
+def train(cfg: MaskTrainConfig, resume: bool = True) -> dict[str, Any]:
+    """Train (resuming from ``cfg.out/last.pt`` when asked and present); returns the last
+    checkpoint's contents."""
+    seed_torch(cfg.seed, None)
+    parts = [build_cache(f, "train", n, cfg.net, cfg.seed) for f, n in cfg.sources]
+    tr = {k: np.concatenate([p[k] for p in parts]) for k in ("rgb", "target")}
+    val = build_cache(cfg.val[0], "val", cfg.val[1], cfg.net, cfg.seed)
+    net = MaskNet(cfg.net)
+    if cfg.channels_last:
+        net = net.to(memory_format=torch.channels_last)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=1e-4)
+    steps_per_epoch = len(tr["rgb"]) // cfg.batch
+    total = steps_per_epoch * cfg.epochs
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, cfg.lr, total_steps=total, pct_start=0.15)
+    step, epoch, history, wall0 = 0, 0, [], 0.0
+    last = cfg.out / "last.pt"
+    if resume and last.is_file():
+        state = read_checkpoint(last)
+        step, epoch, history = restore(state, net, opt)
+        sched.load_state_dict(state["scheduler"])
+        wall0 = float(state["wall_s"])
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    data_seeds = {
+        "sources": dict(cfg.sources),
+        "val": dict([cfg.val]),
+        "windows": len(tr["rgb"]),
+        "seed": cfg.seed,
+    }
+
+    def save(done: int, wall_s: float) -> None:
+        save_checkpoint(
+            last,
+            net,
+            opt,
+            model_config=config_dict(cfg.net),
+            train_config={"epochs": cfg.epochs, "batch": cfg.batch, "lr": cfg.lr},
+            step=step,
+            epoch=done,
+            history=history,
+            rng=rng_state(),
+            data_seeds=data_seeds,
+            header={"kind": "masknet", "scheduler": sched.state_dict(), "wall_s": wall_s},
+        )
+
+    ckpts = Checkpointer(save, minutes=5, wall_s=wall0)
+    device = torch.device("cpu")
+    while epoch < cfg.epochs:
+        g = torch.Generator().manual_seed(cfg.seed * 1000 + epoch)
+        order = torch.randperm(len(tr["rgb"]), generator=g).numpy()
+        net.train()
+        bar = tqdm(range(steps_per_epoch), desc=f"mask net epoch {epoch + 1}/{cfg.epochs}")
+        for b in bar:
+            if b < step - epoch * steps_per_epoch:
+                continue  # done before the resume
+            idx = np.sort(order[b * cfg.batch : (b + 1) * cfg.batch])
+            t = torch.as_tensor(tr["target"][idx]).float() / 255
+            x = net_input(tr["rgb"][idx], degrade(t, g).numpy())
+            if cfg.channels_last:
+                x = x.contiguous(memory_format=torch.channels_last)
+            with autocast(cfg.precision, device):
+                logits = net(x)
+            loss = torch.nn.functional.binary_cross_entropy_with_logits(logits.float()[:, 0], t)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            step += 1
+            if b % 20 == 0:
+                bar.set_postfix(loss=f"{loss.item():.4f}")
+            ckpts.save_if_due(epoch)
+        epoch += 1
+        history.append({"epoch": epoch, "step": step, **validate(net, val, cfg.seed)})
+        print(f"epoch {epoch}: {history[-1]}", flush=True)
+        ckpts.save(epoch)
+    return read_checkpoint(last)
+
+
+def export(cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET) -> dict:
+    """Write the shipped net (float16 state dict, model config) and its ``mask_net`` manifest
+    entry from the run's last checkpoint.
+
+    Raises:
+        AssetError: the run has not finished its epochs.
+    """
+    state = read_checkpoint(cfg.out / "last.pt")
+    if state["epoch"] < cfg.epochs:
+        raise AssetError(
+            f"the run in {cfg.out} has done {state['epoch']}/{cfg.epochs} epochs; finish it first"
+        )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    model = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
+    save_atomically({"model": model, "model_config": state["model_config"]}, out)
+    manifest_path = out.parent / MANIFEST_NAME
+    manifest = read_manifest(manifest_path)
+    manifest["mask_net"] = weights_entry(out) | {
+        "command": command_line,
+        "data_seeds": state["data_seeds"],
+        "epochs_done": state["epoch"],
+        "parameters": sum(int(v.numel()) for v in state["model"].values()),
+        "trained_at_commit": state["commit"],
+        "validation": state["history"][-1],
+        "wall_s": round(float(state["wall_s"]), 1),
+    }
+    write_manifest(manifest_path, manifest)
+    return manifest["mask_net"]
+
+
+def evaluate(split: str, images: int, folder: str = "headcam_hard") -> dict[str, Any]:
+    """The detector's masks of the `images` first images of a split (every visible object it
+    finds, box IoU >= 0.5 with the truth) against the mask net's, by IoU with the true visible
+    mask, per class and overall."""
+    from perception.detector import Detector
+    from perception.global_pose import TIERS_DETECTOR
+
+    detector = Detector.from_weights(TIERS_DETECTOR)
+    refiner = MaskRefiner.from_weights()
+    data = PoseDataset(data_root() / folder, split)
+    rows: list[tuple[str, float, float]] = []
+    spent = 0.0
+    for i in tqdm(range(min(images, len(data))), desc=f"masks of {folder}/{split}", mininterval=5):
+        sample = data[i]
+        dets = detector.detect(sample.rgb, 0.3)
+        for obj in sample.objects:
+            truth = obj.mask_visib
+            if int(truth.sum()) < MIN_VISIBLE_PX:
+                continue
+            best, best_iou = None, 0.5
+            for d in dets:
+                if d.name != obj.name:
+                    continue
+                inter = np.count_nonzero(d.mask & truth)
+                iou = inter / max(1, np.count_nonzero(d.mask | truth))
+                if iou >= best_iou:
+                    best, best_iou = d, iou
+            if best is None:
+                continue
+            t0 = time.perf_counter()
+            sharp = refiner.refine(sample.rgb, best.mask)
+            spent += time.perf_counter() - t0
+            after = np.count_nonzero(sharp & truth) / max(1, np.count_nonzero(sharp | truth))
+            rows.append((obj.name, best_iou, after))
+    names = sorted({r[0] for r in rows})
+    per = {
+        n: {
+            "objects": sum(r[0] == n for r in rows),
+            "detector_iou": float(np.mean([r[1] for r in rows if r[0] == n])),
+            "refined_iou": float(np.mean([r[2] for r in rows if r[0] == n])),
+        }
+        for n in names
+    }
+    return {
+        "split": f"{folder}/{split}",
+        "images": min(images, len(data)),
+        "objects": len(rows),
+        "detector_iou": float(np.mean([r[1] for r in rows])),
+        "refined_iou": float(np.mean([r[2] for r in rows])),
+        "refined_better": float(np.mean([r[2] > r[1] for r in rows])),
+        "ms_per_mask": 1000 * spent / max(1, len(rows)),
+        "per_class": per,
+    }
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python -m perception.training.train_masknet", description=__doc__)
+    add_schedule_arguments(p, 3, 32, 2e-3, "the training windows", " of windows")
+    add_arithmetic_arguments(p, "bf16", "the net and its inputs")
+    p.add_argument("--out", type=Path, default=MaskTrainConfig.out, help="checkpoint folder")
+    p.add_argument("--no-resume", action="store_true", help="start over")
+    p.add_argument("--export", action="store_true", help="write the shipped net when done")
+    p.add_argument(
+        "--evaluate",
+        action="store_true",
+        help="measure the shipped net against the detector's masks instead of training",
+    )
+    p.add_argument(
+        "--split",
+        type=arg(lambda s: s if s in ("val", "test") else _bad_split(s)),
+        default="test",
+        help="with --evaluate: val or test (default test)",
+    )
+    p.add_argument(
+        "--images",
+        type=arg(check_int, 1, 100_000, "--images", base=int),
+        default=300,
+        help="with --evaluate: images of the hard tier's split, 1..100000 (default 300)",
+    )
+    p.add_argument("--json", default=None, help="with --evaluate: write the figures here")
+    args = p.parse_args(argv)
+    torch.set_num_threads(2)
+    if args.evaluate:
+        report = evaluate(args.split, args.images)
+        print(
+            f"{report['split']}: {report['objects']} objects, mask IoU with the truth: detector "
+            f"{report['detector_iou']:.3f}, refined {report['refined_iou']:.3f} (better for "
+            f"{100 * report['refined_better']:.1f} %), {report['ms_per_mask']:.1f} ms per mask"
+        )
+        for name, r in report["per_class"].items():
+            print(
+                f"  {name:7s} {r['objects']:4d}  {r['detector_iou']:.3f} -> {r['refined_iou']:.3f}"
+            )
+        if args.json:
+            write_json(args.json, report)
+        return 0
+    cfg = replace(
+        MaskTrainConfig(),
+        epochs=args.epochs,
+        batch=args.batch,
+        lr=args.lr,
+        precision=args.precision,
+        channels_last=args.channels_last,
+        out=args.out,
+    )
+    train(cfg, resume=not args.no_resume)
+    if args.export:
+        line = "python -m perception.training.train_masknet " + shlex.join(sys.argv[1:])
+        entry = export(cfg, line.strip())
+        print(f"wrote {DEFAULT_MASKNET} ({entry['bytes']} bytes)")
+    return 0
+
+
+def _bad_split(value: str) -> str:
+    raise InvalidArgumentError(f"invalid --split {value!r}; valid: val, test")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
