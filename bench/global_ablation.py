@@ -169,7 +169,7 @@ def record(split: str, subset: str, images: int) -> list[dict]:
             out.append({"image": i, "object": name, "detected": False})
             continue
         t0 = time.perf_counter()
-        ranked, _ = est.verify(target.best, s.K, s.rgb, target.occluder())
+        ranked, _ = est.verify(est.sharpened(target.best, s.rgb), s.K, s.rgb, target.occluder())
         starts = sorted(ranked, key=lambda v: v.rank)
         out.append(
             {
@@ -210,7 +210,8 @@ def config_sweep(
         )
         if target.best is not None:
             R_W_C = np.asarray(s.extra["T_W_C"], float)[:3, :3] if "T_W_C" in s.extra else None
-            cases.append((target.best, s.K, s.rgb, target.occluder(), gt.T_C_O, R_W_C))
+            det = est.sharpened(target.best, s.rgb)
+            cases.append((det, s.K, s.rgb, target.occluder(), gt.T_C_O, R_W_C))
     out = []
     for label, cfg in configs.items():
         est.config = cfg

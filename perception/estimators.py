@@ -69,9 +69,7 @@ def _hybrid_global_paper() -> PoseEstimator:
     )
     # No gravity in the paper's studio images: any orientation is as likely as any other. Every
     # start gets the full refinement first: the short screening run cost 3 deg here.
-    config = GlobalConfig(
-        resting_tilt_deg=None, screen_iterations=0, target_score=None, mask_net=False
-    )
+    config = GlobalConfig(resting_tilt_deg=None, screen_iterations=0, target_score=None)
     return GlobalPoseEstimator(hybrid, config, name="hybrid-global-paper")
 
 

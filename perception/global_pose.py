@@ -457,6 +457,13 @@ class GlobalPoseEstimator:
         t2 = time.perf_counter()
         return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}
 
+    def sharpened(self, det: PoseDetection | Detection, rgb: np.ndarray):
+        """`det` with its mask redrawn by the mask net (`GlobalConfig.mask_net`; one of the
+        built-in objects it was trained on), else as it is."""
+        if self.masks is None or det.name not in OBJECT_NAMES:
+            return det
+        return replace(det, mask=self.masks.refine(rgb, det.mask))
+
     def _user_target(
         self, obs: Observation
     ) -> tuple[Detection | None, tuple[tuple[str, np.ndarray], ...], dict, np.ndarray | None]:
@@ -484,9 +491,9 @@ class GlobalPoseEstimator:
             occluder = target.occluder()
         if best is None:
             return Estimate(None, neighbours, info)
-        if self.masks is not None and best.name in OBJECT_NAMES:
+        if self.masks is not None:
             t0 = time.perf_counter()
-            best = replace(best, mask=self.masks.refine(obs.rgb, best.mask))
+            best = self.sharpened(best, obs.rgb)
             info["timings_ms"]["mask"] = (time.perf_counter() - t0) * 1000
         R_W_C = np.asarray(obs.T_world_cam, float)[:3, :3]
         ranked, times = self.verify(best, obs.K, obs.rgb, occluder, R_W_C)

@@ -169,11 +169,17 @@ def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) ->
     # whose stages it records.
     tiers = WEIGHTS_DIR / "tiers"
     entries = integrity.manifest_entries(json.loads((tiers / "manifest.json").read_text()))
-    assert sorted(entries) == [p.name for p in tiers.glob("*.pt")] == ["detector.pt"]
-    integrity.verify_weights(tiers / "detector.pt")
+    # and its mask net, trained on the tiers' scenes.
+    names = sorted(p.name for p in tiers.glob("*.pt"))
+    assert sorted(entries) == names == ["detector.pt", "masknet.pt"]
+    for name in names:
+        integrity.verify_weights(tiers / name)
     stages = entries["detector.pt"]["stages"]
     assert "--also headcam_any-pose,headcam" in stages[-1]["command"]
     assert all(s["wall_s"] > 0 for s in stages)
+    mask_net = entries["masknet.pt"]
+    assert mask_net["command"].startswith("python -m perception.training.train_masknet")
+    assert mask_net["wall_s"] > 0 and mask_net["validation"]["iou"] > 0.9
     total = sum(p.stat().st_size for p in WEIGHTS_DIR.rglob("*.pt"))
     assert total <= 30e6, f"the shipped weights total {total / 1e6:.1f} MB, over 30 MB"
     f = tmp_path / "w.bin"

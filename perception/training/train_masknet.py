@@ -57,9 +57,9 @@ from perception.training.loop import (
 )
 from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
 from posegrasp.core.cli import ArgumentParser, command, write_json
-from posegrasp.core.errors import AssetError, InvalidArgumentError
+from posegrasp.core.errors import AssetError
 from posegrasp.core.paths import data_root
-from posegrasp.core.validate import arg, check_int
+from posegrasp.core.validate import arg, check_choice, check_int
 
 #: Objects with fewer visible pixels give no training window.
 MIN_VISIBLE_PX = 100
@@ -392,7 +392,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument(
         "--split",
-        type=arg(lambda s: s if s in ("val", "test") else _bad_split(s)),
+        type=arg(check_choice, ("val", "test"), "split"),
         default="test",
         help="with --evaluate: val or test (default test)",
     )
@@ -434,10 +434,6 @@ def main(argv: list[str] | None = None) -> int:
         entry = export(cfg, line.strip())
         print(f"wrote {DEFAULT_MASKNET} ({entry['bytes']} bytes)")
     return 0
-
-
-def _bad_split(value: str) -> str:
-    raise InvalidArgumentError(f"invalid --split {value!r}; valid: val, test")
 
 
 if __name__ == "__main__":
