@@ -3,6 +3,8 @@ a true mask as the detector does, and the shipped net gives back the outline a c
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -92,3 +94,51 @@ def test_the_shipped_net_gives_back_the_outline_a_coarse_mask_lost() -> None:
     assert np.count_nonzero(sharp & leg) > 2 * np.count_nonzero(coarse & leg)
     with pytest.raises(InvalidArgumentError, match="bool mask"):
         refiner.refine(rgb, coarse.astype(np.uint8))
+
+
+@pytest.mark.slow
+def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch) -> None:
+    """On a few rendered scenes: the windows are cut once and cached; a run stopped in the middle
+    of an epoch and resumed ends with the very weights of a run never stopped; a run of other
+    epochs does not resume it; an unfinished run is not exported, and the export writes the net
+    and its manifest entry."""
+    import json
+
+    from perception.training.datagen import main as datagen
+    from perception.training.train_masknet import MaskTrainConfig, export, train
+    from posegrasp.core.errors import AssetError
+
+    monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path / "data"))
+    out = tmp_path / "data" / "tiny"
+    for split, count in (("train", 6), ("val", 2)):
+        argv = ["--dist", "headcam", "--split", split, "--count", str(count)]
+        assert datagen([*argv, "--out", str(out), "--quiet"]) == 0
+    cfg = MaskTrainConfig(
+        sources=(("tiny", 6),),
+        val=("tiny", 2),
+        epochs=2,
+        batch=4,
+        net=MaskNetConfig(size=32, widths=(4, 8, 16)),
+        out=tmp_path / "whole",
+    )
+    whole = train(cfg)
+    assert whole["epoch"] == 2 and [h["epoch"] for h in whole["history"]] == [1, 2]
+    assert 0 <= whole["history"][-1]["iou"] <= 1
+    assert len(list((tmp_path / "data" / "masknet").glob("tiny_*.npz"))) == 2  # train, val
+    per_epoch = whole["step"] // 2
+    stopped = replace(cfg, out=tmp_path / "stopped")
+    cut_short = train(stopped, max_steps=per_epoch + 1)
+    assert (cut_short["epoch"], cut_short["step"]) == (1, per_epoch + 1)
+    with pytest.raises(AssetError, match="1/2 epochs"):
+        export(stopped, "cmd", tmp_path / "w" / "masknet.pt")
+    with pytest.raises(InvalidArgumentError, match="--epochs 2"):
+        train(replace(stopped, epochs=3))
+    resumed = train(stopped)
+    assert resumed["step"] == whole["step"]
+    for key, value in whole["model"].items():
+        assert torch.equal(value, resumed["model"][key]), key
+    entry = export(stopped, "cmd", tmp_path / "w" / "masknet.pt")
+    manifest = json.loads((tmp_path / "w" / "manifest.json").read_text())
+    assert manifest["mask_net"] == entry
+    assert entry["wall_s"] == round(resumed["wall_s"], 1) and entry["epochs_done"] == 2
+    assert MaskRefiner.from_weights(tmp_path / "w" / "masknet.pt").cfg == cfg.net

@@ -57,7 +57,7 @@ from perception.training.loop import (
 )
 from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
 from posegrasp.core.cli import ArgumentParser, command, write_json
-from posegrasp.core.errors import AssetError
+from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import data_root
 from posegrasp.core.validate import arg, check_choice, check_int
 
@@ -214,9 +214,15 @@ def validate(net: MaskNet, val: dict[str, np.ndarray], seed: int) -> dict[str, f
     }
 
 
-def train(cfg: MaskTrainConfig, resume: bool = True) -> dict[str, Any]:
-    """Train (resuming from ``cfg.out/last.pt`` when asked and present); returns the last
-    checkpoint's contents."""
+def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = None) -> dict:
+    """Train (resuming from ``cfg.out/last.pt`` when asked and present: the same steps as a run
+    never stopped); returns the last checkpoint's contents. `max_steps` stops the run, saved,
+    after that many steps in all (as an interruption would).
+
+    Raises:
+        InvalidArgumentError: the checkpoint to resume belongs to a run of other epochs or
+            batch (its schedule would change under it).
+    """
     seed_torch(cfg.seed, None)
     parts = [build_cache(f, "train", n, cfg.net, cfg.seed) for f, n in cfg.sources]
     tr = {k: np.concatenate([p[k] for p in parts]) for k in ("rgb", "target")}
@@ -232,6 +238,12 @@ def train(cfg: MaskTrainConfig, resume: bool = True) -> dict[str, Any]:
     last = cfg.out / "last.pt"
     if resume and last.is_file():
         state = read_checkpoint(last)
+        was = state["train_config"]
+        if (was["epochs"], was["batch"]) != (cfg.epochs, cfg.batch):
+            raise InvalidArgumentError(
+                f"the run in {cfg.out} was started with --epochs {was['epochs']} --batch "
+                f"{was['batch']}; resume it with those, or start over with --no-resume"
+            )
         step, epoch, history = restore(state, net, opt)
         sched.load_state_dict(state["scheduler"])
         wall0 = float(state["wall_s"])
@@ -266,8 +278,12 @@ def train(cfg: MaskTrainConfig, resume: bool = True) -> dict[str, Any]:
         net.train()
         bar = tqdm(range(steps_per_epoch), desc=f"mask net epoch {epoch + 1}/{cfg.epochs}")
         for b in bar:
-            if b < step - epoch * steps_per_epoch:
-                continue  # done before the resume
+            if b < step - epoch * steps_per_epoch:  # done before the resume: only the coarse
+                degrade(torch.zeros(cfg.batch, 1, 1), g)  # masks' draws, which the data never
+                continue  # changes, so the steps after it draw as an unstopped run's did
+            if max_steps is not None and step >= max_steps:
+                ckpts.save(epoch)
+                return read_checkpoint(last)
             idx = np.sort(order[b * cfg.batch : (b + 1) * cfg.batch])
             t = torch.as_tensor(tr["target"][idx]).float() / 255
             x = net_input(tr["rgb"][idx], degrade(t, g).numpy())
