@@ -142,3 +142,14 @@ def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch) -> None:
     assert manifest["mask_net"] == entry
     assert entry["wall_s"] == round(resumed["wall_s"], 1) and entry["epochs_done"] == 2
     assert MaskRefiner.from_weights(tmp_path / "w" / "masknet.pt").cfg == cfg.net
+
+
+def test_the_examples_are_drawn_into_a_picture(tmp_path) -> None:
+    """One row per example, the three masks' outlines on its window: a PNG is written."""
+    from perception.training.train_masknet import plot_examples
+
+    rgb = np.full((64, 64, 3), 120, np.uint8)
+    truth = _disc((64, 64), (32, 32), 20)
+    coarse = _disc((64, 64), (33, 31), 17)
+    plot_examples([("car", rgb, coarse, truth, truth, 0.7, 1.0)], tmp_path / "m.png")
+    assert (tmp_path / "m.png").stat().st_size > 1000

@@ -59,7 +59,7 @@ from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_e
 from posegrasp.core.cli import ArgumentParser, command, write_json
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import data_root
-from posegrasp.core.validate import arg, check_choice, check_int
+from posegrasp.core.validate import arg, check_choice, check_int, check_plot_path
 
 #: Objects with fewer visible pixels give no training window.
 MIN_VISIBLE_PX = 100
@@ -337,10 +337,13 @@ def export(cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET)
     return manifest["mask_net"]
 
 
-def evaluate(split: str, images: int, folder: str = "headcam_hard") -> dict[str, Any]:
+def evaluate(
+    split: str, images: int, folder: str = "headcam_hard", examples: list | None = None
+) -> dict[str, Any]:
     """The detector's masks of the `images` first images of a split (every visible object it
     finds, box IoU >= 0.5 with the truth) against the mask net's, by IoU with the true visible
-    mask, per class and overall."""
+    mask, per class and overall. `examples`, when given, receives the first object of each
+    class: (name, image window, detector's, mask net's and true mask in it, both IoUs)."""
     from perception.detector import Detector
     from perception.global_pose import TIERS_DETECTOR
 
@@ -371,6 +374,12 @@ def evaluate(split: str, images: int, folder: str = "headcam_hard") -> dict[str,
             spent += time.perf_counter() - t0
             after = np.count_nonzero(sharp & truth) / max(1, np.count_nonzero(sharp | truth))
             rows.append((obj.name, best_iou, after))
+            if examples is not None and all(e[0] != obj.name for e in examples):
+                win = window_of(truth, refiner.cfg.margin)
+                assert win is not None
+                S = 4 * refiner.cfg.size
+                cuts = [cut(m.astype(np.float32), win, S) >= 0.5 for m in (best.mask, sharp, truth)]
+                examples.append((obj.name, cut(sample.rgb, win, S), *cuts, best_iou, after))
     names = sorted({r[0] for r in rows})
     per = {
         n: {
@@ -390,6 +399,35 @@ def evaluate(split: str, images: int, folder: str = "headcam_hard") -> dict[str,
         "ms_per_mask": 1000 * spent / max(1, len(rows)),
         "per_class": per,
     }
+
+
+def plot_examples(examples: list, path: Path) -> None:
+    """One row per class: the window, then the detector's, the mask net's and the true mask's
+    outlines drawn on it."""
+    import cv2
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(examples), 4, figsize=(8, 2.1 * len(examples)), squeeze=False)
+    for row, (name, rgb, det, sharp, truth, before, after) in zip(axes, examples, strict=True):
+        titles = (name, f"detector: IoU {before:.3f}", f"mask net: IoU {after:.3f}", "truth")
+        colours = (None, (255, 60, 60), (60, 255, 60), (255, 255, 255))
+        for ax, mask, title, colour in zip(
+            row, (None, det, sharp, truth), titles, colours, strict=True
+        ):
+            img = rgb.copy()
+            if mask is not None:
+                edges = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3)))
+                img[edges.astype(bool)] = colour
+            ax.imshow(img)
+            ax.set_title(title, fontsize=8)
+            ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    print(f"wrote {path}")
 
 
 @command
@@ -419,10 +457,17 @@ def main(argv: list[str] | None = None) -> int:
         help="with --evaluate: images of the hard tier's split, 1..100000 (default 300)",
     )
     p.add_argument("--json", default=None, help="with --evaluate: write the figures here")
+    p.add_argument(
+        "--plot",
+        type=arg(check_plot_path),
+        default=None,
+        help="with --evaluate: draw each class's first object's masks into this PNG",
+    )
     args = p.parse_args(argv)
     torch.set_num_threads(2)
     if args.evaluate:
-        report = evaluate(args.split, args.images)
+        examples: list | None = [] if args.plot else None
+        report = evaluate(args.split, args.images, examples=examples)
         print(
             f"{report['split']}: {report['objects']} objects, mask IoU with the truth: detector "
             f"{report['detector_iou']:.3f}, refined {report['refined_iou']:.3f} (better for "
@@ -434,6 +479,8 @@ def main(argv: list[str] | None = None) -> int:
             )
         if args.json:
             write_json(args.json, report)
+        if args.plot and examples:
+            plot_examples(examples, args.plot)
         return 0
     cfg = replace(
         MaskTrainConfig(),
