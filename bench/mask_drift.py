@@ -20,11 +20,9 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from perception.global_pose import TIERS_DETECTOR, GlobalConfig
-from perception.hybrid import HybridPoseEstimator, detect_target
-from perception.mask_net import MaskRefiner
-from perception.metrics import rotation_error_deg
-from perception.refine import PoseRefiner
+from perception.global_pose import GlobalPoseEstimator
+from perception.hybrid import detect_target
+from perception.metrics import mask_iou, rotation_error_deg
 from perception.training.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
@@ -45,10 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     add_json_argument(p, "the drift and IoU per mask")
     args = p.parse_args(argv)
     setup_rendering(threads=1)
-    hybrid = HybridPoseEstimator.from_weights(detector_path=TIERS_DETECTOR)
-    masks = MaskRefiner.from_weights()
-    refiner = PoseRefiner()
-    score = GlobalConfig().target_score
+    est = GlobalPoseEstimator.from_weights()
+    refiner, cfg = est.refiner, est.config
     ds = PoseDataset(data_root() / args.split, args.subset)
     ray: dict[str, list[float]] = {m: [] for m in MASKS}
     rot: dict[str, list[float]] = {m: [] for m in MASKS}
@@ -59,11 +55,11 @@ def main(argv: list[str] | None = None) -> int:
         name = s.extra.get("target", s.objects[0].name)
         gt = next(o for o in s.objects if o.name == name)
         obs = Observation(s.rgb, s.K, np.eye(4), name, s.seed)
-        target = detect_target(hybrid, obs, score, others_experts=False)
+        target = detect_target(est.hybrid, obs, cfg.target_score, cfg.neighbour_experts)
         if target.best is None:
             continue
         t0 = time.perf_counter()
-        sharp = masks.refine(s.rgb, target.best.mask)
+        sharp = est.sharpened(target.best, s.rgb).mask
         spent.append(time.perf_counter() - t0)
         occluder = target.occluder()
         truth = gt.mask_visib
@@ -75,9 +71,7 @@ def main(argv: list[str] | None = None) -> int:
             ray[m].append(1000 * (np.linalg.norm(T[:3, 3]) - np.linalg.norm(gt.T_C_O[:3, 3])))
             rot[m].append(rotation_error_deg(T[:3, :3], gt.T_C_O[:3, :3]))
             if m in iou:
-                iou[m].append(
-                    np.count_nonzero(mask & truth) / max(1, np.count_nonzero(mask | truth))
-                )
+                iou[m].append(mask_iou(mask, truth))
     n = len(ray[MASKS[0]])
     print(f"{args.split}/{args.subset}: {n} detected targets, refined twice from the true pose")
     res = {}

@@ -277,9 +277,7 @@ class GlobalPoseEstimator:
     ) -> None:
         self.hybrid = hybrid
         self.config = config or GlobalConfig()
-        if masks is None and self.config.mask_net:
-            masks = MaskRefiner.from_weights()
-        self.masks = masks if self.config.mask_net else None
+        self.masks = (masks or MaskRefiner.from_weights()) if self.config.mask_net else None
         self.codebooks = codebooks or CodebookCache(self.config.views, self.config.inplane)
         self.refiner = PoseRefiner()
         self._screens: dict[int, PoseRefiner] = {}

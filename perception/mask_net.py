@@ -124,15 +124,24 @@ def window_of(mask: np.ndarray, margin: float) -> tuple[int, int, int] | None:
     return round(cx - grown / 2), round(cy - grown / 2), grown
 
 
+def _overlap(window: tuple[int, int, int], shape: tuple[int, ...]) -> tuple[slice, slice] | None:
+    """Where a window (x0, y0, side) and an image of `shape` (H, W, ...) overlap: the image's
+    and the window's slices of it, (rows, columns) each; None when they do not."""
+    x0, y0, side = window
+    u0, v0, u1, v1 = max(x0, 0), max(y0, 0), min(x0 + side, shape[1]), min(y0 + side, shape[0])
+    if u1 <= u0 or v1 <= v0:
+        return None
+    image = (slice(v0, v1), slice(u0, u1))
+    return image, (slice(v0 - y0, v1 - y0), slice(u0 - x0, u1 - x0))
+
+
 def cut(img: np.ndarray, window: tuple[int, int, int], size: int) -> np.ndarray:
     """The window (x0, y0, side) of an image (H, W[, C]), zero beyond its edges, resampled to
     size x size (area averaging when shrinking, bilinear when enlarging)."""
-    x0, y0, side = window
-    H, W = img.shape[:2]
+    side = window[2]
     out = np.zeros((side, side, *img.shape[2:]), img.dtype)
-    u0, v0, u1, v1 = max(x0, 0), max(y0, 0), min(x0 + side, W), min(y0 + side, H)
-    if u1 > u0 and v1 > v0:
-        out[v0 - y0 : v1 - y0, u0 - x0 : u1 - x0] = img[v0:v1, u0:u1]
+    if (both := _overlap(window, img.shape)) is not None:
+        out[both[1]] = img[both[0]]
     inter = cv2.INTER_AREA if side > size else cv2.INTER_LINEAR
     return cv2.resize(out, (size, size), interpolation=inter)
 
@@ -140,13 +149,11 @@ def cut(img: np.ndarray, window: tuple[int, int, int], size: int) -> np.ndarray:
 def paste(prob: np.ndarray, window: tuple[int, int, int], shape: tuple[int, int]) -> np.ndarray:
     """A window's (size, size) probabilities drawn back into an image of `shape` (H, W),
     bilinearly; zero outside the window."""
-    x0, y0, side = window
-    H, W = shape
+    side = window[2]
     big = cv2.resize(prob.astype(np.float32), (side, side), interpolation=cv2.INTER_LINEAR)
-    out = np.zeros((H, W), np.float32)
-    u0, v0, u1, v1 = max(x0, 0), max(y0, 0), min(x0 + side, W), min(y0 + side, H)
-    if u1 > u0 and v1 > v0:
-        out[v0:v1, u0:u1] = big[v0 - y0 : v1 - y0, u0 - x0 : u1 - x0]
+    out = np.zeros(shape, np.float32)
+    if (both := _overlap(window, shape)) is not None:
+        out[both[0]] = big[both[1]]
     return out
 
 

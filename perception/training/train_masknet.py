@@ -39,6 +39,7 @@ from perception.mask_net import (
     net_input,
     window_of,
 )
+from perception.metrics import mask_iou
 from perception.training.checkpoints import (
     config_dict,
     read_checkpoint,
@@ -341,7 +342,7 @@ def evaluate(
     split: str, images: int, folder: str = "headcam_hard", examples: list | None = None
 ) -> dict[str, Any]:
     """The detector's masks of the `images` first images of a split (every visible object it
-    finds, box IoU >= 0.5 with the truth) against the mask net's, by IoU with the true visible
+    finds, mask IoU >= 0.5 with the truth) against the mask net's, by IoU with the true visible
     mask, per class and overall. `examples`, when given, receives the first object of each
     class: (name, image window, detector's, mask net's and true mask in it, both IoUs)."""
     from perception.detector import Detector
@@ -361,18 +362,14 @@ def evaluate(
                 continue
             best, best_iou = None, 0.5
             for d in dets:
-                if d.name != obj.name:
-                    continue
-                inter = np.count_nonzero(d.mask & truth)
-                iou = inter / max(1, np.count_nonzero(d.mask | truth))
-                if iou >= best_iou:
+                if d.name == obj.name and (iou := mask_iou(d.mask, truth)) >= best_iou:
                     best, best_iou = d, iou
             if best is None:
                 continue
             t0 = time.perf_counter()
             sharp = refiner.refine(sample.rgb, best.mask)
             spent += time.perf_counter() - t0
-            after = np.count_nonzero(sharp & truth) / max(1, np.count_nonzero(sharp | truth))
+            after = mask_iou(sharp, truth)
             rows.append((obj.name, best_iou, after))
             if examples is not None and all(e[0] != obj.name for e in examples):
                 win = window_of(truth, refiner.cfg.margin)
