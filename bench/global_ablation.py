@@ -31,7 +31,9 @@ with `--appearances` and `--edge-weights`, the verification score's weights
 extra codebook hypotheses among the templates that could be resting
 (`GlobalConfig.resting_hypotheses`); with `--passes`, the full refiner runs of the best few
 (`GlobalConfig.refine_passes`); with `--grows`, the codebook's extra framings of a mask another
-detection touches (`GlobalConfig.occluded_grow`): for each setting, the chosen pose's rotation
+detection touches (`GlobalConfig.occluded_grow`); with `--looks`, the second look
+(`GlobalConfig.second_look` more hypotheses when the best score is below
+`GlobalConfig.second_look_below`): for each setting, the chosen pose's rotation
 errors, those of the best verified start, the chosen translation's error and the verification's
 time per detection (median, one thread), each setting on the same images with the same
 detections.
@@ -152,6 +154,26 @@ def check_passes(spec: str) -> list[int]:
     return check_int_list(spec, 3, "--passes", lo=1)
 
 
+def check_looks(spec: str) -> list[tuple[int, float, int]]:
+    """A comma list of ``N@S`` or ``N+R@S``: N (0..36) more hypotheses, and R (0..36) resting
+    ones, when the best score is below S."""
+    out = []
+    for v in str(spec).split(","):
+        n, _, below = v.partition("@")
+        n, _, rest = n.partition("+")
+        try:
+            look = (int(n), float(below), int(rest or 0))
+        except ValueError:
+            look = (-1, float("nan"), -1)
+        if not (0 <= look[0] <= 36 and 0 <= look[2] <= 36 and np.isfinite(look[1])):
+            raise InvalidArgumentError(
+                "--looks takes a comma list of N@S or N+R@S (N, R in 0..36, S a score, e.g. "
+                f"8@1.1), got {v!r}"
+            )
+        out.append(look)
+    return out
+
+
 def record(split: str, subset: str, images: int) -> list[dict]:
     """Per target: each start's rank, IoU, colour and edge scores and rotation error [deg]."""
     est = GlobalPoseEstimator.from_weights()
@@ -215,11 +237,12 @@ def config_sweep(
     out = []
     for label, cfg in configs.items():
         est.config = cfg
-        errors, best, shift, ms = [], [], [], []
+        errors, best, shift, ms, looks = [], [], [], [], 0
         for det, K, rgb, occluder, T_true, R_W_C in tqdm(cases, desc=label, leave=False):
             t0 = time.perf_counter()
-            ranked, _ = est.verify(det, K, rgb, occluder, R_W_C)
+            ranked, times = est.verify(det, K, rgb, occluder, R_W_C)
             ms.append((time.perf_counter() - t0) * 1000)
+            looks += "second_look" in times
             errors.append(rotation_error_deg(ranked[0].T_C_O[:3, :3], T_true[:3, :3]))
             best.append(min(rotation_error_deg(v.T_C_O[:3, :3], T_true[:3, :3]) for v in ranked))
             t, t_true = ranked[0].T_C_O[:3, 3], T_true[:3, 3]
@@ -237,6 +260,10 @@ def config_sweep(
                 "refine_passes": cfg.refine_passes,
                 "resting_hypotheses": cfg.resting_hypotheses,
                 "hypotheses": cfg.hypotheses,
+                "second_look": cfg.second_look,
+                "second_look_below": cfg.second_look_below,
+                "second_look_resting": cfg.second_look_resting,
+                "second_look_pct": 100 * looks / max(1, len(cases)),
                 "appearance_weight": cfg.appearance_weight,
                 "edge_weight": cfg.edge_weight,
                 "detections": len(cases),
@@ -247,6 +274,7 @@ def config_sweep(
                 "best_over_15_pct": float(100 * (b > 15).mean()),
                 "translation_pct": float(np.mean(shift)),
                 "verify_ms_median": float(np.median(ms)),
+                "verify_ms_p90": float(np.percentile(ms, 90)),
             }
         )
     return out
@@ -322,8 +350,9 @@ def _named(name: str, fmt=str) -> Callable[[Any], str]:
     return lambda v: f"{name} {fmt(v) if v not in (None, ()) else 'none'}"
 
 
-#: The settings --FLAG sweeps: GlobalConfig field, parser, metavar, help, label of a value.
-SWEEPS: dict[str, tuple[str, Callable, str, str, Callable[[Any], str]]] = {
+#: The settings --FLAG sweeps: GlobalConfig field (or fields, each value then a tuple), parser,
+#: metavar, help, label of a value.
+SWEEPS: dict[str, tuple[str | tuple[str, ...], Callable, str, str, Callable[[Any], str]]] = {
     "keeps": (
         "keep_after_first",
         check_int_list,
@@ -394,6 +423,14 @@ SWEEPS: dict[str, tuple[str, Callable, str, str, Callable[[Any], str]]] = {
         "comma list of 1..3",
         _named("passes"),
     ),
+    "looks": (
+        ("second_look", "second_look_below", "second_look_resting"),
+        check_looks,
+        "LIST",
+        "comma list of N@S or N+R@S: N more hypotheses, R resting ones, when the best score is "
+        "below S",
+        lambda v: f"look {v[0]}+{v[2]}@{v[1]:g}",
+    ),
     "tilts": (
         "resting_tilt_deg",
         check_tilt_list,
@@ -432,7 +469,10 @@ def main(argv: list[str] | None = None) -> int:
     if chosen:
         setup_rendering(threads=1)
         field, _, _, _, label = SWEEPS[chosen[0]]
-        configs = {label(v): GlobalConfig(**{field: v}) for v in getattr(args, chosen[0])}
+        configs = {}
+        for v in getattr(args, chosen[0]):
+            pairs = zip(field, v, strict=True) if isinstance(field, tuple) else [(field, v)]
+            configs[label(v)] = GlobalConfig(**dict(pairs))
         sweep = config_sweep(args.split, args.subset, args.images, configs)
         print(f"{args.split}/{args.subset}, {sweep[0]['detections']} detections:")
         for k in sweep:
@@ -440,7 +480,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"  {k['setting']:16s}: mean {k['mean']:6.2f}  median {k['median']:5.2f}  "
                 f"> 15 deg {k['over_15_pct']:5.1f} %  (best start {k['best_mean']:6.2f}, "
                 f"{k['best_over_15_pct']:5.1f} %)  translation {k['translation_pct']:5.2f} %  "
-                f"verify {k['verify_ms_median']:.0f} ms"
+                f"verify {k['verify_ms_median']:.0f} ms (p90 {k['verify_ms_p90']:.0f}), "
+                f"second look {k['second_look_pct']:.0f} %"
             )
         if args.json is not None:
             write_json(args.json, {"sweep": sweep})

@@ -119,6 +119,13 @@ class GlobalConfig:
             mask net (`perception.mask_net`) before its hypotheses and refinement: the
             detector's coarse mask loses thin parts and puts the outline a pixel or two off,
             which the fit turns into distance along the viewing ray (False: the detector's).
+        second_look: when the best verified pose scores below `second_look_below`, this many
+            more codebook hypotheses (the next best, `min_angle_deg` apart from the first ones)
+            are refined and verified with the first ones, and the choice is made again: an
+            ambiguous partial mask gets more starts, a clear one does not pay for them (0: none).
+        second_look_below: the verification score under which the second look runs.
+        second_look_resting: with `resting_tilt_deg` and the camera's pose, the second look
+            also refines this many resting hypotheses (as `resting_hypotheses`).
         target_score: the detector score a detection of the requested object needs (the
             other detections, the planner's obstacles and the occluders, need the detector's
             own threshold); a partly hidden object often scores lower, and the verification
@@ -141,6 +148,9 @@ class GlobalConfig:
     snap_tilt_deg: float = 25.0
     snap_iterations: int = 6
     resting_hypotheses: int = 0
+    second_look: int = 12
+    second_look_below: float = 1.15
+    second_look_resting: int = 12
     target_score: float | None = 0.3
     neighbour_experts: bool = False
     mask_net: bool = True
@@ -149,8 +159,10 @@ class GlobalConfig:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
             if int(getattr(self, key)) < 1:
                 raise InvalidArgumentError(f"GlobalConfig.{key} must be >= 1")
-        if int(self.resting_hypotheses) < 0:
-            raise InvalidArgumentError("GlobalConfig.resting_hypotheses must be >= 0")
+        if int(self.resting_hypotheses) < 0 or int(self.second_look) < 0:
+            raise InvalidArgumentError(
+                "GlobalConfig.resting_hypotheses and second_look must be >= 0"
+            )
         if int(self.snap_iterations) < 1:
             raise InvalidArgumentError("GlobalConfig.snap_iterations must be >= 1")
         if int(self.screen_iterations) < 0:
@@ -327,10 +339,11 @@ class GlobalPoseEstimator:
         top: list[int],
         K: np.ndarray,
         R_W_C: np.ndarray,
+        count: int,
     ) -> list[int]:
-        """The best `GlobalConfig.resting_hypotheses` templates (of `scores`, every framing's
-        in turn) that give a pose within `GlobalConfig.resting_tilt_deg` of resting, each
-        `GlobalConfig.min_angle_deg` from the others and from those in `top`."""
+        """The best `count` templates (of `scores`, every framing's in turn) that give a pose
+        within `GlobalConfig.resting_tilt_deg` of resting, each `GlobalConfig.min_angle_deg`
+        from the others and from those in `top`."""
         cfg = self.config
         n = len(book.rotations)
         ups = np.array([quat_to_mat(np.asarray(q, float))[2] for q in model.resting_poses.values()])
@@ -340,17 +353,17 @@ class GlobalPoseEstimator:
         )
         if not keep.any():
             return []
-        want = cfg.resting_hypotheses + len(top)
+        want = count + len(top)
         found = top_hypotheses(
             np.where(keep, scores, -np.inf), book.rotations, want, cfg.min_angle_deg
         )
         R = book.rotations
         found = [i for i in found if keep[i]]
         if not found or not top:
-            return found[: cfg.resting_hypotheses]
+            return found[:count]
         near = rotation_cosines(R[np.array(found) % n], R[np.array(top) % n])
         new = np.array(found)[~(near > math.cos(math.radians(cfg.min_angle_deg))).any(1)]
-        return [int(i) for i in new[: cfg.resting_hypotheses]]
+        return [int(i) for i in new[:count]]
 
     def _screen(self, iterations: int) -> PoseRefiner:
         """The full refiner, or one with fewer steps (0: the full one)."""
@@ -372,7 +385,8 @@ class GlobalPoseEstimator:
         """Every hypothesis of one detection, refined and scored, best first (with
         `GlobalConfig.keep_after_first`, the ones refined further first; with the camera's
         rotation in the world `R_W_C` and `GlobalConfig.resting_tilt_deg`, those near a resting
-        pose before the others), and the stage times [ms] (``hypotheses``, ``verify``). A
+        pose before the others), and the stage times [ms] (``hypotheses``, ``verify``, and
+        ``second_look`` within ``verify`` when `GlobalConfig.second_look` ran). A
         detection without the nets' pose (of an object they were not trained on) starts from
         the codebook alone."""
         cfg = self.config
@@ -380,6 +394,7 @@ class GlobalPoseEstimator:
         max_tilt = cfg.resting_tilt_deg if R_W_C is not None and model.resting_poses else None
         t0 = time.perf_counter()
         starts: list[tuple[np.ndarray, str]] = []
+        second: Callable[[], list[tuple[np.ndarray, str]]] | None = None  # drawn on demand
         if isinstance(det, PoseDetection):
             starts.append((det.T_C_O, "nets"))
         view = frame_mask(det.mask)
@@ -391,9 +406,25 @@ class GlobalPoseEstimator:
             top = top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg)
             if cfg.resting_hypotheses and max_tilt is not None:
                 assert R_W_C is not None
-                top += self._resting_hypotheses(book, model, views, scores, top, K, R_W_C)
+                top += self._resting_hypotheses(
+                    book, model, views, scores, top, K, R_W_C, cfg.resting_hypotheses
+                )
             for i in top:
                 starts.append((hypothesis_pose(book, i % n, views[i // n], K), "codebook"))
+
+            def second_starts() -> list[tuple[np.ndarray, str]]:
+                """The second look's hypotheses, drawn only when it runs."""
+                found = cfg.hypotheses + cfg.second_look
+                later = top_hypotheses(scores, book.rotations, found, cfg.min_angle_deg)
+                later = [i for i in later[cfg.hypotheses :] if i not in top]
+                if cfg.second_look_resting and max_tilt is not None:
+                    assert R_W_C is not None
+                    later += self._resting_hypotheses(
+                        book, model, views, scores, top + later, K, R_W_C, cfg.second_look_resting
+                    )
+                return [(hypothesis_pose(book, i % n, views[i // n], K), "codebook") for i in later]
+
+            second = second_starts
         t1 = time.perf_counter()
         pieces, colours = self.codebooks.source.pieces(det.name), self.colours(det.name)
         tight = mask_box(det.mask) if view is not None else (0, 0, 1, 1)
@@ -428,32 +459,60 @@ class GlobalPoseEstimator:
         first, screen = cfg.refine_passes, self.refiner
         if cfg.keep_after_first:
             first, screen = 1, self._screen(cfg.screen_iterations)
-        out = [
+        further: dict[int, Verified | None] = {}  # by start: refined further
+        snaps: dict[int, Verified | None] = {}  # by start and stage: snapped
+
+        def chosen(firsts: list[Verified]) -> list[Verified]:
+            """The first runs' results ranked, the best few refined further and snapped."""
+            out = rank_verified(firsts, max_tilt)
+            if cfg.keep_after_first and (cfg.refine_passes > 1 or screen is not self.refiner):
+                # The best few, refined further, rank above the rest (refined once), which stay
+                # listed.
+                kept, rest = out[: cfg.keep_after_first], out[cfg.keep_after_first :]
+                more = cfg.refine_passes - (screen is self.refiner)
+                for v in kept:
+                    if v.rank not in further:
+                        further[v.rank] = refined(v.T_C_O, v.source, v.rank, more, self.refiner)
+                again = [further[v.rank] for v in kept]
+                out = rank_verified([v for v in again if v is not None], max_tilt) + rest
+            if cfg.snap_candidates and max_tilt is not None:
+                # The best few that could be resting, each snapped onto its resting pose; the
+                # snapped ones then compete on their scores alone, ahead of the rest, unless
+                # every one of them scores well below the best pose found (the object is not
+                # resting).
+                assert R_W_C is not None
+                pool = [v for v in out if v.tilt <= cfg.snap_tilt_deg][: cfg.snap_candidates]
+                for v in pool:
+                    key = 2 * v.rank + (further.get(v.rank) is v)
+                    if key not in snaps:
+                        snaps[key] = self._snapped(v, R_W_C, model, refined)
+                snapped = [s for v in pool if (s := snaps[2 * v.rank + (further.get(v.rank) is v)])]
+                best_score = max((v.score for v in out), default=0.0)
+                if snapped and max(v.score for v in snapped) >= best_score - SNAP_SCORE_DROP:
+                    out = rank_verified(snapped, max_tilt) + [
+                        v for v in out if all(v is not p for p in pool)
+                    ]
+            return out
+
+        firsts = [
             v
             for r, (T, s) in enumerate(starts)
             if (v := refined(T, s, r, first, screen)) is not None
         ]
-        out = rank_verified(out, max_tilt)
-        if cfg.keep_after_first and (cfg.refine_passes > 1 or screen is not self.refiner):
-            # The best few, refined further, rank above the rest (refined once), which stay listed.
-            kept, rest = out[: cfg.keep_after_first], out[cfg.keep_after_first :]
-            more = cfg.refine_passes - (screen is self.refiner)
-            again = [refined(v.T_C_O, v.source, v.rank, more, self.refiner) for v in kept]
-            out = rank_verified([v for v in again if v is not None], max_tilt) + rest
-        if cfg.snap_candidates and max_tilt is not None:
-            # The best few that could be resting, each snapped onto its resting pose; the
-            # snapped ones then compete on their scores alone, ahead of the rest, unless every
-            # one of them scores well below the best pose found (the object is not resting).
-            assert R_W_C is not None
-            pool = [v for v in out if v.tilt <= cfg.snap_tilt_deg][: cfg.snap_candidates]
-            snapped = [s for v in pool if (s := self._snapped(v, R_W_C, model, refined))]
-            best_score = max((v.score for v in out), default=0.0)
-            if snapped and max(v.score for v in snapped) >= best_score - SNAP_SCORE_DROP:
-                out = rank_verified(snapped, max_tilt) + [
-                    v for v in out if all(v is not p for p in pool)
-                ]
-        t2 = time.perf_counter()
-        return out, {"hypotheses": (t1 - t0) * 1000, "verify": (t2 - t1) * 1000}
+        out = chosen(firsts)
+        times = {"hypotheses": (t1 - t0) * 1000}
+        unsure = not out or out[0].score < cfg.second_look_below
+        if second is not None and (cfg.second_look or cfg.second_look_resting) and unsure:
+            t_look = time.perf_counter()
+            firsts += [
+                v
+                for r, (T, s) in enumerate(second(), start=len(starts))
+                if (v := refined(T, s, r, first, screen)) is not None
+            ]
+            out = chosen(firsts)
+            times["second_look"] = (time.perf_counter() - t_look) * 1000
+        times["verify"] = (time.perf_counter() - t1) * 1000
+        return out, times
 
     def sharpened(self, det: PoseDetection | Detection, rgb: np.ndarray):
         """`det` with its mask redrawn by the mask net (`GlobalConfig.mask_net`; one of the
@@ -507,6 +566,7 @@ class GlobalPoseEstimator:
             "source": win.source,
             "tilt_deg": win.tilt,
             "hypotheses": len(ranked),
+            "second_look": "second_look" in times,
             "config": asdict(self.config),
         }
         if win.score < self.config.min_score:

@@ -251,6 +251,7 @@ def _global_on_one_detection(name: str, mask: np.ndarray, nets_pose: np.ndarray,
             return [det], [], {"total": 1.0}
 
     config.setdefault("mask_net", False)  # the painted mask is exact already
+    config.setdefault("second_look", 0)
     cfg = GlobalConfig(views=300, inplane=18, hypotheses=6, **config)
     books = CodebookCache(cfg.views, cfg.inplane, folder=folder)
     return GlobalPoseEstimator(OneDetection(), cfg, books)  # type: ignore[arg-type]
@@ -279,6 +280,41 @@ def test_the_global_estimator_recovers_what_the_nets_missed(tmp_path, nets_off: 
     assert v["source"] == "codebook" and v["confidence"] > 1.0
     assert v["hypotheses"] == (6 if nets_off == "behind" else 7)
     assert (tmp_path / f"{name}_300x18.npz").is_file()  # the codebook was cached
+
+
+def test_the_second_look_verifies_more_hypotheses_only_when_the_best_is_unsure(tmp_path) -> None:
+    """Below `second_look_below` the next codebook hypotheses (and resting ones, with gravity)
+    are verified too and the choice is made again, a timed stage the estimate reports; above it
+    nothing more runs. The pose is right either way."""
+    from dataclasses import replace
+
+    from posegrasp.core.transforms import quat_to_mat
+
+    name = "pistol"
+    model = load_object(name)
+    R_W_C = rot_x(np.deg2rad(-120))
+    T = np.eye(4)
+    T[:3, :3] = R_W_C.T @ rot_z(0.6) @ quat_to_mat(next(iter(model.resting_poses.values())))
+    T[:3, 3] = [0.03, 0.01, 0.8]
+    mask, rgb = _painted(name, T)
+    wrong = T.copy()
+    wrong[:3, :3] = rot_x(np.pi / 2) @ T[:3, :3]
+    est = _global_on_one_detection(
+        name, mask, wrong, tmp_path, second_look=4, second_look_resting=2
+    )
+    T_W_C = np.eye(4)
+    T_W_C[:3, :3] = R_W_C
+    counts = {}
+    for unsure in (True, False):
+        est.config = replace(est.config, second_look_below=10.0 if unsure else -10.0)
+        e = est.estimate(Observation(rgb, K, T_W_C, name, 0))
+        assert e.T_C_O is not None
+        assert rotation_error_deg(e.T_C_O[:3, :3], T[:3, :3]) < 3.0
+        v = e.info["verify"]
+        assert v["second_look"] is unsure
+        assert ("second_look" in e.info["timings_ms"]) is unsure
+        counts[unsure] = v["hypotheses"]
+    assert counts[True] >= counts[False] + 4  # 4 more hypotheses at least, 2 resting ones
 
 
 def test_the_global_estimator_redraws_the_target_mask_with_the_mask_net(tmp_path) -> None:
@@ -359,7 +395,7 @@ def test_resting_hypotheses_are_new_and_could_rest(tmp_path) -> None:
     view = frame_mask(mask)
     scores = book.match(view.bits, view.hidden)
     top = top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg)
-    extra = est._resting_hypotheses(book, model, [view], scores, top, K, R_W_C)
+    extra = est._resting_hypotheses(book, model, [view], scores, top, K, R_W_C, 4)
     assert 0 < len(extra) <= 4
     ups = np.array([quat_to_mat(np.asarray(q, float))[2] for q in model.resting_poses.values()])
     near = resting_templates(book, view, K, R_W_C[2], ups, cfg.resting_tilt_deg)
