@@ -55,6 +55,16 @@ def _hybrid_global() -> PoseEstimator:
     return GlobalPoseEstimator.from_weights()
 
 
+def _hybrid_global_table() -> PoseEstimator:
+    """`hybrid-global`, its pose then put onto the known table (the scene's prior,
+    `GlobalConfig.table`)."""
+    from perception.global_pose import GlobalConfig, GlobalPoseEstimator
+
+    est = GlobalPoseEstimator.from_weights(GlobalConfig(table=True))
+    est.name = "hybrid-global-table"
+    return est
+
+
 def _hybrid_global_paper() -> PoseEstimator:
     """`hybrid-global` for the paper's protocol (256x256 studio images, random backgrounds): the
     detector fine-tuned on those images and the `paper` variant's nets."""
@@ -106,6 +116,7 @@ LEARNED_ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
     "hybrid-paper": _hybrid_paper,
     "hybrid-refine": _hybrid_refine,
     "hybrid-global": _hybrid_global,
+    "hybrid-global-table": _hybrid_global_table,
     "hybrid-global-paper": _hybrid_global_paper,
     "hybrid-global-user": _hybrid_global_user,
 }

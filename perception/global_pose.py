@@ -61,7 +61,7 @@ from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target
 from perception.mask_net import MaskRefiner
 from perception.overlay import mask_box
 from perception.refine import PoseRefiner
-from perception.support import snap_to_resting
+from perception.support import refine_on_support, snap_to_resting
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, data_root
@@ -126,6 +126,12 @@ class GlobalConfig:
         second_look_below: the verification score under which the second look runs.
         second_look_resting: with `resting_tilt_deg` and the camera's pose, the second look
             also refines this many resting hypotheses (as `resting_hypotheses`).
+        table: when the observation carries the table's height (`Observation.table_top_z`, a
+            prior of the scene, not of the image), the verified pose is put onto it: its
+            rotation snapped to the nearest resting pose and its origin slid along its camera
+            ray until the object rests on the table (`perception.support.refine_on_support`, as
+            `hybrid-table`); the silhouette does not fix the distance of a half-hidden object,
+            the table does (False: RGB, K and the camera's pose only).
         target_score: the detector score a detection of the requested object needs (the
             other detections, the planner's obstacles and the occluders, need the detector's
             own threshold); a partly hidden object often scores lower, and the verification
@@ -151,6 +157,7 @@ class GlobalConfig:
     second_look: int = 12
     second_look_below: float = 1.15
     second_look_resting: int = 12
+    table: bool = False
     target_score: float | None = 0.3
     neighbour_experts: bool = False
     mask_net: bool = True
@@ -571,4 +578,16 @@ class GlobalPoseEstimator:
         }
         if win.score < self.config.min_score:
             return Estimate(None, neighbours, info)
-        return Estimate(win.T_C_O.copy(), neighbours, info)
+        T = win.T_C_O.copy()
+        table = self.config.table and obs.table_top_z is not None
+        if table and (model := load_object(best.name)).resting_poses:
+            tilt = self.config.resting_tilt_deg or 10.0
+            ref = refine_on_support(T, obs.T_world_cam, model, obs.table_top_z, tilt)
+            T = ref.T_C_O
+            info["support"] = {
+                "resting_pose": ref.resting_pose,
+                "tilt_deg": ref.tilt_deg,
+                "shift_m": ref.shift_m,
+                "applied": list(ref.applied),
+            }
+        return Estimate(T, neighbours, info)

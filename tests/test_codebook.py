@@ -317,6 +317,44 @@ def test_the_second_look_verifies_more_hypotheses_only_when_the_best_is_unsure(t
     assert counts[True] >= counts[False] + 4  # 4 more hypotheses at least, 2 resting ones
 
 
+def test_the_table_variant_slides_the_verified_pose_onto_the_known_table(tmp_path) -> None:
+    """`GlobalConfig.table`: with the table's height in the observation, the verified pose keeps
+    its ray and rotation and moves along the ray until the object rests on that height; without
+    it (or without the option) the pose is the verified one."""
+    from dataclasses import replace
+
+    from perception.support import snap_to_resting
+    from posegrasp.core.transforms import quat_to_mat
+
+    name = "pistol"
+    model = load_object(name)
+    R_W_C = rot_x(np.deg2rad(-120))
+    c_W = np.array([0.1, -0.2, 1.1])
+    T = np.eye(4)
+    T[:3, :3] = R_W_C.T @ rot_z(0.4) @ quat_to_mat(next(iter(model.resting_poses.values())))
+    T[:3, 3] = [0.03, 0.01, 0.8]
+    mask, rgb = _painted(name, T)
+    T_W_C = np.eye(4)
+    T_W_C[:3, :3], T_W_C[:3, 3] = R_W_C, c_W
+    height = snap_to_resting(R_W_C @ T[:3, :3], model)[3]
+    table = float((R_W_C @ T[:3, 3] + c_W)[2] - height) - 0.02  # 2 cm below the truth
+    est = _global_on_one_detection(name, mask, T, tmp_path)
+    obs = Observation(rgb, K, T_W_C, name, 0, table_top_z=table)
+    plain = est.estimate(obs)
+    est.config = replace(est.config, table=True)
+    on = est.estimate(obs)
+    assert plain.T_C_O is not None and on.T_C_O is not None
+    assert "support" not in plain.info and "translation" in on.info["support"]["applied"]
+    t0, t1 = plain.T_C_O[:3, 3], on.T_C_O[:3, 3]
+    assert np.linalg.norm(np.cross(t0 / np.linalg.norm(t0), t1 / np.linalg.norm(t1))) < 1e-9
+    assert np.linalg.norm(t1) - np.linalg.norm(t0) > 0.01  # lower table: further along the ray
+    R_W_O = R_W_C @ on.T_C_O[:3, :3]
+    assert abs((R_W_C @ t1 + c_W)[2] - snap_to_resting(R_W_O, model)[3] - table) < 1e-9
+    assert rotation_error_deg(on.T_C_O[:3, :3], plain.T_C_O[:3, :3]) < 1e-6
+    unknown = est.estimate(replace(obs, table_top_z=None))
+    assert unknown.T_C_O is not None and np.allclose(unknown.T_C_O, plain.T_C_O)
+
+
 def test_the_global_estimator_redraws_the_target_mask_with_the_mask_net(tmp_path) -> None:
     """With the mask net on (the default), the target's coarse mask (the painted one eroded by
     3 px, as a detector's loses the outline) is redrawn before the hypotheses, the stage is
