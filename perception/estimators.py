@@ -60,9 +60,7 @@ def _hybrid_global_table() -> PoseEstimator:
     `GlobalConfig.table`)."""
     from perception.global_pose import GlobalConfig, GlobalPoseEstimator
 
-    est = GlobalPoseEstimator.from_weights(GlobalConfig(table=True))
-    est.name = "hybrid-global-table"
-    return est
+    return GlobalPoseEstimator.from_weights(GlobalConfig(table=True), name="hybrid-global-table")
 
 
 def _hybrid_global_paper() -> PoseEstimator:

@@ -305,11 +305,15 @@ class GlobalPoseEstimator:
 
     @classmethod
     def from_weights(
-        cls, config: GlobalConfig | None = None, detector_path: Path = TIERS_DETECTOR
+        cls,
+        config: GlobalConfig | None = None,
+        detector_path: Path = TIERS_DETECTOR,
+        name: str = "hybrid-global",
     ) -> GlobalPoseEstimator:
         """With the shipped nets and the detector fine-tuned on the tiers' scenes (or the one
         at `detector_path`)."""
-        return cls(HybridPoseEstimator.from_weights(detector_path=detector_path), config)
+        hybrid = HybridPoseEstimator.from_weights(detector_path=detector_path)
+        return cls(hybrid, config, name=name)
 
     def colours(self, name: str) -> np.ndarray:
         """RGB of each convex piece of `name` (`ObjectModel.convex_pieces`, the source's order),
@@ -467,7 +471,7 @@ class GlobalPoseEstimator:
         if cfg.keep_after_first:
             first, screen = 1, self._screen(cfg.screen_iterations)
         further: dict[int, Verified | None] = {}  # by start: refined further
-        snaps: dict[int, Verified | None] = {}  # by start and stage: snapped
+        snaps: dict[tuple[int, bool], Verified | None] = {}  # by start and stage: snapped
 
         def chosen(firsts: list[Verified]) -> list[Verified]:
             """The first runs' results ranked, the best few refined further and snapped."""
@@ -489,11 +493,13 @@ class GlobalPoseEstimator:
                 # resting).
                 assert R_W_C is not None
                 pool = [v for v in out if v.tilt <= cfg.snap_tilt_deg][: cfg.snap_candidates]
+                snapped = []
                 for v in pool:
-                    key = 2 * v.rank + (further.get(v.rank) is v)
+                    key = (v.rank, further.get(v.rank) is v)  # a start's first run or further one
                     if key not in snaps:
                         snaps[key] = self._snapped(v, R_W_C, model, refined)
-                snapped = [s for v in pool if (s := snaps[2 * v.rank + (further.get(v.rank) is v)])]
+                    if snaps[key] is not None:
+                        snapped.append(snaps[key])
                 best_score = max((v.score for v in out), default=0.0)
                 if snapped and max(v.score for v in snapped) >= best_score - SNAP_SCORE_DROP:
                     out = rank_verified(snapped, max_tilt) + [
@@ -583,11 +589,5 @@ class GlobalPoseEstimator:
         if table and (model := load_object(best.name)).resting_poses:
             tilt = self.config.resting_tilt_deg or 10.0
             ref = refine_on_support(T, obs.T_world_cam, model, obs.table_top_z, tilt)
-            T = ref.T_C_O
-            info["support"] = {
-                "resting_pose": ref.resting_pose,
-                "tilt_deg": ref.tilt_deg,
-                "shift_m": ref.shift_m,
-                "applied": list(ref.applied),
-            }
+            T, info["support"] = ref.T_C_O, ref.description()
         return Estimate(T, neighbours, info)

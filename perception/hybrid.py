@@ -456,12 +456,7 @@ class HybridEpisodeEstimator:
             t0 = time.perf_counter()
             model = load_object(best.name)
             ref = refine_on_support(T, obs.T_world_cam, model, obs.table_top_z)
-            sup = {
-                "resting_pose": ref.resting_pose,
-                "tilt_deg": ref.tilt_deg,
-                "shift_m": ref.shift_m,
-                "applied": list(ref.applied),
-            }
+            sup = ref.description()
             T = ref.T_C_O
             if self.mask_fit and "translation" in ref.applied:
                 fit = refine_with_mask(T, obs.T_world_cam, obs.K, model, best.mask)

@@ -49,6 +49,15 @@ class SupportRefinement:
     shift_m: float
     applied: tuple[str, ...]
 
+    def description(self) -> dict:
+        """What an estimate reports of it (``info["support"]``): a new dict each call."""
+        return {
+            "resting_pose": self.resting_pose,
+            "tilt_deg": self.tilt_deg,
+            "shift_m": self.shift_m,
+            "applied": list(self.applied),
+        }
+
 
 def snap_to_resting(R_W_O: np.ndarray, model: ObjectModel) -> tuple[np.ndarray, str, float, float]:
     """The resting orientation (any yaw) nearest to a world-frame orientation.
