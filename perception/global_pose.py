@@ -25,9 +25,14 @@ class (the shipped Mask R-CNN fine-tuned on the tiers' scenes, `TIERS_DETECTOR`)
    those wins (`GlobalConfig.snap_candidates`). The winner's
    score is reported as the estimate's confidence; below `GlobalConfig.min_score` the estimate
    is withheld (``no_estimate``).
+4. **Support**: the visible part of a half-hidden object does not fix its distance along the
+   viewing ray; the objects around it, which rest on the same table, do. When the best score
+   is low (`GlobalConfig.second_look_below`), the neighbouring detections are verified the same
+   way, and the target's pose slides along its ray onto the surface the confident ones rest on
+   (`GlobalConfig.support_neighbours`).
 
-Inputs are the image, K, the camera's pose (for gravity only) and the requested class: no table,
-no depth.
+Inputs are the image, K, the camera's pose (for gravity) and the requested class: no table
+height, no depth.
 Codebooks are built once per object and grid and cached under the data folder
 (``$POSEGRASP_DATA/codebooks``).
 """
@@ -41,6 +46,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from perception.codebook import (
     Codebook,
@@ -61,7 +67,7 @@ from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target
 from perception.mask_net import MaskRefiner
 from perception.overlay import mask_box
 from perception.refine import PoseRefiner
-from perception.support import refine_on_support, snap_to_resting
+from perception.support import refine_on_support, resting_surface_z, snap_to_resting
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, data_root
@@ -126,6 +132,19 @@ class GlobalConfig:
         second_look_below: the verification score under which the second look runs.
         second_look_resting: with `resting_tilt_deg` and the camera's pose, the second look
             also refines this many resting hypotheses (as `resting_hypotheses`).
+        support_neighbours: when the best verified pose scores below `second_look_below` and
+            is within `resting_tilt_deg` of resting, up to this many other detections of
+            other classes (those touching the target's mask first, then the nearest) are
+            verified in turn, until `SUPPORT_ENOUGH` of them give a confident resting pose
+            (score at least `support_score`, within `resting_tilt_deg` of resting). The median
+            height of the surface those rest on is the target's support: when the target's
+            own pose puts it more than `support_tolerance_m` above or below it, the pose is
+            slid along its camera ray onto it (`perception.support.refine_on_support`). The
+            objects of a scene share their table; the outline of a half-hidden object does
+            not fix its distance, a fully seen neighbour's does (0: none).
+        support_score: the verification score a neighbour's pose needs to count.
+        support_tolerance_m: how far [m] the target's own resting surface may lie from its
+            neighbours' before its pose is moved.
         table: when the observation carries the table's height (`Observation.table_top_z`, a
             prior of the scene, not of the image), the verified pose is put onto it: its
             rotation snapped to the nearest resting pose and its origin slid along its camera
@@ -157,6 +176,9 @@ class GlobalConfig:
     second_look: int = 12
     second_look_below: float = 1.15
     second_look_resting: int = 12
+    support_neighbours: int = 3
+    support_score: float = 1.15
+    support_tolerance_m: float = 0.012
     table: bool = False
     target_score: float | None = 0.3
     neighbour_experts: bool = False
@@ -166,10 +188,12 @@ class GlobalConfig:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
             if int(getattr(self, key)) < 1:
                 raise InvalidArgumentError(f"GlobalConfig.{key} must be >= 1")
-        if int(self.resting_hypotheses) < 0 or int(self.second_look) < 0:
+        if min(int(self.resting_hypotheses), int(self.second_look), self.support_neighbours) < 0:
             raise InvalidArgumentError(
-                "GlobalConfig.resting_hypotheses and second_look must be >= 0"
+                "GlobalConfig.resting_hypotheses, second_look and support_neighbours must be >= 0"
             )
+        if not (np.isfinite(self.support_tolerance_m) and self.support_tolerance_m >= 0):
+            raise InvalidArgumentError("GlobalConfig.support_tolerance_m must be >= 0 [m]")
         if int(self.snap_iterations) < 1:
             raise InvalidArgumentError("GlobalConfig.snap_iterations must be >= 1")
         if int(self.screen_iterations) < 0:
@@ -198,6 +222,13 @@ SNAP_SCORE_DROP = 0.05
 
 #: Image edges are searched in the mask's box grown by this much [px].
 EDGE_MARGIN_PX = 10
+
+#: Neighbours are verified until this many give a confident resting pose
+#: (`GlobalConfig.support_neighbours`).
+SUPPORT_ENOUGH = 2
+
+#: A neighbour whose mask comes this close to the target's [px] touches it.
+NEIGHBOUR_TOUCH_PX = 6
 
 
 def _grown(box: tuple[int, int, int, int], margin: int, shape: tuple[int, ...]):
@@ -536,9 +567,9 @@ class GlobalPoseEstimator:
 
     def _user_target(
         self, obs: Observation
-    ) -> tuple[Detection | None, tuple[tuple[str, np.ndarray], ...], dict, np.ndarray | None]:
+    ) -> tuple[Detection | None, tuple[tuple[str, np.ndarray], ...], dict, list[Detection]]:
         """A user object's best detection (by a detector fine-tuned on it), the built-in
-        neighbours' poses, the description so far and where other detections may hide it."""
+        neighbours' poses, the description so far and every detection."""
         dets, poses, timings = self.hybrid.detections_and_poses(obs.rgb, obs.K)
         mine = [d for d in dets if d.name == obs.object]
         best = max(mine, key=lambda d: d.score) if mine else None
@@ -546,19 +577,76 @@ class GlobalPoseEstimator:
         if best is not None:
             info |= {"class": best.name, "score": best.score, "detections": len(dets)}
         neighbours = tuple((p.name, p.T_C_O.copy()) for p in poses)
-        masks = [d.mask for d in dets if d is not best]
-        return best, neighbours, info, (np.logical_or.reduce(masks) if masks else None)
+        return best, neighbours, info, list(dets)
+
+    def neighbours_support(
+        self,
+        target: PoseDetection | Detection,
+        detections: list[PoseDetection | Detection],
+        obs: Observation,
+    ) -> tuple[float | None, list[dict]]:
+        """The height of the surface the target's neighbours rest on
+        (`GlobalConfig.support_neighbours`), or None when none gives a confident resting pose,
+        and what each verified neighbour gave (``class``, ``score``, ``tilt_deg``,
+        ``surface_z``, ``counted``).
+
+        Args:
+            target: the requested object's detection.
+            detections: every detection of the image (the target's among them).
+            obs: the observation (its image, K and camera pose).
+        """
+        cfg = self.config
+        R_W_C = np.asarray(obs.T_world_cam, float)[:3, :3]
+        grown = ndimage.binary_dilation(target.mask, iterations=NEIGHBOUR_TOUCH_PX)
+        centre = np.argwhere(target.mask).mean(0)
+
+        def order(d: PoseDetection | Detection) -> tuple[int, float]:
+            pixels = np.argwhere(d.mask)
+            far = float(np.hypot(*(pixels.mean(0) - centre))) if len(pixels) else math.inf
+            return -int((grown & d.mask).sum()), far
+
+        candidates = [
+            d for d in detections if d.name != target.name and load_object(d.name).resting_poses
+        ]
+        heights: list[float] = []
+        seen: list[dict] = []
+        for found in sorted(candidates, key=order)[: cfg.support_neighbours]:
+            d = self.sharpened(found, obs.rgb)
+            masks = [o.mask for o in detections if o is not found]
+            occluder = np.logical_or.reduce(masks) if masks else None
+            ranked, _ = self.verify(d, obs.K, obs.rgb, occluder, R_W_C)
+            if not ranked:
+                continue
+            z, tilt = resting_surface_z(ranked[0].T_C_O, obs.T_world_cam, load_object(d.name))
+            score = float(ranked[0].score)
+            counted = bool(score >= cfg.support_score and tilt <= (cfg.resting_tilt_deg or 0))
+            seen.append(
+                {
+                    "class": d.name,
+                    "score": score,
+                    "tilt_deg": tilt,
+                    "surface_z": z,
+                    "counted": counted,
+                }
+            )
+            if counted:
+                heights.append(z)
+                if len(heights) >= SUPPORT_ENOUGH:
+                    break
+        return (float(np.median(heights)) if heights else None), seen
 
     def estimate(self, obs: Observation) -> Estimate:
         """The verified pose of obs.object (None when not detected or below `min_score`), the
         other detections and the description of the estimate."""
+        cfg = self.config
         if obs.object not in OBJECT_NAMES and obs.object in self.hybrid.detector.cfg.classes:
-            best, neighbours, info, occluder = self._user_target(obs)
+            best, neighbours, info, detections = self._user_target(obs)
         else:
-            cfg = self.config
             target = detect_target(self.hybrid, obs, cfg.target_score, cfg.neighbour_experts)
             best, neighbours, info = target.best, target.neighbours, target.info
-            occluder = target.occluder()
+            detections = [*target.found, *target.others]
+        masks = [d.mask for d in detections if d is not best]
+        occluder = np.logical_or.reduce(masks) if masks else None
         if best is None:
             return Estimate(None, neighbours, info)
         if self.masks is not None:
@@ -582,12 +670,28 @@ class GlobalPoseEstimator:
             "second_look": "second_look" in times,
             "config": asdict(self.config),
         }
-        if win.score < self.config.min_score:
+        if win.score < cfg.min_score:
             return Estimate(None, neighbours, info)
         T = win.T_C_O.copy()
-        table = self.config.table and obs.table_top_z is not None
-        if table and (model := load_object(best.name)).resting_poses:
-            tilt = self.config.resting_tilt_deg or 10.0
+        model = load_object(best.name)
+        tilt = cfg.resting_tilt_deg or 10.0
+        if cfg.table and obs.table_top_z is not None and model.resting_poses:
             ref = refine_on_support(T, obs.T_world_cam, model, obs.table_top_z, tilt)
             T, info["support"] = ref.T_C_O, ref.description()
+        elif (
+            cfg.support_neighbours
+            and cfg.resting_tilt_deg is not None
+            and model.resting_poses
+            and win.score < cfg.second_look_below
+            and win.tilt <= cfg.resting_tilt_deg
+        ):
+            t0 = time.perf_counter()
+            support_z, seen = self.neighbours_support(best, detections, obs)
+            own_z = resting_surface_z(T, obs.T_world_cam, model)[0]
+            described: dict = {"source": "neighbours", "neighbours": seen, "own_z": own_z}
+            if support_z is not None and abs(own_z - support_z) > cfg.support_tolerance_m:
+                ref = refine_on_support(T, obs.T_world_cam, model, support_z, tilt)
+                T, described = ref.T_C_O, described | ref.description()
+            info["support"] = described | {"surface_z": support_z}
+            info["timings_ms"]["support"] = (time.perf_counter() - t0) * 1000
         return Estimate(T, neighbours, info)

@@ -252,6 +252,7 @@ def _global_on_one_detection(name: str, mask: np.ndarray, nets_pose: np.ndarray,
 
     config.setdefault("mask_net", False)  # the painted mask is exact already
     config.setdefault("second_look", 0)
+    config.setdefault("support_neighbours", 0)
     cfg = GlobalConfig(views=300, inplane=18, hypotheses=6, **config)
     books = CodebookCache(cfg.views, cfg.inplane, folder=folder)
     return GlobalPoseEstimator(OneDetection(), cfg, books)  # type: ignore[arg-type]
@@ -353,6 +354,75 @@ def test_the_table_variant_slides_the_verified_pose_onto_the_known_table(tmp_pat
     assert rotation_error_deg(on.T_C_O[:3, :3], plain.T_C_O[:3, :3]) < 1e-6
     unknown = est.estimate(replace(obs, table_top_z=None))
     assert unknown.T_C_O is not None and np.allclose(unknown.T_C_O, plain.T_C_O)
+
+
+def test_an_unsure_pose_slides_onto_the_surface_its_neighbours_rest_on(tmp_path) -> None:
+    """`GlobalConfig.support_neighbours`: when the target's best score is low, the other
+    detections are verified, and the target's pose moves along its ray onto the surface the
+    confident ones rest on (here 3 cm below the target's own); when the score is high, or the
+    option is off, the pose is the verified one."""
+    from dataclasses import replace
+
+    from perception.global_pose import CodebookCache, GlobalConfig, GlobalPoseEstimator
+    from perception.hybrid import PoseDetection
+    from perception.support import resting_surface_z
+
+    R_W_C = rot_x(np.deg2rad(-120))
+    T_W_C = np.eye(4)
+    T_W_C[:3, :3], T_W_C[:3, 3] = R_W_C, [0.1, -0.2, 1.1]
+
+    def resting(name: str, yaw: float, t_C: list[float], surface: float | None) -> np.ndarray:
+        """A resting pose of `name` near camera point t_C; on `surface` when given."""
+        model = load_object(name)
+        T = np.eye(4)
+        T[:3, :3] = R_W_C.T @ rot_z(yaw) @ quat_to_mat(next(iter(model.resting_poses.values())))
+        T[:3, 3] = t_C
+        if surface is not None:
+            T[:3, 3] += R_W_C.T @ [0, 0, surface - resting_surface_z(T, T_W_C, model)[0]]
+        return T
+
+    T_target = resting("pistol", 0.4, [0.05, 0.0, 0.8], None)
+    own = resting_surface_z(T_target, T_W_C, load_object("pistol"))[0]
+    T_car = resting("car", -0.3, [-0.2, 0.03, 0.8], own - 0.03)
+    (m1, rgb1), (m2, rgb2) = _painted("pistol", T_target), _painted("car", T_car)
+    assert not (m1 & m2).any()
+    rgb = np.where(m2[..., None], rgb2, rgb1)
+    dets = [
+        PoseDetection(n, 0.9, np.zeros(4), m, T, np.zeros(2), (0, 0, 1), {})
+        for n, m, T in (("pistol", m1, T_target), ("car", m2, T_car))
+    ]
+
+    class TwoDetections:
+        def estimate_split(self, rgb, K, classes=None, others=False, **_):
+            mine = [d for d in dets if d.name in classes]
+            return mine, [d for d in dets if d.name not in classes], {"total": 1.0}
+
+    cfg = GlobalConfig(views=300, inplane=18, hypotheses=6, mask_net=False, second_look=0)
+    est = GlobalPoseEstimator(TwoDetections(), cfg, CodebookCache(300, 18, folder=tmp_path))  # type: ignore[arg-type]
+    obs = Observation(rgb, K, T_W_C, "pistol", 0)
+    poses = {}
+    for case, changes in {
+        "unsure": {"second_look_below": 10.0},
+        "sure": {"second_look_below": -10.0},
+        "off": {"second_look_below": 10.0, "support_neighbours": 0},
+    }.items():
+        est.config = replace(cfg, **changes)
+        e = est.estimate(obs)
+        assert e.T_C_O is not None
+        assert rotation_error_deg(e.T_C_O[:3, :3], T_target[:3, :3]) < 3.0
+        assert ("support" in e.info) is (case == "unsure")
+        assert ("support" in e.info["timings_ms"]) is (case == "unsure")
+        poses[case] = e
+    support = poses["unsure"].info["support"]
+    assert [(n["class"], n["counted"]) for n in support["neighbours"]] == [("car", True)]
+    assert abs(support["surface_z"] - (own - 0.03)) < 0.005
+    assert "translation" in support["applied"]
+    t0, t1 = poses["sure"].T_C_O[:3, 3], poses["unsure"].T_C_O[:3, 3]
+    assert np.linalg.norm(np.cross(t0 / np.linalg.norm(t0), t1 / np.linalg.norm(t1))) < 1e-9
+    surface = resting_surface_z(poses["unsure"].T_C_O, T_W_C, load_object("pistol"))[0]
+    assert abs(surface - support["surface_z"]) < 1e-6
+    assert np.linalg.norm(t1) - np.linalg.norm(t0) > 0.02  # a lower surface: further away
+    assert np.allclose(poses["off"].T_C_O, poses["sure"].T_C_O)
 
 
 def test_the_global_estimator_redraws_the_target_mask_with_the_mask_net(tmp_path) -> None:
