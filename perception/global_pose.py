@@ -423,14 +423,15 @@ class GlobalPoseEstimator:
         rgb: np.ndarray,
         occluder: np.ndarray | None,
         R_W_C: np.ndarray | None = None,
+        second_look: bool = True,
     ) -> tuple[list[Verified], dict[str, float]]:
         """Every hypothesis of one detection, refined and scored, best first (with
         `GlobalConfig.keep_after_first`, the ones refined further first; with the camera's
         rotation in the world `R_W_C` and `GlobalConfig.resting_tilt_deg`, those near a resting
         pose before the others), and the stage times [ms] (``hypotheses``, ``verify``, and
-        ``second_look`` within ``verify`` when `GlobalConfig.second_look` ran). A
-        detection without the nets' pose (of an object they were not trained on) starts from
-        the codebook alone."""
+        ``second_look`` within ``verify`` when `GlobalConfig.second_look` ran; with
+        `second_look` False it never runs). A detection without the nets' pose (of an object
+        they were not trained on) starts from the codebook alone."""
         cfg = self.config
         model = load_object(det.name)
         max_tilt = cfg.resting_tilt_deg if R_W_C is not None and model.resting_poses else None
@@ -546,7 +547,8 @@ class GlobalPoseEstimator:
         out = chosen(firsts)
         times = {"hypotheses": (t1 - t0) * 1000}
         unsure = not out or out[0].score < cfg.second_look_below
-        if second is not None and (cfg.second_look or cfg.second_look_resting) and unsure:
+        look = second_look and (cfg.second_look or cfg.second_look_resting)
+        if second is not None and look and unsure:
             t_look = time.perf_counter()
             firsts += [
                 v
@@ -614,7 +616,7 @@ class GlobalPoseEstimator:
             d = self.sharpened(found, obs.rgb)
             masks = [o.mask for o in detections if o is not found]
             occluder = np.logical_or.reduce(masks) if masks else None
-            ranked, _ = self.verify(d, obs.K, obs.rgb, occluder, R_W_C)
+            ranked, _ = self.verify(d, obs.K, obs.rgb, occluder, R_W_C, second_look=False)
             if not ranked:
                 continue
             z, tilt = resting_surface_z(ranked[0].T_C_O, obs.T_world_cam, load_object(d.name))
