@@ -30,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 from perception.geometry import project
-from perception.hybrid import HybridPoseEstimator
+from perception.hybrid import HybridPoseEstimator, occluder_of
 from perception.metrics import box_iou, mask_iou, rotation_error_deg
 from perception.overlay import silhouette
 from perception.refine import PoseRefiner
@@ -84,8 +84,7 @@ def run(ds: PoseDataset, indices: range, repeats: int) -> dict:
             if not cands:
                 continue
             d = max(cands, key=lambda d: d.score)
-            masks = [o.mask for o in found if o is not d]
-            occluder = np.logical_or.reduce(masks) if masks else None
+            occluder = occluder_of(found, d)
             times = []
             for _ in range(repeats):
                 t0 = time.perf_counter()

@@ -63,7 +63,7 @@ from perception.codebook import (
     verification_scores,
 )
 from perception.detector import Detection
-from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target
+from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target, occluder_of
 from perception.mask_net import MaskRefiner
 from perception.overlay import mask_box
 from perception.refine import PoseRefiner
@@ -614,13 +614,13 @@ class GlobalPoseEstimator:
         seen: list[dict] = []
         for found in sorted(candidates, key=order)[: cfg.support_neighbours]:
             d = self.sharpened(found, obs.rgb)
-            masks = [o.mask for o in detections if o is not found]
-            occluder = np.logical_or.reduce(masks) if masks else None
+            occluder = occluder_of(detections, found)
             ranked, _ = self.verify(d, obs.K, obs.rgb, occluder, R_W_C, second_look=False)
             if not ranked:
                 continue
-            z, tilt = resting_surface_z(ranked[0].T_C_O, obs.T_world_cam, load_object(d.name))
-            score = float(ranked[0].score)
+            win = ranked[0]  # with R_W_C and resting poses, its tilt is from resting
+            z = resting_surface_z(win.T_C_O, obs.T_world_cam, load_object(d.name))
+            score, tilt = float(win.score), win.tilt
             counted = bool(score >= cfg.support_score and tilt <= (cfg.resting_tilt_deg or 0))
             seen.append(
                 {
@@ -647,8 +647,7 @@ class GlobalPoseEstimator:
             target = detect_target(self.hybrid, obs, cfg.target_score, cfg.neighbour_experts)
             best, neighbours, info = target.best, target.neighbours, target.info
             detections = [*target.found, *target.others]
-        masks = [d.mask for d in detections if d is not best]
-        occluder = np.logical_or.reduce(masks) if masks else None
+        occluder = occluder_of(detections, best)
         if best is None:
             return Estimate(None, neighbours, info)
         if self.masks is not None:
@@ -689,7 +688,7 @@ class GlobalPoseEstimator:
         ):
             t0 = time.perf_counter()
             support_z, seen = self.neighbours_support(best, detections, obs)
-            own_z = resting_surface_z(T, obs.T_world_cam, model)[0]
+            own_z = resting_surface_z(T, obs.T_world_cam, model)
             described: dict = {"source": "neighbours", "neighbours": seen, "own_z": own_z}
             if support_z is not None and abs(own_z - support_z) > cfg.support_tolerance_m:
                 ref = refine_on_support(T, obs.T_world_cam, model, support_z, tilt)

@@ -360,8 +360,14 @@ class TargetDetections:
 
     def occluder(self) -> np.ndarray | None:
         """Where another detection may hide the target: the union of every other mask."""
-        masks = [d.mask for d in (*self.found, *self.others) if d is not self.best]
-        return np.logical_or.reduce(masks) if masks else None
+        return occluder_of([*self.found, *self.others], self.best)
+
+
+def occluder_of(detections: list, hidden: object) -> np.ndarray | None:
+    """Where the other detections may hide `hidden` (one of `detections`, or None): the union
+    of every other one's mask, or None when there is no other."""
+    masks = [d.mask for d in detections if d is not hidden]
+    return np.logical_or.reduce(masks) if masks else None
 
 
 def detect_target(

@@ -79,22 +79,15 @@ def snap_to_resting(R_W_O: np.ndarray, model: ObjectModel) -> tuple[np.ndarray, 
     return best
 
 
-def resting_surface_z(
-    T_C_O: np.ndarray, T_world_cam: np.ndarray, model: ObjectModel
-) -> tuple[float, float]:
-    """The height of the horizontal surface an object so posed would rest on, and how far its
-    orientation is from resting.
-
-    Returns:
-        (z, tilt_deg): the world height [m] of the plane under the object in the resting pose
-        nearest its estimated orientation (its origin's height minus that pose's resting
-        height), and the geodesic angle to that pose [deg].
-    """
+def resting_surface_z(T_C_O: np.ndarray, T_world_cam: np.ndarray, model: ObjectModel) -> float:
+    """The world height [m] of the horizontal surface an object so posed would rest on: its
+    origin's height minus the resting height of the resting pose nearest its orientation
+    (`snap_to_resting`, which also gives how far that is)."""
     T_C_O = np.asarray(T_C_O, np.float64)
     T_world_cam = np.asarray(T_world_cam, np.float64)
     R_wc, c_w = T_world_cam[:3, :3], T_world_cam[:3, 3]
-    _, _, tilt, height = snap_to_resting(R_wc @ T_C_O[:3, :3], model)
-    return float((R_wc @ T_C_O[:3, 3] + c_w)[2] - height), tilt
+    height = snap_to_resting(R_wc @ T_C_O[:3, :3], model)[3]
+    return float((R_wc @ T_C_O[:3, 3] + c_w)[2] - height)
 
 
 def refine_on_support(

@@ -378,11 +378,11 @@ def test_an_unsure_pose_slides_onto_the_surface_its_neighbours_rest_on(tmp_path)
         T[:3, :3] = R_W_C.T @ rot_z(yaw) @ quat_to_mat(next(iter(model.resting_poses.values())))
         T[:3, 3] = t_C
         if surface is not None:
-            T[:3, 3] += R_W_C.T @ [0, 0, surface - resting_surface_z(T, T_W_C, model)[0]]
+            T[:3, 3] += R_W_C.T @ [0, 0, surface - resting_surface_z(T, T_W_C, model)]
         return T
 
     T_target = resting("pistol", 0.4, [0.05, 0.0, 0.8], None)
-    own = resting_surface_z(T_target, T_W_C, load_object("pistol"))[0]
+    own = resting_surface_z(T_target, T_W_C, load_object("pistol"))
     T_car = resting("car", -0.3, [-0.2, 0.03, 0.8], own - 0.03)
     (m1, rgb1), (m2, rgb2) = _painted("pistol", T_target), _painted("car", T_car)
     assert not (m1 & m2).any()
@@ -419,7 +419,7 @@ def test_an_unsure_pose_slides_onto_the_surface_its_neighbours_rest_on(tmp_path)
     assert "translation" in support["applied"]
     t0, t1 = poses["sure"].T_C_O[:3, 3], poses["unsure"].T_C_O[:3, 3]
     assert np.linalg.norm(np.cross(t0 / np.linalg.norm(t0), t1 / np.linalg.norm(t1))) < 1e-9
-    surface = resting_surface_z(poses["unsure"].T_C_O, T_W_C, load_object("pistol"))[0]
+    surface = resting_surface_z(poses["unsure"].T_C_O, T_W_C, load_object("pistol"))
     assert abs(surface - support["surface_z"]) < 1e-6
     assert np.linalg.norm(t1) - np.linalg.norm(t0) > 0.02  # a lower surface: further away
     assert np.allclose(poses["off"].T_C_O, poses["sure"].T_C_O)
