@@ -78,6 +78,10 @@ weights: data
 	$(PY) -m perception.training.train_detector --also paper --limit 2500 --epochs 1 --lr 0.0005 \
 	  --init perception/weights/detector.pt --out $(CKPT)/detector_paper --export \
 	  --weights-out perception/weights/paper_protocol
+	$(PY) -m perception.training.train_detector --data $${POSEGRASP_DATA:-data}/paper --limit 10000 \
+	  --epochs 1 --lr 0.0003 --precision bf16 --channels-last \
+	  --init perception/weights/paper_protocol/detector.pt --out $(CKPT)/detector_paper2 --export \
+	  --weights-out perception/weights/paper_protocol
 	$(PY) -m perception.training.train_detector --data $${POSEGRASP_DATA:-data}/headcam_hard \
 	  --also headcam_any-pose,headcam --limit 3000 --epochs 3 --lr 0.0005 --precision bf16 \
 	  --channels-last --init perception/weights/detector.pt --out $(CKPT)/detector_tiers --export \
@@ -88,6 +92,8 @@ weights: data
 	  --export --weights-out perception/weights/tiers
 	$(PY) -m perception.training.train_masknet --epochs 3 --channels-last --out $(CKPT)/masknet \
 	  --export
+	$(PY) -m perception.training.train_masknet --protocol paper --epochs 8 --channels-last \
+	  --out $(CKPT)/masknet_paper --export
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record

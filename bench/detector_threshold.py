@@ -19,8 +19,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from perception.detector import Detector
-from perception.global_pose import TIERS_DETECTOR
+from perception.detector import TIERS_DETECTOR, Detector
 from perception.metrics import box_iou
 from perception.training.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json

@@ -28,6 +28,12 @@ from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR
 
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
+#: The detector fine-tuned on the tiers' scenes (any resting pose, partly hidden objects), in a
+#: folder with a manifest of its own; the estimators other than ``hybrid-global`` keep the
+#: head-camera one.
+TIERS_DETECTOR = WEIGHTS_DIR / "tiers" / "detector.pt"
+#: The detector of the paper's protocol: `DEFAULT_WEIGHTS` fine-tuned on its studio images too.
+PAPER_DETECTOR = WEIGHTS_DIR / "paper_protocol" / "detector.pt"
 REBUILD_HINT = (
     "rebuild it with `make weights` (or `python -m perception.training.train_detector --export`)"
 )

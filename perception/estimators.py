@@ -65,20 +65,21 @@ def _hybrid_global_table() -> PoseEstimator:
 
 def _hybrid_global_paper() -> PoseEstimator:
     """`hybrid-global` for the paper's protocol (256x256 studio images, random backgrounds): the
-    detector fine-tuned on those images and the `paper` variant's nets."""
+    detector fine-tuned on those images, the mask net trained on them and the `paper` variant's
+    nets."""
+    from perception.detector import PAPER_DETECTOR
     from perception.global_pose import GlobalConfig, GlobalPoseEstimator
     from perception.hybrid import PAPER_POSENET, HybridPoseEstimator
-    from posegrasp.core.paths import WEIGHTS_DIR
+    from perception.mask_net import PAPER_MASKNET, MaskRefiner
 
     hybrid = HybridPoseEstimator.from_weights(
-        detector_path=WEIGHTS_DIR / "paper_protocol" / "detector.pt",
-        posenet_path=PAPER_POSENET,
-        expert_paths=(),
+        detector_path=PAPER_DETECTOR, posenet_path=PAPER_POSENET, expert_paths=()
     )
     # No gravity in the paper's studio images: any orientation is as likely as any other. Every
     # start gets the full refinement first: the short screening run cost 3 deg here.
     config = GlobalConfig(resting_tilt_deg=None, screen_iterations=0, target_score=None)
-    return GlobalPoseEstimator(hybrid, config, name="hybrid-global-paper")
+    masks = MaskRefiner.from_weights(PAPER_MASKNET)
+    return GlobalPoseEstimator(hybrid, config, name="hybrid-global-paper", masks=masks)
 
 
 #: The detector fine-tuned on user objects, in the user objects directory.

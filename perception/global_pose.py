@@ -62,7 +62,7 @@ from perception.codebook import (
     top_hypotheses,
     verification_scores,
 )
-from perception.detector import Detection
+from perception.detector import TIERS_DETECTOR, Detection
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target, occluder_of
 from perception.mask_net import MaskRefiner
 from perception.overlay import mask_box
@@ -70,13 +70,9 @@ from perception.refine import PoseRefiner
 from perception.support import refine_on_support, resting_surface_z, snap_to_resting
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.core.paths import WEIGHTS_DIR, data_root
+from posegrasp.core.paths import data_root
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
-
-#: The detector fine-tuned on the tiers' scenes (any resting pose, partly hidden objects), in a
-#: folder with a manifest of its own; the other estimators keep the head-camera detector.
-TIERS_DETECTOR = WEIGHTS_DIR / "tiers" / "detector.pt"
 
 
 @dataclass(frozen=True)

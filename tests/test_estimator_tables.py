@@ -72,6 +72,11 @@ def test_every_visible_object_is_one_query_with_its_own_errors(split: Path) -> N
             assert r["rotation_deg"] == pytest.approx(rotation_error_deg(np.eye(3), G[:3, :3]))
             d = np.linalg.norm(G[:3, 3])
             assert r["distance_pct"] == pytest.approx(100 * abs(1.0 - d) / d)
+            # the centre in the crop's pixels: the pose nets' 64 px over 1.15 x the true
+            # visible box's longer side
+            box = next(o for o in ds[r["image"]].objects if o.name == r["object"]).box_xyxy
+            side = 1.15 * max(box[2] - box[0], box[3] - box[1])
+            assert r["centre_crop_px"] == pytest.approx(r["centre_px"] * 64 / side)
 
 
 def test_the_summary_counts_misses_and_outliers() -> None:
@@ -80,6 +85,7 @@ def test_the_summary_counts_misses_and_outliers() -> None:
             "object": "car",
             "found": True,
             "centre_px": 1.0,
+            "centre_crop_px": 0.5,
             "distance_pct": 2.0,
             "translation_pct": 3.0,
             "rotation_deg": 1.0,
@@ -89,6 +95,7 @@ def test_the_summary_counts_misses_and_outliers() -> None:
             "object": "car",
             "found": True,
             "centre_px": 3.0,
+            "centre_crop_px": 1.0,
             "distance_pct": 4.0,
             "translation_pct": 5.0,
             "rotation_deg": 30.0,
@@ -100,6 +107,7 @@ def test_the_summary_counts_misses_and_outliers() -> None:
     assert set(s) == {"car", "all"}
     car = s["car"]
     assert car["queries"] == 3 and car["found_pct"] == pytest.approx(200 / 3)
-    assert car["centre_px"] == 2.0 and car["rotation_mean_deg"] == 15.5
+    assert car["centre_px"] == 2.0 and car["centre_crop_px"] == 0.75
+    assert car["rotation_mean_deg"] == 15.5
     assert car["rotation_median_deg"] == 15.5 and car["over_15_deg_pct"] == 50.0
     assert car["median_ms"] == 20.0

@@ -15,7 +15,9 @@ import numpy as np
 from tqdm import tqdm
 
 from perception.geometry import project
+from perception.hybrid import DEFAULT_CROP_SCALE
 from perception.metrics import rotation_error_deg, translation_error_pct
+from perception.nets import CROP
 from perception.training.dataset import PoseDataset
 from posegrasp.core.contract import Observation, PoseEstimator
 from posegrasp.world.objects import OBJECT_NAMES
@@ -31,8 +33,10 @@ def query_errors(
 ) -> list[dict]:
     """One row per query of the test split under root (with `targets_only`, only each image's
     episode target where its record names one): object, image, ``found``, and when found
-    ``centre_px`` (the origin's pixel), ``distance_pct``, ``translation_pct``, ``rotation_deg``
-    and ``ms`` (the estimate's wall time)."""
+    ``centre_px`` (the origin's pixel), ``centre_crop_px`` (the same in pixels of the 64x64 crop
+    the pose nets would see on the true visible box: `DEFAULT_CROP_SCALE` times its longer side,
+    the unit of the paper's Tables 1-2), ``distance_pct``, ``translation_pct``,
+    ``rotation_deg`` and ``ms`` (the estimate's wall time)."""
     ds = PoseDataset(root, "test")
     n = len(ds) if limit is None else min(limit, len(ds))
     rows = []
@@ -55,8 +59,12 @@ def query_errors(
             }
             if est.T_C_O is not None:
                 T, G = est.T_C_O, obj.T_C_O
+                centre = float(np.linalg.norm(project(s.K, T[:3, 3]) - obj.uv))
+                x0, y0, x1, y1 = obj.box_xyxy
+                side = DEFAULT_CROP_SCALE * max(x1 - x0, y1 - y0)
                 row |= {
-                    "centre_px": float(np.linalg.norm(project(s.K, T[:3, 3]) - obj.uv)),
+                    "centre_px": centre,
+                    "centre_crop_px": centre * CROP / max(side, 1.0),
                     "distance_pct": float(
                         100
                         * abs(np.linalg.norm(T[:3, 3]) - np.linalg.norm(G[:3, 3]))
@@ -70,7 +78,7 @@ def query_errors(
 
 
 def summarise_queries(rows: list[dict]) -> dict[str, dict[str, float]]:
-    """Per object and ``all``: queries, found share [%], mean centre [px], distance and
+    """Per object and ``all``: queries, found share [%], mean centre [px and crop px], distance and
     translation [%], rotation mean and median [deg], share over `OUTLIER_DEG` [%] (of the found
     queries) and the median time per estimate [ms]."""
     out = {}
@@ -88,6 +96,7 @@ def summarise_queries(rows: list[dict]) -> dict[str, dict[str, float]]:
             "queries": len(sel),
             "found_pct": 100 * len(hit) / len(sel),
             "centre_px": mean("centre_px"),
+            "centre_crop_px": mean("centre_crop_px"),
             "distance_pct": mean("distance_pct"),
             "translation_pct": mean("translation_pct"),
             "rotation_mean_deg": mean("rotation_deg"),
@@ -101,13 +110,15 @@ def summarise_queries(rows: list[dict]) -> dict[str, dict[str, float]]:
 def format_summary(title: str, summary: dict[str, dict[str, float]]) -> str:
     """The summary as a plain-text table."""
     head = (
-        f"{'object':8s} {'queries':>7s} {'found %':>7s} {'centre px':>9s} {'dist %':>7s} "
+        f"{'object':8s} {'queries':>7s} {'found %':>7s} {'centre px':>9s} {'crop px':>7s} "
+        f"{'dist %':>7s} "
         f"{'trans %':>7s} {'rot mean':>8s} {'rot med':>7s} {'>15 %':>6s} {'ms':>6s}"
     )
     lines = [title, head]
     for name, m in summary.items():
         lines.append(
             f"{name:8s} {m['queries']:7d} {m['found_pct']:7.1f} {m['centre_px']:9.2f} "
+            f"{m['centre_crop_px']:7.2f} "
             f"{m['distance_pct']:7.2f} {m['translation_pct']:7.2f} {m['rotation_mean_deg']:8.2f} "
             f"{m['rotation_median_deg']:7.2f} {m['over_15_deg_pct']:6.1f} {m['median_ms']:6.0f}"
         )

@@ -30,8 +30,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from perception.detector import PAPER_DETECTOR
 from perception.mask_net import (
     DEFAULT_MASKNET,
+    PAPER_MASKNET,
     MaskNet,
     MaskNetConfig,
     MaskRefiner,
@@ -70,12 +72,45 @@ VAL_SOURCE = ("headcam_hard", 500)
 
 
 @dataclass(frozen=True)
+class Protocol:
+    """Which images a mask net is trained on, which detector's masks it redraws and where it
+    ships.
+
+    Attributes:
+        sources: (split folder, images) pairs of training scenes.
+        val: (split folder, images) of the validation scenes (their ``val`` split).
+        detector: the detector whose masks ``--evaluate`` measures it on (None: the tiers').
+        weights: where ``--export`` writes it.
+        heavy: that detector's masks also lose and gain whole parts, and its boxes are further
+            off: the coarse masks are drawn so (`degrade`'s `heavy`, `_jittered_window`'s
+            `spread`).
+    """
+
+    sources: tuple[tuple[str, int], ...]
+    val: tuple[str, int]
+    detector: Path | None
+    weights: Path
+    heavy: bool = False
+
+
+#: The mask nets by image protocol: the tiers' head-camera scenes (``hybrid-global``) and the
+#: paper's 256x256 studio images on random backgrounds (``hybrid-global-paper``), whose detector
+#: draws masks about 0.8 IoU from the truth (0.9 on the tiers): a tenth of the object missing or
+#: added at the median, a third at the 90th percentile.
+PROTOCOLS = {
+    "tiers": Protocol(DEFAULT_SOURCES, VAL_SOURCE, None, DEFAULT_MASKNET),
+    "paper": Protocol((("paper", 10000),), ("paper", 1000), PAPER_DETECTOR, PAPER_MASKNET, True),
+}
+
+
+@dataclass(frozen=True)
 class MaskTrainConfig:
     """One training run.
 
     Attributes:
         sources: (split folder, images) pairs of training scenes.
         val: (split folder, images) of the validation scenes (their ``val`` split).
+        heavy: coarse masks with whole parts lost and gained (`Protocol.heavy`).
         epochs, batch, lr: the schedule (one-cycle, AdamW).
         seed: of the windows' jitter, the batches' order and the coarse masks.
         precision, channels_last: the arithmetic (`perception.training.loop`).
@@ -85,6 +120,7 @@ class MaskTrainConfig:
 
     sources: tuple[tuple[str, int], ...] = DEFAULT_SOURCES
     val: tuple[str, int] = VAL_SOURCE
+    heavy: bool = False
     epochs: int = 3
     batch: int = 32
     lr: float = 2e-3
@@ -96,16 +132,16 @@ class MaskTrainConfig:
 
 
 def _jittered_window(
-    mask: np.ndarray, margin: float, rng: np.random.Generator
+    mask: np.ndarray, margin: float, rng: np.random.Generator, spread: float = 1.0
 ) -> tuple[int, int, int] | None:
-    """`window_of` the mask, its centre moved by up to ~5 % of its side and its side scaled by
-    ~8 % at random (a detector's box is a little off)."""
+    """`window_of` the mask, its centre moved by about `spread` x 5 % of its side and its side
+    scaled by about `spread` x 8 % at random (a detector's box is a little off)."""
     win = window_of(mask, margin)
     if win is None:
         return None
     x0, y0, side = win
-    new = max(8, round(side * math.exp(rng.normal(0, 0.08))))
-    dx, dy = rng.normal(0, 0.05 * side, 2)
+    new = max(8, round(side * math.exp(rng.normal(0, 0.08 * spread))))
+    dx, dy = rng.normal(0, 0.05 * spread * side, 2)
     return (
         round(x0 + (side - new) / 2 + dx),
         round(y0 + (side - new) / 2 + dy),
@@ -114,18 +150,22 @@ def _jittered_window(
 
 
 def build_cache(
-    folder: str, split: str, images: int, net: MaskNetConfig, seed: int
+    folder: str, split: str, images: int, net: MaskNetConfig, seed: int, spread: float = 1.0
 ) -> dict[str, np.ndarray]:
-    """The windows of the first `images` images of a split, cut once and kept in
-    ``$POSEGRASP_DATA/masknet``: ``rgb`` (N, S, S, 3) uint8, ``target`` (N, S, S) uint8 (the
-    true visible mask's coverage of each pixel, 0-255) and ``cls`` (N,) the class names.
+    """The windows of the first `images` images of a split (jittered by `spread`,
+    `_jittered_window`), cut once and kept in ``$POSEGRASP_DATA/masknet``: ``rgb`` (N, S, S, 3)
+    uint8, ``target`` (N, S, S) uint8 (the true visible mask's coverage of each pixel, 0-255)
+    and ``cls`` (N,) the class names.
 
     Raises:
         AssetError: the split is missing (the message names ``make data``).
     """
     root = data_root() / folder
     S = net.size
-    path = data_root() / "masknet" / f"{folder}_{split}_{images}_{S}_{net.margin}_{seed}.npz"
+    name = f"{folder}_{split}_{images}_{S}_{net.margin}_{seed}" + (
+        f"_{spread}" if spread != 1 else ""
+    )
+    path = data_root() / "masknet" / f"{name}.npz"
     if path.is_file():
         with np.load(path) as z:
             return {k: z[k] for k in z.files}
@@ -143,7 +183,7 @@ def build_cache(
         for obj in sample.objects:
             if int(obj.mask_visib.sum()) < MIN_VISIBLE_PX:
                 continue
-            win = _jittered_window(obj.mask_visib, net.margin, rng)
+            win = _jittered_window(obj.mask_visib, net.margin, rng, spread)
             assert win is not None
             rgbs.append(cut(sample.rgb, win, S))
             cover = cut(obj.mask_visib.astype(np.float32), win, S)
@@ -157,11 +197,38 @@ def build_cache(
     return cache
 
 
-def degrade(target: torch.Tensor, g: torch.Generator) -> torch.Tensor:
+def _lose_and_gain(coarse: torch.Tensor, g: torch.Generator) -> torch.Tensor:
+    """Coarse masks (B, 1, S, S) with, each with probability one half, a disc cut out of the
+    object and a disc of background added beside it: centred 0.5-1.3 of the object's radius
+    (that of a disc of its area) from its centre, in a random direction, with a radius of
+    0.3-0.8 of it."""
+    B, _, S, _ = coarse.shape
+    yy, xx = torch.meshgrid(torch.arange(S).float(), torch.arange(S).float(), indexing="ij")
+    draws = torch.rand(B, 2, 4, generator=g)
+    out = coarse.clone()
+    for b in range(B):
+        pixels = out[b, 0].nonzero().float()
+        if len(pixels) == 0:
+            continue
+        cy, cx = pixels.mean(0)
+        extent = math.sqrt(len(pixels) / math.pi)
+        for k, cut_out in enumerate((True, False)):
+            on, turn, away, size = (float(v) for v in draws[b, k])
+            if on < 0.5:
+                continue
+            angle, dist = 2 * math.pi * turn, extent * (0.5 + 0.8 * away)
+            y, x = cy + dist * math.sin(angle), cx + dist * math.cos(angle)
+            disc = (yy - y) ** 2 + (xx - x) ** 2 <= (extent * (0.3 + 0.5 * size)) ** 2
+            out[b, 0] = out[b, 0] * ~disc if cut_out else torch.maximum(out[b, 0], disc.float())
+    return out
+
+
+def degrade(target: torch.Tensor, g: torch.Generator, heavy: bool = False) -> torch.Tensor:
     """Coarse masks (B, S, S) in {0, 1} drawn from true coverages (B, S, S) in [0, 1], as the
     detector draws them: averaged onto a grid of 10-32 cells across the window and drawn back
     bilinearly, thresholded at 0.35-0.65, thin parts opened away (kernel 1, 3 or 5 px) in half
-    of them, shifted by up to 2 px."""
+    of them, shifted by up to 2 px. With `heavy`, whole parts are also lost and gained
+    (`_lose_and_gain`) before the shift, which goes up to 4 px."""
     B, S, _ = target.shape
     x = target[:, None].float()
     out = torch.empty_like(x)
@@ -184,7 +251,10 @@ def degrade(target: torch.Tensor, g: torch.Generator) -> torch.Tensor:
         sub = coarse[opened]
         eroded = -torch.nn.functional.max_pool2d(-sub, kernel, 1, pad)
         coarse[opened] = torch.nn.functional.max_pool2d(eroded, kernel, 1, pad)
-    dx, dy = (int(v) for v in torch.randint(-2, 3, (2,), generator=g))
+    if heavy:
+        coarse = _lose_and_gain(coarse, g)
+    reach = 4 if heavy else 2
+    dx, dy = (int(v) for v in torch.randint(-reach, reach + 1, (2,), generator=g))
     return torch.roll(coarse[:, 0], shifts=(dy, dx), dims=(1, 2))
 
 
@@ -196,7 +266,9 @@ def _iou(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
 
 
 @torch.inference_mode()
-def validate(net: MaskNet, val: dict[str, np.ndarray], seed: int) -> dict[str, float]:
+def validate(
+    net: MaskNet, val: dict[str, np.ndarray], seed: int, heavy: bool = False
+) -> dict[str, float]:
     """Mean IoU with the true mask (coverage >= 0.5) of the degraded input and of the net's
     mask, on the validation windows (their coarse masks seeded, the same every epoch)."""
     net.eval()
@@ -204,7 +276,7 @@ def validate(net: MaskNet, val: dict[str, np.ndarray], seed: int) -> dict[str, f
     before, after = [], []
     for i in range(0, len(val["rgb"]), 256):
         t = torch.as_tensor(val["target"][i : i + 256]).float() / 255
-        coarse = degrade(t, g)
+        coarse = degrade(t, g, heavy)
         logits = net(net_input(val["rgb"][i : i + 256], coarse.numpy()))[:, 0]
         truth = t >= 0.5
         before.append(_iou(coarse >= 0.5, truth))
@@ -225,9 +297,10 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
             batch (its schedule would change under it).
     """
     seed_torch(cfg.seed, None)
-    parts = [build_cache(f, "train", n, cfg.net, cfg.seed) for f, n in cfg.sources]
+    spread = 2.0 if cfg.heavy else 1.0
+    parts = [build_cache(f, "train", n, cfg.net, cfg.seed, spread) for f, n in cfg.sources]
     tr = {k: np.concatenate([p[k] for p in parts]) for k in ("rgb", "target")}
-    val = build_cache(cfg.val[0], "val", cfg.val[1], cfg.net, cfg.seed)
+    val = build_cache(cfg.val[0], "val", cfg.val[1], cfg.net, cfg.seed, spread)
     net = MaskNet(cfg.net)
     if cfg.channels_last:
         net = net.to(memory_format=torch.channels_last)
@@ -280,14 +353,16 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
         bar = tqdm(range(steps_per_epoch), desc=f"mask net epoch {epoch + 1}/{cfg.epochs}")
         for b in bar:
             if b < step - epoch * steps_per_epoch:  # done before the resume: only the coarse
-                degrade(torch.zeros(cfg.batch, 1, 1), g)  # masks' draws, which the data never
+                degrade(
+                    torch.zeros(cfg.batch, 1, 1), g, cfg.heavy
+                )  # masks' draws, which the data never
                 continue  # changes, so the steps after it draw as an unstopped run's did
             if max_steps is not None and step >= max_steps:
                 ckpts.save(epoch)
                 return read_checkpoint(last)
             idx = np.sort(order[b * cfg.batch : (b + 1) * cfg.batch])
             t = torch.as_tensor(tr["target"][idx]).float() / 255
-            x = net_input(tr["rgb"][idx], degrade(t, g).numpy())
+            x = net_input(tr["rgb"][idx], degrade(t, g, cfg.heavy).numpy())
             if cfg.channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             with autocast(cfg.precision, device):
@@ -302,7 +377,7 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
                 bar.set_postfix(loss=f"{loss.item():.4f}")
             ckpts.save_if_due(epoch)
         epoch += 1
-        history.append({"epoch": epoch, "step": step, **validate(net, val, cfg.seed)})
+        history.append({"epoch": epoch, "step": step, **validate(net, val, cfg.seed, cfg.heavy)})
         print(f"epoch {epoch}: {history[-1]}", flush=True)
         ckpts.save(epoch)
     return read_checkpoint(last)
@@ -339,17 +414,19 @@ def export(cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET)
 
 
 def evaluate(
-    split: str, images: int, folder: str = "headcam_hard", examples: list | None = None
+    split: str, images: int, protocol: str = "tiers", examples: list | None = None
 ) -> dict[str, Any]:
-    """The detector's masks of the `images` first images of a split (every visible object it
-    finds, mask IoU >= 0.5 with the truth) against the mask net's, by IoU with the true visible
-    mask, per class and overall. `examples`, when given, receives the first object of each
-    class: (name, image window, detector's, mask net's and true mask in it, both IoUs)."""
-    from perception.detector import Detector
-    from perception.global_pose import TIERS_DETECTOR
+    """The protocol's detector's masks of the `images` first images of a split of its
+    validation folder (every visible object it finds, mask IoU >= 0.5 with the truth) against
+    its shipped mask net's, by IoU with the true visible mask, per class and overall.
+    `examples`, when given, receives the first object of each class: (name, image window,
+    detector's, mask net's and true mask in it, both IoUs)."""
+    from perception.detector import TIERS_DETECTOR, Detector
 
-    detector = Detector.from_weights(TIERS_DETECTOR)
-    refiner = MaskRefiner.from_weights()
+    proto = PROTOCOLS[protocol]
+    folder = proto.val[0]
+    detector = Detector.from_weights(proto.detector or TIERS_DETECTOR)
+    refiner = MaskRefiner.from_weights(proto.weights)
     data = PoseDataset(data_root() / folder, split)
     rows: list[tuple[str, float, float]] = []
     spent = 0.0
@@ -433,7 +510,14 @@ def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="python -m perception.training.train_masknet", description=__doc__)
     add_schedule_arguments(p, 3, 32, 2e-3, "the training windows", " of windows")
     add_arithmetic_arguments(p, "bf16", "the net and its inputs")
-    p.add_argument("--out", type=Path, default=MaskTrainConfig.out, help="checkpoint folder")
+    p.add_argument(
+        "--protocol",
+        type=arg(check_choice, tuple(PROTOCOLS), "protocol"),
+        default="tiers",
+        help="the images and detector: tiers (the head camera's scenes, hybrid-global) or paper "
+        "(the paper's studio images, hybrid-global-paper) (default tiers)",
+    )
+    p.add_argument("--out", type=Path, default=None, help="checkpoint folder")
     p.add_argument("--no-resume", action="store_true", help="start over")
     p.add_argument("--export", action="store_true", help="write the shipped net when done")
     p.add_argument(
@@ -451,7 +535,8 @@ def main(argv: list[str] | None = None) -> int:
         "--images",
         type=arg(check_int, 1, 100_000, "--images", base=int),
         default=300,
-        help="with --evaluate: images of the hard tier's split, 1..100000 (default 300)",
+        help="with --evaluate: images of the protocol's split (the hard tier's, the paper's), "
+        "1..100000 (default 300)",
     )
     p.add_argument("--json", default=None, help="with --evaluate: write the figures here")
     p.add_argument(
@@ -464,7 +549,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(2)
     if args.evaluate:
         examples: list | None = [] if args.plot else None
-        report = evaluate(args.split, args.images, examples=examples)
+        report = evaluate(args.split, args.images, args.protocol, examples=examples)
         print(
             f"{report['split']}: {report['objects']} objects, mask IoU with the truth: detector "
             f"{report['detector_iou']:.3f}, refined {report['refined_iou']:.3f} (better for "
@@ -479,20 +564,27 @@ def main(argv: list[str] | None = None) -> int:
         if args.plot and examples:
             plot_examples(examples, args.plot)
         return 0
+    proto = PROTOCOLS[args.protocol]
+    default_out = MaskTrainConfig.out.with_name(
+        "masknet" + ("" if args.protocol == "tiers" else f"_{args.protocol}")
+    )
     cfg = replace(
         MaskTrainConfig(),
+        sources=proto.sources,
+        val=proto.val,
+        heavy=proto.heavy,
         epochs=args.epochs,
         batch=args.batch,
         lr=args.lr,
         precision=args.precision,
         channels_last=args.channels_last,
-        out=args.out,
+        out=args.out or default_out,
     )
     train(cfg, resume=not args.no_resume)
     if args.export:
         line = "python -m perception.training.train_masknet " + shlex.join(sys.argv[1:])
-        entry = export(cfg, line.strip())
-        print(f"wrote {DEFAULT_MASKNET} ({entry['bytes']} bytes)")
+        entry = export(cfg, line.strip(), proto.weights)
+        print(f"wrote {proto.weights} ({entry['bytes']} bytes)")
     return 0
 
 
