@@ -92,7 +92,7 @@ weights: data
 	  --export --weights-out perception/weights/tiers
 	$(PY) -m perception.training.train_masknet --epochs 3 --channels-last --out $(CKPT)/masknet \
 	  --export
-	$(PY) -m perception.training.train_masknet --protocol paper --epochs 8 --channels-last \
+	$(PY) -m perception.training.train_masknet --protocol paper --epochs 6 --channels-last \
 	  --out $(CKPT)/masknet_paper --export
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record

@@ -170,7 +170,7 @@ def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) ->
     stages = entries["detector.pt"]["stages"]
     assert "--also paper" in stages[0]["command"] and "--data data/paper" in stages[-1]["command"]
     assert "--protocol paper" in entries["masknet.pt"]["command"]
-    assert entries["masknet.pt"]["data_seeds"]["sources"] == {"paper": 10000}
+    assert entries["masknet.pt"]["data_seeds"]["sources"] == {"paper": 30000}
     # So has hybrid-global's detector, fine-tuned on the tiers' scenes from the shipped one,
     # whose stages it records.
     tiers = WEIGHTS_DIR / "tiers"

@@ -95,11 +95,11 @@ class Protocol:
 
 #: The mask nets by image protocol: the tiers' head-camera scenes (``hybrid-global``) and the
 #: paper's 256x256 studio images on random backgrounds (``hybrid-global-paper``), whose detector
-#: draws masks about 0.8 IoU from the truth (0.9 on the tiers): a tenth of the object missing or
-#: added at the median, a third at the 90th percentile.
+#: misses whole parts of an object and takes in background beside it (docs/DESIGN.md §7, "Mask
+#: refinement").
 PROTOCOLS = {
     "tiers": Protocol(DEFAULT_SOURCES, VAL_SOURCE, None, DEFAULT_MASKNET),
-    "paper": Protocol((("paper", 10000),), ("paper", 1000), PAPER_DETECTOR, PAPER_MASKNET, True),
+    "paper": Protocol((("paper", 30000),), ("paper", 1000), PAPER_DETECTOR, PAPER_MASKNET, True),
 }
 
 
