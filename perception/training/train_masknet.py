@@ -1,19 +1,23 @@
-"""Train the mask net (`perception.mask_net`) on the tiers' rendered scenes, and measure it on
-held-out images with the detector's own masks.
+"""Train the mask net (`perception.mask_net`) on rendered scenes, and measure it on held-out
+images with the detector's own masks: the tiers' (``--protocol tiers``, the default) or the paper
+protocol's (``--protocol paper``; `PROTOCOLS`).
 
     python -m perception.training.train_masknet --epochs 3 --channels-last --export
     python -m perception.training.train_masknet --evaluate --split test --images 300
+    python -m perception.training.train_masknet --protocol paper --epochs 6 --channels-last --export
 
 Each visible object of a training image (at least `MIN_VISIBLE_PX` visible pixels) gives one
 window around its true visible mask, its centre and side jittered as a detector's box would be.
 The windows are cut once into a cache (``$POSEGRASP_DATA/masknet``). The coarse input is drawn on
 the batch from the true mask (`degrade`): averaged onto a coarse grid and drawn back, thresholded
-at a random level, its thin parts opened away at random, shifted by a pixel or two. The loss is
-the binary cross-entropy with the true mask's coverage of each window pixel.
+at a random level, its thin parts opened away at random, shifted by a pixel or two, and for the
+paper protocol also with whole parts lost and gained. The loss is the binary cross-entropy with
+the true mask's coverage of each window pixel.
 
 A run checkpoints after every epoch and every few minutes (``--out``) and resumes from there;
-``--export`` writes ``perception/weights/tiers/masknet.pt`` and its manifest entry (``mask_net``:
-command, data, validation, wall time).
+``--export`` writes the protocol's net (``perception/weights/tiers/masknet.pt``,
+``perception/weights/paper_protocol/masknet.pt``) and its manifest entry (``mask_net``: command,
+data, validation, wall time).
 """
 
 from __future__ import annotations
@@ -352,11 +356,11 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
         net.train()
         bar = tqdm(range(steps_per_epoch), desc=f"mask net epoch {epoch + 1}/{cfg.epochs}")
         for b in bar:
-            if b < step - epoch * steps_per_epoch:  # done before the resume: only the coarse
-                degrade(
-                    torch.zeros(cfg.batch, 1, 1), g, cfg.heavy
-                )  # masks' draws, which the data never
-                continue  # changes, so the steps after it draw as an unstopped run's did
+            if b < step - epoch * steps_per_epoch:
+                # Done before the resume: only the coarse masks' draws, which the data never
+                # changes, so the steps after it draw as an unstopped run's did.
+                degrade(torch.zeros(cfg.batch, 1, 1), g, cfg.heavy)
+                continue
             if max_steps is not None and step >= max_steps:
                 ckpts.save(epoch)
                 return read_checkpoint(last)
