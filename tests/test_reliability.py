@@ -403,6 +403,8 @@ BENCH_REJECTIONS = [
     ("sim_speed", ["--sim-seconds", "nan"], "numbers 0.01..3600"),
     ("datagen_speed", ["--workers", "0"], "1..64"),
     ("evaluate_speed", ["--estimator", "magic"], "valid estimators: oracle"),
+    ("mask_choice", ["--estimator", "hybrid"], "valid estimators: hybrid-global,"),
+    ("mask_choice", ["--images", "0"], "1..100000"),
 ]
 
 

@@ -1,0 +1,132 @@
+"""What the mask costs the choice of pose: the whole search, with the redrawn mask and with the true
+one.
+
+    python bench/mask_choice.py [--estimator hybrid-global] [--split headcam_hard] [--subset test]
+        [--images 100] [--targets] [--json PATH]
+
+For every visible object of the first images (at least half visible; with ``--targets`` only each
+image's episode target) that the estimator's detector finds, its hypotheses are drawn, refined and
+verified (`GlobalPoseEstimator.verify`, the camera's pose giving gravity where the estimator uses
+it) twice: against the mask net's redrawing of the detector's mask, as the estimator runs, and
+against the true visible mask. The difference between the two rotation errors is what the mask
+costs the choice; what is left with the true mask is what the hypotheses and the verification
+cost. The support from the neighbours is not run; a detection no start of which gives a pose
+counts as 180 deg.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+
+import numpy as np
+from tqdm import tqdm
+
+from perception.estimators import LEARNED_ESTIMATORS
+from perception.global_pose import GlobalPoseEstimator
+from perception.hybrid import detect_target, occluder_of
+from perception.metrics import mask_iou, rotation_error_deg
+from perception.training.dataset import PoseDataset
+from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
+from posegrasp.core.contract import Observation
+from posegrasp.core.paths import data_root
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_choice, check_int
+
+#: The estimators that search hypotheses and verify them.
+ESTIMATORS = ("hybrid-global", "hybrid-global-paper")
+MASKS = ("mask net", "truth")
+#: Objects less visible than this are not queried (as in the estimator tables).
+MIN_VISIB = 0.5
+#: Rotation errors above this count as outliers [deg].
+OUTLIER_DEG = 15.0
+
+
+def _summary(errors: np.ndarray) -> dict[str, float]:
+    return {
+        "rotation_mean_deg": float(errors.mean()),
+        "rotation_median_deg": float(np.median(errors)),
+        "over_15_deg_pct": float(100 * np.mean(errors > OUTLIER_DEG)),
+    }
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(prog="python bench/mask_choice.py", description=__doc__.split("\n")[0])
+    p.add_argument(
+        "--estimator",
+        type=arg(check_choice, ESTIMATORS, "estimator"),
+        default="hybrid-global",
+        help=f"one of: {', '.join(ESTIMATORS)} (default hybrid-global)",
+    )
+    p.add_argument("--split", default="headcam_hard", help="dataset folder under the data root")
+    p.add_argument("--subset", default="test", help="the split's subset (default test)")
+    p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=100)
+    p.add_argument("--targets", action="store_true", help="only each image's episode target")
+    add_json_argument(p, "the errors per object and mask")
+    args = p.parse_args(argv)
+    setup_rendering(threads=1)
+    est = LEARNED_ESTIMATORS[args.estimator]()
+    assert isinstance(est, GlobalPoseEstimator)
+    gravity = est.config.resting_tilt_deg is not None
+    ds = PoseDataset(data_root() / args.split, args.subset)
+    rows: list[tuple[str, float, float, float]] = []  # object, IoU, error with each mask
+    for i in tqdm(range(min(args.images, len(ds))), desc="masks and choice", mininterval=5):
+        s = ds[i]
+        T_W_C = np.asarray(s.extra.get("T_W_C", np.eye(4)), float)
+        for obj in s.objects:
+            if obj.visib_fract < MIN_VISIB or obj.T_C_O[2, 3] <= 0:
+                continue
+            if args.targets and obj.name != s.extra.get("target", obj.name):
+                continue
+            obs = Observation(s.rgb, s.K, T_W_C, obj.name, int(s.seed))
+            found = detect_target(est.hybrid, obs, est.config.target_score, False)
+            if found.best is None:
+                continue
+            occluder = occluder_of([*found.found, *found.others], found.best)
+            sharp = est.sharpened(found.best, s.rgb)
+            errors = []
+            for mask in (sharp.mask, obj.mask_visib):
+                ranked, _ = est.verify(
+                    replace(found.best, mask=mask),
+                    s.K,
+                    s.rgb,
+                    occluder,
+                    T_W_C[:3, :3] if gravity else None,
+                )
+                T = ranked[0].T_C_O if ranked else None
+                errors.append(
+                    rotation_error_deg(T[:3, :3], obj.T_C_O[:3, :3]) if T is not None else 180.0
+                )
+            rows.append((obj.name, mask_iou(sharp.mask, obj.mask_visib), *errors))
+    if not rows:
+        print(f"{args.split}/{args.subset}: no object detected")
+        return 0
+    names = sorted({r[0] for r in rows})
+    report: dict = {"split": f"{args.split}/{args.subset}", "estimator": args.estimator}
+    print(f"{args.estimator} on {args.split}/{args.subset}: {len(rows)} detected objects")
+    print(
+        f"{'object':8s} {'n':>4s} {'mask IoU':>8s}   "
+        + "   ".join(f"{m + ': mean / median / > 15 %':>34s}" for m in MASKS)
+    )
+    for name in (*names, "all"):
+        sel = [r for r in rows if name in ("all", r[0])]
+        entry = {"objects": len(sel), "mask_iou": float(np.mean([r[1] for r in sel]))}
+        cells = []
+        for k, m in enumerate(MASKS):
+            entry[m] = _summary(np.array([r[2 + k] for r in sel]))
+            e = entry[m]
+            cells.append(
+                f"{e['rotation_mean_deg']:14.2f} / {e['rotation_median_deg']:6.2f} / "
+                f"{e['over_15_deg_pct']:5.1f}"
+            )
+        report[name] = entry
+        print(f"{name:8s} {len(sel):4d} {entry['mask_iou']:8.3f}   " + "   ".join(cells))
+    if args.json is not None:
+        write_json(args.json, report)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
