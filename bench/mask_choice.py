@@ -24,9 +24,10 @@ from tqdm import tqdm
 
 from perception.estimators import LEARNED_ESTIMATORS
 from perception.global_pose import GlobalPoseEstimator
-from perception.hybrid import detect_target, occluder_of
+from perception.hybrid import detect_target
 from perception.metrics import mask_iou, rotation_error_deg
 from perception.training.dataset import PoseDataset
+from perception.training.estimator_tables import MIN_VISIB, OUTLIER_DEG
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
 from posegrasp.core.paths import data_root
@@ -36,10 +37,6 @@ from posegrasp.core.validate import arg, check_choice, check_int
 #: The estimators that search hypotheses and verify them.
 ESTIMATORS = ("hybrid-global", "hybrid-global-paper")
 MASKS = ("mask net", "truth")
-#: Objects less visible than this are not queried (as in the estimator tables).
-MIN_VISIB = 0.5
-#: Rotation errors above this count as outliers [deg].
-OUTLIER_DEG = 15.0
 
 
 def _summary(errors: np.ndarray) -> dict[str, float]:
@@ -84,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
             found = detect_target(est.hybrid, obs, est.config.target_score, False)
             if found.best is None:
                 continue
-            occluder = occluder_of([*found.found, *found.others], found.best)
+            occluder = found.occluder()
             sharp = est.sharpened(found.best, s.rgb)
             errors = []
             for mask in (sharp.mask, obj.mask_visib):

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from perception.crops import square_box
 from perception.geometry import project
 from perception.hybrid import DEFAULT_CROP_SCALE
 from perception.metrics import rotation_error_deg, translation_error_pct
@@ -60,8 +61,7 @@ def query_errors(
             if est.T_C_O is not None:
                 T, G = est.T_C_O, obj.T_C_O
                 centre = float(np.linalg.norm(project(s.K, T[:3, 3]) - obj.uv))
-                x0, y0, x1, y1 = obj.box_xyxy
-                side = DEFAULT_CROP_SCALE * max(x1 - x0, y1 - y0)
+                side = square_box(obj.box_xyxy, DEFAULT_CROP_SCALE)[2]
                 row |= {
                     "centre_px": centre,
                     "centre_crop_px": centre * CROP / max(side, 1.0),
