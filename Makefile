@@ -33,7 +33,7 @@ bench: setup
 DATA_COUNTS := paper:train:40000 paper:val:1000 paper:test:1000 \
 	headcam:train:160000 headcam:val:500 headcam:test:500
 # Head-camera test scenes of the tiers (folders headcam_<tier>), for accuracy per tier.
-TIER_COUNTS := hard:train:9000 hard:val:300 hard:test:500 clutter:test:300 any-pose:test:300 \
+TIER_COUNTS := hard:train:9000 hard:val:500 hard:test:500 clutter:test:300 any-pose:test:300 \
 	any-pose:train:3000 far:train:20000 far:val:300 far:test:300
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
@@ -90,7 +90,7 @@ weights: data
 	  --also headcam_any-pose,headcam --limit 9000 --epochs 1 --lr 0.0003 --precision bf16 \
 	  --channels-last --init perception/weights/tiers/detector.pt --out $(CKPT)/detector_tiers2 \
 	  --export --weights-out perception/weights/tiers
-	$(PY) -m perception.training.train_masknet --epochs 3 --channels-last --out $(CKPT)/masknet \
+	$(PY) -m perception.training.train_masknet --epochs 5 --channels-last --out $(CKPT)/masknet \
 	  --export
 	$(PY) -m perception.training.train_masknet --protocol paper --epochs 6 --channels-last \
 	  --out $(CKPT)/masknet_paper --export

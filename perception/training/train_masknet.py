@@ -2,7 +2,7 @@
 images with the detector's own masks: the tiers' (``--protocol tiers``, the default) or the paper
 protocol's (``--protocol paper``; `PROTOCOLS`).
 
-    python -m perception.training.train_masknet --epochs 3 --channels-last --export
+    python -m perception.training.train_masknet --epochs 5 --channels-last --export
     python -m perception.training.train_masknet --evaluate --split test --images 300
     python -m perception.training.train_masknet --protocol paper --epochs 6 --channels-last --export
 
@@ -10,8 +10,8 @@ Each visible object of a training image (at least `MIN_VISIBLE_PX` visible pixel
 window around its true visible mask, its centre and side jittered as a detector's box would be.
 The windows are cut once into a cache (``$POSEGRASP_DATA/masknet``). The coarse input is drawn on
 the batch from the true mask (`degrade`): averaged onto a coarse grid and drawn back, thresholded
-at a random level, its thin parts opened away at random, shifted by a pixel or two, and for the
-paper protocol also with whole parts lost and gained. The loss is the binary cross-entropy with
+at a random level, its thin parts opened away at random, with whole parts lost and gained, and
+shifted by a few pixels. The loss is the binary cross-entropy with
 the true mask's coverage of each window pixel.
 
 A run checkpoints after every epoch and every few minutes (``--out``) and resumes from there;
@@ -71,7 +71,7 @@ from posegrasp.core.validate import arg, check_choice, check_int, check_plot_pat
 #: Objects with fewer visible pixels give no training window.
 MIN_VISIBLE_PX = 100
 #: The splits a run trains on by default and how many images of each.
-DEFAULT_SOURCES = (("headcam_hard", 6000), ("headcam_any-pose", 2000), ("headcam", 2000))
+DEFAULT_SOURCES = (("headcam_hard", 9000), ("headcam_any-pose", 3000), ("headcam", 3000))
 VAL_SOURCE = ("headcam_hard", 500)
 
 
@@ -97,12 +97,12 @@ class Protocol:
     heavy: bool = False
 
 
-#: The mask nets by image protocol: the tiers' head-camera scenes (``hybrid-global``) and the
-#: paper's 256x256 studio images on random backgrounds (``hybrid-global-paper``), whose detector
-#: misses whole parts of an object and takes in background beside it (docs/DESIGN.md §7, "Mask
-#: refinement").
+#: The mask nets by image protocol: the tiers' head-camera scenes (``hybrid-global``), whose
+#: detector takes in part of an occluder and drops thin parts, and the paper's 256x256 studio
+#: images on random backgrounds (``hybrid-global-paper``), whose detector misses whole parts of
+#: an object and takes in background beside it (docs/DESIGN.md §7, "Mask refinement").
 PROTOCOLS = {
-    "tiers": Protocol(DEFAULT_SOURCES, VAL_SOURCE, None, DEFAULT_MASKNET),
+    "tiers": Protocol(DEFAULT_SOURCES, VAL_SOURCE, None, DEFAULT_MASKNET, True),
     "paper": Protocol((("paper", 30000),), ("paper", 1000), PAPER_DETECTOR, PAPER_MASKNET, True),
 }
 
