@@ -146,6 +146,8 @@ def test_unlisted_files_load_and_an_entry_without_hash_fails_closed(weights_copy
 
 
 def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) -> None:
+    from perception.training.train_masknet import PROTOCOLS
+
     manifest = json.loads(MANIFEST.read_text())
     entries = integrity.manifest_entries(manifest)
     # Every shipped file is listed, and nothing else.
@@ -170,7 +172,7 @@ def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) ->
     stages = entries["detector.pt"]["stages"]
     assert "--also paper" in stages[0]["command"] and "--data data/paper" in stages[-1]["command"]
     assert "--protocol paper" in entries["masknet.pt"]["command"]
-    assert entries["masknet.pt"]["data_seeds"]["sources"] == {"paper": 30000}
+    assert entries["masknet.pt"]["data_seeds"]["sources"] == dict(PROTOCOLS["paper"].sources)
     # So has hybrid-global's detector, fine-tuned on the tiers' scenes from the shipped one,
     # whose stages it records.
     tiers = WEIGHTS_DIR / "tiers"
@@ -186,6 +188,8 @@ def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) ->
     mask_net = entries["masknet.pt"]
     assert mask_net["command"].startswith("python -m perception.training.train_masknet")
     assert mask_net["wall_s"] > 0 and mask_net["validation"]["iou"] > 0.9
+    # trained on what the trainer's tiers protocol names (the command `make weights` runs)
+    assert mask_net["data_seeds"]["sources"] == dict(PROTOCOLS["tiers"].sources)
     total = sum(p.stat().st_size for p in WEIGHTS_DIR.rglob("*.pt"))
     assert total <= 30e6, f"the shipped weights total {total / 1e6:.1f} MB, over 30 MB"
     f = tmp_path / "w.bin"
