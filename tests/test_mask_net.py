@@ -93,7 +93,8 @@ def test_the_net_keeps_its_window_size() -> None:
 
 def test_the_shipped_net_gives_back_the_outline_a_coarse_mask_lost() -> None:
     """A coloured box with a thin leg on a textured table: the detector-like coarse mask (drawn
-    on a 14-cell grid, most of the leg lost) is redrawn closer to the truth, leg included."""
+    on a 14-cell grid, most of the leg lost) is redrawn closer to the truth with nearly all of
+    the leg (and a little of the coarse mask's blur beside it)."""
     rng = np.random.default_rng(0)
     rgb = np.clip(rng.normal(150, 12, (480, 640, 3)), 0, 255).astype(np.uint8)
     truth = np.zeros((480, 640), bool)
@@ -109,10 +110,11 @@ def test_the_shipped_net_gives_back_the_outline_a_coarse_mask_lost() -> None:
     refiner = MaskRefiner.from_weights()
     sharp = refiner.refine(rgb, coarse)
     assert _iou(sharp, truth) > _iou(coarse, truth) + 0.05
-    assert _iou(sharp, truth) > 0.93
+    assert _iou(sharp, truth) > 0.9
     leg = np.zeros_like(truth)
     leg[245:275, 284:292] = True
     assert np.count_nonzero(sharp & leg) > 2 * np.count_nonzero(coarse & leg)
+    assert np.count_nonzero(sharp & leg) > 0.9 * np.count_nonzero(leg)
     with pytest.raises(InvalidArgumentError, match="bool mask"):
         refiner.refine(rgb, coarse.astype(np.uint8))
 
