@@ -27,7 +27,7 @@ from perception.global_pose import GlobalPoseEstimator
 from perception.hybrid import detect_target
 from perception.metrics import mask_iou, rotation_error_deg
 from perception.training.dataset import PoseDataset
-from perception.training.estimator_tables import MIN_VISIB, OUTLIER_DEG
+from perception.training.estimator_tables import MIN_VISIB, rotation_summary
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
 from posegrasp.core.paths import data_root
@@ -37,14 +37,6 @@ from posegrasp.core.validate import arg, check_choice, check_int
 #: The estimators that search hypotheses and verify them.
 ESTIMATORS = ("hybrid-global", "hybrid-global-paper")
 MASKS = ("mask net", "truth")
-
-
-def _summary(errors: np.ndarray) -> dict[str, float]:
-    return {
-        "rotation_mean_deg": float(errors.mean()),
-        "rotation_median_deg": float(np.median(errors)),
-        "over_15_deg_pct": float(100 * np.mean(errors > OUTLIER_DEG)),
-    }
 
 
 @command
@@ -112,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         entry = {"objects": len(sel), "mask_iou": float(np.mean([r[1] for r in sel]))}
         cells = []
         for k, m in enumerate(MASKS):
-            entry[m] = _summary(np.array([r[2 + k] for r in sel]))
+            entry[m] = rotation_summary(np.array([r[2 + k] for r in sel]))
             e = entry[m]
             cells.append(
                 f"{e['rotation_mean_deg']:14.2f} / {e['rotation_median_deg']:6.2f} / "

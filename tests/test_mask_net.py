@@ -64,7 +64,7 @@ def test_the_coarse_training_masks_are_binary_and_lose_thin_parts() -> None:
 
 
 def test_the_heavy_coarse_masks_also_lose_and_gain_whole_parts() -> None:
-    """With `heavy` (the paper protocol's detector), a disc's coarse masks are still 0/1 and
+    """With `heavy` (as both protocols train), a disc's coarse masks are still 0/1 and
     seeded, but some lose a part of the disc far beyond the light masks' thin-part losses and
     some gain background well outside it."""
     S = 96

@@ -77,6 +77,19 @@ def query_errors(
     return rows
 
 
+def rotation_summary(errors: np.ndarray) -> dict[str, float]:
+    """Mean and median [deg] and the share over `OUTLIER_DEG` [%] of rotation errors (NaN when
+    there are none)."""
+    if len(errors) == 0:
+        nan = float("nan")
+        return {"rotation_mean_deg": nan, "rotation_median_deg": nan, "over_15_deg_pct": nan}
+    return {
+        "rotation_mean_deg": float(np.mean(errors)),
+        "rotation_median_deg": float(np.median(errors)),
+        "over_15_deg_pct": float(100 * np.mean(errors > OUTLIER_DEG)),
+    }
+
+
 def summarise_queries(rows: list[dict]) -> dict[str, dict[str, float]]:
     """Per object and ``all``: queries, found share [%], mean centre [px and crop px], distance and
     translation [%], rotation mean and median [deg], share over `OUTLIER_DEG` [%] (of the found
@@ -99,9 +112,7 @@ def summarise_queries(rows: list[dict]) -> dict[str, dict[str, float]]:
             "centre_crop_px": mean("centre_crop_px"),
             "distance_pct": mean("distance_pct"),
             "translation_pct": mean("translation_pct"),
-            "rotation_mean_deg": mean("rotation_deg"),
-            "rotation_median_deg": float(np.median(rot)) if hit else float("nan"),
-            "over_15_deg_pct": float(100 * np.mean(rot > OUTLIER_DEG)) if hit else float("nan"),
+            **rotation_summary(rot),
             "median_ms": float(np.median([r["ms"] for r in sel])),
         }
     return out

@@ -11,8 +11,8 @@ window around its true visible mask, its centre and side jittered as a detector'
 The windows are cut once into a cache (``$POSEGRASP_DATA/masknet``). The coarse input is drawn on
 the batch from the true mask (`degrade`): averaged onto a coarse grid and drawn back, thresholded
 at a random level, its thin parts opened away at random, with whole parts lost and gained, and
-shifted by a few pixels. The loss is the binary cross-entropy with
-the true mask's coverage of each window pixel.
+shifted by a few pixels. The loss is the binary cross-entropy with the true mask's coverage of
+each window pixel.
 
 A run checkpoints after every epoch and every few minutes (``--out``) and resumes from there;
 ``--export`` writes the protocol's net (``perception/weights/tiers/masknet.pt``,
@@ -85,16 +85,12 @@ class Protocol:
         val: (split folder, images) of the validation scenes (their ``val`` split).
         detector: the detector whose masks ``--evaluate`` measures it on (None: the tiers').
         weights: where ``--export`` writes it.
-        heavy: that detector's masks also lose and gain whole parts, and its boxes are further
-            off: the coarse masks are drawn so (`degrade`'s `heavy`, `_jittered_window`'s
-            `spread`).
     """
 
     sources: tuple[tuple[str, int], ...]
     val: tuple[str, int]
     detector: Path | None
     weights: Path
-    heavy: bool = False
 
 
 #: The mask nets by image protocol: the tiers' head-camera scenes (``hybrid-global``), whose
@@ -102,8 +98,8 @@ class Protocol:
 #: images on random backgrounds (``hybrid-global-paper``), whose detector misses whole parts of
 #: an object and takes in background beside it (docs/DESIGN.md §7, "Mask refinement").
 PROTOCOLS = {
-    "tiers": Protocol(DEFAULT_SOURCES, VAL_SOURCE, None, DEFAULT_MASKNET, True),
-    "paper": Protocol((("paper", 30000),), ("paper", 1000), PAPER_DETECTOR, PAPER_MASKNET, True),
+    "tiers": Protocol(DEFAULT_SOURCES, VAL_SOURCE, None, DEFAULT_MASKNET),
+    "paper": Protocol((("paper", 30000),), ("paper", 1000), PAPER_DETECTOR, PAPER_MASKNET),
 }
 
 
@@ -114,7 +110,9 @@ class MaskTrainConfig:
     Attributes:
         sources: (split folder, images) pairs of training scenes.
         val: (split folder, images) of the validation scenes (their ``val`` split).
-        heavy: coarse masks with whole parts lost and gained (`Protocol.heavy`).
+        heavy: coarse masks with whole parts lost and gained and windows jittered twice as far
+            (`degrade`'s `heavy`, `_jittered_window`'s `spread`), as both protocols' detectors
+            need; off, only outlines a pixel or two off.
         epochs, batch, lr: the schedule (one-cycle, AdamW).
         seed: of the windows' jitter, the batches' order and the coarse masks.
         precision, channels_last: the arithmetic (`perception.training.loop`).
@@ -124,7 +122,7 @@ class MaskTrainConfig:
 
     sources: tuple[tuple[str, int], ...] = DEFAULT_SOURCES
     val: tuple[str, int] = VAL_SOURCE
-    heavy: bool = False
+    heavy: bool = True
     epochs: int = 3
     batch: int = 32
     lr: float = 2e-3
@@ -576,7 +574,6 @@ def main(argv: list[str] | None = None) -> int:
         MaskTrainConfig(),
         sources=proto.sources,
         val=proto.val,
-        heavy=proto.heavy,
         epochs=args.epochs,
         batch=args.batch,
         lr=args.lr,
