@@ -186,6 +186,23 @@ def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch, heavy) -
     assert manifest["mask_net"] == entry
     assert entry["wall_s"] == round(resumed["wall_s"], 1) and entry["epochs_done"] == 2
     assert MaskRefiner.from_weights(tmp_path / "w" / "masknet.pt").cfg == cfg.net
+    # A further stage from the shipped net, on windows of another seed: it starts with that
+    # net's validation, will not resume as a run of another seed, and its entry lists both stages.
+    further = replace(
+        cfg, out=tmp_path / "further", epochs=1, seed=1, init=tmp_path / "w" / "masknet.pt"
+    )
+    run = train(further)
+    assert run["history"][0]["epoch"] == 0
+    assert run["history"][0]["iou"] == pytest.approx(whole["history"][-1]["iou"], abs=0.02)
+    assert run["data_seeds"]["init_sha256"] == entry["sha256"]
+    assert len(list((tmp_path / "data" / "masknet").glob("tiny_train_*.npz"))) == 2
+    with pytest.raises(InvalidArgumentError, match="--seed 1"):
+        train(replace(further, seed=2))
+    with pytest.raises(AssetError, match="mask net of"):
+        train(replace(further, out=tmp_path / "other", net=MaskNetConfig(size=32, widths=(4, 8))))
+    second = export(further, "cmd2", tmp_path / "w" / "masknet.pt")
+    assert [s["command"] for s in second["stages"]] == ["cmd", "cmd2"]
+    assert second["stages"][0]["wall_s"] == entry["wall_s"] and second["epochs_done"] == 1
 
 
 def test_the_examples_are_drawn_into_a_picture(tmp_path) -> None:

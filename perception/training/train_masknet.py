@@ -17,7 +17,11 @@ each window pixel.
 A run checkpoints after every epoch and every few minutes (``--out``) and resumes from there;
 ``--export`` writes the protocol's net (``perception/weights/tiers/masknet.pt``,
 ``perception/weights/paper_protocol/masknet.pt``) and its manifest entry (``mask_net``: command,
-data, validation, wall time).
+data, validation, wall time). ``--init`` starts a run from a shipped net (a further stage, on
+windows cut afresh with another ``--seed``); its entry then lists every stage that made it.
+
+    python -m perception.training.train_masknet --init perception/weights/tiers/masknet.pt \
+        --seed 1 --epochs 3 --lr 0.001 --channels-last --export
 """
 
 from __future__ import annotations
@@ -65,8 +69,9 @@ from perception.training.loop import (
 from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
 from posegrasp.core.cli import ArgumentParser, command, write_json
 from posegrasp.core.errors import AssetError, InvalidArgumentError
+from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import data_root
-from posegrasp.core.validate import arg, check_choice, check_int, check_plot_path
+from posegrasp.core.validate import arg, check_choice, check_int, check_plot_path, check_seed
 
 #: Objects with fewer visible pixels give no training window.
 MIN_VISIBLE_PX = 100
@@ -118,6 +123,8 @@ class MaskTrainConfig:
         precision, channels_last: the arithmetic (`perception.training.loop`).
         out: checkpoint folder.
         net: the net.
+        init: a shipped mask net the run starts from (None: from scratch); its net must be
+            `net`.
     """
 
     sources: tuple[tuple[str, int], ...] = DEFAULT_SOURCES
@@ -131,6 +138,7 @@ class MaskTrainConfig:
     channels_last: bool = True
     out: Path = Path("data/checkpoints/masknet")
     net: MaskNetConfig = field(default_factory=MaskNetConfig)
+    init: Path | None = None
 
 
 def _jittered_window(
@@ -289,21 +297,48 @@ def validate(
     }
 
 
+def _stage(entry: dict[str, Any]) -> dict[str, Any]:
+    """What a manifest entry keeps of one training stage."""
+    keys = ("command", "data_seeds", "epochs_done", "wall_s", "validation", "trained_at_commit")
+    return {k: entry.get(k) for k in keys}
+
+
+def _start_from(net: MaskNet, init: Path) -> dict[str, Any]:
+    """Load the shipped mask net at `init` (hash checked) into `net`; returns the stages that
+    made it, from its manifest (one unnamed stage when the manifest does not record it).
+
+    Raises:
+        AssetError: the file is missing or corrupt, or its net is not `net`'s.
+    """
+    shipped = MaskRefiner.from_weights(init).net
+    if shipped.cfg != net.cfg:
+        raise AssetError(f"{init} holds a mask net of {shipped.cfg}, this run trains {net.cfg}")
+    net.load_state_dict(shipped.state_dict())
+    entry = read_manifest(init.parent / MANIFEST_NAME).get("mask_net")
+    if not isinstance(entry, dict) or entry.get("sha256") != sha256_file(init):
+        return {"stages": [{"command": None, "init": str(init)}]}
+    return {"stages": entry.get("stages") or [_stage(entry)]}
+
+
 def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = None) -> dict:
     """Train (resuming from ``cfg.out/last.pt`` when asked and present: the same steps as a run
     never stopped); returns the last checkpoint's contents. `max_steps` stops the run, saved,
     after that many steps in all (as an interruption would).
 
     Raises:
-        InvalidArgumentError: the checkpoint to resume belongs to a run of other epochs or
-            batch (its schedule would change under it).
+        InvalidArgumentError: the checkpoint to resume belongs to a run of other epochs, batch,
+            seed or start (its schedule or data would change under it).
+        AssetError: `cfg.init` is missing, corrupt or of another net.
     """
     seed_torch(cfg.seed, None)
     spread = 2.0 if cfg.heavy else 1.0
     parts = [build_cache(f, "train", n, cfg.net, cfg.seed, spread) for f, n in cfg.sources]
     tr = {k: np.concatenate([p[k] for p in parts]) for k in ("rgb", "target")}
-    val = build_cache(cfg.val[0], "val", cfg.val[1], cfg.net, cfg.seed, spread)
+    val = build_cache(cfg.val[0], "val", cfg.val[1], cfg.net, 0, spread)
     net = MaskNet(cfg.net)
+    lineage = {"stages": []} if cfg.init is None else _start_from(net, cfg.init)
+    run = {"epochs": cfg.epochs, "batch": cfg.batch, "lr": cfg.lr, "seed": cfg.seed}
+    run["init"] = None if cfg.init is None else str(cfg.init)
     if cfg.channels_last:
         net = net.to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=1e-4)
@@ -315,12 +350,15 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
     if resume and last.is_file():
         state = read_checkpoint(last)
         was = state["train_config"]
-        if (was["epochs"], was["batch"]) != (cfg.epochs, cfg.batch):
+        keys = ("epochs", "batch", "seed", "init")
+        if any(was.get(k, 0 if k == "seed" else None) != run[k] for k in keys):
+            started = " ".join(f"--{k} {was.get(k)}" for k in keys if was.get(k) is not None)
             raise InvalidArgumentError(
-                f"the run in {cfg.out} was started with --epochs {was['epochs']} --batch "
-                f"{was['batch']}; resume it with those, or start over with --no-resume"
+                f"the run in {cfg.out} was started with {started}; resume it with those, or "
+                "start over with --no-resume"
             )
         step, epoch, history = restore(state, net, opt)
+        lineage = state.get("lineage", lineage)
         sched.load_state_dict(state["scheduler"])
         wall0 = float(state["wall_s"])
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -329,7 +367,13 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
         "val": dict([cfg.val]),
         "windows": len(tr["rgb"]),
         "seed": cfg.seed,
+        "val_seed": 0,
+        "init": run["init"],
+        "init_sha256": None if cfg.init is None else sha256_file(cfg.init),
     }
+    if cfg.init is not None and not history:  # the start, on the same validation windows
+        history.append({"epoch": 0, "step": 0, **validate(net, val, 0, cfg.heavy)})
+        print(f"start ({cfg.init}): {history[-1]}", flush=True)
 
     def save(done: int, wall_s: float) -> None:
         save_checkpoint(
@@ -337,13 +381,18 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
             net,
             opt,
             model_config=config_dict(cfg.net),
-            train_config={"epochs": cfg.epochs, "batch": cfg.batch, "lr": cfg.lr},
+            train_config=run,
             step=step,
             epoch=done,
             history=history,
             rng=rng_state(),
             data_seeds=data_seeds,
-            header={"kind": "masknet", "scheduler": sched.state_dict(), "wall_s": wall_s},
+            header={
+                "kind": "masknet",
+                "scheduler": sched.state_dict(),
+                "wall_s": wall_s,
+                "lineage": lineage,
+            },
         )
 
     ckpts = Checkpointer(save, minutes=5, wall_s=wall0)
@@ -379,7 +428,7 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
                 bar.set_postfix(loss=f"{loss.item():.4f}")
             ckpts.save_if_due(epoch)
         epoch += 1
-        history.append({"epoch": epoch, "step": step, **validate(net, val, cfg.seed, cfg.heavy)})
+        history.append({"epoch": epoch, "step": step, **validate(net, val, 0, cfg.heavy)})
         print(f"epoch {epoch}: {history[-1]}", flush=True)
         ckpts.save(epoch)
     return read_checkpoint(last)
@@ -387,7 +436,8 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
 
 def export(cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET) -> dict:
     """Write the shipped net (float16 state dict, model config) and its ``mask_net`` manifest
-    entry from the run's last checkpoint.
+    entry from the run's last checkpoint; a run started from a shipped net (``--init``) lists
+    the stages that made that net before its own (``stages``).
 
     Raises:
         AssetError: the run has not finished its epochs.
@@ -411,6 +461,9 @@ def export(cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET)
         "validation": state["history"][-1],
         "wall_s": round(float(state["wall_s"]), 1),
     }
+    earlier = (state.get("lineage") or {}).get("stages") or []
+    if earlier:
+        manifest["mask_net"]["stages"] = [*earlier, _stage(manifest["mask_net"])]
     write_manifest(manifest_path, manifest)
     return manifest["mask_net"]
 
@@ -520,6 +573,16 @@ def main(argv: list[str] | None = None) -> int:
         "(the paper's studio images, hybrid-global-paper) (default tiers)",
     )
     p.add_argument("--out", type=Path, default=None, help="checkpoint folder")
+    p.add_argument(
+        "--init", type=Path, default=None, help="start from this shipped mask net (a further stage)"
+    )
+    p.add_argument(
+        "--seed",
+        type=arg(check_seed, "--seed", base=int),
+        default=0,
+        help="of the training windows' jitter, the batches' order and the coarse masks "
+        "(default 0; the validation windows are seed 0's whatever it is)",
+    )
     p.add_argument("--no-resume", action="store_true", help="start over")
     p.add_argument("--export", action="store_true", help="write the shipped net when done")
     p.add_argument(
@@ -580,6 +643,8 @@ def main(argv: list[str] | None = None) -> int:
         precision=args.precision,
         channels_last=args.channels_last,
         out=args.out or default_out,
+        seed=args.seed,
+        init=args.init,
     )
     train(cfg, resume=not args.no_resume)
     if args.export:
