@@ -92,6 +92,8 @@ weights: data
 	  --export --weights-out perception/weights/tiers
 	$(PY) -m perception.training.train_masknet --epochs 5 --channels-last --out $(CKPT)/masknet \
 	  --export
+	$(PY) -m perception.training.train_masknet --init perception/weights/tiers/masknet.pt --seed 1 \
+	  --epochs 3 --lr 0.001 --channels-last --out $(CKPT)/masknet_ft --export
 	$(PY) -m perception.training.train_masknet --protocol paper --epochs 6 --channels-last \
 	  --out $(CKPT)/masknet_paper --export
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
