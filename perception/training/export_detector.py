@@ -16,7 +16,13 @@ from perception.detector_net import (
     state_dict_fp16,
 )
 from perception.training.checkpoints import read_checkpoint, save_atomically
-from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
+from perception.training.manifest import (
+    MANIFEST_NAME,
+    read_manifest,
+    stage_record,
+    weights_entry,
+    write_manifest,
+)
 from posegrasp.core.errors import AssetError
 from posegrasp.core.paths import WEIGHTS_DIR
 
@@ -45,12 +51,6 @@ def _command(tc: dict[str, Any]) -> str:
     if tc.get("channels_last"):
         parts.append("--channels-last")
     return " ".join([*parts, "--export"])
-
-
-def _stage(entry: dict[str, Any]) -> dict[str, Any]:
-    """What a manifest entry keeps of one training stage."""
-    keys = ("command", "data_seeds", "epochs_done", "wall_s", "validation", "trained_at_commit")
-    return {k: entry.get(k) for k in keys}
 
 
 def _init_entry(init: str | None) -> dict[str, Any] | None:
@@ -113,7 +113,10 @@ def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, 
     }
     previous = _init_entry(tc.get("init"))
     if previous is not None:  # fine-tuned from shipped weights: keep the stages that made them
-        entry["stages"] = [*(previous.get("stages") or [_stage(previous)]), _stage(entry)]
+        entry["stages"] = [
+            *(previous.get("stages") or [stage_record(previous)]),
+            stage_record(entry),
+        ]
     manifest_path = out_dir / MANIFEST_NAME
     manifest = read_manifest(manifest_path)
     manifest["detector"] = entry

@@ -11,7 +11,15 @@ from perception.integrity import MANIFEST_NAME, manifest_entries
 from posegrasp.core.errors import AssetError
 from posegrasp.core.files import atomic_write_json, sha256_file
 
-__all__ = ["MANIFEST_NAME", "read_manifest", "shipped_stages", "weights_entry", "write_manifest"]
+__all__ = [
+    "MANIFEST_NAME",
+    "read_manifest",
+    "shipped_entry",
+    "shipped_stages",
+    "stage_record",
+    "weights_entry",
+    "write_manifest",
+]
 
 
 def read_manifest(path: Path) -> dict[str, Any]:
@@ -34,14 +42,27 @@ def weights_entry(path: Path) -> dict[str, Any]:
     return {"file": path.name, "bytes": path.stat().st_size, "sha256": sha256_file(path)}
 
 
-def shipped_stages(path: Path) -> list[dict[str, Any]] | None:
-    """The training stages the manifest beside `path` records for it, when `path` is a shipped
-    pose net whose bytes are the ones recorded (so a fine-tune from it keeps its history);
+def stage_record(entry: dict[str, Any]) -> dict[str, Any]:
+    """What a manifest entry's ``stages`` keep of one training stage."""
+    keys = ("command", "data_seeds", "epochs_done", "wall_s", "validation", "trained_at_commit")
+    return {k: entry.get(k) for k in keys}
+
+
+def shipped_entry(path: Path) -> dict[str, Any] | None:
+    """The manifest entry beside `path` that records it, when its bytes are the ones recorded;
     None for any other file."""
     entry = manifest_entries(read_manifest(path.parent / MANIFEST_NAME)).get(path.name)
     if entry is None or entry.get("sha256") != sha256_file(path):
         return None
-    return entry.get("stages")
+    return entry
+
+
+def shipped_stages(path: Path) -> list[dict[str, Any]] | None:
+    """The training stages the manifest beside `path` records for it, when `path` is a shipped
+    pose net whose bytes are the ones recorded (so a fine-tune from it keeps its history);
+    None for any other file."""
+    entry = shipped_entry(path)
+    return None if entry is None else entry.get("stages")
 
 
 def write_manifest(path: Path, manifest: dict[str, Any]) -> None:

@@ -66,7 +66,14 @@ from perception.training.loop import (
     add_schedule_arguments,
     autocast,
 )
-from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
+from perception.training.manifest import (
+    MANIFEST_NAME,
+    read_manifest,
+    shipped_entry,
+    stage_record,
+    weights_entry,
+    write_manifest,
+)
 from posegrasp.core.cli import ArgumentParser, command, write_json
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.files import sha256_file
@@ -297,12 +304,6 @@ def validate(
     }
 
 
-def _stage(entry: dict[str, Any]) -> dict[str, Any]:
-    """What a manifest entry keeps of one training stage."""
-    keys = ("command", "data_seeds", "epochs_done", "wall_s", "validation", "trained_at_commit")
-    return {k: entry.get(k) for k in keys}
-
-
 def _start_from(net: MaskNet, init: Path) -> dict[str, Any]:
     """Load the shipped mask net at `init` (hash checked) into `net`; returns the stages that
     made it, from its manifest (one unnamed stage when the manifest does not record it).
@@ -314,10 +315,10 @@ def _start_from(net: MaskNet, init: Path) -> dict[str, Any]:
     if shipped.cfg != net.cfg:
         raise AssetError(f"{init} holds a mask net of {shipped.cfg}, this run trains {net.cfg}")
     net.load_state_dict(shipped.state_dict())
-    entry = read_manifest(init.parent / MANIFEST_NAME).get("mask_net")
-    if not isinstance(entry, dict) or entry.get("sha256") != sha256_file(init):
+    entry = shipped_entry(init)
+    if entry is None:
         return {"stages": [{"command": None, "init": str(init)}]}
-    return {"stages": entry.get("stages") or [_stage(entry)]}
+    return {"stages": entry.get("stages") or [stage_record(entry)]}
 
 
 def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = None) -> dict:
@@ -337,8 +338,8 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
     val = build_cache(cfg.val[0], "val", cfg.val[1], cfg.net, 0, spread)
     net = MaskNet(cfg.net)
     lineage = {"stages": []} if cfg.init is None else _start_from(net, cfg.init)
-    run = {"epochs": cfg.epochs, "batch": cfg.batch, "lr": cfg.lr, "seed": cfg.seed}
-    run["init"] = None if cfg.init is None else str(cfg.init)
+    init = None if cfg.init is None else str(cfg.init)
+    run = {"epochs": cfg.epochs, "batch": cfg.batch, "lr": cfg.lr, "seed": cfg.seed, "init": init}
     if cfg.channels_last:
         net = net.to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=1e-4)
@@ -463,7 +464,7 @@ def export(cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET)
     }
     earlier = (state.get("lineage") or {}).get("stages") or []
     if earlier:
-        manifest["mask_net"]["stages"] = [*earlier, _stage(manifest["mask_net"])]
+        manifest["mask_net"]["stages"] = [*earlier, stage_record(manifest["mask_net"])]
     write_manifest(manifest_path, manifest)
     return manifest["mask_net"]
 
