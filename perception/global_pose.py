@@ -66,7 +66,7 @@ from perception.detector import TIERS_DETECTOR, Detection
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target, occluder_of
 from perception.mask_net import MaskRefiner
 from perception.overlay import mask_box
-from perception.refine import PoseRefiner
+from perception.refine import PoseRefiner, RefineConfig
 from perception.support import refine_on_support, resting_surface_z, snap_to_resting
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
@@ -151,6 +151,13 @@ class GlobalConfig:
             other detections, the planner's obstacles and the occluders, need the detector's
             own threshold); a partly hidden object often scores lower, and the verification
             reports how well the pose fits (None: the detector's threshold for all).
+        refine_max_shift: a refiner run that moves a start further than this fraction of its
+            distance is rejected (`perception.refine.RefineConfig.max_shift`, there 0.1). A
+            hypothesis framed as if the object went on behind an occluder, or drawn from a
+            coarse template, often starts 15-25 % off in distance along its ray; the verification
+            rejects a run that went astray, so the guard can be wider than for a single start.
+        refine_max_rotation_deg: a refiner run that turns a start further is rejected (there
+            20 deg) [deg].
     """
 
     views: int = 1000
@@ -179,6 +186,8 @@ class GlobalConfig:
     target_score: float | None = 0.3
     neighbour_experts: bool = False
     mask_net: bool = True
+    refine_max_shift: float = 0.3
+    refine_max_rotation_deg: float = 30.0
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -206,6 +215,11 @@ class GlobalConfig:
             raise InvalidArgumentError("GlobalConfig.resting_tilt_deg must be in (0, 180) or None")
         if self.target_score is not None and not 0 <= self.target_score <= 1:
             raise InvalidArgumentError("GlobalConfig.target_score must be in [0, 1] or None")
+        if not (0 < self.refine_max_shift <= 1 and 0 < self.refine_max_rotation_deg <= 180):
+            raise InvalidArgumentError(
+                "GlobalConfig.refine_max_shift must be in (0, 1] and refine_max_rotation_deg in "
+                "(0, 180]"
+            )
         if not all(1 < g <= 4 for g in self.occluded_grow):
             raise InvalidArgumentError("GlobalConfig.occluded_grow factors must lie in (1, 4]")
 
@@ -325,7 +339,12 @@ class GlobalPoseEstimator:
         self.config = config or GlobalConfig()
         self.masks = (masks or MaskRefiner.from_weights()) if self.config.mask_net else None
         self.codebooks = codebooks or CodebookCache(self.config.views, self.config.inplane)
-        self.refiner = PoseRefiner()
+        self.refiner = PoseRefiner(
+            RefineConfig(
+                max_shift=self.config.refine_max_shift,
+                max_rotation_deg=self.config.refine_max_rotation_deg,
+            )
+        )
         self._screens: dict[int, PoseRefiner] = {}
         self.name = name
         self._colours: dict[str, np.ndarray] = {}

@@ -512,3 +512,35 @@ def test_resting_hypotheses_are_new_and_could_rest(tmp_path) -> None:
     for a, i in enumerate(extra):
         for j in top + extra[:a]:
             assert rotation_error_deg(R[i], R[j]) >= cfg.min_angle_deg - 1e-6
+
+
+def test_the_global_refiner_pulls_in_a_start_a_fifth_too_far(tmp_path) -> None:
+    """A start turned a little and 22 % too far along its ray (a hypothesis framed as if the
+    object went on behind an occluder starts so): the refiner's own guard (a tenth of the
+    distance) rejects the run that would fix it, the global estimator's wider one
+    (`GlobalConfig.refine_max_shift`) lets it land; a bad setting is refused."""
+    from perception.global_pose import GlobalConfig
+    from perception.refine import PoseRefiner
+
+    name = "car"
+    T = np.eye(4)
+    T[:3, :3] = rot_x(np.deg2rad(-110)) @ rot_z(np.deg2rad(35))
+    T[:3, 3] = [0.05, 0.02, 0.8]
+    mask, rgb = _painted(name, T)
+    far = T.copy()
+    far[:3, :3] = rot_z(np.deg2rad(6)) @ T[:3, :3]
+    far[:3, 3] *= 1.22
+    est = _global_on_one_detection(name, mask, far, tmp_path)
+    cautious = PoseRefiner()
+    assert cautious.config.max_shift == 0.1 < est.refiner.config.max_shift == 0.3
+    kept, info = cautious.refine(name, far, K, mask, rgb)
+    assert not info["accepted"] and np.array_equal(kept, far)
+    T_est = far
+    for _ in range(2):
+        T_est, info = est.refiner.refine(name, T_est, K, mask, rgb)
+        assert info["accepted"]
+    assert np.linalg.norm(T_est[:3, 3] - T[:3, 3]) < 0.01
+    assert rotation_error_deg(T_est[:3, :3], T[:3, :3]) < 2.0
+    for bad in ({"refine_max_shift": 0.0}, {"refine_max_rotation_deg": 200.0}):
+        with pytest.raises(InvalidArgumentError, match="refine_max"):
+            GlobalConfig(**bad)
