@@ -79,11 +79,10 @@ def _hybrid_global_paper() -> PoseEstimator:
     # start gets the full refinement first: the short screening run cost 3 deg here. A target
     # needs a detector score of 0.3, as `hybrid-global`'s (on the protocol's validation images
     # it finds 97.1 % of the objects against 95.6 % at the detector's 0.5,
-    # `bench/detector_threshold.py --split paper`). The parts' colours weigh more (0.3, not 0.05)
-    # and an unsure pose (score below 1.3) gets 48 more hypotheses: on these images the outline
-    # alone leaves more poses alike, and most of a studio image's poses verify without doubt
-    # (chosen on the protocol's 1000 validation images: 13.35 to 10.18 deg, 10.0 to 7.9 % over
-    # 15 deg, the median verification 72 ms).
+    # `bench/detector_threshold.py --split paper`). The parts' colours weigh more and an unsure
+    # pose gets a wider second look: on these images the outline alone leaves more poses alike,
+    # and most of a studio image's poses verify without doubt (chosen on the protocol's
+    # validation images; the alternatives are in docs/RESULTS.md).
     config = GlobalConfig(
         resting_tilt_deg=None,
         screen_iterations=0,
