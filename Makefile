@@ -96,6 +96,9 @@ weights: data
 	  --epochs 3 --lr 0.001 --channels-last --out $(CKPT)/masknet_ft --export
 	$(PY) -m perception.training.train_masknet --protocol paper --epochs 6 --channels-last \
 	  --out $(CKPT)/masknet_paper --export
+	$(PY) -m perception.training.train_masknet --protocol paper \
+	  --init perception/weights/paper_protocol/masknet.pt --seed 1 --epochs 4 --lr 0.001 \
+	  --channels-last --out $(CKPT)/masknet_paper_ft --export
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record
