@@ -357,11 +357,107 @@ def top_hypotheses(
     return [int(order[a]) for a in kept]
 
 
+#: Two pieces count as separated by a face plane of one of them when the other reaches through
+#: it by at most this share of its own depth along the plane's normal (parts are modelled
+#: touching or slightly sunk into each other: a keypad half a millimetre into its base).
+SEPARATION_SLACK = 0.25
+
+
+@dataclass(frozen=True)
+class Separations:
+    """For every ordered pair (i, j) of an object's convex pieces, a plane of the object frame
+    from the faces of either hull with piece i on its inner side and piece j on its outer side:
+    seen from the outer side, j hides i where they overlap, and from the inner side i hides j
+    (a ray crosses the plane once). Painting far pieces first by their mean depth alone gets
+    this wrong when a small piece lies on a face turned away from the camera (a button on top
+    of a base seen from below).
+
+    Attributes:
+        normal: (P, P, 3) unit normals, pointing from i's side to j's.
+        offset: (P, P) plane offsets: the plane is normal . x = offset [m].
+        known: (P, P) whether a face plane separates the pair (within `SEPARATION_SLACK`);
+            where not, the mean depths decide.
+    """
+
+    normal: np.ndarray
+    offset: np.ndarray
+    known: np.ndarray
+
+    @classmethod
+    def of(cls, pieces: list[np.ndarray]) -> Separations:
+        P = len(pieces)
+        normal, offset = np.zeros((P, P, 3)), np.zeros((P, P))
+        known = np.zeros((P, P), bool)
+        faces = [_face_planes(v) for v in pieces]
+        for i, j in itertools.permutations(range(P), 2):
+            best, plane = -math.inf, None
+            # i's faces with j outside them, then j's faces with i outside them (turned round)
+            for own, other, sign in ((i, j, 1.0), (j, i, -1.0)):
+                n, b = faces[own]
+                if n is None:
+                    continue
+                reach = pieces[other] @ n.T - b  # >= 0: outside the face
+                margin = reach.min(0) / np.maximum(np.ptp(pieces[other] @ n.T, axis=0), 1e-9)
+                k = int(np.argmax(margin))
+                if margin[k] > best:
+                    best, plane = margin[k], (sign * n[k], sign * b[k])
+            if plane is not None and best >= -SEPARATION_SLACK:
+                normal[i, j], offset[i, j], known[i, j] = plane[0], plane[1], True
+        return cls(normal, offset, known)
+
+    def in_front(self, camera: np.ndarray) -> np.ndarray:
+        """(P, P) bool: piece j hides piece i where they overlap, seen from `camera` (its
+        position in the object frame [m])."""
+        return self.known & (self.normal @ camera > self.offset)
+
+
+def _face_planes(vertices: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The outward unit normals (F, 3) and offsets (F,) of the hull faces of a piece (normal .
+    x <= offset inside), or (None, None) for a flat piece."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        eq = ConvexHull(vertices).equations
+    except (QhullError, ValueError):
+        return None, None
+    return eq[:, :3], -eq[:, 3]
+
+
+_SEPARATIONS: dict[bytes, Separations] = {}
+
+
+def separations(pieces: list[np.ndarray]) -> Separations:
+    """`Separations.of(pieces)`, computed once per set of pieces."""
+    key = b"".join(np.ascontiguousarray(v, np.float64).tobytes() + b"|" for v in pieces)
+    if key not in _SEPARATIONS:
+        _SEPARATIONS[key] = Separations.of(pieces)
+    return _SEPARATIONS[key]
+
+
+def drawing_order(depth: np.ndarray, hides: np.ndarray) -> list[int]:
+    """Piece indices far first: by decreasing mean `depth`, except that a piece is drawn after
+    every piece it hides (`hides[i, j]`: j hides i); a cycle (pieces that are not separable)
+    falls back to the depths."""
+    order = [int(i) for i in np.argsort(depth)[::-1]]
+    rank = np.empty(len(order), int)
+    rank[order] = np.arange(len(order))
+    if not (hides & (rank[:, None] > rank[None, :])).any():
+        return order
+    left = list(order)
+    out: list[int] = []
+    while left:
+        pick = next((i for i in left if not hides[left, i].any()), left[0])
+        out.append(pick)
+        left.remove(pick)
+    return out
+
+
 def _far_to_near(
     pieces: list[np.ndarray], T: np.ndarray, K: np.ndarray, origin: tuple[int, int]
 ) -> list[tuple[int, np.ndarray]] | None:
     """Each piece's projected hull at pose T, as (piece index, polygon in 1/16 px relative to
-    the pixel `origin`), far pieces first; None when a vertex lies behind the camera."""
+    the pixel `origin`), in drawing order (`drawing_order`: far first, each piece after those
+    it hides); None when a vertex lies behind the camera."""
     depth, drawn = [], []
     for piece in pieces:
         X = piece @ T[:3, :3].T + T[:3, 3]
@@ -369,10 +465,11 @@ def _far_to_near(
             return None
         depth.append(float(X[:, 2].mean()))
         drawn.append(((X @ K.T)[:, :2] / X[:, 2:3] - np.array(origin)).astype(np.float32))
+    camera = -T[:3, :3].T @ T[:3, 3]
     out = []
-    for i in np.argsort(depth)[::-1]:
+    for i in drawing_order(np.array(depth), separations(pieces).in_front(camera)):
         hull = cv2.convexHull(drawn[i], returnPoints=False)[:, 0]
-        out.append((int(i), np.round(drawn[i][hull] * 16).astype(np.int32)))
+        out.append((i, np.round(drawn[i][hull] * 16).astype(np.int32)))
     return out
 
 

@@ -63,6 +63,7 @@ from perception.codebook import (
     verification_scores,
 )
 from perception.detector import TIERS_DETECTOR, Detection
+from perception.geometry import encode
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target, occluder_of
 from perception.mask_net import MaskRefiner
 from perception.overlay import mask_box
@@ -158,6 +159,14 @@ class GlobalConfig:
             rejects a run that went astray, so the guard can be wider than for a single start.
         refine_max_rotation_deg: a refiner run that turns a start further is rejected (there
             20 deg) [deg].
+        max_inplane_deg: a refined pose whose in-plane angle (the roll of the virtual camera
+            C', `perception.geometry.encode`'s theta) lies within this many degrees of zero
+            ranks above one that does not: a prior of the paper's protocol, whose views are
+            drawn with the in-plane angle in -60..60 deg, as the gravity of `resting_tilt_deg`
+            is the tiers'. A silhouette turned half way round about the viewing ray is the
+            same silhouette; the protocol never shows it. Views within `POLE_DEG` of the
+            object's z axis, where the angle is not defined, always count as within (None: no
+            such preference).
     """
 
     views: int = 1000
@@ -188,6 +197,7 @@ class GlobalConfig:
     mask_net: bool = True
     refine_max_shift: float = 0.3
     refine_max_rotation_deg: float = 30.0
+    max_inplane_deg: float | None = None
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -220,6 +230,8 @@ class GlobalConfig:
                 "GlobalConfig.refine_max_shift must be in (0, 1] and refine_max_rotation_deg in "
                 "(0, 180]"
             )
+        if self.max_inplane_deg is not None and not 0 < self.max_inplane_deg < 180:
+            raise InvalidArgumentError("GlobalConfig.max_inplane_deg must be in (0, 180) or None")
         if not all(1 < g <= 4 for g in self.occluded_grow):
             raise InvalidArgumentError("GlobalConfig.occluded_grow factors must lie in (1, 4]")
 
@@ -229,6 +241,10 @@ class GlobalConfig:
 #: that the image's edges refute); the snapped starts win only if the best of them scores
 #: within this much of the best pose of all.
 SNAP_SCORE_DROP = 0.05
+
+#: Within this angle [deg] of the object's z axis the view's in-plane angle is not defined
+#: (`GlobalConfig.max_inplane_deg`): a degree of viewpoint there turns it by many.
+POLE_DEG = 10.0
 
 #: Image edges are searched in the mask's box grown by this much [px].
 EDGE_MARGIN_PX = 10
@@ -292,6 +308,8 @@ class Verified:
         source: ``codebook`` or ``nets``.
         rank: where the start came from: 0 the nets, i >= 1 the codebook's i-th hypothesis.
         tilt: rotation to the nearest resting pose [deg] (0 when the camera pose is unknown).
+        plausible: within the config's priors (`GlobalConfig.resting_tilt_deg` with the
+            camera's pose, `GlobalConfig.max_inplane_deg`); plausible poses rank first.
     """
 
     T_C_O: np.ndarray
@@ -302,16 +320,25 @@ class Verified:
     source: str
     rank: int
     tilt: float = 0.0
+    plausible: bool = True
 
 
-def rank_verified(verified: list[Verified], max_tilt: float | None) -> list[Verified]:
-    """Best first: those within `max_tilt` of a resting pose (all when None) before the others,
-    each group by decreasing score (ties keep their order)."""
-    return sorted(
-        verified,
-        key=lambda v: (max_tilt is None or v.tilt <= max_tilt, v.score),
-        reverse=True,
-    )
+def rank_verified(verified: list[Verified]) -> list[Verified]:
+    """Best first: the plausible ones (`Verified.plausible`) before the others, each group by
+    decreasing score (ties keep their order)."""
+    return sorted(verified, key=lambda v: (v.plausible, v.score), reverse=True)
+
+
+def inplane_deg(T_C_O: np.ndarray, K: np.ndarray) -> float | None:
+    """|theta| of the pose's 4D representation (`perception.geometry.encode`) [deg], or None
+    when the camera looks within `POLE_DEG` of the object's z axis (theta is not defined there)
+    or the object is behind the camera."""
+    if T_C_O[2, 3] <= 0:
+        return None
+    p, theta, _ = encode(T_C_O, K)
+    if abs(p[2]) >= math.cos(math.radians(POLE_DEG)) * float(np.linalg.norm(p)):
+        return None
+    return abs(math.degrees(theta))
 
 
 class GlobalPoseEstimator:
@@ -509,10 +536,14 @@ class GlobalPoseEstimator:
             )
             iou = float(info["iou_after"])
             score = iou + cfg.appearance_weight * app + cfg.edge_weight * edges
-            tilt = 0.0
+            tilt, plausible = 0.0, True
             if max_tilt is not None:
                 tilt = snap_to_resting(R_W_C @ T[:3, :3], model)[2]
-            return Verified(T, score, iou, app, edges, source, rank, tilt)
+                plausible = tilt <= max_tilt
+            if cfg.max_inplane_deg is not None:
+                roll = inplane_deg(T, K)
+                plausible = plausible and (roll is None or roll <= cfg.max_inplane_deg)
+            return Verified(T, score, iou, app, edges, source, rank, tilt, plausible)
 
         first, screen = cfg.refine_passes, self.refiner
         if cfg.keep_after_first:
@@ -522,7 +553,7 @@ class GlobalPoseEstimator:
 
         def chosen(firsts: list[Verified]) -> list[Verified]:
             """The first runs' results ranked, the best few refined further and snapped."""
-            out = rank_verified(firsts, max_tilt)
+            out = rank_verified(firsts)
             if cfg.keep_after_first and (cfg.refine_passes > 1 or screen is not self.refiner):
                 # The best few, refined further, rank above the rest (refined once), which stay
                 # listed.
@@ -532,7 +563,7 @@ class GlobalPoseEstimator:
                     if v.rank not in further:
                         further[v.rank] = refined(v.T_C_O, v.source, v.rank, more, self.refiner)
                 again = [further[v.rank] for v in kept]
-                out = rank_verified([v for v in again if v is not None], max_tilt) + rest
+                out = rank_verified([v for v in again if v is not None]) + rest
             if cfg.snap_candidates and max_tilt is not None:
                 # The best few that could be resting, each snapped onto its resting pose; the
                 # snapped ones then compete on their scores alone, ahead of the rest, unless
@@ -549,9 +580,7 @@ class GlobalPoseEstimator:
                         snapped.append(snaps[key])
                 best_score = max((v.score for v in out), default=0.0)
                 if snapped and max(v.score for v in snapped) >= best_score - SNAP_SCORE_DROP:
-                    out = rank_verified(snapped, max_tilt) + [
-                        v for v in out if all(v is not p for p in pool)
-                    ]
+                    out = rank_verified(snapped) + [v for v in out if all(v is not p for p in pool)]
             return out
 
         firsts = [

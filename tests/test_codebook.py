@@ -3,6 +3,8 @@ pose back through matching, the origin's offset, the box scale and R_corr."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -446,18 +448,39 @@ def test_the_global_estimator_redraws_the_target_mask_with_the_mask_net(tmp_path
     assert e.info["verify"]["iou"] > 0.9  # against the redrawn mask, not the eroded one
 
 
-def test_a_pose_the_object_could_rest_in_ranks_first() -> None:
-    """With gravity known, a refined start near a resting pose wins over a better-scoring one
-    that is not; with none near, or without gravity, the score alone decides."""
+def test_a_plausible_pose_ranks_first() -> None:
+    """A refined start within the priors (resting, in the protocol's in-plane range) wins over a
+    better-scoring one that is not; among equals the score decides."""
     from perception.global_pose import Verified, rank_verified
 
-    def v(score: float, tilt: float, rank: int) -> Verified:
-        return Verified(np.eye(4), score, score, 0.0, 0.0, "codebook", rank, tilt)
+    def v(score: float, plausible: bool, rank: int) -> Verified:
+        return Verified(np.eye(4), score, score, 0.0, 0.0, "codebook", rank, 0.0, plausible)
 
-    flipped, resting, other = v(1.2, 60.0, 1), v(1.1, 3.0, 2), v(0.9, 8.0, 3)
-    assert [x.rank for x in rank_verified([flipped, other, resting], 10.0)] == [2, 3, 1]
-    assert [x.rank for x in rank_verified([flipped, other, resting], None)] == [1, 2, 3]
-    assert [x.rank for x in rank_verified([flipped, v(1.0, 40.0, 4)], 10.0)] == [1, 4]
+    flipped, resting, other = v(1.2, False, 1), v(1.1, True, 2), v(0.9, True, 3)
+    assert [x.rank for x in rank_verified([flipped, other, resting])] == [2, 3, 1]
+    assert [x.rank for x in rank_verified([flipped, v(1.0, False, 4)])] == [1, 4]
+
+
+def test_the_in_plane_prior_reads_the_poses_theta_and_leaves_the_poles_alone() -> None:
+    """`inplane_deg` gives |theta| of the 4D representation, so a pose and its half turn about
+    the viewing ray (the same silhouette) fall on either side of the protocol's 60 deg; seen
+    along the object's z axis the angle is not defined and no prior applies."""
+    from perception.geometry import decode
+    from perception.global_pose import inplane_deg
+
+    K = np.array([[300.0, 0, 128], [0, 300.0, 128], [0, 0, 1]])
+    uv = np.array([140.0, 120.0])
+    p = np.array([0.3, -0.2, 0.25])
+    for theta in (-55.0, 0.0, 40.0, 150.0):
+        T = decode(p, math.radians(theta), uv, K)
+        assert inplane_deg(T, K) == pytest.approx(abs(theta), abs=1e-6)
+    T = decode(p, math.radians(40.0), uv, K)
+    ray = T[:3, 3] / np.linalg.norm(T[:3, 3])
+    half = T.copy()
+    half[:3, :3] = (2 * np.outer(ray, ray) - np.eye(3)) @ T[:3, :3]  # half a turn about the ray
+    assert inplane_deg(T, K) <= 60 < inplane_deg(half, K)
+    above = decode(np.array([0.01, 0.0, 0.4]), 0.7, uv, K)
+    assert inplane_deg(above, K) is None
 
 
 def test_the_global_estimator_reports_how_far_its_pose_is_from_resting(tmp_path) -> None:
@@ -544,3 +567,39 @@ def test_the_global_refiner_pulls_in_a_start_a_fifth_too_far(tmp_path) -> None:
     for bad in ({"refine_max_shift": 0.0}, {"refine_max_rotation_deg": 200.0}):
         with pytest.raises(InvalidArgumentError, match="refine_max"):
             GlobalConfig(**bad)
+
+
+def _box(centre, half) -> np.ndarray:
+    """The 8 corners of an axis-aligned box."""
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    return np.asarray(centre, float) + signs * np.asarray(half, float)
+
+
+def test_a_button_on_top_of_a_base_is_hidden_from_below_and_seen_from_above() -> None:
+    """A small box sunk half a millimetre into the top corner of a large one: seen from below
+    and off to the button's side, the button's mean depth is nearer than the base's, yet the
+    base hides it (the faces' planes order them); seen from above, it shows."""
+    from perception.codebook import drawing_order, separations
+
+    base, button = (
+        _box([0, 0, 0.025], [0.08, 0.07, 0.025]),
+        _box([0.06, 0.05, 0.0515], [0.01] * 2 + [0.002]),
+    )
+    pieces = [base, button]
+    box = (0, 0, 640, 480)
+    seen = {}
+    for name, camera in {"below": [0.25, 0.2, -0.3], "above": [0.25, 0.2, 0.45]}.items():
+        camera = np.array(camera)
+        z = -camera / np.linalg.norm(camera)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x /= np.linalg.norm(x)
+        R_C_O = np.stack([x, np.cross(z, x), z])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R_C_O, -R_C_O @ camera
+        depth = np.array([(p @ R_C_O.T + T[:3, 3])[:, 2].mean() for p in pieces])
+        if name == "below":
+            assert depth[1] < depth[0]  # the mean depths alone would draw the button last
+            assert drawing_order(depth, separations(pieces).in_front(camera)) == [1, 0]
+        ids = id_map(pieces, T, K, box)
+        seen[name] = int((ids == 2).sum())
+    assert seen["below"] == 0 and seen["above"] > 20
