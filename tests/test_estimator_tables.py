@@ -12,8 +12,14 @@ import pytest
 from perception.metrics import rotation_error_deg
 from perception.training.datagen import main as datagen_main
 from perception.training.dataset import PoseDataset
-from perception.training.estimator_tables import MIN_VISIB, query_errors, summarise_queries
+from perception.training.estimator_tables import (
+    MIN_VISIB,
+    query_errors,
+    shape_alike,
+    summarise_queries,
+)
 from posegrasp.core.contract import Estimate, Observation
+from posegrasp.core.transforms import intrinsics, rot_x, rot_z
 
 
 class _Fixed:
@@ -99,6 +105,7 @@ def test_the_summary_counts_misses_and_outliers() -> None:
             "distance_pct": 4.0,
             "translation_pct": 5.0,
             "rotation_deg": 30.0,
+            "alike": True,
             "ms": 30.0,
         },
         {"object": "car", "found": False, "ms": 20.0},
@@ -110,4 +117,20 @@ def test_the_summary_counts_misses_and_outliers() -> None:
     assert car["centre_px"] == 2.0 and car["centre_crop_px"] == 0.75
     assert car["rotation_mean_deg"] == 15.5
     assert car["rotation_median_deg"] == 15.5 and car["over_15_deg_pct"] == 50.0
+    assert car["alike_pct"] == 50.0
     assert car["median_ms"] == 20.0
+
+
+def test_a_car_turned_end_for_end_seen_from_below_is_alike_in_shape() -> None:
+    """Seen straight from below, a car turned half way round about its vertical shows the same
+    underside where the true one is: alike. Tipped a quarter turn onto its side, it is not."""
+    K = intrinsics(np.deg2rad(50), 320, 240)
+    G = np.eye(4)
+    G[:3, :3] = rot_x(np.pi) @ rot_z(0.3)  # the camera's axis along the car's +z: from below
+    G[:3, 3] = [0.0, 0.0, 0.6]
+    turned, tipped = G.copy(), G.copy()
+    turned[:3, :3] = G[:3, :3] @ rot_z(np.pi)
+    tipped[:3, :3] = G[:3, :3] @ rot_x(np.pi / 2)
+    assert shape_alike("car", turned, G, K, (320, 240))
+    assert not shape_alike("car", tipped, G, K, (320, 240))
+    assert shape_alike("car", G, G, K, (320, 240))
