@@ -443,12 +443,20 @@ def drawing_order(depth: np.ndarray, hides: np.ndarray) -> list[int]:
     rank[order] = np.arange(len(order))
     if not (hides & (rank[:, None] > rank[None, :])).any():
         return order
-    left = list(order)
-    out: list[int] = []
+    # before[j]: the pieces j hides, as bits; each step draws the farthest piece whose hidden
+    # pieces are all drawn
+    P = len(order)
+    bits = [1 << i for i in range(P)]
+    if P <= 62:
+        before = (hides.T.astype(np.int64) @ (np.int64(1) << np.arange(P, dtype=np.int64))).tolist()
+    else:
+        before = [sum(bits[i] for i in np.flatnonzero(col)) for col in hides.T]
+    drawn, out, left = 0, [], order
     while left:
-        pick = next((i for i in left if not hides[left, i].any()), left[0])
+        pick = next((j for j in left if not before[j] & ~drawn), left[0])
         out.append(pick)
-        left.remove(pick)
+        drawn |= bits[pick]
+        left = [j for j in left if j != pick]
     return out
 
 

@@ -473,14 +473,14 @@ def test_the_in_plane_prior_reads_the_poses_theta_and_leaves_the_poles_alone() -
     p = np.array([0.3, -0.2, 0.25])
     for theta in (-55.0, 0.0, 40.0, 150.0):
         T = decode(p, math.radians(theta), uv, K)
-        assert inplane_deg(T, K) == pytest.approx(abs(theta), abs=1e-6)
+        assert inplane_deg(T) == pytest.approx(abs(theta), abs=1e-6)
     T = decode(p, math.radians(40.0), uv, K)
     ray = T[:3, 3] / np.linalg.norm(T[:3, 3])
     half = T.copy()
     half[:3, :3] = (2 * np.outer(ray, ray) - np.eye(3)) @ T[:3, :3]  # half a turn about the ray
-    assert inplane_deg(T, K) <= 60 < inplane_deg(half, K)
+    assert inplane_deg(T) <= 60 < inplane_deg(half)
     above = decode(np.array([0.01, 0.0, 0.4]), 0.7, uv, K)
-    assert inplane_deg(above, K) is None
+    assert inplane_deg(above) is None
 
 
 def test_the_global_estimator_reports_how_far_its_pose_is_from_resting(tmp_path) -> None:
