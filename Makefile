@@ -70,7 +70,9 @@ weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --dists headcam,headcam_hard \
 	  --limit headcam=5000,headcam_hard=3000 --epochs 5 --lr 0.0005 --init posenet_ours_head --name posenet_ours_hard
 	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 10 --batch 64 \
-	  --precision bf16
+	  --precision bf16 --name posenet_paper_bf16
+	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 25 --batch 64 \
+	  --precision bf16 --channels-last --threads 2 --lr 0.001 --init posenet_paper_bf16
 	$(PY) -m perception.training.export --plot docs/training_curves.png
 	$(PY) -m perception.training.train_detector --epochs 8 --out $(CKPT)/detector_base
 	$(PY) -m perception.training.train_detector --also headcam_hard --limit 2500 --epochs 1 \
