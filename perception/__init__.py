@@ -25,6 +25,7 @@ from perception.geometry import (
     pixel_ray,
     project,
     r_corr,
+    ray_correction,
     rotation_from_p_theta,
 )
 from perception.metrics import (
@@ -118,6 +119,7 @@ __all__ = [
     "project",
     "r_corr",
     "random_square_box",
+    "ray_correction",
     "recall",
     "recall_5cm5deg",
     "render_depth",

@@ -445,17 +445,14 @@ def drawing_order(depth: np.ndarray, hides: np.ndarray) -> list[int]:
         return order
     # before[j]: the pieces j hides, as bits; each step draws the farthest piece whose hidden
     # pieces are all drawn
-    P = len(order)
-    bits = [1 << i for i in range(P)]
-    if P <= 62:
-        before = (hides.T.astype(np.int64) @ (np.int64(1) << np.arange(P, dtype=np.int64))).tolist()
-    else:
-        before = [sum(bits[i] for i in np.flatnonzero(col)) for col in hides.T]
+    before = [
+        int.from_bytes(np.packbits(col, bitorder="little").tobytes(), "little") for col in hides.T
+    ]
     drawn, out, left = 0, [], order
     while left:
         pick = next((j for j in left if not before[j] & ~drawn), left[0])
         out.append(pick)
-        drawn |= bits[pick]
+        drawn |= 1 << pick
         left = [j for j in left if j != pick]
     return out
 

@@ -84,6 +84,12 @@ def r_corr(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     uv = as_array(uv, (2,), "uv")
     K = check_intrinsics(K)
     x_n, y_n, _ = np.linalg.solve(K, np.array([uv[0], uv[1], 1.0]))
+    return ray_correction(x_n, y_n)
+
+
+def ray_correction(x_n: float, y_n: float) -> np.ndarray:
+    """`r_corr` of the ray through the normalised image point (x_n, y_n, 1): a point (x, y, z)
+    of C with z > 0 gives it as (x / z, y / z), whatever K."""
     alpha = math.atan(x_n)
     beta = -math.asin(y_n / math.sqrt(x_n * x_n + y_n * y_n + 1.0))
     return rot_y(alpha) @ rot_x(beta)

@@ -63,6 +63,7 @@ from perception.codebook import (
     verification_scores,
 )
 from perception.detector import TIERS_DETECTOR, Detection
+from perception.geometry import axes_from_p, ray_correction
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target, occluder_of
 from perception.mask_net import MaskRefiner
 from perception.overlay import mask_box
@@ -71,7 +72,7 @@ from perception.support import refine_on_support, resting_surface_z, snap_to_res
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root
-from posegrasp.core.transforms import quat_to_mat, rot_x, rot_y
+from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
 
 
@@ -331,24 +332,16 @@ def rank_verified(verified: list[Verified]) -> list[Verified]:
 def inplane_deg(T_C_O: np.ndarray) -> float | None:
     """|theta| of the pose's 4D representation (`perception.geometry.encode`) [deg], or None
     when the camera looks within `POLE_DEG` of the object's z axis (theta is not defined there)
-    or the object is behind the camera.
-
-    The virtual camera C' looks along the ray to the object's origin, whatever K: R_C_C' =
-    Ry(atan(t_x / t_z)) Rx(-asin(t_y / |t|)); its axes in O are the rows of R_C'_O, its z axis
-    is the viewing direction and theta the turn of its x axis from the theta = 0 axis of
-    `perception.geometry.axes_from_p`."""
+    or the object is behind the camera. The virtual camera C' looks along the ray to the
+    object's origin, so no K is needed (`perception.geometry.ray_correction`)."""
     t = T_C_O[:3, 3]
     if t[2] <= 0:
         return None
-    R_Cv_O = (rot_y(math.atan(t[0] / t[2])) @ rot_x(-math.asin(t[1] / np.linalg.norm(t)))).T
-    R_Cv_O = R_Cv_O @ T_C_O[:3, :3]
-    z, x_prime = R_Cv_O[2], R_Cv_O[0]
-    s2 = z[0] * z[0] + z[1] * z[1]
-    if abs(z[2]) >= math.cos(math.radians(POLE_DEG)):
+    R_Cv_O = ray_correction(t[0] / t[2], t[1] / t[2]).T @ T_C_O[:3, :3]
+    if abs(R_Cv_O[2, 2]) >= math.cos(math.radians(POLE_DEG)):  # C''s axis in O
         return None
-    x = np.array([z[1], -z[0], 0.0]) / math.sqrt(s2)
-    y = np.cross(z, x)
-    return abs(math.degrees(math.atan2(float(x_prime @ y), float(x_prime @ x))))
+    x, y, _ = axes_from_p(-R_Cv_O[2])  # C' at -z in O, up to the scale axes_from_p drops
+    return abs(math.degrees(math.atan2(float(R_Cv_O[0] @ y), float(R_Cv_O[0] @ x))))
 
 
 class GlobalPoseEstimator:
