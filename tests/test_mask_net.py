@@ -217,3 +217,88 @@ def test_the_examples_are_drawn_into_a_picture(tmp_path) -> None:
     coarse = _disc((64, 64), (33, 31), 17)
     plot_examples([("car", rgb, coarse, truth, truth, 0.7, 1.0)], tmp_path / "m.png")
     assert (tmp_path / "m.png").stat().st_size > 1000
+
+
+def test_the_detectors_own_masks_are_the_coarse_input_of_their_windows(tmp_path, monkeypatch):
+    """Windows of the `detected` images are cut around the detector's own mask of each object,
+    which is their coarse input as it is: they are cached, a run trains on them beside the
+    degraded true masks (its batches carry them unchanged) and validates on the detector's
+    masks of the validation scenes too."""
+    import perception.detector as detector_module
+    import perception.training.train_masknet as tm
+    from perception.detector import Detection
+    from perception.training.datagen import main as datagen
+    from perception.training.dataset import PoseDataset
+
+    monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path / "data"))
+    out = tmp_path / "data" / "paper"
+    for split, count in (("train", 5), ("val", 2)):
+        argv = ["--dist", "paper", "--split", split, "--count", str(count), "--out", str(out)]
+        assert datagen([*argv, "--quiet"]) == 0
+    # The detector stands in here: each object's true mask with its right third dropped.
+    answers: dict[bytes, list[Detection]] = {}
+    for split in ("train", "val"):
+        ds = PoseDataset(out, split)
+        for i in range(len(ds)):
+            s = ds[i]
+            dets = []
+            for obj in s.objects:
+                cols = np.flatnonzero(obj.mask_visib.any(0))
+                lost = obj.mask_visib.copy()
+                if len(cols):
+                    lost[:, cols[0] + 2 * len(cols) // 3 :] = False
+                dets.append(Detection(obj.name, 0.9, np.zeros(4), lost))
+            answers[s.rgb.tobytes()] = dets
+
+    class Standin:
+        calls = 0
+
+        def detect(self, rgb, score_threshold=None):
+            Standin.calls += 1
+            return answers[rgb.tobytes()]
+
+    monkeypatch.setattr(detector_module.Detector, "from_weights", lambda path: Standin())
+    net_cfg = MaskNetConfig(size=32, widths=(4, 8, 16))
+    windows = tm.detector_windows("paper", "train", 2, 3, net_cfg, None)
+    ds = PoseDataset(out, "train")
+    expected = []
+    for i in range(2, 5):
+        for obj, det in zip(ds[i].objects, answers[ds[i].rgb.tobytes()], strict=True):
+            if (
+                obj.mask_visib.sum() >= tm.MIN_VISIBLE_PX
+                and tm.mask_iou(det.mask, obj.mask_visib) >= 0.3
+            ):
+                win = window_of(det.mask, net_cfg.margin)
+                expected.append(cut(det.mask.astype(np.float32), win, 32) >= 0.5)
+    assert len(expected) >= 2 and len(windows["coarse"]) == len(expected)
+    for got, want in zip(windows["coarse"], expected, strict=True):
+        assert np.array_equal(got.astype(bool), want)
+    assert windows["target"].dtype == np.uint8 and windows["rgb"].shape[1:] == (32, 32, 3)
+    calls = Standin.calls
+    again = tm.detector_windows("paper", "train", 2, 3, net_cfg, None)
+    assert Standin.calls == calls and np.array_equal(again["coarse"], windows["coarse"])
+
+    seen: list[np.ndarray] = []
+    real_input = tm.net_input
+
+    def recording(rgb, coarse):
+        seen.append(np.asarray(coarse).copy())
+        return real_input(rgb, coarse)
+
+    monkeypatch.setattr(tm, "net_input", recording)
+    cfg = tm.MaskTrainConfig(
+        sources=(("paper", 2),),
+        val=("paper", 2),
+        epochs=1,
+        batch=1,  # every window in a batch of its own
+        net=net_cfg,
+        out=tmp_path / "run",
+        detected=("paper", 2, 3),
+    )
+    run = tm.train(cfg)
+    fed = np.concatenate(seen)
+    for given in windows["coarse"]:
+        assert any(np.array_equal(row, given) for row in fed)
+    last = run["history"][-1]
+    assert 0 <= last["detected_iou"] <= 1 and 0 < last["detector_iou"] < 1
+    assert run["data_seeds"]["detected_windows"] == len(windows["coarse"])

@@ -14,6 +14,12 @@ at a random level, its thin parts opened away at random, with whole parts lost a
 shifted by a few pixels. The loss is the binary cross-entropy with the true mask's coverage of
 each window pixel.
 
+``--detected N`` adds the N training images after the protocol's, their windows cut around the
+protocol detector's own mask of each object (as the estimator cuts them) with that mask as the
+coarse input (`detector_windows`): the detector's real failures, such as a whole dark part lost,
+beside the drawn ones. Validation then also measures the net on the detector's masks of the
+validation scenes (``detected_iou``).
+
 A run checkpoints after every epoch and every few minutes (``--out``) and resumes from there;
 ``--export`` writes the protocol's net (``perception/weights/tiers/masknet.pt``,
 ``perception/weights/paper_protocol/masknet.pt``) and its manifest entry (``mask_net``: command,
@@ -82,6 +88,9 @@ from posegrasp.core.validate import arg, check_choice, check_int, check_plot_pat
 
 #: Objects with fewer visible pixels give no training window.
 MIN_VISIBLE_PX = 100
+#: A detection counts as an object's (`detector_windows`) from this score and mask IoU with it.
+DETECTED_SCORE = 0.3
+DETECTED_IOU = 0.3
 #: The splits a run trains on by default and how many images of each.
 DEFAULT_SOURCES = (("headcam_hard", 9000), ("headcam_any-pose", 3000), ("headcam", 3000))
 VAL_SOURCE = ("headcam_hard", 500)
@@ -132,6 +141,11 @@ class MaskTrainConfig:
         net: the net.
         init: a shipped mask net the run starts from (None: from scratch); its net must be
             `net`.
+        detected: (split folder, first image, images) of further training scenes whose
+            windows are cut around `detector`'s own masks, which are their coarse input as they
+            are (`detector_windows`), instead of drawn from the truth (None: none). Validation
+            then also measures the net on the detector's masks of the validation scenes.
+        detector: the detector of `detected` (None: the tiers').
     """
 
     sources: tuple[tuple[str, int], ...] = DEFAULT_SOURCES
@@ -146,6 +160,8 @@ class MaskTrainConfig:
     out: Path = Path("data/checkpoints/masknet")
     net: MaskNetConfig = field(default_factory=MaskNetConfig)
     init: Path | None = None
+    detected: tuple[str, int, int] | None = None
+    detector: Path | None = None
 
 
 def _jittered_window(
@@ -207,6 +223,78 @@ def build_cache(
             targets.append(np.round(cover * 255).astype(np.uint8))
             names.append(obj.name)
     cache = {"rgb": np.stack(rgbs), "target": np.stack(targets), "cls": np.array(names)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **cache)
+    tmp.replace(path)
+    return cache
+
+
+def detector_windows(
+    folder: str,
+    split: str,
+    first: int,
+    images: int,
+    net: MaskNetConfig,
+    detector_path: Path | None,
+) -> dict[str, np.ndarray]:
+    """Windows of images ``first .. first + images - 1`` of a split as the estimator cuts them:
+    around the mask of the detector's detection of each visible object (the same class, score
+    >= `DETECTED_SCORE`, the largest mask IoU with the truth, at least `DETECTED_IOU`), with
+    that mask as the coarse input. Kept in ``$POSEGRASP_DATA/masknet`` as `build_cache`'s, with
+    ``coarse`` (N, S, S) uint8 in {0, 1}. Objects the detector misses give no window.
+
+    Raises:
+        AssetError: the split is missing (the message names ``make data``) or the detector's
+            weights are.
+    """
+    from perception.detector import TIERS_DETECTOR, Detector
+
+    path_of_detector = detector_path or TIERS_DETECTOR
+    S = net.size
+    tag = sha256_file(path_of_detector)[:12] if path_of_detector.is_file() else "missing"
+    name = f"{folder}_{split}_{first}+{images}_{S}_{net.margin}_detected_{tag}"
+    path = data_root() / "masknet" / f"{name}.npz"
+    if path.is_file():
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    root = data_root() / folder
+    try:
+        data = PoseDataset(root, split)
+    except (OSError, KeyError, ValueError) as exc:
+        raise AssetError(
+            f"no {split} split in {root} ({exc}); render it with `make data`"
+        ) from None
+    detector = Detector.from_weights(path_of_detector)
+    rgbs, coarse, targets, names = [], [], [], []
+    last = min(first + images, len(data))
+    for i in tqdm(range(first, last), desc=f"detections of {folder}/{split}", mininterval=5):
+        sample = data[i]
+        dets = detector.detect(sample.rgb, DETECTED_SCORE)
+        for obj in sample.objects:
+            truth = obj.mask_visib
+            if int(truth.sum()) < MIN_VISIBLE_PX:
+                continue
+            best, best_iou = None, DETECTED_IOU
+            for d in dets:
+                if d.name == obj.name and (iou := mask_iou(d.mask, truth)) >= best_iou:
+                    best, best_iou = d, iou
+            win = None if best is None else window_of(best.mask, net.margin)
+            if win is None:
+                continue
+            rgbs.append(cut(sample.rgb, win, S))
+            coarse.append((cut(best.mask.astype(np.float32), win, S) >= 0.5).astype(np.uint8))
+            cover = cut(truth.astype(np.float32), win, S)
+            targets.append(np.round(cover * 255).astype(np.uint8))
+            names.append(obj.name)
+    if not rgbs:
+        raise AssetError(f"the detector found no object in {folder}/{split} {first}+{images}")
+    cache = {
+        "rgb": np.stack(rgbs),
+        "coarse": np.stack(coarse),
+        "target": np.stack(targets),
+        "cls": np.array(names),
+    }
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
     np.savez(tmp, **cache)
@@ -284,11 +372,30 @@ def _iou(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
 
 @torch.inference_mode()
 def validate(
-    net: MaskNet, val: dict[str, np.ndarray], seed: int, heavy: bool = False
+    net: MaskNet,
+    val: dict[str, np.ndarray],
+    seed: int,
+    heavy: bool = False,
+    detected: dict[str, np.ndarray] | None = None,
 ) -> dict[str, float]:
     """Mean IoU with the true mask (coverage >= 0.5) of the degraded input and of the net's
-    mask, on the validation windows (their coarse masks seeded, the same every epoch)."""
+    mask, on the validation windows (their coarse masks seeded, the same every epoch); with
+    `detected` (`detector_windows`), also of the detector's masks (``detector_iou``) and of the
+    net's redrawing of them (``detected_iou``)."""
     net.eval()
+    extra: dict[str, float] = {}
+    if detected is not None:
+        given, redrawn = [], []
+        for i in range(0, len(detected["rgb"]), 256):
+            c = detected["coarse"][i : i + 256]
+            truth = torch.as_tensor(detected["target"][i : i + 256]) >= 128
+            logits = net(net_input(detected["rgb"][i : i + 256], c.astype(np.float32)))[:, 0]
+            given.append(_iou(torch.as_tensor(c) > 0, truth))
+            redrawn.append(_iou(logits >= 0, truth))
+        extra = {
+            "detector_iou": float(torch.cat(given).mean()),
+            "detected_iou": float(torch.cat(redrawn).mean()),
+        }
     g = torch.Generator().manual_seed(seed)
     before, after = [], []
     for i in range(0, len(val["rgb"]), 256):
@@ -301,6 +408,7 @@ def validate(
     return {
         "coarse_iou": float(torch.cat(before).mean()),
         "iou": float(torch.cat(after).mean()),
+        **extra,
     }
 
 
@@ -334,12 +442,31 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
     seed_torch(cfg.seed, None)
     spread = 2.0 if cfg.heavy else 1.0
     parts = [build_cache(f, "train", n, cfg.net, cfg.seed, spread) for f, n in cfg.sources]
+    val_detected = None
+    if cfg.detected is not None:
+        folder, first, images = cfg.detected
+        parts.append(detector_windows(folder, "train", first, images, cfg.net, cfg.detector))
+        val_detected = detector_windows(cfg.val[0], "val", 0, cfg.val[1], cfg.net, cfg.detector)
     tr = {k: np.concatenate([p[k] for p in parts]) for k in ("rgb", "target")}
+    # The detector's own coarse masks where a window has one; the others' are drawn per batch.
+    given = np.concatenate([np.full(len(p["rgb"]), "coarse" in p) for p in parts])
+    coarse_given = np.concatenate(
+        [p.get("coarse", np.zeros((0, *p["target"].shape[1:]), np.uint8)) for p in parts]
+    )
+    at = np.cumsum(given) - 1  # row of each given window in coarse_given
     val = build_cache(cfg.val[0], "val", cfg.val[1], cfg.net, 0, spread)
     net = MaskNet(cfg.net)
     lineage = {"stages": []} if cfg.init is None else _start_from(net, cfg.init)
     init = None if cfg.init is None else str(cfg.init)
-    run = {"epochs": cfg.epochs, "batch": cfg.batch, "lr": cfg.lr, "seed": cfg.seed, "init": init}
+    detected = None if cfg.detected is None else list(cfg.detected)
+    run = {
+        "epochs": cfg.epochs,
+        "batch": cfg.batch,
+        "lr": cfg.lr,
+        "seed": cfg.seed,
+        "init": init,
+        "detected": detected,
+    }
     if cfg.channels_last:
         net = net.to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=1e-4)
@@ -351,7 +478,7 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
     if resume and last.is_file():
         state = read_checkpoint(last)
         was = state["train_config"]
-        keys = ("epochs", "batch", "seed", "init")
+        keys = ("epochs", "batch", "seed", "init", "detected")
         if any(was.get(k, 0 if k == "seed" else None) != run[k] for k in keys):
             started = " ".join(f"--{k} {was.get(k)}" for k in keys if was.get(k) is not None)
             raise InvalidArgumentError(
@@ -372,8 +499,15 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
         "init": run["init"],
         "init_sha256": None if cfg.init is None else sha256_file(cfg.init),
     }
+    if cfg.detected is not None:
+        data_seeds |= {
+            "detected": detected,
+            "detected_windows": int(given.sum()),
+            "detector": str(cfg.detector),
+            "detector_sha256": sha256_file(cfg.detector) if cfg.detector else None,
+        }
     if cfg.init is not None and not history:  # the start, on the same validation windows
-        history.append({"epoch": 0, "step": 0, **validate(net, val, 0, cfg.heavy)})
+        history.append({"epoch": 0, "step": 0, **validate(net, val, 0, cfg.heavy, val_detected)})
         print(f"start ({cfg.init}): {history[-1]}", flush=True)
 
     def save(done: int, wall_s: float) -> None:
@@ -414,7 +548,11 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
                 return read_checkpoint(last)
             idx = np.sort(order[b * cfg.batch : (b + 1) * cfg.batch])
             t = torch.as_tensor(tr["target"][idx]).float() / 255
-            x = net_input(tr["rgb"][idx], degrade(t, g, cfg.heavy).numpy())
+            coarse = degrade(t, g, cfg.heavy).numpy()
+            mine = given[idx]
+            if mine.any():
+                coarse[mine] = coarse_given[at[idx[mine]]]
+            x = net_input(tr["rgb"][idx], coarse)
             if cfg.channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             with autocast(cfg.precision, device):
@@ -429,7 +567,9 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
                 bar.set_postfix(loss=f"{loss.item():.4f}")
             ckpts.save_if_due(epoch)
         epoch += 1
-        history.append({"epoch": epoch, "step": step, **validate(net, val, 0, cfg.heavy)})
+        history.append(
+            {"epoch": epoch, "step": step, **validate(net, val, 0, cfg.heavy, val_detected)}
+        )
         print(f"epoch {epoch}: {history[-1]}", flush=True)
         ckpts.save(epoch)
     return read_checkpoint(last)
@@ -584,6 +724,13 @@ def main(argv: list[str] | None = None) -> int:
         help="of the training windows' jitter, the batches' order and the coarse masks "
         "(default 0; the validation windows are seed 0's whatever it is)",
     )
+    p.add_argument(
+        "--detected",
+        type=arg(check_int, 1, 1_000_000, "--detected", base=int),
+        default=None,
+        help="also train on this many images after the protocol's training images, cut around "
+        "its detector's own masks, which are their coarse input (default none)",
+    )
     p.add_argument("--no-resume", action="store_true", help="start over")
     p.add_argument("--export", action="store_true", help="write the shipped net when done")
     p.add_argument(
@@ -634,8 +781,11 @@ def main(argv: list[str] | None = None) -> int:
     default_out = MaskTrainConfig.out.with_name(
         "masknet" + ("" if args.protocol == "tiers" else f"_{args.protocol}")
     )
+    folder, first = proto.sources[0]
     cfg = replace(
         MaskTrainConfig(),
+        detected=None if args.detected is None else (folder, first, args.detected),
+        detector=proto.detector,
         sources=proto.sources,
         val=proto.val,
         epochs=args.epochs,
