@@ -104,6 +104,9 @@ weights: data
 	$(PY) -m perception.training.train_masknet --protocol paper \
 	  --init perception/weights/paper_protocol/masknet.pt --seed 2 --epochs 4 --lr 0.0005 \
 	  --channels-last --out $(CKPT)/masknet_paper_ft2 --export
+	$(PY) -m perception.training.train_masknet --protocol paper \
+	  --init perception/weights/paper_protocol/masknet.pt --seed 3 --epochs 3 --lr 0.0005 \
+	  --detected 10000 --channels-last --out $(CKPT)/masknet_paper_det --export
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record
