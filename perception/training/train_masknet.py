@@ -182,6 +182,39 @@ def _jittered_window(
     )
 
 
+def _kept(name: str) -> dict[str, np.ndarray] | None:
+    """The windows kept as ``$POSEGRASP_DATA/masknet/<name>.npz``, None when not kept yet."""
+    path = data_root() / "masknet" / f"{name}.npz"
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _keep(name: str, cache: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Write `cache` as `_kept` reads it (whole or not at all) and return it."""
+    path = data_root() / "masknet" / f"{name}.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **cache)
+    tmp.replace(path)
+    return cache
+
+
+def _split(root: Path, split: str) -> PoseDataset:
+    """The rendered split under `root`.
+
+    Raises:
+        AssetError: it is missing (the message names ``make data``).
+    """
+    try:
+        return PoseDataset(root, split)
+    except (OSError, KeyError, ValueError) as exc:
+        raise AssetError(
+            f"no {split} split in {root} ({exc}); render it with `make data`"
+        ) from None
+
+
 def build_cache(
     folder: str, split: str, images: int, net: MaskNetConfig, seed: int, spread: float = 1.0
 ) -> dict[str, np.ndarray]:
@@ -198,16 +231,9 @@ def build_cache(
     name = f"{folder}_{split}_{images}_{S}_{net.margin}_{seed}" + (
         f"_{spread}" if spread != 1 else ""
     )
-    path = data_root() / "masknet" / f"{name}.npz"
-    if path.is_file():
-        with np.load(path) as z:
-            return {k: z[k] for k in z.files}
-    try:
-        data = PoseDataset(root, split)
-    except (OSError, KeyError, ValueError) as exc:
-        raise AssetError(
-            f"no {split} split in {root} ({exc}); render it with `make data`"
-        ) from None
+    if (kept := _kept(name)) is not None:
+        return kept
+    data = _split(root, split)
     n = min(images, len(data))
     rgbs, targets, names = [], [], []
     for i in tqdm(range(n), desc=f"windows of {folder}/{split}", mininterval=5):
@@ -223,11 +249,7 @@ def build_cache(
             targets.append(np.round(cover * 255).astype(np.uint8))
             names.append(obj.name)
     cache = {"rgb": np.stack(rgbs), "target": np.stack(targets), "cls": np.array(names)}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **cache)
-    tmp.replace(path)
-    return cache
+    return _keep(name, cache)
 
 
 def detector_windows(
@@ -254,17 +276,9 @@ def detector_windows(
     S = net.size
     tag = sha256_file(path_of_detector)[:12] if path_of_detector.is_file() else "missing"
     name = f"{folder}_{split}_{first}+{images}_{S}_{net.margin}_detected_{tag}"
-    path = data_root() / "masknet" / f"{name}.npz"
-    if path.is_file():
-        with np.load(path) as z:
-            return {k: z[k] for k in z.files}
-    root = data_root() / folder
-    try:
-        data = PoseDataset(root, split)
-    except (OSError, KeyError, ValueError) as exc:
-        raise AssetError(
-            f"no {split} split in {root} ({exc}); render it with `make data`"
-        ) from None
+    if (kept := _kept(name)) is not None:
+        return kept
+    data = _split(data_root() / folder, split)
     detector = Detector.from_weights(path_of_detector)
     rgbs, coarse, targets, names = [], [], [], []
     last = min(first + images, len(data))
@@ -295,11 +309,7 @@ def detector_windows(
         "target": np.stack(targets),
         "cls": np.array(names),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **cache)
-    tmp.replace(path)
-    return cache
+    return _keep(name, cache)
 
 
 def _lose_and_gain(coarse: torch.Tensor, g: torch.Generator) -> torch.Tensor:
