@@ -49,7 +49,8 @@ data: setup
 # ("Training") says what the stages are for.
 CKPT := $${POSEGRASP_DATA:-data}/checkpoints
 weights: data
-	$(PY) -m perception.training.train_posenet --variant ours --epochs 16 --limit headcam=5000 --name posenet_ours_mixed
+	$(PY) -m perception.training.train_posenet --variant ours --epochs 16 --limit headcam=5000,paper=20000 \
+	  --name posenet_ours_mixed
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 14 --dists headcam \
 	  --limit headcam=10000 --lr 0.001 --init posenet_ours_mixed --name posenet_ours_head
 	$(PY) -m perception.training.train_posenet --variant ours --epochs 6 --dists headcam \
@@ -70,9 +71,10 @@ weights: data
 	$(PY) -m perception.training.train_posenet --variant ours --dists headcam,headcam_hard \
 	  --limit headcam=5000,headcam_hard=3000 --epochs 5 --lr 0.0005 --init posenet_ours_head --name posenet_ours_hard
 	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 10 --batch 64 \
-	  --precision bf16 --name posenet_paper_bf16
+	  --limit paper=40000 --precision bf16 --name posenet_paper_bf16
 	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 25 --batch 64 \
-	  --precision bf16 --channels-last --threads 2 --lr 0.001 --init posenet_paper_bf16
+	  --limit paper=40000 --precision bf16 --channels-last --threads 2 --lr 0.001 \
+	  --init posenet_paper_bf16
 	$(PY) -m perception.training.export --plot docs/training_curves.png
 	$(PY) -m perception.training.train_detector --epochs 8 --out $(CKPT)/detector_base
 	$(PY) -m perception.training.train_detector --also headcam_hard --limit 2500 --epochs 1 \
