@@ -19,7 +19,7 @@ from perception.training.dataset import DISTS, PoseDataset
 from perception.training.manifest import MANIFEST_NAME, read_manifest, write_manifest
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.files import sha256_file
-from posegrasp.core.paths import DATA_ENV, REPO_ROOT, WEIGHTS_DIR, data_root, git_commit
+from posegrasp.core.paths import DATA_ENV, REPO_ROOT, WEIGHTS_DIR, data_root, git_commit, in_repo
 
 #: Averages the manifest keeps of each test split.
 RECORD_KEYS = (
@@ -89,9 +89,7 @@ def check_full_splits(dists: list[str]) -> None:
 
 def record_command(args: Namespace) -> str:
     """The evaluation command, as the manifest records it."""
-    w = Path(args.weights).resolve()
-    w = w.relative_to(REPO_ROOT) if w.is_relative_to(REPO_ROOT) else w
-    parts = ["python -m perception.training.tables", f"--weights {w}"]
+    parts = ["python -m perception.training.tables", f"--weights {in_repo(args.weights)}"]
     parts += [f"--boxes {args.boxes}"] if args.boxes != "gt" else []
     return " ".join(parts)
 

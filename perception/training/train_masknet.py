@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from perception.detector import PAPER_DETECTOR
+from perception.detector import PAPER_DETECTOR, Detection
 from perception.mask_net import (
     DEFAULT_MASKNET,
     PAPER_MASKNET,
@@ -83,7 +83,7 @@ from perception.training.manifest import (
 from posegrasp.core.cli import ArgumentParser, command, write_json
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.files import sha256_file
-from posegrasp.core.paths import data_root
+from posegrasp.core.paths import data_root, in_repo
 from posegrasp.core.validate import arg, check_choice, check_int, check_plot_path, check_seed
 
 #: Objects with fewer visible pixels give no training window.
@@ -252,6 +252,18 @@ def build_cache(
     return _keep(name, cache)
 
 
+def best_detection(
+    dets: list[Detection], name: str, truth: np.ndarray, least: float
+) -> tuple[Detection | None, float]:
+    """Of the detections `dets` of class `name`, the one whose mask overlaps the true visible
+    mask `truth` most, with that mask IoU; (None, `least`) when none reaches `least`."""
+    best, best_iou = None, least
+    for d in dets:
+        if d.name == name and (iou := mask_iou(d.mask, truth)) >= best_iou:
+            best, best_iou = d, iou
+    return best, best_iou
+
+
 def detector_windows(
     folder: str,
     split: str,
@@ -289,10 +301,7 @@ def detector_windows(
             truth = obj.mask_visib
             if int(truth.sum()) < MIN_VISIBLE_PX:
                 continue
-            best, best_iou = None, DETECTED_IOU
-            for d in dets:
-                if d.name == obj.name and (iou := mask_iou(d.mask, truth)) >= best_iou:
-                    best, best_iou = d, iou
+            best, _ = best_detection(dets, obj.name, truth, DETECTED_IOU)
             win = None if best is None else window_of(best.mask, net.margin)
             if win is None:
                 continue
@@ -452,18 +461,16 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
     seed_torch(cfg.seed, None)
     spread = 2.0 if cfg.heavy else 1.0
     parts = [build_cache(f, "train", n, cfg.net, cfg.seed, spread) for f, n in cfg.sources]
-    val_detected = None
+    # The windows from `first_detected` on are the detector's, with their own coarse masks;
+    # the others' are drawn per batch.
+    first_detected = sum(len(p["rgb"]) for p in parts)
+    detected_train = val_detected = None
     if cfg.detected is not None:
         folder, first, images = cfg.detected
-        parts.append(detector_windows(folder, "train", first, images, cfg.net, cfg.detector))
+        detected_train = detector_windows(folder, "train", first, images, cfg.net, cfg.detector)
+        parts.append(detected_train)
         val_detected = detector_windows(cfg.val[0], "val", 0, cfg.val[1], cfg.net, cfg.detector)
     tr = {k: np.concatenate([p[k] for p in parts]) for k in ("rgb", "target")}
-    # The detector's own coarse masks where a window has one; the others' are drawn per batch.
-    given = np.concatenate([np.full(len(p["rgb"]), "coarse" in p) for p in parts])
-    coarse_given = np.concatenate(
-        [p.get("coarse", np.zeros((0, *p["target"].shape[1:]), np.uint8)) for p in parts]
-    )
-    at = np.cumsum(given) - 1  # row of each given window in coarse_given
     val = build_cache(cfg.val[0], "val", cfg.val[1], cfg.net, 0, spread)
     net = MaskNet(cfg.net)
     lineage = {"stages": []} if cfg.init is None else _start_from(net, cfg.init)
@@ -512,8 +519,8 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
     if cfg.detected is not None:
         data_seeds |= {
             "detected": detected,
-            "detected_windows": int(given.sum()),
-            "detector": str(cfg.detector),
+            "detected_windows": len(tr["rgb"]) - first_detected,
+            "detector": None if cfg.detector is None else str(in_repo(cfg.detector)),
             "detector_sha256": sha256_file(cfg.detector) if cfg.detector else None,
         }
     if cfg.init is not None and not history:  # the start, on the same validation windows
@@ -559,9 +566,8 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
             idx = np.sort(order[b * cfg.batch : (b + 1) * cfg.batch])
             t = torch.as_tensor(tr["target"][idx]).float() / 255
             coarse = degrade(t, g, cfg.heavy).numpy()
-            mine = given[idx]
-            if mine.any():
-                coarse[mine] = coarse_given[at[idx[mine]]]
+            if detected_train is not None and (mine := idx >= first_detected).any():
+                coarse[mine] = detected_train["coarse"][idx[mine] - first_detected]
             x = net_input(tr["rgb"][idx], coarse)
             if cfg.channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
@@ -643,10 +649,7 @@ def evaluate(
             truth = obj.mask_visib
             if int(truth.sum()) < MIN_VISIBLE_PX:
                 continue
-            best, best_iou = None, 0.5
-            for d in dets:
-                if d.name == obj.name and (iou := mask_iou(d.mask, truth)) >= best_iou:
-                    best, best_iou = d, iou
+            best, best_iou = best_detection(dets, obj.name, truth, 0.5)
             if best is None:
                 continue
             t0 = time.perf_counter()

@@ -24,6 +24,13 @@ def data_root() -> Path:
     return Path(env) if env else REPO_ROOT / "data"
 
 
+def in_repo(path: Path | str) -> Path:
+    """`path` relative to the repository when it lies inside it (as manifests record paths),
+    else as it is, resolved."""
+    p = Path(path).resolve()
+    return p.relative_to(REPO_ROOT) if p.is_relative_to(REPO_ROOT) else p
+
+
 def checkpoint_dir() -> Path:
     """Where training checkpoints live by default: <data root>/checkpoints."""
     return data_root() / "checkpoints"
