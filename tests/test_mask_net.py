@@ -223,7 +223,8 @@ def test_the_detectors_own_masks_are_the_coarse_input_of_their_windows(tmp_path,
     """Windows of the `detected` images are cut around the detector's own mask of each object,
     which is their coarse input as it is: they are cached, a run trains on them beside the
     degraded true masks (its batches carry them unchanged) and validates on the detector's
-    masks of the validation scenes too."""
+    masks of the validation scenes too. The cache is kept in blocks: a longer run runs the
+    detector only on the images past the blocks a shorter one finished."""
     import perception.detector as detector_module
     import perception.training.train_masknet as tm
     from perception.detector import Detection
@@ -259,7 +260,12 @@ def test_the_detectors_own_masks_are_the_coarse_input_of_their_windows(tmp_path,
 
     monkeypatch.setattr(detector_module.Detector, "from_weights", lambda path: Standin())
     net_cfg = MaskNetConfig(size=32, widths=(4, 8, 16))
+    monkeypatch.setattr(tm, "DETECTED_BLOCK", 2)
+    shorter = tm.detector_windows("paper", "train", 2, 2, net_cfg, None)
+    assert Standin.calls == 2
     windows = tm.detector_windows("paper", "train", 2, 3, net_cfg, None)
+    assert Standin.calls == 3  # the finished block of the shorter run is reused
+    assert np.array_equal(windows["coarse"][: len(shorter["coarse"])], shorter["coarse"])
     ds = PoseDataset(out, "train")
     expected = []
     for i in range(2, 5):

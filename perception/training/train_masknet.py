@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from perception.detector import PAPER_DETECTOR, Detection
+from perception.detector import PAPER_DETECTOR, Detection, Detector
 from perception.mask_net import (
     DEFAULT_MASKNET,
     PAPER_MASKNET,
@@ -88,6 +88,9 @@ from posegrasp.core.validate import arg, check_choice, check_int, check_plot_pat
 
 #: Objects with fewer visible pixels give no training window.
 MIN_VISIBLE_PX = 100
+#: `detector_windows` keeps its windows in blocks of this many images.
+DETECTED_BLOCK = 10000
+
 #: A detection counts as an object's (`detector_windows`) from this score and mask IoU with it.
 DETECTED_SCORE = 0.3
 DETECTED_IOU = 0.3
@@ -276,25 +279,51 @@ def detector_windows(
     around the mask of the detector's detection of each visible object (the same class, score
     >= `DETECTED_SCORE`, the largest mask IoU with the truth, at least `DETECTED_IOU`), with
     that mask as the coarse input. Kept in ``$POSEGRASP_DATA/masknet`` as `build_cache`'s, with
-    ``coarse`` (N, S, S) uint8 in {0, 1}. Objects the detector misses give no window.
+    ``coarse`` (N, S, S) uint8 in {0, 1}, in blocks of `DETECTED_BLOCK` images from `first`: a
+    longer run reuses the blocks of a shorter one, and an interrupted one keeps the blocks it
+    finished. Objects the detector misses give no window.
 
     Raises:
-        AssetError: the split is missing (the message names ``make data``) or the detector's
-            weights are.
+        AssetError: the split is missing (the message names ``make data``), the detector's
+            weights are, or the detector found no object at all.
     """
-    from perception.detector import TIERS_DETECTOR, Detector
+    from perception.detector import TIERS_DETECTOR
 
     path_of_detector = detector_path or TIERS_DETECTOR
-    S = net.size
     tag = sha256_file(path_of_detector)[:12] if path_of_detector.is_file() else "missing"
-    name = f"{folder}_{split}_{first}+{images}_{S}_{net.margin}_detected_{tag}"
-    if (kept := _kept(name)) is not None:
-        return kept
     data = _split(data_root() / folder, split)
-    detector = Detector.from_weights(path_of_detector)
-    rgbs, coarse, targets, names = [], [], [], []
     last = min(first + images, len(data))
-    for i in tqdm(range(first, last), desc=f"detections of {folder}/{split}", mininterval=5):
+    detector = None
+    blocks = []
+    for start in range(first, last, DETECTED_BLOCK):
+        count = min(DETECTED_BLOCK, last - start)
+        name = f"{folder}_{split}_{start}+{count}_{net.size}_{net.margin}_detected_{tag}"
+        if (kept := _kept(name)) is None:
+            detector = detector or Detector.from_weights(path_of_detector)
+            kept = _keep(name, _detected_block(data, start, count, net, detector, folder, split))
+        blocks.append(kept)
+    blocks = [b for b in blocks if len(b["cls"])]
+    if not blocks:
+        raise AssetError(f"the detector found no object in {folder}/{split} {first}+{images}")
+    return {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]}
+
+
+def _detected_block(
+    data: PoseDataset,
+    start: int,
+    count: int,
+    net: MaskNetConfig,
+    detector: Detector,
+    folder: str,
+    split: str,
+) -> dict[str, np.ndarray]:
+    """`detector_windows` of images ``start .. start + count - 1`` (empty arrays when the
+    detector finds none of their objects)."""
+    S = net.size
+    rgbs, coarse, targets, names = [], [], [], []
+    for i in tqdm(
+        range(start, start + count), desc=f"detections of {folder}/{split}", mininterval=5
+    ):
         sample = data[i]
         dets = detector.detect(sample.rgb, DETECTED_SCORE)
         for obj in sample.objects:
@@ -310,15 +339,12 @@ def detector_windows(
             cover = cut(truth.astype(np.float32), win, S)
             targets.append(np.round(cover * 255).astype(np.uint8))
             names.append(obj.name)
-    if not rgbs:
-        raise AssetError(f"the detector found no object in {folder}/{split} {first}+{images}")
-    cache = {
-        "rgb": np.stack(rgbs),
-        "coarse": np.stack(coarse),
-        "target": np.stack(targets),
-        "cls": np.array(names),
+    return {
+        "rgb": np.stack(rgbs) if rgbs else np.zeros((0, S, S, 3), np.uint8),
+        "coarse": np.stack(coarse) if coarse else np.zeros((0, S, S), np.uint8),
+        "target": np.stack(targets) if targets else np.zeros((0, S, S), np.uint8),
+        "cls": np.array(names, dtype=str),
     }
-    return _keep(name, cache)
 
 
 def _lose_and_gain(coarse: torch.Tensor, g: torch.Generator) -> torch.Tensor:
@@ -633,7 +659,7 @@ def evaluate(
     its shipped mask net's, by IoU with the true visible mask, per class and overall.
     `examples`, when given, receives the first object of each class: (name, image window,
     detector's, mask net's and true mask in it, both IoUs)."""
-    from perception.detector import TIERS_DETECTOR, Detector
+    from perception.detector import TIERS_DETECTOR
 
     proto = PROTOCOLS[protocol]
     folder = proto.val[0]
