@@ -152,6 +152,7 @@ class PoseRefiner:
     def __init__(self, config: RefineConfig | None = None) -> None:
         self.config = config or RefineConfig()
         self._parts = ConvexParts()
+        self._stacked: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def part_vertices(self, name: str) -> list[np.ndarray]:
         """The vertices of each convex part of an object in O [m], each (n_i, 3); loaded once
@@ -257,8 +258,9 @@ class PoseRefiner:
             info |= {"iou_before": 0.0, "iou_after": 0.0, "reason": "empty mask"}
             return T0.copy(), info | {"time_ms": (time.perf_counter() - t_start) * 1000}
         Kw = window_intrinsics(target.K, win.x0, win.y0)
-        verts = np.concatenate(parts)
-        slices = np.cumsum([0] + [len(p) for p in parts])
+        if name not in self._stacked:  # every part's vertices in one array, and where each starts
+            self._stacked[name] = (np.concatenate(parts), np.cumsum([0] + [len(p) for p in parts]))
+        verts, slices = self._stacked[name]
         T, lam = T0.copy(), 1e-3
         last: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
         iou_before = None
@@ -442,14 +444,19 @@ def _residuals(
     Xc = X_O @ T[:3, :3].T + T[:3, 3]
     Y = Xc - T[:3, 3]
     z = Xc[:, 2]
-    fz = np.stack([Kw[0, 0] / z, Kw[1, 1] / z, Xc[:, 0] / z, Xc[:, 1] / z], 1)
+    fx, fy, xz, yz = Kw[0, 0] / z, Kw[1, 1] / z, Xc[:, 0] / z, Xc[:, 1] / z
 
     def jac(g: np.ndarray) -> np.ndarray:
         """Jacobians (M, 6) of g . p for image directions g (M, 2)."""
-        c0, c1 = g[:, 0] * fz[:, 0], g[:, 1] * fz[:, 1]
-        c2 = -(c0 * fz[:, 2] + c1 * fz[:, 3])
+        out = np.empty((len(g), 6))
+        c0 = np.multiply(g[:, 0], fx, out=out[:, 3])
+        c1 = np.multiply(g[:, 1], fy, out=out[:, 4])
+        c2 = np.negative(c0 * xz + c1 * yz, out=out[:, 5])
         y0, y1, y2 = Y[:, 0], Y[:, 1], Y[:, 2]
-        return np.stack([y1 * c2 - y2 * c1, y2 * c0 - y0 * c2, y0 * c1 - y1 * c0, c0, c1, c2], 1)
+        out[:, 0] = y1 * c2 - y2 * c1
+        out[:, 1] = y2 * c0 - y0 * c2
+        out[:, 2] = y0 * c1 - y1 * c0
+        return out
 
     d = np.array([[0.0, 0.0], [0.5, 0.0], [-0.5, 0.0], [0.0, 0.5], [0.0, -0.5]])
     q = p[None] + d[:, None]
