@@ -30,7 +30,7 @@ bench: setup
 	$(PY) bench/sim_speed.py
 
 # Training data (outside git: $$POSEGRASP_DATA, else data/) and the shipped weights, from scratch.
-DATA_COUNTS := paper:train:50000 paper:val:1000 paper:test:1000 \
+DATA_COUNTS := paper:train:70000 paper:val:1000 paper:test:1000 \
 	headcam:train:160000 headcam:val:500 headcam:test:500
 # Head-camera test scenes of the tiers (folders headcam_<tier>), for accuracy per tier.
 TIER_COUNTS := hard:train:9000 hard:val:500 hard:test:500 clutter:test:300 any-pose:test:300 \
@@ -112,6 +112,9 @@ weights: data
 	$(PY) -m perception.training.train_masknet --protocol paper \
 	  --init perception/weights/paper_protocol/masknet.pt --seed 4 --epochs 2 --lr 0.0005 \
 	  --detected 20000 --channels-last --out $(CKPT)/masknet_paper_det2 --export
+	$(PY) -m perception.training.train_masknet --protocol paper \
+	  --init perception/weights/paper_protocol/masknet.pt --seed 5 --epochs 2 --lr 0.0005 \
+	  --detected 40000 --channels-last --out $(CKPT)/masknet_paper_det3 --export --expert faucet
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record

@@ -70,7 +70,7 @@ def _hybrid_global_paper() -> PoseEstimator:
     from perception.detector import PAPER_DETECTOR
     from perception.global_pose import GlobalConfig, GlobalPoseEstimator
     from perception.hybrid import PAPER_POSENET, HybridPoseEstimator
-    from perception.mask_net import PAPER_MASKNET, MaskRefiner
+    from perception.mask_net import PAPER_MASKNET, PAPER_MASKNET_EXPERTS, MaskRefiner
 
     hybrid = HybridPoseEstimator.from_weights(
         detector_path=PAPER_DETECTOR, posenet_path=PAPER_POSENET, expert_paths=()
@@ -93,7 +93,7 @@ def _hybrid_global_paper() -> PoseEstimator:
         second_look_below=1.3,
         max_inplane_deg=65.0,
     )
-    masks = MaskRefiner.from_weights(PAPER_MASKNET)
+    masks = MaskRefiner.from_weights(PAPER_MASKNET, experts=PAPER_MASKNET_EXPERTS)
     return GlobalPoseEstimator(hybrid, config, name="hybrid-global-paper", masks=masks)
 
 

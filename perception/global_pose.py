@@ -612,7 +612,7 @@ class GlobalPoseEstimator:
         built-in objects it was trained on), else as it is."""
         if self.masks is None or det.name not in OBJECT_NAMES:
             return det
-        return replace(det, mask=self.masks.refine(rgb, det.mask))
+        return replace(det, mask=self.masks.refine(rgb, det.mask, det.name))
 
     def _user_target(
         self, obs: Observation

@@ -13,7 +13,7 @@ is the true visible mask degraded as the detector degrades it (drawn on a coarse
 parts opened away, shifted), so no detector runs while training.
 
     refiner = MaskRefiner.from_weights()
-    sharp = refiner.refine(rgb, detection.mask)
+    sharp = refiner.refine(rgb, detection.mask, detection.name)
 """
 
 from __future__ import annotations
@@ -37,6 +37,9 @@ DEFAULT_MASKNET = WEIGHTS_DIR / "tiers" / "masknet.pt"
 #: The mask net of the paper's protocol (256x256 studio images on random backgrounds), trained on
 #: those images with the larger errors of that protocol's detector.
 PAPER_MASKNET = WEIGHTS_DIR / "paper_protocol" / "masknet.pt"
+#: Objects whose paper-protocol masks a later stage of the net redraws better than the protocol's
+#: net does (`expert_path`; chosen on the protocol's validation images, docs/RESULTS.md).
+PAPER_MASKNET_EXPERTS: tuple[str, ...] = ("faucet",)
 REBUILD_HINT = (
     "rebuild it with `make weights` (or `python -m perception.training.train_masknet --export`)"
 )
@@ -170,28 +173,45 @@ def net_input(rgb: np.ndarray, coarse: np.ndarray) -> torch.Tensor:
     return torch.cat([(x - mean) / std, m], 1)
 
 
+def expert_path(weights: Path, name: str) -> Path:
+    """Where the net that serves object `name` alone lies beside the protocol's net `weights`:
+    ``masknet_<name>.pt``."""
+    return Path(weights).with_name(f"{Path(weights).stem}_{name}.pt")
+
+
 class MaskRefiner:
     """A trained `MaskNet` applied to one detection's mask at a time.
 
     Args:
         net: the net (put in eval mode here).
         threshold: a pixel is in the mask when its probability is at least this.
+        experts: refiners that redraw the masks of the objects they are keyed by instead
+            (`expert_path`).
     """
 
-    def __init__(self, net: MaskNet, threshold: float = 0.5) -> None:
+    def __init__(
+        self,
+        net: MaskNet,
+        threshold: float = 0.5,
+        experts: dict[str, MaskRefiner] | None = None,
+    ) -> None:
         if not 0 < threshold < 1:
             raise InvalidArgumentError(f"threshold must lie in (0, 1), got {threshold}")
         self.net = net.eval()
         self.cfg = net.cfg
         self.threshold = float(threshold)
+        self.experts = dict(experts or {})
 
     @classmethod
-    def from_weights(cls, path: Path = DEFAULT_MASKNET, verify: bool = True) -> MaskRefiner:
-        """The net stored at `path` (its hash checked against its folder's manifest unless
-        `verify` is False).
+    def from_weights(
+        cls, path: Path = DEFAULT_MASKNET, verify: bool = True, experts: tuple[str, ...] = ()
+    ) -> MaskRefiner:
+        """The net stored at `path`, with the nets of the `experts` objects beside it
+        (`expert_path`); each file's hash is checked against its folder's manifest unless
+        `verify` is False.
 
         Raises:
-            AssetError: the file is missing or corrupt, with the command that rebuilds it.
+            AssetError: a file is missing or corrupt, with the command that rebuilds it.
         """
 
         def build(state: dict) -> MaskNet:
@@ -199,16 +219,23 @@ class MaskRefiner:
             net.load_state_dict({k: v.float() for k, v in state["model"].items()})
             return net
 
-        return cls(load_checked(Path(path), verify, build, "mask net weights", REBUILD_HINT))
+        def load(p: Path) -> MaskNet:
+            return load_checked(p, verify, build, "mask net weights", REBUILD_HINT)
+
+        own = {name: cls(load(expert_path(path, name))) for name in experts}
+        return cls(load(Path(path)), experts=own)
 
     @torch.inference_mode()
-    def refine(self, rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    def refine(self, rgb: np.ndarray, mask: np.ndarray, name: str | None = None) -> np.ndarray:
         """The object's visible mask, redrawn from the detector's `mask` (H, W) bool and the
-        image `rgb` (H, W, 3) uint8; an empty mask comes back as it is.
+        image `rgb` (H, W, 3) uint8 (by the net of object `name` when there is one); an empty
+        mask comes back as it is.
 
         Raises:
             InvalidArgumentError: arrays of the wrong shape or type.
         """
+        if name in self.experts:
+            return self.experts[name].refine(rgb, mask)
         rgb, mask = np.asarray(rgb), np.asarray(mask)
         if mask.ndim != 2 or mask.dtype != bool or rgb.shape != (*mask.shape, 3):
             raise InvalidArgumentError(

@@ -206,6 +206,42 @@ def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch, heavy) -
     second = export(further, "cmd2", tmp_path / "w" / "masknet.pt")
     assert [s["command"] for s in second["stages"]] == ["cmd", "cmd2"]
     assert second["stages"][0]["wall_s"] == entry["wall_s"] and second["epochs_done"] == 1
+    # The same stage shipped as the net of one object alone: its own file and entry, the
+    # protocol's net and entry untouched, and its hash checked when it is loaded.
+    shipped = (tmp_path / "w" / "masknet.pt").read_bytes()
+    alone = export(further, "cmd3", tmp_path / "w" / "masknet.pt", expert="faucet")
+    manifest = json.loads((tmp_path / "w" / "manifest.json").read_text())
+    assert manifest["mask_net"] == second and manifest["mask_net_experts"]["faucet"] == alone
+    assert alone["file"] == "masknet_faucet.pt" and alone["stages"][-1]["command"] == "cmd3"
+    assert (tmp_path / "w" / "masknet.pt").read_bytes() == shipped
+    both = MaskRefiner.from_weights(tmp_path / "w" / "masknet.pt", experts=("faucet",))
+    assert list(both.experts) == ["faucet"]
+    (tmp_path / "w" / "masknet_faucet.pt").write_bytes(shipped + b"\0")  # other bytes
+    with pytest.raises(AssetError, match="masknet_faucet.pt do not match"):
+        MaskRefiner.from_weights(tmp_path / "w" / "masknet.pt", experts=("faucet",))
+
+
+def test_an_objects_own_net_redraws_that_objects_masks_alone() -> None:
+    """A refiner with a net of its own for one object hands that object's masks to it, every
+    other object's (and a mask of no named object) to the protocol's net."""
+    torch.manual_seed(0)
+    cfg = MaskNetConfig(size=32, widths=(4, 8, 16))
+    own_net, shared = MaskNet(cfg), MaskNet(cfg)
+    with torch.no_grad():  # one net sees the object everywhere, the other nowhere
+        own_net.head.bias.fill_(-20.0)
+        shared.head.bias.fill_(20.0)
+    own = MaskRefiner(own_net)
+    refiner = MaskRefiner(shared, experts={"faucet": own})
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (64, 64, 3)).astype(np.uint8)
+    mask = np.zeros((64, 64), bool)
+    mask[20:44, 16:40] = True
+    by_own = own.refine(rgb, mask)
+    by_shared = MaskRefiner(shared).refine(rgb, mask)
+    assert not np.array_equal(by_own, by_shared)
+    assert np.array_equal(refiner.refine(rgb, mask, "faucet"), by_own)
+    for name in ("car", None):
+        assert np.array_equal(refiner.refine(rgb, mask, name), by_shared)
 
 
 def test_the_examples_are_drawn_into_a_picture(tmp_path) -> None:

@@ -48,10 +48,12 @@ from perception.detector import PAPER_DETECTOR, Detection, Detector
 from perception.mask_net import (
     DEFAULT_MASKNET,
     PAPER_MASKNET,
+    PAPER_MASKNET_EXPERTS,
     MaskNet,
     MaskNetConfig,
     MaskRefiner,
     cut,
+    expert_path,
     net_input,
     window_of,
 )
@@ -85,6 +87,7 @@ from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import data_root, in_repo
 from posegrasp.core.validate import arg, check_choice, check_int, check_plot_path, check_seed
+from posegrasp.world.objects import OBJECT_NAMES
 
 #: Objects with fewer visible pixels give no training window.
 MIN_VISIBLE_PX = 100
@@ -109,12 +112,15 @@ class Protocol:
         val: (split folder, images) of the validation scenes (their ``val`` split).
         detector: the detector whose masks ``--evaluate`` measures it on (None: the tiers').
         weights: where ``--export`` writes it.
+        experts: the objects whose masks the net beside it serves instead
+            (`perception.mask_net.expert_path`, ``--export --expert NAME``).
     """
 
     sources: tuple[tuple[str, int], ...]
     val: tuple[str, int]
     detector: Path | None
     weights: Path
+    experts: tuple[str, ...] = ()
 
 
 #: The mask nets by image protocol: the tiers' head-camera scenes (``hybrid-global``), whose
@@ -123,7 +129,9 @@ class Protocol:
 #: an object and takes in background beside it (docs/DESIGN.md §7, "Mask refinement").
 PROTOCOLS = {
     "tiers": Protocol(DEFAULT_SOURCES, VAL_SOURCE, None, DEFAULT_MASKNET),
-    "paper": Protocol((("paper", 30000),), ("paper", 1000), PAPER_DETECTOR, PAPER_MASKNET),
+    "paper": Protocol(
+        (("paper", 30000),), ("paper", 1000), PAPER_DETECTOR, PAPER_MASKNET, PAPER_MASKNET_EXPERTS
+    ),
 }
 
 
@@ -617,10 +625,14 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
     return read_checkpoint(last)
 
 
-def export(cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET) -> dict:
+def export(
+    cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET, expert: str | None = None
+) -> dict:
     """Write the shipped net (float16 state dict, model config) and its ``mask_net`` manifest
     entry from the run's last checkpoint; a run started from a shipped net (``--init``) lists
-    the stages that made that net before its own (``stages``).
+    the stages that made that net before its own (``stages``). With `expert`, the net is the one
+    that serves that object alone: written to `expert_path` of `out`, its entry
+    ``mask_net_experts.<expert>``.
 
     Raises:
         AssetError: the run has not finished its epochs.
@@ -630,12 +642,13 @@ def export(cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET)
         raise AssetError(
             f"the run in {cfg.out} has done {state['epoch']}/{cfg.epochs} epochs; finish it first"
         )
+    out = out if expert is None else expert_path(out, expert)
     out.parent.mkdir(parents=True, exist_ok=True)
     model = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
     save_atomically({"model": model, "model_config": state["model_config"]}, out)
     manifest_path = out.parent / MANIFEST_NAME
     manifest = read_manifest(manifest_path)
-    manifest["mask_net"] = weights_entry(out) | {
+    entry = weights_entry(out) | {
         "command": command_line,
         "data_seeds": state["data_seeds"],
         "epochs_done": state["epoch"],
@@ -646,9 +659,13 @@ def export(cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET)
     }
     earlier = (state.get("lineage") or {}).get("stages") or []
     if earlier:
-        manifest["mask_net"]["stages"] = [*earlier, stage_record(manifest["mask_net"])]
+        entry["stages"] = [*earlier, stage_record(entry)]
+    if expert is None:
+        manifest["mask_net"] = entry
+    else:
+        manifest.setdefault("mask_net_experts", {})[expert] = entry
     write_manifest(manifest_path, manifest)
-    return manifest["mask_net"]
+    return entry
 
 
 def evaluate(
@@ -664,7 +681,7 @@ def evaluate(
     proto = PROTOCOLS[protocol]
     folder = proto.val[0]
     detector = Detector.from_weights(proto.detector or TIERS_DETECTOR)
-    refiner = MaskRefiner.from_weights(proto.weights)
+    refiner = MaskRefiner.from_weights(proto.weights, experts=proto.experts)
     data = PoseDataset(data_root() / folder, split)
     rows: list[tuple[str, float, float]] = []
     spent = 0.0
@@ -679,7 +696,7 @@ def evaluate(
             if best is None:
                 continue
             t0 = time.perf_counter()
-            sharp = refiner.refine(sample.rgb, best.mask)
+            sharp = refiner.refine(sample.rgb, best.mask, obj.name)
             spent += time.perf_counter() - t0
             after = mask_iou(sharp, truth)
             rows.append((obj.name, best_iou, after))
@@ -773,6 +790,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-resume", action="store_true", help="start over")
     p.add_argument("--export", action="store_true", help="write the shipped net when done")
     p.add_argument(
+        "--expert",
+        type=arg(check_choice, OBJECT_NAMES, "object"),
+        default=None,
+        help="with --export: ship the net as the one that redraws this object's masks alone "
+        "(masknet_<object>.pt beside the protocol's net), one of: " + ", ".join(OBJECT_NAMES),
+    )
+    p.add_argument(
         "--evaluate",
         action="store_true",
         help="measure the shipped net against the detector's masks instead of training",
@@ -817,6 +841,11 @@ def main(argv: list[str] | None = None) -> int:
             plot_examples(examples, args.plot)
         return 0
     proto = PROTOCOLS[args.protocol]
+    if args.expert is not None and (not args.export or args.expert not in proto.experts):
+        raise InvalidArgumentError(
+            f"--expert {args.expert} needs --export and one of the objects the {args.protocol} "
+            f"protocol's estimator has a net of its own for: {', '.join(proto.experts) or 'none'}"
+        )
     default_out = MaskTrainConfig.out.with_name(
         "masknet" + ("" if args.protocol == "tiers" else f"_{args.protocol}")
     )
@@ -839,8 +868,8 @@ def main(argv: list[str] | None = None) -> int:
     train(cfg, resume=not args.no_resume)
     if args.export:
         line = "python -m perception.training.train_masknet " + shlex.join(sys.argv[1:])
-        entry = export(cfg, line.strip(), proto.weights)
-        print(f"wrote {proto.weights} ({entry['bytes']} bytes)")
+        entry = export(cfg, line.strip(), proto.weights, args.expert)
+        print(f"wrote {entry['file']} beside {proto.weights} ({entry['bytes']} bytes)")
     return 0
 
 
