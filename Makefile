@@ -74,7 +74,10 @@ weights: data
 	  --limit paper=40000 --precision bf16 --name posenet_paper_bf16
 	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 25 --batch 64 \
 	  --limit paper=40000 --precision bf16 --channels-last --threads 2 --lr 0.001 \
-	  --init posenet_paper_bf16
+	  --init posenet_paper_bf16 --name posenet_paper_s2
+	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 25 --batch 64 \
+	  --limit paper=40000 --precision bf16 --channels-last --threads 2 --lr 0.001 \
+	  --init posenet_paper_s2
 	$(PY) -m perception.training.export --plot docs/training_curves.png
 	$(PY) -m perception.training.train_detector --epochs 8 --out $(CKPT)/detector_base
 	$(PY) -m perception.training.train_detector --also headcam_hard --limit 2500 --epochs 1 \
