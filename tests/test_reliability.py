@@ -160,12 +160,13 @@ def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) ->
     ]
     for name, e in entries.items():
         assert sha256_file(WEIGHTS_DIR / name) == e["sha256"]
-    # The paper protocol's detector and mask net have a folder and a manifest of their own; the
-    # detector records its two stages (with the head camera's images, then on its own).
+    # The paper protocol's detector and mask nets (the faucet has one of its own) have a folder
+    # and a manifest of their own; the detector records its two stages (with the head camera's
+    # images, then on its own).
     paper = WEIGHTS_DIR / "paper_protocol"
     entries = integrity.manifest_entries(json.loads((paper / "manifest.json").read_text()))
     names = sorted(p.name for p in paper.glob("*.pt"))
-    assert sorted(entries) == names == ["detector.pt", "masknet.pt"]
+    assert sorted(entries) == names == ["detector.pt", "masknet.pt", "masknet_faucet.pt"]
     for name in names:
         assert sha256_file(paper / name) == entries[name]["sha256"]
         integrity.verify_weights(paper / name)
@@ -173,6 +174,8 @@ def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) ->
     assert "--also paper" in stages[0]["command"] and "--data data/paper" in stages[-1]["command"]
     assert "--protocol paper" in entries["masknet.pt"]["command"]
     assert entries["masknet.pt"]["data_seeds"]["sources"] == dict(PROTOCOLS["paper"].sources)
+    assert "--expert faucet" in entries["masknet_faucet.pt"]["command"]
+    assert PROTOCOLS["paper"].experts == ("faucet",)
     # So has hybrid-global's detector, fine-tuned on the tiers' scenes from the shipped one,
     # whose stages it records.
     tiers = WEIGHTS_DIR / "tiers"
