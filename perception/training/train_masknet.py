@@ -301,37 +301,29 @@ def detector_windows(
     tag = sha256_file(path_of_detector)[:12] if path_of_detector.is_file() else "missing"
     data = _split(data_root() / folder, split)
     last = min(first + images, len(data))
-    detector = None
+    detector, desc = None, f"detections of {folder}/{split}"
     blocks = []
     for start in range(first, last, DETECTED_BLOCK):
-        count = min(DETECTED_BLOCK, last - start)
-        name = f"{folder}_{split}_{start}+{count}_{net.size}_{net.margin}_detected_{tag}"
+        images_here = range(start, min(start + DETECTED_BLOCK, last))
+        name = f"{folder}_{split}_{start}+{len(images_here)}_{net.size}_{net.margin}_detected_{tag}"
         if (kept := _kept(name)) is None:
             detector = detector or Detector.from_weights(path_of_detector)
-            kept = _keep(name, _detected_block(data, start, count, net, detector, folder, split))
+            kept = _keep(name, _detected_block(data, images_here, net, detector, desc))
         blocks.append(kept)
-    blocks = [b for b in blocks if len(b["cls"])]
-    if not blocks:
+    out = {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]} if blocks else {}
+    if not out or not len(out["cls"]):
         raise AssetError(f"the detector found no object in {folder}/{split} {first}+{images}")
-    return {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]}
+    return out
 
 
 def _detected_block(
-    data: PoseDataset,
-    start: int,
-    count: int,
-    net: MaskNetConfig,
-    detector: Detector,
-    folder: str,
-    split: str,
+    data: PoseDataset, images: range, net: MaskNetConfig, detector: Detector, desc: str
 ) -> dict[str, np.ndarray]:
-    """`detector_windows` of images ``start .. start + count - 1`` (empty arrays when the
-    detector finds none of their objects)."""
+    """`detector_windows` of the `images` of `data` (empty arrays when the detector finds none
+    of their objects)."""
     S = net.size
     rgbs, coarse, targets, names = [], [], [], []
-    for i in tqdm(
-        range(start, start + count), desc=f"detections of {folder}/{split}", mininterval=5
-    ):
+    for i in tqdm(images, desc=desc, mininterval=5):
         sample = data[i]
         dets = detector.detect(sample.rgb, DETECTED_SCORE)
         for obj in sample.objects:
@@ -348,9 +340,9 @@ def _detected_block(
             targets.append(np.round(cover * 255).astype(np.uint8))
             names.append(obj.name)
     return {
-        "rgb": np.stack(rgbs) if rgbs else np.zeros((0, S, S, 3), np.uint8),
-        "coarse": np.stack(coarse) if coarse else np.zeros((0, S, S), np.uint8),
-        "target": np.stack(targets) if targets else np.zeros((0, S, S), np.uint8),
+        "rgb": np.asarray(rgbs, np.uint8).reshape(-1, S, S, 3),
+        "coarse": np.asarray(coarse, np.uint8).reshape(-1, S, S),
+        "target": np.asarray(targets, np.uint8).reshape(-1, S, S),
         "cls": np.array(names, dtype=str),
     }
 
