@@ -60,15 +60,21 @@ from perception.codebook import (
     resting_templates,
     rotation_cosines,
     top_hypotheses,
-    verification_scores,
 )
 from perception.detector import TIERS_DETECTOR, Detection
-from perception.geometry import axes_from_p, ray_correction
 from perception.hybrid import HybridPoseEstimator, PoseDetection, detect_target, occluder_of
 from perception.mask_net import MaskRefiner
 from perception.overlay import mask_box
 from perception.refine import PoseRefiner, RefineConfig
 from perception.support import refine_on_support, resting_surface_z, snap_to_resting
+from perception.verification import (
+    Start,
+    Verified,
+    VerifyHelper,
+    VerifyJob,
+    rank_verified,
+    run_here,
+)
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root
@@ -164,9 +170,14 @@ class GlobalConfig:
             ranks above one that does not: a prior of the paper's protocol, whose views are
             drawn with the in-plane angle in -60..60 deg, as the gravity of `resting_tilt_deg`
             is the tiers'. A silhouette turned half way round about the viewing ray is the
-            same silhouette; the protocol never shows it. Views within `POLE_DEG` of the
-            object's z axis, where the angle is not defined, always count as within (None: no
-            such preference).
+            same silhouette; the protocol never shows it. Views within
+            `perception.verification.POLE_DEG` of the object's z axis, where the angle is not
+            defined, always count as within (None: no such preference).
+        verify_processes: the processes that share each batch of starts to refine and score:
+            this one and, with 2, a helper process (`perception.verification.VerifyHelper`)
+            that runs every other start. The helper runs only while this process computes on
+            more than one thread (torch's thread count): an evaluation's workers, one thread
+            each, already fill the cores. Every start's result is the same on either process.
     """
 
     views: int = 1000
@@ -198,6 +209,7 @@ class GlobalConfig:
     refine_max_shift: float = 0.3
     refine_max_rotation_deg: float = 30.0
     max_inplane_deg: float | None = None
+    verify_processes: int = 2
 
     def __post_init__(self) -> None:
         for key in ("views", "inplane", "hypotheses", "refine_passes"):
@@ -232,6 +244,8 @@ class GlobalConfig:
             )
         if self.max_inplane_deg is not None and not 0 < self.max_inplane_deg < 180:
             raise InvalidArgumentError("GlobalConfig.max_inplane_deg must be in (0, 180) or None")
+        if self.verify_processes not in (1, 2):
+            raise InvalidArgumentError("GlobalConfig.verify_processes must be 1 or 2")
         if not all(1 < g <= 4 for g in self.occluded_grow):
             raise InvalidArgumentError("GlobalConfig.occluded_grow factors must lie in (1, 4]")
 
@@ -241,10 +255,6 @@ class GlobalConfig:
 #: that the image's edges refute); the snapped starts win only if the best of them scores
 #: within this much of the best pose of all.
 SNAP_SCORE_DROP = 0.05
-
-#: Within this angle [deg] of the object's z axis the view's in-plane angle is not defined
-#: (`GlobalConfig.max_inplane_deg`): a degree of viewpoint there turns it by many.
-POLE_DEG = 10.0
 
 #: Image edges are searched in the mask's box grown by this much [px].
 EDGE_MARGIN_PX = 10
@@ -295,55 +305,6 @@ class CodebookCache:
         return self._books[name]
 
 
-@dataclass(frozen=True)
-class Verified:
-    """One refined, scored hypothesis.
-
-    Attributes:
-        T_C_O: the refined pose (4, 4).
-        score: the verification score.
-        iou: silhouette IoU with the visible mask.
-        appearance: the colour correlation.
-        edges: the share of the parts' outlines on image edges.
-        source: ``codebook`` or ``nets``.
-        rank: where the start came from: 0 the nets, i >= 1 the codebook's i-th hypothesis.
-        tilt: rotation to the nearest resting pose [deg] (0 when the camera pose is unknown).
-        plausible: within the config's priors (`GlobalConfig.resting_tilt_deg` with the
-            camera's pose, `GlobalConfig.max_inplane_deg`); plausible poses rank first.
-    """
-
-    T_C_O: np.ndarray
-    score: float
-    iou: float
-    appearance: float
-    edges: float
-    source: str
-    rank: int
-    tilt: float = 0.0
-    plausible: bool = True
-
-
-def rank_verified(verified: list[Verified]) -> list[Verified]:
-    """Best first: the plausible ones (`Verified.plausible`) before the others, each group by
-    decreasing score (ties keep their order)."""
-    return sorted(verified, key=lambda v: (v.plausible, v.score), reverse=True)
-
-
-def inplane_deg(T_C_O: np.ndarray) -> float | None:
-    """|theta| of the pose's 4D representation (`perception.geometry.encode`) [deg], or None
-    when the camera looks within `POLE_DEG` of the object's z axis (theta is not defined there)
-    or the object is behind the camera. The virtual camera C' looks along the ray to the
-    object's origin, so no K is needed (`perception.geometry.ray_correction`)."""
-    t = T_C_O[:3, 3]
-    if t[2] <= 0:
-        return None
-    R_Cv_O = ray_correction(t[0] / t[2], t[1] / t[2]).T @ T_C_O[:3, :3]
-    if abs(R_Cv_O[2, 2]) >= math.cos(math.radians(POLE_DEG)):  # C''s axis in O
-        return None
-    x, y, _ = axes_from_p(-R_Cv_O[2])  # C' at -z in O, up to the scale axes_from_p drops
-    return abs(math.degrees(math.atan2(float(R_Cv_O[0] @ y), float(R_Cv_O[0] @ x))))
-
-
 class GlobalPoseEstimator:
     """The estimator ``hybrid-global`` (see the module docstring).
 
@@ -375,7 +336,7 @@ class GlobalPoseEstimator:
                 max_rotation_deg=self.config.refine_max_rotation_deg,
             )
         )
-        self._screens: dict[int, PoseRefiner] = {}
+        self._verify_helper: VerifyHelper | None = None
         self.name = name
         self._colours: dict[str, np.ndarray] = {}
 
@@ -398,24 +359,6 @@ class GlobalPoseEstimator:
             pieces = load_object(name).convex_pieces()
             self._colours[name] = np.array([rgba[:3] for _, rgba in pieces])
         return self._colours[name]
-
-    def _snapped(
-        self,
-        win: Verified,
-        R_W_C: np.ndarray,
-        model: ObjectModel,
-        refined: Callable[..., Verified | None],
-    ) -> Verified | None:
-        """A refined start turned onto its nearest resting pose (its heading kept) and refined
-        again, one run, turning about the vertical only; None when its score drops by more than
-        `SNAP_SCORE_DROP`."""
-        T = win.T_C_O.copy()
-        T[:3, :3] = R_W_C.T @ snap_to_resting(R_W_C @ T[:3, :3], model)[0]
-        up = R_W_C[2].copy()  # the world's vertical in the camera frame
-        snapped = refined(T, win.source, win.rank, 1, self._screen(self.config.snap_iterations), up)
-        if snapped is None or snapped.score < win.score - SNAP_SCORE_DROP:
-            return None
-        return snapped
 
     def _resting_hypotheses(
         self,
@@ -452,14 +395,17 @@ class GlobalPoseEstimator:
         new = np.array(found)[~(near > math.cos(math.radians(cfg.min_angle_deg))).any(1)]
         return [int(i) for i in new[:count]]
 
-    def _screen(self, iterations: int) -> PoseRefiner:
-        """The full refiner, or one with fewer steps (0: the full one)."""
-        if iterations <= 0 or iterations >= self.refiner.config.iterations:
-            return self.refiner
-        if iterations not in self._screens:
-            cfg = replace(self.refiner.config, iterations=iterations)
-            self._screens[iterations] = PoseRefiner(cfg)
-        return self._screens[iterations]
+    def _helper(self) -> VerifyHelper | None:
+        """The helper process that shares each batch of starts (`GlobalConfig.verify_processes`),
+        started on first use; None while this process computes on one thread (as an
+        evaluation's workers do: they already fill the cores)."""
+        import torch
+
+        if self.config.verify_processes < 2 or torch.get_num_threads() < 2:
+            return None
+        if self._verify_helper is None:
+            self._verify_helper = VerifyHelper()
+        return self._verify_helper
 
     def verify(
         self,
@@ -514,94 +460,92 @@ class GlobalPoseEstimator:
 
             second = second_starts
         t1 = time.perf_counter()
-        pieces, colours = self.codebooks.source.pieces(det.name), self.colours(det.name)
         tight = mask_box(det.mask) if view is not None else (0, 0, 1, 1)
         box = _grown(tight, EDGE_MARGIN_PX, det.mask.shape)
-        edge_distance = image_edges(rgb, box)
-        target = self.refiner.prepare(K, det.mask, rgb, occluder)  # the screening one's too
+        job = VerifyJob(
+            name=det.name,
+            parts=self.refiner.part_vertices(det.name),
+            pieces=self.codebooks.source.pieces(det.name),
+            colours=self.colours(det.name),
+            K=K,
+            rgb=rgb,
+            mask=det.mask,
+            edge_distance=image_edges(rgb, box),
+            box=box,
+            target=self.refiner.prepare(K, det.mask, rgb, occluder),  # the shorter runs' too
+            refine=self.refiner.config,
+            appearance_weight=cfg.appearance_weight,
+            edge_weight=cfg.edge_weight,
+            max_tilt=max_tilt,
+            R_W_C=R_W_C if max_tilt is not None else None,
+            model=model if max_tilt is not None else None,
+            max_inplane_deg=cfg.max_inplane_deg,
+        )
+        helper = self._helper()
 
-        def refined(
-            T: np.ndarray,
-            source: str,
-            rank: int,
-            passes: int,
-            refiner: PoseRefiner,
-            axis: np.ndarray | None = None,
-        ) -> Verified | None:
-            info = {"iou_after": 0.0}
-            try:
-                for _ in range(passes):
-                    T, info = refiner.refine_prepared(det.name, T, target, axis)
-            except InvalidArgumentError:
-                return None  # a start behind the camera: not a pose to verify
-            app, edges = verification_scores(
-                pieces, colours, T, K, rgb, det.mask, edge_distance, box
-            )
-            iou = float(info["iou_after"])
-            score = iou + cfg.appearance_weight * app + cfg.edge_weight * edges
-            tilt, plausible = 0.0, True
-            if max_tilt is not None:
-                tilt = snap_to_resting(R_W_C @ T[:3, :3], model)[2]
-                plausible = tilt <= max_tilt
-            if cfg.max_inplane_deg is not None:
-                roll = inplane_deg(T)
-                plausible = plausible and (roll is None or roll <= cfg.max_inplane_deg)
-            return Verified(T, score, iou, app, edges, source, rank, tilt, plausible)
+        def run(batch: list[Start]) -> list[Verified | None]:
+            return helper.map(job, batch) if helper is not None else run_here(job, batch)
 
-        first, screen = cfg.refine_passes, self.refiner
+        # The first run of every start: all of it, or (with keep_after_first) a short screening
+        # one, the best few then refined further.
+        first, screen = cfg.refine_passes, 0
         if cfg.keep_after_first:
-            first, screen = 1, self._screen(cfg.screen_iterations)
+            first, screen = 1, cfg.screen_iterations
+        screen_full = screen <= 0 or screen >= self.refiner.config.iterations
         further: dict[int, Verified | None] = {}  # by start: refined further
         snaps: dict[tuple[int, bool], Verified | None] = {}  # by start and stage: snapped
 
         def chosen(firsts: list[Verified]) -> list[Verified]:
             """The first runs' results ranked, the best few refined further and snapped."""
             out = rank_verified(firsts)
-            if cfg.keep_after_first and (cfg.refine_passes > 1 or screen is not self.refiner):
+            if cfg.keep_after_first and (cfg.refine_passes > 1 or not screen_full):
                 # The best few, refined further, rank above the rest (refined once), which stay
                 # listed.
                 kept, rest = out[: cfg.keep_after_first], out[cfg.keep_after_first :]
-                more = cfg.refine_passes - (screen is self.refiner)
-                for v in kept:
-                    if v.rank not in further:
-                        further[v.rank] = refined(v.T_C_O, v.source, v.rank, more, self.refiner)
+                more = cfg.refine_passes - screen_full
+                todo = list({v.rank: v for v in kept if v.rank not in further}.values())
+                batch = [Start(v.T_C_O, v.source, v.rank, more) for v in todo]
+                further.update(zip([v.rank for v in todo], run(batch), strict=True))
                 again = [further[v.rank] for v in kept]
                 out = rank_verified([v for v in again if v is not None]) + rest
             if cfg.snap_candidates and max_tilt is not None:
-                # The best few that could be resting, each snapped onto its resting pose; the
-                # snapped ones then compete on their scores alone, ahead of the rest, unless
-                # every one of them scores well below the best pose found (the object is not
-                # resting).
+                # The best few that could be resting, each turned onto its resting pose (its
+                # heading kept) and refined again, one run, turning about the vertical only;
+                # one whose score drops by more than SNAP_SCORE_DROP is not kept. The snapped
+                # ones then compete on their scores alone, ahead of the rest, unless every one
+                # of them scores well below the best pose found (the object is not resting).
                 assert R_W_C is not None
                 pool = [v for v in out if v.tilt <= cfg.snap_tilt_deg][: cfg.snap_candidates]
-                snapped = []
-                for v in pool:
-                    key = (v.rank, further.get(v.rank) is v)  # a start's first run or further one
-                    if key not in snaps:
-                        snaps[key] = self._snapped(v, R_W_C, model, refined)
-                    if snaps[key] is not None:
-                        snapped.append(snaps[key])
+                keys = [(v.rank, further.get(v.rank) is v) for v in pool]  # first or further
+                new: dict[tuple[int, bool], Verified] = {}
+                for k, v in zip(keys, pool, strict=True):
+                    if k not in snaps:
+                        new.setdefault(k, v)
+                up = R_W_C[2].copy()  # the world's vertical in the camera frame
+                batch = []
+                for v in new.values():
+                    T = v.T_C_O.copy()
+                    T[:3, :3] = R_W_C.T @ snap_to_resting(R_W_C @ T[:3, :3], model)[0]
+                    batch.append(Start(T, v.source, v.rank, 1, cfg.snap_iterations, up))
+                for (k, v), s in zip(new.items(), run(batch), strict=True):
+                    snaps[k] = None if s is None or s.score < v.score - SNAP_SCORE_DROP else s
+                snapped = [s for k in keys if (s := snaps[k]) is not None]
                 best_score = max((v.score for v in out), default=0.0)
                 if snapped and max(v.score for v in snapped) >= best_score - SNAP_SCORE_DROP:
                     out = rank_verified(snapped) + [v for v in out if all(v is not p for p in pool)]
             return out
 
-        firsts = [
-            v
-            for r, (T, s) in enumerate(starts)
-            if (v := refined(T, s, r, first, screen)) is not None
-        ]
+        batch = [Start(T, s, r, first, screen) for r, (T, s) in enumerate(starts)]
+        firsts = [v for v in run(batch) if v is not None]
         out = chosen(firsts)
         times = {"hypotheses": (t1 - t0) * 1000}
         unsure = not out or out[0].score < cfg.second_look_below
         look = second_look and (cfg.second_look or cfg.second_look_resting)
         if second is not None and look and unsure:
             t_look = time.perf_counter()
-            firsts += [
-                v
-                for r, (T, s) in enumerate(second(), start=len(starts))
-                if (v := refined(T, s, r, first, screen)) is not None
-            ]
+            later = enumerate(second(), len(starts))
+            batch = [Start(T, s, r, first, screen) for r, (T, s) in later]
+            firsts += [v for v in run(batch) if v is not None]
             out = chosen(firsts)
             times["second_look"] = (time.perf_counter() - t_look) * 1000
         times["verify"] = (time.perf_counter() - t1) * 1000

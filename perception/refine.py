@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from perception.codebook import ConvexParts
+from perception.codebook import ConvexParts, SilhouetteSource
 from perception.metrics import rotation_error_deg
 from perception.overlay import mask_box, window_intrinsics
 from posegrasp.core.errors import InvalidArgumentError
@@ -147,16 +147,20 @@ class PoseRefiner:
 
     Args:
         config: the settings (defaults: `RefineConfig()`).
+        parts: where each object's convex parts come from (default: `ConvexParts`, the
+            objects' own).
     """
 
-    def __init__(self, config: RefineConfig | None = None) -> None:
+    def __init__(
+        self, config: RefineConfig | None = None, parts: SilhouetteSource | None = None
+    ) -> None:
         self.config = config or RefineConfig()
-        self._parts = ConvexParts()
+        self._parts = parts or ConvexParts()
         self._stacked: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def part_vertices(self, name: str) -> list[np.ndarray]:
         """The vertices of each convex part of an object in O [m], each (n_i, 3); loaded once
-        (`perception.codebook.ConvexParts`).
+        (the `parts` source).
 
         Raises:
             UnknownNameError: name is not a known object (the message lists them).

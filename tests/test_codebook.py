@@ -451,7 +451,7 @@ def test_the_global_estimator_redraws_the_target_mask_with_the_mask_net(tmp_path
 def test_a_plausible_pose_ranks_first() -> None:
     """A refined start within the priors (resting, in the protocol's in-plane range) wins over a
     better-scoring one that is not; among equals the score decides."""
-    from perception.global_pose import Verified, rank_verified
+    from perception.verification import Verified, rank_verified
 
     def v(score: float, plausible: bool, rank: int) -> Verified:
         return Verified(np.eye(4), score, score, 0.0, 0.0, "codebook", rank, 0.0, plausible)
@@ -466,7 +466,7 @@ def test_the_in_plane_prior_reads_the_poses_theta_and_leaves_the_poles_alone() -
     the viewing ray (the same silhouette) fall on either side of the protocol's 60 deg; seen
     along the object's z axis the angle is not defined and no prior applies."""
     from perception.geometry import decode
-    from perception.global_pose import inplane_deg
+    from perception.verification import inplane_deg
 
     K = np.array([[300.0, 0, 128], [0, 300.0, 128], [0, 0, 1]])
     uv = np.array([140.0, 120.0])
@@ -603,3 +603,42 @@ def test_a_button_on_top_of_a_base_is_hidden_from_below_and_seen_from_above() ->
         ids = id_map(pieces, T, K, box)
         seen[name] = int((ids == 2).sum())
     assert seen["below"] == 0 and seen["above"] > 20
+
+
+def test_the_global_estimator_gives_the_same_pose_with_or_without_its_helper(tmp_path) -> None:
+    """`GlobalConfig.verify_processes`: with two torch threads the helper shares the starts; the
+    estimate is the same to the bit as on one process."""
+    import time
+    from dataclasses import replace
+
+    import torch
+
+    name = "pistol"
+    T = np.eye(4)
+    T[:3, :3] = rot_x(np.deg2rad(-70)) @ rot_y(np.deg2rad(40)) @ rot_z(np.deg2rad(10))
+    T[:3, 3] = [0.04, -0.02, 0.75]
+    mask, rgb = _painted(name, T)
+    wrong = T.copy()
+    wrong[:3, :3] = rot_x(np.pi / 2) @ T[:3, :3]
+    est = _global_on_one_detection(name, mask, wrong, tmp_path)
+    obs = Observation(rgb, K, np.eye(4), name, 0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        est.config = replace(est.config, verify_processes=1)
+        alone = est.estimate(obs)
+        assert est._verify_helper is None
+        est.config = replace(est.config, verify_processes=2)
+        est.estimate(obs)  # starts the helper
+        assert est._verify_helper is not None
+        end = time.monotonic() + 60
+        while not est._verify_helper.available():
+            assert time.monotonic() < end, "the helper process never came up"
+            time.sleep(0.05)
+        shared = est.estimate(obs)
+    finally:
+        torch.set_num_threads(threads)
+    assert alone.T_C_O is not None and shared.T_C_O is not None
+    assert np.array_equal(alone.T_C_O, shared.T_C_O)
+    assert alone.info["verify"]["confidence"] == shared.info["verify"]["confidence"]
+    assert rotation_error_deg(shared.T_C_O[:3, :3], T[:3, :3]) < 3.0
