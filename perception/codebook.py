@@ -169,9 +169,16 @@ class Codebook:
         """Pixels of each template's silhouette, (N,) int64."""
         return np.bitwise_count(self.bits).sum(1, dtype=np.int64)
 
-    def match(self, mask_bits: np.ndarray, hidden_bits: np.ndarray | None = None) -> np.ndarray:
-        """Silhouette IoU of a packed observed mask with every template, (N,); template pixels
-        in `hidden_bits` (where something else may hide the object) do not count against it.
+    def match(
+        self,
+        mask_bits: np.ndarray,
+        hidden_bits: np.ndarray | None = None,
+        templates: slice = slice(None),
+    ) -> np.ndarray:
+        """Silhouette IoU of a packed observed mask with every template (or those of
+        `templates`), (N,); template pixels in `hidden_bits` (where something else may hide
+        the object) do not count against it. Each template's IoU is the same whichever others
+        are matched with it.
 
         With T a template, M the mask and H the hidden pixels outside it, the union is
         ``|T| - |T & H| + |M| - |T & M|``: only the intersections are counted (at most
@@ -181,11 +188,12 @@ class Codebook:
         hidden = None
         if hidden_bits is not None:
             hidden = np.asarray(hidden_bits, np.uint64) & ~mask_bits
-        inter = np.empty(len(self.bits), np.int64)
-        covered = np.zeros(len(self.bits), np.int64)
-        buf = np.empty((MATCH_BLOCK, self.bits.shape[1]), np.uint64)
-        for a in range(0, len(self.bits), MATCH_BLOCK):
-            block = self.bits[a : a + MATCH_BLOCK]
+        bits = self.bits[templates]
+        inter = np.empty(len(bits), np.int64)
+        covered = np.zeros(len(bits), np.int64)
+        buf = np.empty((MATCH_BLOCK, bits.shape[1]), np.uint64)
+        for a in range(0, len(bits), MATCH_BLOCK):
+            block = bits[a : a + MATCH_BLOCK]
             out = buf[: len(block)]
             both = np.bitwise_and(block, mask_bits, out=out)
             inter[a : a + len(block)] = np.bitwise_count(both).sum(1, dtype=np.uint16)
@@ -193,7 +201,7 @@ class Codebook:
                 both = np.bitwise_and(block, hidden, out=out)
                 covered[a : a + len(block)] = np.bitwise_count(both).sum(1, dtype=np.uint16)
         size = int(np.bitwise_count(mask_bits).sum())
-        union = self.counts - covered + size - inter
+        union = self.counts[templates] - covered + size - inter
         return inter / np.maximum(union, 1)
 
 

@@ -173,11 +173,13 @@ class GlobalConfig:
             same silhouette; the protocol never shows it. Views within
             `perception.verification.POLE_DEG` of the object's z axis, where the angle is not
             defined, always count as within (None: no such preference).
-        verify_processes: the processes that share each batch of starts to refine and score:
-            this one and, with 2, a helper process (`perception.verification.VerifyHelper`)
-            that runs every other start. The helper runs only while this process computes on
-            more than one thread (torch's thread count): an evaluation's workers, one thread
-            each, already fill the cores. Every start's result is the same on either process.
+        verify_processes: the processes that share the codebook matching and each batch of
+            starts to refine and score: this one and, with 2, a helper process
+            (`perception.verification.VerifyHelper`) that matches the later half of the
+            templates and runs every other start. The helper runs only while this process
+            computes on more than one thread (torch's thread count): an evaluation's workers,
+            one thread each, already fill the cores. Every result is the same on either
+            process.
     """
 
     views: int = 1000
@@ -396,9 +398,9 @@ class GlobalPoseEstimator:
         return [int(i) for i in new[:count]]
 
     def _helper(self) -> VerifyHelper | None:
-        """The helper process that shares each batch of starts (`GlobalConfig.verify_processes`),
-        started on first use; None while this process computes on one thread (as an
-        evaluation's workers do: they already fill the cores)."""
+        """The helper process that shares the codebook matching and each batch of starts
+        (`GlobalConfig.verify_processes`), started on first use; None while this process
+        computes on one thread (as an evaluation's workers do: they already fill the cores)."""
         import torch
 
         if self.config.verify_processes < 2 or torch.get_num_threads() < 2:
@@ -427,6 +429,7 @@ class GlobalPoseEstimator:
         model = load_object(det.name)
         max_tilt = cfg.resting_tilt_deg if R_W_C is not None and model.resting_poses else None
         t0 = time.perf_counter()
+        helper = self._helper()
         starts: list[tuple[np.ndarray, str]] = []
         second: Callable[[], list[tuple[np.ndarray, str]]] | None = None  # drawn on demand
         if isinstance(det, PoseDetection):
@@ -435,7 +438,11 @@ class GlobalPoseEstimator:
         if view is not None:
             book = self.codebooks.get(det.name)
             views = occluded_views(det.mask, occluder, view, cfg.occluded_grow) or [view]
-            scores = np.concatenate([book.match(v.bits, v.hidden) for v in views])
+            framings = [(v.bits, v.hidden) for v in views]
+            if helper is not None:  # the later half of the templates matched there
+                scores = helper.match(book, framings)
+            else:
+                scores = np.concatenate([book.match(bits, hidden) for bits, hidden in framings])
             n = len(book.rotations)
             top = top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg)
             if cfg.resting_hypotheses and max_tilt is not None:
@@ -481,7 +488,6 @@ class GlobalPoseEstimator:
             model=model if max_tilt is not None else None,
             max_inplane_deg=cfg.max_inplane_deg,
         )
-        helper = self._helper()
 
         def run(batch: list[Start]) -> list[Verified | None]:
             return helper.map(job, batch) if helper is not None else run_here(job, batch)

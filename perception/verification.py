@@ -19,7 +19,7 @@ import socket
 import subprocess
 import sys
 import weakref
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -27,7 +27,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from perception.codebook import verification_scores
+from perception.codebook import Codebook, verification_scores
 from perception.geometry import axes_from_p, ray_correction
 from perception.refine import PoseRefiner, RefineConfig, RefineTarget
 from perception.support import snap_to_resting
@@ -219,9 +219,23 @@ def run_here(job: VerifyJob, starts: Sequence[Start]) -> list[Verified | None]:
     return [job.run(s) for s in starts]
 
 
+def _match_views(book: Codebook, views: list[tuple[np.ndarray, np.ndarray | None]], first: int):
+    """Each view's IoUs with the templates from `first` on (`Codebook.match`)."""
+    return [book.match(bits, hidden, slice(first, None)) for bits, hidden in views]
+
+
+#: What the helper does, by the name a request gives: with the object it holds and the
+#: request's payload.
+_OPERATIONS: dict[str, Callable[[Any, Any], Any]] = {
+    "starts": run_here,
+    "match": lambda book, payload: _match_views(book, *payload),
+}
+
+
 def _serve(conn: Connection) -> None:
-    """The helper process: runs the starts it is sent against the latest job and replies with
-    their results (or the error one raised), until told to stop or its parent is gone."""
+    """The helper process: answers each request (an operation, the slot of the object it
+    works on, that object when it is new, the payload) with its result or the error it
+    raised, until told to stop or its parent is gone."""
     import cv2
     import threadpoolctl
 
@@ -229,7 +243,7 @@ def _serve(conn: Connection) -> None:
     cv2.setNumThreads(1)
     threadpoolctl.threadpool_limits(limits=1)
     conn.send("ready")
-    job: VerifyJob | None = None
+    held: dict[str, Any] = {}
     while True:
         try:
             message = conn.recv()
@@ -237,12 +251,12 @@ def _serve(conn: Connection) -> None:
             return
         if message is None:
             return
-        sent, starts = message
-        job = sent if sent is not None else job
+        op, slot, sent, payload = message
+        if sent is not None:
+            held[slot] = sent
         try:
-            assert job is not None, "starts sent before their job"
-            conn.send(("ok", run_here(job, starts)))
-        except Exception as e:  # handed back, to be raised where the starts were asked for
+            conn.send(("ok", _OPERATIONS[op](held[slot], payload)))
+        except Exception as e:  # handed back, to be raised where the request was made
             conn.send(("error", e))
 
 
@@ -258,10 +272,12 @@ def _stop(process: subprocess.Popen, conn: Connection) -> None:
 
 
 class VerifyHelper:
-    """A helper process that takes every other start of a batch (`map`) while this process
-    runs the rest. It starts in the background (a fresh interpreter that imports this module
-    alone, so a caller's script is never run again); until it is ready, or after it has
-    failed, this process runs every start itself, with the same results."""
+    """A helper process that shares the global estimator's work with this one: it matches the
+    later half of a codebook's templates (`match`) and takes every other start of a batch
+    (`map`) while this process does the rest. It starts in the background (a fresh interpreter
+    that imports this module alone, so a caller's script is never run again); until it is
+    ready, or after it has failed, this process does all of it, with the same results. It
+    holds each object it works on (a job, an object's codebook) once sent."""
 
     def __init__(self) -> None:
         ours, theirs = socket.socketpair()
@@ -278,7 +294,7 @@ class VerifyHelper:
         self._conn = Connection(ours.detach())
         self._ready = False
         self._broken = False
-        self._job: VerifyJob | None = None  # the job the helper holds
+        self._held: dict[str, Any] = {}  # by slot: what the helper holds
         self._finalizer = weakref.finalize(self, _stop, self._process, self._conn)
 
     def available(self) -> bool:
@@ -290,32 +306,62 @@ class VerifyHelper:
                 self._broken = True
         return self._ready and not self._broken
 
+    def _shared(
+        self,
+        op: str,
+        slot: str,
+        obj: Any,
+        payload: Any,
+        mine: Callable[[], Any],
+        theirs: Callable[[], Any],
+    ) -> tuple[Any, Any]:
+        """(`mine()` here, the helper's `op` on `obj` and `payload`) at the same time; when
+        the helper cannot take it or dies, `theirs()` here instead (the same result)."""
+        try:
+            fresh = self._held.get(slot) is not obj
+            self._conn.send((op, slot, obj if fresh else None, payload))
+            self._held[slot] = obj
+        except Exception:  # an object that does not pickle, or a helper gone: all done here
+            self._broken = True
+            return mine(), theirs()
+        try:
+            here = mine()
+        finally:  # the helper's reply is read even when this process's share failed
+            try:
+                status, result = self._conn.recv()
+            except (EOFError, OSError):
+                self._broken = True
+                status, result = "ok", theirs()
+        if status == "error":
+            raise result
+        return here, result
+
     def map(self, job: VerifyJob, starts: Sequence[Start]) -> list[Verified | None]:
         """Every start of `job` refined and scored, in order: every other one by the helper."""
         if len(starts) < 2 or not self.available():
             return run_here(job, starts)
-        theirs = list(starts[1::2])
-        try:
-            self._conn.send((job if job is not self._job else None, theirs))
-            self._job = job
-        except Exception:  # a job that does not pickle, or a helper gone: all done here
-            self._broken = True
-            return run_here(job, starts)
-        try:
-            mine = run_here(job, starts[0::2])
-        finally:  # the helper's reply is read even when this process's share failed
-            status, result = self._reply(job, theirs)
-        if status == "error":
-            raise result
+        odd = list(starts[1::2])
+        even = list(starts[0::2])
+        mine, result = self._shared(
+            "starts", "job", job, odd, lambda: run_here(job, even), lambda: run_here(job, odd)
+        )
         return [mine[i // 2] if i % 2 == 0 else result[i // 2] for i in range(len(starts))]
 
-    def _reply(self, job: VerifyJob, theirs: list[Start]) -> tuple[str, Any]:
-        """The helper's reply to `theirs`; when it has died, their results made here."""
-        try:
-            return self._conn.recv()
-        except (EOFError, OSError):
-            self._broken = True
-            return "ok", run_here(job, theirs)
+    def match(self, book: Codebook, views: list[tuple[np.ndarray, np.ndarray | None]]):
+        """Each view's IoUs with every template of `book` (`Codebook.match`), the views'
+        arrays joined: the later half of the templates matched by the helper."""
+        if not self.available():
+            return np.concatenate([book.match(bits, hidden) for bits, hidden in views])
+        half = len(book.rotations) // 2
+        mine, result = self._shared(
+            "match",
+            f"book:{book.name}",
+            book,
+            (views, half),
+            lambda: [book.match(bits, hidden, slice(0, half)) for bits, hidden in views],
+            lambda: _match_views(book, views, half),
+        )
+        return np.concatenate([np.concatenate(pair) for pair in zip(mine, result, strict=True)])
 
     def close(self) -> None:
         """Stop the helper process."""

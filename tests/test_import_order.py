@@ -92,3 +92,26 @@ def test_an_evaluation_job_sets_up_its_own_process() -> None:
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["True", "None"]
+
+
+def test_set_up_lets_openmp_spin_briefly_unless_told_otherwise() -> None:
+    """`setup_rendering` sets libgomp's spin count before torch loads (when it reads it), and
+    leaves a count the user set alone."""
+    code = textwrap.dedent(
+        """
+        import os, sys
+        from posegrasp.core.runtime import OMP_SPIN_COUNT, setup_rendering
+        assert "torch" not in sys.modules
+        setup_rendering()
+        print(os.environ["GOMP_SPINCOUNT"] == str(OMP_SPIN_COUNT), "torch" in sys.modules)
+        """
+    )
+    for given, expected in ((None, "True True"), ("123", "False True")):
+        env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+        if given is not None:
+            env["GOMP_SPINCOUNT"] = given
+        out = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env
+        )
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.strip() == expected

@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from perception.codebook import ConvexParts, id_map, image_edges
+from perception.codebook import Codebook, ConvexParts, id_map, image_edges
 from perception.refine import PoseRefiner, RefineConfig
 from perception.verification import Start, Verified, VerifyHelper, VerifyJob, run_here
 from posegrasp.core.transforms import intrinsics, rot_x, rot_y, rot_z
@@ -114,5 +114,26 @@ def test_an_error_in_the_helper_is_raised_here_and_a_dead_helper_is_done_without
         helper._process.wait()
         assert _same(helper.map(job, starts), run_here(job, starts))
         assert not helper.available()
+    finally:
+        helper.close()
+
+
+def test_the_helper_matches_half_the_templates_as_this_process_would() -> None:
+    """`VerifyHelper.match`: every framing's IoUs with every template, the later half matched
+    by the helper, equal to `Codebook.match` here; a codebook is sent once and then held."""
+    book = Codebook.build("car", 60, 6)
+    rng = np.random.default_rng(3)
+    views = [(book.bits[i].copy(), None) for i in (5, 200)]
+    views.append((book.bits[17].copy(), rng.integers(0, 2**63, book.bits.shape[1], np.uint64)))
+    here = np.concatenate([book.match(bits, hidden) for bits, hidden in views])
+    assert here.shape == (3 * len(book.rotations),) and here[5] == 1.0
+    helper = VerifyHelper()
+    try:
+        _ready(helper)
+        assert np.array_equal(helper.match(book, views), here)
+        assert np.array_equal(helper.match(book, views[:1]), here[: len(book.rotations)])
+        helper._process.kill()
+        helper._process.wait()
+        assert np.array_equal(helper.match(book, views), here)  # done here without it
     finally:
         helper.close()

@@ -13,7 +13,13 @@ render. It
 - runs the OpenBLAS that numpy, SciPy and OpenCV bring on one thread. Their matrices here are
   small (the refiner's 6x6 solves and Jacobian products); a second OpenBLAS thread only spins
   for a while after each call, taking a core from the torch threads that run next (the detector
-  then took twice as long right after a verification).
+  then took twice as long right after a verification);
+- lets OpenMP's idle threads spin only briefly (``GOMP_SPINCOUNT``, `OMP_SPIN_COUNT`, unless
+  set already; it takes effect when torch loads, so before it). By default an idle thread
+  spins 300,000 times after each parallel region of torch: that took the other core from the
+  global estimator's helper process for several milliseconds after the detector and the mask
+  net ran (its half of the codebook matching took twice as long as this process's half). A
+  short spin keeps torch's own speed; no spin at all made the detector twice as slow.
 
 Rendering without it raises `StateError` naming this function.
 """
@@ -31,6 +37,8 @@ from posegrasp.core.errors import StateError
 #: GL backends MuJoCo can open a context with, by platform.
 GL_BACKENDS = {"Linux": ("egl", "osmesa", "glfw"), "Darwin": ("cgl", "glfw"), "Windows": ("glfw",)}
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "LP_NUM_THREADS")
+#: Spins of an idle OpenMP thread of torch before it sleeps (libgomp's default: 300,000).
+OMP_SPIN_COUNT = 10_000
 _DONE = False
 
 
@@ -47,6 +55,7 @@ def setup_rendering(threads: int | None = None, preload_torch: bool = True) -> N
         return
     default = "egl" if platform.system() == "Linux" else "glfw"
     os.environ.setdefault("MUJOCO_GL", default)
+    os.environ.setdefault("GOMP_SPINCOUNT", str(OMP_SPIN_COUNT))
     if threads is not None:
         for name in _THREAD_VARIABLES:
             os.environ[name] = str(threads)
