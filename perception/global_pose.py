@@ -176,7 +176,8 @@ class GlobalConfig:
         verify_processes: the processes that share the codebook matching and each batch of
             starts to refine and score: this one and, with 2, a helper process
             (`perception.verification.VerifyHelper`) that matches the later half of the
-            templates and runs every other start. The helper runs only while this process
+            templates and runs every other start, started in the second estimate (a process
+            that makes one never starts it). The helper runs only while this process
             computes on more than one thread (torch's thread count): an evaluation's workers,
             one thread each, already fill the cores. Every result is the same on either
             process.
@@ -339,6 +340,7 @@ class GlobalPoseEstimator:
             )
         )
         self._verify_helper: VerifyHelper | None = None
+        self._estimates = 0  # made so far (the helper starts in the second)
         self.name = name
         self._colours: dict[str, np.ndarray] = {}
 
@@ -399,11 +401,15 @@ class GlobalPoseEstimator:
 
     def _helper(self) -> VerifyHelper | None:
         """The helper process that shares the codebook matching and each batch of starts
-        (`GlobalConfig.verify_processes`), started on first use; None while this process
-        computes on one thread (as an evaluation's workers do: they already fill the cores)."""
+        (`GlobalConfig.verify_processes`), started in the second estimate (its start-up, about
+        a second of one core, would only slow a process that makes one); None before, and
+        while this process computes on one thread (as an evaluation's workers do: they already
+        fill the cores)."""
         import torch
 
         if self.config.verify_processes < 2 or torch.get_num_threads() < 2:
+            return None
+        if self._verify_helper is None and self._estimates < 2:
             return None
         if self._verify_helper is None:
             self._verify_helper = VerifyHelper()
@@ -638,6 +644,7 @@ class GlobalPoseEstimator:
         """The verified pose of obs.object (None when not detected or below `min_score`), the
         other detections and the description of the estimate."""
         cfg = self.config
+        self._estimates += 1
         if obs.object not in OBJECT_NAMES and obs.object in self.hybrid.detector.cfg.classes:
             best, neighbours, info, detections = self._user_target(obs)
         else:

@@ -260,8 +260,11 @@ def _serve(conn: Connection) -> None:
             conn.send(("error", e))
 
 
-def _stop(process: subprocess.Popen, conn: Connection) -> None:
-    """Tell the helper to stop and wait for it briefly."""
+def _stop(process: subprocess.Popen, conn: Connection, pid: int) -> None:
+    """Tell the helper to stop and wait for it briefly (from the process that started it only:
+    a forked child leaves its parent's helper alone)."""
+    if os.getpid() != pid:
+        return
     try:
         conn.send(None)
         process.wait(timeout=2.0)
@@ -295,10 +298,16 @@ class VerifyHelper:
         self._ready = False
         self._broken = False
         self._held: dict[str, Any] = {}  # by slot: what the helper holds
-        self._finalizer = weakref.finalize(self, _stop, self._process, self._conn)
+        self._pid = os.getpid()
+        self._waiting = False  # a request sent whose reply was not read
+        self._finalizer = weakref.finalize(self, _stop, self._process, self._conn, self._pid)
 
     def available(self) -> bool:
-        """Whether the helper takes work now."""
+        """Whether the helper takes work now: ready, alive, in step with this process (no reply
+        left unread by an interruption) and this process the one that started it (not a forked
+        child)."""
+        if self._waiting or os.getpid() != self._pid:
+            self._broken = True
         if not (self._ready or self._broken):
             try:
                 self._ready = self._conn.poll() and self._conn.recv() == "ready"
@@ -319,6 +328,7 @@ class VerifyHelper:
         the helper cannot take it or dies, `theirs()` here instead (the same result)."""
         try:
             fresh = self._held.get(slot) is not obj
+            self._waiting = True  # from the first byte sent: an interrupted send counts too
             self._conn.send((op, slot, obj if fresh else None, payload))
             self._held[slot] = obj
         except Exception:  # an object that does not pickle, or a helper gone: all done here
@@ -329,6 +339,7 @@ class VerifyHelper:
         finally:  # the helper's reply is read even when this process's share failed
             try:
                 status, result = self._conn.recv()
+                self._waiting = False
             except (EOFError, OSError):
                 self._broken = True
                 status, result = "ok", theirs()

@@ -12,7 +12,7 @@ import pytest
 
 from perception.codebook import Codebook, ConvexParts, id_map, image_edges
 from perception.refine import PoseRefiner, RefineConfig
-from perception.verification import Start, Verified, VerifyHelper, VerifyJob, run_here
+from perception.verification import Start, Verified, VerifyHelper, VerifyJob, _stop, run_here
 from posegrasp.core.transforms import intrinsics, rot_x, rot_y, rot_z
 from posegrasp.world.objects import load_object
 
@@ -137,3 +137,39 @@ def test_the_helper_matches_half_the_templates_as_this_process_would() -> None:
         assert np.array_equal(helper.match(book, views), here)  # done here without it
     finally:
         helper.close()
+
+
+def test_a_reply_left_unread_or_a_forked_child_retires_the_helper(monkeypatch) -> None:
+    """A request whose reply was never read (Ctrl-C while waiting for it) would put every later
+    reply one behind; a forked child shares its parent's socket. Either way the helper is no
+    longer used, and the results, made here, are the same."""
+    import os
+
+    job, starts = _job(), _starts()
+    here = run_here(job, starts)
+    helper = VerifyHelper()
+    try:
+        _ready(helper)
+        real_recv = helper._conn.recv
+
+        def interrupted():
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(helper._conn, "recv", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            helper.map(job, starts)
+        monkeypatch.setattr(helper._conn, "recv", real_recv)
+        assert not helper.available()
+        assert _same(helper.map(job, starts), here)
+    finally:
+        helper.close()
+    forked = VerifyHelper()
+    _ready(forked)
+    with monkeypatch.context() as m:
+        m.setattr(os, "getpid", lambda: -1)  # as in a child forked from this process
+        assert not forked.available()
+        assert _same(forked.map(job, starts), here)
+        forked.close()  # a child leaves its parent's helper running
+    assert forked._process.poll() is None
+    _stop(forked._process, forked._conn, os.getpid())  # the parent stops it
+    assert forked._process.poll() is not None
