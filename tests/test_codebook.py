@@ -260,11 +260,9 @@ def _global_on_one_detection(name: str, mask: np.ndarray, nets_pose: np.ndarray,
     return GlobalPoseEstimator(OneDetection(), cfg, books)  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("nets_off", ["turned", "behind"])
-def test_the_global_estimator_recovers_what_the_nets_missed(tmp_path, nets_off: str) -> None:
-    """The nets' pose 90 deg off (or not even in front of the camera): the codebook's hypotheses,
-    refined and verified, still give the pose; the estimate names its source and confidence."""
-
+def _pistol_and_nets_turned_away():
+    """The pistol painted at a pose seen from the side, and the nets' pose turned 90 deg off it:
+    (name, true pose, mask, image, the nets' pose)."""
     name = "pistol"
     T = np.eye(4)
     T[:3, :3] = rot_x(np.deg2rad(-70)) @ rot_y(np.deg2rad(40)) @ rot_z(np.deg2rad(10))
@@ -272,6 +270,14 @@ def test_the_global_estimator_recovers_what_the_nets_missed(tmp_path, nets_off: 
     mask, rgb = _painted(name, T)
     wrong = T.copy()
     wrong[:3, :3] = rot_x(np.pi / 2) @ T[:3, :3]
+    return name, T, mask, rgb, wrong
+
+
+@pytest.mark.parametrize("nets_off", ["turned", "behind"])
+def test_the_global_estimator_recovers_what_the_nets_missed(tmp_path, nets_off: str) -> None:
+    """The nets' pose 90 deg off (or not even in front of the camera): the codebook's hypotheses,
+    refined and verified, still give the pose; the estimate names its source and confidence."""
+    name, T, mask, rgb, wrong = _pistol_and_nets_turned_away()
     if nets_off == "behind":
         wrong[2, 3] = -0.5
     est = _global_on_one_detection(name, mask, wrong, tmp_path)
@@ -613,13 +619,7 @@ def test_the_global_estimator_gives_the_same_pose_with_or_without_its_helper(tmp
 
     import torch
 
-    name = "pistol"
-    T = np.eye(4)
-    T[:3, :3] = rot_x(np.deg2rad(-70)) @ rot_y(np.deg2rad(40)) @ rot_z(np.deg2rad(10))
-    T[:3, 3] = [0.04, -0.02, 0.75]
-    mask, rgb = _painted(name, T)
-    wrong = T.copy()
-    wrong[:3, :3] = rot_x(np.pi / 2) @ T[:3, :3]
+    name, T, mask, rgb, wrong = _pistol_and_nets_turned_away()
     est = _global_on_one_detection(name, mask, wrong, tmp_path)
     obs = Observation(rgb, K, np.eye(4), name, 0)
     threads = torch.get_num_threads()
