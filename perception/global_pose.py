@@ -341,6 +341,7 @@ class GlobalPoseEstimator:
         )
         self._verify_helper: VerifyHelper | None = None
         self._estimates = 0  # made so far (the helper starts in the second)
+        self._no_helper = False  # a helper could not be started
         self.name = name
         self._colours: dict[str, np.ndarray] = {}
 
@@ -409,10 +410,14 @@ class GlobalPoseEstimator:
 
         if self.config.verify_processes < 2 or torch.get_num_threads() < 2:
             return None
-        if self._verify_helper is None and self._estimates < 2:
+        if self._verify_helper is None and (self._estimates < 2 or self._no_helper):
             return None
         if self._verify_helper is None:
-            self._verify_helper = VerifyHelper()
+            try:  # it is handed one end of a socket pair: POSIX systems
+                self._verify_helper = VerifyHelper()
+            except (OSError, ValueError):  # no process to start here: all of it on this one
+                self._no_helper = True
+                return None
         return self._verify_helper
 
     def verify(

@@ -280,20 +280,30 @@ class VerifyHelper:
     (`map`) while this process does the rest. It starts in the background (a fresh interpreter
     that imports this module alone, so a caller's script is never run again); until it is
     ready, or after it has failed, this process does all of it, with the same results. It
-    holds each object it works on (a job, an object's codebook) once sent."""
+    holds each object it works on (a job, an object's codebook) once sent.
+
+    Raises:
+        OSError, ValueError: the process cannot be started (it is handed one end of a socket
+            pair, which needs a POSIX system).
+    """
 
     def __init__(self) -> None:
         ours, theirs = socket.socketpair()
         env = dict(os.environ) | {name: "1" for name in _THREAD_VARIABLES}
         root = str(Path(__file__).resolve().parents[1])  # where `perception` is importable
         env["PYTHONPATH"] = os.pathsep.join(filter(None, (root, env.get("PYTHONPATH"))))
-        self._process = subprocess.Popen(
-            [sys.executable, "-m", "perception.verification", str(theirs.fileno())],
-            pass_fds=(theirs.fileno(),),
-            env=env,
-            stdin=subprocess.DEVNULL,
-        )
-        theirs.close()
+        try:
+            self._process = subprocess.Popen(
+                [sys.executable, "-m", "perception.verification", str(theirs.fileno())],
+                pass_fds=(theirs.fileno(),),
+                env=env,
+                stdin=subprocess.DEVNULL,
+            )
+        except BaseException:
+            ours.close()
+            raise
+        finally:
+            theirs.close()
         self._conn = Connection(ours.detach())
         self._ready = False
         self._broken = False

@@ -644,3 +644,28 @@ def test_the_global_estimator_gives_the_same_pose_with_or_without_its_helper(tmp
     assert np.array_equal(alone.T_C_O, shared.T_C_O) and np.array_equal(first.T_C_O, alone.T_C_O)
     assert alone.info["verify"]["confidence"] == shared.info["verify"]["confidence"]
     assert rotation_error_deg(shared.T_C_O[:3, :3], T[:3, :3]) < 3.0
+
+
+def test_the_global_estimator_goes_on_alone_when_no_helper_can_start(tmp_path, monkeypatch):
+    """Where no helper process can be started, every estimate is made on this one, the same."""
+    import subprocess
+
+    import torch
+
+    name, T, mask, rgb, wrong = _pistol_and_nets_turned_away()
+    est = _global_on_one_detection(name, mask, wrong, tmp_path)
+    obs = Observation(rgb, K, np.eye(4), name, 0)
+
+    def refused(*args, **kwargs):
+        raise OSError("no processes here")
+
+    monkeypatch.setattr(subprocess, "Popen", refused)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        poses = [est.estimate(obs).T_C_O for _ in range(3)]
+    finally:
+        torch.set_num_threads(threads)
+    assert est._verify_helper is None and est._no_helper
+    assert all(p is not None and np.array_equal(p, poses[0]) for p in poses)
+    assert rotation_error_deg(poses[0][:3, :3], T[:3, :3]) < 3.0
