@@ -6,8 +6,9 @@ the others: render-and-compare refinement (`perception.refine`), then the verifi
 hold the interpreter, so threads do not share them; a second process does. A `VerifyJob` holds
 everything one detection's starts are refined and scored against, `VerifyJob.run` does one
 start, and a `VerifyHelper` runs every other start of a batch in a helper process while this
-one runs the rest. Each start's result is the same to the bit on either process, so the
-estimate does not depend on how the work was shared.
+one runs the rest; it also matches the later half of a codebook's templates
+(`perception.codebook.Codebook.match`). Each result is the same to the bit on either process,
+so the estimate does not depend on how the work was shared.
 """
 
 from __future__ import annotations
