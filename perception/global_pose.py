@@ -68,12 +68,12 @@ from perception.overlay import mask_box
 from perception.refine import PoseRefiner, RefineConfig
 from perception.support import refine_on_support, resting_surface_z, snap_to_resting
 from perception.verification import (
+    OnThisProcess,
     Start,
     Verified,
     VerifyHelper,
     VerifyJob,
     rank_verified,
-    run_here,
 )
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
@@ -440,7 +440,7 @@ class GlobalPoseEstimator:
         model = load_object(det.name)
         max_tilt = cfg.resting_tilt_deg if R_W_C is not None and model.resting_poses else None
         t0 = time.perf_counter()
-        helper = self._helper()
+        helper = self._helper() or OnThisProcess  # shares the matching and the starts
         starts: list[tuple[np.ndarray, str]] = []
         second: Callable[[], list[tuple[np.ndarray, str]]] | None = None  # drawn on demand
         if isinstance(det, PoseDetection):
@@ -449,11 +449,7 @@ class GlobalPoseEstimator:
         if view is not None:
             book = self.codebooks.get(det.name)
             views = occluded_views(det.mask, occluder, view, cfg.occluded_grow) or [view]
-            framings = [(v.bits, v.hidden) for v in views]
-            if helper is not None:  # the later half of the templates matched there
-                scores = helper.match(book, framings)
-            else:
-                scores = np.concatenate([book.match(bits, hidden) for bits, hidden in framings])
+            scores = helper.match(book, [(v.bits, v.hidden) for v in views])
             n = len(book.rotations)
             top = top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg)
             if cfg.resting_hypotheses and max_tilt is not None:
@@ -495,20 +491,17 @@ class GlobalPoseEstimator:
             appearance_weight=cfg.appearance_weight,
             edge_weight=cfg.edge_weight,
             max_tilt=max_tilt,
-            R_W_C=R_W_C if max_tilt is not None else None,
-            model=model if max_tilt is not None else None,
+            R_W_C=R_W_C,
+            model=model,
             max_inplane_deg=cfg.max_inplane_deg,
         )
-
-        def run(batch: list[Start]) -> list[Verified | None]:
-            return helper.map(job, batch) if helper is not None else run_here(job, batch)
 
         # The first run of every start: all of it, or (with keep_after_first) a short screening
         # one, the best few then refined further.
         first, screen = cfg.refine_passes, 0
         if cfg.keep_after_first:
             first, screen = 1, cfg.screen_iterations
-        screen_full = screen <= 0 or screen >= self.refiner.config.iterations
+        screen_full = job.steps(screen) == self.refiner.config.iterations
         further: dict[int, Verified | None] = {}  # by start: refined further
         snaps: dict[tuple[int, bool], Verified | None] = {}  # by start and stage: snapped
 
@@ -522,7 +515,7 @@ class GlobalPoseEstimator:
                 more = cfg.refine_passes - screen_full
                 todo = list({v.rank: v for v in kept if v.rank not in further}.values())
                 batch = [Start(v.T_C_O, v.source, v.rank, more) for v in todo]
-                further.update(zip([v.rank for v in todo], run(batch), strict=True))
+                further.update(zip([v.rank for v in todo], helper.map(job, batch), strict=True))
                 again = [further[v.rank] for v in kept]
                 out = rank_verified([v for v in again if v is not None]) + rest
             if cfg.snap_candidates and max_tilt is not None:
@@ -544,7 +537,7 @@ class GlobalPoseEstimator:
                     T = v.T_C_O.copy()
                     T[:3, :3] = R_W_C.T @ snap_to_resting(R_W_C @ T[:3, :3], model)[0]
                     batch.append(Start(T, v.source, v.rank, 1, cfg.snap_iterations, up))
-                for (k, v), s in zip(new.items(), run(batch), strict=True):
+                for (k, v), s in zip(new.items(), helper.map(job, batch), strict=True):
                     snaps[k] = None if s is None or s.score < v.score - SNAP_SCORE_DROP else s
                 snapped = [s for k in keys if (s := snaps[k]) is not None]
                 best_score = max((v.score for v in out), default=0.0)
@@ -553,7 +546,7 @@ class GlobalPoseEstimator:
             return out
 
         batch = [Start(T, s, r, first, screen) for r, (T, s) in enumerate(starts)]
-        firsts = [v for v in run(batch) if v is not None]
+        firsts = [v for v in helper.map(job, batch) if v is not None]
         out = chosen(firsts)
         times = {"hypotheses": (t1 - t0) * 1000}
         unsure = not out or out[0].score < cfg.second_look_below
@@ -562,7 +555,7 @@ class GlobalPoseEstimator:
             t_look = time.perf_counter()
             later = enumerate(second(), len(starts))
             batch = [Start(T, s, r, first, screen) for r, (T, s) in later]
-            firsts += [v for v in run(batch) if v is not None]
+            firsts += [v for v in helper.map(job, batch) if v is not None]
             out = chosen(firsts)
             times["second_look"] = (time.perf_counter() - t_look) * 1000
         times["verify"] = (time.perf_counter() - t1) * 1000

@@ -146,8 +146,8 @@ class VerifyJob:
         edge_weight: weight of the edge agreement in it.
         max_tilt: with the camera's rotation `R_W_C` and the object's resting poses, the
             largest tilt from resting [deg] a plausible pose may have (None: no such prior).
-        R_W_C: the camera's rotation in the world (3, 3), or None.
-        model: the object's model (its resting poses), or None.
+        R_W_C: the camera's rotation in the world (3, 3); needed with `max_tilt`.
+        model: the object's model (its resting poses); needed with `max_tilt`.
         max_inplane_deg: the largest in-plane angle [deg] of a plausible pose (None: any).
     """
 
@@ -180,13 +180,21 @@ class VerifyJob:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
 
-    def _refiner(self, iterations: int) -> PoseRefiner:
-        """The refiner of `iterations` steps per run (0 or more than the full one's: the full
-        one), reading this job's parts."""
+    def steps(self, iterations: int) -> int:
+        """Refiner steps per run of a start of `iterations` (0, or more than the full
+        refiner's: the full refiner's)."""
         full = self.refine.iterations
-        steps = full if iterations <= 0 or iterations >= full else iterations
+        return full if iterations <= 0 or iterations >= full else iterations
+
+    def _refiner(self, iterations: int) -> PoseRefiner:
+        """The refiner of `steps(iterations)` steps per run, reading this job's parts."""
+        steps = self.steps(iterations)
         if steps not in self._refiners:
-            cfg = self.refine if steps == full else replace(self.refine, iterations=steps)
+            cfg = (
+                self.refine
+                if steps == self.refine.iterations
+                else replace(self.refine, iterations=steps)
+            )
             self._refiners[steps] = PoseRefiner(cfg, _Parts(self.name, self.parts))
         return self._refiners[steps]
 
@@ -206,7 +214,8 @@ class VerifyJob:
         iou = float(info["iou_after"])
         score = iou + self.appearance_weight * app + self.edge_weight * edges
         tilt, plausible = 0.0, True
-        if self.max_tilt is not None and self.R_W_C is not None and self.model is not None:
+        if self.max_tilt is not None:
+            assert self.R_W_C is not None and self.model is not None
             tilt = snap_to_resting(self.R_W_C @ T[:3, :3], self.model)[2]
             plausible = tilt <= self.max_tilt
         if self.max_inplane_deg is not None:
@@ -220,16 +229,37 @@ def run_here(job: VerifyJob, starts: Sequence[Start]) -> list[Verified | None]:
     return [job.run(s) for s in starts]
 
 
-def _match_views(book: Codebook, views: list[tuple[np.ndarray, np.ndarray | None]], first: int):
-    """Each view's IoUs with the templates from `first` on (`Codebook.match`)."""
-    return [book.match(bits, hidden, slice(first, None)) for bits, hidden in views]
+#: A framing of a detected mask as the codebook matches it: packed mask bits, packed hidden
+#: pixels or None (`perception.codebook.MaskView`).
+Framing = tuple[np.ndarray, np.ndarray | None]
+
+
+def match_here(
+    book: Codebook, framings: Sequence[Framing], templates: slice = slice(None)
+) -> list[np.ndarray]:
+    """Each framing's IoUs with the `templates` of `book` (`Codebook.match`), on this process."""
+    return [book.match(bits, hidden, templates) for bits, hidden in framings]
+
+
+class OnThisProcess:
+    """`VerifyHelper`'s work, all of it on this process: what runs where no helper does."""
+
+    @staticmethod
+    def map(job: VerifyJob, starts: Sequence[Start]) -> list[Verified | None]:
+        """Every start of `job` refined and scored, in order."""
+        return run_here(job, starts)
+
+    @staticmethod
+    def match(book: Codebook, framings: Sequence[Framing]) -> np.ndarray:
+        """Each framing's IoUs with every template of `book`, the framings' arrays joined."""
+        return np.concatenate(match_here(book, framings))
 
 
 #: What the helper does, by the name a request gives: with the object it holds and the
 #: request's payload.
 _OPERATIONS: dict[str, Callable[[Any, Any], Any]] = {
     "starts": run_here,
-    "match": lambda book, payload: _match_views(book, *payload),
+    "match": lambda book, payload: match_here(book, *payload),
 }
 
 
@@ -361,7 +391,7 @@ class VerifyHelper:
     def map(self, job: VerifyJob, starts: Sequence[Start]) -> list[Verified | None]:
         """Every start of `job` refined and scored, in order: every other one by the helper."""
         if len(starts) < 2 or not self.available():
-            return run_here(job, starts)
+            return OnThisProcess.map(job, starts)
         odd = list(starts[1::2])
         even = list(starts[0::2])
         mine, result = self._shared(
@@ -369,19 +399,19 @@ class VerifyHelper:
         )
         return [mine[i // 2] if i % 2 == 0 else result[i // 2] for i in range(len(starts))]
 
-    def match(self, book: Codebook, views: list[tuple[np.ndarray, np.ndarray | None]]):
-        """Each view's IoUs with every template of `book` (`Codebook.match`), the views'
+    def match(self, book: Codebook, framings: Sequence[Framing]) -> np.ndarray:
+        """Each framing's IoUs with every template of `book` (`Codebook.match`), the framings'
         arrays joined: the later half of the templates matched by the helper."""
         if not self.available():
-            return np.concatenate([book.match(bits, hidden) for bits, hidden in views])
-        half = len(book.rotations) // 2
+            return OnThisProcess.match(book, framings)
+        first, later = slice(0, len(book.rotations) // 2), slice(len(book.rotations) // 2, None)
         mine, result = self._shared(
             "match",
             f"book:{book.name}",
             book,
-            (views, half),
-            lambda: [book.match(bits, hidden, slice(0, half)) for bits, hidden in views],
-            lambda: _match_views(book, views, half),
+            (framings, later),
+            lambda: match_here(book, framings, first),
+            lambda: match_here(book, framings, later),
         )
         return np.concatenate([np.concatenate(pair) for pair in zip(mine, result, strict=True)])
 
