@@ -412,6 +412,8 @@ BENCH_REJECTIONS = [
     ("evaluate_speed", ["--estimator", "magic"], "valid estimators: oracle"),
     ("mask_choice", ["--estimator", "hybrid"], "valid estimators: hybrid-global,"),
     ("mask_choice", ["--images", "0"], "1..100000"),
+    ("flip_ambiguity", ["--turns", "2,0"], "numbers 0.1..90"),
+    ("flip_ambiguity", ["--plot", "f.txt"], "valid"),
 ]
 
 

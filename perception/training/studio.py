@@ -208,6 +208,9 @@ class Studio:
         self._base_rgba = m.geom_rgba.copy()
         self.K = camera_intrinsics(m, CAMERA, cfg.width, cfg.height)
         self._renderer = OffscreenRenderer(cfg.width, cfg.height)
+        self._last: tuple[str, float, float] | None = (
+            None  # name, roll, distance of the last render
+        )
         self._opt_all = mujoco.MjvOption()
         self._opt_object = mujoco.MjvOption()
         self._opt_object.geomgroup[:] = 0
@@ -367,7 +370,38 @@ class Studio:
         mask = r.render(m, d, self._cam, self._opt_object, segment=True)[..., 0] > 0
         T_world_C = T_world_cam(self.model, self.data, CAMERA)
         T_C_O = invert_transform(T_world_C)  # T_world_O is the identity
+        self._last = (name, roll, distance)
         return StudioView(rgb, mask, self.K.copy(), T_C_O, roll, distance)
+
+    def render_turned(self, name: str, R_O: np.ndarray) -> StudioView:
+        """The scene of the last `render` again, with object name turned by R_O about its origin.
+
+        Camera, room, clutter, lights and colours stay as that render left them, so the two
+        images differ by the object's turn alone.
+
+        Args:
+            name: the object of the last `render`.
+            R_O: the turn, in the object's own frame, shape (3, 3).
+
+        Returns:
+            The view; its T_C_O is the last render's with R_O applied in the object's frame.
+        """
+        last = self._last
+        if last is None or last[0] != name:
+            raise ValueError(f"render_turned({name!r}) needs a render of {name!r} just before it")
+        m, d, r = self.model, self.data, self._renderer
+        adr = m.jnt_qposadr[m.joint(f"{name}/free").id]
+        d.qpos[adr + 3 : adr + 7] = mat_to_quat(np.asarray(R_O, dtype=float))
+        try:
+            mujoco.mj_kinematics(m, d)
+            rgb = r.render(m, d, self._cam, self._opt_all)
+            mask = r.render(m, d, self._cam, self._opt_object, segment=True)[..., 0] > 0
+            T_C_O = invert_transform(T_world_cam(m, d, CAMERA))
+            T_C_O[:3, :3] = T_C_O[:3, :3] @ R_O
+        finally:
+            d.qpos[adr + 3 : adr + 7] = m.qpos0[adr + 3 : adr + 7]
+            mujoco.mj_kinematics(m, d)
+        return StudioView(rgb, mask, self.K.copy(), T_C_O, last[1], last[2])
 
     def close(self) -> None:
         """Free the GL context."""
