@@ -21,7 +21,7 @@ from perception.training.datagen import main
 from perception.training.generation import SEED_BASES
 from perception.training.sheets import draw_annotations
 from perception.training.writer import WALL_TIME_FILE
-from posegrasp.core.errors import AssetError
+from posegrasp.core.errors import AssetError, StateError
 from posegrasp.world import constants as C
 from posegrasp.world.camera import T_world_cam, camera_intrinsics
 from posegrasp.world.objects import OBJECT_NAMES, load_object
@@ -187,7 +187,7 @@ def test_studio_renders_the_same_scene_with_the_object_turned(paper: Path) -> No
         again = studio.render(name, np.random.default_rng(sample.seed))
         np.testing.assert_array_equal(again.rgb, sample.rgb)  # the turn was undone
         other = next(n for n in OBJECT_NAMES if n != name)
-        with pytest.raises(ValueError, match="needs a render"):
+        with pytest.raises(StateError, match="needs a render"):
             studio.render_turned(other, flip)
 
 

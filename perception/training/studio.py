@@ -36,7 +36,7 @@ import numpy as np
 from perception.training.rendering import OffscreenRenderer
 from perception.training.textures import PLAIN_TEXTURE, add_texture_bank, bank_texture_name
 from perception.training.views import roll_to_theta, unit_vector
-from posegrasp.core.errors import UnknownNameError
+from posegrasp.core.errors import StateError, UnknownNameError
 from posegrasp.core.transforms import invert_transform, mat_to_quat
 from posegrasp.world.camera import R_CV_FROM_MJ, T_world_cam, camera_intrinsics
 from posegrasp.world.objects import OBJECT_NAMES, VISUAL_GROUP, ObjectModel, load_object
@@ -388,7 +388,7 @@ class Studio:
         """
         last = self._last
         if last is None or last[0] != name:
-            raise ValueError(f"render_turned({name!r}) needs a render of {name!r} just before it")
+            raise StateError(f"render_turned({name!r}) needs a render of {name!r} just before it")
         m, d, r = self.model, self.data, self._renderer
         adr = m.jnt_qposadr[m.joint(f"{name}/free").id]
         d.qpos[adr + 3 : adr + 7] = mat_to_quat(np.asarray(R_O, dtype=float))
