@@ -29,7 +29,7 @@ from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import data_root
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.transforms import axis_angle
+from posegrasp.core.transforms import axis_angle, invert_transform
 from posegrasp.core.validate import (
     arg,
     check_float,
@@ -45,22 +45,30 @@ FLIP = np.diag([-1.0, -1.0, 1.0])
 
 def angle_from_below(T_C_O: np.ndarray) -> float:
     """Angle [deg] between the direction from the object to the camera and the object's -z."""
-    p = -T_C_O[:3, :3].T @ T_C_O[:3, 3]
+    p = invert_transform(T_C_O)[:3, 3]  # the camera in O
     return float(np.degrees(np.arccos(np.clip(-p[2] / np.linalg.norm(p), -1.0, 1.0))))
+
+
+def _difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per pixel, the mean over R, G and B of |a - b| [grey levels], (H, W)."""
+    return np.abs(a.astype(np.int16) - b.astype(np.int16)).mean(axis=2)
 
 
 def colour_change(a: StudioView, b: StudioView) -> float:
     """Mean |RGB difference| [grey levels] over the pixels either view's object covers."""
     region = a.mask | b.mask
-    if not region.any():
-        return 0.0
-    diff = np.abs(a.rgb.astype(np.int16) - b.rgb.astype(np.int16)).mean(axis=2)
-    return float(diff[region].mean())
+    return float(_difference(a.rgb, b.rgb)[region].mean()) if region.any() else 0.0
 
 
 def _plot(
-    path: Path, rows: list[dict], example: tuple[np.ndarray, np.ndarray], below: float
+    path: Path,
+    rows: list[dict],
+    example: tuple[np.ndarray, np.ndarray],
+    below: float,
+    key: str,
 ) -> None:
+    """The figure: the example's two images and their difference; every view's change of the
+    end-for-end turn over that of the `key` deg turn, by its angle from below."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -68,7 +76,7 @@ def _plot(
 
     fig, axes = plt.subplots(1, 4, figsize=(17, 4.2), width_ratios=[1, 1, 1, 1.8])
     a, b = example
-    diff = np.clip(np.abs(a.astype(np.int16) - b.astype(np.int16)).mean(axis=2) * 8, 0, 255)
+    diff = np.clip(_difference(a, b) * 8, 0, 255)
     for ax, img, title in zip(
         axes[:3],
         (a, b, diff),
@@ -79,7 +87,6 @@ def _plot(
         ax.set_title(title)
         ax.axis("off")
     ax = axes[3]
-    key = min(rows[0]["turns"], key=float)
     for name in OBJECT_NAMES:
         pts = [r for r in rows if r["object"] == name]
         if pts:
@@ -192,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
             raise InvalidArgumentError(
                 f"--plot: no car seen from within {args.below:g} deg of below among these images"
             )
-        _plot(args.plot, rows, example, args.below)
+        _plot(args.plot, rows, example, args.below, key)
         print(f"figure: {args.plot}")
     if args.json is not None:
         write_json(

@@ -208,9 +208,8 @@ class Studio:
         self._base_rgba = m.geom_rgba.copy()
         self.K = camera_intrinsics(m, CAMERA, cfg.width, cfg.height)
         self._renderer = OffscreenRenderer(cfg.width, cfg.height)
-        self._last: tuple[str, float, float] | None = (
-            None  # name, roll, distance of the last render
-        )
+        # The last render's object name, roll and distance (`render_turned` draws it again).
+        self._last: tuple[str, float, float] | None = None
         self._opt_all = mujoco.MjvOption()
         self._opt_object = mujoco.MjvOption()
         self._opt_object.geomgroup[:] = 0
