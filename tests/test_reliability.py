@@ -67,6 +67,8 @@ def test_record_refuses_anything_but_the_shipped_weights_on_full_splits(
     argv, env, words, tmp_path, monkeypatch, capsys, manifest_bytes
 ) -> None:
     shutil.copy(WEIGHTS_DIR / "posenet_ours.pt", tmp_path / "posenet_ours.pt")
+    # The tests' own data folder is itself a refusal; each case names the one it tests.
+    monkeypatch.delenv("POSEGRASP_DATA")
     for k, v in env.items():
         monkeypatch.setenv(k, v.format(tmp=tmp_path))
     argv = [a.format(tmp=tmp_path) for a in argv]
