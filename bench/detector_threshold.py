@@ -18,13 +18,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from perception.detector import TIERS_DETECTOR, Detector
 from perception.metrics import box_iou
 from perception.training.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.paths import data_root
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_float_list, check_int
 
@@ -39,7 +39,7 @@ def check_scores(spec: str) -> list[float]:
 def measure(detector: Detector, data: PoseDataset, n: int, scores: list[float]) -> dict:
     """Targets found and wrong picks per score over the first n images of `data`."""
     best_right, best_wrong = [], []
-    for i in tqdm(range(min(n, len(data))), desc="images", leave=False):
+    for i in progress_bar(range(min(n, len(data))), desc="images", leave=False):
         s = data[i]
         dets = detector.detect(s.rgb, min(scores))
         for o in s.objects:

@@ -20,7 +20,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from perception.metrics import mask_iou
 from perception.training.dataset import PoseDataset
@@ -28,6 +27,7 @@ from perception.training.studio import Studio, StudioConfig, StudioView
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import data_root
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import axis_angle, invert_transform
 from posegrasp.core.validate import (
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict] = []
     example: tuple[np.ndarray, np.ndarray] | None = None  # the car view nearest to below
     best_below = float(args.below)
-    for i in tqdm(range(min(args.images, len(ds))), desc="re-rendered", mininterval=5):
+    for i in progress_bar(range(min(args.images, len(ds))), desc="re-rendered", mininterval=5):
         s = ds[i]
         obj = s.objects[0]
         view = studio.render(obj.name, np.random.default_rng(int(s.seed)))

@@ -53,7 +53,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from perception.global_pose import GlobalConfig, GlobalPoseEstimator
 from perception.hybrid import detect_target
@@ -64,6 +63,7 @@ from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_float_list, check_int
 from posegrasp.world.objects import load_object
@@ -179,7 +179,7 @@ def record(split: str, subset: str, images: int) -> list[dict]:
     est = GlobalPoseEstimator.from_weights()
     ds = PoseDataset(data_root() / split, subset)
     out = []
-    for i in tqdm(range(min(images, len(ds))), desc=f"{split}/{subset}", leave=False):
+    for i in progress_bar(range(min(images, len(ds))), desc=f"{split}/{subset}", leave=False):
         s = ds[i]
         name = s.extra.get("target", s.objects[0].name)
         gt = next(o for o in s.objects if o.name == name)
@@ -223,7 +223,7 @@ def config_sweep(
     est = GlobalPoseEstimator.from_weights()
     ds = PoseDataset(data_root() / split, subset)
     cases = []
-    for i in tqdm(range(min(images, len(ds))), desc="detections", leave=False):
+    for i in progress_bar(range(min(images, len(ds))), desc="detections", leave=False):
         s = ds[i]
         name = s.extra.get("target", s.objects[0].name)
         gt = next(o for o in s.objects if o.name == name)
@@ -238,7 +238,7 @@ def config_sweep(
     for label, cfg in configs.items():
         est.config = cfg
         errors, best, shift, ms, looks = [], [], [], [], 0
-        for det, K, rgb, occluder, T_true, R_W_C in tqdm(cases, desc=label, leave=False):
+        for det, K, rgb, occluder, T_true, R_W_C in progress_bar(cases, desc=label, leave=False):
             t0 = time.perf_counter()
             ranked, times = est.verify(det, K, rgb, occluder, R_W_C)
             ms.append((time.perf_counter() - t0) * 1000)

@@ -20,7 +20,6 @@ import sys
 from dataclasses import replace
 
 import numpy as np
-from tqdm import tqdm
 
 from perception.estimators import LEARNED_ESTIMATORS
 from perception.global_pose import GlobalPoseEstimator
@@ -31,6 +30,7 @@ from perception.training.estimator_tables import MIN_VISIB, rotation_summary
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
 from posegrasp.core.paths import data_root
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int
 
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     gravity = est.config.resting_tilt_deg is not None
     ds = PoseDataset(data_root() / args.split, args.subset)
     rows: list[tuple[str, float, float, float]] = []  # object, IoU, error with each mask
-    for i in tqdm(range(min(args.images, len(ds))), desc="masks and choice", mininterval=5):
+    for i in progress_bar(range(min(args.images, len(ds))), desc="masks and choice", mininterval=5):
         s = ds[i]
         T_W_C = np.asarray(s.extra.get("T_W_C", np.eye(4)), float)
         for obj in s.objects:

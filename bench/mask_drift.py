@@ -18,7 +18,6 @@ import sys
 import time
 
 import numpy as np
-from tqdm import tqdm
 
 from perception.global_pose import GlobalPoseEstimator
 from perception.hybrid import detect_target
@@ -27,6 +26,7 @@ from perception.training.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
 from posegrasp.core.paths import data_root
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int
 
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     rot: dict[str, list[float]] = {m: [] for m in MASKS}
     iou: dict[str, list[float]] = {m: [] for m in MASKS[:2]}
     spent = []
-    for i in tqdm(range(min(args.images, len(ds))), desc="drift", mininterval=5):
+    for i in progress_bar(range(min(args.images, len(ds))), desc="drift", mininterval=5):
         s = ds[i]
         name = s.extra.get("target", s.objects[0].name)
         gt = next(o for o in s.objects if o.name == name)

@@ -16,7 +16,6 @@ from __future__ import annotations
 import sys
 
 import numpy as np
-from tqdm import tqdm
 
 from perception.hybrid import HybridPoseEstimator, detect_target
 from perception.metrics import rotation_error_deg
@@ -25,6 +24,7 @@ from perception.training.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
 from posegrasp.core.paths import data_root
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import axis_angle
 from posegrasp.core.validate import arg, check_int
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     refiner = PoseRefiner()
     ds = PoseDataset(data_root() / args.split, args.subset)
     final: dict[float, list[float]] = {a: [] for a in ANGLES_DEG}
-    for i in tqdm(range(min(args.images, len(ds))), desc="basin", leave=False):
+    for i in progress_bar(range(min(args.images, len(ds))), desc="basin", leave=False):
         s = ds[i]
         name = s.extra.get("target", s.objects[0].name)
         gt = next(o for o in s.objects if o.name == name)

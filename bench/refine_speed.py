@@ -27,7 +27,6 @@ import time
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from perception.geometry import project
 from perception.hybrid import HybridPoseEstimator, occluder_of
@@ -45,6 +44,7 @@ from posegrasp.core.cli import (
     write_json,
 )
 from posegrasp.core.paths import data_root
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int
 from posegrasp.world.objects import load_object
@@ -72,7 +72,7 @@ def run(ds: PoseDataset, indices: range, repeats: int) -> dict:
     est = HybridPoseEstimator.from_weights()
     ref = PoseRefiner()
     before, after, fastest, first, accepted = [], [], [], [], []
-    for i in tqdm(indices, desc="refine", leave=False):
+    for i in progress_bar(indices, desc="refine", leave=False):
         s = ds[i]
         found = est.estimate(s.rgb, s.K)
         for obj in s.objects:

@@ -30,8 +30,6 @@ from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from pathlib import Path
 
-from tqdm import tqdm
-
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
@@ -43,6 +41,7 @@ from posegrasp.core.cli import (
 from posegrasp.core.errors import AssetError, PosegraspError
 from posegrasp.core.files import atomic_write_json
 from posegrasp.core.paths import WEIGHTS_DIR
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int
 from posegrasp.world.objects import OBJECT_NAMES
@@ -144,7 +143,7 @@ def soak(episodes: int, workers: int, record: Path) -> dict:
     ctx = get_context("spawn")
     pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker)
     pending: dict = {}
-    bar = tqdm(total=episodes, desc="soak", unit="episode")
+    bar = progress_bar(total=episodes, desc="soak", unit="episode")
     try:
         while True:
             while len(pending) < 2 * workers and (

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
-from tqdm import tqdm
 
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.transforms import mat_to_quat
 from posegrasp.world import constants as C
 from posegrasp.world.objects import ObjectModel
@@ -198,7 +198,7 @@ def check_grasps(
     cfg = config or CheckConfig()
     out: list[str] = []
     starts = range(0, len(grasps), cfg.batch)
-    for s in tqdm(starts, desc="physics check", disable=not progress or len(starts) < 2):
+    for s in progress_bar(starts, desc="physics check", disable=not progress or len(starts) < 2):
         out += _check_batch(obj, np.asarray(quat, float), grasps[s : s + cfg.batch], cfg)
     return out
 

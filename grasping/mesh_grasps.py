@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
-from tqdm import tqdm
 
 from grasping.antipodal import (
     MIN_TABLE_CLEARANCE,
@@ -27,6 +26,7 @@ from grasping.antipodal import (
     hull_points,
 )
 from grasping.grasp_check import CheckConfig, check_grasps
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world.objects import ObjectModel
 
@@ -129,7 +129,7 @@ def mesh_grasps(
     hulls, com = convex_pieces(obj)
     points, normals = hull_points(hulls)
     out: dict[str, PoseGrasps] = {}
-    for name, quat in tqdm(resting.items(), desc="grasps", disable=not progress):
+    for name, quat in progress_bar(resting.items(), desc="grasps", disable=not progress):
         up = quat_to_mat(np.asarray(quat, float))[2]
         found = antipodal_grasps(points, normals, up, com)
         if not found:  # lying low: let the fingertips come nearer the table

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -32,6 +33,7 @@ import numpy as np
 
 from perception.geometry import r_corr
 from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.paths import data_root, in_repo
 from posegrasp.world.objects import load_object
 
 #: Side of the square a silhouette is drawn into [px].
@@ -131,7 +133,15 @@ class Codebook:
     def build(
         cls, name: str, views: int, inplane: int, source: SilhouetteSource | None = None
     ) -> Codebook:
-        """Draw the templates of `name` on the `sphere_rotations(views, inplane)` grid."""
+        """Draw the templates of `name` on the `sphere_rotations(views, inplane)` grid, saying so
+        in one line on standard error (it takes seconds; the estimator's `CodebookCache` keeps
+        the result, by default in ``<data root>/codebooks``, so it happens once per object)."""
+        print(
+            f"building the {name}'s silhouette codebook ({views} views x {inplane} turns; once: "
+            f"it is cached in {in_repo(data_root() / 'codebooks')})",
+            file=sys.stderr,
+            flush=True,
+        )
         pieces = (source or ConvexParts()).pieces(name)
         verts = np.concatenate(pieces)
         slices = np.cumsum([0] + [len(p) for p in pieces])

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from perception.crops import crop_and_resize, image_to_crop, random_square_box, to_unit
 from perception.geometry import encode
@@ -21,6 +20,7 @@ from perception.nets import CROP
 from perception.training.dataset import PoseDataset, load_info
 from posegrasp.core.errors import AssetError
 from posegrasp.core.paths import data_root
+from posegrasp.core.progress import progress_bar
 
 
 @dataclass(frozen=True)
@@ -111,7 +111,7 @@ def random_boxes(ds: PoseDataset, cfg: CropConfig, n: int, start: int = 0):
     before `start` only advance the random stream (their labels are read, not their pixels), so
     the crops from `start` on are those a run from image 0 cuts there."""
     rng = np.random.default_rng([cfg.seed, ("train", "val", "test").index(ds.split)])
-    for i in tqdm(range(n), desc=f"crops {ds.root.name}/{ds.split}", leave=False):
+    for i in progress_bar(range(n), desc=f"crops {ds.root.name}/{ds.split}", leave=False):
         boxes = [
             (k, random_square_box(box_xyxy, rng, cfg.max_shift, cfg.scale_range))
             for k, (visib, depth, box_xyxy) in enumerate(ds.crop_labels(i))

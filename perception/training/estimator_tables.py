@@ -18,7 +18,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from perception.crops import square_box
 from perception.geometry import project
@@ -27,6 +26,7 @@ from perception.metrics import render_depth, rotation_error_deg, translation_err
 from perception.nets import CROP
 from perception.training.dataset import PoseDataset
 from posegrasp.core.contract import Observation, PoseEstimator
+from posegrasp.core.progress import progress_bar
 from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 #: Objects less visible than this are not queried (as in the detector-box tables).
@@ -63,7 +63,7 @@ def query_errors(
     ds = PoseDataset(root, "test")
     n = len(ds) if limit is None else min(limit, len(ds))
     rows = []
-    for i in tqdm(range(n), desc=f"{estimator.name} {Path(root).name}/test", leave=False):
+    for i in progress_bar(range(n), desc=f"{estimator.name} {Path(root).name}/test", leave=False):
         s = ds[i]
         T_W_C = np.asarray(s.extra.get("T_W_C", np.eye(4)), float)
         for obj in s.objects:

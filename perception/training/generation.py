@@ -26,8 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from tqdm import tqdm
-
 from perception.training import bop
 from perception.training.dataset import load_info
 from perception.training.generators import HeadcamGenerator, PaperGenerator, make_generator
@@ -40,6 +38,7 @@ from perception.training.writer import (
 )
 from posegrasp.core.backends import default_chunk, run_map
 from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.world.objects import OBJECT_NAMES
 
@@ -246,13 +245,12 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
         for s in range(n_scenes)
         if not (bop.scene_dir(cfg.out, cfg.split, s) / "scene_gt.json").exists()
     }
-    bar = tqdm(
+    bar = progress_bar(
         total=cfg.count,
         initial=cfg.count - len(todo),
         desc=f"{cfg.dist}/{cfg.split}",
         unit="img",
         disable=not cfg.progress,
-        dynamic_ncols=True,
     )
 
     def finished(index: int) -> None:

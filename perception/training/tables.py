@@ -32,7 +32,6 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from perception import metrics
 from perception.crops import square_box
@@ -64,6 +63,7 @@ from posegrasp.core.cli import (
 )
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, data_root
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int, check_names
 from posegrasp.world.objects import OBJECT_NAMES, load_object
@@ -121,7 +121,7 @@ def detector_crops(
     objects = dict.fromkeys(OBJECT_NAMES, 0)
     missed = dict.fromkeys(OBJECT_NAMES, 0)
     targets = targets_missed = 0
-    for i in tqdm(range(n), desc=f"detector {root.name}/test", leave=False):
+    for i in progress_bar(range(n), desc=f"detector {root.name}/test", leave=False):
         s = ds[i]
         found = detector.detect(s.rgb)
         gts.append(visible_objects(s))

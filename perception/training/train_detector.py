@@ -32,7 +32,6 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from perception.detector import Detector
 from perception.detector_net import DetectorConfig, build_detector
@@ -67,6 +66,7 @@ from perception.training.schedule import learning_rate, optimiser_step
 from posegrasp.core.cli import ArgumentParser, add_out_argument, command
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import (
     DEFAULT_WORKERS,
@@ -434,7 +434,7 @@ def _train_epoch(
         generator=torch.Generator().manual_seed(cfg.seed),  # leaves the global RNG alone
     )
     run.model.train()
-    bar = tqdm(
+    bar = progress_bar(
         loader,
         desc=f"detector epoch {epoch + 1}/{cfg.epochs}",
         initial=done,

@@ -42,7 +42,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from perception.detector import PAPER_DETECTOR, Detection, Detector
 from perception.mask_net import (
@@ -86,6 +85,7 @@ from posegrasp.core.cli import ArgumentParser, command, write_json
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import data_root, in_repo
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.validate import arg, check_choice, check_int, check_plot_path, check_seed
 from posegrasp.world.objects import OBJECT_NAMES
 
@@ -247,7 +247,7 @@ def build_cache(
     data = _split(root, split)
     n = min(images, len(data))
     rgbs, targets, names = [], [], []
-    for i in tqdm(range(n), desc=f"windows of {folder}/{split}", mininterval=5):
+    for i in progress_bar(range(n), desc=f"windows of {folder}/{split}", mininterval=5):
         sample = data[i]
         rng = np.random.default_rng([seed, i])
         for obj in sample.objects:
@@ -323,7 +323,7 @@ def _detected_block(
     of their objects)."""
     S = net.size
     rgbs, coarse, targets, names = [], [], [], []
-    for i in tqdm(images, desc=desc, mininterval=5):
+    for i in progress_bar(images, desc=desc, mininterval=5):
         sample = data[i]
         dets = detector.detect(sample.rgb, DETECTED_SCORE)
         for obj in sample.objects:
@@ -579,7 +579,7 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
         g = torch.Generator().manual_seed(cfg.seed * 1000 + epoch)
         order = torch.randperm(len(tr["rgb"]), generator=g).numpy()
         net.train()
-        bar = tqdm(range(steps_per_epoch), desc=f"mask net epoch {epoch + 1}/{cfg.epochs}")
+        bar = progress_bar(range(steps_per_epoch), desc=f"mask net epoch {epoch + 1}/{cfg.epochs}")
         for b in bar:
             if b < step - epoch * steps_per_epoch:
                 # Done before the resume: only the coarse masks' draws, which the data never
@@ -677,7 +677,9 @@ def evaluate(
     data = PoseDataset(data_root() / folder, split)
     rows: list[tuple[str, float, float]] = []
     spent = 0.0
-    for i in tqdm(range(min(images, len(data))), desc=f"masks of {folder}/{split}", mininterval=5):
+    for i in progress_bar(
+        range(min(images, len(data))), desc=f"masks of {folder}/{split}", mininterval=5
+    ):
         sample = data[i]
         dets = detector.detect(sample.rgb, 0.3)
         for obj in sample.objects:

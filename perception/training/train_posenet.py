@@ -26,7 +26,6 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from perception.nets import (
     CROP,
@@ -65,6 +64,7 @@ from perception.training.schedule import learning_rate, optimiser_step
 from posegrasp.core.cli import ArgumentParser, add_out_argument, command
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import checkpoint_dir
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice
 from posegrasp.world.objects import OBJECT_NAMES
@@ -457,7 +457,7 @@ def _train_epoch(
     order = torch.randperm(len(tr["crops"]), generator=g).numpy()
     skip = run.step - epoch * run.steps_per_epoch  # batches of this epoch already done (resume)
     run.model.train()
-    bar = tqdm(
+    bar = progress_bar(
         range(run.steps_per_epoch),
         desc=f"{cfg.variant} epoch {epoch + 1}/{cfg.epochs}",
         disable=not ranks.main,

@@ -34,9 +34,8 @@ import uuid
 from collections.abc import Callable, Iterable, Iterator, Sized
 from typing import Any
 
-from tqdm import tqdm
-
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from posegrasp.core.progress import progress_bar
 
 #: The backends, the first the default.
 BACKENDS = ("local", "ray")
@@ -139,7 +138,7 @@ def run_map(
         owned = not ray.is_initialized()  # a caller's own Ray session is used and left running
         if owned:
             connect(ray, address, workers)
-    bar = tqdm(total=total, desc=desc, unit=unit, disable=desc is None, dynamic_ncols=True)
+    bar = progress_bar(total=total, desc=desc, unit=unit, disable=desc is None)
     try:
         if ray is not None:
             results = _ray_map(ray, fn, jobs, workers, chunk, initializer, initargs, ordered, bar)

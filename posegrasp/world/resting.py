@@ -23,11 +23,11 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from tqdm import tqdm
 
 from posegrasp.core.cli import ArgumentParser, command
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import SCENES_DIR
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.core.validate import arg, check_choice, check_int, check_seed
@@ -167,7 +167,7 @@ def find_resting_poses(
     quats /= np.linalg.norm(quats, axis=1, keepdims=True)
     ups = []
     batch = 16
-    for i in tqdm(range(0, drops, batch), desc=f"drops {obj.name}", disable=not progress):
+    for i in progress_bar(range(0, drops, batch), desc=f"drops {obj.name}", disable=not progress):
         ups.append(_settle(obj, quats[i : i + batch], seconds))
     clusters = _cluster(np.vstack(ups))
     found: list[RestingPose] = []
