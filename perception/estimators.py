@@ -1,6 +1,8 @@
 """The learned estimators by name: each factory loads the shipped weights and returns an object
 implementing `posegrasp.core.contract.PoseEstimator`. `sim.estimators` adds the experiment's
 oracles; `perception.training.tables --estimator` scores these on the test images.
+`weights_files` says which weights files an estimator's factory loads (the gate fingerprints
+them), as that factory opens them.
 
 Importing this module is cheap: each factory imports torch when called.
 """
@@ -8,8 +10,11 @@ Importing this module is cheap: each factory imports torch when called.
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
+from perception.integrity import recording_loads
 from posegrasp.core.contract import PoseEstimator
+from posegrasp.core.errors import UnknownNameError
 
 
 def _hybrid() -> PoseEstimator:
@@ -134,3 +139,29 @@ LEARNED_ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
     "hybrid-global-paper": _hybrid_global_paper,
     "hybrid-global-user": _hybrid_global_user,
 }
+
+
+def load_estimator(name: str) -> tuple[PoseEstimator, tuple[Path, ...]]:
+    """The learned estimator `name`, made by its factory, and the weights files the factory
+    loaded (resolved, in load order; `perception.integrity.recording_loads`).
+
+    Raises:
+        UnknownNameError: `name` is not in `LEARNED_ESTIMATORS`, listing those that are.
+        AssetError: missing or corrupt weights, as the factory raises it.
+    """
+    if name not in LEARNED_ESTIMATORS:
+        raise UnknownNameError("learned estimator", name, LEARNED_ESTIMATORS)
+    with recording_loads() as files:
+        estimator = LEARNED_ESTIMATORS[name]()
+    return estimator, tuple(files)
+
+
+def weights_files(name: str) -> tuple[Path, ...]:
+    """The weights files the learned estimator `name` loads (see `load_estimator`, which this
+    calls: the estimator is made once to find out).
+
+    Raises:
+        UnknownNameError: `name` is not in `LEARNED_ESTIMATORS`, listing those that are.
+        AssetError: missing or corrupt weights.
+    """
+    return load_estimator(name)[1]

@@ -9,22 +9,33 @@ another folder) are loaded as they are.
 Weights the user trained and put in place by hand are accepted with ``verify=False`` on the
 loaders or with the environment variable ``POSEGRASP_UNVERIFIED_WEIGHTS=1``. Each file is hashed
 once per process (`posegrasp.core.files.sha256_file`), so loading again costs nothing extra.
+
+A shipped file that is missing or damaged is restored from git (the message names the command);
+retraining (``make weights``) is the way only to new weights. `recording_loads` lists the files
+loaded within a block: how a built-in estimator reports the weights it loads
+(`perception.estimators.weights_files`).
 """
 
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
 from posegrasp.core.errors import AssetError
 from posegrasp.core.files import sha256_file
+from posegrasp.core.paths import REPO_ROOT, WEIGHTS_DIR
 
 MANIFEST_NAME = "manifest.json"
 #: Set to 1 to load weights whose hash differs from their manifest's.
 UNVERIFIED_ENV = "POSEGRASP_UNVERIFIED_WEIGHTS"
+
+#: The list `recording_loads` fills, while one is active in this context.
+_RECORDING: ContextVar[list[Path] | None] = ContextVar("posegrasp_weights_loads", default=None)
 
 
 class WeightsMismatchError(AssetError):
@@ -50,11 +61,35 @@ def manifest_entries(manifest: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def _override_hint() -> str:
+@contextmanager
+def recording_loads() -> Iterator[list[Path]]:
+    """Collect the weights files `load_checked` loads within the block.
+
+    Yields:
+        A list that gains each file's resolved path as it is loaded, once, in load order.
+    """
+    files: list[Path] = []
+    token = _RECORDING.set(files)
+    try:
+        yield files
+    finally:
+        _RECORDING.reset(token)
+
+
+def restore_hint(path: Path) -> str:
+    """How to get a shipped weights file back from git ("" for a file outside the shipped
+    weights folder), as the start of a message's advice."""
+    path = Path(path).resolve()
+    if not path.is_relative_to(WEIGHTS_DIR.resolve()):
+        return ""
+    rel = path.relative_to(REPO_ROOT.resolve()).as_posix()
+    return f"restore the shipped file with `git checkout -- {rel}` (or `git restore {rel}`); "
+
+
+def _override_hint(path: Path) -> str:
     return (
-        "restore the shipped file (git checkout perception/weights), re-export it "
-        "(make weights), or, for weights you trained, pass verify=False or set "
-        f"{UNVERIFIED_ENV}=1"
+        f"{restore_hint(path) or 'restore the shipped file, '}retrain it (make weights), or, "
+        f"for weights you trained, pass verify=False or set {UNVERIFIED_ENV}=1"
     )
 
 
@@ -84,13 +119,13 @@ def verify_weights(path: Path, verify: bool = True) -> None:
     expected = entry.get("sha256")
     if not isinstance(expected, str):
         raise WeightsMismatchError(
-            f"{manifest_path} lists {Path(path).name} without a sha256; {_override_hint()}"
+            f"{manifest_path} lists {Path(path).name} without a sha256; {_override_hint(path)}"
         )
     actual = sha256_file(path)
     if actual != expected:
         raise WeightsMismatchError(
             f"weights {path} do not match {manifest_path} (sha256 {actual[:12]}..., "
-            f"recorded {expected[:12]}...); {_override_hint()}"
+            f"recorded {expected[:12]}...); {_override_hint(path)}"
         )
 
 
@@ -103,19 +138,27 @@ def load_checked(path: Path, verify: bool, build: Callable[[dict], Any], what: s
         verify: check the hash its folder's manifest records.
         build: makes the model from the file's dict; anything it raises means a bad file.
         what: what the file holds, for messages (e.g. "detector weights").
-        hint: how to rebuild the file, for messages.
+        hint: how to retrain the file, for messages (after the advice to restore a shipped
+            file from git, `restore_hint`).
 
     Raises:
-        AssetError: the file is missing or corrupt; the message says how to rebuild it.
+        AssetError: the file is missing or corrupt; the message says how to restore a shipped
+            file, and how to retrain it.
         WeightsMismatchError: the manifest next to it records another hash.
     """
     import torch
 
     path = Path(path)
+    restore = restore_hint(path)
+    advice = f"{restore}to retrain it instead, {hint}" if restore else hint
     if not path.is_file():
-        raise AssetError(f"{what} file {path} is missing; {hint}")
+        raise AssetError(f"{what} file {path} is missing; {advice}")
     verify_weights(path, verify)
     try:
-        return build(torch.load(path, map_location="cpu", weights_only=False))
+        model = build(torch.load(path, map_location="cpu", weights_only=False))
     except Exception as exc:  # unpickling, missing keys or shape mismatches: a bad file
-        raise AssetError(f"{what} file {path} is corrupt ({exc}); {hint}") from exc
+        raise AssetError(f"{what} file {path} is corrupt ({exc}); {advice}") from exc
+    files = _RECORDING.get()
+    if files is not None and path.resolve() not in files:
+        files.append(path.resolve())
+    return model

@@ -8,7 +8,15 @@ the same scene, so the difference in success is measured without the scene-to-sc
 The success difference B - A comes with the exact McNemar p-value (two-sided binomial test on
 the discordant pairs) and a paired bootstrap 95 % interval, overall and per object; when both
 reports measured friction margins (`sim.evaluate --margin`), the mean margin difference on the
-episodes both grasped comes with its paired bootstrap interval too.
+episodes both grasped comes with its paired bootstrap interval too. BOP's average recalls are
+linear in the episodes, so they pair too: the difference B - A of AR_MSSD, AR_MSPD and, when
+both reports hold every episode's VSD errors (``vsd``), AR_VSD, each with its paired bootstrap
+interval (an episode without an estimate counts 0).
+
+Runs are labelled by their estimator (and noise), with the file only where the labels would
+coincide. A one-line warning goes to standard error when the runs saw different observations
+(``obs_mode``), or when a success difference's bootstrap interval and its exact McNemar test
+disagree or rest on fewer than `MIN_PAIRS` episodes: the exact test is then the one to read.
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from perception import metrics
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
@@ -34,8 +43,38 @@ from sim.stats import (
     margin_difference,
     margin_error_correlation,
     paired,
+    paired_mean_difference,
     wilson_interval,
 )
+
+Key = tuple[str, str, int]
+
+#: The head camera's width the episodes render at [px] (`sim.episode.EpisodeConfig.width`,
+#: repeated here so that comparing imports no episode machinery; a test keeps the two equal).
+IMAGE_WIDTH = 640
+#: Fewer paired episodes than this make the percentile bootstrap of a success difference
+#: unreliable: the comparison then says to read the exact McNemar test.
+MIN_PAIRS = 30
+#: Significance level at which the bootstrap interval and the exact test are held to agree.
+ALPHA = 0.05
+#: BOP's average recalls the comparison pairs, in print order.
+RECALLS = ("ar_mssd", "ar_mspd", "ar_vsd")
+
+
+def outcomes_of(report: dict, source: str) -> dict[Key, Outcome]:
+    """(success, friction margin or None) by (object, tier, seed) of a validated report.
+
+    Raises:
+        InvalidArgumentError: a pair listed twice, naming `source`.
+    """
+    out: dict[Key, Outcome] = {}
+    for e in report["episodes"]:
+        key = (str(e["object"]), str(e["tier"]), int(e["seed"]))
+        if key in out:
+            raise InvalidArgumentError(f"{source} lists episode {key} twice")
+        margin = e.get("friction_margin")
+        out[key] = (bool(e["success"]), None if margin is None else float(margin))
+    return out
 
 
 def load_report(path: Path) -> dict[tuple[str, str, int], Outcome]:
@@ -46,15 +85,130 @@ def load_report(path: Path) -> dict[tuple[str, str, int], Outcome]:
         InvalidArgumentError: unreadable, not conforming to the schema (naming the field), or a
             pair listed twice.
     """
-    report = read_report(path)
-    out: dict[tuple[str, str, int], Outcome] = {}
-    for e in report["episodes"]:
+    return outcomes_of(read_report(path), str(path))
+
+
+def episode_recalls(report: dict, source: str) -> dict[Key, dict[str, float]]:
+    """Each episode's contribution to BOP's average recalls, by (object, tier, seed): its AR_MSSD
+    (thresholds 0.05..0.5 of the diameter), AR_MSPD (5..50 px at `IMAGE_WIDTH`) and, when it
+    holds ``vsd`` errors (one per tau, None without an estimate), AR_VSD, each
+    `perception.metrics`' average recall of that one episode. An episode without an estimate
+    scores 0; a recall that no episode's errors hold while some episode has an estimate (a
+    report written before it was measured) is left out of every episode.
+
+    The report's own recall is the mean of its episodes' (the recalls are linear in episodes).
+
+    Raises:
+        InvalidArgumentError: an episode's ``vsd`` of the wrong length, naming `source`.
+    """
+    eps = report["episodes"]
+    errors = [e.get("pose_error") or {} for e in eps]
+    estimated = any(e.get("pose_error") for e in eps)
+    keys = {"ar_mssd": "mssd_rel_diameter", "ar_mspd": "mspd_px"}
+    measured = {r for r, k in keys.items() if not estimated or any(k in pe for pe in errors)}
+    out: dict[Key, dict[str, float]] = {}
+    for e, pe in zip(eps, errors, strict=True):
         key = (str(e["object"]), str(e["tier"]), int(e["seed"]))
-        if key in out:
-            raise InvalidArgumentError(f"{path} lists episode {key} twice")
-        margin = e.get("friction_margin")
-        out[key] = (bool(e["success"]), None if margin is None else float(margin))
+        row: dict[str, float] = {}
+        if "ar_mssd" in measured:
+            row["ar_mssd"] = metrics.ar_mssd([pe.get("mssd_rel_diameter")], 1.0)
+        if "ar_mspd" in measured:
+            row["ar_mspd"] = metrics.ar_mspd([pe.get("mspd_px")], IMAGE_WIDTH)
+        if "vsd" in e:
+            try:
+                row["ar_vsd"] = metrics.ar_vsd([e["vsd"]])
+            except InvalidArgumentError as exc:
+                raise InvalidArgumentError(f"{source}: episode {key}: vsd: {exc}") from None
+        out[key] = row
     return out
+
+
+def recall_differences(
+    a: dict[Key, dict[str, float]],
+    b: dict[Key, dict[str, float]],
+    boot: int = BOOTSTRAP,
+    seed: int = 0,
+) -> dict[str, dict]:
+    """The paired difference B - A of each average recall (`RECALLS`) that every episode both
+    ran holds in both reports (`episode_recalls`), with its paired bootstrap 95 % interval
+    (`sim.stats.paired_mean_difference`); {} when they share no episode."""
+    common = sorted(set(a) & set(b))
+    rng = np.random.default_rng(seed)
+    out = {}
+    for name in RECALLS:
+        if common and all(name in a[k] and name in b[k] for k in common):
+            ra = np.array([a[k][name] for k in common])
+            rb = np.array([b[k][name] for k in common])
+            out[name] = paired_mean_difference(ra, rb, boot, rng)
+    return out
+
+
+def run_labels(a: dict, b: dict, path_a: Path | str, path_b: Path | str) -> tuple[str, str]:
+    """Labels of two reports: the estimator (with its noise), the observation mode when the two
+    differ in it, and the file only when the labels would still coincide."""
+
+    def label(r: dict, mode: bool) -> str:
+        text = str(r["estimator"]) + (f" [{r['noise']}]" if r.get("noise") else "")
+        return text + (f" ({r['obs_mode']})" if mode else "")
+
+    mode = a["obs_mode"] != b["obs_mode"]
+    la, lb = label(a, mode), label(b, mode)
+    if la == lb:
+        la, lb = f"{la} ({path_a})", f"{lb} ({path_b})"
+    return la, lb
+
+
+def comparison_warnings(res: dict, obs_a: str, obs_b: str) -> list[str]:
+    """One-line warnings about a comparison (`compare`): the runs saw different observations;
+    a success difference whose bootstrap interval and exact McNemar test disagree at `ALPHA`,
+    or whose overall count is below `MIN_PAIRS` (then the exact test is the one to read)."""
+    out = []
+    if obs_a != obs_b:
+        out.append(
+            f"warning: A saw {obs_a} and B {obs_b} (obs_mode): the difference is the estimator's "
+            "and the observation's together"
+        )
+    reasons = []
+    n = res["overall"]["episodes"]
+    if n < MIN_PAIRS:
+        reasons.append(f"only {n} paired episodes (fewer than {MIN_PAIRS})")
+    per_object = list(res["per_object"].items()) if len(res["per_object"]) > 1 else []
+    rows = [*per_object, ("overall", res["overall"])]
+    disagree = []
+    for name, r in rows:
+        excludes = r["bootstrap_low"] > 0 or r["bootstrap_high"] < 0
+        if excludes != (r["mcnemar_p"] < ALPHA):
+            side = "excludes" if excludes else "includes"
+            disagree.append(f"{name} (interval {side} 0, p = {r['mcnemar_p']:.3g})")
+    if disagree:
+        reasons.append(
+            f"the bootstrap interval and the exact McNemar test at {ALPHA} disagree on "
+            + ", ".join(disagree)
+        )
+    if reasons:
+        out.append(
+            f"warning: {'; '.join(reasons)}: read the exact McNemar p, not the bootstrap interval"
+        )
+    return out
+
+
+def compare_reports(path_a: Path, path_b: Path, boot: int = BOOTSTRAP) -> dict:
+    """The paired comparison of two report files (`compare`), with their labels
+    (`run_labels`), the paired average recalls (``average_recall``, `recall_differences`) and
+    the warnings (`comparison_warnings`).
+
+    Raises:
+        InvalidArgumentError: a report unreadable or not conforming, or no shared episode.
+    """
+    ra, rb = read_report(path_a), read_report(path_b)
+    res = compare(outcomes_of(ra, str(path_a)), outcomes_of(rb, str(path_b)), boot)
+    res["label_a"], res["label_b"] = run_labels(ra, rb, path_a, path_b)
+    res["obs_mode_a"], res["obs_mode_b"] = ra["obs_mode"], rb["obs_mode"]
+    res["average_recall"] = recall_differences(
+        episode_recalls(ra, str(path_a)), episode_recalls(rb, str(path_b)), boot
+    )
+    res["warnings"] = comparison_warnings(res, ra["obs_mode"], rb["obs_mode"])
+    return res
 
 
 def check_same_execution(paths: list[Path]) -> None:
@@ -136,6 +290,12 @@ def format_comparison(res: dict, name_a: str, name_b: str) -> str:
             f"friction margin B - A on {m['pairs']} episodes both grasped: "
             f"{m['difference']:+.4f} [{m['bootstrap_low']:+.4f}, {m['bootstrap_high']:+.4f}] "
             "(bootstrap 95 %; positive: B's grasps are looser)"
+        )
+    for name, r in res.get("average_recall", {}).items():
+        rows.append(
+            f"{name.upper():<8} A {r['a']:.3f} B {r['b']:.3f}, B - A "
+            f"{r['difference']:+.3f} [{r['bootstrap_low']:+.3f}, {r['bootstrap_high']:+.3f}] "
+            f"(paired over {r['episodes']} episodes, bootstrap 95 %)"
         )
     return "\n".join(rows)
 
@@ -267,8 +427,10 @@ def main(argv: list[str] | None = None) -> int:
             plot_curve(rows, args.plot, f"tier {tier}: paired runs on the same scenes")
         res: dict | list = rows
     else:
-        res = compare(load_report(args.a), load_report(args.b), args.boot)
-        print(format_comparison(res, str(args.a), str(args.b)), file=log)
+        res = compare_reports(args.a, args.b, args.boot)
+        print(format_comparison(res, res["label_a"], res["label_b"]), file=log)
+        for line in res["warnings"]:
+            print(line, file=sys.stderr)
     if args.json is not None:
         write_json(args.json, res)
     return 0

@@ -13,6 +13,11 @@ An estimator is named by a *spec*, which every ``--estimator`` option and `make_
   importable where the episodes run (installed, or on ``PYTHONPATH``);
 - the name of an entry point of the group `ENTRY_POINT_GROUP` that an installed package
   declares, pointing at such a factory.
+
+`estimator_weights` says which weights files an estimator loads, for the gate's fingerprint: a
+learned estimator's as its factory opens them (`perception.estimators.weights_files`), none for
+an oracle, and a plug-in's as its optional ``weights_files()`` method reports them (a sequence of
+paths).
 """
 
 from __future__ import annotations
@@ -21,11 +26,12 @@ import argparse
 import importlib
 import importlib.metadata
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from perception.estimators import LEARNED_ESTIMATORS
+from perception.estimators import LEARNED_ESTIMATORS, weights_files
 from posegrasp.core.contract import CONTRACT_VERSION, Estimate, Observation, PoseEstimator
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
 from posegrasp.core.validate import arg, check_choice
@@ -221,6 +227,34 @@ def make_estimator(
             f"estimator {spec!r}: its factory failed ({type(exc).__name__}: {exc})"
         ) from None
     return check_estimator(estimator, spec)
+
+
+def estimator_weights(spec: str) -> tuple[Path, ...] | None:
+    """The weights files the estimator a spec names loads: a learned estimator's as its factory
+    opens them (`perception.estimators.weights_files`), () for an oracle, a plug-in's as its
+    ``weights_files()`` method reports them; None for a plug-in without that method (its weights
+    are unknown). Makes the estimator to find out.
+
+    Raises:
+        UnknownNameError: an unknown name.
+        InvalidArgumentError: a plug-in that does not load, or whose ``weights_files()`` fails or
+            gives something other than paths.
+        AssetError: a learned estimator's weights are missing or corrupt.
+    """
+    if spec in LEARNED_ESTIMATORS:
+        return weights_files(spec)
+    if spec in ESTIMATORS:
+        return ()
+    report = getattr(make_estimator(spec), "weights_files", None)
+    if not callable(report):
+        return None
+    try:
+        return tuple(Path(f) for f in report())
+    except Exception as exc:  # foreign code: its failure is one line, not a traceback
+        raise InvalidArgumentError(
+            f"estimator {spec!r}: its weights_files() failed ({type(exc).__name__}: {exc}); "
+            "it must return a sequence of paths"
+        ) from None
 
 
 def check_noise(spec: str) -> str:

@@ -3,6 +3,7 @@
     python -m sim.gate             # run the gate's episodes and compare (exit 1 on a regression)
     python -m sim.gate --write     # run them and write the baseline (commit it with the weights)
     python -m sim.gate --estimator hybrid          # one estimator only
+    python -m sim.gate --estimator E --obs-mode rgbd   # an estimator that reads depth
     python -m sim.gate --workers 2 [--backend ray [--address ADDR]] [--baseline PATH]
 
 The default estimator (`GATE_ESTIMATORS`) runs `GATE_EPISODES` held-out episodes per object of
@@ -25,13 +26,21 @@ millimetres grasps everything, so no regression short of a collapse shows).
 (5 mm, 2 deg) to (10 mm, 4 deg).
 
 The gate fails closed: a missing, empty or malformed baseline, or one recorded for another tier,
-other seeds, other execution settings or other weights, is an error that says how to rewrite it.
+other seeds, other execution settings, another observation mode (``--obs-mode``) or other
+weights, is an error that says how to rewrite it; a baseline of another protocol or other weights
+is refused before any episode runs.
+
+The weights fingerprint holds the SHA-256 of every weights file the estimator loads, as its
+factory opens them (`sim.estimators.estimator_weights`): retraining any net the estimator uses
+(detector, pose nets, mask net) refuses the baseline. A plug-in reports its files with a
+``weights_files()`` method; one without it gets an empty fingerprint, and the gate says so.
 """
 
 from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -44,8 +53,13 @@ from posegrasp.core.paths import REPO_ROOT
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
-from sim.estimators import DEFAULT_ESTIMATOR, add_estimator_arguments
-from sim.evaluate import evaluate, format_report
+from sim.estimators import (
+    DEFAULT_ESTIMATOR,
+    add_estimator_arguments,
+    add_obs_mode_argument,
+    estimator_weights,
+)
+from sim.evaluate import evaluate, execution_settings, format_report
 from sim.report_schema import validate_report
 from sim.stats import BOOTSTRAP, bootstrap_means, mcnemar_exact
 
@@ -55,11 +69,6 @@ GATE_TIER = "hard"
 #: Held-out scenes (see `posegrasp.world.constants.EVAL_SEED_BASE`), apart from the default
 #: evaluation's.
 GATE_SEED_START = 1_500_000_000
-WEIGHTS = (
-    "perception/weights/tiers/detector.pt",
-    "perception/weights/posenet_ours.pt",
-    "perception/weights/posenet_ours_hard.pt",
-)
 GATE_ESTIMATORS = (DEFAULT_ESTIMATOR,)
 #: Significance level of the paired success test.
 ALPHA = 0.05
@@ -73,9 +82,19 @@ RECORD_KEYS = (
     "seed_start",
     "episodes_per_object",
     "execution",
+    "obs_mode",
     "weights",
     "episodes",
 )
+#: The settings a run must share with its baseline, and how a message names each.
+PROTOCOL = {
+    "estimator": "estimator",
+    "tier": "tier",
+    "seed_start": "first seed",
+    "episodes_per_object": "episodes per object",
+    "execution": "execution settings",
+    "obs_mode": "observation mode (--obs-mode)",
+}
 
 
 def _rewrite_hint(path: Path) -> str:
@@ -106,13 +125,63 @@ def load_baselines(path: Path = BASELINE) -> dict[str, dict]:
     return data
 
 
-def weights_fingerprint() -> dict[str, str]:
-    """SHA-256 (first 16 hex digits) of each shipped weights file, "missing" when absent."""
+def weights_fingerprint(files: Sequence[Path]) -> dict[str, str]:
+    """SHA-256 (first 16 hex digits) of each weights file, "missing" when absent, by its path
+    (relative to the repository, POSIX, when inside it)."""
     out = {}
-    for rel in WEIGHTS:
-        p = REPO_ROOT / rel
-        out[rel] = sha256_file(p)[:16] if p.is_file() else "missing"
+    for f in files:
+        p = Path(f).resolve()
+        key = p.relative_to(REPO_ROOT).as_posix() if p.is_relative_to(REPO_ROOT) else str(p)
+        out[key] = sha256_file(p)[:16] if p.is_file() else "missing"
     return out
+
+
+def estimator_fingerprint(estimator: str) -> tuple[dict[str, str], str | None]:
+    """The fingerprint of the weights files `estimator` loads (`weights_fingerprint` of
+    `sim.estimators.estimator_weights`), and a note when it reports none (a plug-in without
+    ``weights_files()``: the fingerprint is then empty)."""
+    files = estimator_weights(estimator)
+    if files is None:
+        return {}, (
+            f"{estimator} does not report the weights files it loads (no weights_files() "
+            "method): its fingerprint is empty, so the gate cannot tell its weights changed"
+        )
+    return weights_fingerprint(files), None
+
+
+def gate_protocol(estimator: str, obs_mode: str = "rgb") -> dict:
+    """The settings of a gate run of `estimator` (`PROTOCOL`'s keys), known before it runs."""
+    return {
+        "estimator": estimator,
+        "tier": GATE_TIER,
+        "seed_start": GATE_SEED_START,
+        "episodes_per_object": GATE_EPISODES,
+        "execution": execution_settings(),
+        "obs_mode": obs_mode,
+    }
+
+
+def mismatch(run: dict, baseline: dict, weights: dict[str, str]) -> str | None:
+    """Why a run of the settings in `run` (`PROTOCOL`'s keys) and weights `weights` cannot be
+    paired with `baseline`, as a FAIL verdict naming the first difference; None when it can."""
+    for key, what in PROTOCOL.items():
+        if run.get(key) != baseline.get(key):
+            return (
+                f"FAIL: the run's {what} ({run.get(key)!r}) is not the baseline's "
+                f"({baseline.get(key)!r}); rewrite it with `python -m sim.gate --write`"
+            )
+    base = baseline["weights"]
+    if base != weights:
+        diff = sorted(k for k in base.keys() | weights.keys() if base.get(k) != weights.get(k))
+        files = ", ".join(
+            f"{k} {weights.get(k, 'not loaded')} against {base.get(k, 'not recorded')}"
+            for k in diff
+        )
+        return (
+            f"FAIL: the baseline was recorded with other weights ({files}); after retraining, "
+            "rewrite it with `python -m sim.gate --write`"
+        )
+    return None
 
 
 def run_gate(
@@ -121,9 +190,11 @@ def run_gate(
     workers: int = 2,
     backend: str = "local",
     address: str | None = None,
+    obs_mode: str = "rgb",
 ) -> dict:
     """The gate's evaluation: `episodes` per object of `GATE_TIER` from `GATE_SEED_START`,
-    friction margins measured, on `backend` (`posegrasp.core.backends.run_map`)."""
+    friction margins measured, the estimator seeing `obs_mode`, on `backend`
+    (`posegrasp.core.backends.run_map`)."""
     return evaluate(
         list(OBJECT_NAMES),
         episodes,
@@ -134,6 +205,7 @@ def run_gate(
         margin=True,
         backend=backend,
         address=address,
+        obs_mode=obs_mode,
     )
 
 
@@ -149,21 +221,14 @@ def compare(
 ) -> tuple[bool, str]:
     """(passed, verdict) of an evaluation against a baseline, paired by (object, seed).
 
-    `weights` is the fingerprint of the weights the run used (`weights_fingerprint()` when
-    None); a baseline of other weights, tier or seeds fails.
+    `weights` is the fingerprint of the weights the run used (`estimator_fingerprint` of the
+    report's estimator when None); a baseline of other settings (`PROTOCOL`) or other weights
+    fails (`mismatch`).
     """
-    protocol = ("estimator", "tier", "seed_start", "episodes_per_object", "execution")
-    if any(report.get(k) != baseline.get(k) for k in protocol):
-        return False, (
-            "FAIL: the run does not match the baseline's estimator, tier, seeds and execution "
-            "settings; "
-            "rewrite it with `python -m sim.gate --write`"
-        )
-    if baseline["weights"] != (weights or weights_fingerprint()):
-        return False, (
-            "FAIL: the baseline was recorded with other weights; after retraining, "
-            "rewrite it with `python -m sim.gate --write`"
-        )
+    if weights is None:
+        weights = estimator_fingerprint(report["estimator"])[0]
+    if (why := mismatch(report, baseline, weights)) is not None:
+        return False, why
     run, base = _outcomes(report["episodes"]), _outcomes(baseline["episodes"])
     if set(run) != set(base):
         return False, "FAIL: the run's episodes are not the baseline's; rewrite the baseline"
@@ -192,16 +257,16 @@ def compare(
     return ok, verdict
 
 
-def baseline_of(report: dict) -> dict:
-    """The baseline record of an evaluation: its protocol, weights and every episode's outcome."""
+def baseline_of(report: dict, weights: dict[str, str] | None = None) -> dict:
+    """The baseline record of an evaluation: its protocol, the fingerprint `weights` of the
+    weights it used (`estimator_fingerprint` of its estimator when None) and every episode's
+    outcome."""
+    if weights is None:
+        weights = estimator_fingerprint(report["estimator"])[0]
     return {
-        "estimator": report["estimator"],
-        "tier": report["tier"],
-        "seed_start": report["seed_start"],
-        "episodes_per_object": report["episodes_per_object"],
-        "execution": report["execution"],
+        **{k: report[k] for k in PROTOCOL},
         "successes": report["overall"]["successes"],
-        "weights": weights_fingerprint(),
+        "weights": weights,
         "episodes": [
             {
                 "object": e["object"],
@@ -230,6 +295,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_workers_argument(p)
     add_estimator_arguments(p, default=None, noise=False, purpose="only this one")
+    add_obs_mode_argument(p)
     add_backend_arguments(p)
     args = p.parse_args(argv)
     setup_rendering()
@@ -253,15 +319,25 @@ def main(argv: list[str] | None = None) -> int:
             )
     failed = False
     for name in names:
+        weights, note = estimator_fingerprint(name)
+        if note is None:
+            note = f"weights fingerprint of {', '.join(weights) or 'no file (it loads none)'}"
+        print(f"{name}: {note}")
+        if not args.write:
+            why = mismatch(gate_protocol(name, args.obs_mode), baselines[name], weights)
+            if why is not None:  # refused before any episode runs
+                print(f"{name}: {why}")
+                failed = True
+                continue
         report = validate_report(
-            run_gate(name, GATE_EPISODES, args.workers, args.backend, args.address),
+            run_gate(name, GATE_EPISODES, args.workers, args.backend, args.address, args.obs_mode),
             f"the gate's run of {name}",
         )
         print(format_report(report))
         if args.write:
-            baselines[name] = baseline_of(report)
+            baselines[name] = baseline_of(report, weights)
             continue
-        ok, verdict = compare(report, baselines[name])
+        ok, verdict = compare(report, baselines[name], weights)
         print(f"{name}: {verdict}")
         failed |= not ok
     if args.write:

@@ -1,14 +1,16 @@
 """The statistics of paired grasp experiments: pure functions, no I/O.
 
 Wilson intervals of a success rate, the exact McNemar test on discordant pairs, and paired
-bootstrap intervals of success and friction-margin differences (`sim.compare`, `sim.evaluate`,
-`sim.gate`).
+bootstrap intervals of success, friction-margin and per-episode score differences
+(`sim.compare`, `sim.evaluate`, `sim.gate`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.stats import binomtest, spearmanr
+
+from posegrasp.core.errors import InvalidArgumentError
 
 #: An episode's outcome: (success, friction margin or None).
 Outcome = tuple[bool, float | None]
@@ -90,6 +92,33 @@ def paired(a: np.ndarray, b: np.ndarray, boot: int, rng: np.random.Generator) ->
         "a_only": a_only,
         "b_only": b_only,
         "mcnemar_p": mcnemar_exact(a_only, b_only),
+    }
+
+
+def paired_mean_difference(
+    a: np.ndarray, b: np.ndarray, boot: int, rng: np.random.Generator
+) -> dict:
+    """Means of per-episode scores of A and B on the same episodes, (N,) each, and the mean of
+    the paired differences B - A with its paired bootstrap 95 % interval (episodes resampled
+    with replacement).
+
+    Raises:
+        InvalidArgumentError: no episode, or arrays of different shapes.
+    """
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    if a.shape != b.shape or a.ndim != 1 or a.size == 0:
+        raise InvalidArgumentError(
+            f"paired scores must be two non-empty (N,) arrays, got {a.shape} and {b.shape}"
+        )
+    d = b - a
+    lo, hi = np.percentile(bootstrap_means(d, boot, rng), [2.5, 97.5])
+    return {
+        "episodes": int(d.size),
+        "a": float(a.mean()),
+        "b": float(b.mean()),
+        "difference": float(d.mean()),
+        "bootstrap_low": float(lo),
+        "bootstrap_high": float(hi),
     }
 
 

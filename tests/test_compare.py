@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from perception import metrics
 from posegrasp.core.errors import InvalidArgumentError
 from sim import compare as cmp
 from sim import stats
@@ -218,3 +219,133 @@ def test_compare_validates_each_report_and_names_the_field(tmp_path: Path, capsy
     bad.write_text(json.dumps(report))
     assert cmp.main([str(good), str(bad)]) == 2
     assert "episodes[0].success: 'yes' is not of type 'boolean'" in capsys.readouterr().err
+
+
+def test_paired_mean_difference_by_hand() -> None:
+    rng = np.random.default_rng(0)
+    a, b = np.array([0.0, 0.5, 1.0]), np.array([0.5, 0.5, 1.0])
+    r = stats.paired_mean_difference(a, b, 2000, rng)
+    assert r["episodes"] == 3 and r["a"] == pytest.approx(0.5) and r["b"] == pytest.approx(2 / 3)
+    assert r["difference"] == pytest.approx(1 / 6)
+    # A resample's mean difference is k/6 for k of its 3 draws on the first pair: k = 0 with
+    # chance 8/27 (the low end is 0), k = 3 with 1/27 (the high end lies within (1/3, 1/2)).
+    assert r["bootstrap_low"] == 0.0 and 1 / 3 <= r["bootstrap_high"] <= 0.5
+    with pytest.raises(InvalidArgumentError, match="non-empty"):
+        stats.paired_mean_difference(np.zeros(2), np.zeros(3), 100, rng)
+
+
+def test_image_width_is_the_episodes() -> None:
+    from sim.episode import EpisodeConfig
+
+    assert cmp.IMAGE_WIDTH == EpisodeConfig().width
+
+
+def _with_errors(obj: str, seed: int, mssd: float | None, mspd: float | None, vsd=False) -> dict:
+    """An episode with BOP errors; None: no estimate (`vsd`: add one VSD error per tau)."""
+    e = _episode(obj, seed, "hard", True, 0.2)
+    if mssd is not None:
+        e["pose_error"] = {"translation_m": 0.01, "rotation_deg": 1.0, "mssd_rel_diameter": mssd}
+        if mspd is not None:
+            e["pose_error"]["mspd_px"] = mspd
+    if vsd:
+        n = len(metrics.BOP_VSD_TAUS)
+        e["vsd"] = None if mssd is None else [min(1.0, 2 * mssd + 0.02 * i) for i in range(n)]
+    return e
+
+
+def test_average_recalls_pair_per_episode(tmp_path: Path) -> None:
+    """The paired recalls equal BOP's recalls of each whole report (linear in episodes), and an
+    episode without an estimate counts 0."""
+    rng = np.random.default_rng(3)
+    mssd_a = [None, *rng.uniform(0.0, 0.6, 29)]
+    mssd_b = [*rng.uniform(0.0, 0.4, 29), None]
+    mspd_a = [None, *rng.uniform(0.0, 60.0, 28), None]  # the last: infinite, left out
+    mspd_b = list(rng.uniform(0.0, 40.0, 30))
+    pairs_a = enumerate(zip(mssd_a, mspd_a, strict=True))
+    pairs_b = enumerate(zip(mssd_b, mspd_b, strict=True))
+    eps_a = [_with_errors("phone", s, m, p, vsd=True) for s, (m, p) in pairs_a]
+    eps_b = [_with_errors("phone", s, m, p, vsd=True) for s, (m, p) in pairs_b]
+    a = _write(tmp_path / "a.json", eps_a, "hard")
+    b = _write(tmp_path / "b.json", eps_b, "hard")
+    res = cmp.compare_reports(a, b, boot=500)
+    ar = res["average_recall"]
+    assert set(ar) == {"ar_mssd", "ar_mspd", "ar_vsd"}
+    for eps, side in ((eps_a, "a"), (eps_b, "b")):
+        pe = [e["pose_error"] or {} for e in eps]
+        whole = {
+            "ar_mssd": metrics.ar_mssd([p.get("mssd_rel_diameter") for p in pe], 1.0),
+            "ar_mspd": metrics.ar_mspd([p.get("mspd_px") for p in pe], 640),
+            "ar_vsd": metrics.ar_vsd([e["vsd"] for e in eps]),
+        }
+        for name, value in whole.items():
+            assert ar[name][side] == pytest.approx(value), name
+    for r in ar.values():
+        assert r["difference"] == pytest.approx(r["b"] - r["a"]) and r["episodes"] == 30
+        assert r["bootstrap_low"] <= r["difference"] <= r["bootstrap_high"]
+    # One episode by hand: MSSD 0.12 of the diameter is below 8 of the 10 thresholds.
+    one = cmp.episode_recalls({"episodes": [_with_errors("car", 1, 0.12, 7.0)]}, "r")
+    assert one[("car", "hard", 1)] == pytest.approx({"ar_mssd": 0.8, "ar_mspd": 0.9})
+    # Without VSD errors in one report, AR_VSD is not paired.
+    for e in eps_b:
+        del e["vsd"]
+    b = _write(tmp_path / "b.json", eps_b, "hard")
+    assert set(cmp.compare_reports(a, b, boot=100)["average_recall"]) == {"ar_mssd", "ar_mspd"}
+
+
+def test_cli_prints_the_paired_recalls(tmp_path: Path, capsys) -> None:
+    eps = [_with_errors("phone", s, 0.12, 10.0) for s in range(30)]
+    a = _write(tmp_path / "a.json", eps, "hard")
+    better = [_with_errors("phone", s, 0.01, 1.0) for s in range(30)]
+    b = _write(tmp_path / "b.json", better, "hard")
+    assert cmp.main([str(a), str(b), "--boot", "200"]) == 0
+    out = capsys.readouterr().out
+    assert "AR_MSSD  A 0.800 B 1.000, B - A +0.200" in out and "AR_MSPD" in out
+    assert "AR_VSD" not in out
+
+
+def test_labels_name_the_estimators_and_paths_only_to_tell_them_apart(
+    tmp_path: Path, capsys
+) -> None:
+    eps = [_episode("phone", s, "hard", True, 0.2) for s in range(40)]
+    a = _write(tmp_path / "a.json", eps, "hard", estimator="hybrid")
+    b = _write(tmp_path / "b.json", eps, "hard", estimator="hybrid-global")
+    c = _write(tmp_path / "c.json", eps, "hard", estimator="hybrid-global")
+    assert cmp.main([str(a), str(b), "--boot", "200"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("B = hybrid-global against A = hybrid: 40 paired")
+    assert cmp.main([str(b), str(c), "--boot", "200"]) == 0
+    out = capsys.readouterr().out
+    assert f"B = hybrid-global ({c}) against A = hybrid-global ({b})" in out
+
+
+def test_other_observation_modes_are_warned_of(tmp_path: Path, capsys) -> None:
+    eps = [_episode("phone", s, "hard", True, 0.2) for s in range(40)]
+    a = _write(tmp_path / "a.json", eps, "hard", estimator="e")
+    b = _write(tmp_path / "b.json", eps, "hard", estimator="e", obs_mode="rgbd")
+    assert cmp.main([str(a), str(b), "--boot", "200"]) == 0
+    captured = capsys.readouterr()
+    assert "B = e (rgbd) against A = e (rgb)" in captured.out
+    warning = [line for line in captured.err.splitlines() if "obs_mode" in line]
+    assert len(warning) == 1 and "A saw rgb and B rgbd" in warning[0]
+
+
+def test_a_small_sample_says_to_read_the_exact_test(tmp_path: Path, capsys) -> None:
+    """Six pairs, three won and none lost: the bootstrap interval excludes 0 (a resample misses
+    all three with chance 1/64) while the exact McNemar p is 0.25."""
+    a = _report(tmp_path / "a.json", {("phone", s): s >= 3 for s in range(6)})
+    b = _report(tmp_path / "b.json", {("phone", s): True for s in range(6)})
+    assert cmp.main([str(a), str(b), "--boot", "2000"]) == 0
+    captured = capsys.readouterr()
+    assert "0.2500" in captured.out
+    lines = [x for x in captured.err.splitlines() if x.startswith("warning")]
+    assert len(lines) == 1
+    assert (
+        "only 6 paired episodes" in lines[0]
+        and "overall (interval excludes 0, p = 0.25)" in lines[0]
+    )
+    assert "read the exact McNemar p" in lines[0]
+    # Enough episodes on which the two agree: no warning.
+    a = _report(tmp_path / "a.json", {("phone", s): s >= 10 for s in range(40)})
+    b = _report(tmp_path / "b.json", {("phone", s): True for s in range(40)})
+    assert cmp.main([str(a), str(b), "--boot", "2000"]) == 0
+    assert "warning" not in capsys.readouterr().err

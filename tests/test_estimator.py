@@ -21,6 +21,7 @@ from perception.hybrid import (
 from perception.nets import CROP, NetConfig, PoseNet, normalise
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
+from posegrasp.core.paths import WEIGHTS_DIR
 from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, camera_intrinsics
 from posegrasp.world.objects import OBJECT_NAMES
@@ -206,3 +207,35 @@ def test_from_weights(tmp_path: Path, head_image) -> None:
     assert all(np.isfinite(d.T_C_O).all() for d in found)
     with pytest.raises(InvalidArgumentError, match="crop_scale"):
         HybridPoseEstimator(est.detector, est.posenet, crop_scale=0.0)
+
+
+def test_weights_files_are_the_files_the_default_estimator_loads(monkeypatch) -> None:
+    """`weights_files` reports exactly the .pt files torch.load opens while the default
+    estimator is made."""
+    from perception.estimators import load_estimator, weights_files
+    from sim.estimators import DEFAULT_ESTIMATOR
+
+    opened: list[Path] = []
+    load = torch.load
+
+    def spy(f, *args, **kwargs):
+        opened.append(Path(f).resolve())
+        return load(f, *args, **kwargs)
+
+    monkeypatch.setattr(torch, "load", spy)
+    estimator, reported = load_estimator(DEFAULT_ESTIMATOR)
+    assert estimator.name == DEFAULT_ESTIMATOR
+    assert [p for p in opened if p.suffix == ".pt"] == list(reported)
+    assert WEIGHTS_DIR / "tiers" / "masknet.pt" in reported
+    with pytest.raises(UnknownNameError, match="valid learned estimators: hybrid"):
+        weights_files("oracle")
+
+
+def test_a_missing_shipped_file_is_restored_from_git_first() -> None:
+    missing = WEIGHTS_DIR / "tiers" / "no_such_detector.pt"
+    with pytest.raises(AssetError) as err:
+        HybridPoseEstimator.from_weights(detector_path=missing)
+    text = str(err.value)
+    git = "git checkout -- perception/weights/tiers/no_such_detector.pt"
+    assert git in text and "git restore perception/weights/tiers/no_such_detector.pt" in text
+    assert text.index(git) < text.index("make weights") and "\n" not in text

@@ -7,12 +7,30 @@ from pathlib import Path
 
 import pytest
 
+from posegrasp.core.contract import Estimate
 from posegrasp.core.errors import AssetError
+from posegrasp.core.paths import REPO_ROOT
 from posegrasp.world.objects import OBJECT_NAMES
 from sim import gate
 from sim.evaluate import execution_settings
 
 WEIGHTS = {"w.pt": "0123"}
+
+
+class Plugin:
+    """A plug-in estimator that does not say which weights it loads."""
+
+    name = "plugin"
+
+    def estimate(self, obs) -> Estimate:
+        return Estimate(None)
+
+
+class ReportingPlugin(Plugin):
+    """A plug-in that reports its weights files (here: this test file and one that is absent)."""
+
+    def weights_files(self) -> list[str]:
+        return [__file__, "/nonexistent/w.pt"]
 
 
 def _report(lost: int = 0, won: int = 0, margin_shift: float = 0.0, **protocol) -> dict:
@@ -37,6 +55,7 @@ def _report(lost: int = 0, won: int = 0, margin_shift: float = 0.0, **protocol) 
         "seed_start": gate.GATE_SEED_START,
         "episodes_per_object": 10,
         "execution": execution_settings(),
+        "obs_mode": "rgb",
         "overall": {"successes": sum(e["success"] for e in eps)},
         "episodes": eps,
     }
@@ -45,9 +64,8 @@ def _report(lost: int = 0, won: int = 0, margin_shift: float = 0.0, **protocol) 
 
 
 @pytest.fixture
-def baseline(monkeypatch) -> dict:
-    monkeypatch.setattr(gate, "weights_fingerprint", lambda: WEIGHTS)
-    return gate.baseline_of(_report())
+def baseline() -> dict:
+    return gate.baseline_of(_report(), WEIGHTS)
 
 
 @pytest.mark.parametrize(
@@ -77,7 +95,65 @@ def test_a_run_of_another_protocol_or_other_weights_fails(baseline: dict) -> Non
     ok, verdict = gate.compare(_report(execution=other), baseline, WEIGHTS)
     assert not ok and "execution settings" in verdict
     ok, verdict = gate.compare(_report(), baseline, {"w.pt": "ffff"})
-    assert not ok and "other weights" in verdict
+    assert not ok and "other weights (w.pt ffff against 0123)" in verdict
+    ok, verdict = gate.compare(_report(), baseline, {**WEIGHTS, "m.pt": "4567"})
+    assert not ok and "m.pt 4567 against not recorded" in verdict
+
+
+def test_a_baseline_of_another_observation_mode_is_refused(baseline: dict) -> None:
+    assert baseline["obs_mode"] == "rgb"
+    ok, verdict = gate.compare(_report(obs_mode="rgbd"), baseline, WEIGHTS)
+    assert not ok and "mode (--obs-mode) ('rgbd') is not the baseline's ('rgb')" in verdict
+    assert gate.compare(_report(), baseline, WEIGHTS)[0]
+
+
+def test_the_gate_refuses_another_mode_before_running(
+    tmp_path: Path, capsys, monkeypatch, baseline: dict
+) -> None:
+    """``--obs-mode rgbd`` against a baseline of rgb fails without running an episode."""
+    base = {**baseline, **gate.gate_protocol("hybrid")}
+    path = tmp_path / "b.json"
+    path.write_text(json.dumps({"hybrid": base}))
+    monkeypatch.setattr(gate, "estimator_fingerprint", lambda name: (WEIGHTS, None))
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the gate ran episodes against a baseline it must refuse")
+
+    monkeypatch.setattr(gate, "run_gate", no_run)
+    assert gate.main(["--baseline", str(path), "--obs-mode", "rgbd"]) == 1
+    out = capsys.readouterr().out
+    assert "hybrid: FAIL: the run's observation mode (--obs-mode) ('rgbd')" in out
+    assert gate.main(["--baseline", str(path), "--obs-mode", "bad"]) == 2
+    assert "valid observation modes: rgb, rgbd" in capsys.readouterr().err
+
+
+def test_a_baseline_without_an_observation_mode_fails_closed(tmp_path: Path, baseline) -> None:
+    path = tmp_path / "b.json"
+    path.write_text(json.dumps({"hybrid": {k: v for k, v in baseline.items() if k != "obs_mode"}}))
+    with pytest.raises(AssetError, match="lacks obs_mode"):
+        gate.load_baselines(path)
+
+
+def test_plugins_fingerprint_what_they_report() -> None:
+    weights, note = gate.estimator_fingerprint("tests.test_gate:ReportingPlugin")
+    assert note is None
+    assert weights == {
+        "tests/test_gate.py": gate.sha256_file(Path(__file__))[:16],
+        "/nonexistent/w.pt": "missing",
+    }
+    weights, note = gate.estimator_fingerprint("tests.test_gate:Plugin")
+    assert weights == {} and "fingerprint is empty" in note
+    assert gate.estimator_fingerprint("oracle") == ({}, None)
+
+
+def test_the_committed_baseline_has_the_default_estimators_weights() -> None:
+    """The fingerprint holds every file the default estimator loads (the mask net too), and
+    the committed baseline is not refused for it."""
+    weights, note = gate.estimator_fingerprint(gate.DEFAULT_ESTIMATOR)
+    assert note is None and "perception/weights/tiers/masknet.pt" in weights
+    assert all((REPO_ROOT / k).is_file() for k in weights)
+    base = gate.load_baselines()[gate.DEFAULT_ESTIMATOR]
+    assert gate.mismatch(gate.gate_protocol(gate.DEFAULT_ESTIMATOR), base, weights) is None
 
 
 @pytest.mark.parametrize("content", ["", "[]", "{}", '{"hybrid": {"estimator": "hybrid"}}'])
