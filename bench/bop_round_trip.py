@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
             "wilson": [lo, hi],
             "ar_mssd": g["ar_mssd"],
             "ar_mspd": g["ar_mspd"],
-            "ar_vsd": r.get("poses", {}).get("ar_vsd"),
+            "ar_vsd": g["ar_vsd"],
         }
         paired = ""
         if label.endswith(".csv"):

@@ -159,6 +159,36 @@ def mssd(
     Returns:
         The error [m].
     """
+    return closest_symmetry(R_est, t_est, R_gt, t_gt, pts, syms)[1]
+
+
+def closest_symmetry(
+    R_est: np.ndarray,
+    t_est: np.ndarray,
+    R_gt: np.ndarray,
+    t_gt: np.ndarray,
+    pts: np.ndarray,
+    syms: Sequence[Symmetry],
+) -> tuple[int, float]:
+    """The symmetry S whose equivalent true pose ``(R_gt R_S, R_gt t_S + t_gt)`` the estimate is
+    closest to, by MSSD's distance: ``argmin_S max_x || (R_est x + t_est) - (R_gt (R_S x + t_S)
+    + t_gt) ||``, the first such S on a tie (so the identity, when it comes first).
+
+    The pose errors of an estimate of a symmetric object are measured against that equivalent
+    pose (`symmetric_pose`), the one BOP's MSSD, and so a judgement of correctness made with it,
+    matches the estimate to. It may differ from the S of the smallest rotation error
+    (`rotation_error_sym_deg`): MSSD also weighs the translation, t_S included, and a turn by
+    how far it moves the model's farthest points.
+
+    Args:
+        R_est, t_est: Estimated pose (3, 3), (3,) or (3, 1) [m].
+        R_gt, t_gt: Ground-truth pose.
+        pts: Model points in O (N, 3) [m].
+        syms: Symmetry set of the object (see module docstring).
+
+    Returns:
+        (the index of S in syms, its distance [m]: the MSSD of :func:`mssd`).
+    """
     pts = _points(pts)
     R_gt, t_gt = _rot(R_gt, "R_gt"), _vec3(t_gt, "t_gt")
     est = _transform(pts, _rot(R_est, "R_est"), _vec3(t_est, "t_est"))
@@ -166,7 +196,32 @@ def mssd(
     for R_s, t_s in _syms(syms):
         gt = _transform(pts, R_gt @ R_s, R_gt @ t_s + t_gt)
         errors.append(np.linalg.norm(est - gt, axis=1).max())
-    return float(min(errors))
+    best = min(range(len(errors)), key=errors.__getitem__)
+    return best, float(errors[best])
+
+
+def symmetric_pose(T_gt: np.ndarray, sym: Symmetry) -> np.ndarray:
+    """The true pose turned by a symmetry, ``T_gt S``: as true as T_gt, the object looking the
+    same.
+
+    Args:
+        T_gt: Ground-truth pose T_C_O (4, 4) [m].
+        sym: One symmetry ``{"R": (3, 3), "t": (3,) or (3, 1) [m]}`` of the object, T_O_O'.
+
+    Returns:
+        T_C_O' (4, 4) [m]: rotation ``R_gt R_S``, translation ``R_gt t_S + t_gt``; T_gt's own
+        values, to the bit, for the identity.
+    """
+    T_gt = np.asarray(T_gt, dtype=np.float64)
+    if T_gt.shape != (4, 4) or not np.all(np.isfinite(T_gt)):
+        raise InvalidArgumentError(f"T_gt must be a finite (4, 4) matrix, got shape {T_gt.shape}")
+    ((R_s, t_s),) = _syms([sym])
+    out = T_gt.copy()
+    if np.array_equal(R_s, np.eye(3)) and not np.any(t_s):
+        return out
+    out[:3, :3] = T_gt[:3, :3] @ R_s
+    out[:3, 3] = T_gt[:3, :3] @ t_s + T_gt[:3, 3]
+    return out
 
 
 def _project_or_inf(K: np.ndarray, pts_C: np.ndarray) -> np.ndarray:

@@ -6,17 +6,25 @@ reads BOP datasets writes its poses of those images as a BOP results CSV (BOP Ch
 format)::
 
     scene_id,im_id,obj_id,score,R,t,time
-    1,0,1,0.98,r11 r12 r13 r21 r22 r23 r31 r32 r33,tx ty tz,0.12
+    407112,0,1,0.98,r11 r12 r13 r21 r22 r23 r31 r32 r33,tx ty tz,0.12
 
 ``R`` is ``R_C_O`` row-major, ``t`` is ``t_C_O`` [mm], ``time`` the image's run time [s] or -1
 when unknown. `read_bop_results` checks such a file against the export; `BopPosesEstimator`
 answers each episode of the export with its rows, so that ``sim.evaluate`` grasps on them; and
 `read_export` lists the export's episodes so that exactly those are run.
+
+Each episode is one BOP scene with one image (im_id 0), its scene_id `scene_ids` of the
+episode's tier, target and seed, so that exports of other tiers, objects or seeds share no
+image id with it (but by rare chance) and a CSV of another export is refused by its ids. Ids
+alone cannot tell a CSV of an export whose ids it happens to share: `truth_match` tests, after
+the grasps, whether the CSV's poses lie nearer their own episodes' targets than chance allows.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from perception.training.bop import MM_PER_M, obj_id, obj_name
-from posegrasp.core.contract import Estimate, Observation
+from posegrasp.core.contract import MAX_POSE_DISTANCE, Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.validate import check_int, check_seed
 from posegrasp.world.objects import check_object, object_names
@@ -34,7 +42,18 @@ from posegrasp.world.tiers import check_tier
 MAP_FILE = "posegrasp_episodes.json"
 #: ``format`` and ``version`` of the map file.
 EXPORT_FORMAT = "posegrasp-bop-export"
-EXPORT_VERSION = 1
+EXPORT_VERSION = 2
+#: Largest BOP scene id: BOP names scene folders with 6 digits.
+SCENE_ID_MAX = 999_999
+#: A CSV whose poses lie, at the median, nearer the camera than this is taken for one written
+#: in metres [mm]: the head camera sees no object within a few centimetres of it, while metres
+#: read as millimetres put every pose within about 3 mm.
+MIN_MEDIAN_T_MM = 10.0
+#: Most problems of a bad CSV listed; a count stands for the rest.
+MAX_PROBLEMS = 20
+#: `truth_match` calls a CSV's poses unrelated to the export's targets when the chance of its
+#: count of nearest-own-target estimates is above this.
+TRUTH_MATCH_P = 1e-3
 #: The columns of a BOP 2019 results CSV, in BOP's order.
 CSV_COLUMNS = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
 #: Largest entry of ``|R R^T - I|`` accepted for a CSV rotation. BOP CSVs print a limited number
@@ -50,6 +69,36 @@ ROTATION_TOL = 1e-3
 # --- the export's map file -----------------------------------------------------------------
 
 
+def scene_ids(tier: str, episodes: Sequence[tuple[str, int]]) -> dict[tuple[str, int], int]:
+    """The BOP scene_id of each episode of an export (its image is im_id 0 of that scene).
+
+    An episode's id is 1 + (the first 8 bytes of SHA-256 of ``"tier/object/seed"``) mod
+    `SCENE_ID_MAX`; an id taken by an earlier episode of the list moves to the next free one.
+    So the same episode has the same id in every export (but after such a clash), and two
+    exports of other tiers, objects or seeds share an id only by chance (with 300 episodes
+    each, a given id of one is among the other's with probability 3e-4).
+
+    Args:
+        tier: the scene tier.
+        episodes: (object, seed) of each episode, in the export's order.
+
+    Returns:
+        (object, seed) -> scene_id in 1..SCENE_ID_MAX, all distinct.
+    """
+    if len(episodes) > SCENE_ID_MAX:
+        raise InvalidArgumentError(f"at most {SCENE_ID_MAX} episodes fit one export")
+    used: set[int] = set()
+    out: dict[tuple[str, int], int] = {}
+    for obj, seed in episodes:
+        digest = hashlib.sha256(f"{tier}/{obj}/{int(seed)}".encode()).digest()
+        sid = 1 + int.from_bytes(digest[:8], "big") % SCENE_ID_MAX
+        while sid in used:
+            sid = sid % SCENE_ID_MAX + 1
+        used.add(sid)
+        out[(obj, int(seed))] = sid
+    return out
+
+
 @dataclass(frozen=True)
 class ExportEpisodes:
     """The episodes of an export, as ``sim.evaluate`` runs them.
@@ -60,8 +109,10 @@ class ExportEpisodes:
         seed_start: the first scene seed; episode i of an object plays seed ``seed_start + i``.
         objects: the target classes, in the evaluation's order.
         episodes: episodes per object.
-        ground_truth: whether the export holds scene_gt.json and scene_gt_info.json.
+        ground_truth: whether the export holds scene_gt.json, scene_gt_info.json and masks.
         images: (object, seed) -> (scene_id, im_id) of the episode's image.
+        table_top_z: (object, seed) -> height of the table top in the world frame [m] (what
+            ``Observation.table_top_z`` tells a live estimator).
     """
 
     root: Path
@@ -71,11 +122,19 @@ class ExportEpisodes:
     episodes: int
     ground_truth: bool
     images: dict[tuple[str, int], tuple[int, int]]
+    table_top_z: dict[tuple[str, int], float]
 
     @property
     def image_ids(self) -> set[tuple[int, int]]:
         """The (scene_id, im_id) of every image of the export."""
         return set(self.images.values())
+
+    def describe(self) -> str:
+        """The export's episodes in a few words."""
+        last = self.seed_start + self.episodes - 1
+        return (
+            f"tier {self.tier}, objects {','.join(self.objects)}, seeds {self.seed_start}..{last}"
+        )
 
 
 def _bad_map(path: Path, problem: str) -> InvalidArgumentError:
@@ -112,7 +171,7 @@ def read_export(root: Path | str) -> ExportEpisodes:
     if not isinstance(raw, dict) or raw.get("format") != EXPORT_FORMAT:
         raise _bad_map(path, f"no format {EXPORT_FORMAT!r}")
     if raw.get("version") != EXPORT_VERSION:
-        raise _bad_map(path, f"version {raw.get('version')!r}, expected {EXPORT_VERSION}")
+        raise _bad_map(path, f"version {raw.get('version')!r}, this version reads {EXPORT_VERSION}")
     if raw.get("complete") is not True:
         raise InvalidArgumentError(
             f"the export in {root} was interrupted before it finished; run the same "
@@ -124,23 +183,28 @@ def read_export(root: Path | str) -> ExportEpisodes:
         seed_start = check_seed(raw["seed_start"], "seed_start", episodes)
         objects = tuple(check_object(o) for o in raw["objects"])
         images: dict[tuple[str, int], tuple[int, int]] = {}
+        tables: dict[tuple[str, int], float] = {}
         for im in raw["images"]:
             key = (check_object(im["object"]), check_seed(im["seed"]))
             images[key] = (
-                check_int(im["scene_id"], 0, 10**6 - 1, "scene_id"),
+                check_int(im["scene_id"], 1, SCENE_ID_MAX, "scene_id"),
                 check_int(im["im_id"], 0, 10**6 - 1, "im_id"),
             )
+            tables[key] = float(im["table_top_z"])
         ground_truth = bool(raw["ground_truth"])
-    except (KeyError, TypeError) as exc:
+    except (KeyError, TypeError, ValueError) as exc:
         raise _bad_map(path, f"missing or malformed field {exc}") from None
     except PosegraspError as exc:
         raise _bad_map(path, str(exc)) from None
     wanted = {(o, seed_start + i) for o in objects for i in range(episodes)}
     if len(objects) != len(set(objects)) or set(images) != wanted:
         raise _bad_map(path, "its images are not every object x episode once")
-    if len(set(images.values())) != len(images):
-        raise _bad_map(path, "two episodes share an image id")
-    return ExportEpisodes(root, tier, seed_start, objects, episodes, ground_truth, images)
+    order = [(o, seed_start + i) for o in objects for i in range(episodes)]
+    if images != {k: (sid, 0) for k, sid in scene_ids(tier, order).items()}:
+        raise _bad_map(
+            path, "its image ids are not those of its episodes (sim.bop_results.scene_ids)"
+        )
+    return ExportEpisodes(root, tier, seed_start, objects, episodes, ground_truth, images, tables)
 
 
 # --- the results CSV -----------------------------------------------------------------------
@@ -178,26 +242,56 @@ def nearest_rotation(R: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
-def _numbers(text: str, n: int, what: str, where: str) -> np.ndarray:
+class _Problems:
+    """The problems of a CSV, each one line naming where it is."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+
+    def add(self, where: str, problem: str) -> None:
+        self.lines.append(f"{where}: {problem}")
+
+    def raise_if_any(self, csv_path: Path) -> None:
+        """Raise the problems: one line for one, else a head line and one line per problem,
+        the first `MAX_PROBLEMS` of them and a count of the rest."""
+        if not self.lines:
+            return
+        if len(self.lines) == 1:
+            raise InvalidArgumentError(self.lines[0])
+        shown = self.lines[:MAX_PROBLEMS]
+        rest = len(self.lines) - len(shown)
+        tail = [f"  ... and {rest} more"] if rest else []
+        raise InvalidArgumentError(
+            "\n".join(
+                [
+                    f"{csv_path} has {len(self.lines)} problems (a BOP results CSV: "
+                    f"{','.join(CSV_COLUMNS)}, R row-major, t in mm):",
+                    *(f"  {line}" for line in shown),
+                    *tail,
+                ]
+            )
+        )
+
+
+def _numbers(text: str, n: int, what: str) -> tuple[np.ndarray | None, str | None]:
+    """(n finite numbers, None) or (None, the problem)."""
     parts = text.split()
     try:
         values = np.array([float(p) for p in parts], np.float64)
     except ValueError:
-        raise InvalidArgumentError(f"{where}: {what} {text.strip()!r} is not {n} numbers") from None
+        return None, f"{what} {text.strip()!r} is not {n} number{'s' if n > 1 else ''}"
     if values.size != n:
-        raise InvalidArgumentError(
-            f"{where}: {what} has {values.size} numbers, expected {n} (space-separated)"
-        )
+        return None, f"{what} has {values.size} numbers, expected {n} (space-separated)"
     if not np.all(np.isfinite(values)):
-        raise InvalidArgumentError(f"{where}: {what} {text.strip()!r} is not finite")
-    return values
+        return None, f"{what} {text.strip()!r} is not finite"
+    return values, None
 
 
-def _integer(text: str, what: str, where: str) -> int:
+def _integer(text: str, what: str) -> tuple[int | None, str | None]:
     try:
-        return int(text.strip())
+        return int(text.strip()), None
     except ValueError:
-        raise InvalidArgumentError(f"{where}: {what} {text.strip()!r} is not an integer") from None
+        return None, f"{what} {text.strip()!r} is not an integer"
 
 
 def _header(line: str, where: str) -> dict[str, int]:
@@ -218,45 +312,67 @@ def _header(line: str, where: str) -> dict[str, int]:
     return {c: names.index(c) for c in CSV_COLUMNS}
 
 
+@dataclass(frozen=True)
+class _Parsed:
+    """One CSV row whose fields all parse: its key, score, R (3, 3), t [mm] and time [s]."""
+
+    key: tuple[int, int, int]
+    score: float
+    R: np.ndarray
+    t_mm: np.ndarray
+    time: float
+    where: str
+    line: int
+
+
 def _row(
-    fields: list[str], cols: dict[str, int], export: ExportEpisodes, where: str
-) -> tuple[tuple[int, int, int], float, np.ndarray, float]:
-    """(scene_id, im_id, obj_id), score, T_C_O [m] and time of one checked CSV row."""
+    fields: list[str], cols: dict[str, int], where: str, line: int
+) -> tuple[_Parsed | None, list[str]]:
+    """One CSV row, parsed and checked on its own: (the row or None, its problems)."""
     if len(fields) != len(cols):
-        raise InvalidArgumentError(
-            f"{where}: {len(fields)} comma-separated fields, expected {len(cols)} "
-            f"({','.join(CSV_COLUMNS)})"
-        )
-    scene_id = _integer(fields[cols["scene_id"]], "scene_id", where)
-    im_id = _integer(fields[cols["im_id"]], "im_id", where)
-    oid = _integer(fields[cols["obj_id"]], "obj_id", where)
+        return None, [
+            f"{len(fields)} comma-separated fields, expected {len(cols)} ({','.join(CSV_COLUMNS)})"
+        ]
+    problems: list[str] = []
+
+    def keep(value_problem: tuple[Any, str | None]) -> Any:
+        value, problem = value_problem
+        if problem is not None:
+            problems.append(problem)
+        return value
+
+    scene_id = keep(_integer(fields[cols["scene_id"]], "scene_id"))
+    im_id = keep(_integer(fields[cols["im_id"]], "im_id"))
+    oid = keep(_integer(fields[cols["obj_id"]], "obj_id"))
     known = object_names()
-    if not 1 <= oid <= len(known):
+    if oid is not None and not 1 <= oid <= len(known):
         names = ", ".join(f"{i + 1} {n}" for i, n in enumerate(known))
-        raise InvalidArgumentError(f"{where}: unknown obj_id {oid}; valid obj_ids: {names}")
-    if (scene_id, im_id) not in export.image_ids:
-        scenes = sorted({s for s, _ in export.image_ids})
-        raise InvalidArgumentError(
-            f"{where}: image scene_id {scene_id}, im_id {im_id} is not in the export "
-            f"{export.root} (scene_ids {', '.join(map(str, scenes))}, im_ids "
-            f"0..{export.episodes - 1})"
+        problems.append(f"unknown obj_id {oid}; valid obj_ids: {names}")
+    score = keep(_numbers(fields[cols["score"]], 1, "score"))
+    R = keep(_numbers(fields[cols["R"]], 9, "R"))
+    if R is not None:
+        R = R.reshape(3, 3)
+        deviation = float(np.abs(R @ R.T - np.eye(3)).max())
+        det = float(np.linalg.det(R))
+        if deviation > ROTATION_TOL or det <= 0.0:
+            problems.append(
+                f"R is not a rotation (largest entry of |R R^T - I| {deviation:.2g}, "
+                f"tolerance {ROTATION_TOL:g}; det {det:.3g}, must be +1)"
+            )
+    t = keep(_numbers(fields[cols["t"]], 3, "t"))
+    if t is not None and float(np.linalg.norm(t)) > MAX_POSE_DISTANCE * MM_PER_M:
+        norm = float(np.linalg.norm(t))
+        problems.append(
+            f"t is {norm:.6g} mm from the camera ({norm / MM_PER_M:.4g} m), beyond the "
+            f"{MAX_POSE_DISTANCE:g} m any pose may be; the CSV's t is in millimetres"
         )
-    score = float(_numbers(fields[cols["score"]], 1, "score", where)[0])
-    R = _numbers(fields[cols["R"]], 9, "R", where).reshape(3, 3)
-    deviation = float(np.abs(R @ R.T - np.eye(3)).max())
-    det = float(np.linalg.det(R))
-    if deviation > ROTATION_TOL or det <= 0.0:
-        raise InvalidArgumentError(
-            f"{where}: R is not a rotation (largest entry of |R R^T - I| {deviation:.2g}, "
-            f"tolerance {ROTATION_TOL:g}; det {det:.3g}, must be +1)"
-        )
-    t = _numbers(fields[cols["t"]], 3, "t", where) / MM_PER_M
-    time = float(_numbers(fields[cols["time"]], 1, "time", where)[0])
-    if time < 0.0 and time != -1.0:
-        raise InvalidArgumentError(f"{where}: time {time:g} is not seconds >= 0 or -1 (unknown)")
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = nearest_rotation(R), t
-    return (scene_id, im_id, oid), score, T, time
+    time = keep(_numbers(fields[cols["time"]], 1, "time"))
+    if time is not None and time[0] < 0.0 and time[0] != -1.0:
+        problems.append(f"time {time[0]:g} is not seconds >= 0 or -1 (unknown)")
+    if problems:
+        return None, problems
+    key = (int(scene_id), int(im_id), int(oid))
+    return _Parsed(key, float(score[0]), R, t, float(time[0]), where, line), []
 
 
 def read_bop_results(
@@ -273,9 +389,12 @@ def read_bop_results(
         (scene_id, im_id, obj_id) -> its row.
 
     Raises:
-        InvalidArgumentError: one line naming the CSV's line (and its row) and the problem: a
-            missing column, a field that is not a number, a rotation that is not one, an unknown
-            obj_id or an image that is not in the export.
+        InvalidArgumentError: every problem of the CSV, one line each naming its row and line
+            (the first `MAX_PROBLEMS`, and a count of the rest): a missing column, a field that
+            is not a number, a rotation that is not one, an unknown obj_id, a t beyond 10 m or
+            an image that is not in the export; and, as one line, a CSV none of whose images is
+            the export's (a CSV of another export) or whose t are, at the median, nearer the
+            camera than `MIN_MEDIAN_T_MM` (written in metres).
     """
     if not isinstance(export, ExportEpisodes):
         export = read_export(export)
@@ -291,13 +410,124 @@ def read_bop_results(
         )
     first, header = numbered[0]
     cols = _header(header, f"{csv_path} line {first}")
-    best: dict[tuple[int, int, int], BopRow] = {}
+    problems = _Problems()
+    parsed: list[_Parsed] = []
     for row, (line_no, line) in enumerate(numbered[1:], start=1):
         where = f"{csv_path} row {row} (line {line_no})"
-        key, score, T, time = _row(line.split(","), cols, export, where)
-        if key not in best or score > best[key].score:
-            best[key] = BopRow(T, score, time, line_no)
+        p, found = _row(line.split(","), cols, where, line_no)
+        for f in found:
+            problems.add(where, f)
+        if p is not None:
+            parsed.append(p)
+    ours = export.image_ids
+    if parsed and not any(p.key[:2] in ours for p in parsed):
+        s, i = parsed[0].key[:2]
+        raise InvalidArgumentError(
+            f"{csv_path} answers another export: none of its images (e.g. scene_id {s}, im_id "
+            f"{i}) is one of the {len(ours)} of {export.root} ({export.describe()}); grade it "
+            "with --from the export it was made from"
+        )
+    for p in parsed:
+        if p.key[:2] not in ours:
+            problems.add(
+                p.where,
+                f"image scene_id {p.key[0]}, im_id {p.key[1]} is not in the export {export.root} "
+                f"({export.describe()}; its test_targets_bop19.json lists its images)",
+            )
+    norms = [float(np.linalg.norm(p.t_mm)) for p in parsed]
+    if norms and float(np.median(norms)) < MIN_MEDIAN_T_MM:
+        problems.lines.insert(
+            0,
+            f"{csv_path}: t is in millimetres, but its poses lie at a median "
+            f"{float(np.median(norms)):.3g} mm from the camera, nearer than any object it sees "
+            f"(at least {MIN_MEDIAN_T_MM:g} mm); written in metres? multiply t by 1000",
+        )
+    problems.raise_if_any(csv_path)
+    best: dict[tuple[int, int, int], BopRow] = {}
+    for p in parsed:
+        if p.key not in best or p.score > best[p.key].score:
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = nearest_rotation(p.R), p.t_mm / MM_PER_M
+            best[p.key] = BopRow(T, p.score, p.time, p.line)
     return best
+
+
+def time_summary(times: Sequence[float]) -> dict[str, Any]:
+    """The method's run time per image, from a CSV's ``time`` column (-1: not given).
+
+    Args:
+        times: one time per image [s], -1 where unknown.
+
+    Returns:
+        ``images_timed`` (the images with a time), and over those ``time_s_median`` and
+        ``time_s_p90`` [s] (None when no image has one).
+    """
+    given = np.array([t for t in times if t >= 0.0], np.float64)
+    if not given.size:
+        return {"images_timed": 0, "time_s_median": None, "time_s_p90": None}
+    return {
+        "images_timed": int(given.size),
+        "time_s_median": float(np.median(given)),
+        "time_s_p90": float(np.percentile(given, 90)),
+    }
+
+
+def truth_match(episodes: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Whether a CSV's poses belong to the episodes they were graded in, whatever their ids.
+
+    For each estimate, is its position nearer its own episode's true target position than any
+    other episode's of the same object? Were the poses made for other scenes, each of an
+    object's m episodes would be the nearest alike (its scenes are drawn alike), so the count
+    k of the n estimates is binomial(n, 1/m) at most; ``p_value`` is the chance of k or more
+    under it. A poor estimator, whose errors exceed the spread of its targets, scores low too.
+
+    Args:
+        episodes: the report's episodes (object, T_C_O_true, T_C_O_est: (4, 4) [m] or None).
+
+    Returns:
+        ``estimates`` n (of objects with 2 episodes or more), ``nearest_own`` k, ``chance``
+        (the expected k under unrelated poses), ``p_value``, and ``tested``: False when even n
+        of n would not be below `TRUTH_MATCH_P`, too few estimates to tell; ``unrelated``:
+        tested and p_value above `TRUTH_MATCH_P`.
+    """
+    by_object: dict[str, list[dict[str, Any]]] = {}
+    for e in episodes:
+        by_object.setdefault(e["object"], []).append(e)
+    n = k = 0
+    probs: list[float] = []
+    for eps in by_object.values():
+        if len(eps) < 2:
+            continue
+        truth = np.array([np.asarray(e["T_C_O_true"], np.float64)[:3, 3] for e in eps])
+        for j, e in enumerate(eps):
+            if e.get("T_C_O_est") is None:
+                continue
+            t = np.asarray(e["T_C_O_est"], np.float64)[:3, 3]
+            d = np.linalg.norm(truth - t, axis=1)
+            n += 1
+            k += int(np.argmin(d) == j)
+            probs.append(1.0 / len(eps))
+    chance = float(sum(probs))
+    p_value = _tail(probs, k)
+    tested = n > 0 and _tail(probs, n) < TRUTH_MATCH_P
+    return {
+        "estimates": n,
+        "nearest_own": k,
+        "chance": chance,
+        "p_value": p_value,
+        "tested": bool(tested),
+        "unrelated": bool(tested and p_value > TRUTH_MATCH_P),
+    }
+
+
+def _tail(probs: Sequence[float], k: int) -> float:
+    """P(X >= k) for X the number of successes of independent trials with these chances."""
+    dist = np.zeros(len(probs) + 1)
+    dist[0] = 1.0
+    for p in probs:
+        dist[1:] = dist[1:] * (1.0 - p) + dist[:-1] * p
+        dist[0] *= 1.0 - p
+    return float(np.clip(dist[k:].sum(), 0.0, 1.0))
 
 
 # --- the estimator -------------------------------------------------------------------------
@@ -374,59 +604,3 @@ class BopPosesEstimator:
             **where,
         }
         return Estimate(target.T_C_O.copy(), neighbours, info)
-
-
-# --- VSD against the export's depth ----------------------------------------------------------
-
-
-def vsd_errors(export: ExportEpisodes, episodes: list[dict[str, Any]]) -> list[list[float] | None]:
-    """BOP's VSD of each episode's estimate against its exported depth image (one error per
-    tau, `perception.metrics.BOP_VSD_TAUS`), None for an episode without an estimate.
-
-    Args:
-        export: the export the episodes ran (its depth images and cameras are read).
-        episodes: the episodes as a report holds them (object, seed, T_C_O_true, T_C_O_est).
-
-    Raises:
-        AssetError: a depth image or camera file of the export is missing or unreadable.
-    """
-    import cv2
-
-    from perception import metrics
-    from perception.training.bop import read_json, scene_dir
-    from posegrasp.world.objects import load_object
-
-    cameras: dict[int, dict[str, Any]] = {}
-    out: list[list[float] | None] = []
-    for e in episodes:
-        if e.get("T_C_O_est") is None:
-            out.append(None)
-            continue
-        scene_id, im_id = export.images[(e["object"], int(e["seed"]))]
-        sdir = scene_dir(export.root, "test", scene_id)
-        if scene_id not in cameras:
-            cameras[scene_id] = read_json(sdir / "scene_camera.json", export.root, "test")
-        cam = cameras[scene_id][str(im_id)]
-        path = sdir / "depth" / f"{im_id:06d}.png"
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if raw is None or raw.dtype != np.uint16:
-            from posegrasp.core.errors import AssetError
-
-            raise AssetError(f"{path} is not a 16-bit depth image of the export")
-        depth = raw.astype(np.float64) * float(cam["depth_scale"]) / MM_PER_M
-        K = np.asarray(cam["cam_K"], np.float64).reshape(3, 3)
-        model = load_object(e["object"])
-        T_gt, T_est = np.asarray(e["T_C_O_true"]), np.asarray(e["T_C_O_est"])
-        err = metrics.vsd(
-            T_est[:3, :3],
-            T_est[:3, 3],
-            T_gt[:3, :3],
-            T_gt[:3, 3],
-            depth,
-            K,
-            np.asarray(model.mesh.vertices),
-            np.asarray(model.mesh.faces),
-            model.diameter,
-        )
-        out.append([float(v) for v in err])
-    return out

@@ -4,7 +4,9 @@ Any pose estimator can be scored through it: the observation is the head-camera 
 with ``obs_mode="rgbd"``, its depth image) with its intrinsics and pose, the requested object
 class and the height of the table top the object rests on (known scene geometry, in the world
 frame); the action is the estimated pose of that object in the camera frame (or "no estimate");
-the step executes the grasp on that pose.
+the step executes the grasp on that pose. `posegrasp.core.contract.Observation.from_env(obs,
+info)` turns a reset's observation and info into the `Observation` an estimator takes, the one
+`sim.evaluate` hands it for the same episode (examples/env_route.py).
 """
 
 from __future__ import annotations
@@ -156,6 +158,10 @@ class GraspEvalEnv(gym.Env):
     height in the world [m]) and, with ``obs_mode="rgbd"``, `depth` (`Box(0, inf, (H, W))`,
     float32: per pixel the z coordinate along the optical axis of the surface seen [m], as
     `posegrasp.core.contract.Observation.depth`). The colour image is the same in both modes.
+    ``Observation.from_env(obs, info)`` (`posegrasp.core.contract`) makes of a reset's
+    observation and info the `Observation` a pose estimator takes, the table height as a float
+    and the depth included: the one `sim.evaluate` and `sim.episode.play_episode` hand it for the
+    same object and episode seed, so its estimate is the same to the bit.
 
     ## Rewards
     1.0 when the object is lifted at least 0.10 m above the table and still held after a 2 s
@@ -295,7 +301,8 @@ class GraspEvalEnv(gym.Env):
                 episode seed).
 
         Returns:
-            The observation and ``{"object": class, "episode_seed": seed}``.
+            The observation and ``{"object": class, "episode_seed": seed}``; an estimator's
+            `Observation` is ``Observation.from_env(obs, info)``.
 
         Raises:
             InvalidArgumentError, UnknownNameError: a bad seed or options, found before any state

@@ -18,6 +18,7 @@ import numpy as np
 
 from grasping.execute import ExecutionConfig, Executor
 from grasping.planner import GraspPlanner, PlannerConfig, PlanningError
+from perception import metrics
 from perception.metrics import Symmetry, error_components, identity_symmetry
 from posegrasp.core.contract import (
     CONTRACT_VERSION,
@@ -79,7 +80,9 @@ class EpisodeResult:
 
     `pose_error` holds the estimate's errors (`pose_errors`), None without a valid estimate;
     `pose_correct` whether its MSSD is below `POSE_CORRECT_MSSD` times the object's diameter
-    (None without a valid estimate); `friction_margin` is the lowest sliding friction at which
+    (None without a valid estimate); `vsd` BOP's VSD of the estimate against the head
+    camera's depth, one error in [0, 1] per tau of `perception.metrics.BOP_VSD_TAUS` (None
+    without a valid estimate); `friction_margin` is the lowest sliding friction at which
     the grasp still held, when measured (`grasping.execute.Executor.friction_margin`).
     """
 
@@ -100,6 +103,7 @@ class EpisodeResult:
     friction_margin: float | None = None
     scene: dict[str, Any] = field(default_factory=dict)
     pose_correct: bool | None = None
+    vsd: list[float] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serialisable dict (strict JSON: an estimate with non-finite entries, which
@@ -138,6 +142,12 @@ def pose_errors(
 ) -> dict[str, float]:
     """Pose errors of an estimate against the truth, both T_C_O (4, 4) in the camera frame [m].
 
+    For an object with symmetries every error is measured against the equivalent true pose
+    ``T_true S`` the estimate is closest to, S the symmetry of least MSSD
+    (`perception.metrics.closest_symmetry`, the first on a tie): an estimate that differs from
+    the truth only by a symmetry has no error. For an object without, that is the truth itself
+    and the errors are the plain ones.
+
     Args:
         T_est, T_true: the estimated and the true pose.
         pts: the object's model points in O, (N, 3) [m] (its mesh vertices).
@@ -149,22 +159,24 @@ def pose_errors(
         ``translation_m``, ``translation_pct``, ``rotation_deg``, ``add_m``, ``adi_m`` (ADD-S),
         ``add_rel_diameter``, the components of `perception.metrics.error_components`, BOP's
         ``mssd_m`` and ``mssd_rel_diameter`` and, with K, ``mspd_px`` (left out when a model
-        point of either pose lies at or behind the camera plane, where BOP's MSPD is infinite).
+        point of either pose lies at or behind the camera plane, where BOP's MSPD is infinite);
+        for a symmetry set of more than the identity also ``symmetry_index``, the index in syms
+        of the S measured against.
     """
-    from perception import metrics
-
     R_e, t_e, R_g, t_g = T_est[:3, :3], T_est[:3, 3], T_true[:3, :3], T_true[:3, 3]
     syms = identity_symmetry() if syms is None else syms
-    add = metrics.add(R_e, t_e, R_g, t_g, pts)
-    mssd = metrics.mssd(R_e, t_e, R_g, t_g, pts, syms)
+    index, mssd = metrics.closest_symmetry(R_e, t_e, R_g, t_g, pts, syms)
+    T_ref = metrics.symmetric_pose(T_true, syms[index])
+    R_r, t_r = T_ref[:3, :3], T_ref[:3, 3]
+    add = metrics.add(R_e, t_e, R_r, t_r, pts)
     errors = {
-        "translation_m": float(np.linalg.norm(t_e - t_g)),
-        "translation_pct": float(metrics.translation_error_pct(t_e, t_g)),
-        "rotation_deg": float(metrics.rotation_error_deg(R_e, R_g)),
+        "translation_m": float(np.linalg.norm(t_e - t_r)),
+        "translation_pct": float(metrics.translation_error_pct(t_e, t_r)),
+        "rotation_deg": float(metrics.rotation_error_deg(R_e, R_r)),
         "add_m": float(add),
         "adi_m": float(metrics.adi(R_e, t_e, R_g, t_g, pts)),
         "add_rel_diameter": float(add / diameter),
-        **error_components(T_est, T_true),
+        **error_components(T_est, T_ref),
         "mssd_m": float(mssd),
         "mssd_rel_diameter": float(mssd / diameter),
     }
@@ -172,6 +184,8 @@ def pose_errors(
         mspd = metrics.mspd(R_e, t_e, R_g, t_g, K, pts, syms)
         if np.isfinite(mspd):
             errors["mspd_px"] = float(mspd)
+    if len(syms) > 1:
+        errors["symmetry_index"] = index
     return errors
 
 
@@ -316,14 +330,33 @@ class Episode:
         self._done = True
         timings = self.timings_ms
         notes: list[str] = []
-        errors = correct = None
+        errors = correct = vsd = None
         if T_C_O_est is not None:
             errors = self.pose_errors(T_C_O_est)
             correct = errors["mssd_rel_diameter"] < POSE_CORRECT_MSSD
+            # BOP's VSD against the depth the head camera sees now, before anything moves (what
+            # sim.export_bop writes as the image's depth); no surface is missing depth (0).
+            t = time.perf_counter()
+            depth = self.renderer.depth(self.scene.data, C.HEAD_CAMERA).astype(np.float64)
+            depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
+            model = self.scene.target.model
+            vsd = metrics.vsd(
+                T_C_O_est[:3, :3],
+                T_C_O_est[:3, 3],
+                self.T_C_O_true[:3, :3],
+                self.T_C_O_true[:3, 3],
+                depth,
+                self.K,
+                np.asarray(model.mesh.vertices),
+                np.asarray(model.mesh.faces),
+                model.diameter,
+            ).tolist()
+            timings["vsd"] = (time.perf_counter() - t) * 1000
 
         def result(success: bool, reason: str | None, part: str | None = None) -> EpisodeResult:
             res = self._result(estimator, success, reason, T_C_O_est, errors, notes, part)
             res.pose_correct = correct
+            res.vsd = vsd
             return res
 
         if T_C_O_est is None:
@@ -415,14 +448,23 @@ class Episode:
         `PrivilegedEstimator` (an oracle) is handed the true pose and the true neighbours.
 
         Raises:
-            InvalidArgumentError: the estimator answered something other than an `Estimate`.
+            InvalidArgumentError: the estimator raised, whatever the exception (the message is
+                ``estimator <name> raised <Type>: <message>``, the exception its cause), or
+                answered something other than an `Estimate`.
         """
         t = time.perf_counter()
-        if isinstance(estimator, PrivilegedEstimator):
-            est = estimator.estimate_from_truth(obs, self.T_C_O_true.copy(), self.true_neighbours())
-        else:
-            est = estimator.estimate(obs)
-        self.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
+        try:
+            if isinstance(estimator, PrivilegedEstimator):
+                T_true, neighbours = self.T_C_O_true.copy(), self.true_neighbours()
+                est = estimator.estimate_from_truth(obs, T_true, neighbours)
+            else:
+                est = estimator.estimate(obs)
+        except Exception as exc:  # any error of the estimator's own code, not only ours
+            raise InvalidArgumentError(
+                f"estimator {estimator.name} raised {type(exc).__name__}: {exc}"
+            ) from exc
+        finally:
+            self.timings_ms["estimate"] = (time.perf_counter() - t) * 1000
         if not isinstance(est, Estimate):
             raise InvalidArgumentError(
                 f"estimator {estimator.name!r} returned {type(est).__name__}, not an Estimate "
@@ -435,9 +477,24 @@ class Episode:
     ) -> tuple[Observation, EpisodeResult]:
         """Observe, ask the estimator (`estimate`), act; the result carries the estimate's
         ``info`` as ``estimate_info``, and the ``note`` of an estimate without a pose among its
-        notes."""
+        notes.
+
+        An estimator that raises (any exception) or answers something other than an `Estimate`
+        ends the episode as a failed grasp with ``error``, nothing planned: its note says what
+        happened (``estimator <name> raised <Type>: <message>``), and the scene, true pose and
+        timings are recorded as for any failure.
+
+        Raises:
+            StateError: the episode was already acted on.
+        """
         obs = self.observe()
-        est = self.estimate(estimator, obs)
+        try:
+            est = self.estimate(estimator, obs)
+        except InvalidArgumentError as exc:
+            if self._done:
+                raise StateError("this episode is over; build a new one") from None
+            self._done = True
+            return obs, self._result(estimator.name, False, "error", None, None, [str(exc)])
         res = self.act(est.T_C_O, estimator.name, recorder=recorder, neighbours=est.neighbours)
         res.estimate_info = dict(est.info)
         if est.T_C_O is None and isinstance(est.info.get("note"), str):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import re
 import sys
 import time
 from collections import Counter
@@ -52,7 +53,7 @@ from posegrasp.core.validate import (
 from posegrasp.world import constants as C
 from posegrasp.world.objects import OBJECT_NAMES, check_objects
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, add_pool_argument, check_tier
-from sim.bop_results import BopPosesEstimator, vsd_errors
+from sim.bop_results import BopPosesEstimator, time_summary, truth_match
 from sim.episode import execution_settings
 from sim.estimators import (
     DEFAULT_ESTIMATOR,
@@ -116,7 +117,9 @@ class EpisodeJob(NamedTuple):
 
 def _run_one(job: EpisodeJob) -> dict:
     """One episode of an evaluation, in whatever process runs it (this one, a pool worker, a Ray
-    worker started afresh after another died): it sets up rendering there first."""
+    worker started afresh after another died): it sets up rendering there first. An episode that
+    raises (any exception) is recorded as failed with ``error``, the exception in its notes (a
+    `PosegraspError` by its message, any other by its type and message), and the run goes on."""
     obj, seed, estimator, tier, noise, margin, obs_mode, pool, candidates = job
     from grasping.execute import ExecutionConfig
     from grasping.planner import PlannerConfig
@@ -135,7 +138,8 @@ def _run_one(job: EpisodeJob) -> dict:
         )
         r = play_episode(obj, seed, _resolve(estimator, noise), cfg)
         d = r.to_json()
-    except PosegraspError as exc:  # an episode never takes the evaluation down
+    except Exception as exc:  # an episode never takes the evaluation down, whatever it raised
+        note = str(exc) if isinstance(exc, PosegraspError) else f"{type(exc).__name__}: {exc}"
         d = {
             "object": obj,
             "seed": seed,
@@ -143,7 +147,7 @@ def _run_one(job: EpisodeJob) -> dict:
             "tier": tier,
             "success": False,
             "failure_reason": check_failure_reason("error"),
-            "notes": [str(exc)],
+            "notes": [note],
             "pose_error": None,
             "timings_ms": {},
         }
@@ -366,15 +370,59 @@ def _ar(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f}"
 
 
+#: Most notes the summary shows per failure reason, and most characters of each.
+NOTES_SHOWN, NOTE_CHARS = 3, 110
+
+
+def failure_notes(episodes: list[dict], top: int = NOTES_SHOWN) -> dict[str, list[tuple[str, int]]]:
+    """Why the episodes failed: per failure reason, its most frequent notes and how many failed
+    episodes carry each (notes alike but for their numbers count as one, shown by the first).
+
+    Args:
+        episodes: the report's episodes.
+        top: most notes per reason.
+
+    Returns:
+        reason -> [(note, episodes), ...], most frequent first; reasons without notes are left
+        out.
+    """
+    counts: dict[str, Counter] = {}
+    example: dict[tuple[str, str], str] = {}
+    for e in episodes:
+        if e["success"]:
+            continue
+        reason = str(e["failure_reason"])
+        seen = set()
+        for note in e.get("notes") or []:
+            key = re.sub(r"-?\d+(?:\.\d+)?(?:e[-+]?\d+)?", "#", str(note))
+            if key in seen:
+                continue
+            seen.add(key)
+            counts.setdefault(reason, Counter())[key] += 1
+            example.setdefault((reason, key), str(note))
+    return {
+        reason: [(example[(reason, key)], n) for key, n in c.most_common(top)]
+        for reason, c in sorted(counts.items())
+    }
+
+
+def _one_line(note: str) -> str:
+    line = " ".join(note.split())
+    return line if len(line) <= NOTE_CHARS else line[: NOTE_CHARS - 3] + "..."
+
+
 def format_report(report: dict) -> str:
-    """The report as a table."""
+    """The report as a table: per object and overall, success, pose errors, BOP's AR_MSSD,
+    AR_MSPD and AR_VSD, times and failures; then the most frequent notes of each failure
+    reason (`failure_notes`)."""
     rows = [
         f"estimator {report['estimator']}, tier {report.get('tier', DEFAULT_TIER)}: "
         f"{report['episodes_per_object']} episodes per object, "
         f"seeds from {report['seed_start']}, {report['workers']} worker(s), "
         f"{report['wall_s']:.1f} s wall",
         f"{'object':<8} {'success':>8} {'rate':>6} {'wilson 95%':>15} {'t med mm':>9} "
-        f"{'r med deg':>9} {'AR_MSSD':>7} {'AR_MSPD':>7} {'plan ms':>8} {'ep ms':>7}  failures",
+        f"{'r med deg':>9} {'AR_MSSD':>7} {'AR_MSPD':>7} {'AR_VSD':>7} {'plan ms':>8} "
+        f"{'ep ms':>7}  failures",
     ]
     items = [*report["per_object"].items(), ("overall", report["overall"])]
     for name, g in items:
@@ -385,7 +433,7 @@ def format_report(report: dict) -> str:
             f"[{g['wilson_low']:.3f}, {g['wilson_high']:.3f}] "
             f"{'-' if tm is None else f'{tm * 1000:.1f}':>9} "
             f"{'-' if rm is None else f'{rm:.2f}':>9} "
-            f"{_ar(g['ar_mssd']):>7} {_ar(g['ar_mspd']):>7} "
+            f"{_ar(g['ar_mssd']):>7} {_ar(g['ar_mspd']):>7} {_ar(g.get('ar_vsd')):>7} "
             f"{g['planning_ms_median'] or 0:>8.1f} {g['episode_wall_ms_median'] or 0:>7.0f}  "
             + ", ".join(f"{k}: {v}" for k, v in g["failure_reasons"].items())
         )
@@ -395,6 +443,11 @@ def format_report(report: dict) -> str:
         f"estimates; grasped with a wrong pose: {o['grasped_wrong_pose']}; missed with a right "
         f"pose: {o['missed_right_pose']}"
     )
+    notes = failure_notes(report["episodes"])
+    if notes:
+        rows.append("why episodes failed (most frequent notes, episodes with each):")
+        for reason, top in notes.items():
+            rows.extend(f"  {reason}: {n}x {_one_line(note)}" for note, n in top)
     margins = [(n, g) for n, g in items if "friction_margin_mean" in g]
     if margins:
         rows.append("friction margin (lowest sliding friction that still holds; lower is firmer):")
@@ -435,8 +488,10 @@ def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = Non
     One panel per component (ray, lateral, in-plane, out-of-plane): the episodes binned by that
     component's error, success rate per bin with its Wilson 95 % interval and count, each
     episode as a tick (top: success, bottom: failure), and, when given, the tolerance curves of
-    `sim.tolerance` (success against that error alone, one line per object). The episodes
-    carry all components at once, so a bin's rate is a marginal, not a single-factor curve.
+    `sim.tolerance` of the report's objects (success with the true pose plus that error alone,
+    one line per object, one colour per object in every panel). The episodes carry all
+    components at once, so a bin's rate is a marginal, not a single-factor curve. One legend
+    below the panels names every line and mark.
     """
     import matplotlib
 
@@ -444,19 +499,36 @@ def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = Non
     import matplotlib.pyplot as plt
 
     eps = [e for e in report["episodes"] if e.get("pose_error")]
+    scored = sorted({str(e["object"]) for e in report["episodes"]})
+    curves = {o: (tolerance or {})[o] for o in scored if o in (tolerance or {})}
+    colour = {o: f"C{i}" for i, o in enumerate(curves)}
     fig, axes = plt.subplots(1, 4, figsize=(17, 4.2), sharey=True)
     for ax, (kind, (key, scale, edges)) in zip(axes, COMPONENTS.items(), strict=True):
-        if tolerance:
-            for obj, kinds in sorted(tolerance.items()):
-                if kind in kinds:
-                    c = kinds[kind]
-                    ax.plot(c["levels"], c["success_rate"], lw=1, alpha=0.6, label=f"{obj} (alone)")
+        for obj, kinds in curves.items():
+            if kind in kinds:
+                c = kinds[kind]
+                ax.plot(
+                    c["levels"],
+                    c["success_rate"],
+                    lw=1.5,
+                    alpha=0.8,
+                    color=colour[obj],
+                    label=f"{obj}: true pose + this error alone",
+                )
         x = np.array([e["pose_error"][key] * scale for e in eps if key in e["pose_error"]])
         ok = np.array([bool(e["success"]) for e in eps if key in e["pose_error"]])
         if len(x):
             top = max(edges[-1], float(x.max()) * 1.05)
             bins = [*edges, top]
-            ax.plot(x, np.where(ok, 1.04, -0.04), "|", color="k", alpha=0.3, ms=8)
+            ax.plot(
+                x,
+                np.where(ok, 1.04, -0.04),
+                "|",
+                color="k",
+                alpha=0.3,
+                ms=8,
+                label="one episode (top: grasped, bottom: failed)",
+            )
             for lo, hi in itertools.pairwise(bins):
                 sel = (x >= lo) & (x < hi) if hi < top else (x >= lo)
                 n = int(sel.sum())
@@ -467,7 +539,14 @@ def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = Non
                 mid = (lo + min(hi, edges[-1] * 1.3)) / 2
                 err = [[max(0.0, k / n - wlo)], [max(0.0, whi - k / n)]]
                 ax.errorbar(
-                    mid, k / n, yerr=err, fmt="o", color="k", ms=4 + 6 * min(1.0, n / 50), capsize=3
+                    mid,
+                    k / n,
+                    yerr=err,
+                    fmt="o",
+                    color="k",
+                    ms=4 + 6 * min(1.0, n / 50),
+                    capsize=3,
+                    label="episodes in a bin: success rate, Wilson 95 %, count beside",
                 )
                 ax.annotate(
                     str(n), (mid, k / n), textcoords="offset points", xytext=(4, -12), fontsize=7
@@ -477,12 +556,24 @@ def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = Non
         ax.set_ylim(-0.1, 1.1)
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("grasp success rate")
-    axes[-1].legend(fontsize=7, loc="lower left")
+    named: dict[str, object] = {}  # one entry per label, over all panels
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            named.setdefault(label, handle)
     fig.suptitle(
-        f"{report['estimator']}: grasp success against pose error "
-        f"(black: binned episodes with Wilson 95 %, n beside; lines: tolerance to that error alone)"
+        f"{report['estimator']}: grasp success against each component of the pose error "
+        f"({', '.join(scored)})"
     )
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    if named:
+        fig.legend(
+            list(named.values()),
+            list(named),
+            loc="lower center",
+            ncol=min(4, len(named)),
+            fontsize=8,
+            frameon=False,
+        )
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -536,36 +627,39 @@ IMAGE_WIDTH = 640
 
 def bop_scores(episodes: list[dict]) -> dict[str, float | None]:
     """BOP 2019's average recalls of the episodes' estimates: AR_MSSD (thresholds 0.05..0.5 of
-    the diameter) and AR_MSPD (5..50 px at 640 px width); an episode without an estimate, or
-    whose MSPD is infinite, counts as a miss. None for no episodes."""
+    the diameter), AR_MSPD (5..50 px at 640 px width) and AR_VSD (the episodes' ``vsd``, taus
+    and thresholds 0.05..0.5); an episode without an estimate, whose MSPD is infinite or
+    without ``vsd`` counts as a miss. None for no episodes (AR_VSD also when no episode has a
+    ``vsd``, as in reports written before episodes recorded it)."""
     if not episodes:
-        return {"ar_mssd": None, "ar_mspd": None}
+        return {"ar_mssd": None, "ar_mspd": None, "ar_vsd": None}
 
     def err(e: dict, key: str) -> float | None:
         return (e.get("pose_error") or {}).get(key)
 
+    vsd = [e.get("vsd") for e in episodes]
     return {
         "ar_mssd": metrics.ar_mssd([err(e, "mssd_rel_diameter") for e in episodes], 1.0),
         "ar_mspd": metrics.ar_mspd([err(e, "mspd_px") for e in episodes], IMAGE_WIDTH),
+        "ar_vsd": metrics.ar_vsd(vsd) if any(v is not None for v in vsd) else None,
     }
 
 
 def poses_record(estimator: BopPosesEstimator, csv_path: Path, report: dict) -> dict:
     """Where the poses of a ``--poses`` run came from (the CSV and its hash, the export), how many
-    of the export's targets the CSV had a row for, and BOP's AR_VSD of the poses against the
-    export's depth images; each episode gains its ``vsd`` errors (one per tau, None without an
-    estimate)."""
+    of the export's targets the CSV had a row for, the method's time per image from the CSV's
+    ``time`` column (`sim.bop_results.time_summary`), and whether the poses belong to these
+    episodes at all (``truth_match``, `sim.bop_results.truth_match`)."""
     eps = report["episodes"]
-    vsd = vsd_errors(estimator.export, eps)
-    for e, err in zip(eps, vsd, strict=True):
-        e["vsd"] = err
+    times = [(e.get("estimate_info") or {}).get("time") for e in eps]
     return {
         "csv": str(csv_path),
         "csv_sha256": sha256_file(csv_path),
         "export": str(estimator.export.root),
         "targets": len(eps),
-        "targets_with_a_row": sum(e["T_C_O_est"] is not None for e in eps),
-        "ar_vsd": metrics.ar_vsd(vsd),
+        "targets_with_a_row": sum(e.get("T_C_O_est") is not None for e in eps),
+        **time_summary([t for t in times if isinstance(t, (int, float))]),
+        "truth_match": truth_match(eps),
     }
 
 
@@ -700,11 +794,26 @@ def main(argv: list[str] | None = None) -> int:
     print(format_report(report), file=log)
     if poses is not None:
         rec = report["poses"]
+        timed = (
+            f"time per image median {rec['time_s_median']:.3g} s, 90th percentile "
+            f"{rec['time_s_p90']:.3g} s ({rec['images_timed']} images timed)"
+            if rec["images_timed"]
+            else "no time given"
+        )
         print(
             f"BOP route: {rec['targets_with_a_row']} of {rec['targets']} targets had a row in "
-            f"{rec['csv']}; AR_VSD {rec['ar_vsd']:.3f}",
+            f"{rec['csv']}; {timed}",
             file=log,
         )
+        match = rec["truth_match"]
+        if match["unrelated"]:
+            print(
+                f"warning: only {match['nearest_own']} of {match['estimates']} estimates lie "
+                f"nearest their own episode's target ({match['chance']:.1f} expected of poses "
+                f"made for other scenes, chance {match['p_value']:.2g}): does {rec['csv']} "
+                f"answer another export than {rec['export']}, or are its poses far off?",
+                file=log,
+            )
     if args.plot is not None:
         plot_success_vs_error(report, args.plot, tolerance)
         print(f"wrote {args.plot}", file=log)

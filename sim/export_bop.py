@@ -14,22 +14,31 @@ Layout of ``DIR`` (BOP toolkit, docs/bop_datasets_format.md; millimetres in ever
 
     DIR/camera.json                         fx, fy, cx, cy, width, height, depth_scale
     DIR/models/models_info.json             diameter, min_*, size_* [mm], symmetries_discrete
-    DIR/models/obj_<obj_id:06d>.ply         the six objects' meshes [mm] (vertex colours)
-    DIR/test/<scene_id:06d>/rgb/<im_id:06d>.png        the head-camera image, 640x480
-    DIR/test/<scene_id:06d>/depth/<im_id:06d>.png      z-depth, uint16, mm = value * depth_scale
-    DIR/test/<scene_id:06d>/scene_camera.json          cam_K, depth_scale, cam_R_w2c, cam_t_w2c
-    DIR/test/<scene_id:06d>/scene_gt.json              cam_R_m2c, cam_t_m2c, obj_id (not --no-gt)
-    DIR/test/<scene_id:06d>/scene_gt_info.json         bbox_*, px_count_*, visib_fract (ditto)
+    DIR/models/obj_<obj_id:06d>.ply         the objects' meshes [mm] (vertex colours)
+    DIR/models_eval/                        the same files (BOP's evaluation models)
+    DIR/test/<scene_id:06d>/rgb/000000.png           the head-camera image, 640x480
+    DIR/test/<scene_id:06d>/depth/000000.png         z-depth, uint16, mm = value * depth_scale
+    DIR/test/<scene_id:06d>/scene_camera.json        cam_K, depth_scale, cam_R_w2c, cam_t_w2c
+    DIR/test/<scene_id:06d>/scene_gt.json            cam_R_m2c, cam_t_m2c, obj_id (not --no-gt)
+    DIR/test/<scene_id:06d>/scene_gt_info.json       bbox_*, px_count_*, visib_fract (ditto)
+    DIR/test/<scene_id:06d>/mask/000000_<gt:06d>.png       full silhouette, 0/255 (ditto)
+    DIR/test/<scene_id:06d>/mask_visib/000000_<gt:06d>.png visible part, 0/255 (ditto)
     DIR/test_targets_bop19.json             per image: the episode's target (inst_count 1)
-    DIR/posegrasp_episodes.json             the episodes: tier, seeds, objects, image ids
+    DIR/test_targets_bop24.json             per image: scene_id, im_id
+    DIR/posegrasp_episodes.json             the episodes: tier, seeds, objects, image ids,
+                                            table_top_z [m] per image
 
-One scene per target object, ``scene_id`` = the target's BOP ``obj_id`` (1..6 in
-`posegrasp.world.objects.OBJECT_NAMES` order), and ``im_id`` = the episode index i (seed
-``S + i``). ``scene_gt`` lists every object of the scene, the target first, then the others in
-the scene's order; ``scene_gt_info`` follows BOP's public test sets: the visible mask is the
-object's pixels in a segmentation render, the full silhouette the object rendered alone
-(outside the image too), ``px_count_valid`` its pixels with depth. Depth beyond
-``65535 * depth_scale`` mm (or no surface) is 0, BOP's missing depth.
+One scene per episode, one image each (im_id 0): a BOP scene is one static arrangement, and
+each episode is its own. Its ``scene_id`` is `sim.bop_results.scene_ids` of the episode's tier,
+target and seed, so that exports of other tiers, objects or seeds do not share ids and a CSV of
+one is refused by another. ``scene_gt`` lists every object of the scene, the target first, then
+the others in the scene's order; ``scene_gt_info`` and the masks follow BOP's public test sets:
+the visible mask is the object's pixels in a segmentation render, the full silhouette the
+object rendered alone, ``px_count_all`` its pixels also outside the image, ``px_count_valid``
+its pixels with depth. Depth beyond ``65535 * depth_scale`` mm (or no surface) is 0, BOP's
+missing depth. The map file also holds each image's table height in the world frame (the
+``table_top_z`` a live estimator's observation carries; ``scene_camera``'s ``cam_R_w2c`` and
+``cam_t_w2c`` give the world frame).
 
 A folder holds one export: the same arguments again rewrite the same bytes (which completes an
 interrupted export; the map file says ``"complete": false`` until the last file is written), other
@@ -46,7 +55,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from perception.training.annotations import full_silhouette
 from perception.training.bop import (
@@ -66,6 +74,7 @@ from posegrasp.core.cli import ArgumentParser, add_out_argument, command
 from posegrasp.core.contract import CONTRACT_VERSION
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import git_commit
+from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import invert_transform
 from posegrasp.core.validate import arg, check_int, check_seed
@@ -73,7 +82,7 @@ from posegrasp.world import constants as C
 from posegrasp.world.camera import body_mask
 from posegrasp.world.objects import OBJECT_NAMES, check_objects, load_object
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
-from sim.bop_results import EXPORT_FORMAT, EXPORT_VERSION, MAP_FILE
+from sim.bop_results import EXPORT_FORMAT, EXPORT_VERSION, MAP_FILE, scene_ids
 from sim.episode import Episode, EpisodeConfig, execution_settings
 
 #: BOP split the images go to.
@@ -88,14 +97,19 @@ _HIDDEN_GROUP = 5
 _NO_BOX = [-1, -1, -1, -1]
 
 
-def image_ids(obj: str, index: int) -> tuple[int, int]:
-    """(scene_id, im_id) of episode `index` of target `obj`: (its BOP obj_id, index)."""
-    return obj_id(obj), index
+#: The im_id of every image: each scene holds one.
+IM_ID = 0
 
 
 def depth_path(sdir: Path, im_id: int) -> Path:
     """Depth image of image im_id of the scene folder sdir."""
     return sdir / "depth" / f"{im_id:06d}.png"
+
+
+def mask_path(sdir: Path, im_id: int, gt_idx: int, visible: bool) -> Path:
+    """BOP mask of instance gt_idx of image im_id (``mask_visib/`` when visible, else
+    ``mask/``) of the scene folder sdir."""
+    return sdir / ("mask_visib" if visible else "mask") / f"{im_id:06d}_{gt_idx:06d}.png"
 
 
 def png16_bytes(image: np.ndarray) -> bytes:
@@ -230,9 +244,10 @@ def _gt_info(
 
 def _export_image(
     ep: Episode, ground_truth: bool
-) -> tuple[np.ndarray, np.ndarray, dict, list, list]:
-    """RGB (H, W, 3) uint8, depth values (H, W) uint16, and the scene_camera, scene_gt and
-    scene_gt_info entries of the head-camera view of an episode observing ``rgbd``."""
+) -> tuple[np.ndarray, np.ndarray, dict, list, list, list]:
+    """RGB (H, W, 3) uint8, depth values (H, W) uint16, the scene_camera, scene_gt and
+    scene_gt_info entries, and the (full, visible) masks (H, W) bool of each object of the
+    head-camera view of an episode observing ``rgbd`` (no gt and masks without ground_truth)."""
     obs = ep.observe()
     depth = depth_to_png(obs.depth)
     T_C_W = invert_transform(obs.T_world_cam)
@@ -242,20 +257,21 @@ def _export_image(
         "cam_R_w2c": [float(x) for x in T_C_W[:3, :3].reshape(-1)],
         "cam_t_w2c": [float(x) * MM_PER_M for x in T_C_W[:3, 3]],
     }
-    gts, infos = [], []
+    gts, infos, masks = [], [], []
     if ground_truth:
         poses = [(ep.object, ep.T_C_O_true), *ep.true_neighbours()]
         for (name, T), (visible, full) in zip(poses, _object_masks(ep), strict=True):
             gts.append({**pose_to_bop(T), "obj_id": obj_id(name)})
             infos.append(_gt_info(name, T, obs.K, visible, full, depth))
-    return obs.rgb, depth, camera, gts, infos
+            masks.append((full, visible))
+    return obs.rgb, depth, camera, gts, infos, masks
 
 
 def _write_index(
     out: Path, scenes: dict[int, dict[str, dict[str, Any]]], images: list[dict], gt: bool
 ) -> None:
     """The per-scene JSON files (scene_camera, and with gt scene_gt and scene_gt_info),
-    test_targets_bop19.json and camera.json of an export's images."""
+    test_targets_bop19.json, test_targets_bop24.json and camera.json of an export's images."""
     for scene_id, files in scenes.items():
         for kind, content in files.items():
             if gt or kind == "scene_camera":
@@ -271,6 +287,8 @@ def _write_index(
     ]
     targets.sort(key=lambda t: (t["scene_id"], t["im_id"]))
     write_json(out / "test_targets_bop19.json", targets)
+    images24 = [{"im_id": t["im_id"], "scene_id": t["scene_id"]} for t in targets]
+    write_json(out / "test_targets_bop24.json", images24)
     first = next(iter(scenes.values()))["scene_camera"]
     K = np.reshape(next(iter(first.values()))["cam_K"], (3, 3))
     camera = {
@@ -283,6 +301,13 @@ def _write_index(
         "depth_scale": DEPTH_SCALE,
     }
     write_json(out / "camera.json", camera)
+
+
+def _copy_models(out: Path) -> None:
+    """``models_eval/``: the files of ``models/`` (BOP evaluates on uniformly resampled
+    models; the toolkit reads any mesh there)."""
+    for path in sorted((out / "models").iterdir()):
+        write_bytes(out / "models_eval" / path.name, path.read_bytes())
 
 
 def export_bop(
@@ -302,7 +327,7 @@ def export_bop(
         episodes: episodes per object.
         seed_start: the first scene seed.
         tier: the scene tier (`posegrasp.world.tiers.TIERS`).
-        ground_truth: write scene_gt.json and scene_gt_info.json.
+        ground_truth: write scene_gt.json, scene_gt_info.json and the masks.
         progress: show a progress bar.
 
     Returns:
@@ -321,34 +346,42 @@ def export_bop(
     out = Path(out)
     protocol = export_protocol(objects, episodes, seed_start, tier, ground_truth)
     check_out_folder(out, protocol)
-    jobs = [(o, i) for o in objects for i in range(episodes)]
+    jobs = [(o, seed_start + i) for o in objects for i in range(episodes)]
+    ids = scene_ids(tier, jobs)
     info = {
         **protocol,
         "complete": False,
         "commit": git_commit(),
         "contract_version": CONTRACT_VERSION,
         "execution": execution_settings(),
-        "layout": "scene_id = BOP obj_id of the target, im_id = episode index i (seed "
-        "seed_start + i); scene_gt: the target first, then the other objects",
+        "layout": "one scene per episode, its one image im_id 0; scene_id = "
+        "sim.bop_results.scene_ids(tier, object, seed); scene_gt: the target first, then the "
+        "other objects; table_top_z: the table top's height in the world frame [m]",
         "images": [
-            {"scene_id": image_ids(o, i)[0], "im_id": i, "object": o, "seed": seed_start + i}
-            for o, i in jobs
+            {"scene_id": ids[(o, seed)], "im_id": IM_ID, "object": o, "seed": seed}
+            for o, seed in jobs
         ],
     }
     write_json(out / MAP_FILE, info)  # first: an interrupted export is known by it
     write_models(out, [*OBJECT_NAMES, *(o for o in objects if o not in OBJECT_NAMES)])
+    _copy_models(out)
     scenes: dict[int, dict[str, dict[str, Any]]] = {}
     cfg = EpisodeConfig(tier=tier, obs_mode="rgbd")
-    for obj, i in tqdm(jobs, desc="images", unit="image", disable=not progress, dynamic_ncols=True):
-        scene_id, im_id = image_ids(obj, i)
-        ep = Episode(obj, seed_start + i, cfg)
+    bar = progress_bar(info["images"], desc="images", unit="image", disable=not progress)
+    for image in bar:
+        scene_id, im_id = image["scene_id"], IM_ID
+        ep = Episode(image["object"], image["seed"], cfg)
         try:
-            rgb, depth, camera, gts, infos = _export_image(ep, ground_truth)
+            rgb, depth, camera, gts, infos, masks = _export_image(ep, ground_truth)
+            image["table_top_z"] = float(ep.scene.table_top_z)
         finally:
             ep.close()
         sdir = scene_dir(out, SPLIT, scene_id)
         write_png(rgb_path(sdir, im_id), rgb)
         write_bytes(depth_path(sdir, im_id), png16_bytes(depth))
+        for gt_idx, (full, visible) in enumerate(masks):
+            write_png(mask_path(sdir, im_id, gt_idx, False), full.astype(np.uint8) * 255)
+            write_png(mask_path(sdir, im_id, gt_idx, True), visible.astype(np.uint8) * 255)
         files = scenes.setdefault(
             scene_id, {"scene_camera": {}, "scene_gt": {}, "scene_gt_info": {}}
         )
@@ -394,7 +427,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--no-gt",
         action="store_true",
-        help="leave out scene_gt.json and scene_gt_info.json, as BOP's public test sets do",
+        help="leave out scene_gt.json, scene_gt_info.json, mask/ and mask_visib/, as BOP's "
+        "public test sets do",
     )
     args = p.parse_args(argv)
     check_seed(args.seed_start, "--seed-start", args.episodes)

@@ -36,7 +36,7 @@ from posegrasp.world.camera import CameraRenderer, RenderOptions, check_resoluti
 from posegrasp.world.objects import OBJECT_NAMES, object_names
 from posegrasp.world.scene import SceneConfig, build_scene
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
-from sim.episode import Episode, EpisodeConfig, pose_errors
+from sim.episode import Episode, EpisodeConfig
 from sim.estimators import (
     DEFAULT_ESTIMATOR,
     PrivilegedEstimator,
@@ -221,7 +221,7 @@ def _estimate_on_head(
     img = draw_estimate(obs.rgb, obs.K, ep.T_C_O_true, est, v, f)
     if est is None:
         return img, f"{estimator.name}: {ep.object} not detected", MISSED_COLOUR
-    e = pose_errors(est, ep.T_C_O_true, v, target.diameter)
+    e = ep.pose_errors(est)  # up to the object's symmetries
     errors = f"{e['translation_m'] * 1000:.0f} mm, {e['rotation_deg']:.1f} deg off"
     return img, f"{estimator.name} estimate: {errors}", ERRORS_COLOUR
 

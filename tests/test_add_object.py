@@ -430,6 +430,7 @@ def test_env_takes_a_user_object(made, monkeypatch) -> None:
 
 def test_export_bop_writes_user_models(made, monkeypatch, tmp_path) -> None:
     from perception.training.bop import obj_id
+    from sim.bop_results import read_export
     from sim.export_bop import export_bop
 
     root, _ = made
@@ -441,10 +442,9 @@ def test_export_bop_writes_user_models(made, monkeypatch, tmp_path) -> None:
     box = info[str(obj_id("box"))]
     assert box["diameter"] == pytest.approx(1000 * np.linalg.norm([0.06, 0.04, 0.03]), rel=0.02)
     assert (tmp_path / "bop" / "models" / f"obj_{obj_id('box'):06d}.ply").stat().st_size > 0
-    gt = json.loads(
-        (tmp_path / "bop" / "test" / f"{obj_id('box'):06d}" / "scene_gt.json").read_text()
-    )
-    assert gt["0"][0]["obj_id"] == obj_id("box")
+    ((scene_id, im_id),) = read_export(tmp_path / "bop").images.values()
+    gt = json.loads((tmp_path / "bop" / "test" / f"{scene_id:06d}" / "scene_gt.json").read_text())
+    assert gt[str(im_id)][0]["obj_id"] == obj_id("box")
 
 
 @pytest.mark.parametrize("name", ["box", "openbox"])

@@ -10,6 +10,7 @@ import pytest
 
 from sim import compare as cmp
 from sim import evaluate as ev
+from sim.bop_results import read_export
 from sim.export_bop import export_bop
 
 SEED = 1_000_000_000
@@ -40,7 +41,8 @@ def test_a_csv_of_the_truth_grasps_like_the_oracle(export: Path, tmp_path: Path,
     assert bench.write_csv(export, csv, None) == 4
     out, oracle = tmp_path / "bop.json", tmp_path / "oracle.json"
     assert ev.main(["--poses", str(csv), "--from", str(export), "--json", str(out)]) == 0
-    assert "AR_VSD 1.000" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "AR_VSD" in printed and "no time given" in printed and "warning" not in printed
     assert (
         ev.main(
             [
@@ -58,8 +60,12 @@ def test_a_csv_of_the_truth_grasps_like_the_oracle(export: Path, tmp_path: Path,
     )
     r = json.loads(out.read_text())
     assert r["estimator"].startswith("bop:truth.csv@") and r["seed_start"] == SEED
-    assert r["overall"]["ar_mssd"] == r["overall"]["ar_mspd"] == r["poses"]["ar_vsd"] == 1.0
-    assert r["poses"]["targets_with_a_row"] == 4
+    assert r["overall"]["ar_mssd"] == r["overall"]["ar_mspd"] == r["overall"]["ar_vsd"] == 1.0
+    assert all(e["vsd"] == [0.0] * 10 for e in r["episodes"])
+    assert r["poses"]["targets_with_a_row"] == 4 and r["poses"]["images_timed"] == 0
+    # The live run has AR_VSD too, from the same per-episode errors.
+    live = json.loads(oracle.read_text())
+    assert live["overall"]["ar_vsd"] == 1.0 and live["per_object"]["car"]["ar_vsd"] == 1.0
     res = cmp.compare(cmp.load_report(oracle), cmp.load_report(out))
     assert res["paired_episodes"] == 4 and res["overall"]["difference"] == 0.0
 
@@ -67,14 +73,21 @@ def test_a_csv_of_the_truth_grasps_like_the_oracle(export: Path, tmp_path: Path,
 def test_a_target_without_a_row_is_no_estimate(export: Path, tmp_path: Path) -> None:
     csv = tmp_path / "one.csv"
     _bench().write_csv(export, csv, None)
+    car0 = read_export(export).images[("car", SEED)][0]
     lines = csv.read_text().splitlines()
-    csv.write_text("\n".join([lines[0], *[ln for ln in lines[1:] if not ln.startswith("1,0,")]]))
+    kept = [ln for ln in lines[1:] if not ln.startswith(f"{car0},0,")]
+    # A time per image, in seconds, for every row left.
+    kept = [ln.rsplit(",", 1)[0] + f",{0.1 * (k + 1):.1f}" for k, ln in enumerate(kept)]
+    csv.write_text("\n".join([lines[0], *kept]))
     out = tmp_path / "r.json"
     assert ev.main(["--poses", str(csv), "--from", str(export), "--json", str(out)]) == 0
     r = json.loads(out.read_text())
     car0 = next(e for e in r["episodes"] if (e["object"], e["seed"]) == ("car", SEED))
-    assert car0["failure_reason"] == "no_estimate"  # scene 1 is the car's, image 0 its first
+    assert car0["failure_reason"] == "no_estimate" and car0["vsd"] is None
     assert r["poses"]["targets_with_a_row"] == 3 and r["overall"]["ar_mssd"] <= 0.75
+    assert r["overall"]["ar_vsd"] == 0.75
+    assert r["poses"]["images_timed"] == 3 and r["poses"]["time_s_median"] == 0.2
+    assert r["poses"]["time_s_p90"] == pytest.approx(0.28)
 
 
 @pytest.mark.parametrize(
@@ -97,3 +110,63 @@ def test_the_poses_route_takes_its_episodes_from_the_export(
     assert "needs --from" in capsys.readouterr().err
     assert ev.main(["--from", str(export)]) == 2
     assert ev.main(["--poses", str(tmp_path / "none.csv"), "--from", str(export)]) == 2
+
+
+def test_a_csv_of_another_export_is_refused(export: Path, tmp_path: Path, capsys) -> None:
+    other = tmp_path / "clutter"
+    export_bop(other, OBJECTS, 2, SEED, "clutter", progress=False)
+    csv = tmp_path / "clutter.csv"
+    _bench().write_csv(other, csv, None)
+    assert ev.main(["--poses", str(csv), "--from", str(export)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "answers another export" in err
+    assert "tier isolated" in err
+
+
+def _report(episodes: list[dict]) -> dict:
+    return ev.make_report(episodes, ["car"], "mine", "isolated", SEED, len(episodes))
+
+
+def _failed(reason: str, notes: list[str]) -> dict:
+    return {
+        "object": "car",
+        "seed": SEED,
+        "estimator": "mine",
+        "tier": "isolated",
+        "success": False,
+        "failure_reason": reason,
+        "notes": notes,
+        "pose_error": None,
+        "timings_ms": {},
+        "wall_ms": 1.0,
+    }
+
+
+def test_the_summary_says_why_episodes_failed() -> None:
+    far = "estimated pose T_C_O: position is {} m from the camera, beyond 10 m: poses are in metres"
+    episodes = [
+        _failed("invalid_action", [far.format(575.2)]),
+        _failed("invalid_action", [far.format(12.5)]),
+        _failed("no_estimate", ["user object 'can' is not one this estimator knows\nsecond line"]),
+        *(_failed("no_estimate", [f"note {k}"]) for k in "abcd"),
+        _failed("no_estimate", []),
+    ]
+    notes = ev.failure_notes(episodes)
+    # Notes alike but for their numbers count as one, shown by the first; at most 3 per reason.
+    assert notes["invalid_action"] == [(far.format(575.2), 2)]
+    assert len(notes["no_estimate"]) == ev.NOTES_SHOWN
+    assert notes["no_estimate"][0][0].startswith("user object 'can'")
+    text = ev.format_report(_report(episodes))
+    assert "AR_VSD" in text.splitlines()[1]
+    assert "  invalid_action: 2x estimated pose T_C_O: position is 575.2 m" in text
+    line = next(ln for ln in text.splitlines() if "user object 'can'" in ln)
+    assert line.startswith("  no_estimate: 1x") and line.endswith("second line")
+    long = _failed("collision", ["x" * 500])
+    long_line = next(ln for ln in ev.format_report(_report([long])).splitlines() if "xxx" in ln)
+    assert len(long_line) <= len("  collision: 1x ") + ev.NOTE_CHARS and long_line.endswith("...")
+
+
+def test_ar_vsd_counts_an_episode_without_vsd_as_a_miss_and_old_reports_have_none() -> None:
+    ok = {**_failed("missed", []), "vsd": [0.0] * 10}
+    assert ev.bop_scores([ok, _failed("no_estimate", [])])["ar_vsd"] == 0.5
+    assert ev.bop_scores([_failed("no_estimate", [])])["ar_vsd"] is None

@@ -1,8 +1,11 @@
-"""The GraspEval-v0 gymnasium env: contract, determinism, vectorisation and bad actions."""
+"""The GraspEval-v0 gymnasium env: contract, determinism, vectorisation, bad actions, and the
+observation an estimator gets through it (`Observation.from_env`)."""
 
 from __future__ import annotations
 
 import warnings
+from dataclasses import fields
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -10,9 +13,17 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import posegrasp  # noqa: F401  (registers the env)
+from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, StateError, UnknownNameError
 from posegrasp.world.tiers import TIERS
 from sim.env import MAX_NEIGHBOURS, GraspEvalEnv, pose_action
+from sim.episode import Episode, EpisodeConfig
+from sim.estimators import make_estimator
+from sim.evaluate import evaluate
+
+CRUDE = Path(__file__).resolve().parent.parent / "examples" / "crude-estimator"
+#: sim.evaluate's first episode seed.
+SEED = 1_000_000_000
 
 
 def _truth(env: gym.Env) -> np.ndarray:
@@ -200,3 +211,61 @@ def test_a_non_unit_neighbour_quaternion_is_an_invalid_action() -> None:
     assert reward == 0.0 and info["failure_reason"] == "invalid_action"
     assert "neighbour 0" in info["error"]
     env.close()
+
+
+@pytest.mark.parametrize("obs_mode", ["rgb", "rgbd"])
+def test_from_env_is_the_observation_an_episode_hands_an_estimator(obs_mode: str) -> None:
+    env = GraspEvalEnv(object="car", obs_mode=obs_mode)
+    obs, info = env.reset(seed=SEED + 3)
+    got = Observation.from_env(obs, info)
+    env.close()
+    episode = Episode("car", SEED + 3, EpisodeConfig(obs_mode=obs_mode))
+    want = episode.observe()
+    episode.close()
+    assert isinstance(got.table_top_z, float) and (got.depth is None) == (obs_mode == "rgb")
+    for f in fields(Observation):
+        a, b = getattr(got, f.name), getattr(want, f.name)
+        assert type(a) is type(b) and np.array_equal(a, b), f.name
+
+
+def test_from_env_names_what_it_lacks() -> None:
+    env = GraspEvalEnv(object="phone")
+    obs, info = env.reset(seed=SEED)
+    env.close()
+    with pytest.raises(InvalidArgumentError, match="lacks episode_seed; it needs object, episode"):
+        Observation.from_env(obs, {"object": "phone"})
+    with pytest.raises(InvalidArgumentError, match="lacks table_top_z"):
+        Observation.from_env({k: v for k, v in obs.items() if k != "table_top_z"}, info)
+    with pytest.raises(InvalidArgumentError, match="one real number"):
+        Observation.from_env({**obs, "table_top_z": np.zeros(2)}, info)
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        "posegrasp_crude:CrudeTableEstimator",
+        "hybrid-global-table",
+        "hybrid",
+    ],
+)
+def test_the_env_route_estimates_as_evaluate_does(
+    spec: str, monkeypatch: pytest.MonkeyPatch, torch_one_thread: None
+) -> None:
+    """Through the env with `Observation.from_env`, an estimator answers exactly the pose it
+    answers in `sim.evaluate`'s episode of the same seed, and the grasp on it ends alike."""
+    monkeypatch.syspath_prepend(str(CRUDE))
+    estimator = make_estimator(spec)
+    episode = evaluate(["phone"], 1, estimator, SEED)["episodes"][0]
+    env = GraspEvalEnv(object="phone")
+    obs, info = env.reset(seed=SEED)
+    est = estimator.estimate(Observation.from_env(obs, info))
+    _, reward, *_, step_info = env.step(pose_action(est.T_C_O, est.neighbours))
+    env.close()
+    assert est.T_C_O is not None and np.array_equal(est.T_C_O, np.array(episode["T_C_O_est"]))
+    # The action carries the pose as a position and a quaternion, so the grasp's pose is the
+    # estimate to rounding only.
+    assert step_info["pose_error"] == pytest.approx(episode["pose_error"], rel=1e-9, abs=1e-12)
+    assert (reward == 1.0, step_info["failure_reason"]) == (
+        episode["success"],
+        episode["failure_reason"],
+    )

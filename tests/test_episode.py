@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -240,3 +241,42 @@ def test_evaluate_cli(tmp_path, capsys) -> None:
     capsys.readouterr()
     assert evaluate.main(["--objects", "teapot"]) == 2  # refused while parsing, before any work
     assert "valid objects: car" in capsys.readouterr().err
+
+
+def test_the_printed_timings_add_up_to_the_printed_total() -> None:
+    r = run("phone", 1, OracleEstimator())
+    (line,) = [x for x in run_episode.summary(r).splitlines() if x.startswith("  timings")]
+    assert "estimate" in line and "(ik " in line  # ik is printed as part of plan
+    values = dict(re.findall(r"(\w+) (\d+) ms", re.sub(r"\(ik \d+ ms\)", "", line)))
+    total = int(values.pop("total"))
+    assert abs(sum(map(int, values.values())) - total) <= len(values)  # each rounded to 1 ms
+    assert total == round(r.timings_ms["total"])
+
+
+def test_the_estimators_stage_times_are_printed_as_parts_of_the_estimate() -> None:
+    timings = {"scene": 100.0, "estimate": 2000.0, "plan": 80.0, "ik": 70.0, "total": 2180.0}
+    stages = {"detect": 120.0, "nets": 30.0, "total": 150.0, "hypotheses": 1800.0}
+    line = run_episode._timing_lines(timings, stages)[1]
+    assert "total" not in line  # the nets' subtotal is not a second total
+    assert "detect 120.0 ms" in line and "hypotheses 1800.0 ms" in line
+    assert line.endswith("(parts of the estimate's 2000 ms)")
+
+
+def test_building_a_codebook_says_so_once(tmp_path, capsys) -> None:
+    from perception.global_pose import CodebookCache
+
+    books = CodebookCache(12, 4, folder=tmp_path)
+    books.get("car")
+    books.get("car")
+    CodebookCache(12, 4, folder=tmp_path).get("car")  # read from the cache
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1
+    assert "building the car's silhouette codebook" in err[0] and "cached in" in err[0]
+
+
+def test_an_episode_without_a_grasp_writes_no_film(tmp_path, capsys) -> None:
+    argv = ["--object", "phone", "--estimator", "noisy-oracle", "--noise", "1000,1000,0,0"]
+    assert run_episode.main([*argv, "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "no grasp was executed (failed: " in out
+    assert (tmp_path / "head.png").is_file() and not (tmp_path / "grasp_strip.png").exists()

@@ -36,8 +36,12 @@ def episodes():
         ep.close()
 
 
+def scene_id(export: Path, obj: str) -> int:
+    return read_export(export).images[(obj, SEED)][0]
+
+
 def scene(export: Path, obj: str) -> Path:
-    return export / "test" / f"{xb.image_ids(obj, 0)[0]:06d}"
+    return export / "test" / f"{scene_id(export, obj):06d}"
 
 
 def load(path: Path):
@@ -59,11 +63,24 @@ def test_the_export_files_parse_and_have_bop_keys(export: Path) -> None:
     for entry in info.values():
         assert {"diameter", "min_x", "min_y", "min_z", "size_x", "size_y", "size_z"} <= set(entry)
         assert (export / "models" / "obj_000001.ply").read_bytes().startswith(b"ply\n")
+    car, phone = scene_id(export, "car"), scene_id(export, "phone")
     targets = load(export / "test_targets_bop19.json")
-    assert targets == [
-        {"im_id": 0, "inst_count": 1, "obj_id": 1, "scene_id": 1},
-        {"im_id": 0, "inst_count": 1, "obj_id": 4, "scene_id": 4},
+    assert targets == sorted(
+        [
+            {"im_id": 0, "inst_count": 1, "obj_id": 1, "scene_id": car},
+            {"im_id": 0, "inst_count": 1, "obj_id": 4, "scene_id": phone},
+        ],
+        key=lambda t: t["scene_id"],
+    )
+    assert load(export / "test_targets_bop24.json") == [
+        {"im_id": 0, "scene_id": t["scene_id"]} for t in targets
     ]
+    models = sorted(p.name for p in (export / "models").iterdir())
+    assert sorted(p.name for p in (export / "models_eval").iterdir()) == models
+    for name in models:
+        assert (export / "models_eval" / name).read_bytes() == (
+            export / "models" / name
+        ).read_bytes()
     for obj in OBJECTS:
         sdir = scene(export, obj)
         cam = load(sdir / "scene_camera.json")["0"]
@@ -107,7 +124,7 @@ def test_the_depth_png_is_the_rendered_depth_within_its_step(export: Path, episo
 def test_scene_gt_holds_the_true_pose_in_mm(export: Path, episodes) -> None:
     for obj, ep in episodes.items():
         (gt,) = load(scene(export, obj) / "scene_gt.json")["0"]
-        assert gt["obj_id"] == xb.image_ids(obj, 0)[0]
+        assert gt["obj_id"] == {"car": 1, "phone": 4}[obj]
         np.testing.assert_allclose(
             np.reshape(gt["cam_R_m2c"], (3, 3)), ep.T_C_O_true[:3, :3], rtol=0, atol=1e-15
         )
@@ -119,7 +136,7 @@ def test_a_csv_of_the_export_gt_gives_the_true_poses(
 ) -> None:
     lines = ["scene_id,im_id,obj_id,score,R,t,time"]
     for obj in OBJECTS:
-        sid = xb.image_ids(obj, 0)[0]
+        sid = scene_id(export, obj)
         for g in load(scene(export, obj) / "scene_gt.json")["0"]:
             R = " ".join(repr(x) for x in g["cam_R_m2c"])
             t = " ".join(repr(x) for x in g["cam_t_m2c"])
@@ -138,9 +155,10 @@ def test_no_gt_and_a_second_export_into_the_same_folder(tmp_path: Path, capsys) 
     out = tmp_path / "nogt"
     args = ["--tier", TIER, "--objects", "car", "--episodes", "1", "--out", str(out)]
     assert xb.main([*args, "--no-gt"]) == 0
-    sdir = out / "test" / "000001"
+    (sdir,) = (out / "test").iterdir()
     assert sorted(p.name for p in sdir.iterdir()) == ["depth", "rgb", "scene_camera.json"]
     assert (out / "test_targets_bop19.json").is_file()
+    assert (out / "test_targets_bop24.json").is_file()
     assert read_export(out).ground_truth is False
     # The same export again rewrites the same bytes.
     before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
@@ -177,6 +195,54 @@ def test_a_bad_argument_is_one_line_naming_the_valid_choices(
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and named in err and "\n" not in err
     assert not out.exists()
+
+
+def test_masks_per_instance_agree_with_scene_gt_info(export: Path) -> None:
+    for obj in OBJECTS:
+        sdir = scene(export, obj)
+        infos = load(sdir / "scene_gt_info.json")["0"]
+        for gt_idx, info in enumerate(infos):
+            full = cv2.imread(str(xb.mask_path(sdir, 0, gt_idx, False)), cv2.IMREAD_UNCHANGED)
+            visib = cv2.imread(str(xb.mask_path(sdir, 0, gt_idx, True)), cv2.IMREAD_UNCHANGED)
+            assert full.dtype == np.uint8 and full.shape == (480, 640)
+            assert set(np.unique(full)) <= {0, 255} and set(np.unique(visib)) <= {0, 255}
+            assert int((visib > 0).sum()) == info["px_count_visib"]
+            assert not np.any((visib > 0) & (full == 0))  # the visible part of the silhouette
+            x, y, w, h = info["bbox_visib"]
+            ys, xs = np.nonzero(visib)
+            assert (xs.min(), ys.min()) == (x, y)
+            assert abs(xs.max() - x - w) <= 1 and abs(ys.max() - y - h) <= 1
+
+
+def test_the_map_holds_each_image_table_height(export: Path, episodes) -> None:
+    ex = read_export(export)
+    for obj, ep in episodes.items():
+        assert ex.table_top_z[(obj, SEED)] == float(ep.scene.table_top_z)
+        assert ep.observe().table_top_z == ex.table_top_z[(obj, SEED)]
+
+
+def test_an_episode_vsd_is_that_against_the_exported_depth(export: Path) -> None:
+    from perception import metrics
+
+    ep = Episode("car", SEED, EpisodeConfig(tier=TIER))
+    try:
+        T = ep.T_C_O_true.copy()
+        T[:3, 3] += [0.01, -0.005, 0.02]
+        res = ep.act(T)
+        model = ep.scene.target.model
+        sdir = scene(export, "car")
+        png = cv2.imread(str(sdir / "depth" / "000000.png"), cv2.IMREAD_UNCHANGED)
+        depth = png.astype(np.float64) * xb.DEPTH_SCALE / 1000.0
+        K = np.reshape(load(sdir / "scene_camera.json")["0"]["cam_K"], (3, 3))
+        vertices, faces = np.asarray(model.mesh.vertices), np.asarray(model.mesh.faces)
+        args = (T[:3, :3], T[:3, 3], ep.T_C_O_true[:3, :3], ep.T_C_O_true[:3, 3])
+        expected = metrics.vsd(*args, depth, K, vertices, faces, model.diameter)
+    finally:
+        ep.close()
+    assert len(res.vsd) == len(metrics.BOP_VSD_TAUS) and 0.0 < max(res.vsd) < 1.0
+    # The live depth is the exported one before its 0.1 mm steps.
+    np.testing.assert_allclose(res.vsd, expected, atol=2e-3)
+    assert res.to_json()["vsd"] == res.vsd
 
 
 def test_png16_bytes_decode_to_the_same_values() -> None:

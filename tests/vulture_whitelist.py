@@ -69,6 +69,7 @@ _.fogEnd
 # ("sim.env:GraspEvalEnv"), and users build actions with pose_action.
 _.GraspEvalEnv
 _.pose_action
+_.from_env
 
 # Fields of MuJoCo spec elements set from Python (read by MuJoCo when the model compiles).
 _.meshname

@@ -14,6 +14,7 @@ the same function.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -60,6 +61,51 @@ class Observation:
     seed: int
     table_top_z: float | None = None
     depth: np.ndarray | None = None
+
+    @classmethod
+    def from_env(cls, obs: Mapping[str, Any], info: Mapping[str, Any]) -> Observation:
+        """The observation an estimator gets from a ``GraspEval-v0`` reset: exactly what
+        `sim.evaluate` and `sim.episode.play_episode` hand it for the same object and episode
+        seed, so that an estimate through the env is the same to the bit.
+
+        Args:
+            obs: the env's observation: ``rgb`` (H, W, 3) uint8, ``K`` (3, 3) [px],
+                ``T_world_cam`` (4, 4), ``table_top_z`` shape (1,) [m] and, with
+                ``obs_mode="rgbd"``, ``depth`` (H, W) float32 [m]; ``object`` (a class index)
+                is not read.
+            info: the info of the same reset (or step), which names the ``object`` and its
+                ``episode_seed``.
+
+        Returns:
+            The observation, ``table_top_z`` as a float and ``depth`` None without one.
+
+        Raises:
+            InvalidArgumentError: obs or info lacks a key it needs, or ``table_top_z`` is not
+                one real number.
+        """
+        for what, given, keys in (
+            ("observation", obs, ("rgb", "K", "T_world_cam", "table_top_z")),
+            ("info", info, ("object", "episode_seed")),
+        ):
+            if missing := [k for k in keys if k not in given]:
+                raise InvalidArgumentError(
+                    f"env {what} lacks {', '.join(missing)}; it needs {', '.join(keys)} "
+                    "(pass the obs and info of a GraspEval-v0 reset)"
+                )
+        z = np.asarray(obs["table_top_z"])
+        if z.size != 1 or z.dtype.kind not in "iuf":
+            raise InvalidArgumentError(
+                f"env observation table_top_z must be one real number [m], got {z.dtype} {z.shape}"
+            )
+        return cls(
+            obs["rgb"],
+            obs["K"],
+            obs["T_world_cam"],
+            str(info["object"]),
+            int(info["episode_seed"]),
+            table_top_z=float(z.item()),
+            depth=obs.get("depth"),
+        )
 
 
 @dataclass(frozen=True)

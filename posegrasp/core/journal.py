@@ -175,15 +175,24 @@ def interruptible() -> Iterator[None]:
             signal.signal(signal.SIGTERM, previous)
 
 
-def resume_hint(journal: Path, done: int, total: int, argv: list[str] | None = None) -> str:
-    """The one line an interrupted command prints: what is kept, and the command that resumes."""
+def resume_hint(
+    journal: Path, done: int, total: int, argv: list[str] | None = None, why: str = "interrupted"
+) -> str:
+    """The one line an interrupted command prints: what is kept, and the command that resumes.
+
+    Args:
+        journal: the journal that keeps the finished units.
+        done, total: units finished, and units of the run.
+        argv: the command's arguments (None: ``sys.argv[1:]``).
+        why: what stopped the run, the line's first words.
+    """
     args = list(sys.argv[1:] if argv is None else argv)
     if "--resume" not in args:
         args.append("--resume")
     spec = getattr(sys.modules.get("__main__"), "__spec__", None)
     cmd = f"python -m {spec.name}" if spec is not None else Path(sys.argv[0]).name
     return (
-        f"interrupted: {done} of {total} finished and kept in {journal}; resume with: "
+        f"{why}: {done} of {total} finished and kept in {journal}; resume with: "
         f"{cmd} {shlex.join(args)}"
     )
 
@@ -218,8 +227,9 @@ def run_journaled(
 
     Raises:
         Interrupted: Ctrl-C or SIGTERM; with a journal, its message is the line that resumes.
-        Any error of the run itself (an unreachable cluster ...); a journal that holds no
-        finished result then is removed, so the same command can simply be run again.
+        Any error of the run itself (an unreachable cluster, a worker that died ...): a journal
+        that holds no finished result then is removed, so the same command can simply be run
+        again; one that holds some is kept, and the line that resumes goes to stderr first.
     """
     from posegrasp.core.backends import by_import_name, run_map
 
@@ -247,9 +257,12 @@ def run_journaled(
             raise
         hint = resume_hint(journal.path, len(results), total)
         raise Interrupted(hint, journal.path, len(results), total) from exc
-    except BaseException:
+    except BaseException as exc:
         if journal and not results:  # failed before anything finished: nothing to resume
             journal.finish()
+        elif journal:  # a crash keeps what finished, as an interruption does
+            why = f"stopped by {type(exc).__name__}"
+            print(resume_hint(journal.path, len(results), total, why=why), file=sys.stderr)
         raise
     finally:
         if journal:
