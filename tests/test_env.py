@@ -13,6 +13,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import posegrasp  # noqa: F401  (registers the env)
+from perception.estimators import LEARNED_ESTIMATORS
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, StateError, UnknownNameError
 from posegrasp.world.tiers import TIERS
@@ -240,12 +241,19 @@ def test_from_env_names_what_it_lacks() -> None:
         Observation.from_env({**obs, "table_top_z": np.zeros(2)}, info)
 
 
+#: Three estimators in the fast tier; every other built-in one in the slow tier.
+ENV_ROUTE_FAST = ("posegrasp_crude:CrudeTableEstimator", "hybrid-global-table", "hybrid")
+
+
 @pytest.mark.parametrize(
     "spec",
     [
-        "posegrasp_crude:CrudeTableEstimator",
-        "hybrid-global-table",
-        "hybrid",
+        *ENV_ROUTE_FAST,
+        *(
+            pytest.param(name, marks=pytest.mark.slow)
+            for name in LEARNED_ESTIMATORS
+            if name not in ENV_ROUTE_FAST
+        ),
     ],
 )
 def test_the_env_route_estimates_as_evaluate_does(
