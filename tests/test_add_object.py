@@ -88,6 +88,7 @@ def test_objects_dir_env_xdg_and_default(monkeypatch, tmp_path) -> None:
     assert object_names() == OBJECT_NAMES
 
 
+@pytest.mark.slow
 def test_folder_layout_and_description(made) -> None:
     root, paths = made
     folder = root / "box"
@@ -106,6 +107,7 @@ def test_folder_layout_and_description(made) -> None:
     assert params["preprocess_resolution"] == 20 and params["threshold"] == 0.1
 
 
+@pytest.mark.slow
 def test_names_built_ins_first_and_never_shadowed(made, monkeypatch) -> None:
     root, _ = made
     monkeypatch.setenv(OBJECTS_ENV, str(root))
@@ -126,6 +128,7 @@ def test_names_built_ins_first_and_never_shadowed(made, monkeypatch) -> None:
 # -- the model -------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_mesh_model_frame_mass_and_groups(made, monkeypatch) -> None:
     root, _ = made
     monkeypatch.setenv(OBJECTS_ENV, str(root))
@@ -162,6 +165,7 @@ def test_mesh_model_frame_mass_and_groups(made, monkeypatch) -> None:
     assert all(model.geom_rgba[g, 3] == 0 for g in collision)
 
 
+@pytest.mark.slow
 def test_open_box_gets_mass_and_inertia_from_its_hulls(made, monkeypatch) -> None:
     root, paths = made
     monkeypatch.setenv(OBJECTS_ENV, str(root))
@@ -176,6 +180,7 @@ def test_open_box_gets_mass_and_inertia_from_its_hulls(made, monkeypatch) -> Non
     np.testing.assert_allclose(obj.geometry.com, d["centre_of_mass"])
 
 
+@pytest.mark.slow
 def test_scene_occlusion_and_head_camera_with_a_mesh_object(made, monkeypatch) -> None:
     from posegrasp.world import constants as C
     from posegrasp.world.camera import CameraRenderer, body_mask
@@ -198,6 +203,7 @@ def test_scene_occlusion_and_head_camera_with_a_mesh_object(made, monkeypatch) -
 # -- symmetries and resting poses ------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_symmetries_detected_in_bop_form(made) -> None:
     root, _ = made
     box = _description(root, "box")["models_info"]
@@ -217,6 +223,7 @@ def test_symmetries_detected_in_bop_form(made) -> None:
     assert len(symmetry_transforms(cyl)) == 2 * 315 - 1
 
 
+@pytest.mark.slow
 def test_a_cylinder_rests_standing_or_lying(made) -> None:
     root, _ = made
     poses = _description(root, "cylinder")["resting_poses"]
@@ -226,6 +233,7 @@ def test_a_cylinder_rests_standing_or_lying(made) -> None:
     assert abs(ups[0][2]) > 0.99 and abs(ups[1][2]) < 0.1
 
 
+@pytest.mark.slow
 def test_given_symmetry_replaces_the_detected_ones(made, monkeypatch, tmp_path) -> None:
     _, paths = made
     monkeypatch.setenv(OBJECTS_ENV, str(tmp_path))
@@ -240,6 +248,7 @@ def test_given_symmetry_replaces_the_detected_ones(made, monkeypatch, tmp_path) 
 # -- grasps ----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["box", "cylinder", "openbox"])
 def test_every_graspable_pose_has_top_grasps_in_the_candidates(made, monkeypatch, name) -> None:
     root, _ = made
@@ -263,6 +272,7 @@ def test_every_graspable_pose_has_top_grasps_in_the_candidates(made, monkeypatch
     assert grasp_candidates(name) is cands  # cached while the object is unchanged
 
 
+@pytest.mark.slow
 def test_a_rewritten_object_is_read_afresh(made, monkeypatch, tmp_path) -> None:
     root, _ = made
     import shutil
@@ -344,6 +354,7 @@ def test_refuses_an_object_too_wide_for_the_gripper(bad, capsys) -> None:
     assert not (bad / "objects" / "crate").exists()
 
 
+@pytest.mark.slow
 def test_refuses_a_built_in_name_a_bad_name_and_an_existing_object(made, capsys) -> None:
     root, paths = made
     box = str(paths["box"])
@@ -362,6 +373,7 @@ def test_refuses_a_built_in_name_a_bad_name_and_an_existing_object(made, capsys)
 # -- episodes --------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_run_episode_takes_a_user_object(made, monkeypatch, capsys) -> None:
     from sim import run_episode
 
@@ -371,6 +383,7 @@ def test_run_episode_takes_a_user_object(made, monkeypatch, capsys) -> None:
     assert "SUCCESS" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_clutter_draws_distractors_from_a_pool_with_user_objects(made, monkeypatch) -> None:
     from posegrasp.world.scene import SceneConfig
     from posegrasp.world.tiers import tier_scene
@@ -391,6 +404,7 @@ def test_clutter_draws_distractors_from_a_pool_with_user_objects(made, monkeypat
     assert {o.name for o in plain.objects[1:]} <= set(OBJECT_NAMES)
 
 
+@pytest.mark.slow
 def test_evaluate_mixes_user_and_built_in_objects(made, monkeypatch, tmp_path) -> None:
     from sim.evaluate import main as evaluate_main
 
@@ -407,6 +421,7 @@ def test_evaluate_mixes_user_and_built_in_objects(made, monkeypatch, tmp_path) -
     assert evaluate_main(["--objects", "box,teapot", "--episodes", "1"]) == 2
 
 
+@pytest.mark.slow
 def test_env_takes_a_user_object(made, monkeypatch) -> None:
     import gymnasium as gym
 
@@ -428,6 +443,7 @@ def test_env_takes_a_user_object(made, monkeypatch) -> None:
         env.close()
 
 
+@pytest.mark.slow
 def test_export_bop_writes_user_models(made, monkeypatch, tmp_path) -> None:
     from perception.training.bop import obj_id
     from sim.bop_results import read_export
@@ -447,6 +463,7 @@ def test_export_bop_writes_user_models(made, monkeypatch, tmp_path) -> None:
     assert gt[str(im_id)][0]["obj_id"] == obj_id("box")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["box", "openbox"])
 def test_the_refiner_and_the_codebook_draw_a_user_object_from_its_hulls(
     made, monkeypatch, name
@@ -489,6 +506,7 @@ def test_the_refiner_and_the_codebook_draw_a_user_object_from_its_hulls(
     assert min(errors) < 30.0
 
 
+@pytest.mark.slow
 def test_a_learned_estimator_says_it_does_not_know_a_user_object(made, monkeypatch) -> None:
     from sim.episode import play_episode
     from sim.estimators import make_estimator
