@@ -21,6 +21,9 @@ prints side by side their
 episodes/s (Ray's without its start-up, which is printed apart), Ray's per-task overhead (no-op
 tasks of one job each) and whether both backends agree episode by episode. Target: Ray within
 15 % of the local pool's throughput.
+
+`--json PATH` writes the figures and ``targets_met`` (the runs' agreement among them). Exit
+status 0 when every target is met, 1 when one is missed.
 """
 
 from __future__ import annotations
@@ -137,7 +140,7 @@ def ray_side_by_side(args: argparse.Namespace, objs: list[str]) -> dict:
 
 @command
 def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+    """CLI entry point; returns 0 when every target is met, 1 when one is missed."""
     p = ArgumentParser(prog="python bench/evaluate_speed.py", description=__doc__.split("\n")[0])
     add_estimator_arguments(p, noise=False)
     p.add_argument(
@@ -157,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.backend == "ray":
         out = ray_side_by_side(args, objs)
         rel = out["ray_over_local"]
+        met = {"ray_over_local": rel >= 0.85, "same_outcomes": out["same_outcomes"]}
         print(
             f"{args.estimator}: {out['episodes']} episodes on {out['cpus']} CPUs per backend",
             file=log,
@@ -165,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'local':<8} {out['episodes_per_s_local']:>10.2f}", file=log)
         print(
             f"{'ray':<8} {out['episodes_per_s_ray']:>10.2f}  ({rel:.0%} of local, start-up "
-            f"apart)  {target('>= 85 %', rel >= 0.85)}",
+            f"apart)  {target('>= 85 %', met['ray_over_local'])}",
             file=log,
         )
         print(
@@ -173,10 +177,14 @@ def main(argv: list[str] | None = None) -> int:
             f"{out['ray_task_overhead_ms']:.1f} ms (no-op tasks of one job)",
             file=log,
         )
-        print(f"same outcomes on both backends: {out['same_outcomes']}", file=log)
+        print(
+            f"same outcomes on both backends: {out['same_outcomes']}  "
+            + target("the same", met["same_outcomes"]),
+            file=log,
+        )
         if args.json is not None:
-            write_json(args.json, out)
-        return 0
+            write_json(args.json, out | {"targets_met": met})
+        return 0 if all(met.values()) else 1
     one = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=1)
     two = _fresh_evaluation(args.episodes, args.estimator, workers=2)
     longer = _fresh_evaluation(2 * args.episodes, args.estimator, workers=2)
@@ -203,11 +211,17 @@ def main(argv: list[str] | None = None) -> int:
         "same_outcomes": same,
         "successes": one["overall"]["successes"],
     }
+    long_run = out["episodes_per_s_2_workers_long_run"]
+    met = {
+        "episode": out["episode_wall_ms_median"] <= 3000,
+        "speedup_2_workers": out["speedup_2_workers"] >= 1.6,
+        "long_run_2_workers": long_run >= 10,
+        "same_outcomes": same,
+    }
     print(f"{args.estimator}: {out['episodes']} episodes, {out['successes']} successes", file=log)
     print(
         f"episode wall (1 process), median {out['episode_wall_ms_median']:.0f} ms, "
-        f"p90 {out['episode_wall_ms_p90']:.0f} ms  "
-        + target("<= 3000 ms", out["episode_wall_ms_median"] <= 3000),
+        f"p90 {out['episode_wall_ms_p90']:.0f} ms  " + target("<= 3000 ms", met["episode"]),
         file=log,
     )
     print(
@@ -215,20 +229,23 @@ def main(argv: list[str] | None = None) -> int:
         f"{out['wall_s_2_workers']:.1f} s ({out['speedup_2_workers_end_to_end']:.2f}x end to "
         f"end); after start-up {out['episodes_per_s_1_worker_after_loading']:.2f} against "
         f"{out['episodes_per_s_2_workers_long_run']:.2f} episodes/s, speed-up "
-        f"{out['speedup_2_workers']:.2f}x  " + target(">= 1.6x", out["speedup_2_workers"] >= 1.6),
+        f"{out['speedup_2_workers']:.2f}x  " + target(">= 1.6x", met["speedup_2_workers"]),
         file=log,
     )
-    long_run = out["episodes_per_s_2_workers_long_run"]
     print(
         f"throughput with 2 workers: {out['episodes_per_s_2_workers']:.2f} episodes/s end to end, "
-        f"{long_run:.2f} in a long run  {target('>= 10', long_run >= 10)}; start-up of the "
-        f"workers (processes, imports, loading) about {out['startup_s_2_workers']:.1f} s",
+        f"{long_run:.2f} in a long run  {target('>= 10', met['long_run_2_workers'])}; start-up of "
+        f"the workers (processes, imports, loading) about {out['startup_s_2_workers']:.1f} s",
         file=log,
     )
-    print(f"same outcomes with 1 and 2 workers and in the longer run: {same}", file=log)
+    print(
+        f"same outcomes with 1 and 2 workers and in the longer run: {same}  "
+        + target("the same", met["same_outcomes"]),
+        file=log,
+    )
     if args.json is not None:
-        write_json(args.json, out)
-    return 0
+        write_json(args.json, out | {"targets_met": met})
+    return 0 if all(met.values()) else 1
 
 
 if __name__ == "__main__":

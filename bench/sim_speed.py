@@ -11,6 +11,8 @@ Measures, on this machine (software EGL rendering unless MUJOCO_GL says otherwis
 
 Targets: scene build <= 0.5 s; RTF >= 10; RGB >= 30 fps at 640x480 without shadows.
 Other processes on the machine lower every figure: the report includes the load average.
+`--json PATH` writes every figure and ``targets_met``. Exit status 0 when every target is met,
+1 when one is missed.
 """
 
 from __future__ import annotations
@@ -209,7 +211,7 @@ def format_report(r: SpeedReport) -> str:
 
 @command
 def main(argv: list[str] | None = None) -> int:
-    """Command-line entry point; returns the exit status."""
+    """Command-line entry point; returns 0 when every target is met, 1 when one is missed."""
     parser = ArgumentParser(
         prog="python bench/sim_speed.py",
         description="Scene build time, physics real-time factor and render speed vs targets.",
@@ -239,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     print(format_report(report), file=summary_stream(args.json))
     if args.json is not None:
         write_json(args.json, {**asdict(report), "targets_met": report.checks()})
-    return 0
+    return 0 if all(report.checks().values()) else 1
 
 
 if __name__ == "__main__":

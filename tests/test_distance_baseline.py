@@ -1,4 +1,4 @@
-"""The constant-distance baseline of bench/distance_baseline.py."""
+"""The constant-distance baseline of studies/distance_baseline.py."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 from posegrasp.core.paths import REPO_ROOT
 
 _spec = importlib.util.spec_from_file_location(
-    "distance_baseline", REPO_ROOT / "bench" / "distance_baseline.py"
+    "distance_baseline", REPO_ROOT / "studies" / "distance_baseline.py"
 )
 bench = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bench)

@@ -1,9 +1,9 @@
 """The ablation that chose `hybrid-global`'s verification: hypotheses per detection and the weights
 of the score, measured on a validation split (never on a test split).
 
-    python bench/global_ablation.py [--split headcam_any-pose] [--subset val] [--images 150]
+    python studies/global_ablation.py [--split headcam_any-pose] [--subset val] [--images 150]
         [--json PATH]
-    python bench/global_ablation.py --keeps 0,1,2,3,4 [--images 150]
+    python studies/global_ablation.py --keeps 0,1,2,3,4 [--images 150]
 
 For every image's target detection (the shipped detector; the target is the split's requested
 object, ``target`` in the image record, else its first object), every start of
@@ -38,12 +38,13 @@ errors, those of the best verified start, the chosen translation's error and the
 time per detection (median, one thread), each setting on the same images with the same
 detections.
 
-    python bench/global_ablation.py --split headcam_hard --grows "none;1.4;1.5;1.3,1.6"
-    python bench/global_ablation.py --split headcam_hard --tilts none,5,10,20
+    python studies/global_ablation.py --split headcam_hard --grows "none;1.4;1.5;1.3,1.6"
+    python studies/global_ablation.py --split headcam_hard --tilts none,5,10,20
 """
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import sys
@@ -122,6 +123,59 @@ def check_int_list(spec: str, hi: int = 13, flag: str = "--keeps", lo: int = 0) 
         except ValueError:
             out.append(v)  # refused below with the valid range
     return [check_int(v, lo, hi, flag) for v in out]
+
+
+#: The flat names the sweeps and the JSON use -> (GlobalConfig group, field of that group).
+FLAT_FIELDS: dict[str, tuple[str, str]] = {
+    "hypotheses": ("codebook", "hypotheses"),
+    "min_angle_deg": ("codebook", "min_angle_deg"),
+    "occluded_grow": ("codebook", "occluded_grow"),
+    "resting_hypotheses": ("codebook", "resting_hypotheses"),
+    "refine_passes": ("refinement", "passes"),
+    "keep_after_first": ("refinement", "keep_after_first"),
+    "screen_iterations": ("refinement", "screen_iterations"),
+    "appearance_weight": ("scoring", "appearance_weight"),
+    "edge_weight": ("scoring", "edge_weight"),
+    "resting_tilt_deg": ("gravity", "tilt_deg"),
+    "snap_candidates": ("gravity", "snap_candidates"),
+    "snap_iterations": ("gravity", "snap_iterations"),
+    "second_look": ("second_look", "hypotheses"),
+    "second_look_resting": ("second_look", "resting"),
+    "second_look_below": ("second_look", "below"),
+    "target_score": ("detection", "target_score"),
+}
+
+
+def flat_config(**flat) -> GlobalConfig:
+    """The shipped `GlobalConfig` with the given flat settings (`FLAT_FIELDS`) changed; a
+    ``resting_tilt_deg`` of None leaves gravity (and the support it needs) out, a
+    ``second_look`` of 0 the second look."""
+    cfg = GlobalConfig()
+    groups: dict[str, dict] = {}
+    for name, value in flat.items():
+        group, key = FLAT_FIELDS[name]
+        groups.setdefault(group, {})[key] = value
+    changes = {}
+    for group, values in groups.items():
+        if (group, values.get("tilt_deg", 0)) == ("gravity", None) or (
+            group == "second_look" and values.get("hypotheses") == 0
+        ):
+            changes[group] = None
+        else:
+            changes[group] = dataclasses.replace(getattr(cfg, group), **values)
+    if changes.get("gravity", cfg.gravity) is None:
+        changes["support"] = None  # the neighbours' support is found from resting poses
+    return dataclasses.replace(cfg, **changes)
+
+
+def flat_fields(cfg: GlobalConfig) -> dict:
+    """`FLAT_FIELDS` of a config (None for a group left out)."""
+    out = {}
+    for name, (group, key) in FLAT_FIELDS.items():
+        part = getattr(cfg, group)
+        value = None if part is None else getattr(part, key)
+        out[name] = list(value) if isinstance(value, tuple) else value
+    return out
 
 
 def check_snap_list(spec: str) -> list[int]:
@@ -251,21 +305,8 @@ def config_sweep(
         out.append(
             {
                 "setting": label,
-                "keep_after_first": cfg.keep_after_first,
-                "occluded_grow": list(cfg.occluded_grow),
-                "resting_tilt_deg": cfg.resting_tilt_deg,
-                "screen_iterations": cfg.screen_iterations,
-                "snap_candidates": cfg.snap_candidates,
-                "snap_iterations": cfg.snap_iterations,
-                "refine_passes": cfg.refine_passes,
-                "resting_hypotheses": cfg.resting_hypotheses,
-                "hypotheses": cfg.hypotheses,
-                "second_look": cfg.second_look,
-                "second_look_below": cfg.second_look_below,
-                "second_look_resting": cfg.second_look_resting,
+                **flat_fields(cfg),
                 "second_look_pct": 100 * looks / max(1, len(cases)),
-                "appearance_weight": cfg.appearance_weight,
-                "edge_weight": cfg.edge_weight,
                 "detections": len(cases),
                 "mean": float(e.mean()),
                 "median": float(np.median(e)),
@@ -444,7 +485,7 @@ SWEEPS: dict[str, tuple[str | tuple[str, ...], Callable, str, str, Callable[[Any
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/global_ablation.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/global_ablation.py", description=__doc__.split("\n")[0])
     p.add_argument("--split", default="headcam_any-pose", help="dataset folder under the data root")
     p.add_argument("--subset", default="val", help="the split's subset (default val)")
     p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=150)
@@ -472,7 +513,7 @@ def main(argv: list[str] | None = None) -> int:
         configs = {}
         for v in getattr(args, chosen[0]):
             pairs = zip(field, v, strict=True) if isinstance(field, tuple) else [(field, v)]
-            configs[label(v)] = GlobalConfig(**dict(pairs))
+            configs[label(v)] = flat_config(**dict(pairs))
         sweep = config_sweep(args.split, args.subset, args.images, configs)
         print(f"{args.split}/{args.subset}, {sweep[0]['detections']} detections:")
         for k in sweep:

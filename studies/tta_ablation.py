@@ -1,6 +1,6 @@
 """Test-time augmentation of the pose nets: does fusing the poses of several crops help?
 
-    python bench/tta_ablation.py [--weights perception/weights/posenet_ours.pt]
+    python studies/tta_ablation.py [--weights perception/weights/posenet_ours.pt]
         [--dataset headcam] [--limit N] [--json PATH]
 
 On a test split, each object gets the crop `perception.training.tables` scores it with (a
@@ -94,7 +94,7 @@ def fuse(uv: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/tta_ablation.py", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="python studies/tta_ablation.py", description=__doc__.splitlines()[0])
     p.add_argument(
         "--weights",
         type=Path,

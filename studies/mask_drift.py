@@ -1,6 +1,6 @@
 """What the mask costs the pose: refined from the true pose, how far does the fit drift?
 
-    python bench/mask_drift.py [--split headcam_hard] [--subset test] [--images 300]
+    python studies/mask_drift.py [--split headcam_hard] [--subset test] [--images 300]
         [--json PATH]
 
 For every image's target (the split's requested object) that the tiers' detector finds (at
@@ -36,7 +36,7 @@ MASKS = ("detector", "mask net", "truth")
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/mask_drift.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/mask_drift.py", description=__doc__.split("\n")[0])
     p.add_argument("--split", default="headcam_hard", help="dataset folder under the data root")
     p.add_argument("--subset", default="test", help="the split's subset (default test)")
     p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=300)
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
         name = s.extra.get("target", s.objects[0].name)
         gt = next(o for o in s.objects if o.name == name)
         obs = Observation(s.rgb, s.K, np.eye(4), name, s.seed)
-        target = detect_target(est.hybrid, obs, cfg.target_score, cfg.neighbour_experts)
+        target = detect_target(est.hybrid, obs, cfg.detection.target_score, False)
         if target.best is None:
             continue
         t0 = time.perf_counter()

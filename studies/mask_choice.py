@@ -1,7 +1,7 @@
 """What the mask costs the choice of pose: the whole search, with the redrawn mask and with the true
 one.
 
-    python bench/mask_choice.py [--estimator hybrid-global] [--split headcam_hard] [--subset test]
+    python studies/mask_choice.py [--estimator hybrid-global] [--split headcam_hard] [--subset test]
         [--images 100] [--targets] [--json PATH]
 
 For every visible object of the first images (at least half visible; with ``--targets`` only each
@@ -42,7 +42,7 @@ MASKS = ("mask net", "truth")
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/mask_choice.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/mask_choice.py", description=__doc__.split("\n")[0])
     p.add_argument(
         "--estimator",
         type=arg(check_choice, ESTIMATORS, "estimator"),
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     setup_rendering(threads=1)
     est = LEARNED_ESTIMATORS[args.estimator]()
     assert isinstance(est, GlobalPoseEstimator)
-    gravity = est.config.resting_tilt_deg is not None
+    gravity = est.config.gravity is not None
     ds = PoseDataset(data_root() / args.split, args.subset)
     rows: list[tuple[str, float, float, float]] = []  # object, IoU, error with each mask
     for i in progress_bar(range(min(args.images, len(ds))), desc="masks and choice", mininterval=5):
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.targets and obj.name != s.extra.get("target", obj.name):
                 continue
             obs = Observation(s.rgb, s.K, T_W_C, obj.name, int(s.seed))
-            found = detect_target(est.hybrid, obs, est.config.target_score, False)
+            found = detect_target(est.hybrid, obs, est.config.detection.target_score, False)
             if found.best is None:
                 continue
             occluder = found.occluder()

@@ -1,7 +1,7 @@
 """The BOP round trip: export episodes as a BOP dataset, answer them with a BOP results CSV, grasp
 on the CSV's poses, and check that the route changes nothing.
 
-    python bench/bop_round_trip.py [--tier isolated] [--objects all] [--episodes 20] \
+    python studies/bop_round_trip.py [--tier isolated] [--objects all] [--episodes 20] \
         [--workers N] [--out out/bop_round_trip] [--json PATH]
 
 Writes `python -m sim.export_bop` of the episodes to ``--out``/<tier>/export and two CSVs from
@@ -96,7 +96,7 @@ def _same(a: dict, b: dict) -> int:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/bop_round_trip.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/bop_round_trip.py", description=__doc__.split("\n")[0])
     p.add_argument(
         "--tier",
         default=DEFAULT_TIER,

@@ -1,6 +1,6 @@
 """Grasp success against pose noise on every tier: the paired noise curve, one line per tier.
 
-    python bench/noise_curves.py [--tiers all] [--objects all] [--episodes 50] [--workers N] \
+    python studies/noise_curves.py [--tiers all] [--objects all] [--episodes 50] [--workers N] \
         [--out out/noise] [--plot docs/noise_curves_tiers.png] [--json PATH]
 
 For each tier, `oracle` and then `noisy-oracle` at sigma = (2.5 mm, 1 deg), (5 mm, 2 deg),
@@ -144,7 +144,7 @@ def plot(chains: dict[str, list[dict]], path: Path) -> None:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/noise_curves.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/noise_curves.py", description=__doc__.split("\n")[0])
     tiers = arg(check_names, list(TIERS), "tier", "--tiers")
     p.add_argument(
         "--tiers",

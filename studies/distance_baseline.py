@@ -1,6 +1,6 @@
 """Does a pose net read the object's distance from its crop, or does it guess?
 
-    python bench/distance_baseline.py [--weights perception/weights/posenet_paper.pt]
+    python studies/distance_baseline.py [--weights perception/weights/posenet_paper.pt]
         [--data paper] [--json PATH]
 
 On the test crops `perception.training.tables` scores (`TEST_CROPS`: ground-truth boxes
@@ -18,7 +18,7 @@ object and over all:
   p where it is unsure of the viewpoint.
 
 The `paper` variant sees only the 64x64 crop, resized from a box of any size, so its distance can
-only come from perspective: this bench shows whether the protocol's distances leave enough of it.
+only come from perspective: this study shows whether the protocol's distances leave enough of it.
 """
 
 from __future__ import annotations
@@ -114,7 +114,9 @@ def norm_ratios(p: np.ndarray, p_hat: np.ndarray) -> dict[str, dict]:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python bench/distance_baseline.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(
+        prog="python studies/distance_baseline.py", description=__doc__.split("\n")[0]
+    )
     p.add_argument(
         "--weights",
         type=Path,

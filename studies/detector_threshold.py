@@ -1,7 +1,7 @@
 """The detector score a target's detection needs (`GlobalConfig.target_score`), chosen on a
 validation split (never on a test split).
 
-    python bench/detector_threshold.py [--split headcam_hard] [--subset val] [--images 200]
+    python studies/detector_threshold.py [--split headcam_hard] [--subset val] [--images 200]
         [--scores 0.5,0.4,0.3,0.2,0.1] [--detector PATH] [--json PATH]
 
 For every image's episode target at least half visible (``target`` in the image record; the
@@ -68,7 +68,7 @@ def measure(detector: Detector, data: PoseDataset, n: int, scores: list[float]) 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(
-        prog="python bench/detector_threshold.py", description=__doc__.split("\n")[0]
+        prog="python studies/detector_threshold.py", description=__doc__.split("\n")[0]
     )
     p.add_argument("--split", default="headcam_hard", help="dataset folder under the data root")
     p.add_argument("--subset", default="val", help="the split's subset (default val)")

@@ -1,0 +1,184 @@
+"""Tune the classical peers' parameters on training scenes (`perception.peers`).
+
+Renders isolated-tier scenes of every built-in object with seeds below
+`posegrasp.world.constants.EVAL_SEED_BASE` (never the held-out ones), runs each point of a
+small grid of `FpfhConfig` and `PpfConfig` values around the libraries' sample values on them,
+and records, per point, how many poses are correct (MSSD below a tenth of the diameter, as
+`sim.episode` judges), the median rotation and translation errors and the median time per
+image. The defaults of `perception.peers` are the best point of each grid (most correct, then
+fastest). It also records how OpenCV's PPF pose clustering treats two copies of a model at one
+position turned apart (`clustering_check`).
+
+    python studies/peer_tuning.py --json studies/peer_tuning.json
+"""
+
+from __future__ import annotations
+
+import itertools
+import statistics
+import sys
+import time
+from dataclasses import asdict, replace
+from typing import Any
+
+import numpy as np
+
+from perception.metrics import mssd, rotation_error_sym_deg
+from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
+from posegrasp.core.contract import Observation
+from posegrasp.core.progress import progress_bar
+from posegrasp.core.runtime import setup_rendering
+from posegrasp.core.validate import arg, check_int
+from posegrasp.world.constants import EVAL_SEED_BASE
+from posegrasp.world.objects import OBJECT_NAMES, load_object
+
+#: The training seeds the scenes are drawn from (below `EVAL_SEED_BASE`).
+SEED_START = 1000
+#: What the scenes' observations hold: the peers need the depth image.
+OBS_MODE = "rgbd"
+#: The grids: each key a config field, each value the values tried (the first is the sample's).
+FPFH_GRID: dict[str, tuple] = {
+    "voxel_m": (0.005, 0.004, 0.007),
+    "confidence": (0.999, 0.9999),
+    "mutual_filter": (False, True),
+}
+PPF_GRID: dict[str, tuple] = {
+    "sampling_step": (0.1, 0.07),
+    "scene_sample_step": (0.2, 1.0),
+    "hypotheses": (2, 5),
+}
+
+
+def scenes(per_object: int) -> list[tuple[Observation, np.ndarray]]:
+    """The isolated training scenes: (observation with depth, true T_C_O) per object and seed."""
+    from sim.episode import Episode, EpisodeConfig
+
+    out = []
+    for obj, i in itertools.product(OBJECT_NAMES, range(per_object)):
+        assert SEED_START + i < EVAL_SEED_BASE
+        ep = Episode(obj, SEED_START + i, EpisodeConfig(obs_mode=OBS_MODE))
+        out.append((ep.observe(), ep.T_C_O_true.copy()))
+        ep.close()
+    return out
+
+
+def score(estimator: Any, views: list[tuple[Observation, np.ndarray]]) -> dict[str, Any]:
+    """Correct poses, median errors and time per image of one estimator on the scenes (the
+    first image of each object, which trains or samples its model, is timed apart)."""
+    from sim.episode import object_symmetries
+
+    correct, rot, trans, times, first = 0, [], [], [], []
+    seen: set[str] = set()
+    for obs, T_true in views:
+        t0 = time.perf_counter()
+        est = estimator.estimate(obs)
+        (first if obs.object not in seen else times).append(time.perf_counter() - t0)
+        seen.add(obs.object)
+        if est.T_C_O is None:
+            rot.append(180.0)
+            trans.append(1.0)
+            continue
+        model = load_object(obs.object)
+        syms = object_symmetries(model)
+        pts = np.asarray(model.mesh.vertices)
+        R, t, R_gt, t_gt = est.T_C_O[:3, :3], est.T_C_O[:3, 3], T_true[:3, :3], T_true[:3, 3]
+        rot.append(rotation_error_sym_deg(R, R_gt, syms))
+        trans.append(float(np.linalg.norm(t - t_gt)))
+        correct += mssd(R, t, R_gt, t_gt, pts, syms) < 0.1 * model.diameter
+    return {
+        "correct": correct,
+        "images": len(views),
+        "rotation_deg_median": statistics.median(rot),
+        "translation_mm_median": 1000 * statistics.median(trans),
+        "time_s_median": statistics.median(times),
+        "first_image_s_median": statistics.median(first),
+    }
+
+
+def sweep(method: str, grid: dict[str, tuple], views: list) -> dict[str, Any]:
+    """Every point of `grid` for `method` (``fpfh-icp`` or ``ppf``); the best first."""
+    from perception.peers.estimator import PeerEstimator
+    from sim.estimators import check_depth
+
+    check_depth(method, OBS_MODE)
+    if method == "ppf":
+        from perception.peers.ppf import PpfConfig as Config
+        from perception.peers.ppf import PpfRegistration as Stage
+    else:
+        from perception.peers.fpfh import FpfhConfig as Config
+        from perception.peers.fpfh import FpfhRegistration as Stage
+    points = [dict(zip(grid, values, strict=True)) for values in itertools.product(*grid.values())]
+    rows = []
+    for values in progress_bar(points, desc=method, unit="config"):
+        config = replace(Config(), **values)
+        rows.append({"values": values} | score(PeerEstimator(method, Stage(config)), views))
+    rows.sort(key=lambda r: (-r["correct"], r["time_s_median"]))
+    best = replace(Config(), **rows[0]["values"])
+    return {"grid": {k: list(v) for k, v in grid.items()}, "points": rows, "best": asdict(best)}
+
+
+def clustering_check() -> dict[str, Any]:
+    """Two copies of the pistol's model at one position, the second turned 90 deg about z:
+    the poses OpenCV's PPF detector returns for them (rotation errors to each copy [deg])."""
+    import cv2
+
+    from perception.metrics import rotation_error_deg
+    from perception.peers.points import model_surface
+    from posegrasp.core.transforms import rot_z
+
+    model = load_object("pistol")
+    pts, normals = model_surface(model, 5000, 0)
+    pc = np.hstack([pts, normals]).astype(np.float32)
+    detector = cv2.ppf_match_3d.PPF3DDetector(0.1, 0.05, 30)
+    detector.trainModel(pc)
+    poses = [np.eye(4), np.eye(4)]
+    poses[1][:3, :3] = rot_z(np.pi / 2)
+    for T in poses:
+        T[:3, 3] = (0.1, -0.05, 0.8)
+    scene = np.vstack([cv2.ppf_match_3d.transformPCPose(pc, T) for T in poses])
+    results = detector.match(scene, 0.2, 0.1)
+    return {
+        "poses_returned": len(results),
+        "rotation_error_to_copies_deg": [
+            [round(rotation_error_deg(np.asarray(r.pose)[:3, :3], T[:3, :3]), 2) for T in poses]
+            for r in results[:3]
+        ],
+    }
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    p = ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument(
+        "--per-object",
+        type=arg(check_int, 1, 100, "--per-object", base=int),
+        default=8,
+        help="training scenes per object (default 8)",
+    )
+    add_json_argument(p, "the grids' figures and the chosen values")
+    args = p.parse_args(argv)
+    setup_rendering(threads=2)
+    views = scenes(args.per_object)
+    report = {
+        "tier": "isolated",
+        "seeds": [SEED_START, SEED_START + args.per_object - 1],
+        "objects": list(OBJECT_NAMES),
+        "fpfh-icp": sweep("fpfh-icp", FPFH_GRID, views),
+        "ppf": sweep("ppf", PPF_GRID, views),
+        "clustering_check": clustering_check(),
+    }
+    for method in ("fpfh-icp", "ppf"):
+        best = report[method]["points"][0]
+        print(
+            f"{method}: best {best['values']}: {best['correct']}/{best['images']} correct, "
+            f"median {best['rotation_deg_median']:.2f} deg, {best['translation_mm_median']:.2f} "
+            f"mm, {best['time_s_median']:.2f} s per image"
+        )
+    print(f"ppf clustering check: {report['clustering_check']}")
+    if args.json:
+        write_json(args.json, report)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
