@@ -14,8 +14,10 @@ gives a full pose:
   ratio of the box sizes;
 - distance: the template's distance scaled by the ratio of the box sizes and focal lengths.
 
-The silhouettes come from a `SilhouetteSource` (today the convex parts' projected hulls, as in
-`perception.refine`); a mesh source can take its place without changing the matching.
+The silhouettes come from a `perception.parts.SilhouetteSource` (today the convex parts'
+projected hulls, as in `perception.refine`); a mesh source can take its place without changing
+the matching. The verification of the poses refined from these hypotheses is
+`perception.scoring`'s.
 """
 
 from __future__ import annotations
@@ -26,15 +28,15 @@ import sys
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Protocol
 
 import cv2
 import numpy as np
 
 from perception.geometry import r_corr
+from perception.parallel import Executor
+from perception.parts import ConvexParts, SilhouetteSource
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root, in_repo
-from posegrasp.world.objects import load_object
 
 #: Side of the square a silhouette is drawn into [px].
 SILHOUETTE_PX = 64
@@ -45,34 +47,8 @@ TEMPLATE_F = 1000.0
 TEMPLATE_Z = 1.0
 #: Templates matched at a time (a block of their bits stays in the cache).
 MATCH_BLOCK = 512
-#: Width of the edge agreement's fall-off with the distance to an image edge [px].
-EDGE_SIGMA_PX = 1.5
 #: A mask with pixels this close to the image's edge [px] counts as cut off by it.
 EDGE_BAND_PX = 2
-
-
-class SilhouetteSource(Protocol):
-    """Draws an object's silhouette: projected points and the convex pieces they form."""
-
-    def pieces(self, name: str) -> list[np.ndarray]:
-        """The object's convex pieces: vertices in O [m], each (n_i, 3)."""
-        ...
-
-
-class ConvexParts:
-    """The convex pieces of any object (`ObjectModel.convex_pieces`): a built-in object's
-    primitive parts, a user object's collision hulls (`python -m sim.add_object`)."""
-
-    def __init__(self) -> None:
-        self._cache: dict[str, list[np.ndarray]] = {}
-
-    def pieces(self, name: str) -> list[np.ndarray]:
-        if name not in self._cache:
-            self._cache[name] = [
-                np.unique(np.asarray(m.vertices), axis=0)
-                for m, _ in load_object(name).convex_pieces()
-            ]
-        return self._cache[name]
 
 
 def sphere_rotations(views: int, inplane: int) -> np.ndarray:
@@ -142,7 +118,7 @@ class Codebook:
             file=sys.stderr,
             flush=True,
         )
-        pieces = (source or ConvexParts()).pieces(name)
+        pieces = (source or ConvexParts()).parts(name).pieces
         verts = np.concatenate(pieces)
         slices = np.cumsum([0] + [len(p) for p in pieces])
         R = sphere_rotations(views, inplane)
@@ -375,208 +351,60 @@ def top_hypotheses(
     return [int(order[a]) for a in kept]
 
 
-#: Two pieces count as separated by a face plane of one of them when the other reaches through
-#: it by at most this share of its own depth along the plane's normal (parts are modelled
-#: touching or slightly sunk into each other: a keypad half a millimetre into its base).
-SEPARATION_SLACK = 0.25
+class CodebookCache:
+    """Codebooks by object, built on first use and kept on disk (`folder`) and in memory."""
+
+    def __init__(
+        self,
+        views: int,
+        inplane: int,
+        folder: Path | None = None,
+        source: SilhouetteSource | None = None,
+    ) -> None:
+        self.views, self.inplane = views, inplane
+        self.folder = folder if folder is not None else data_root() / "codebooks"
+        self.source = source or ConvexParts()
+        self._books: dict[str, Codebook] = {}
+
+    def get(self, name: str) -> Codebook:
+        """The codebook of object `name`."""
+        if name not in self._books:
+            path = self.folder / f"{name}_{self.views}x{self.inplane}.npz"
+            try:
+                book = Codebook.load(name, path)
+            except (OSError, KeyError, ValueError):
+                book = Codebook.build(name, self.views, self.inplane, self.source)
+                try:
+                    book.save(path)
+                except OSError:
+                    pass  # a read-only data folder: the codebook stays in memory
+            self._books[name] = book
+        return self._books[name]
 
 
-@dataclass(frozen=True)
-class Separations:
-    """For every ordered pair (i, j) of an object's convex pieces, a plane of the object frame
-    from the faces of either hull with piece i on its inner side and piece j on its outer side:
-    seen from the outer side, j hides i where they overlap, and from the inner side i hides j
-    (a ray crosses the plane once). Painting far pieces first by their mean depth alone gets
-    this wrong when a small piece lies on a face turned away from the camera (a button on top
-    of a base seen from below).
-
-    Attributes:
-        normal: (P, P, 3) unit normals, pointing from i's side to j's.
-        offset: (P, P) plane offsets: the plane is normal . x = offset [m].
-        known: (P, P) whether a face plane separates the pair (within `SEPARATION_SLACK`);
-            where not, the mean depths decide.
-    """
-
-    normal: np.ndarray
-    offset: np.ndarray
-    known: np.ndarray
-
-    @classmethod
-    def of(cls, pieces: list[np.ndarray]) -> Separations:
-        P = len(pieces)
-        normal, offset = np.zeros((P, P, 3)), np.zeros((P, P))
-        known = np.zeros((P, P), bool)
-        faces = [_face_planes(v) for v in pieces]
-        for i, j in itertools.permutations(range(P), 2):
-            best, plane = -math.inf, None
-            # i's faces with j outside them, then j's faces with i outside them (turned round)
-            for own, other, sign in ((i, j, 1.0), (j, i, -1.0)):
-                n, b = faces[own]
-                if n is None:
-                    continue
-                reach = pieces[other] @ n.T - b  # >= 0: outside the face
-                margin = reach.min(0) / np.maximum(np.ptp(pieces[other] @ n.T, axis=0), 1e-9)
-                k = int(np.argmax(margin))
-                if margin[k] > best:
-                    best, plane = margin[k], (sign * n[k], sign * b[k])
-            if plane is not None and best >= -SEPARATION_SLACK:
-                normal[i, j], offset[i, j], known[i, j] = plane[0], plane[1], True
-        return cls(normal, offset, known)
-
-    def in_front(self, camera: np.ndarray) -> np.ndarray:
-        """(P, P) bool: piece j hides piece i where they overlap, seen from `camera` (its
-        position in the object frame [m])."""
-        return self.known & (self.normal @ camera > self.offset)
+#: A framing of a detected mask as the codebook matches it: packed mask bits, packed hidden
+#: pixels or None (`MaskView`).
+Framing = tuple[np.ndarray, np.ndarray | None]
 
 
-def _face_planes(vertices: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The outward unit normals (F, 3) and offsets (F,) of the hull faces of a piece (normal .
-    x <= offset inside), or (None, None) for a flat piece."""
-    from scipy.spatial import ConvexHull, QhullError
+@dataclass(frozen=True, eq=False)
+class TemplateMatch:
+    """A codebook's matching as a job of `perception.parallel`: an item is (framings, the
+    templates to match), its result each framing's IoUs with those templates
+    (`Codebook.match`). Each template's IoU is the same whichever others are matched with it,
+    so the templates may be split between processes."""
 
-    try:
-        eq = ConvexHull(vertices).equations
-    except (QhullError, ValueError):
-        return None, None
-    return eq[:, :3], -eq[:, 3]
+    book: Codebook
 
+    def run(self, item: tuple[list[Framing], slice]) -> list[np.ndarray]:
+        """Each framing's IoUs with the item's templates."""
+        framings, templates = item
+        return [self.book.match(bits, hidden, templates) for bits, hidden in framings]
 
-_SEPARATIONS: dict[bytes, Separations] = {}
-
-
-def separations(pieces: list[np.ndarray]) -> Separations:
-    """`Separations.of(pieces)`, computed once per set of pieces."""
-    key = b"".join(np.ascontiguousarray(v, np.float64).tobytes() + b"|" for v in pieces)
-    if key not in _SEPARATIONS:
-        _SEPARATIONS[key] = Separations.of(pieces)
-    return _SEPARATIONS[key]
-
-
-def drawing_order(depth: np.ndarray, hides: np.ndarray) -> list[int]:
-    """Piece indices far first: by decreasing mean `depth`, except that a piece is drawn after
-    every piece it hides (`hides[i, j]`: j hides i); a cycle (pieces that are not separable)
-    falls back to the depths."""
-    order = [int(i) for i in np.argsort(depth)[::-1]]
-    rank = np.empty(len(order), int)
-    rank[order] = np.arange(len(order))
-    if not (hides & (rank[:, None] > rank[None, :])).any():
-        return order
-    # before[j]: the pieces j hides, as bits; each step draws the farthest piece whose hidden
-    # pieces are all drawn
-    before = [
-        int.from_bytes(np.packbits(col, bitorder="little").tobytes(), "little") for col in hides.T
-    ]
-    drawn, out, left = 0, [], order
-    while left:
-        pick = next((j for j in left if not before[j] & ~drawn), left[0])
-        out.append(pick)
-        drawn |= 1 << pick
-        left = [j for j in left if j != pick]
-    return out
-
-
-def _far_to_near(
-    pieces: list[np.ndarray], T: np.ndarray, K: np.ndarray, origin: tuple[int, int]
-) -> list[tuple[int, np.ndarray]] | None:
-    """Each piece's projected hull at pose T, as (piece index, polygon in 1/16 px relative to
-    the pixel `origin`), in drawing order (`drawing_order`: far first, each piece after those
-    it hides); None when a vertex lies behind the camera."""
-    depth, drawn = [], []
-    for piece in pieces:
-        X = piece @ T[:3, :3].T + T[:3, 3]
-        if X[:, 2].min() < 1e-3:
-            return None
-        depth.append(float(X[:, 2].mean()))
-        drawn.append(((X @ K.T)[:, :2] / X[:, 2:3] - np.array(origin)).astype(np.float32))
-    camera = -T[:3, :3].T @ T[:3, 3]
-    out = []
-    for i in drawing_order(np.array(depth), separations(pieces).in_front(camera)):
-        hull = cv2.convexHull(drawn[i], returnPoints=False)[:, 0]
-        out.append((i, np.round(drawn[i][hull] * 16).astype(np.int32)))
-    return out
-
-
-def _appearance(
-    ids: np.ndarray,
-    colours: np.ndarray,
-    rgb: np.ndarray,
-    mask: np.ndarray,
-    box: tuple[int, int, int, int],
-) -> float:
-    """Pearson correlation, over the mask's pixels the pose covers, of the pieces' colours (as
-    float32) drawn by the id map `ids` (`id_map` of the window `box`) with the image (all
-    three channels together): near 1 when the coloured parts lie where the image shows those
-    colours; 0 when undefined."""
-    x0, y0, x1, y1 = box
-    sel = (ids != 0) & mask[y0:y1, x0:x1]
-    if np.count_nonzero(sel) < 20:
-        return 0.0
-    a = colours.astype(np.float32)[ids[sel] - 1].reshape(-1).astype(np.float64)
-    b = rgb[y0:y1, x0:x1][sel].reshape(-1).astype(np.float64)
-    a -= a.mean()
-    b -= b.mean()
-    den = math.sqrt(float(a @ a) * float(b @ b))
-    return float(a @ b / den) if den > 0 else 0.0
-
-
-def verification_scores(
-    pieces: list[np.ndarray],
-    colours: np.ndarray,
-    T: np.ndarray,
-    K: np.ndarray,
-    rgb: np.ndarray,
-    mask: np.ndarray,
-    edge_distance: np.ndarray,
-    box: tuple[int, int, int, int],
-) -> tuple[float, float]:
-    """How well pose T agrees with the image, from one drawing of the pieces in the window
-    `box` (x0, y0, x1, y1) [px], which holds the mask:
-
-    - appearance: the Pearson correlation, over the mask's pixels the pose covers, of the
-      pieces' colours (`colours`, (pieces, 3) in [0, 1]) with the image;
-    - edges: how well the pieces' outlines (every boundary between pieces and with the
-      background) lie on image edges, `edge_distance` being `image_edges` of the same window:
-      the mean of exp(-d^2 / 2 sigma^2) over the outline pixels, sigma `EDGE_SIGMA_PX`, in
-      [0, 1].
-
-    Both are 0 when undefined (too few pixels, or a vertex behind the camera)."""
-    ids = id_map(pieces, T, K, box)
-    if ids is None:
-        return 0.0, 0.0
-    return _appearance(ids, colours, rgb, mask, box), _edges(ids, edge_distance)
-
-
-def id_map(
-    pieces: list[np.ndarray], T: np.ndarray, K: np.ndarray, box: tuple[int, int, int, int]
-) -> np.ndarray | None:
-    """Which piece (1-based, 0: none) covers each pixel of the window `box` (x0, y0, x1, y1)
-    [px] at pose T, far pieces drawn first, (h, w) uint8; None when a vertex lies behind the
-    camera."""
-    x0, y0, x1, y1 = box
-    polygons = _far_to_near(pieces, T, K, (x0, y0))
-    if polygons is None:
-        return None
-    ids = np.zeros((y1 - y0, x1 - x0), np.uint8)
-    for i, pts in polygons:
-        cv2.fillConvexPoly(ids, pts, i + 1, cv2.LINE_8, 4)
-    return ids
-
-
-def image_edges(rgb: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
-    """Distance [px] of every pixel of the window `box` to the nearest Canny edge of the
-    image, (h, w) float32."""
-    x0, y0, x1, y1 = box
-    gray = cv2.cvtColor(np.ascontiguousarray(rgb[y0:y1, x0:x1]), cv2.COLOR_RGB2GRAY)
-    edges = cv2.Canny(cv2.GaussianBlur(gray, (3, 3), 0), 20, 60)
-    return cv2.distanceTransform((edges == 0).astype(np.uint8), cv2.DIST_L2, 3)
-
-
-def _edges(ids: np.ndarray, edge_distance: np.ndarray) -> float:
-    """The edge agreement of `verification_scores` from the id map of its window."""
-    outline = np.zeros(ids.shape, bool)
-    outline[:, 1:] |= ids[:, 1:] != ids[:, :-1]
-    outline[1:, :] |= ids[1:, :] != ids[:-1, :]
-    d = edge_distance[outline]
-    if d.size < 10:
-        return 0.0
-    return float(np.mean(np.exp(-(d * d) / (2 * EDGE_SIGMA_PX * EDGE_SIGMA_PX))))
+    def scores(self, framings: list[Framing], executor: Executor) -> np.ndarray:
+        """Each framing's IoUs with every template, the framings' arrays joined
+        (framing-major): the two halves of the templates as two items of `executor`."""
+        half = len(self.book.rotations) // 2
+        items = [(framings, slice(0, half)), (framings, slice(half, None))]
+        first, later = executor.map(self, items)
+        return np.concatenate([np.concatenate(pair) for pair in zip(first, later, strict=True)])

@@ -52,20 +52,23 @@ def _hybrid_refine() -> PoseEstimator:
 
 
 def _hybrid_global() -> PoseEstimator:
-    """Any orientation: the detector, codebook hypotheses over the whole rotation group and the
-    nets' pose, each refined by render-and-compare and verified against the mask and the image
-    (`perception.global_pose`)."""
-    from perception.global_pose import GlobalPoseEstimator
+    """Any orientation (`perception.global_pose`): the tiers' detector and the mask net; the
+    nets' pose and codebook hypotheses over the whole rotation group, each refined by
+    render-and-compare and scored against the mask and the image; gravity, a second look when
+    unsure and the neighbours' support. Every stage as `GlobalConfig`'s defaults."""
+    from perception.global_pose import GlobalConfig, GlobalPoseEstimator
 
-    return GlobalPoseEstimator.from_weights()
+    return GlobalPoseEstimator.from_weights(GlobalConfig())
 
 
 def _hybrid_global_table() -> PoseEstimator:
-    """`hybrid-global`, its pose then put onto the known table (the scene's prior,
-    `GlobalConfig.table`)."""
+    """`hybrid-global` with the table prior: its pose then put onto the known table (the
+    scene's prior, where the observation gives it; the neighbours' support elsewhere)."""
     from perception.global_pose import GlobalConfig, GlobalPoseEstimator
+    from perception.stages import TableConfig
 
-    return GlobalPoseEstimator.from_weights(GlobalConfig(table=True), name="hybrid-global-table")
+    config = GlobalConfig(table=TableConfig())
+    return GlobalPoseEstimator.from_weights(config, name="hybrid-global-table")
 
 
 def _hybrid_global_paper() -> PoseEstimator:
@@ -76,27 +79,32 @@ def _hybrid_global_paper() -> PoseEstimator:
     from perception.global_pose import GlobalConfig, GlobalPoseEstimator
     from perception.hybrid import PAPER_POSENET, HybridPoseEstimator
     from perception.mask_net import PAPER_MASKNET, PAPER_MASKNET_EXPERTS, MaskRefiner
+    from perception.priors import InplaneConfig
+    from perception.scoring import ScoringConfig
+    from perception.stages import SecondLookConfig
+    from perception.verification import RefinementConfig
 
     hybrid = HybridPoseEstimator.from_weights(
         detector_path=PAPER_DETECTOR, posenet_path=PAPER_POSENET, expert_paths=()
     )
-    # No gravity in the paper's studio images: any orientation is as likely as any other. Every
-    # start gets the full refinement first: the short screening run cost 3 deg here. A target
-    # needs a detector score of 0.3, as `hybrid-global`'s (on the protocol's validation images
-    # it finds 97.1 % of the objects against 95.6 % at the detector's 0.5,
-    # `bench/detector_threshold.py --split paper`). The parts' colours weigh more and an unsure
-    # pose gets a wider second look: on these images the outline alone leaves more poses alike,
-    # and most of a studio image's poses verify without doubt (chosen on the protocol's
-    # validation images; the alternatives are in docs/RESULTS.md). The protocol draws every
-    # view with its in-plane angle in -60..60 deg; a pose outside that range (with 5 deg for
-    # the estimate's own error) ranks below those inside it.
+    # No gravity in the paper's studio images: any orientation is as likely as any other, and
+    # without resting poses there is no neighbours' support. Every start gets the full
+    # refinement first: the short screening run cost accuracy here. A target needs a detector
+    # score of 0.3, as `hybrid-global`'s (it finds more of the protocol's validation objects
+    # than the detector's 0.5, `studies/detector_threshold.py --split paper`). The parts'
+    # colours weigh more and an unsure pose gets a wider second look: on these images the
+    # outline alone leaves more poses alike, and most of a studio image's poses verify without
+    # doubt (chosen on the protocol's validation images; the alternatives are in
+    # docs/RESULTS.md). The protocol draws every view with its in-plane angle in -60..60 deg;
+    # a pose outside that range (with 5 deg for the estimate's own error) ranks below those
+    # inside it.
     config = GlobalConfig(
-        resting_tilt_deg=None,
-        screen_iterations=0,
-        appearance_weight=0.3,
-        second_look=48,
-        second_look_below=1.3,
-        max_inplane_deg=65.0,
+        refinement=RefinementConfig(screen_iterations=0),
+        scoring=ScoringConfig(appearance_weight=0.3),
+        gravity=None,
+        inplane=InplaneConfig(max_deg=65.0),
+        second_look=SecondLookConfig(hypotheses=48, below=1.3),
+        support=None,
     )
     masks = MaskRefiner.from_weights(PAPER_MASKNET, experts=PAPER_MASKNET_EXPERTS)
     return GlobalPoseEstimator(hybrid, config, name="hybrid-global-paper", masks=masks)

@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from perception.codebook import ConvexParts, SilhouetteSource
 from perception.metrics import rotation_error_deg
 from perception.overlay import mask_box, window_intrinsics
+from perception.parts import ConvexParts, Parts, SilhouetteSource
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.transforms import axis_angle, check_intrinsics, rigid_problem
 
@@ -155,17 +155,15 @@ class PoseRefiner:
         self, config: RefineConfig | None = None, parts: SilhouetteSource | None = None
     ) -> None:
         self.config = config or RefineConfig()
-        self._parts = parts or ConvexParts()
-        self._stacked: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._source = parts or ConvexParts()
 
-    def part_vertices(self, name: str) -> list[np.ndarray]:
-        """The vertices of each convex part of an object in O [m], each (n_i, 3); loaded once
-        (the `parts` source).
+    def parts(self, name: str) -> Parts:
+        """The convex parts of an object (the `parts` source's).
 
         Raises:
             UnknownNameError: name is not a known object (the message lists them).
         """
-        return self._parts.pieces(name)
+        return self._source.parts(name)
 
     def refine(
         self,
@@ -204,7 +202,7 @@ class PoseRefiner:
                 vector.
         """
         t_start = time.perf_counter()
-        self.part_vertices(name)  # an unknown name fails before the inputs are checked
+        self.parts(name)  # an unknown name fails before the inputs are checked
         _check_pose(T_C_O)
         target = self.prepare(K, mask, rgb, occluder)
         return self.refine_prepared(name, T_C_O, target, axis, t_start)
@@ -237,15 +235,31 @@ class PoseRefiner:
         t_start: float | None = None,
     ) -> tuple[np.ndarray, dict]:
         """`refine` against a prepared target (`prepare`, by a refiner of the same margins);
-        the same results.
+        the same results (`t_start` as in `refine_parts`).
 
         Raises:
             UnknownNameError: an unknown object name.
+            InvalidArgumentError: as `refine_parts`.
+        """
+        return self.refine_parts(self.parts(name), T_C_O, target, axis, t_start)
+
+    def refine_parts(
+        self,
+        parts: Parts,
+        T_C_O: np.ndarray,
+        target: RefineTarget,
+        axis: np.ndarray | None = None,
+        t_start: float | None = None,
+    ) -> tuple[np.ndarray, dict]:
+        """`refine` of the object made of `parts` against a prepared target (`prepare`, by a
+        refiner of the same margins); `t_start` is when the call began (`time.perf_counter`,
+        for ``time_ms``; None: now).
+
+        Raises:
             InvalidArgumentError: a pose that is not rigid or lies behind the camera, an axis
                 that is not a unit vector, or a target prepared with other margins.
         """
         t_start = time.perf_counter() if t_start is None else t_start
-        parts = self.part_vertices(name)
         T0 = _check_pose(T_C_O)
         cfg = self.config
         if target.margins != (cfg.margin, cfg.occluder_margin_px):
@@ -262,9 +276,7 @@ class PoseRefiner:
             info |= {"iou_before": 0.0, "iou_after": 0.0, "reason": "empty mask"}
             return T0.copy(), info | {"time_ms": (time.perf_counter() - t_start) * 1000}
         Kw = window_intrinsics(target.K, win.x0, win.y0)
-        if name not in self._stacked:  # every part's vertices in one array, and where each starts
-            self._stacked[name] = (np.concatenate(parts), np.cumsum([0] + [len(p) for p in parts]))
-        verts, slices = self._stacked[name]
+        verts, slices = parts.stacked
         T, lam = T0.copy(), 1e-3
         last: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
         iou_before = None

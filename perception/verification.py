@@ -1,46 +1,100 @@
-"""One detection's pose hypotheses refined and scored, on this process or shared with a helper.
+"""One detection's pose hypotheses refined, scored and ranked (docs/DESIGN.md §7).
 
-`perception.global_pose` refines a dozen or more starts per detection, each independently of
-the others: render-and-compare refinement (`perception.refine`), then the verification scores
-(`perception.codebook.verification_scores`). Those steps are many small array operations that
-hold the interpreter, so threads do not share them; a second process does. A `VerifyJob` holds
-everything one detection's starts are refined and scored against, `VerifyJob.run` does one
-start, and a `VerifyHelper` runs every other start of a batch in a helper process while this
-one runs the rest; it also matches the later half of a codebook's templates
-(`perception.codebook.Codebook.match`). Each result is the same to the bit on either process,
-so the estimate does not depend on how the work was shared.
+Each hypothesis is a start: a `VerifyJob` refines it by render-and-compare (`perception.refine`)
+and scores the result (`perception.scoring`), independently of every other start, so a batch of
+starts may run on any `perception.parallel` executor with the same results. A `Verification`
+keeps one detection's runs:
+
+1. every start gets a first run: all of the refinement, or (`RefinementConfig.keep_after_first`)
+   a short screening run of `RefinementConfig.screen_iterations` steps;
+2. the results are ranked, plausible poses first (`perception.priors.Plausibility`), each group
+   by score; the best `keep_after_first` get the further runs and are ranked again, above the
+   rest;
+3. with gravity, the best few near a resting pose are snapped onto it and refined once more
+   turning about the vertical only (`perception.priors.GravityConfig`); the snapped poses
+   compete on their scores alone, ahead of the rest, unless all of them score well below the
+   best pose of all.
+
+More starts can join later (the second look): the ranking is made again over all of them, and
+no run is made twice.
 """
 
 from __future__ import annotations
 
-import math
-import os
-import signal
-import socket
-import subprocess
-import sys
-import weakref
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
-from multiprocessing.connection import Connection
-from pathlib import Path
-from typing import Any, NamedTuple
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
-from perception.codebook import Codebook, verification_scores
-from perception.geometry import axes_from_p, ray_correction
+from perception.parallel import Executor
+from perception.parts import Parts
+from perception.priors import SNAP_SCORE_DROP, Plausibility
 from perception.refine import PoseRefiner, RefineConfig, RefineTarget
-from perception.support import snap_to_resting
+from perception.scoring import Scorer
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.world.objects import ObjectModel
 
-#: Compute threads of the helper's libraries: one each (this process runs on the other core).
-_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
-#: Within this angle [deg] of the object's z axis the view's in-plane angle is not defined
-#: (`inplane_deg`): a degree of viewpoint there turns it by many.
-POLE_DEG = 10.0
+@dataclass(frozen=True)
+class RefinementConfig:
+    """How a detection's starts are refined.
+
+    Attributes:
+        passes: full refiner runs a start gets in all; >= 1.
+        keep_after_first: after every start's first run and the ranking, only this many of the
+            best get the further runs and are ranked again (0: every start gets all its runs).
+        screen_iterations: refiner steps of the first run, with `keep_after_first` (0: the
+            refiner's full run).
+        max_shift: a refiner run that moves a start further than this fraction of its distance
+            is rejected (`perception.refine.RefineConfig.max_shift`, there 0.1); in (0, 1]. A
+            hypothesis framed as if the object went on behind an occluder, or drawn from a
+            coarse template, often starts 15-25 % off in distance along its ray; the
+            verification rejects a run that went astray, so the guard can be wider than for a
+            single start.
+        max_rotation_deg: a refiner run that turns a start further [deg] is rejected (there
+            20 deg); in (0, 180].
+    """
+
+    passes: int = 2
+    keep_after_first: int = 2
+    screen_iterations: int = 2
+    max_shift: float = 0.3
+    max_rotation_deg: float = 30.0
+
+    def __post_init__(self) -> None:
+        if self.passes < 1:
+            raise InvalidArgumentError(f"RefinementConfig.passes must be >= 1, got {self.passes}")
+        for key in ("keep_after_first", "screen_iterations"):
+            if getattr(self, key) < 0:
+                raise InvalidArgumentError(
+                    f"RefinementConfig.{key} must be >= 0 (0: all), got {getattr(self, key)}"
+                )
+        if not 0 < self.max_shift <= 1:
+            raise InvalidArgumentError(
+                f"RefinementConfig.max_shift must be in (0, 1], got {self.max_shift}"
+            )
+        if not 0 < self.max_rotation_deg <= 180:
+            raise InvalidArgumentError(
+                "RefinementConfig.max_rotation_deg must be in (0, 180], got "
+                f"{self.max_rotation_deg}"
+            )
+
+    def refiner(self) -> RefineConfig:
+        """The render-and-compare refiner's settings, with these guards."""
+        return RefineConfig(max_shift=self.max_shift, max_rotation_deg=self.max_rotation_deg)
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """A pose to start refining from.
+
+    Attributes:
+        T_C_O: the pose (4, 4) in the camera frame [m].
+        source: where it came from: ``nets`` or ``codebook``.
+    """
+
+    T_C_O: np.ndarray
+    source: str
 
 
 @dataclass(frozen=True)
@@ -54,10 +108,10 @@ class Verified:
         appearance: the colour correlation.
         edges: the share of the parts' outlines on image edges.
         source: ``codebook`` or ``nets``.
-        rank: where the start came from: 0 the nets, i >= 1 the codebook's i-th hypothesis.
-        tilt: rotation to the nearest resting pose [deg] (0 when the camera pose is unknown).
-        plausible: within the job's priors (`VerifyJob.max_tilt` with the camera's pose,
-            `VerifyJob.max_inplane_deg`); plausible poses rank first.
+        rank: which start it came from, in the order the starts joined.
+        tilt: rotation to the nearest resting pose [deg] (0 without gravity).
+        plausible: within the detection's priors (`perception.priors.Plausibility`); plausible
+            poses rank first.
     """
 
     T_C_O: np.ndarray
@@ -77,28 +131,13 @@ def rank_verified(verified: list[Verified]) -> list[Verified]:
     return sorted(verified, key=lambda v: (v.plausible, v.score), reverse=True)
 
 
-def inplane_deg(T_C_O: np.ndarray) -> float | None:
-    """|theta| of the pose's 4D representation (`perception.geometry.encode`) [deg], or None
-    when the camera looks within `POLE_DEG` of the object's z axis (theta is not defined there)
-    or the object is behind the camera. The virtual camera C' looks along the ray to the
-    object's origin, so no K is needed (`perception.geometry.ray_correction`)."""
-    t = T_C_O[:3, 3]
-    if t[2] <= 0:
-        return None
-    R_Cv_O = ray_correction(t[0] / t[2], t[1] / t[2]).T @ T_C_O[:3, :3]
-    if abs(R_Cv_O[2, 2]) >= math.cos(math.radians(POLE_DEG)):  # C''s axis in O
-        return None
-    x, y, _ = axes_from_p(-R_Cv_O[2])  # C' at -z in O, up to the scale axes_from_p drops
-    return abs(math.degrees(math.atan2(float(R_Cv_O[0] @ y), float(R_Cv_O[0] @ x))))
-
-
 class Start(NamedTuple):
     """One start to refine and score (`VerifyJob.run`).
 
     Attributes:
         T_C_O: the starting pose (4, 4).
         source: ``codebook`` or ``nets``, as the result carries it.
-        rank: where the start came from (`Verified.rank`).
+        rank: which start it is (`Verified.rank`).
         passes: refiner runs.
         iterations: refiner steps per run (0: the job's full refiner).
         axis: turn only about this unit axis in the camera frame (None: any rotation).
@@ -112,73 +151,22 @@ class Start(NamedTuple):
     axis: np.ndarray | None = None
 
 
-class _Parts:
-    """The refiner's vertex source for a job: the object's parts as the job carries them."""
-
-    def __init__(self, name: str, parts: list[np.ndarray]) -> None:
-        self._name, self._parts = name, parts
-
-    def pieces(self, name: str) -> list[np.ndarray]:
-        if name != self._name:
-            raise InvalidArgumentError(f"this job refines {self._name!r}, not {name!r}")
-        return self._parts
-
-
 @dataclass(frozen=True, eq=False)
 class VerifyJob:
-    """Everything one detection's starts are refined and scored against; it pickles, so a
-    helper process runs its starts as this one would.
+    """Everything one detection's starts are refined and scored against; it pickles, so a start
+    runs the same on any process.
 
     Attributes:
-        name: the object.
-        parts: the refiner's vertices of each convex part in O [m]
-            (`perception.refine.PoseRefiner.part_vertices`).
-        pieces: the verification's pieces (the codebook source's).
-        colours: RGB of each piece, (pieces, 3) in [0, 1].
-        K: the intrinsics (3, 3) [px].
-        rgb: the image (H, W, 3) uint8.
-        mask: the detection's mask (H, W) bool.
-        edge_distance: `perception.codebook.image_edges` of `box`.
-        box: the window (x0, y0, x1, y1) [px] the verification draws in.
+        parts: the object's convex parts.
         target: the refiner's prepared target (`perception.refine.PoseRefiner.prepare`).
         refine: the full refiner's settings (a start's `iterations` shortens its runs).
-        appearance_weight: weight of the colour correlation in the score.
-        edge_weight: weight of the edge agreement in it.
-        max_tilt: with the camera's rotation `R_W_C` and the object's resting poses, the
-            largest tilt from resting [deg] a plausible pose may have (None: no such prior).
-        R_W_C: the camera's rotation in the world (3, 3); needed with `max_tilt`.
-        model: the object's model (its resting poses); needed with `max_tilt`.
-        max_inplane_deg: the largest in-plane angle [deg] of a plausible pose (None: any).
+        scorer: what the refined poses are scored against.
     """
 
-    name: str
-    parts: list[np.ndarray]
-    pieces: list[np.ndarray]
-    colours: np.ndarray
-    K: np.ndarray
-    rgb: np.ndarray
-    mask: np.ndarray
-    edge_distance: np.ndarray
-    box: tuple[int, int, int, int]
+    parts: Parts
     target: RefineTarget
     refine: RefineConfig
-    appearance_weight: float
-    edge_weight: float
-    max_tilt: float | None = None
-    R_W_C: np.ndarray | None = None
-    model: ObjectModel | None = None
-    max_inplane_deg: float | None = None
-    _refiners: dict[int, PoseRefiner] = field(
-        default_factory=dict, init=False, repr=False, compare=False
-    )
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        state["_refiners"] = {}  # built again where the job runs
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
+    scorer: Scorer
 
     def steps(self, iterations: int) -> int:
         """Refiner steps per run of a start of `iterations` (0, or more than the full
@@ -186,239 +174,119 @@ class VerifyJob:
         full = self.refine.iterations
         return full if iterations <= 0 or iterations >= full else iterations
 
-    def _refiner(self, iterations: int) -> PoseRefiner:
-        """The refiner of `steps(iterations)` steps per run, reading this job's parts."""
-        steps = self.steps(iterations)
-        if steps not in self._refiners:
-            cfg = (
-                self.refine
-                if steps == self.refine.iterations
-                else replace(self.refine, iterations=steps)
-            )
-            self._refiners[steps] = PoseRefiner(cfg, _Parts(self.name, self.parts))
-        return self._refiners[steps]
-
     def run(self, start: Start) -> Verified | None:
-        """`start` refined (`Start.passes` runs) and scored; None when a run finds it behind the
-        camera (not a pose to verify)."""
-        refiner = self._refiner(start.iterations)
+        """`start` refined (`Start.passes` runs) and scored, with no priors (`Verified.tilt` 0,
+        plausible); None when a run finds it behind the camera (not a pose to verify)."""
+        steps = self.steps(start.iterations)
+        cfg = (
+            self.refine
+            if steps == self.refine.iterations
+            else replace(self.refine, iterations=steps)
+        )
+        refiner = PoseRefiner(cfg)
         T, info = start.T_C_O, {"iou_after": 0.0}
         try:
             for _ in range(start.passes):
-                T, info = refiner.refine_prepared(self.name, T, self.target, start.axis)
+                T, info = refiner.refine_parts(self.parts, T, self.target, start.axis)
         except InvalidArgumentError:
             return None
-        app, edges = verification_scores(
-            self.pieces, self.colours, T, self.K, self.rgb, self.mask, self.edge_distance, self.box
-        )
-        iou = float(info["iou_after"])
-        score = iou + self.appearance_weight * app + self.edge_weight * edges
-        tilt, plausible = 0.0, True
-        if self.max_tilt is not None:
-            assert self.R_W_C is not None and self.model is not None
-            tilt = snap_to_resting(self.R_W_C @ T[:3, :3], self.model)[2]
-            plausible = tilt <= self.max_tilt
-        if self.max_inplane_deg is not None:
-            roll = inplane_deg(T)
-            plausible = plausible and (roll is None or roll <= self.max_inplane_deg)
-        return Verified(T, score, iou, app, edges, start.source, start.rank, tilt, plausible)
+        s = self.scorer.score(T, float(info["iou_after"]))
+        return Verified(T, s.score, s.iou, s.appearance, s.edges, start.source, start.rank)
 
 
-def run_here(job: VerifyJob, starts: Sequence[Start]) -> list[Verified | None]:
-    """Every start of `job` run on this process, in order."""
-    return [job.run(s) for s in starts]
+class Verification:
+    """One detection's starts, refined, scored and ranked (see the module docstring); each run
+    is made once, however often the ranking is made again.
 
-
-#: A framing of a detected mask as the codebook matches it: packed mask bits, packed hidden
-#: pixels or None (`perception.codebook.MaskView`).
-Framing = tuple[np.ndarray, np.ndarray | None]
-
-
-def match_here(
-    book: Codebook, framings: Sequence[Framing], templates: slice = slice(None)
-) -> list[np.ndarray]:
-    """Each framing's IoUs with the `templates` of `book` (`Codebook.match`), on this process."""
-    return [book.match(bits, hidden, templates) for bits, hidden in framings]
-
-
-class OnThisProcess:
-    """`VerifyHelper`'s work, all of it on this process: what runs where no helper does."""
-
-    @staticmethod
-    def map(job: VerifyJob, starts: Sequence[Start]) -> list[Verified | None]:
-        """Every start of `job` refined and scored, in order."""
-        return run_here(job, starts)
-
-    @staticmethod
-    def match(book: Codebook, framings: Sequence[Framing]) -> np.ndarray:
-        """Each framing's IoUs with every template of `book`, the framings' arrays joined."""
-        return np.concatenate(match_here(book, framings))
-
-
-#: What the helper does, by the name a request gives: with the object it holds and the
-#: request's payload.
-_OPERATIONS: dict[str, Callable[[Any, Any], Any]] = {
-    "starts": run_here,
-    "match": lambda book, payload: match_here(book, *payload),
-}
-
-
-def _serve(conn: Connection) -> None:
-    """The helper process: answers each request (an operation, the slot of the object it
-    works on, that object when it is new, the payload) with its result or the error it
-    raised, until told to stop or its parent is gone."""
-    import cv2
-    import threadpoolctl
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
-    cv2.setNumThreads(1)
-    threadpoolctl.threadpool_limits(limits=1)
-    conn.send("ready")
-    held: dict[str, Any] = {}
-    while True:
-        try:
-            message = conn.recv()
-        except EOFError:  # the parent has gone
-            return
-        if message is None:
-            return
-        op, slot, sent, payload = message
-        if sent is not None:
-            held[slot] = sent
-        try:
-            conn.send(("ok", _OPERATIONS[op](held[slot], payload)))
-        except Exception as e:  # handed back, to be raised where the request was made
-            conn.send(("error", e))
-
-
-def _stop(process: subprocess.Popen, conn: Connection, pid: int) -> None:
-    """Tell the helper to stop and wait for it briefly (from the process that started it only:
-    a forked child leaves its parent's helper alone)."""
-    if os.getpid() != pid:
-        return
-    try:
-        conn.send(None)
-        process.wait(timeout=2.0)
-    except (OSError, ValueError, subprocess.TimeoutExpired):
-        process.kill()
-        process.wait()
-    conn.close()
-
-
-class VerifyHelper:
-    """A helper process that shares the global estimator's work with this one: it matches the
-    later half of a codebook's templates (`match`) and takes every other start of a batch
-    (`map`) while this process does the rest. It starts in the background (a fresh interpreter
-    that imports this module alone, so a caller's script is never run again); until it is
-    ready, or after it has failed, this process does all of it, with the same results. It
-    holds each object it works on (a job, an object's codebook) once sent.
-
-    Raises:
-        OSError, ValueError: the process cannot be started (it is handed one end of a socket
-            pair, which needs a POSIX system).
+    Args:
+        job: what the starts are refined and scored against.
+        refinement: how they are refined.
+        priors: the detection's priors (gravity snaps the best few when given).
+        executor: where each batch of starts runs.
     """
 
-    def __init__(self) -> None:
-        ours, theirs = socket.socketpair()
-        env = dict(os.environ) | {name: "1" for name in _THREAD_VARIABLES}
-        root = str(Path(__file__).resolve().parents[1])  # where `perception` is importable
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, (root, env.get("PYTHONPATH"))))
-        try:
-            self._process = subprocess.Popen(
-                [sys.executable, "-m", "perception.verification", str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),),
-                env=env,
-                stdin=subprocess.DEVNULL,
-            )
-        except BaseException:
-            ours.close()
-            raise
-        finally:
-            theirs.close()
-        self._conn = Connection(ours.detach())
-        self._ready = False
-        self._broken = False
-        self._held: dict[str, Any] = {}  # by slot: what the helper holds
-        self._pid = os.getpid()
-        self._waiting = False  # a request sent whose reply was not read
-        self._finalizer = weakref.finalize(self, _stop, self._process, self._conn, self._pid)
-
-    def available(self) -> bool:
-        """Whether the helper takes work now: ready, alive, in step with this process (no reply
-        left unread by an interruption) and this process the one that started it (not a forked
-        child)."""
-        if self._waiting or os.getpid() != self._pid:
-            self._broken = True
-        if not (self._ready or self._broken):
-            try:
-                self._ready = self._conn.poll() and self._conn.recv() == "ready"
-            except (EOFError, OSError):
-                self._broken = True
-        return self._ready and not self._broken
-
-    def _shared(
+    def __init__(
         self,
-        op: str,
-        slot: str,
-        obj: Any,
-        payload: Any,
-        mine: Callable[[], Any],
-        theirs: Callable[[], Any],
-    ) -> tuple[Any, Any]:
-        """(`mine()` here, the helper's `op` on `obj` and `payload`) at the same time; when
-        the helper cannot take it or dies, `theirs()` here instead (the same result)."""
-        try:
-            fresh = self._held.get(slot) is not obj
-            self._waiting = True  # from the first byte sent: an interrupted send counts too
-            self._conn.send((op, slot, obj if fresh else None, payload))
-            self._held[slot] = obj
-        except Exception:  # an object that does not pickle, or a helper gone: all done here
-            self._broken = True
-            return mine(), theirs()
-        try:
-            here = mine()
-        finally:  # the helper's reply is read even when this process's share failed
-            try:
-                status, result = self._conn.recv()
-                self._waiting = False
-            except (EOFError, OSError):
-                self._broken = True
-                status, result = "ok", theirs()
-        if status == "error":
-            raise result
-        return here, result
+        job: VerifyJob,
+        refinement: RefinementConfig,
+        priors: Plausibility,
+        executor: Executor,
+    ) -> None:
+        self.job, self.refinement, self.priors, self.executor = job, refinement, priors, executor
+        self.firsts: list[Verified] = []  # every start's first run
+        self._starts = 0  # starts so far (the next one's rank)
+        self._further: dict[int, Verified | None] = {}  # by start: refined further
+        self._snaps: dict[tuple[int, bool], Verified | None] = {}  # by start, first or further
 
-    def map(self, job: VerifyJob, starts: Sequence[Start]) -> list[Verified | None]:
-        """Every start of `job` refined and scored, in order: every other one by the helper."""
-        if len(starts) < 2 or not self.available():
-            return OnThisProcess.map(job, starts)
-        odd = list(starts[1::2])
-        even = list(starts[0::2])
-        mine, result = self._shared(
-            "starts", "job", job, odd, lambda: run_here(job, even), lambda: run_here(job, odd)
-        )
-        return [mine[i // 2] if i % 2 == 0 else result[i // 2] for i in range(len(starts))]
+    def _runs(self, batch: Sequence[Start]) -> list[Verified | None]:
+        """The batch's starts refined and scored on the executor, then judged by the priors."""
+        out = []
+        for v in self.executor.map(self.job, batch):
+            if v is not None:
+                tilt, plausible = self.priors.judge(v.T_C_O)
+                v = replace(v, tilt=tilt, plausible=plausible)
+            out.append(v)
+        return out
 
-    def match(self, book: Codebook, framings: Sequence[Framing]) -> np.ndarray:
-        """Each framing's IoUs with every template of `book` (`Codebook.match`), the framings'
-        arrays joined: the later half of the templates matched by the helper."""
-        if not self.available():
-            return OnThisProcess.match(book, framings)
-        first, later = slice(0, len(book.rotations) // 2), slice(len(book.rotations) // 2, None)
-        mine, result = self._shared(
-            "match",
-            f"book:{book.name}",
-            book,
-            (framings, later),
-            lambda: match_here(book, framings, first),
-            lambda: match_here(book, framings, later),
-        )
-        return np.concatenate([np.concatenate(pair) for pair in zip(mine, result, strict=True)])
+    def add(self, hypotheses: Sequence[Hypothesis]) -> None:
+        """Give each hypothesis its first run; ranks continue from the starts so far."""
+        cfg = self.refinement
+        passes, screen = (1, cfg.screen_iterations) if cfg.keep_after_first else (cfg.passes, 0)
+        batch = [
+            Start(h.T_C_O, h.source, r, passes, screen)
+            for r, h in enumerate(hypotheses, self._starts)
+        ]
+        self._starts += len(hypotheses)
+        self.firsts += [v for v in self._runs(batch) if v is not None]
 
-    def close(self) -> None:
-        """Stop the helper process."""
-        self._finalizer()
+    def ranked(self) -> list[Verified]:
+        """Every start's best result, best first: the first runs ranked, the best few refined
+        further, then snapped (see the module docstring)."""
+        out = rank_verified(self.firsts)
+        cfg = self.refinement
+        screen_full = self.job.steps(cfg.screen_iterations) == self.job.refine.iterations
+        if cfg.keep_after_first and (cfg.passes > 1 or not screen_full):
+            out = self._refined_further(out, cfg.passes - screen_full)
+        gravity = self.priors.gravity
+        if gravity is not None and gravity.config.snap_candidates:
+            out = self._snapped(out)
+        return out
 
+    def _refined_further(self, out: list[Verified], passes: int) -> list[Verified]:
+        """The best `keep_after_first` of `out` refined further (`passes` full runs) and ranked,
+        above the rest (refined once), which stay listed."""
+        keep = self.refinement.keep_after_first
+        kept, rest = out[:keep], out[keep:]
+        todo = list({v.rank: v for v in kept if v.rank not in self._further}.values())
+        batch = [Start(v.T_C_O, v.source, v.rank, passes) for v in todo]
+        self._further.update(zip([v.rank for v in todo], self._runs(batch), strict=True))
+        again = [self._further[v.rank] for v in kept]
+        return rank_verified([v for v in again if v is not None]) + rest
 
-if __name__ == "__main__":  # the helper process (`VerifyHelper`), on the socket it was handed
-    _serve(Connection(int(sys.argv[1])))
+    def _snapped(self, out: list[Verified]) -> list[Verified]:
+        """The best few of `out` that could be resting, each turned onto its resting pose (its
+        heading kept) and refined again, one run, turning about the vertical only; one whose
+        score drops by more than `SNAP_SCORE_DROP` is not kept. The snapped ones then compete
+        on their scores alone, ahead of the rest, unless every one of them scores well below
+        the best pose found (the object is not resting)."""
+        gravity = self.priors.gravity
+        assert gravity is not None
+        cfg = gravity.config
+        pool = [v for v in out if v.tilt <= cfg.snap_tilt_deg][: cfg.snap_candidates]
+        keys = [(v.rank, self._further.get(v.rank) is v) for v in pool]  # first or further
+        new: dict[tuple[int, bool], Verified] = {}
+        for k, v in zip(keys, pool, strict=True):
+            if k not in self._snaps:
+                new.setdefault(k, v)
+        up = gravity.up
+        batch = [
+            Start(gravity.snapped(v.T_C_O), v.source, v.rank, 1, cfg.snap_iterations, up)
+            for v in new.values()
+        ]
+        for (k, v), s in zip(new.items(), self._runs(batch), strict=True):
+            self._snaps[k] = None if s is None or s.score < v.score - SNAP_SCORE_DROP else s
+        snapped = [s for k in keys if (s := self._snaps[k]) is not None]
+        best_score = max((v.score for v in out), default=0.0)
+        if snapped and max(v.score for v in snapped) >= best_score - SNAP_SCORE_DROP:
+            return rank_verified(snapped) + [v for v in out if all(v is not p for p in pool)]
+        return out

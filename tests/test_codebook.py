@@ -10,17 +10,15 @@ import pytest
 
 from perception.codebook import (
     Codebook,
-    ConvexParts,
     frame_mask,
     hypothesis_pose,
-    id_map,
-    image_edges,
     occluded_views,
     sphere_rotations,
     top_hypotheses,
-    verification_scores,
 )
 from perception.metrics import rotation_error_deg
+from perception.parts import ConvexParts, Parts
+from perception.scoring import id_map, image_edges, verification_scores
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.transforms import intrinsics, quat_to_mat, rot_x, rot_y, rot_z
@@ -37,7 +35,7 @@ def book() -> Codebook:
 def paint(pieces, colours: np.ndarray, T: np.ndarray, K: np.ndarray, box):
     """The pieces at T drawn in their colours into the window `box`: (colour image (h, w, 3),
     coverage (h, w) bool), or None when a vertex is behind the camera."""
-    ids = id_map(pieces, T, K, box)
+    ids = id_map(Parts("painted", pieces, colours), T, K, box)
     if ids is None:
         return None
     cover = ids != 0
@@ -218,7 +216,7 @@ def test_the_true_pose_scores_higher_on_edges_and_colours() -> None:
     dist = image_edges(rgb, box)
 
     def scores(pose: np.ndarray) -> tuple[float, float]:
-        return verification_scores(pieces, colours, pose, K, rgb, cover, dist, box)
+        return verification_scores(Parts(name, pieces, colours), pose, K, rgb, cover, dist, box)
 
     assert scores(T)[1] > scores(flipped)[1]
     assert scores(T)[0] > 0.95
@@ -240,24 +238,41 @@ def _painted(name: str, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cover, rgb
 
 
-def _global_on_one_detection(name: str, mask: np.ndarray, nets_pose: np.ndarray, folder, **config):
-    """`hybrid-global` on a small codebook (cached in `folder`) whose detector finds one object,
-    with `mask` and the nets' pose `nets_pose`."""
-    from perception.global_pose import CodebookCache, GlobalConfig, GlobalPoseEstimator
+def _config(**stages):
+    """A small composition for painted images: a coarse codebook and 6 hypotheses, the painted
+    mask as it is (it is exact), no second look and no neighbours' support unless given."""
+    from perception.global_pose import GlobalConfig
+    from perception.stages import CodebookConfig, DetectionConfig
+
+    stages.setdefault("detection", DetectionConfig(mask_net=False))
+    stages.setdefault("codebook", CodebookConfig(views=300, inplane=18, hypotheses=6))
+    stages.setdefault("second_look", None)
+    stages.setdefault("support", None)
+    return GlobalConfig(**stages)
+
+
+def _global_on_one_detection(
+    name: str, mask: np.ndarray, nets_pose: np.ndarray, folder, config=None
+):
+    """`hybrid-global` composed as `config` (default `_config()`) on a small codebook (cached in
+    `folder`) whose detector finds one object, with `mask` and the nets' pose `nets_pose`."""
+    from perception.global_pose import CodebookCache, GlobalPoseEstimator
     from perception.hybrid import PoseDetection
 
     det = PoseDetection(name, 0.9, np.zeros(4), mask, nets_pose, np.zeros(2), (0, 0, 1), {})
+    cfg = config or _config()
+    books = CodebookCache(cfg.codebook.views, cfg.codebook.inplane, folder=folder)
+    return GlobalPoseEstimator(OneDetection(det), cfg, books)  # type: ignore[arg-type]
 
-    class OneDetection:
-        def estimate_split(self, rgb, K, classes=None, others=False, **_):
-            return [det], [], {"total": 1.0}
 
-    config.setdefault("mask_net", False)  # the painted mask is exact already
-    config.setdefault("second_look", 0)
-    config.setdefault("support_neighbours", 0)
-    cfg = GlobalConfig(views=300, inplane=18, hypotheses=6, **config)
-    books = CodebookCache(cfg.views, cfg.inplane, folder=folder)
-    return GlobalPoseEstimator(OneDetection(), cfg, books)  # type: ignore[arg-type]
+class OneDetection:
+    """A detector and nets that find one object, `det`, in any image."""
+
+    def __init__(self, det) -> None:
+        self.det = det
+
+    def estimate_split(self, rgb, K, classes=None, others=False, **_):
+        return [self.det], [], {"total": 1.0}
 
 
 def _pistol_and_nets_turned_away():
@@ -292,11 +307,12 @@ def test_the_global_estimator_recovers_what_the_nets_missed(tmp_path, nets_off: 
 
 
 def test_the_second_look_verifies_more_hypotheses_only_when_the_best_is_unsure(tmp_path) -> None:
-    """Below `second_look_below` the next codebook hypotheses (and resting ones, with gravity)
+    """Below `SecondLookConfig.below` the next codebook hypotheses (and resting ones, with gravity)
     are verified too and the choice is made again, a timed stage the estimate reports; above it
     nothing more runs. The pose is right either way."""
     from dataclasses import replace
 
+    from perception.stages import SecondLookConfig
     from posegrasp.core.transforms import quat_to_mat
 
     name = "pistol"
@@ -308,14 +324,14 @@ def test_the_second_look_verifies_more_hypotheses_only_when_the_best_is_unsure(t
     mask, rgb = _painted(name, T)
     wrong = T.copy()
     wrong[:3, :3] = rot_x(np.pi / 2) @ T[:3, :3]
-    est = _global_on_one_detection(
-        name, mask, wrong, tmp_path, second_look=4, second_look_resting=2
-    )
+    look = SecondLookConfig(hypotheses=4, resting=2)
+    est = _global_on_one_detection(name, mask, wrong, tmp_path, _config(second_look=look))
     T_W_C = np.eye(4)
     T_W_C[:3, :3] = R_W_C
     counts = {}
     for unsure in (True, False):
-        est.config = replace(est.config, second_look_below=10.0 if unsure else -10.0)
+        below = 10.0 if unsure else -10.0
+        est.config = replace(est.config, second_look=replace(look, below=below))
         e = est.estimate(Observation(rgb, K, T_W_C, name, 0))
         assert e.T_C_O is not None
         assert rotation_error_deg(e.T_C_O[:3, :3], T[:3, :3]) < 3.0
@@ -327,11 +343,12 @@ def test_the_second_look_verifies_more_hypotheses_only_when_the_best_is_unsure(t
 
 
 def test_the_table_variant_slides_the_verified_pose_onto_the_known_table(tmp_path) -> None:
-    """`GlobalConfig.table`: with the table's height in the observation, the verified pose keeps
-    its ray and rotation and moves along the ray until the object rests on that height; without
-    it (or without the option) the pose is the verified one."""
+    """The table prior (`GlobalConfig.table`): with the table's height in the observation, the
+    verified pose keeps its ray and rotation and moves along the ray until the object rests on
+    that height; without it (or without the prior) the pose is the verified one."""
     from dataclasses import replace
 
+    from perception.stages import TableConfig
     from perception.support import snap_to_resting
     from posegrasp.core.transforms import quat_to_mat
 
@@ -350,7 +367,7 @@ def test_the_table_variant_slides_the_verified_pose_onto_the_known_table(tmp_pat
     est = _global_on_one_detection(name, mask, T, tmp_path)
     obs = Observation(rgb, K, T_W_C, name, 0, table_top_z=table)
     plain = est.estimate(obs)
-    est.config = replace(est.config, table=True)
+    est.config = replace(est.config, table=TableConfig())
     on = est.estimate(obs)
     assert plain.T_C_O is not None and on.T_C_O is not None
     assert "support" not in plain.info and "translation" in on.info["support"]["applied"]
@@ -365,14 +382,15 @@ def test_the_table_variant_slides_the_verified_pose_onto_the_known_table(tmp_pat
 
 
 def test_an_unsure_pose_slides_onto_the_surface_its_neighbours_rest_on(tmp_path) -> None:
-    """`GlobalConfig.support_neighbours`: when the target's best score is low, the other
-    detections are verified, and the target's pose moves along its ray onto the surface the
-    confident ones rest on (here 3 cm below the target's own); when the score is high, or the
-    option is off, the pose is the verified one."""
+    """The neighbours' support (`GlobalConfig.support`): when the target's best score is low,
+    the other detections are verified, and the target's pose moves along its ray onto the
+    surface the confident ones rest on (here 3 cm below the target's own); when the score is
+    high, or the stage is left out, the pose is the verified one."""
     from dataclasses import replace
 
-    from perception.global_pose import CodebookCache, GlobalConfig, GlobalPoseEstimator
+    from perception.global_pose import CodebookCache, GlobalPoseEstimator
     from perception.hybrid import PoseDetection
+    from perception.stages import SupportConfig
     from perception.support import resting_surface_z
 
     R_W_C = rot_x(np.deg2rad(-120))
@@ -405,16 +423,17 @@ def test_an_unsure_pose_slides_onto_the_surface_its_neighbours_rest_on(tmp_path)
             mine = [d for d in dets if d.name in classes]
             return mine, [d for d in dets if d.name not in classes], {"total": 1.0}
 
-    cfg = GlobalConfig(views=300, inplane=18, hypotheses=6, mask_net=False, second_look=0)
-    est = GlobalPoseEstimator(TwoDetections(), cfg, CodebookCache(300, 18, folder=tmp_path))  # type: ignore[arg-type]
+    cfg = _config()
+    books = CodebookCache(300, 18, folder=tmp_path)
+    est = GlobalPoseEstimator(TwoDetections(), cfg, books)  # type: ignore[arg-type]
     obs = Observation(rgb, K, T_W_C, "pistol", 0)
     poses = {}
-    for case, changes in {
-        "unsure": {"second_look_below": 10.0},
-        "sure": {"second_look_below": -10.0},
-        "off": {"second_look_below": 10.0, "support_neighbours": 0},
+    for case, support in {
+        "unsure": SupportConfig(below=10.0),
+        "sure": SupportConfig(below=-10.0),
+        "off": None,
     }.items():
-        est.config = replace(cfg, **changes)
+        est.config = replace(cfg, support=support)
         e = est.estimate(obs)
         assert e.T_C_O is not None
         assert rotation_error_deg(e.T_C_O[:3, :3], T_target[:3, :3]) < 3.0
@@ -439,13 +458,16 @@ def test_the_global_estimator_redraws_the_target_mask_with_the_mask_net(tmp_path
     timed, and the pose comes out as right as from the exact mask."""
     import cv2
 
+    from perception.stages import DetectionConfig
+
     name = "car"
     T = np.eye(4)
     T[:3, :3] = rot_x(np.deg2rad(-110)) @ rot_z(np.deg2rad(30))
     T[:3, 3] = [0.02, 0.01, 0.9]
     mask, rgb = _painted(name, T)
     eroded = cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-    est = _global_on_one_detection(name, eroded, T, tmp_path, mask_net=True)
+    config = _config(detection=DetectionConfig(mask_net=True))
+    est = _global_on_one_detection(name, eroded, T, tmp_path, config)
     e = est.estimate(Observation(rgb, K, np.eye(4), name, 0))
     assert "mask" in e.info["timings_ms"]
     assert e.T_C_O is not None
@@ -454,25 +476,12 @@ def test_the_global_estimator_redraws_the_target_mask_with_the_mask_net(tmp_path
     assert e.info["verify"]["iou"] > 0.9  # against the redrawn mask, not the eroded one
 
 
-def test_a_plausible_pose_ranks_first() -> None:
-    """A refined start within the priors (resting, in the protocol's in-plane range) wins over a
-    better-scoring one that is not; among equals the score decides."""
-    from perception.verification import Verified, rank_verified
-
-    def v(score: float, plausible: bool, rank: int) -> Verified:
-        return Verified(np.eye(4), score, score, 0.0, 0.0, "codebook", rank, 0.0, plausible)
-
-    flipped, resting, other = v(1.2, False, 1), v(1.1, True, 2), v(0.9, True, 3)
-    assert [x.rank for x in rank_verified([flipped, other, resting])] == [2, 3, 1]
-    assert [x.rank for x in rank_verified([flipped, v(1.0, False, 4)])] == [1, 4]
-
-
 def test_the_in_plane_prior_reads_the_poses_theta_and_leaves_the_poles_alone() -> None:
     """`inplane_deg` gives |theta| of the 4D representation, so a pose and its half turn about
     the viewing ray (the same silhouette) fall on either side of the protocol's 60 deg; seen
     along the object's z axis the angle is not defined and no prior applies."""
     from perception.geometry import decode
-    from perception.verification import inplane_deg
+    from perception.priors import inplane_deg
 
     K = np.array([[300.0, 0, 128], [0, 300.0, 128], [0, 0, 1]])
     uv = np.array([140.0, 120.0])
@@ -517,6 +526,8 @@ def test_resting_hypotheses_are_new_and_could_rest(tmp_path) -> None:
     """The extra hypotheses lie among the templates that could rest, each `min_angle_deg` from
     the codebook's own best and from one another."""
     from perception.codebook import resting_templates
+    from perception.priors import Gravity, GravityConfig
+    from perception.stages import CodebookConfig, CodebookMatch
 
     name = "pistol"
     model = load_object(name)
@@ -527,15 +538,17 @@ def test_resting_hypotheses_are_new_and_could_rest(tmp_path) -> None:
     )
     T[:3, 3] = [0.03, 0.01, 0.8]
     mask, _ = _painted(name, T)
-    est = _global_on_one_detection(name, mask, T, tmp_path, resting_hypotheses=4)
-    book, cfg = est.codebooks.get(name), est.config
+    config = _config(codebook=CodebookConfig(300, 18, 6, resting_hypotheses=4))
+    est = _global_on_one_detection(name, mask, T, tmp_path, config)
+    book, cfg = est.codebooks.get(name), est.config.codebook
     view = frame_mask(mask)
     scores = book.match(view.bits, view.hidden)
     top = top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg)
-    extra = est._resting_hypotheses(book, model, [view], scores, top, K, R_W_C, 4)
+    gravity = Gravity(R_W_C, model, GravityConfig())
+    extra = est.resting.best(CodebookMatch(book, [view], scores, K), gravity, 4, top)
     assert 0 < len(extra) <= 4
     ups = np.array([quat_to_mat(np.asarray(q, float))[2] for q in model.resting_poses.values()])
-    near = resting_templates(book, view, K, R_W_C[2], ups, cfg.resting_tilt_deg)
+    near = resting_templates(book, view, K, R_W_C[2], ups, gravity.config.tilt_deg)
     assert near[extra].all()
     R = book.rotations
     for a, i in enumerate(extra):
@@ -547,8 +560,7 @@ def test_the_global_refiner_pulls_in_a_start_a_fifth_too_far(tmp_path) -> None:
     """A start turned a little and 22 % too far along its ray (a hypothesis framed as if the
     object went on behind an occluder starts so): the refiner's own guard (a tenth of the
     distance) rejects the run that would fix it, the global estimator's wider one
-    (`GlobalConfig.refine_max_shift`) lets it land; a bad setting is refused."""
-    from perception.global_pose import GlobalConfig
+    (`RefinementConfig.max_shift`) lets it land."""
     from perception.refine import PoseRefiner
 
     name = "car"
@@ -570,9 +582,6 @@ def test_the_global_refiner_pulls_in_a_start_a_fifth_too_far(tmp_path) -> None:
         assert info["accepted"]
     assert np.linalg.norm(T_est[:3, 3] - T[:3, 3]) < 0.01
     assert rotation_error_deg(T_est[:3, :3], T[:3, :3]) < 2.0
-    for bad in ({"refine_max_shift": 0.0}, {"refine_max_rotation_deg": 200.0}):
-        with pytest.raises(InvalidArgumentError, match="refine_max"):
-            GlobalConfig(**bad)
 
 
 def _box(centre, half) -> np.ndarray:
@@ -585,13 +594,14 @@ def test_a_button_on_top_of_a_base_is_hidden_from_below_and_seen_from_above() ->
     """A small box sunk half a millimetre into the top corner of a large one: seen from below
     and off to the button's side, the button's mean depth is nearer than the base's, yet the
     base hides it (the faces' planes order them); seen from above, it shows."""
-    from perception.codebook import drawing_order, separations
+    from perception.scoring import drawing_order
 
     base, button = (
         _box([0, 0, 0.025], [0.08, 0.07, 0.025]),
         _box([0.06, 0.05, 0.0515], [0.01] * 2 + [0.002]),
     )
     pieces = [base, button]
+    parts = Parts("base and button", pieces, np.ones((2, 3)))
     box = (0, 0, 640, 480)
     seen = {}
     for name, camera in {"below": [0.25, 0.2, -0.3], "above": [0.25, 0.2, 0.45]}.items():
@@ -605,15 +615,17 @@ def test_a_button_on_top_of_a_base_is_hidden_from_below_and_seen_from_above() ->
         depth = np.array([(p @ R_C_O.T + T[:3, 3])[:, 2].mean() for p in pieces])
         if name == "below":
             assert depth[1] < depth[0]  # the mean depths alone would draw the button last
-            assert drawing_order(depth, separations(pieces).in_front(camera)) == [1, 0]
-        ids = id_map(pieces, T, K, box)
+            assert drawing_order(depth, parts.separations.in_front(camera)) == [1, 0]
+        ids = id_map(parts, T, K, box)
         seen[name] = int((ids == 2).sum())
     assert seen["below"] == 0 and seen["above"] > 20
 
 
-def test_the_global_estimator_gives_the_same_pose_with_or_without_its_helper(tmp_path) -> None:
-    """`GlobalConfig.verify_processes`: with two torch threads the helper shares the starts; the
-    estimate is the same to the bit as on one process."""
+def test_the_global_estimator_gives_the_same_pose_on_one_process_or_two(tmp_path) -> None:
+    """`GlobalConfig.processes`: with two torch threads a worker process shares the matching and
+    the starts from the second estimate on; the estimate is the same to the bit as on one, and
+    the estimator pickles without its worker."""
+    import pickle
     import time
     from dataclasses import replace
 
@@ -626,46 +638,50 @@ def test_the_global_estimator_gives_the_same_pose_with_or_without_its_helper(tmp
     torch.set_num_threads(2)
     try:
         first = est.estimate(obs)
-        assert est._verify_helper is None  # a process that makes one estimate never starts it
-        est.config = replace(est.config, verify_processes=1)
+        assert est._workers is None  # a process that makes one estimate never starts it
+        est.config = replace(est.config, processes=1)
         alone = est.estimate(obs)
-        assert est._verify_helper is None
-        est.config = replace(est.config, verify_processes=2)
-        est.estimate(obs)  # starts the helper
-        assert est._verify_helper is not None
+        assert est._workers is None
+        est.config = replace(est.config, processes=2)
+        est.estimate(obs)  # starts the worker
+        assert est._workers is not None
         end = time.monotonic() + 60
-        while not est._verify_helper.available():
-            assert time.monotonic() < end, "the helper process never came up"
+        while not est._workers.available():
+            assert time.monotonic() < end, "the worker process never came up"
             time.sleep(0.05)
         shared = est.estimate(obs)
+        copy = pickle.loads(pickle.dumps(est))  # as an evaluation hands it to its workers
+        assert copy._workers is None and np.array_equal(copy.estimate(obs).T_C_O, shared.T_C_O)
     finally:
         torch.set_num_threads(threads)
+        if est._workers is not None:
+            est._workers.close()
     assert alone.T_C_O is not None and shared.T_C_O is not None
     assert np.array_equal(alone.T_C_O, shared.T_C_O) and np.array_equal(first.T_C_O, alone.T_C_O)
     assert alone.info["verify"]["confidence"] == shared.info["verify"]["confidence"]
     assert rotation_error_deg(shared.T_C_O[:3, :3], T[:3, :3]) < 3.0
 
 
-def test_the_global_estimator_goes_on_alone_when_no_helper_can_start(tmp_path, monkeypatch):
-    """Where no helper process can be started, every estimate is made on this one, the same."""
-    import subprocess
-
+def test_the_global_estimator_goes_on_alone_when_no_worker_can_start(tmp_path, monkeypatch):
+    """Where no worker process can be started, every estimate is made on this one, the same."""
     import torch
+
+    import perception.global_pose
 
     name, T, mask, rgb, wrong = _pistol_and_nets_turned_away()
     est = _global_on_one_detection(name, mask, wrong, tmp_path)
     obs = Observation(rgb, K, np.eye(4), name, 0)
 
-    def refused(*args, **kwargs):
+    def refused():
         raise OSError("no processes here")
 
-    monkeypatch.setattr(subprocess, "Popen", refused)
+    monkeypatch.setattr(perception.global_pose, "TwoProcesses", refused)
     threads = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
         poses = [est.estimate(obs).T_C_O for _ in range(3)]
     finally:
         torch.set_num_threads(threads)
-    assert est._verify_helper is None and est._no_helper
+    assert est._workers is None and est._no_workers
     assert all(p is not None and np.array_equal(p, poses[0]) for p in poses)
     assert rotation_error_deg(poses[0][:3, :3], T[:3, :3]) < 3.0

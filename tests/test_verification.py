@@ -1,19 +1,32 @@
-"""Refining and scoring a detection's starts on a helper process gives every start the result
-this process gives it, to the bit; a helper that fails or is not ready yet changes nothing but
-the time, and an error a start raises there is raised here."""
+"""Refining and scoring a detection's starts: on a worker process every start gets the result
+this process gives it, to the bit; a worker that fails or is not up yet changes nothing but the
+time, and an error a start raises there is raised here. The ranking refines further and snaps
+each start once, however often it is made again."""
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from perception.codebook import Codebook, ConvexParts, id_map, image_edges
+from perception.codebook import Codebook, TemplateMatch
+from perception.parallel import OneProcess, TwoProcesses
+from perception.parts import ConvexParts, Parts
+from perception.priors import Gravity, GravityConfig, Plausibility
 from perception.refine import PoseRefiner, RefineConfig
-from perception.verification import Start, Verified, VerifyHelper, VerifyJob, _stop, run_here
-from posegrasp.core.transforms import intrinsics, rot_x, rot_y, rot_z
+from perception.scoring import Scorer, ScoringConfig, id_map, image_edges
+from perception.verification import (
+    Hypothesis,
+    RefinementConfig,
+    Start,
+    Verification,
+    Verified,
+    VerifyJob,
+)
+from posegrasp.core.transforms import intrinsics, quat_to_mat, rot_x, rot_y, rot_z
 from posegrasp.world.objects import load_object
 
 K = intrinsics(np.deg2rad(50), 640, 480)
@@ -27,32 +40,18 @@ def _pose() -> np.ndarray:
     return T
 
 
-def _job() -> VerifyJob:
-    """The pistol drawn in its parts' colours on a grey image, as a job."""
-    pieces = ConvexParts().pieces(NAME)
-    colours = np.array([p.rgba[:3] for p in load_object(NAME).parts])
-    ids = id_map(pieces, _pose(), K, (0, 0, 640, 480))
+def _job(T: np.ndarray | None = None) -> VerifyJob:
+    """The pistol drawn at T (default `_pose`) in its parts' colours on a grey image, as a job."""
+    parts = ConvexParts().parts(NAME)
+    ids = id_map(parts, _pose() if T is None else T, K, (0, 0, 640, 480))
     assert ids is not None
     mask = ids != 0
     rgb = np.full((480, 640, 3), 90, np.uint8)
-    rgb[mask] = (255 * colours[ids[mask].astype(int) - 1]).astype(np.uint8)
+    rgb[mask] = (255 * parts.colours[ids[mask].astype(int) - 1]).astype(np.uint8)
     box = (200, 120, 460, 380)
     refiner = PoseRefiner(RefineConfig())
-    return VerifyJob(
-        name=NAME,
-        parts=refiner.part_vertices(NAME),
-        pieces=pieces,
-        colours=colours,
-        K=K,
-        rgb=rgb,
-        mask=mask,
-        edge_distance=image_edges(rgb, box),
-        box=box,
-        target=refiner.prepare(K, mask, rgb, None),
-        refine=refiner.config,
-        appearance_weight=0.05,
-        edge_weight=0.3,
-    )
+    scorer = Scorer(parts, K, rgb, mask, image_edges(rgb, box), box, ScoringConfig())
+    return VerifyJob(parts, refiner.prepare(K, mask, rgb, None), refiner.config, scorer)
 
 
 def _starts() -> list[Start]:
@@ -75,101 +74,186 @@ def _same(a: list[Verified | None], b: list[Verified | None]) -> bool:
     return [key(v) for v in a] == [key(v) for v in b]
 
 
-def _ready(helper: VerifyHelper, timeout_s: float = 60.0) -> None:
+def _up(workers: TwoProcesses, timeout_s: float = 60.0) -> None:
     end = time.monotonic() + timeout_s
-    while not helper.available():
-        assert time.monotonic() < end, "the helper process never came up"
+    while not workers.available():
+        assert time.monotonic() < end, "the worker process never came up"
         time.sleep(0.05)
 
 
-def test_the_helper_gives_every_start_the_result_this_process_gives() -> None:
+@pytest.fixture
+def workers():
+    w = TwoProcesses()
+    yield w
+    w.close()
+
+
+def _kill(workers: TwoProcesses) -> None:
+    """Kill the worker process, as a crash would."""
+    for process in list(workers._pool._processes.values()):
+        process.kill()
+        process.join()
+
+
+def test_the_worker_gives_every_start_the_result_this_process_gives(workers) -> None:
     job, starts = _job(), _starts()
-    here = run_here(job, starts)
+    here = OneProcess.map(job, starts)
     assert here[-1] is None and all(v is not None for v in here[:-1])
     assert max(v.score for v in here if v is not None) > 1.0  # the refined starts fit
-    helper = VerifyHelper()
-    try:
-        assert _same(helper.map(job, starts), here)  # ready or not, the same results
-        _ready(helper)
-        assert _same(helper.map(job, starts), here)  # the job sent along
-        assert _same(helper.map(job, starts[:3]), here[:3])  # the job it holds
-        other = replace(job, edge_weight=0.0)
-        assert _same(helper.map(other, starts), run_here(other, starts))  # a new job
-    finally:
-        helper.close()
+    assert _same(workers.map(job, starts), here)  # up or not, the same results
+    _up(workers)
+    assert _same(workers.map(job, starts), here)  # the job sent along
+    assert _same(workers.map(job, starts[:3]), here[:3])  # the job it holds
+    other = replace(job, scorer=replace(job.scorer, config=ScoringConfig(edge_weight=0.0)))
+    assert _same(workers.map(other, starts), OneProcess.map(other, starts))  # a new job
 
 
-def test_an_error_in_the_helper_is_raised_here_and_a_dead_helper_is_done_without() -> None:
+def test_an_error_on_the_worker_is_raised_here_and_a_dead_worker_is_done_without(
+    workers,
+) -> None:
     job, starts = _job(), _starts()
-    helper = VerifyHelper()
-    try:
-        _ready(helper)
-        broken = replace(job, colours=job.colours[:1])  # too few colours for the pieces
-        with pytest.raises(IndexError):  # the helper's start fails, this one's (behind) does not
-            helper.map(broken, [starts[-1], starts[0]])
-        with pytest.raises(IndexError):  # this one's fails; the helper's reply is read anyway
-            helper.map(broken, starts[:2])
-        assert _same(helper.map(job, starts), run_here(job, starts))  # it goes on serving
-        helper._process.kill()
-        helper._process.wait()
-        assert _same(helper.map(job, starts), run_here(job, starts))
-        assert not helper.available()
-    finally:
-        helper.close()
+    _up(workers)
+    few = replace(job.parts, colours=job.parts.colours[:1])  # too few colours for the pieces
+    broken = replace(job, scorer=replace(job.scorer, parts=few))
+    with pytest.raises(IndexError):  # the worker's start fails, this one's (behind) does not
+        workers.map(broken, [starts[-1], starts[0]])
+    with pytest.raises(IndexError):  # this one's fails; the worker's result is dropped
+        workers.map(broken, starts[:2])
+    assert _same(workers.map(job, starts), OneProcess.map(job, starts))  # it goes on serving
+    _kill(workers)
+    assert _same(workers.map(job, starts), OneProcess.map(job, starts))
+    assert not workers.available()
 
 
-def test_the_helper_matches_half_the_templates_as_this_process_would() -> None:
-    """`VerifyHelper.match`: every framing's IoUs with every template, the later half matched
-    by the helper, equal to `Codebook.match` here; a codebook is sent once and then held."""
+def test_the_worker_matches_half_the_templates_as_this_process_would(workers) -> None:
+    """`TemplateMatch.scores`: every framing's IoUs with every template, the later half matched
+    by the worker, equal to `Codebook.match` here; a codebook is sent once and then held."""
     book = Codebook.build("car", 60, 6)
     rng = np.random.default_rng(3)
     views = [(book.bits[i].copy(), None) for i in (5, 200)]
     views.append((book.bits[17].copy(), rng.integers(0, 2**63, book.bits.shape[1], np.uint64)))
     here = np.concatenate([book.match(bits, hidden) for bits, hidden in views])
     assert here.shape == (3 * len(book.rotations),) and here[5] == 1.0
-    helper = VerifyHelper()
-    try:
-        _ready(helper)
-        assert np.array_equal(helper.match(book, views), here)
-        assert np.array_equal(helper.match(book, views[:1]), here[: len(book.rotations)])
-        helper._process.kill()
-        helper._process.wait()
-        assert np.array_equal(helper.match(book, views), here)  # done here without it
-    finally:
-        helper.close()
+    match = TemplateMatch(book)
+    assert np.array_equal(match.scores(views, OneProcess()), here)
+    _up(workers)
+    assert np.array_equal(match.scores(views, workers), here)
+    assert np.array_equal(match.scores(views[:1], workers), here[: len(book.rotations)])
+    _kill(workers)
+    assert np.array_equal(match.scores(views, workers), here)  # done here without it
 
 
-def test_a_reply_left_unread_or_a_forked_child_retires_the_helper(monkeypatch) -> None:
-    """A request whose reply was never read (Ctrl-C while waiting for it) would put every later
-    reply one behind; a forked child shares its parent's socket. Either way the helper is no
-    longer used, and the results, made here, are the same."""
-    import os
-
+def test_an_interrupted_batch_or_a_forked_child_leaves_the_results_in_order(
+    workers, monkeypatch
+) -> None:
+    """Ctrl-C during this process's share leaves the worker's result unread; the next batch
+    still gets its own results in order. A forked child shares its parent's pool: it does its
+    work alone, and the parent's worker goes on."""
     job, starts = _job(), _starts()
-    here = run_here(job, starts)
-    helper = VerifyHelper()
-    try:
-        _ready(helper)
-        real_recv = helper._conn.recv
+    here = OneProcess.map(job, starts)
+    _up(workers)
+    with monkeypatch.context() as m:
 
-        def interrupted():
+        def interrupted(job, items):
             raise KeyboardInterrupt
 
-        monkeypatch.setattr(helper._conn, "recv", interrupted)
+        m.setattr(OneProcess, "map", staticmethod(interrupted))
         with pytest.raises(KeyboardInterrupt):
-            helper.map(job, starts)
-        monkeypatch.setattr(helper._conn, "recv", real_recv)
-        assert not helper.available()
-        assert _same(helper.map(job, starts), here)
-    finally:
-        helper.close()
-    forked = VerifyHelper()
-    _ready(forked)
+            workers.map(job, starts)
+    assert workers.available()
+    assert _same(workers.map(job, starts), here)
+    pid = os.getpid()
     with monkeypatch.context() as m:
-        m.setattr(os, "getpid", lambda: -1)  # as in a child forked from this process
-        assert not forked.available()
-        assert _same(forked.map(job, starts), here)
-        forked.close()  # a child leaves its parent's helper running
-    assert forked._process.poll() is None
-    _stop(forked._process, forked._conn, os.getpid())  # the parent stops it
-    assert forked._process.poll() is not None
+        m.setattr(os, "getpid", lambda: pid + 1)  # as in a child forked from this process
+        assert not workers.available()
+        assert _same(workers.map(job, starts), here)
+    assert workers.available()
+
+
+class Counting:
+    """An executor that runs every item here and counts the starts it runs."""
+
+    def __init__(self) -> None:
+        self.runs: list[tuple[int, int, int]] = []  # (rank, passes, iterations) per start
+
+    def map(self, job, items):
+        self.runs += [(s.rank, s.passes, s.iterations) for s in items]
+        return OneProcess.map(job, items)
+
+
+def _resting_scene() -> tuple[VerifyJob, Gravity, np.ndarray]:
+    """The pistol resting, seen from a camera looking down at its table: (job, gravity, pose)."""
+    model = load_object(NAME)
+    R_W_C = rot_x(np.deg2rad(-120))
+    T = np.eye(4)
+    T[:3, :3] = R_W_C.T @ rot_z(0.6) @ quat_to_mat(next(iter(model.resting_poses.values())))
+    T[:3, 3] = [0.03, 0.01, 0.8]
+    return _job(T), Gravity(R_W_C, model, GravityConfig()), T
+
+
+def _off(T: np.ndarray, deg: float, axis) -> Hypothesis:
+    S = T.copy()
+    S[:3, :3] = axis(np.deg2rad(deg)) @ T[:3, :3]
+    return Hypothesis(S, "codebook")
+
+
+def test_the_ranking_refines_the_best_further_and_snaps_each_start_once() -> None:
+    """Every start is screened; the best two get the further runs and up to five near resting
+    are snapped (one run, about the vertical); a start joining later is screened, and no run
+    already made is made again."""
+    job, gravity, T = _resting_scene()
+    runs = Counting()
+    v = Verification(job, RefinementConfig(), Plausibility(gravity), runs)
+    v.add([_off(T, d, rot_x) for d in (4, 7, 10)])
+    ranked = v.ranked()
+    assert [(r, p, i) for r, p, i in runs.runs[:3]] == [(0, 1, 2), (1, 1, 2), (2, 1, 2)]
+    further = [r for r in runs.runs[3:] if r[1:] == (2, 0)]
+    snapped = [r for r in runs.runs[3:] if r[1:] == (1, GravityConfig().snap_iterations)]
+    assert len(further) == 2 and 1 <= len(snapped) <= 5
+    assert len(runs.runs) == 3 + len(further) + len(snapped)
+    assert ranked[0].tilt < 1e-6  # a snapped pose won
+    assert len(ranked) == 3
+    made = len(runs.runs)
+    assert _same(v.ranked(), ranked) and len(runs.runs) == made  # nothing run again
+    v.add([_off(T, 6, rot_y)])  # a second look's start: rank 3
+    assert runs.runs[made] == (3, 1, 2)
+    assert len(v.ranked()) == 4
+    further = [r[0] for r in runs.runs if r[1:] == (2, 0)]
+    assert len(further) == len(set(further))  # each start refined further once at most
+    snapped = [r[0] for r in runs.runs if r[1:] == (1, GravityConfig().snap_iterations)]
+    assert all(snapped.count(r) <= 2 for r in snapped)  # its first run's and its further one's
+
+
+def test_without_keeping_the_best_every_start_gets_all_its_runs() -> None:
+    job, _, T = _resting_scene()
+    runs = Counting()
+    v = Verification(job, RefinementConfig(keep_after_first=0), Plausibility(), runs)
+    v.add([_off(T, d, rot_x) for d in (4, 7)])
+    ranked = v.ranked()
+    assert runs.runs == [(0, 2, 0), (1, 2, 0)]  # no gravity: nothing snapped
+    assert ranked[0].score >= ranked[1].score and ranked[0].tilt == 0.0
+
+
+def test_a_plausible_pose_ranks_first() -> None:
+    """A refined start within the priors (resting, in the protocol's in-plane range) wins over a
+    better-scoring one that is not; among equals the score decides."""
+    from perception.verification import rank_verified
+
+    def v(score: float, plausible: bool, rank: int) -> Verified:
+        return Verified(np.eye(4), score, score, 0.0, 0.0, "codebook", rank, 0.0, plausible)
+
+    flipped, resting, other = v(1.2, False, 1), v(1.1, True, 2), v(0.9, True, 3)
+    assert [x.rank for x in rank_verified([flipped, other, resting])] == [2, 3, 1]
+    assert [x.rank for x in rank_verified([flipped, v(1.0, False, 4)])] == [1, 4]
+
+
+def test_parts_pickle_with_what_they_draw() -> None:
+    """A job's parts travel to the worker as data: the pieces, colours and the planes that
+    order them."""
+    import pickle
+
+    parts = ConvexParts().parts(NAME)
+    back: Parts = pickle.loads(pickle.dumps(parts))
+    assert back.name == NAME and len(back.pieces) == len(parts.pieces)
+    assert np.array_equal(back.separations.normal, parts.separations.normal)
+    assert np.array_equal(back.stacked[0], parts.stacked[0])

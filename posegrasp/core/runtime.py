@@ -17,9 +17,9 @@ render. It
 - lets OpenMP's idle threads spin only briefly (``GOMP_SPINCOUNT``, `OMP_SPIN_COUNT`, unless
   set already; it takes effect when torch loads, so before it). By default an idle thread
   spins 300,000 times after each parallel region of torch: that took the other core from the
-  global estimator's helper process for several milliseconds after the detector and the mask
-  net ran (its half of the codebook matching took twice as long as this process's half). A
-  short spin keeps torch's own speed; no spin at all made the detector twice as slow.
+  global estimator's worker process (`perception.parallel`) for several milliseconds after the
+  detector and the mask net ran (its half of the codebook matching took twice as long as this
+  process's half). A short spin keeps torch's own speed; none at all slowed the detector.
 
 Rendering without it raises `StateError` naming this function.
 """
