@@ -33,7 +33,7 @@ LOSS_RTOL = 2e-3
 TRAIN_ARGS = [
     "--variant",
     "ours",
-    "--dists",
+    "--data",
     "paper",
     "--epochs",
     "2",

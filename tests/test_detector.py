@@ -28,7 +28,7 @@ from perception.detector_net import (
 from perception.training import datagen
 from perception.training.bop import box_xyxy
 from perception.training.detection_eval import coco_ap
-from perception.training.export_detector import export_detector
+from perception.training.export import export_detector
 from perception.training.train_detector import SMOKE, main, train
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.world.objects import OBJECT_NAMES
@@ -327,7 +327,7 @@ def test_mixed_data_and_fine_tuning_start(
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "headcam_hard").symlink_to(tiny_headcam)
     cfg = replace(SMOKE, data=tiny_headcam, out=tmp_path / "ckpt", also=("headcam_hard",))
-    mix, parts = training_images(tiny_headcam, cfg.also, 100, cfg.detector, None)
+    mix, parts = training_images(tiny_headcam, cfg.also, 100, cfg.detector, (None, None))
     assert len(parts) == 2 and len(mix) == 8
     for i in (0, 5):  # item 5 of the mix is item 1 of the second set
         a, b = mix[i], parts[i // 4][i % 4]

@@ -151,7 +151,8 @@ def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch, heavy) -
     import json
 
     from perception.training.datagen import main as datagen
-    from perception.training.train_masknet import MaskTrainConfig, export, train
+    from perception.training.export import export_masknet
+    from perception.training.train_masknet import MaskTrainConfig, train
     from posegrasp.core.errors import AssetError
 
     monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path / "data"))
@@ -177,14 +178,14 @@ def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch, heavy) -
     cut_short = train(stopped, max_steps=per_epoch + 1)
     assert (cut_short["epoch"], cut_short["step"]) == (1, per_epoch + 1)
     with pytest.raises(AssetError, match="1/2 epochs"):
-        export(stopped, "cmd", tmp_path / "w" / "masknet.pt")
+        export_masknet(stopped.out / "last.pt", "cmd", tmp_path / "w" / "masknet.pt")
     with pytest.raises(InvalidArgumentError, match="--epochs 2"):
         train(replace(stopped, epochs=3))
     resumed = train(stopped)
     assert resumed["step"] == whole["step"]
     for key, value in whole["model"].items():
         assert torch.equal(value, resumed["model"][key]), key
-    entry = export(stopped, "cmd", tmp_path / "w" / "masknet.pt")
+    entry = export_masknet(stopped.out / "last.pt", "cmd", tmp_path / "w" / "masknet.pt")
     manifest = json.loads((tmp_path / "w" / "manifest.json").read_text())
     assert manifest["mask_net"] == entry
     assert entry["wall_s"] == round(resumed["wall_s"], 1) and entry["epochs_done"] == 2
@@ -203,13 +204,15 @@ def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch, heavy) -
         train(replace(further, seed=2))
     with pytest.raises(AssetError, match="mask net of"):
         train(replace(further, out=tmp_path / "other", net=MaskNetConfig(size=32, widths=(4, 8))))
-    second = export(further, "cmd2", tmp_path / "w" / "masknet.pt")
+    second = export_masknet(further.out / "last.pt", "cmd2", tmp_path / "w" / "masknet.pt")
     assert [s["command"] for s in second["stages"]] == ["cmd", "cmd2"]
     assert second["stages"][0]["wall_s"] == entry["wall_s"] and second["epochs_done"] == 1
     # The same stage shipped as the net of one object alone: its own file and entry, the
     # protocol's net and entry untouched, and its hash checked when it is loaded.
     shipped = (tmp_path / "w" / "masknet.pt").read_bytes()
-    alone = export(further, "cmd3", tmp_path / "w" / "masknet.pt", expert="faucet")
+    alone = export_masknet(
+        further.out / "last.pt", "cmd3", tmp_path / "w" / "masknet.pt", expert="faucet"
+    )
     manifest = json.loads((tmp_path / "w" / "manifest.json").read_text())
     assert manifest["mask_net"] == second and manifest["mask_net_experts"]["faucet"] == alone
     assert alone["file"] == "masknet_faucet.pt" and alone["stages"][-1]["command"] == "cmd3"

@@ -238,3 +238,39 @@ def parse_limit(text: str | None) -> tuple[int | None, tuple[tuple[str, int], ..
         else:
             limit = int(num)
     return limit, tuple(per)
+
+
+def parse_data(text: str, folder_first: bool = False) -> tuple[tuple[str, int | None], ...]:
+    """`--data`, the trainers' one way to name their training images: "NAME[=COUNT],..." ->
+    ((name, images or None for all), ...) in the order given.
+
+    Args:
+        text: the option's value.
+        folder_first: the first NAME may also be a folder path (a dataset of one's own, not under
+            the data root); the others are always dataset folders under the data root.
+
+    Raises:
+        InvalidArgumentError: an empty list, an unknown dataset, a name twice or a count < 1.
+    """
+    out: list[tuple[str, int | None]] = []
+    for i, item in enumerate(text.split(",") if text else []):
+        name, sep, num = item.rpartition("=")
+        if not sep:
+            name, num = item, ""
+        if name not in DATASETS and not (folder_first and i == 0 and name):
+            raise InvalidArgumentError(
+                f"unknown dataset {name!r} in --data; valid: {', '.join(DATASETS)}"
+            )
+        if sep and (not num.isdigit() or int(num) < 1):
+            raise InvalidArgumentError(f"--data wants NAME or NAME=N with N >= 1, got {item!r}")
+        if name in (n for n, _ in out):
+            raise InvalidArgumentError(f"invalid --data {text!r}: {name} twice")
+        out.append((name, int(num) if sep else None))
+    if not out:
+        raise InvalidArgumentError("--data wants NAME[=N],... of: " + ", ".join(DATASETS))
+    return tuple(out)
+
+
+def format_data(data: tuple[tuple[str, int | None], ...]) -> str:
+    """The `--data` value of `parse_data`'s pairs."""
+    return ",".join(name if n is None else f"{name}={n}" for name, n in data)

@@ -106,12 +106,12 @@ def training_images(
     also: tuple[str, ...],
     min_visible_px: int,
     cfg: DetectorConfig,
-    limit: int | None,
+    limits: tuple[int | None, ...],
 ) -> tuple[torch.utils.data.Dataset, list[DetectionSet]]:
     """The train images of root and of the dataset folders `also` (under the data root), at
-    most `limit` of each: (the mix, its parts)."""
-    parts = [DetectionSet(root, "train", min_visible_px, cfg, limit)]
-    for name in also:
+    most `limits[i]` of the i-th of them (None: all): (the mix, its parts)."""
+    parts = [DetectionSet(root, "train", min_visible_px, cfg, limits[0])]
+    for name, limit in zip(also, limits[1:], strict=True):
         extra = data_root() / name
         if not (extra / "train").is_dir():
             raise AssetError(

@@ -1,13 +1,15 @@
-"""Turn training checkpoints into the shipped weights and their manifest.
+"""The one route from training checkpoints to shipped weights and their manifest entries.
+
+`ship` writes a checkpoint's weights (float16 state dict and model config, no optimiser) and its
+entry in the manifest beside them (command, train config, data seeds, epochs, wall time,
+validation, commit, size and hash, and the stages behind it); every shipping goes through it:
+the recipe's ``ship`` step (`perception.training.recipe`), which makes the shipped weights, and
+the trainers' own exports of weights one trains oneself (`export` for the pose nets, this
+module's command line; `export_detector`, ``train_detector --export``; `export_masknet`,
+``train_masknet --export``).
 
     python -m perception.training.export [--checkpoints DIR (default: <data>/checkpoints)]
-        [--plot training_curves.png]
-
-Writes `perception/weights/posenet_<name>.pt` (float16 weights and the model config, no
-optimiser state) and `perception/weights/manifest.json` (command, data seed ranges, sizes,
-validation metrics, commit) for every shipped net (`SHIPPED`) that has a checkpoint. The
-detector is shipped by `perception.training.export_detector` (``python -m
-perception.training.train_detector --export``).
+        [--out DIR] [--plot training_curves.png]
 """
 
 from __future__ import annotations
@@ -16,39 +18,163 @@ import pickle
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import torch
 
+from perception.detector_net import (
+    DetectorConfig,
+    build_detector,
+    count_parameters,
+    state_dict_fp16,
+)
+from perception.mask_net import expert_path
 from perception.nets import VARIANTS
 from perception.training.checkpoints import read_checkpoint, save_atomically
 from perception.training.crop_sets import data_seed_ranges
 from perception.training.dataset import DISTS
-from perception.training.manifest import MANIFEST_NAME, read_manifest, weights_entry, write_manifest
+from perception.training.manifest import (
+    MANIFEST_NAME,
+    read_manifest,
+    stage_record,
+    weights_entry,
+    write_manifest,
+)
 from perception.training.train_posenet import TRAIN_COMMAND
-from posegrasp.core.cli import ArgumentParser, command
+from posegrasp.core.cli import ArgumentParser, add_out_argument, command
 from posegrasp.core.errors import AssetError, PosegraspError
 from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, git_commit
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import arg, check_plot_path
+from posegrasp.core.validate import arg, check_choice, check_plot_path
 
-MANIFEST = WEIGHTS_DIR / MANIFEST_NAME
 #: The shipped pose nets: each variant, and `ours` fine-tuned on the hard tier too (the expert
 #: of ``hybrid``, `perception.hybrid.HARD_POSENET`).
 SHIPPED: tuple[str, ...] = (*VARIANTS, "ours_hard")
+#: What a checkpoint can be shipped as.
+KINDS = ("posenet", "detector", "masknet")
+
+
+def shipped_weights(kind: str, state: dict[str, Any]) -> dict[str, Any]:
+    """What the shipped file of a checkpoint `state` of `kind` (`KINDS`) holds, as its loader
+    reads it: the float16 weights, the model config and, for the nets that carry it, where the
+    run ended.
+
+    Raises:
+        InvalidArgumentError: an unknown kind.
+        AssetError: a detector checkpoint whose weights do not build its model.
+    """
+    check_choice(kind, KINDS, "kind")
+    if kind == "detector":
+        model = state_dict_fp16(_detector(state))
+    else:
+        model = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
+    weights = {"model": model, "model_config": state["model_config"]}
+    if kind == "masknet":
+        return weights
+    ended = {"step": state["step"], "epoch": state["epoch"], "commit": state["commit"]}
+    if kind == "posenet":
+        return weights | ended
+    history = state.get("history")
+    return {"kind": "detector", **weights, **ended, "validation": history[-1] if history else None}
+
+
+def _detector(state: dict[str, Any]) -> torch.nn.Module:
+    """The detector of a checkpoint, built from its model config and weights.
+
+    Raises:
+        AssetError: the weights do not build that model.
+    """
+    try:
+        model = build_detector(DetectorConfig.from_dict(state["model_config"]))
+        model.load_state_dict(state["model"])
+    except Exception as exc:
+        raise AssetError(f"the detector checkpoint is corrupt ({exc})") from exc
+    return model
+
+
+def ship(
+    state: dict[str, Any],
+    kind: str,
+    dest: Path,
+    key: tuple[str, ...],
+    command: str,
+    earlier: list[dict[str, Any]] | None = None,
+    stage: str | None = None,
+) -> dict[str, Any]:
+    """Ship the checkpoint `state` as `dest` and record it under `key` of the manifest beside it.
+
+    The weights are written only when they differ by value from the file already there (two saves
+    of equal tensors need not give equal bytes); the entry's test figures (keys ``test...``,
+    written by ``tables --record``) are kept only then, since they hold for those weights alone.
+    Every other key of the manifest is kept.
+
+    Args:
+        state: a training checkpoint (`perception.training.checkpoints`).
+        kind: what it holds (`KINDS`).
+        dest: the shipped file.
+        key: the entry's place in the manifest, e.g. ``("pose_nets", "ours")``, ``("detector",)``.
+        command: the command that trained it.
+        earlier: the records (`stage_record`) of the stages before it, first to last; the
+            entry's ``stages`` are those and its own (None: no ``stages``, the entry is its one
+            stage).
+        stage: the name of its stage in a recipe (`perception.training.recipe`), recorded when
+            given.
+
+    Returns:
+        The entry.
+
+    Raises:
+        AssetError: a manifest that is not valid JSON.
+    """
+    shipped = shipped_weights(kind, state)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    same = _same_weights(dest, shipped)
+    if not same:
+        save_atomically(shipped, dest)
+    manifest_path = dest.parent / MANIFEST_NAME
+    manifest = read_manifest(manifest_path)
+    parent = manifest
+    for part in key[:-1]:
+        parent = parent.setdefault(part, {})
+    kept = {k: v for k, v in parent.get(key[-1], {}).items() if same and k.startswith("test")}
+    history = state.get("history") or []
+    wall_s = state.get("wall_s")
+    entry = {
+        **weights_entry(dest),
+        **({"stage": stage} if stage else {}),
+        "command": command,
+        "train_config": state.get("train_config"),
+        "data_seeds": state.get("data_seeds"),
+        "epochs_done": state["epoch"],
+        "wall_s": None if wall_s is None else round(float(wall_s), 1),
+        "validation": history[-1] if history else None,
+        "trained_at_commit": state.get("commit"),
+        "parameters": _parameters(kind, state),
+        **kept,
+    }
+    if earlier is not None:
+        entry["stages"] = [*earlier, stage_record(entry)]
+    parent[key[-1]] = entry
+    write_manifest(manifest_path, manifest)
+    return entry
+
+
+def _parameters(kind: str, state: dict[str, Any]) -> int:
+    """The number of parameters of a checkpoint's net (the detector's trainable ones; the
+    others' every tensor)."""
+    if kind == "detector":
+        return count_parameters(_detector(state))
+    return sum(int(v.numel()) for v in state["model"].values())
 
 
 def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
-    """Export every shipped net (`SHIPPED`) found under `checkpoints`; returns the manifest.
-
-    Writes ``<out>/posenet_<name>.pt`` and updates the ``pose_nets`` key of `MANIFEST`; the
-    test figures of a net are kept only when its weights are unchanged.
+    """Ship every pose net (`SHIPPED`) found under `checkpoints` as ``<out>/posenet_<name>.pt``
+    (`ship`, entry ``pose_nets.<name>``, with the stages its checkpoints started from); returns
+    the manifest.
 
     Raises:
         AssetError: no checkpoint under `checkpoints`, or a manifest that is not valid JSON.
     """
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = read_manifest(MANIFEST)
-    nets = manifest.setdefault("pose_nets", {})
     found = False
     for variant in SHIPPED:
         ckpt = checkpoints / f"posenet_{variant}.pt"
@@ -56,43 +182,80 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
             continue
         found = True
         state = read_checkpoint(ckpt)
-        shipped = {
-            "model": {
-                k: (v.half() if v.is_floating_point() else v) for k, v in state["model"].items()
-            },
-            "model_config": state["model_config"],
-            "step": state["step"],
-            "epoch": state["epoch"],
-            "commit": state["commit"],
-        }
-        path = out / f"posenet_{variant}.pt"
-        # Test figures stay valid only for the very same weights, compared by value: two saves
-        # of equal tensors need not give equal bytes. Unchanged weights are not rewritten.
-        same = _same_weights(path, shipped)
-        if not same:
-            save_atomically(shipped, path)
-        kept = {k: v for k, v in nets.get(variant, {}).items() if same and k.startswith("test")}
         tc = state["train_config"]
         command = state.get("command") or (
             f"{TRAIN_COMMAND} --variant {state['model_config']['variant']} --epochs {tc['epochs']}"
         )
-        nets[variant] = {
-            **weights_entry(path),
-            "command": command,
-            "stages": _stages(state, command),
-            "train_config": tc,
-            "data_seeds": _seeds(state["data_seeds"], tc.get("dists", DISTS)),
-            "epochs_done": state["epoch"],
-            "validation": state["history"][-1] if state["history"] else None,
-            "trained_at_commit": state["commit"],
-            **kept,
-        }
+        state = {**state, "data_seeds": _seeds(state["data_seeds"], tc.get("dists", DISTS))}
+        path = out / f"posenet_{variant}.pt"
+        ship(state, "posenet", path, ("pose_nets", variant), command, _stages(state)[:-1])
     if not found:
         raise AssetError(f"no checkpoints under {checkpoints}; run {TRAIN_COMMAND}")
+    manifest_path = out / MANIFEST_NAME
+    manifest = read_manifest(manifest_path)
     manifest["rebuild"] = "make weights"
     manifest["exported_at_commit"] = git_commit()
-    write_manifest(MANIFEST, manifest)
+    write_manifest(manifest_path, manifest)
     return manifest
+
+
+def _init_entry(init: str | None) -> dict[str, Any] | None:
+    """The manifest entry of the shipped detector a run started from (`init`: a
+    ``detector.pt`` whose folder's manifest records it), or None."""
+    if not init or Path(init).name != "detector.pt":
+        return None
+    manifest_path = Path(init).parent / MANIFEST_NAME
+    if not manifest_path.is_file():
+        return None
+    entry = read_manifest(manifest_path).get("detector")
+    return entry if isinstance(entry, dict) and entry.get("file") == "detector.pt" else None
+
+
+def export_detector(checkpoint: Path, out_dir: Path = WEIGHTS_DIR) -> dict[str, Any]:
+    """Ship a detector checkpoint as ``<out_dir>/detector.pt`` (`ship`, entry ``detector``); a
+    run started from shipped weights lists the stages that made them before its own.
+
+    Raises:
+        AssetError: missing or corrupt checkpoint, or a manifest that is not valid JSON.
+    """
+    if not checkpoint.is_file():
+        raise AssetError(
+            f"no detector checkpoint {checkpoint}; run python -m "
+            "perception.training.train_detector first"
+        )
+    try:
+        state = read_checkpoint(checkpoint)
+    except Exception as exc:
+        raise AssetError(f"detector checkpoint {checkpoint} is corrupt ({exc})") from exc
+    command = state.get("command") or "python -m perception.training.train_detector"
+    previous = _init_entry(state["train_config"].get("init"))
+    # Fine-tuned from shipped weights: the stages that made them come first.
+    earlier = None if previous is None else previous.get("stages") or [stage_record(previous)]
+    return ship(state, "detector", out_dir / "detector.pt", ("detector",), command, earlier)
+
+
+def export_masknet(
+    checkpoint: Path, command: str, out: Path, expert: str | None = None
+) -> dict[str, Any]:
+    """Ship a mask-net checkpoint as `out` (`ship`, entry ``mask_net``), or with `expert` as the
+    net that serves that object alone (`perception.mask_net.expert_path` of `out`, entry
+    ``mask_net_experts.<expert>``); a run started from a shipped net lists the stages that made
+    it before its own.
+
+    Raises:
+        AssetError: the run has not finished its epochs.
+    """
+    state = read_checkpoint(checkpoint)
+    epochs = state["train_config"]["epochs"]
+    if state["epoch"] < epochs:
+        raise AssetError(
+            f"the run in {checkpoint.parent} has done {state['epoch']}/{epochs} epochs; "
+            "finish it first"
+        )
+    dest = out if expert is None else expert_path(out, expert)
+    key = ("mask_net",) if expert is None else ("mask_net_experts", expert)
+    earlier = (state.get("lineage") or {}).get("stages") or None
+    return ship(state, "masknet", dest, key, command, earlier)
 
 
 def _same_weights(path: Path, shipped: dict) -> bool:
@@ -111,24 +274,30 @@ def _same_weights(path: Path, shipped: dict) -> bool:
     )
 
 
-def _stages(state: dict, command: str) -> list[dict]:
-    """The training runs that led to a checkpoint, first to last: each stage's command, epochs,
-    wall time [s] (None when not recorded), data seed ranges and final validation metrics."""
-    chain, node = [], {**state, "command": command}
+def checkpoint_record(state: dict[str, Any]) -> dict[str, Any]:
+    """What a manifest's ``stages`` keep of the run of a checkpoint (`stage_record`'s keys)."""
+    history = state.get("history") or []
+    wall_s = state.get("wall_s")
+    return {
+        "command": state.get("command"),
+        "data_seeds": state.get("data_seeds"),
+        "epochs_done": state.get("epoch"),
+        "wall_s": None if wall_s is None else round(float(wall_s), 1),
+        "validation": state.get("validation") or (history[-1] if history else None),
+        "trained_at_commit": state.get("commit"),
+    }
+
+
+def _stages(state: dict) -> list[dict]:
+    """The training runs that led to a pose-net checkpoint, first to last (`checkpoint_record`
+    of each, following the checkpoints each started from; a run started from shipped weights
+    continues with the stages their manifest records)."""
+    chain, node = [], state
     while node:
         if node.get("stages"):  # shipped weights: the stages their manifest recorded
             chain.extend(node["stages"][::-1])
             break
-        hist = node.get("history")
-        chain.append(
-            {
-                "command": node.get("command"),
-                "epochs": node.get("epoch"),
-                "wall_s": node.get("wall_s"),
-                "data_seeds": node.get("data_seeds"),
-                "validation": node.get("validation") or (hist[-1] if hist else None),
-            }
-        )
+        chain.append(checkpoint_record(node))
         node = node.get("init_from")
     return chain[::-1]
 
@@ -231,7 +400,14 @@ def main(argv: list[str] | None = None) -> int:
         type=Path,
         default=None,
         metavar="DIR",
-        help="folder of the training checkpoints (default: <data>/checkpoints)",
+        help="folder of the pose nets' checkpoints, posenet_<name>.pt (default: "
+        "<data>/checkpoints)",
+    )
+    add_out_argument(
+        p,
+        "the weights and their manifest (the shipped ones are written by `python -m "
+        "perception.training.recipe --ship`)",
+        default=WEIGHTS_DIR,
     )
     p.add_argument(
         "--plot",
@@ -243,7 +419,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     setup_rendering()
     ckpts = args.checkpoints or checkpoint_dir()
-    m = export(ckpts)
+    m = export(ckpts, args.out)
     if args.plot:
         plot_curves(training_curves(ckpts), args.plot)
         print(f"wrote {args.plot}")

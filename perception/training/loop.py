@@ -1,6 +1,7 @@
-"""What the loops of both trainers share: when a run writes its checkpoint, the wall time it has
-taken over all its resumptions, the arithmetic of their forward passes, and the checks of their
-common command-line values."""
+"""What the loops of the trainers share: when a run writes its checkpoint, the wall time it has
+taken over all its resumptions, the arithmetic of their forward passes, and their one command-line
+vocabulary (``--data NAME=COUNT,...``, ``--init``, ``--epochs``, ``--batch``, ``--lr``, ``--seed``,
+``--precision``, ``--channels-last``, ``--out``), checked while parsing."""
 
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ from typing import Any
 
 import torch
 
+from perception.training.dataset import DATASETS, parse_data
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.core.validate import arg, check_choice, check_int
+from posegrasp.core.validate import arg, check_choice, check_int, check_seed
 
 #: Most epochs and largest global batch a command line accepts.
 MAX_EPOCHS = 10_000
@@ -67,6 +69,38 @@ def add_schedule_arguments(
         type=arg(check_learning_rate, "--lr", base=float),
         default=lr,
         help=f"peak learning rate, in (0, {MAX_LR:g}] (default {lr:g})",
+    )
+
+
+def add_data_argument(parser, what: str, default: str, folder_first: bool = False) -> None:
+    """Add ``--data NAME[=COUNT],...``: the dataset folders under the data root a run trains on
+    and how many training images of each (all when no COUNT), checked while parsing
+    (`perception.training.dataset.parse_data`; None when not given).
+
+    Args:
+        parser: the command line.
+        what: what the names are, for the help.
+        default: what the run trains on without the option, for the help.
+        folder_first: the first NAME may also be a folder path.
+    """
+    first = " (the first may be a folder path)" if folder_first else ""
+    parser.add_argument(
+        "--data",
+        type=arg(parse_data, folder_first),
+        default=None,
+        metavar="NAME[=N],...",
+        help=f"{what}{first} and the training images of each, of: {', '.join(DATASETS)} "
+        f"(default {default})",
+    )
+
+
+def add_seed_argument(parser, default: int, what: str) -> None:
+    """Add ``--seed``, checked while parsing; `what` says what it seeds."""
+    parser.add_argument(
+        "--seed",
+        type=arg(check_seed, "--seed", base=int),
+        default=default,
+        help=f"seed of {what} (default {default})",
     )
 
 

@@ -43,9 +43,11 @@ def weights_entry(path: Path) -> dict[str, Any]:
 
 
 def stage_record(entry: dict[str, Any]) -> dict[str, Any]:
-    """What a manifest entry's ``stages`` keep of one training stage."""
+    """What a manifest entry's ``stages`` keep of one training stage (its recipe stage's name,
+    ``stage``, when the entry names one)."""
     keys = ("command", "data_seeds", "epochs_done", "wall_s", "validation", "trained_at_commit")
-    return {k: entry.get(k) for k in keys}
+    named = {"stage": entry["stage"]} if "stage" in entry else {}
+    return named | {k: entry.get(k) for k in keys}
 
 
 def shipped_entry(path: Path) -> dict[str, Any] | None:

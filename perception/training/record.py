@@ -106,7 +106,7 @@ def record_in_manifest(
     manifest_path = manifest_path or weights.parent / MANIFEST_NAME
     if not manifest_path.is_file():
         raise AssetError(
-            f"no {manifest_path}; write it with `python -m perception.training.export`"
+            f"no {manifest_path}; write it with `python -m perception.training.recipe --ship`"
         )
     manifest = read_manifest(manifest_path)
     nets = manifest.get("pose_nets", {})

@@ -8,10 +8,12 @@ resumable: a self-describing checkpoint (`perception.training.checkpoints`: weig
 training config, optimiser, step, RNG states, data seeds, commit) is written to
 ``<checkpoints>/detector.pt`` every few minutes and after every epoch, each of which ends with
 COCO box and mask AP (`perception.training.detection_eval`) on the first val images. ``--export``
-ships the weights (`perception.training.export_detector`).
+writes the weights one trains oneself (`perception.training.export.export_detector`); the shipped
+ones are made by the recipe (`perception.training.recipe`).
 
     python -m perception.training.train_detector                  # train (resumes when interrupted)
-    python -m perception.training.train_detector --export  # finish training, ship the weights
+    python -m perception.training.train_detector --data headcam=5000 --epochs 8   # NAME=N,...
+    python -m perception.training.train_detector --export --weights-out DIR  # and write the weights
     python -m perception.training.train_detector --smoke --data DIR --out DIR   # seconds, tiny data
     python -m perception.training.train_detector --precision bf16   # CPU bf16 forward passes
     torchrun --nproc-per-node 2 -m perception.training.train_detector --device cpu   # 2 processes
@@ -23,6 +25,7 @@ jittered as in one process), rank 0 evaluating and writing the checkpoint.
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from dataclasses import dataclass, field, replace
@@ -43,7 +46,7 @@ from perception.training.checkpoints import (
     save_checkpoint,
     seed_torch,
 )
-from perception.training.dataset import DATASETS, PoseDataset, load_info
+from perception.training.dataset import DATASETS, PoseDataset, format_data, load_info
 from perception.training.ddp import DEVICES, MAX_THREADS, Ranks, joined
 from perception.training.detection_data import (
     augment_shard,
@@ -52,14 +55,16 @@ from perception.training.detection_data import (
     training_images,
 )
 from perception.training.detection_eval import evaluate_detector, pycocotools_api
-from perception.training.export_detector import TRAIN_COMMAND, export_detector
+from perception.training.export import export_detector
 from perception.training.loop import (
     MAX_LIMIT,
     PRECISIONS,
     Checkpointer,
     add_arithmetic_arguments,
     add_compute_arguments,
+    add_data_argument,
     add_schedule_arguments,
+    add_seed_argument,
     autocast,
 )
 from perception.training.schedule import learning_rate, optimiser_step
@@ -75,10 +80,11 @@ from posegrasp.core.validate import (
     check_choice,
     check_int,
     check_output_dir,
-    check_seed,
 )
 from posegrasp.world.objects import check_objects
 
+#: The command line of this module.
+TRAIN_COMMAND = "python -m perception.training.train_detector"
 CHECKPOINT_NAME = "detector.pt"
 
 
@@ -87,8 +93,8 @@ class DetectorTrainConfig:
     """A detector training run.
 
     Attributes:
-        data: dataset folder (BOP layout, splits train and val); None means
-            ``data_root() / "headcam"``.
+        data: dataset folder (BOP layout, splits train and val), or the name of one under the data
+            root (`perception.training.dataset.DATASETS`); None means ``data_root() / "headcam"``.
         epochs, batch: passes over the train split and images per step.
         lr, weight_decay, warmup: AdamW peak learning rate, weight decay, and the fraction of
             steps of linear warm-up before the cosine decay
@@ -96,7 +102,9 @@ class DetectorTrainConfig:
         grad_clip: gradient norm clip.
         min_visible_px: instances with fewer visible pixels are not training targets (and are
             ignored by the AP evaluation).
-        limit: use at most this many train images (None: all).
+        limit: use at most this many train images of each folder (None: all).
+        limits: per-folder caps on top of `limit`, ((folder name, images), ...); the first
+            folder goes by its own name (``headcam_hard`` for ``data/headcam_hard``).
         val_images: the AP evaluation after each epoch uses the first this many val images.
         seed: seed of initialisation, image order and augmentation.
         workers: data-loading processes (0: load in the training process).
@@ -128,6 +136,7 @@ class DetectorTrainConfig:
     grad_clip: float = 10.0
     min_visible_px: int = 100
     limit: int | None = None
+    limits: tuple[tuple[str, int], ...] = ()
     val_images: int = 100
     seed: int = 0
     workers: int = 1
@@ -160,6 +169,8 @@ class DetectorTrainConfig:
             raise InvalidArgumentError("lr and checkpoint_minutes must be positive")
         if self.limit is not None and self.limit < 1:
             raise InvalidArgumentError(f"limit must be >= 1, got {self.limit}")
+        if any(n < 1 for _, n in self.limits):
+            raise InvalidArgumentError(f"limits must be >= 1, got {self.limits}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for checkpoints (paths as strings)."""
@@ -172,7 +183,40 @@ SMOKE = DetectorTrainConfig(epochs=1, batch=2, limit=4, val_images=2, workers=0,
 
 def dataset_root(cfg: DetectorTrainConfig) -> Path:
     """The dataset folder the run trains on."""
-    return Path(cfg.data) if cfg.data is not None else data_root() / "headcam"
+    if cfg.data is None or str(cfg.data) in DATASETS:
+        return data_root() / str(cfg.data or "headcam")
+    return Path(cfg.data)
+
+
+def part_limits(cfg: DetectorTrainConfig) -> tuple[int | None, ...]:
+    """The most train images the run takes of each of its folders (None: all), the data
+    folder's first, then those of `also`."""
+    names = (dataset_root(cfg).name, *cfg.also)
+    caps = dict(cfg.limits)
+    out = []
+    for name in names:
+        lims = [n for n in (cfg.limit, caps.get(name)) if n is not None]
+        out.append(min(lims) if lims else None)
+    return tuple(out)
+
+
+def command_line(cfg: DetectorTrainConfig) -> str:
+    """The CLI command that runs `cfg` (the options it changed), in the trainers' shared
+    spelling (``--data NAME=COUNT,...``)."""
+    d = DetectorTrainConfig
+    root = str(cfg.data) if cfg.data is not None else "headcam"
+    data = format_data(tuple(zip((root, *cfg.also), part_limits(cfg), strict=True)))
+    options = (
+        (cfg.batch != d.batch, f"--batch {cfg.batch}"),
+        (cfg.lr != d.lr, f"--lr {cfg.lr:g}"),
+        (cfg.seed != d.seed, f"--seed {cfg.seed}"),
+        (cfg.precision != d.precision, f"--precision {cfg.precision}"),
+        (cfg.channels_last, "--channels-last"),
+        (cfg.init is not None, f"--init {cfg.init}"),
+        (cfg.out is not None, f"--out {cfg.out}"),
+    )
+    head = [TRAIN_COMMAND, f"--data {data}", f"--epochs {cfg.epochs}"]
+    return " ".join(head + [text for wanted, text in options if wanted])
 
 
 def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None = None) -> dict:
@@ -275,7 +319,9 @@ def _datasets(cfg: DetectorTrainConfig, root: Path) -> tuple[Any, list, PoseData
                 "`python -m perception.training.datagen "
                 f"--dist headcam --split {split} --count N --out {root}` (or `make data`)"
             )
-    train_set, parts = training_images(root, cfg.also, cfg.min_visible_px, cfg.detector, cfg.limit)
+    train_set, parts = training_images(
+        root, cfg.also, cfg.min_visible_px, cfg.detector, part_limits(cfg)
+    )
     val_data = PoseDataset(root, "val")
     if len(train_set) < cfg.batch:
         raise AssetError(
@@ -547,19 +593,27 @@ def _save(
             history=run.history,
             rng=rng_state(run.generator),
             data_seeds=seeds,
-            header={"kind": "detector", "wall_s": wall_s},
+            header={"kind": "detector", "command": command_line(cfg), "wall_s": wall_s},
         )
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def parse_config(argv: list[str] | None) -> tuple[DetectorTrainConfig, argparse.Namespace]:
+    """The run a command line asks for, and its parsed arguments (nothing is trained).
+
+    Raises:
+        InvalidArgumentError: ``--data`` of several folders beside the older ``--also``.
+    """
     args = _parser().parse_args(argv)
-    setup_rendering()
+    data = args.data or (("headcam", None),)
+    if len(data) > 1 and args.also:
+        raise InvalidArgumentError("--data names every folder; drop --also")
+    folder, first_images = data[0]
+    also = tuple(args.also.split(",")) if args.also else tuple(name for name, _ in data[1:])
+    limits = ((Path(folder).name, first_images), *data[1:])
     if args.smoke:
         cfg = replace(
             SMOKE,
-            data=args.data,
+            data=None if args.data is None else Path(folder),
             out=args.out,
             seed=args.seed,
             threads=args.threads or SMOKE.threads,
@@ -571,11 +625,12 @@ def main(argv: list[str] | None = None) -> int:
         )
     else:
         cfg = DetectorTrainConfig(
-            data=args.data,
+            data=None if args.data is None else Path(folder),
             epochs=args.epochs,
             batch=args.batch,
             lr=args.lr,
             limit=args.limit,
+            limits=tuple((name, n) for name, n in limits if n is not None),
             val_images=args.val_images,
             workers=args.workers,
             seed=args.seed,
@@ -584,12 +639,20 @@ def main(argv: list[str] | None = None) -> int:
             device=args.device,
             loss_log=args.loss_log,
             init=args.init,
-            also=tuple(args.also.split(",")) if args.also else (),
+            also=also,
             precision=args.precision,
             channels_last=args.channels_last,
         )
     if args.objects:
         cfg = replace(cfg, detector=cfg.detector.widened(args.objects))
+    return cfg, args
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    cfg, args = parse_config(argv)
+    setup_rendering()
     result = train(cfg, resume=not args.no_resume, max_steps=args.max_steps)
     if result["history"]:
         print(json.dumps(result["history"][-1], sort_keys=True))
@@ -605,16 +668,14 @@ def _parser() -> ArgumentParser:
     """The command line of `main`, its counts and rates checked while it is parsed."""
     d = DetectorTrainConfig
     p = ArgumentParser(prog=TRAIN_COMMAND, description=__doc__.split("\n")[0])
+    add_data_argument(p, "dataset folders", "headcam", folder_first=True)
+    # The spelling of the recorded commands of the shipped detectors (--data replaces both).
+    p.add_argument("--also", default=None, help=argparse.SUPPRESS)
     p.add_argument(
-        "--data",
-        type=Path,
+        "--limit",
+        type=arg(check_int, 1, MAX_LIMIT, "--limit", base=int),
         default=None,
-        help="dataset folder with train and val (default: $POSEGRASP_DATA/headcam)",
-    )
-    p.add_argument(
-        "--also",
-        default=None,
-        help=f"more train data: a comma list of dataset folders, of: {', '.join(DATASETS)}",
+        help=argparse.SUPPRESS,
     )
     p.add_argument("--init", type=Path, help="start from these detector weights (fine-tune)")
     p.add_argument(
@@ -626,12 +687,6 @@ def _parser() -> ArgumentParser:
         "the class heads of those weights are widened for them)",
     )
     add_schedule_arguments(p, d.epochs, d.batch, d.lr, "the train split", " of images")
-    p.add_argument(
-        "--limit",
-        type=arg(check_int, 1, MAX_LIMIT, "--limit", base=int),
-        default=None,
-        help=f"at most this many train images, 1..{MAX_LIMIT} (default: all)",
-    )
     p.add_argument(
         "--val-images",
         type=arg(check_int, 1, MAX_LIMIT, "--val-images", base=int),
@@ -651,12 +706,7 @@ def _parser() -> ArgumentParser:
     p.add_argument(
         "--loss-log", type=Path, default=None, help="append one JSON line per step to this file"
     )
-    p.add_argument(
-        "--seed",
-        type=arg(check_seed, "--seed", base=int),
-        default=d.seed,
-        help=f"seed of initialisation, image order and augmentation (default {d.seed})",
-    )
+    add_seed_argument(p, d.seed, "initialisation, image order and augmentation")
     add_out_argument(p, "the checkpoint (default: <data>/checkpoints)")
     p.add_argument(
         "--max-steps",
@@ -668,8 +718,8 @@ def _parser() -> ArgumentParser:
     p.add_argument(
         "--export",
         action="store_true",
-        help="after training, write perception/weights/detector.pt and its manifest "
-        "entry (a finished run is not trained further)",
+        help="after training, write the weights and their manifest entry into --weights-out "
+        "(the shipped ones are written by `python -m perception.training.recipe --ship`)",
     )
     p.add_argument(
         "--weights-out",

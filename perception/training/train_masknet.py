@@ -25,6 +25,9 @@ A run checkpoints after every epoch and every few minutes (``--out``) and resume
 ``perception/weights/paper_protocol/masknet.pt``) and its manifest entry (``mask_net``: command,
 data, validation, wall time). ``--init`` starts a run from a shipped net (a further stage, on
 windows cut afresh with another ``--seed``); its entry then lists every stage that made it.
+The shipped nets are made by the recipe (`perception.training.recipe`), each stage one call to
+`train`; its command line names the training scenes as the other trainers do (``--data
+NAME=N,...``, ``--val NAME=N``).
 
     python -m perception.training.train_masknet --init perception/weights/tiers/masknet.pt \
         --seed 1 --epochs 3 --lr 0.001 --channels-last --export
@@ -32,11 +35,12 @@ windows cut afresh with another ``--seed``); its entry then lists every stage th
 
 from __future__ import annotations
 
+import argparse
 import math
 import shlex
 import sys
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -52,7 +56,6 @@ from perception.mask_net import (
     MaskNetConfig,
     MaskRefiner,
     cut,
-    expert_path,
     net_input,
     window_of,
 )
@@ -62,33 +65,30 @@ from perception.training.checkpoints import (
     read_checkpoint,
     restore,
     rng_state,
-    save_atomically,
     save_checkpoint,
     seed_torch,
 )
-from perception.training.dataset import PoseDataset
+from perception.training.dataset import PoseDataset, format_data, parse_data
+from perception.training.export import export_masknet
 from perception.training.loop import (
     Checkpointer,
     add_arithmetic_arguments,
+    add_data_argument,
     add_schedule_arguments,
+    add_seed_argument,
     autocast,
 )
-from perception.training.manifest import (
-    MANIFEST_NAME,
-    read_manifest,
-    shipped_entry,
-    stage_record,
-    weights_entry,
-    write_manifest,
-)
-from posegrasp.core.cli import ArgumentParser, command, write_json
+from perception.training.manifest import shipped_entry, stage_record
+from posegrasp.core.cli import ArgumentParser, add_out_argument, command, write_json
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.files import sha256_file
-from posegrasp.core.paths import data_root, in_repo
+from posegrasp.core.paths import checkpoint_dir, data_root, in_repo
 from posegrasp.core.progress import progress_bar
-from posegrasp.core.validate import arg, check_choice, check_int, check_plot_path, check_seed
+from posegrasp.core.validate import arg, check_choice, check_int, check_plot_path
 from posegrasp.world.objects import OBJECT_NAMES
 
+#: The command line of this module.
+TRAIN_COMMAND = "python -m perception.training.train_masknet"
 #: Objects with fewer visible pixels give no training window.
 MIN_VISIBLE_PX = 100
 #: `detector_windows` keeps its windows in blocks of this many images.
@@ -148,7 +148,7 @@ class MaskTrainConfig:
         epochs, batch, lr: the schedule (one-cycle, AdamW).
         seed: of the windows' jitter, the batches' order and the coarse masks.
         precision, channels_last: the arithmetic (`perception.training.loop`).
-        out: checkpoint folder.
+        out: checkpoint folder (default ``<data>/checkpoints/masknet``).
         net: the net.
         init: a shipped mask net the run starts from (None: from scratch); its net must be
             `net`.
@@ -168,7 +168,7 @@ class MaskTrainConfig:
     seed: int = 0
     precision: str = "bf16"
     channels_last: bool = True
-    out: Path = Path("data/checkpoints/masknet")
+    out: Path = field(default_factory=lambda: checkpoint_dir() / "masknet")
     net: MaskNetConfig = field(default_factory=MaskNetConfig)
     init: Path | None = None
     detected: tuple[str, int, int] | None = None
@@ -474,6 +474,139 @@ def _start_from(net: MaskNet, init: Path) -> dict[str, Any]:
     return {"stages": entry.get("stages") or [stage_record(entry)]}
 
 
+@dataclass
+class Windows:
+    """A run's windows (`build_cache`, `detector_windows`): what it trains and validates on.
+
+    Attributes:
+        train: ``rgb`` (N, S, S, 3) uint8 and ``target`` (N, S, S) uint8 of every training
+            window, the drawn ones first, then the detector's.
+        first_detected: where the detector's windows begin in `train` (N when there are none).
+        detected: the detector's training windows with their ``coarse`` masks, or None.
+        val: the validation windows (their coarse masks drawn, seed 0).
+        val_detected: the detector's windows of the validation scenes, or None.
+    """
+
+    train: dict[str, np.ndarray]
+    first_detected: int
+    detected: dict[str, np.ndarray] | None
+    val: dict[str, np.ndarray]
+    val_detected: dict[str, np.ndarray] | None
+
+
+def training_windows(cfg: MaskTrainConfig) -> Windows:
+    """Cut (or read back from the cache) the windows of a run.
+
+    Raises:
+        AssetError: a split or the detector's weights are missing, or the detector found no
+            object.
+    """
+    spread = 2.0 if cfg.heavy else 1.0
+    parts = [build_cache(f, "train", n, cfg.net, cfg.seed, spread) for f, n in cfg.sources]
+    first_detected = sum(len(p["rgb"]) for p in parts)
+    detected = val_detected = None
+    if cfg.detected is not None:
+        folder, first, images = cfg.detected
+        detected = detector_windows(folder, "train", first, images, cfg.net, cfg.detector)
+        parts.append(detected)
+        val_detected = detector_windows(cfg.val[0], "val", 0, cfg.val[1], cfg.net, cfg.detector)
+    train = {k: np.concatenate([p[k] for p in parts]) for k in ("rgb", "target")}
+    val = build_cache(cfg.val[0], "val", cfg.val[1], cfg.net, 0, spread)
+    return Windows(train, first_detected, detected, val, val_detected)
+
+
+@dataclass
+class _Run:
+    """A run's net, optimiser and schedule, and where it stands (updated as it trains).
+
+    Attributes:
+        net: the net (channels-last when the run asks for it).
+        opt, sched: its optimiser and one-cycle schedule.
+        steps_per_epoch: the plan.
+        record: what the run was started with (epochs, batch, lr, seed, init, detected), its
+            ``train_config``; a resumed run must match it.
+        lineage: the stages that made the net it started from (``stages``).
+        step, epoch: optimiser steps and whole epochs done.
+        history: per-epoch validation.
+        wall0: wall time before this process resumed it [s].
+    """
+
+    net: MaskNet
+    opt: torch.optim.Optimizer
+    sched: torch.optim.lr_scheduler.LRScheduler
+    steps_per_epoch: int
+    record: dict[str, Any]
+    lineage: dict[str, Any]
+    step: int = 0
+    epoch: int = 0
+    history: list[dict] = field(default_factory=list)
+    wall0: float = 0.0
+
+
+def _start_run(cfg: MaskTrainConfig, windows: Windows, resume: bool) -> _Run:
+    """The net, fresh, started from `cfg.init`, or resumed from ``cfg.out/last.pt``.
+
+    Raises:
+        InvalidArgumentError: the checkpoint to resume belongs to a run of other epochs, batch,
+            seed, start or detector windows.
+        AssetError: `cfg.init` is missing, corrupt or of another net.
+    """
+    net = MaskNet(cfg.net)
+    lineage = {"stages": []} if cfg.init is None else _start_from(net, cfg.init)
+    record = {
+        "epochs": cfg.epochs,
+        "batch": cfg.batch,
+        "lr": cfg.lr,
+        "seed": cfg.seed,
+        "init": None if cfg.init is None else str(cfg.init),
+        "detected": None if cfg.detected is None else list(cfg.detected),
+    }
+    if cfg.channels_last:
+        net = net.to(memory_format=torch.channels_last)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=1e-4)
+    steps_per_epoch = len(windows.train["rgb"]) // cfg.batch
+    total = steps_per_epoch * cfg.epochs
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, cfg.lr, total_steps=total, pct_start=0.15)
+    run = _Run(net, opt, sched, steps_per_epoch, record, lineage)
+    last = cfg.out / "last.pt"
+    if resume and last.is_file():
+        state = read_checkpoint(last)
+        was = state["train_config"]
+        keys = ("epochs", "batch", "seed", "init", "detected")
+        if any(was.get(k, 0 if k == "seed" else None) != record[k] for k in keys):
+            started = " ".join(f"--{k} {was.get(k)}" for k in keys if was.get(k) is not None)
+            raise InvalidArgumentError(
+                f"the run in {cfg.out} was started with {started}; resume it with those, or "
+                "start over with --no-resume"
+            )
+        run.step, run.epoch, run.history = restore(state, net, opt)
+        run.lineage = state.get("lineage", lineage)
+        sched.load_state_dict(state["scheduler"])
+        run.wall0 = float(state["wall_s"])
+    return run
+
+
+def _data_seeds(cfg: MaskTrainConfig, windows: Windows) -> dict[str, Any]:
+    """Which windows the run trains and validates on, as its checkpoint records it."""
+    seeds = {
+        "sources": dict(cfg.sources),
+        "val": dict([cfg.val]),
+        "windows": len(windows.train["rgb"]),
+        "seed": cfg.seed,
+        "val_seed": 0,
+        "init": None if cfg.init is None else str(cfg.init),
+        "init_sha256": None if cfg.init is None else sha256_file(cfg.init),
+    }
+    if cfg.detected is not None:
+        seeds |= {
+            "detected": list(cfg.detected),
+            "detected_windows": len(windows.train["rgb"]) - windows.first_detected,
+            "detector": None if cfg.detector is None else str(in_repo(cfg.detector)),
+            "detector_sha256": sha256_file(cfg.detector) if cfg.detector else None,
+        }
+    return seeds
+
+
 def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = None) -> dict:
     """Train (resuming from ``cfg.out/last.pt`` when asked and present: the same steps as a run
     never stopped); returns the last checkpoint's contents. `max_steps` stops the run, saved,
@@ -485,179 +618,88 @@ def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = Non
         AssetError: `cfg.init` is missing, corrupt or of another net.
     """
     seed_torch(cfg.seed, None)
-    spread = 2.0 if cfg.heavy else 1.0
-    parts = [build_cache(f, "train", n, cfg.net, cfg.seed, spread) for f, n in cfg.sources]
-    # The windows from `first_detected` on are the detector's, with their own coarse masks;
-    # the others' are drawn per batch.
-    first_detected = sum(len(p["rgb"]) for p in parts)
-    detected_train = val_detected = None
-    if cfg.detected is not None:
-        folder, first, images = cfg.detected
-        detected_train = detector_windows(folder, "train", first, images, cfg.net, cfg.detector)
-        parts.append(detected_train)
-        val_detected = detector_windows(cfg.val[0], "val", 0, cfg.val[1], cfg.net, cfg.detector)
-    tr = {k: np.concatenate([p[k] for p in parts]) for k in ("rgb", "target")}
-    val = build_cache(cfg.val[0], "val", cfg.val[1], cfg.net, 0, spread)
-    net = MaskNet(cfg.net)
-    lineage = {"stages": []} if cfg.init is None else _start_from(net, cfg.init)
-    init = None if cfg.init is None else str(cfg.init)
-    detected = None if cfg.detected is None else list(cfg.detected)
-    run = {
-        "epochs": cfg.epochs,
-        "batch": cfg.batch,
-        "lr": cfg.lr,
-        "seed": cfg.seed,
-        "init": init,
-        "detected": detected,
-    }
-    if cfg.channels_last:
-        net = net.to(memory_format=torch.channels_last)
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=1e-4)
-    steps_per_epoch = len(tr["rgb"]) // cfg.batch
-    total = steps_per_epoch * cfg.epochs
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, cfg.lr, total_steps=total, pct_start=0.15)
-    step, epoch, history, wall0 = 0, 0, [], 0.0
-    last = cfg.out / "last.pt"
-    if resume and last.is_file():
-        state = read_checkpoint(last)
-        was = state["train_config"]
-        keys = ("epochs", "batch", "seed", "init", "detected")
-        if any(was.get(k, 0 if k == "seed" else None) != run[k] for k in keys):
-            started = " ".join(f"--{k} {was.get(k)}" for k in keys if was.get(k) is not None)
-            raise InvalidArgumentError(
-                f"the run in {cfg.out} was started with {started}; resume it with those, or "
-                "start over with --no-resume"
-            )
-        step, epoch, history = restore(state, net, opt)
-        lineage = state.get("lineage", lineage)
-        sched.load_state_dict(state["scheduler"])
-        wall0 = float(state["wall_s"])
+    windows = training_windows(cfg)
+    run = _start_run(cfg, windows, resume)
     cfg.out.mkdir(parents=True, exist_ok=True)
-    data_seeds = {
-        "sources": dict(cfg.sources),
-        "val": dict([cfg.val]),
-        "windows": len(tr["rgb"]),
-        "seed": cfg.seed,
-        "val_seed": 0,
-        "init": run["init"],
-        "init_sha256": None if cfg.init is None else sha256_file(cfg.init),
-    }
-    if cfg.detected is not None:
-        data_seeds |= {
-            "detected": detected,
-            "detected_windows": len(tr["rgb"]) - first_detected,
-            "detector": None if cfg.detector is None else str(in_repo(cfg.detector)),
-            "detector_sha256": sha256_file(cfg.detector) if cfg.detector else None,
-        }
-    if cfg.init is not None and not history:  # the start, on the same validation windows
-        history.append({"epoch": 0, "step": 0, **validate(net, val, 0, cfg.heavy, val_detected)})
-        print(f"start ({cfg.init}): {history[-1]}", flush=True)
+    last = cfg.out / "last.pt"
+    data_seeds = _data_seeds(cfg, windows)
+    if cfg.init is not None and not run.history:  # the start, on the same validation windows
+        val = validate(run.net, windows.val, 0, cfg.heavy, windows.val_detected)
+        run.history.append({"epoch": 0, "step": 0, **val})
+        print(f"start ({cfg.init}): {run.history[-1]}", flush=True)
 
     def save(done: int, wall_s: float) -> None:
         save_checkpoint(
             last,
-            net,
-            opt,
+            run.net,
+            run.opt,
             model_config=config_dict(cfg.net),
-            train_config=run,
-            step=step,
+            train_config=run.record,
+            step=run.step,
             epoch=done,
-            history=history,
+            history=run.history,
             rng=rng_state(),
             data_seeds=data_seeds,
             header={
                 "kind": "masknet",
-                "scheduler": sched.state_dict(),
+                "command": command_line(cfg),
+                "scheduler": run.sched.state_dict(),
                 "wall_s": wall_s,
-                "lineage": lineage,
+                "lineage": run.lineage,
             },
         )
 
-    ckpts = Checkpointer(save, minutes=5, wall_s=wall0)
+    _train_epochs(cfg, windows, run, Checkpointer(save, minutes=5, wall_s=run.wall0), max_steps)
+    return read_checkpoint(last)
+
+
+def _train_epochs(
+    cfg: MaskTrainConfig, windows: Windows, run: _Run, ckpts: Checkpointer, max_steps: int | None
+) -> None:
+    """The steps not done yet, validating and saving after each epoch; stops, saved, after
+    `max_steps` steps in all."""
+    tr, detected = windows.train, windows.detected
     device = torch.device("cpu")
-    while epoch < cfg.epochs:
+    while run.epoch < cfg.epochs:
+        epoch = run.epoch
         g = torch.Generator().manual_seed(cfg.seed * 1000 + epoch)
         order = torch.randperm(len(tr["rgb"]), generator=g).numpy()
-        net.train()
-        bar = progress_bar(range(steps_per_epoch), desc=f"mask net epoch {epoch + 1}/{cfg.epochs}")
+        run.net.train()
+        desc = f"mask net epoch {epoch + 1}/{cfg.epochs}"
+        bar = progress_bar(range(run.steps_per_epoch), desc=desc)
         for b in bar:
-            if b < step - epoch * steps_per_epoch:
+            if b < run.step - epoch * run.steps_per_epoch:
                 # Done before the resume: only the coarse masks' draws, which the data never
                 # changes, so the steps after it draw as an unstopped run's did.
                 degrade(torch.zeros(cfg.batch, 1, 1), g, cfg.heavy)
                 continue
-            if max_steps is not None and step >= max_steps:
+            if max_steps is not None and run.step >= max_steps:
                 ckpts.save(epoch)
-                return read_checkpoint(last)
+                return
             idx = np.sort(order[b * cfg.batch : (b + 1) * cfg.batch])
             t = torch.as_tensor(tr["target"][idx]).float() / 255
             coarse = degrade(t, g, cfg.heavy).numpy()
-            if detected_train is not None and (mine := idx >= first_detected).any():
-                coarse[mine] = detected_train["coarse"][idx[mine] - first_detected]
+            if detected is not None and (mine := idx >= windows.first_detected).any():
+                coarse[mine] = detected["coarse"][idx[mine] - windows.first_detected]
             x = net_input(tr["rgb"][idx], coarse)
             if cfg.channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             with autocast(cfg.precision, device):
-                logits = net(x)
+                logits = run.net(x)
             loss = torch.nn.functional.binary_cross_entropy_with_logits(logits.float()[:, 0], t)
-            opt.zero_grad(set_to_none=True)
+            run.opt.zero_grad(set_to_none=True)
             loss.backward()
-            opt.step()
-            sched.step()
-            step += 1
+            run.opt.step()
+            run.sched.step()
+            run.step += 1
             if b % 20 == 0:
                 bar.set_postfix(loss=f"{loss.item():.4f}")
             ckpts.save_if_due(epoch)
-        epoch += 1
-        history.append(
-            {"epoch": epoch, "step": step, **validate(net, val, 0, cfg.heavy, val_detected)}
-        )
-        print(f"epoch {epoch}: {history[-1]}", flush=True)
-        ckpts.save(epoch)
-    return read_checkpoint(last)
-
-
-def export(
-    cfg: MaskTrainConfig, command_line: str, out: Path = DEFAULT_MASKNET, expert: str | None = None
-) -> dict:
-    """Write the shipped net (float16 state dict, model config) and its ``mask_net`` manifest
-    entry from the run's last checkpoint; a run started from a shipped net (``--init``) lists
-    the stages that made that net before its own (``stages``). With `expert`, the net is the one
-    that serves that object alone: written to `expert_path` of `out`, its entry
-    ``mask_net_experts.<expert>``.
-
-    Raises:
-        AssetError: the run has not finished its epochs.
-    """
-    state = read_checkpoint(cfg.out / "last.pt")
-    if state["epoch"] < cfg.epochs:
-        raise AssetError(
-            f"the run in {cfg.out} has done {state['epoch']}/{cfg.epochs} epochs; finish it first"
-        )
-    out = out if expert is None else expert_path(out, expert)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    model = {k: v.half() if v.is_floating_point() else v for k, v in state["model"].items()}
-    save_atomically({"model": model, "model_config": state["model_config"]}, out)
-    manifest_path = out.parent / MANIFEST_NAME
-    manifest = read_manifest(manifest_path)
-    entry = weights_entry(out) | {
-        "command": command_line,
-        "data_seeds": state["data_seeds"],
-        "epochs_done": state["epoch"],
-        "parameters": sum(int(v.numel()) for v in state["model"].values()),
-        "trained_at_commit": state["commit"],
-        "validation": state["history"][-1],
-        "wall_s": round(float(state["wall_s"]), 1),
-    }
-    earlier = (state.get("lineage") or {}).get("stages") or []
-    if earlier:
-        entry["stages"] = [*earlier, stage_record(entry)]
-    if expert is None:
-        manifest["mask_net"] = entry
-    else:
-        manifest.setdefault("mask_net_experts", {})[expert] = entry
-    write_manifest(manifest_path, manifest)
-    return entry
+        run.epoch += 1
+        val = validate(run.net, windows.val, 0, cfg.heavy, windows.val_detected)
+        run.history.append({"epoch": run.epoch, "step": run.step, **val})
+        print(f"epoch {run.epoch}: {run.history[-1]}", flush=True)
+        ckpts.save(run.epoch)
 
 
 def evaluate(
@@ -750,12 +792,105 @@ def plot_examples(examples: list, path: Path) -> None:
     print(f"wrote {path}")
 
 
+def command_line(cfg: MaskTrainConfig) -> str:
+    """The CLI command that runs `cfg` (as far as the CLI exposes it: the protocol whose
+    validation scenes it has, then what it changes), in the trainers' shared spelling."""
+    protocol = next((k for k, v in PROTOCOLS.items() if v.val == cfg.val), "tiers")
+    proto, d = PROTOCOLS[protocol], MaskTrainConfig
+    options = (
+        (cfg.lr != d.lr, f"--lr {cfg.lr:g}"),
+        (cfg.batch != d.batch, f"--batch {cfg.batch}"),
+        (cfg.seed != d.seed, f"--seed {cfg.seed}"),
+        (cfg.precision != d.precision, f"--precision {cfg.precision}"),
+        (cfg.channels_last, "--channels-last"),
+        (cfg.init is not None, f"--init {cfg.init}"),
+        (cfg.detected is not None, f"--detected {cfg.detected and cfg.detected[2]}"),
+        (cfg.detector not in (None, proto.detector), f"--detector {cfg.detector}"),
+        (cfg.val != proto.val, f"--val {format_data((cfg.val,))}"),
+        (True, f"--out {cfg.out}"),
+    )
+    head = [TRAIN_COMMAND, f"--protocol {protocol}", f"--data {format_data(cfg.sources)}"]
+    head.append(f"--epochs {cfg.epochs}")
+    return " ".join(head + [text for wanted, text in options if wanted])
+
+
+def parse_config(argv: list[str] | None) -> tuple[MaskTrainConfig, argparse.Namespace]:
+    """The run a command line asks for, and its parsed arguments (nothing is trained).
+
+    Raises:
+        InvalidArgumentError: ``--expert`` without ``--export`` or for an object the protocol
+            has no net of its own for.
+    """
+    args = _parser().parse_args(argv)
+    proto = PROTOCOLS[args.protocol]
+    if args.expert is not None and (not args.export or args.expert not in proto.experts):
+        raise InvalidArgumentError(
+            f"--expert {args.expert} needs --export and one of the objects the {args.protocol} "
+            f"protocol's estimator has a net of its own for: {', '.join(proto.experts) or 'none'}"
+        )
+    sources = proto.sources if args.data is None else args.data
+    if any(n is None for _, n in sources):
+        raise InvalidArgumentError("--data wants a count of every folder: NAME=N,...")
+    if args.val is not None and (len(args.val) != 1 or args.val[0][1] is None):
+        raise InvalidArgumentError("--val wants one NAME=N")
+    folder, first = proto.sources[0]
+    name = "masknet" + ("" if args.protocol == "tiers" else f"_{args.protocol}")
+    cfg = MaskTrainConfig(
+        detected=None if args.detected is None else (folder, first, args.detected),
+        detector=None if args.detected is None else args.detector or proto.detector,
+        sources=tuple(sources),
+        val=proto.val if args.val is None else args.val[0],
+        epochs=args.epochs,
+        batch=args.batch,
+        lr=args.lr,
+        precision=args.precision,
+        channels_last=args.channels_last,
+        out=args.out or checkpoint_dir() / name,
+        seed=args.seed,
+        init=args.init,
+    )
+    return cfg, args
+
+
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python -m perception.training.train_masknet", description=__doc__)
-    add_schedule_arguments(p, 3, 32, 2e-3, "the training windows", " of windows")
-    add_arithmetic_arguments(p, "bf16", "the net and its inputs")
+    argv = sys.argv[1:] if argv is None else list(argv)
+    cfg, args = parse_config(argv)
+    torch.set_num_threads(2)
+    if args.evaluate:
+        return _report(args)
+    train(cfg, resume=not args.no_resume)
+    if args.export:
+        weights = PROTOCOLS[args.protocol].weights
+        line = f"{TRAIN_COMMAND} {shlex.join(argv)}".strip()
+        entry = export_masknet(cfg.out / "last.pt", line, weights, args.expert)
+        print(f"wrote {entry['file']} beside {weights} ({entry['bytes']} bytes)")
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    """``--evaluate``: measure the protocol's shipped net and print (and write) the figures."""
+    examples: list | None = [] if args.plot else None
+    report = evaluate(args.split, args.images, args.protocol, examples=examples)
+    print(
+        f"{report['split']}: {report['objects']} objects, mask IoU with the truth: detector "
+        f"{report['detector_iou']:.3f}, refined {report['refined_iou']:.3f} (better for "
+        f"{100 * report['refined_better']:.1f} %), {report['ms_per_mask']:.1f} ms per mask"
+    )
+    for name, r in report["per_class"].items():
+        print(f"  {name:7s} {r['objects']:4d}  {r['detector_iou']:.3f} -> {r['refined_iou']:.3f}")
+    if args.json:
+        write_json(args.json, report)
+    if args.plot and examples:
+        plot_examples(examples, args.plot)
+    return 0
+
+
+def _parser() -> ArgumentParser:
+    """The command line of `main`, its values checked while it is parsed."""
+    d = MaskTrainConfig
+    p = ArgumentParser(prog=TRAIN_COMMAND, description=__doc__)
     p.add_argument(
         "--protocol",
         type=arg(check_choice, tuple(PROTOCOLS), "protocol"),
@@ -763,16 +898,25 @@ def main(argv: list[str] | None = None) -> int:
         help="the images and detector: tiers (the head camera's scenes, hybrid-global) or paper "
         "(the paper's studio images, hybrid-global-paper) (default tiers)",
     )
-    p.add_argument("--out", type=Path, default=None, help="checkpoint folder")
+    add_data_argument(p, "split folders of training scenes", "the protocol's")
     p.add_argument(
-        "--init", type=Path, default=None, help="start from this shipped mask net (a further stage)"
+        "--val",
+        type=arg(parse_data),
+        default=None,
+        metavar="NAME=N",
+        help="the folder of the validation scenes and how many (default: the protocol's)",
     )
+    add_schedule_arguments(p, d.epochs, d.batch, d.lr, "the training windows", " of windows")
+    add_seed_argument(
+        p,
+        d.seed,
+        "the training windows' jitter, the batches' order and the coarse masks (the validation "
+        "windows are seed 0's whatever it is)",
+    )
+    add_arithmetic_arguments(p, d.precision, "the net and its inputs")
+    add_out_argument(p, "the checkpoint (default: <data>/checkpoints/masknet[_<protocol>])")
     p.add_argument(
-        "--seed",
-        type=arg(check_seed, "--seed", base=int),
-        default=0,
-        help="of the training windows' jitter, the batches' order and the coarse masks "
-        "(default 0; the validation windows are seed 0's whatever it is)",
+        "--init", type=Path, default=None, help="start from this mask net (a further stage)"
     )
     p.add_argument(
         "--detected",
@@ -781,8 +925,20 @@ def main(argv: list[str] | None = None) -> int:
         help="also train on this many images after the protocol's training images, cut around "
         "its detector's own masks, which are their coarse input (default none)",
     )
+    p.add_argument(
+        "--detector",
+        type=Path,
+        default=None,
+        help="with --detected: the detector weights or checkpoint whose masks those are "
+        "(default: the protocol's shipped detector)",
+    )
     p.add_argument("--no-resume", action="store_true", help="start over")
-    p.add_argument("--export", action="store_true", help="write the shipped net when done")
+    p.add_argument(
+        "--export",
+        action="store_true",
+        help="write the protocol's net and its manifest entry when done (the shipped ones are "
+        "written by `python -m perception.training.recipe --ship`)",
+    )
     p.add_argument(
         "--expert",
         type=arg(check_choice, OBJECT_NAMES, "object"),
@@ -815,56 +971,7 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="with --evaluate: draw each class's first object's masks into this PNG",
     )
-    args = p.parse_args(argv)
-    torch.set_num_threads(2)
-    if args.evaluate:
-        examples: list | None = [] if args.plot else None
-        report = evaluate(args.split, args.images, args.protocol, examples=examples)
-        print(
-            f"{report['split']}: {report['objects']} objects, mask IoU with the truth: detector "
-            f"{report['detector_iou']:.3f}, refined {report['refined_iou']:.3f} (better for "
-            f"{100 * report['refined_better']:.1f} %), {report['ms_per_mask']:.1f} ms per mask"
-        )
-        for name, r in report["per_class"].items():
-            print(
-                f"  {name:7s} {r['objects']:4d}  {r['detector_iou']:.3f} -> {r['refined_iou']:.3f}"
-            )
-        if args.json:
-            write_json(args.json, report)
-        if args.plot and examples:
-            plot_examples(examples, args.plot)
-        return 0
-    proto = PROTOCOLS[args.protocol]
-    if args.expert is not None and (not args.export or args.expert not in proto.experts):
-        raise InvalidArgumentError(
-            f"--expert {args.expert} needs --export and one of the objects the {args.protocol} "
-            f"protocol's estimator has a net of its own for: {', '.join(proto.experts) or 'none'}"
-        )
-    default_out = MaskTrainConfig.out.with_name(
-        "masknet" + ("" if args.protocol == "tiers" else f"_{args.protocol}")
-    )
-    folder, first = proto.sources[0]
-    cfg = replace(
-        MaskTrainConfig(),
-        detected=None if args.detected is None else (folder, first, args.detected),
-        detector=proto.detector,
-        sources=proto.sources,
-        val=proto.val,
-        epochs=args.epochs,
-        batch=args.batch,
-        lr=args.lr,
-        precision=args.precision,
-        channels_last=args.channels_last,
-        out=args.out or default_out,
-        seed=args.seed,
-        init=args.init,
-    )
-    train(cfg, resume=not args.no_resume)
-    if args.export:
-        line = "python -m perception.training.train_masknet " + shlex.join(sys.argv[1:])
-        entry = export(cfg, line.strip(), proto.weights, args.expert)
-        print(f"wrote {entry['file']} beside {proto.weights} ({entry['bytes']} bytes)")
-    return 0
+    return p
 
 
 if __name__ == "__main__":

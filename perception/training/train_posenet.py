@@ -7,6 +7,7 @@ step, RNG states, data seeds, commit; `perception.training.checkpoints`), and va
 epoch (`perception.training.posenet_eval`).
 
     python -m perception.training.train_posenet --variant ours --epochs 7
+    python -m perception.training.train_posenet --data headcam=10000 --init CKPT --lr 1e-3
     python -m perception.training.train_posenet --smoke  # seconds, on whatever small data exists
     python -m perception.training.train_posenet --precision bf16 --channels-last  # CPU bf16 steps
     torchrun --nproc-per-node 2 -m perception.training.train_posenet --variant ours --device cpu
@@ -17,6 +18,7 @@ global batch, each rank its shard of it, rank 0 validating and writing the check
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from dataclasses import dataclass, field, replace
@@ -47,14 +49,16 @@ from perception.training.checkpoints import (
     seed_torch,
 )
 from perception.training.crop_sets import CropConfig, data_seed_ranges, split_crops
-from perception.training.dataset import DATASETS, DISTS, parse_limit
+from perception.training.dataset import DATASETS, DISTS, format_data, parse_limit
 from perception.training.ddp import DEVICES, MAX_THREADS, Ranks, joined
 from perception.training.loop import (
     PRECISIONS,
     Checkpointer,
     add_arithmetic_arguments,
     add_compute_arguments,
+    add_data_argument,
     add_schedule_arguments,
+    add_seed_argument,
     autocast,
 )
 from perception.training.losses import posenet_loss
@@ -183,15 +187,15 @@ def _resolve_init(init: str, out: Path) -> Path:
     )
 
 
-def _command(cfg: PoseNetTrainConfig) -> str:
-    """The CLI command that runs `cfg` (as far as the CLI exposes it)."""
+def command_line(cfg: PoseNetTrainConfig) -> str:
+    """The CLI command that runs `cfg` (as far as the CLI exposes it), in the trainers' shared
+    spelling (``--data NAME=COUNT,...``)."""
     d = PoseNetTrainConfig
-    lims = [f"{k}={n}" for k, n in cfg.dist_limits] + ([str(cfg.limit)] if cfg.limit else [])
+    data = format_data(tuple((dist, _limit(cfg, dist)) for dist in cfg.dists))
     options = (
-        (tuple(cfg.dists) != DISTS, f"--dists {','.join(cfg.dists)}"),
         (cfg.lr != d.lr, f"--lr {cfg.lr:g}"),
         (cfg.batch != d.batch, f"--batch {cfg.batch}"),
-        (bool(lims), f"--limit {','.join(lims)}"),
+        (cfg.seed != d.seed, f"--seed {cfg.seed}"),
         (cfg.width != d.width or cfg.lam != d.lam, f"--width {cfg.width} --lam {cfg.lam:g}"),
         (bool(cfg.objects), f"--objects {','.join(cfg.objects)}"),
         (cfg.crops.size != CROP, f"--crop {cfg.crops.size}"),
@@ -202,8 +206,9 @@ def _command(cfg: PoseNetTrainConfig) -> str:
         (cfg.channels_last, "--channels-last"),
         (bool(cfg.init), f"--init {cfg.init}"),
         (bool(cfg.name), f"--name {cfg.name}"),
+        (cfg.out is not None, f"--out {cfg.out}"),
     )
-    head = [TRAIN_COMMAND, f"--variant {cfg.variant}", f"--epochs {cfg.epochs}"]
+    head = [TRAIN_COMMAND, f"--variant {cfg.variant}", f"--data {data}", f"--epochs {cfg.epochs}"]
     return " ".join(head + [text for wanted, text in options if wanted])
 
 
@@ -334,7 +339,7 @@ def _start_run(
     steps_per_epoch = max(1, n_train // cfg.batch)
     ckpt = checkpoint_path(cfg)
     ckpt.parent.mkdir(parents=True, exist_ok=True)
-    lineage = {"command": command or _command(cfg), "init_from": None, "wall_s": 0.0}
+    lineage = {"command": command or command_line(cfg), "init_from": None, "wall_s": 0.0}
     resuming = resume and ckpt.is_file()
     if cfg.init and not resuming:
         lineage["init_from"] = _start_from(model, _resolve_init(cfg.init, ckpt.parent))
@@ -529,23 +534,32 @@ def _save(cfg: PoseNetTrainConfig, run: _Run, ranks: Ranks, epoch: int, wall_s: 
         )
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def parse_config(argv: list[str] | None) -> tuple[PoseNetTrainConfig, argparse.Namespace]:
+    """The run a command line asks for, and its parsed arguments (nothing is trained).
+
+    Raises:
+        InvalidArgumentError: values that do not make a run (a dataset twice, a width below 1,
+            ``--data`` beside the older ``--dists`` or ``--limit``).
+    """
     args = _parser().parse_args(argv)
-    setup_rendering()
-    dists = tuple(args.dists.split(","))
-    if any(d not in DATASETS for d in dists) or len(set(dists)) != len(dists):
-        raise InvalidArgumentError(
-            f"invalid --dists {args.dists!r}; a comma list of: {', '.join(DATASETS)}"
-        )
+    if args.data is not None and (args.dists is not None or args.limit != (None, ())):
+        raise InvalidArgumentError("--data names the data alone; drop --dists and --limit")
+    if args.data is not None:
+        dists = tuple(name for name, _ in args.data)
+        limit, dist_limits = None, tuple((d, n) for d, n in args.data if n is not None)
+    else:
+        dists = tuple((args.dists or ",".join(DISTS)).split(","))
+        if any(d not in DATASETS for d in dists) or len(set(dists)) != len(dists):
+            raise InvalidArgumentError(
+                f"invalid --dists {args.dists!r}; a comma list of: {', '.join(DATASETS)}"
+            )
+        limit, dist_limits = args.limit
     if args.width < 1 or args.lam < 0:
         raise InvalidArgumentError("--width must be at least 1 and --lam at least 0")
     if args.name is not None and (not args.name or "/" in args.name or args.name.endswith(".pt")):
         raise InvalidArgumentError(
             f"--name must be a plain name such as posenet_ours, got {args.name!r}"
         )
-    limit, dist_limits = args.limit
     cfg = PoseNetTrainConfig(  # NetConfig checks the crop side and rotation output
         variant=args.variant,
         dists=dists,
@@ -556,6 +570,7 @@ def main(argv: list[str] | None = None) -> int:
         dist_limits=dist_limits,
         init=args.init,
         name=args.name,
+        seed=args.seed,
         out=args.out,
         threads=args.threads,
         device=args.device,
@@ -582,6 +597,14 @@ def main(argv: list[str] | None = None) -> int:
             precision=args.precision,
             channels_last=args.channels_last,
         )
+    return cfg, args
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    cfg, args = parse_config(argv)
+    setup_rendering()
     result = train(cfg, resume=not args.no_resume)
     print(json.dumps(result["history"][-1] if result["history"] else {}, sort_keys=True))
     return 0
@@ -597,18 +620,12 @@ def _parser() -> ArgumentParser:
         default="ours",
         help=f"one of: {', '.join(VARIANTS)}",
     )
+    add_data_argument(p, "distributions", ",".join(DISTS))
     add_schedule_arguments(p, d.epochs, d.batch, d.lr, "the training crops", "")
-    p.add_argument(
-        "--limit",
-        type=arg(parse_limit),
-        default=(None, ()),
-        help="at most this many images per split: N for every distribution, or dist=N,...",
-    )
-    p.add_argument(
-        "--dists",
-        default=",".join(DISTS),
-        help=f"comma list of datasets under the data root, of: {', '.join(DATASETS)}",
-    )
+    add_seed_argument(p, d.seed, "initialisation and batching")
+    # The spelling of the recorded commands of the shipped nets (--data replaces both).
+    p.add_argument("--limit", type=arg(parse_limit), default=(None, ()), help=argparse.SUPPRESS)
+    p.add_argument("--dists", default=None, help=argparse.SUPPRESS)
     p.add_argument(
         "--init", default=None, help="start from this checkpoint's weights (name or path)"
     )
