@@ -24,7 +24,8 @@ from ray.cluster_utils import Cluster
 from perception.training.datagen import main as datagen_main
 from perception.training.writer import WALL_TIME_FILE
 from posegrasp.core.backends import default_chunk, run_map
-from sim.evaluate import EpisodeJob, _run_one, evaluate
+from sim.evaluate import evaluate
+from sim.evaluation import EpisodeJob, Protocol, run_job
 
 REPO = Path(__file__).resolve().parent.parent
 OBJECTS = ["phone", "car"]
@@ -73,7 +74,7 @@ def _die_once(marker: str, job):
     if not os.path.exists(marker):
         Path(marker).touch()
         os.kill(os.getpid(), signal.SIGKILL)
-    return _run_one(job)
+    return run_job(job)
 
 
 # --- without Ray -----------------------------------------------------------------------------
@@ -190,9 +191,8 @@ class TestOnALocalRay:
 
     def test_a_killed_worker_is_retried(self, local_report: dict, tmp_path: Path) -> None:
         marker = tmp_path / "killed"
-        jobs = [
-            EpisodeJob(o, SEED + i, "oracle", "isolated") for o in OBJECTS for i in range(EPISODES)
-        ]
+        protocol = Protocol(OBJECTS, EPISODES, SEED, "isolated")
+        jobs = [EpisodeJob(o, seed, "oracle", protocol) for o, seed in protocol.seeds()]
         results = list(
             run_map(functools.partial(_die_once, str(marker)), jobs, backend="ray", chunk=2)
         )

@@ -100,7 +100,7 @@ CLIS: dict[str, tuple[list[str], list[str]]] = {
             "--tolerance",
             "--backend",
         ],
-        ["evaluate", "_estimator", "make_estimator"],
+        ["evaluate_protocol", "cached_estimator", "make_estimator"],
     ),
     "sim.tolerance": (
         [

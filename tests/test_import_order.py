@@ -81,8 +81,9 @@ def test_an_evaluation_job_sets_up_its_own_process() -> None:
     another died) still renders: each job sets up rendering in the process that runs it."""
     code = textwrap.dedent(
         """
-        from sim.evaluate import EpisodeJob, _run_one
-        d = _run_one(EpisodeJob("phone", 1_000_000_000, "oracle", "isolated"))
+        from sim.evaluation import EpisodeJob, Protocol, run_job
+        protocol = Protocol(["phone"], 1, 1_000_000_000, "isolated")
+        d = run_job(EpisodeJob("phone", 1_000_000_000, "oracle", protocol))
         print(d["success"], d["failure_reason"])
         """
     )

@@ -1,0 +1,53 @@
+"""`python -m sim.evaluate` writes, to the bit, the golden reports and summaries of
+`tests/golden/record_reports.py` (every tier with the default estimator, the oracles, ``--margin``
+and the BOP route), with only wall times and paths left out.
+
+A change meant to alter them re-records them: ``python tests/golden/record_reports.py``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+GOLDEN = Path(__file__).resolve().parent / "golden"
+
+
+def _recorder():
+    spec = importlib.util.spec_from_file_location("record_reports", GOLDEN / "record_reports.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+rec = _recorder()
+
+
+def _differences(a, b, path: str = "") -> list[str]:
+    """Where two JSON values differ, as paths (``episodes[1].pose_error.ray_m``)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = [f"{path}.{k}".lstrip(".") for k in sorted(set(a) ^ set(b))]
+        for k in sorted(set(a) & set(b)):
+            out += _differences(a[k], b[k], f"{path}.{k}".lstrip("."))
+        return out
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return [
+            d
+            for i, (x, y) in enumerate(zip(a, b, strict=True))
+            for d in _differences(x, y, f"{path}[{i}]")
+        ]
+    return [] if rec.canonical(a) == rec.canonical(b) else [f"{path}: {a!r} != {b!r}"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(rec.CASES))
+def test_the_report_is_the_golden_one(case: str, tmp_path: Path) -> None:
+    report, text = rec.run_case(case, tmp_path)
+    golden = (rec.GOLDEN_DIR / f"{case}.json").read_text()
+    if rec.canonical(report) != golden:
+        diff = _differences(report, json.loads(golden))
+        pytest.fail(f"{len(diff)} difference(s) from the golden {case} report: {diff[:8]}")
+    assert text == (rec.GOLDEN_DIR / f"{case}.txt").read_text()
