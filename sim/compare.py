@@ -13,6 +13,9 @@ linear in the episodes, so they pair too: the difference B - A of AR_MSSD, AR_MS
 both reports hold every episode's VSD errors (``vsd``), AR_VSD, each with its paired bootstrap
 interval (an episode without an estimate counts 0).
 
+Reports whose grasps ran with different execution settings (``execution``), or whose estimators
+observed through different sensor models (``sensor``, `posegrasp.world.sensors`; a report that
+records none observed the ideal camera), are different experiments: they are refused in one line.
 Runs are labelled by their estimator (and noise), with the file only where the labels would
 coincide. A one-line warning goes to standard error when the runs saw different observations
 (``obs_mode``), or when a success difference's bootstrap interval and its exact McNemar test
@@ -235,6 +238,47 @@ def check_same_execution(paths: list[Path]) -> None:
             )
 
 
+def report_sensor(report: dict, source: str) -> str:
+    """The sensor model a validated report's estimator observed through: its ``sensor`` field,
+    else the one its episodes record (`sim.episode.EpisodeResult.sensor`), else ``ideal`` (what
+    a report that records none observed, as every report did before sensors were recorded).
+
+    Raises:
+        InvalidArgumentError: episodes of more than one sensor, naming `source`.
+    """
+    if "sensor" in report:
+        return str(report["sensor"])
+    named = sorted(
+        {str(e["sensor"]) for e in report["episodes"] if e.get("sensor", "ideal") != "ideal"}
+    )
+    if len(named) > 1:
+        raise InvalidArgumentError(
+            f"{source} holds episodes of several sensors ({', '.join(named)}); one report is one "
+            "sensor"
+        )
+    return named[0] if named else "ideal"
+
+
+def check_same_sensor(paths: list[Path]) -> None:
+    """Refuse to pair reports whose estimators observed through different sensor models
+    (`report_sensor`).
+
+    Raises:
+        InvalidArgumentError: a report does not conform to the schema or mixes sensors, or two
+            name different sensors, naming the first that differs.
+    """
+    first: tuple[Path, str] | None = None
+    for path in paths:
+        sensor = report_sensor(read_report(path), str(path))
+        if first is None:
+            first = (path, sensor)
+        elif sensor != first[1]:
+            raise InvalidArgumentError(
+                f"{first[0]} observed through sensor {first[1]!r} and {path} through {sensor!r}; "
+                "pair runs of one sensor"
+            )
+
+
 def compare(
     a: dict[tuple[str, str, int], Outcome],
     b: dict[tuple[str, str, int], Outcome],
@@ -419,6 +463,7 @@ def main(argv: list[str] | None = None) -> int:
         raise InvalidArgumentError("more than two reports, or --plot, need --curve")
     log = summary_stream(args.json)
     check_same_execution([args.a, args.b, *args.more])
+    check_same_sensor([args.a, args.b, *args.more])
     if args.curve:
         rows = curve([args.a, args.b, *args.more], args.boot)
         print(format_curve(rows), file=log)

@@ -1,7 +1,8 @@
 """`GraspEval-v0`: a gymnasium env in which one step is one grasp episode.
 
 Any pose estimator can be scored through it: the observation is the head-camera image (and,
-with ``obs_mode="rgbd"``, its depth image) with its intrinsics and pose, the requested object
+with ``obs_mode="rgbd"``, its depth image), as the sensor model ``sensor`` returns it, with its
+intrinsics and pose, the requested object
 class and the height of the table top the object rests on (known scene geometry, in the world
 frame); the action is the estimated pose of that object in the camera frame (or "no estimate");
 the step executes the grasp on that pose. `posegrasp.core.contract.Observation.from_env(obs,
@@ -158,6 +159,10 @@ class GraspEvalEnv(gym.Env):
     height in the world [m]) and, with ``obs_mode="rgbd"``, `depth` (`Box(0, inf, (H, W))`,
     float32: per pixel the z coordinate along the optical axis of the surface seen [m], as
     `posegrasp.core.contract.Observation.depth`). The colour image is the same in both modes.
+    Both are the images as the env's sensor returns them (`sensor`, `posegrasp.world.sensors`):
+    under ``ideal`` the rendered ones; under another, the colour image with that sensor's noise
+    and, in ``rgbd``, its depth image, with 0 where it returns nothing (holes). The noise is the
+    episode seed's, the same on every reset with that seed.
     ``Observation.from_env(obs, info)`` (`posegrasp.core.contract`) makes of a reset's
     observation and info the `Observation` a pose estimator takes, the table height as a float
     and the depth included: the one `sim.evaluate` and `sim.episode.play_episode` hand it for the
@@ -214,12 +219,14 @@ class GraspEvalEnv(gym.Env):
     resolution; `render_mode`: None or "rgb_array" (external camera view); `config`: an
     `EpisodeConfig`; `timings`: add per-stage wall-clock timings to `info`; `tier`: the scene
     tier (`posegrasp.world.tiers.TIERS`, default ``isolated``, or the config's); `obs_mode`:
-    ``rgb`` or ``rgbd`` (`sim.episode.OBS_MODES`; default ``rgb``, or the config's).
+    ``rgb`` or ``rgbd`` (`sim.episode.OBS_MODES`; default ``rgb``, or the config's); `sensor`:
+    the head camera's sensor model (`posegrasp.world.sensors.SENSOR_NAMES`; default ``ideal``,
+    or the config's). The env and `sim.evaluate` observe alike when both name the same sensor.
 
     ## Version History
-    * v0: first version; the depth observation (``obs_mode``), the episode-seed mapping above,
-      `pose_correct` and the units check on positions were added without a version change
-      (the defaults observe and act as before).
+    * v0: first version; the depth observation (``obs_mode``), the sensor models (``sensor``),
+      the episode-seed mapping above, `pose_correct` and the units check on positions were
+      added without a version change (the defaults observe and act as before).
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -234,6 +241,7 @@ class GraspEvalEnv(gym.Env):
         timings: bool = False,
         tier: str | None = None,
         obs_mode: str | None = None,
+        sensor: str | None = None,
     ) -> None:
         #: The class indices of the observation and of neighbours: the built-in objects, then
         #: the user objects installed when the env was made (`object_names()`).
@@ -245,7 +253,10 @@ class GraspEvalEnv(gym.Env):
         base = config or EpisodeConfig()
         self.tier = check_tier(tier if tier is not None else base.tier)
         mode = obs_mode if obs_mode is not None else base.obs_mode
-        self.config = replace(base, width=width, height=height, tier=self.tier, obs_mode=mode)
+        sensor = sensor if sensor is not None else base.sensor
+        self.config = replace(
+            base, width=width, height=height, tier=self.tier, obs_mode=mode, sensor=sensor
+        )
         self.obs_mode = self.config.obs_mode
         setup_rendering()
         self.object = object

@@ -1,7 +1,8 @@
 """One grasp episode, written once: build a seeded scene, look, ask an estimator, grasp, score.
 
 `Episode(object, seed)` builds the scene; `observe()` renders the head camera (colour, and depth
-with ``obs_mode="rgbd"``); `act(T_C_O)` plans and executes a grasp on that *estimated* pose and
+with ``obs_mode="rgbd"``) as the config's sensor returns it (`posegrasp.world.sensors`, ``ideal``:
+unchanged); `act(T_C_O)` plans and executes a grasp on that *estimated* pose and
 returns an `EpisodeResult`. A pose that is not valid (`posegrasp.core.contract.pose_problem`)
 ends the episode as a failed grasp with ``invalid_action``. The gymnasium env and the CLIs wrap
 this class.
@@ -26,6 +27,7 @@ from posegrasp.core.contract import (
     Observation,
     PoseEstimator,
     as_pose_array,
+    confidence_problem,
     pose_problem,
 )
 from posegrasp.core.errors import InvalidArgumentError, StateError, UnknownNameError
@@ -34,6 +36,7 @@ from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, RenderOptions, T_world_cam, camera_intrinsics
 from posegrasp.world.objects import ObjectModel, check_object
 from posegrasp.world.scene import Scene, SceneConfig, build_scene
+from posegrasp.world.sensors import SENSOR_NAMES, Sensor
 from posegrasp.world.tiers import DEFAULT_TIER, tier_scene
 from sim.estimators import PrivilegedEstimator
 
@@ -55,9 +58,12 @@ class EpisodeConfig:
         tier: the scene preset (`posegrasp.world.tiers`) applied to `scene`.
         obs_mode: what the observation holds, one of `OBS_MODES`: ``rgb`` the colour image,
             ``rgbd`` also the depth image (`Observation.depth`).
+        sensor: the head camera's sensor model, one of
+            `posegrasp.world.sensors.SENSOR_NAMES`: what `Episode.observe` hands the estimator
+            is the rendered images as that sensor returns them (``ideal``: unchanged).
 
     Raises:
-        UnknownNameError: an obs_mode not in `OBS_MODES`.
+        UnknownNameError: an obs_mode not in `OBS_MODES`, a sensor not in `SENSOR_NAMES`.
     """
 
     width: int = 640
@@ -68,10 +74,13 @@ class EpisodeConfig:
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
     tier: str = DEFAULT_TIER
     obs_mode: str = "rgb"
+    sensor: str = "ideal"
 
     def __post_init__(self) -> None:
         if self.obs_mode not in OBS_MODES:
             raise UnknownNameError("observation mode", str(self.obs_mode), OBS_MODES)
+        if self.sensor not in SENSOR_NAMES:
+            raise UnknownNameError("sensor", str(self.sensor), SENSOR_NAMES)
 
 
 @dataclass
@@ -81,9 +90,11 @@ class EpisodeResult:
     `pose_error` holds the estimate's errors (`pose_errors`), None without a valid estimate;
     `pose_correct` whether its MSSD is below `POSE_CORRECT_MSSD` times the object's diameter
     (None without a valid estimate); `vsd` BOP's VSD of the estimate against the head
-    camera's depth, one error in [0, 1] per tau of `perception.metrics.BOP_VSD_TAUS` (None
-    without a valid estimate); `friction_margin` is the lowest sliding friction at which
-    the grasp still held, when measured (`grasping.execute.Executor.friction_margin`).
+    camera's ideal depth (BOP's ground-truth depth, whatever the sensor), one error in [0, 1]
+    per tau of `perception.metrics.BOP_VSD_TAUS` (None without a valid estimate);
+    `friction_margin` is the lowest sliding friction at which the grasp still held, when
+    measured (`grasping.execute.Executor.friction_margin`); `sensor` the sensor the estimator
+    observed through (`EpisodeConfig.sensor`).
     """
 
     object: str
@@ -104,11 +115,20 @@ class EpisodeResult:
     scene: dict[str, Any] = field(default_factory=dict)
     pose_correct: bool | None = None
     vsd: list[float] | None = None
+    sensor: str = "ideal"
+    #: The estimate's confidence (contract version 3), None when it gives none.
+    confidence: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serialisable dict (strict JSON: an estimate with non-finite entries, which
-        ends as ``invalid_action``, is written as null)."""
+        ends as ``invalid_action``, is written as null). ``sensor`` is left out for ``ideal``
+        and ``confidence`` when None, as in the records written before them: a record without
+        them observed the ideal camera and had no confidence."""
         d = asdict(self)
+        if self.sensor == "ideal":
+            del d["sensor"]
+        if self.confidence is None:
+            del d["confidence"]
         d["T_C_O_true"] = self.T_C_O_true.tolist()
         est = self.T_C_O_est
         d["T_C_O_est"] = None if est is None or not np.all(np.isfinite(est)) else est.tolist()
@@ -258,6 +278,7 @@ class Episode:
         )
         m, d = self.scene.model, self.scene.data
         self.K = camera_intrinsics(m, C.HEAD_CAMERA, self.cfg.width, self.cfg.height)
+        self.sensor = Sensor.parse(self.cfg.sensor)
         self.T_world_cam = T_world_cam(m, d, C.HEAD_CAMERA)
         self.T_C_O_true = np.linalg.inv(self.T_world_cam) @ self.scene.object_pose()
         self._done = False
@@ -275,7 +296,14 @@ class Episode:
         """Render the head camera and return what an estimator may see: the colour image
         (timed as ``render``) and, with ``obs_mode="rgbd"``, the depth image of the same camera
         and state (`CameraRenderer.depth`, z along the optical axis [m], float32; timed as
-        ``render_depth``). The colour image is the same in both modes."""
+        ``render_depth``), both as the config's sensor returns them.
+
+        A sensor other than ``ideal`` (`posegrasp.world.sensors.Sensor.apply`, timed as
+        ``sensor``) changes the colour image always and the depth image when there is one
+        (float32, 0 where it returns nothing); its noise is frame 0's of the episode's seed,
+        on streams of its own, so the scene is the same under every sensor and the same seed
+        observes the same noise. ``ideal`` hands over the rendered images unchanged. The colour
+        image is the same in both modes."""
         t = time.perf_counter()
         rgb = self.renderer.rgb(self.scene.data, C.HEAD_CAMERA)
         self.timings_ms["render"] = (time.perf_counter() - t) * 1000
@@ -284,6 +312,10 @@ class Episode:
             t = time.perf_counter()
             depth = self.renderer.depth(self.scene.data, C.HEAD_CAMERA)
             self.timings_ms["render_depth"] = (time.perf_counter() - t) * 1000
+        if self.sensor.name != "ideal":
+            t = time.perf_counter()
+            rgb, depth = self.sensor.apply(rgb, depth, self.K, self.seed)
+            self.timings_ms["sensor"] = (time.perf_counter() - t) * 1000
         return Observation(
             rgb,
             self.K.copy(),
@@ -334,8 +366,10 @@ class Episode:
         if T_C_O_est is not None:
             errors = self.pose_errors(T_C_O_est)
             correct = errors["mssd_rel_diameter"] < POSE_CORRECT_MSSD
-            # BOP's VSD against the depth the head camera sees now, before anything moves (what
-            # sim.export_bop writes as the image's depth); no surface is missing depth (0).
+            # BOP's VSD against the ideal depth the head camera sees now, before anything moves
+            # (BOP's ground-truth depth; what sim.export_bop writes with the ideal sensor),
+            # whatever the sensor: it scores the pose, not the sensor. No surface is missing
+            # depth (0).
             t = time.perf_counter()
             depth = self.renderer.depth(self.scene.data, C.HEAD_CAMERA).astype(np.float64)
             depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
@@ -439,6 +473,7 @@ class Episode:
             dict(timings),
             notes,
             scene=self.scene_info(),
+            sensor=self.sensor.name,
         )
 
     def estimate(
@@ -499,6 +534,11 @@ class Episode:
         res.estimate_info = dict(est.info)
         if est.T_C_O is None and isinstance(est.info.get("note"), str):
             res.notes.append(est.info["note"])
+        if est.T_C_O is not None:
+            if (problem := confidence_problem(est.confidence)) is not None:
+                res.notes.append(f"estimator {estimator.name}: {problem}; recorded as none")
+            elif est.confidence is not None:
+                res.confidence = float(est.confidence)
         return obs, res
 
     def true_neighbours(self) -> list[tuple[str, np.ndarray]]:

@@ -1,14 +1,19 @@
 """Export the head-camera views of an evaluation's episodes as a BOP dataset.
 
     python -m sim.export_bop --tier T --objects car,phone --episodes N [--seed-start S] \
-        --out DIR [--no-gt]
+        [--sensor NAME] --out DIR [--no-gt]
 
 Any estimator that reads BOP datasets can then estimate the poses of these images offline and
 hand back a BOP results CSV, which `sim.bop_results` turns into the estimates of the very same
 episodes (``sim.evaluate`` with the same tier, objects, episodes and seed start). Episode i of
 object X is scene seed ``S + i``, built by `sim.episode.Episode` and rendered by its
 ``observe()``, so each RGB image is byte for byte what a live estimator gets, and each depth
-image that of ``--obs-mode rgbd`` to the depth step.
+image that of ``--obs-mode rgbd`` to the depth step, both as the sensor model ``--sensor``
+returns them (`posegrasp.world.sensors`; default ``ideal``, the rendered images): with a real
+sensor's model the depth has its noise and its holes (0, BOP's missing depth), and
+``px_count_valid`` counts the pixels with depth under it. The episodes' own VSD
+(`sim.episode.EpisodeResult.vsd`) is measured against the ideal depth whatever the sensor, so
+it is that against the exported depth only for ``ideal``.
 
 Layout of ``DIR`` (BOP toolkit, docs/bop_datasets_format.md; millimetres in every BOP file)::
 
@@ -25,8 +30,8 @@ Layout of ``DIR`` (BOP toolkit, docs/bop_datasets_format.md; millimetres in ever
     DIR/test/<scene_id:06d>/mask_visib/000000_<gt:06d>.png visible part, 0/255 (ditto)
     DIR/test_targets_bop19.json             per image: the episode's target (inst_count 1)
     DIR/test_targets_bop24.json             per image: scene_id, im_id
-    DIR/posegrasp_episodes.json             the episodes: tier, seeds, objects, image ids,
-                                            table_top_z [m] per image
+    DIR/posegrasp_episodes.json             the episodes: tier, seeds, objects, sensor, image
+                                            ids, table_top_z [m] per image
 
 One scene per episode, one image each (im_id 0): a BOP scene is one static arrangement, and
 each episode is its own. Its ``scene_id`` is `sim.bop_results.scene_ids` of the episode's tier,
@@ -84,6 +89,7 @@ from posegrasp.world.objects import OBJECT_NAMES, check_objects, load_object
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.bop_results import EXPORT_FORMAT, EXPORT_VERSION, MAP_FILE, scene_ids
 from sim.episode import Episode, EpisodeConfig, execution_settings
+from sim.estimators import add_sensor_argument
 
 #: BOP split the images go to.
 SPLIT = "test"
@@ -95,6 +101,8 @@ MAX_EPISODES = 100_000
 _HIDDEN_GROUP = 5
 #: BOP's box of an object with no visible pixel (scripts/calc_gt_info.py).
 _NO_BOX = [-1, -1, -1, -1]
+#: Protocol entries of maps written before they were recorded, at the value they had then.
+_PROTOCOL_BEFORE = {"sensor": "ideal"}
 
 
 #: The im_id of every image: each scene holds one.
@@ -153,7 +161,12 @@ def depth_to_png(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.nd
 
 
 def export_protocol(
-    objects: list[str], episodes: int, seed_start: int, tier: str, ground_truth: bool
+    objects: list[str],
+    episodes: int,
+    seed_start: int,
+    tier: str,
+    ground_truth: bool,
+    sensor: str = "ideal",
 ) -> dict[str, Any]:
     """What defines an export's files: a folder holds one export, rewritten only by the same."""
     return {
@@ -168,6 +181,7 @@ def export_protocol(
         "camera": C.HEAD_CAMERA,
         "width": EpisodeConfig.width,
         "height": EpisodeConfig.height,
+        "sensor": sensor,
     }
 
 
@@ -177,7 +191,7 @@ def _describe(p: dict[str, Any]) -> str:
     gt = "with" if p.get("ground_truth") else "without"
     return (
         f"tier {p.get('tier')}, objects {objects}, {p.get('episodes')} episodes from seed "
-        f"{p.get('seed_start')}, {gt} ground truth"
+        f"{p.get('seed_start')}, {gt} ground truth, sensor {p.get('sensor', 'ideal')}"
     )
 
 
@@ -197,7 +211,9 @@ def check_out_folder(out: Path, protocol: dict[str, Any]) -> None:
             f"--out {out} holds files but no readable {MAP_FILE}, so not a posegrasp BOP "
             "export; give an empty or new folder"
         ) from None
-    same = isinstance(old, dict) and all(old.get(k) == v for k, v in protocol.items())
+    same = isinstance(old, dict) and all(
+        old.get(k, _PROTOCOL_BEFORE.get(k)) == v for k, v in protocol.items()
+    )
     if not same:
         what = _describe(old) if isinstance(old, dict) else "an unreadable map"
         raise InvalidArgumentError(
@@ -318,6 +334,7 @@ def export_bop(
     tier: str = DEFAULT_TIER,
     ground_truth: bool = True,
     progress: bool = True,
+    sensor: str = "ideal",
 ) -> dict[str, Any]:
     """Write the head-camera views of the episodes objects x range(episodes) as a BOP dataset.
 
@@ -329,14 +346,18 @@ def export_bop(
         tier: the scene tier (`posegrasp.world.tiers.TIERS`).
         ground_truth: write scene_gt.json, scene_gt_info.json and the masks.
         progress: show a progress bar.
+        sensor: the head camera's sensor model (`posegrasp.world.sensors.SENSOR_NAMES`) whose
+            colour and depth images are written.
 
     Returns:
         The map file's content (`sim.bop_results.MAP_FILE`).
 
     Raises:
         InvalidArgumentError: out holds other files or another export; a bad argument.
+        UnknownNameError: a sensor not in `posegrasp.world.sensors.SENSOR_NAMES`.
     """
     check_tier(tier)
+    cfg = EpisodeConfig(tier=tier, obs_mode="rgbd", sensor=sensor)
     if not objects or len(set(objects)) != len(objects):
         raise InvalidArgumentError(f"objects must be distinct and at least one, got {objects}")
     for o in objects:
@@ -344,7 +365,7 @@ def export_bop(
     check_int(episodes, 1, MAX_EPISODES, "episodes")
     check_seed(seed_start, "seed start", episodes)
     out = Path(out)
-    protocol = export_protocol(objects, episodes, seed_start, tier, ground_truth)
+    protocol = export_protocol(objects, episodes, seed_start, tier, ground_truth, sensor)
     check_out_folder(out, protocol)
     jobs = [(o, seed_start + i) for o in objects for i in range(episodes)]
     ids = scene_ids(tier, jobs)
@@ -366,7 +387,6 @@ def export_bop(
     write_models(out, [*OBJECT_NAMES, *(o for o in objects if o not in OBJECT_NAMES)])
     _copy_models(out)
     scenes: dict[int, dict[str, dict[str, Any]]] = {}
-    cfg = EpisodeConfig(tier=tier, obs_mode="rgbd")
     bar = progress_bar(info["images"], desc="images", unit="image", disable=not progress)
     for image in bar:
         scene_id, im_id = image["scene_id"], IM_ID
@@ -423,6 +443,7 @@ def main(argv: list[str] | None = None) -> int:
         default=C.EVAL_SEED_BASE,
         help="first scene seed, as sim.evaluate's (default: its held-out scenes)",
     )
+    add_sensor_argument(p)
     add_out_argument(p, "the BOP dataset and its map file", required=True)
     p.add_argument(
         "--no-gt",
@@ -433,12 +454,18 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     check_seed(args.seed_start, "--seed-start", args.episodes)
     protocol = export_protocol(
-        args.objects, args.episodes, args.seed_start, args.tier, not args.no_gt
+        args.objects, args.episodes, args.seed_start, args.tier, not args.no_gt, args.sensor
     )
     check_out_folder(args.out, protocol)  # before any rendering
     setup_rendering()
     info = export_bop(
-        args.out, args.objects, args.episodes, args.seed_start, args.tier, not args.no_gt
+        args.out,
+        args.objects,
+        args.episodes,
+        args.seed_start,
+        args.tier,
+        not args.no_gt,
+        sensor=args.sensor,
     )
     n = len(info["images"])
     print(

@@ -22,7 +22,7 @@ margin change, so the gate cannot fail them. Across machines, floating-point dif
 flip a borderline episode either way; a few such flips are not significant. The `hard` tier is
 used because there pose errors cost grasps (on isolated scenes every estimator within a few
 millimetres grasps everything, so no regression short of a collapse shows).
-`bench/gate_power.py` measures how often the rule catches a regression from noisy-oracle at
+`studies/gate_power.py` measures how often the rule catches a regression from noisy-oracle at
 (5 mm, 2 deg) to (10 mm, 4 deg).
 
 The gate fails closed: a missing, empty or malformed baseline, or one recorded for another tier,
@@ -57,6 +57,8 @@ from sim.estimators import (
     DEFAULT_ESTIMATOR,
     add_estimator_arguments,
     add_obs_mode_argument,
+    add_sensor_argument,
+    check_depth,
     estimator_weights,
 )
 from sim.evaluate import evaluate, execution_settings, format_report
@@ -94,6 +96,7 @@ PROTOCOL = {
     "episodes_per_object": "episodes per object",
     "execution": "execution settings",
     "obs_mode": "observation mode (--obs-mode)",
+    "sensor": "sensor model (--sensor; recorded when not ideal)",
 }
 
 
@@ -149,9 +152,11 @@ def estimator_fingerprint(estimator: str) -> tuple[dict[str, str], str | None]:
     return weights_fingerprint(files), None
 
 
-def gate_protocol(estimator: str, obs_mode: str = "rgb") -> dict:
-    """The settings of a gate run of `estimator` (`PROTOCOL`'s keys), known before it runs."""
+def gate_protocol(estimator: str, obs_mode: str = "rgb", sensor: str = "ideal") -> dict:
+    """The settings of a gate run of `estimator` (`PROTOCOL`'s keys), known before it runs; the
+    sensor only when it is not ``ideal``, as reports record it."""
     return {
+        **({} if sensor == "ideal" else {"sensor": sensor}),
         "estimator": estimator,
         "tier": GATE_TIER,
         "seed_start": GATE_SEED_START,
@@ -191,6 +196,7 @@ def run_gate(
     backend: str = "local",
     address: str | None = None,
     obs_mode: str = "rgb",
+    sensor: str = "ideal",
 ) -> dict:
     """The gate's evaluation: `episodes` per object of `GATE_TIER` from `GATE_SEED_START`,
     friction margins measured, the estimator seeing `obs_mode`, on `backend`
@@ -206,6 +212,7 @@ def run_gate(
         backend=backend,
         address=address,
         obs_mode=obs_mode,
+        sensor=sensor,
     )
 
 
@@ -264,7 +271,7 @@ def baseline_of(report: dict, weights: dict[str, str] | None = None) -> dict:
     if weights is None:
         weights = estimator_fingerprint(report["estimator"])[0]
     return {
-        **{k: report[k] for k in PROTOCOL},
+        **{k: report[k] for k in PROTOCOL if k in report},
         "successes": report["overall"]["successes"],
         "weights": weights,
         "episodes": [
@@ -296,8 +303,11 @@ def main(argv: list[str] | None = None) -> int:
     add_workers_argument(p)
     add_estimator_arguments(p, default=None, noise=False, purpose="only this one")
     add_obs_mode_argument(p)
+    add_sensor_argument(p)
     add_backend_arguments(p)
     args = p.parse_args(argv)
+    if args.estimator:
+        check_depth(args.estimator, args.obs_mode)
     setup_rendering()
     check_backend(args.backend, args.address)
     if args.write:
@@ -324,13 +334,23 @@ def main(argv: list[str] | None = None) -> int:
             note = f"weights fingerprint of {', '.join(weights) or 'no file (it loads none)'}"
         print(f"{name}: {note}")
         if not args.write:
-            why = mismatch(gate_protocol(name, args.obs_mode), baselines[name], weights)
+            why = mismatch(
+                gate_protocol(name, args.obs_mode, args.sensor), baselines[name], weights
+            )
             if why is not None:  # refused before any episode runs
                 print(f"{name}: {why}")
                 failed = True
                 continue
         report = validate_report(
-            run_gate(name, GATE_EPISODES, args.workers, args.backend, args.address, args.obs_mode),
+            run_gate(
+                name,
+                GATE_EPISODES,
+                args.workers,
+                args.backend,
+                args.address,
+                args.obs_mode,
+                args.sensor,
+            ),
             f"the gate's run of {name}",
         )
         print(format_report(report))

@@ -1,7 +1,7 @@
 """Run one grasp episode and print what happened.
 
 python -m sim.run_episode --object phone [--seed N] [--estimator hybrid] [--tier T]
-    [--noise SIGMAS] [--json PATH] [--out DIR]
+    [--noise SIGMAS] [--obs-mode rgbd] [--sensor NAME] [--json PATH] [--out DIR]
 """
 
 from __future__ import annotations
@@ -29,7 +29,13 @@ from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, RenderOptions
 from posegrasp.world.objects import object_names
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, add_pool_argument, check_tier
-from sim.estimators import add_estimator_arguments, add_obs_mode_argument, make_estimator
+from sim.estimators import (
+    add_estimator_arguments,
+    add_obs_mode_argument,
+    add_sensor_argument,
+    check_depth,
+    make_estimator,
+)
 from sim.pose_noise import parse_noise
 
 if TYPE_CHECKING:
@@ -59,7 +65,7 @@ def summary(result) -> str:
     """A readable multi-line summary of an EpisodeResult."""
     lines = [
         f"episode  object={result.object}  seed={result.seed}  estimator={result.estimator}  "
-        f"tier={result.tier}",
+        f"tier={result.tier}" + ("" if result.sensor == "ideal" else f"  sensor={result.sensor}"),
         f"  true pose (camera frame)      {_fmt_pose(result.T_C_O_true)}",
         f"  estimated pose (camera frame) {_fmt_pose(result.T_C_O_est)}",
     ]
@@ -359,11 +365,14 @@ def _run(
     log: TextIO | None = None,
     obs_mode: str = "rgb",
     pool: tuple[str, ...] = (),
+    sensor: str = "ideal",
 ):
     from posegrasp.world.scene import SceneConfig
     from sim.episode import Episode, EpisodeConfig
 
-    cfg = EpisodeConfig(scene=SceneConfig(distractor_pool=pool), tier=tier, obs_mode=obs_mode)
+    cfg = EpisodeConfig(
+        scene=SceneConfig(distractor_pool=pool), tier=tier, obs_mode=obs_mode, sensor=sensor
+    )
     ep = Episode(obj, seed, cfg)
     try:
         film = Film() if save is not None else None
@@ -439,6 +448,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_estimator_arguments(p)
     add_obs_mode_argument(p)
+    add_sensor_argument(p)
     p.add_argument(
         "--tier",
         default=DEFAULT_TIER,
@@ -455,12 +465,21 @@ def main(argv: list[str] | None = None) -> int:
         aliases=("--save",),
     )
     args = p.parse_args(argv)
+    check_depth(args.estimator, args.obs_mode)
     setup_rendering()
     log = summary_stream(args.json)
     noise = None if args.noise is None else parse_noise(args.noise)
     estimator = make_estimator(args.estimator, noise)
     result = _run(
-        args.object, args.seed, estimator, args.out, args.tier, log, args.obs_mode, args.pool
+        args.object,
+        args.seed,
+        estimator,
+        args.out,
+        args.tier,
+        log,
+        args.obs_mode,
+        args.pool,
+        args.sensor,
     )
     if args.seed < C.DATA_SEED_LIMIT and args.estimator.startswith("hybrid"):
         print(

@@ -7,6 +7,8 @@ bootstrap intervals of success, friction-margin and per-episode score difference
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.stats import binomtest, spearmanr
 
@@ -143,4 +145,53 @@ def margin_difference(
         "difference": float(d.mean()),
         "bootstrap_low": float(lo),
         "bootstrap_high": float(hi),
+    }
+
+
+def risk_coverage(confidence: Sequence[float | None], success: Sequence[bool]) -> dict | None:
+    """Success among the grasps attempted when the robot attempts only the estimates at or
+    above each confidence threshold (the selective-prediction risk-coverage curve, read as
+    success rather than risk).
+
+    An episode without a confidence (no estimate, or an estimator that did not say) is never
+    attempted, so the curve ends at the share of episodes with one. Thresholds are the distinct
+    confidences, highest first; ties are attempted together.
+
+    Args:
+        confidence: per episode, the estimate's confidence or None.
+        success: per episode, whether the grasp held.
+
+    Returns:
+        None when no episode has a confidence; else ``coverage`` (attempted / all episodes),
+        ``success`` (held / attempted) and ``threshold`` per point, highest threshold first,
+        and ``area``: the mean success over the attempted episodes ranked by confidence, the
+        area under success against coverage scaled to the covered share (1 when every attempt
+        up to full coverage held; for a confidence that says nothing, about the success rate).
+
+    Raises:
+        InvalidArgumentError: the two sequences differ in length.
+    """
+    if len(confidence) != len(success):
+        raise InvalidArgumentError(
+            f"risk_coverage: {len(confidence)} confidences for {len(success)} episodes"
+        )
+    pairs = [(float(c), bool(s)) for c, s in zip(confidence, success, strict=True) if c is not None]
+    if not pairs:
+        return None
+    n = len(confidence)
+    conf = np.array([c for c, _ in pairs])
+    held = np.array([s for _, s in pairs], dtype=float)
+    order = np.argsort(-conf, kind="stable")
+    conf, held = conf[order], held[order]
+    cum = np.cumsum(held)
+    # The last index of each run of equal confidences: a threshold attempts the whole run.
+    ends = np.flatnonzero(np.append(conf[1:] != conf[:-1], True))
+    attempted = ends + 1
+    # Each attempted episode counts the success rate of the threshold that first attempts it.
+    group_end = ends[np.searchsorted(ends, np.arange(len(conf)))]
+    return {
+        "threshold": conf[ends].tolist(),
+        "coverage": (attempted / n).tolist(),
+        "success": (cum[ends] / attempted).tolist(),
+        "area": float(np.mean(cum[group_end] / (group_end + 1))),
     }

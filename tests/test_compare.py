@@ -12,7 +12,7 @@ from perception import metrics
 from posegrasp.core.errors import InvalidArgumentError
 from sim import compare as cmp
 from sim import stats
-from sim.evaluate import make_report
+from sim.evaluation import Protocol, make_report
 
 
 def _episode(obj: str, seed: int, tier: str, ok: bool, margin: float | None) -> dict:
@@ -34,7 +34,8 @@ def _episode(obj: str, seed: int, tier: str, ok: bool, margin: float | None) -> 
 
 def _write(path: Path, eps: list[dict], tier: str, noise: str | None = None, **fields) -> Path:
     objects = sorted({e["object"] for e in eps})
-    report = make_report(eps, objects, "x", tier, 1, max(1, len(eps)), noise=noise)
+    protocol = Protocol(objects, max(1, len(eps)), seed_start=1, tier=tier, noise=noise)
+    report = make_report(eps, protocol, "x")
     report.update(fields)
     path.write_text(json.dumps(report))
     return path
@@ -349,3 +350,29 @@ def test_a_small_sample_says_to_read_the_exact_test(tmp_path: Path, capsys) -> N
     b = _report(tmp_path / "b.json", {("phone", s): True for s in range(40)})
     assert cmp.main([str(a), str(b), "--boot", "2000"]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_runs_of_other_sensors_are_not_paired(tmp_path: Path, capsys) -> None:
+    eps = [_episode("phone", s, "isolated", True, 0.2) for s in range(40)]
+    old = _write(tmp_path / "old.json", eps, "isolated")  # records no sensor: the ideal one
+    ideal = _write(tmp_path / "ideal.json", eps, "isolated", sensor="ideal")
+    kinect = _write(tmp_path / "kinect.json", eps, "isolated", sensor="kinect-v1")
+    # A report whose episodes record the sensor (`sim.episode.EpisodeResult.to_json`).
+    by_episode = _write(
+        tmp_path / "episodes.json", [{**e, "sensor": "kinect-v1"} for e in eps], "isolated"
+    )
+    assert cmp.main([str(old), str(kinect), "--boot", "200"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"{old} observed through sensor 'ideal' and {kinect} through 'kinect-v1'" in err
+    assert len(err.splitlines()) == 1 and "pair runs of one sensor" in err
+    assert cmp.main([str(old), str(ideal), "--boot", "200"]) == 0
+    assert cmp.main([str(kinect), str(by_episode), "--boot", "200"]) == 0
+    assert cmp.main([str(old), str(ideal), str(by_episode), "--curve", "--boot", "200"]) == 2
+    capsys.readouterr()
+    mixed = _write(
+        tmp_path / "mixed.json",
+        [{**e, "sensor": "kinect-v1" if i else "azure-tof"} for i, e in enumerate(eps)],
+        "isolated",
+    )
+    assert cmp.main([str(kinect), str(mixed), "--boot", "200"]) == 2
+    assert "holds episodes of several sensors (azure-tof, kinect-v1)" in capsys.readouterr().err

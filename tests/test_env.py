@@ -14,7 +14,7 @@ from gymnasium.utils.env_checker import check_env
 
 import posegrasp  # noqa: F401  (registers the env)
 from perception.estimators import LEARNED_ESTIMATORS
-from posegrasp.core.contract import Observation
+from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, StateError, UnknownNameError
 from posegrasp.world.tiers import TIERS
 from sim.env import MAX_NEIGHBOURS, GraspEvalEnv, pose_action
@@ -214,19 +214,71 @@ def test_a_non_unit_neighbour_quaternion_is_an_invalid_action() -> None:
     env.close()
 
 
-@pytest.mark.parametrize("obs_mode", ["rgb", "rgbd"])
-def test_from_env_is_the_observation_an_episode_hands_an_estimator(obs_mode: str) -> None:
-    env = GraspEvalEnv(object="car", obs_mode=obs_mode)
+@pytest.mark.parametrize(
+    ("obs_mode", "sensor"),
+    [("rgb", "ideal"), ("rgbd", "ideal"), ("rgbd", "kinect-v1+camera"), ("rgb", "ideal+camera")],
+)
+def test_from_env_is_the_observation_an_episode_hands_an_estimator(
+    obs_mode: str, sensor: str
+) -> None:
+    env = GraspEvalEnv(object="car", obs_mode=obs_mode, sensor=sensor)
     obs, info = env.reset(seed=SEED + 3)
     got = Observation.from_env(obs, info)
+    assert env.observation_space.contains(obs)  # holes (0) inside the depth's Box(0, inf)
     env.close()
-    episode = Episode("car", SEED + 3, EpisodeConfig(obs_mode=obs_mode))
+    episode = Episode("car", SEED + 3, EpisodeConfig(obs_mode=obs_mode, sensor=sensor))
     want = episode.observe()
     episode.close()
     assert isinstance(got.table_top_z, float) and (got.depth is None) == (obs_mode == "rgb")
+    if sensor != "ideal":  # the sensor's images, not the renders
+        assert "sensor" in episode.timings_ms
+        assert obs_mode == "rgb" or (got.depth == 0).any()
     for f in fields(Observation):
         a, b = getattr(got, f.name), getattr(want, f.name)
         assert type(a) is type(b) and np.array_equal(a, b), f.name
+
+
+class _Digest:
+    """An estimator of the contract that answers no pose and records a digest of every image it
+    is handed in its ``info`` (which the episode records as ``estimate_info``)."""
+
+    name = "digest"
+
+    def estimate(self, obs: Observation) -> Estimate:
+        import hashlib
+
+        images = {"rgb": obs.rgb, "depth": obs.depth}
+        return Estimate(
+            None,
+            info={
+                k: None if v is None else hashlib.sha256(v.tobytes()).hexdigest()
+                for k, v in images.items()
+            },
+        )
+
+
+def test_evaluate_and_the_env_hand_an_estimator_the_same_sensor_images() -> None:
+    sensor = "azure-tof+camera"
+    report = evaluate(["car"], 1, _Digest(), SEED + 3, obs_mode="rgbd", sensor=sensor)
+    (episode,) = report["episodes"]
+    seen = {}
+    for name in (sensor, "ideal"):
+        env = GraspEvalEnv(object="car", obs_mode="rgbd", sensor=name)
+        obs, info = env.reset(seed=SEED + 3)
+        env.close()
+        seen[name] = _Digest().estimate(Observation.from_env(obs, info)).info
+    assert episode["estimate_info"] == seen[sensor] and episode["sensor"] == sensor
+    assert all(seen["ideal"][k] != seen[sensor][k] for k in ("rgb", "depth"))
+
+
+def test_an_unknown_sensor_is_one_line() -> None:
+    with pytest.raises(UnknownNameError) as info:
+        GraspEvalEnv(sensor="kinect-v2")
+    assert "\n" not in str(info.value)
+    assert "valid sensors: ideal, kinect-v1, azure-tof" in str(info.value)
+    base = EpisodeConfig(sensor="azure-tof")
+    assert GraspEvalEnv(config=base).config.sensor == "azure-tof"  # the config's, unless named
+    assert GraspEvalEnv(config=base, sensor="ideal").config.sensor == "ideal"
 
 
 def test_from_env_names_what_it_lacks() -> None:

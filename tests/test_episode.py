@@ -9,11 +9,19 @@ import re
 import numpy as np
 import pytest
 
+from posegrasp.core.contract import Estimate, Observation
+from posegrasp.core.errors import UnknownNameError
 from posegrasp.core.transforms import axis_angle
 from posegrasp.world import constants as C
 from posegrasp.world.objects import OBJECT_NAMES, load_object
 from sim import evaluate, run_episode
-from sim.episode import POSE_CORRECT_MSSD, Episode, object_symmetries, pose_errors
+from sim.episode import (
+    POSE_CORRECT_MSSD,
+    Episode,
+    EpisodeConfig,
+    object_symmetries,
+    pose_errors,
+)
 from sim.episode import play_episode as run
 from sim.estimators import NoisyOracleEstimator, OracleEstimator, make_estimator
 from sim.pose_noise import PoseNoise, perturb_pose
@@ -208,6 +216,7 @@ def test_run_episode_out_folder_and_its_former_name(option, tmp_path, monkeypatc
         (["--seed", "x"], "invalid --seed"),
         (["--noise", "1,2"], "--noise must be"),
         (["--tier", "nope"], "valid tiers: isolated"),
+        (["--sensor", "lidar"], "valid sensors: ideal, kinect-v1, azure-tof"),
         (["--json", "{tmp}"], "it is a folder"),
         (["--out", "{tmp}/file/sub"], "is a file, not a folder"),
     ],
@@ -280,3 +289,79 @@ def test_an_episode_without_a_grasp_writes_no_film(tmp_path, capsys) -> None:
     out = capsys.readouterr().out
     assert "no grasp was executed (failed: " in out
     assert (tmp_path / "head.png").is_file() and not (tmp_path / "grasp_strip.png").exists()
+
+
+class _Seeing:
+    """An estimator of the contract that keeps every observation it is handed and answers no
+    pose."""
+
+    name = "seeing"
+
+    def __init__(self) -> None:
+        self.seen: list[Observation] = []
+
+    def estimate(self, obs: Observation) -> Estimate:
+        self.seen.append(obs)
+        return Estimate(None)
+
+
+def _seen(sensor: str, obs_mode: str = "rgbd", seed: int = 3):
+    """What an estimator is handed in an episode under `sensor`, the episode's result, its true
+    pose, and the head camera's rendered (ideal) colour and depth images."""
+    ep = Episode(
+        "phone", seed, EpisodeConfig(width=320, height=240, obs_mode=obs_mode, sensor=sensor)
+    )
+    estimator = _Seeing()
+    try:
+        _, result = ep.run(estimator)
+        rgb = ep.renderer.rgb(ep.scene.data, C.HEAD_CAMERA)
+        depth = ep.renderer.depth(ep.scene.data, C.HEAD_CAMERA)
+        truth = ep.T_C_O_true.copy()
+    finally:
+        ep.close()
+    (obs,) = estimator.seen
+    return obs, result, truth, rgb, depth
+
+
+def test_the_sensor_reaches_the_estimator_through_observe() -> None:
+    ideal, r_ideal, truth, rgb, depth = _seen("ideal")
+    # The ideal sensor hands over the renders themselves and records nothing of itself.
+    assert ideal.rgb.tobytes() == rgb.tobytes() and ideal.depth.tobytes() == depth.tobytes()
+    assert "sensor" not in r_ideal.to_json() and "sensor" not in r_ideal.timings_ms
+    kinect, r_kinect, truth_k, _, _ = _seen("kinect-v1")
+    again = _seen("kinect-v1")[0]
+    np.testing.assert_array_equal(truth_k, truth)  # the same scene under every sensor
+    d = kinect.depth
+    assert d.dtype == np.float32 and d.shape == depth.shape
+    assert (d == 0).mean() > 0.001 and not (depth == 0).any()  # holes: exactly 0
+    assert not np.array_equal(d, depth)
+    seen = d > 0
+    assert np.median(np.abs(d[seen] - depth[seen])) < 0.005  # noise on the same surfaces
+    assert d.tobytes() == again.depth.tobytes()  # the same noise for the same seed
+    assert kinect.rgb.tobytes() == rgb.tobytes()  # kinect-v1's colour model is the ideal one
+    assert r_kinect.to_json()["sensor"] == "kinect-v1" and r_kinect.sensor == "kinect-v1"
+    assert r_kinect.timings_ms["sensor"] > 0
+    # A colour model changes the colour image in either mode, the same bytes in both.
+    noisy, result, _, _, _ = _seen("azure-tof+camera", obs_mode="rgb")
+    assert noisy.depth is None and noisy.rgb.shape == rgb.shape
+    assert np.abs(noisy.rgb.astype(int) - rgb.astype(int)).mean() > 0.5
+    assert noisy.rgb.tobytes() == _seen("azure-tof+camera")[0].rgb.tobytes()
+    assert result.to_json()["sensor"] == "azure-tof+camera"
+
+
+@pytest.mark.parametrize("sensor", ["lidar", " kinect-v1", "camera", "kinect-v1+ideal"])
+def test_an_unknown_sensor_is_one_line_naming_the_valid_ones(sensor: str) -> None:
+    with pytest.raises(UnknownNameError) as info:
+        EpisodeConfig(sensor=sensor)
+    message = str(info.value)
+    assert "\n" not in message and "valid sensors: ideal, kinect-v1, azure-tof" in message
+
+
+def test_run_episode_cli_observes_through_the_sensor(capsys) -> None:
+    argv = ["--object", "phone", "--seed", "2", "--estimator", "oracle", "--json", "-"]
+    assert run_episode.main([*argv, "--obs-mode", "rgbd", "--sensor", "kinect-v1+camera"]) == 0
+    captured = capsys.readouterr()
+    d = json.loads(captured.out)
+    assert d["sensor"] == "kinect-v1+camera" and d["success"] is True
+    assert "sensor" in d["timings_ms"]
+    assert "tier=isolated  sensor=kinect-v1+camera" in captured.err

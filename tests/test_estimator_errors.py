@@ -14,8 +14,8 @@ import pytest
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.journal import Journal, run_journaled
 from sim.episode import Episode, play_episode
-from sim.evaluate import EpisodeJob, _run_one
 from sim.evaluate import main as evaluate_main
+from sim.evaluation import EpisodeJob, Protocol, run_job
 from sim.report_schema import validate_report
 
 SEED = 1_000_000_000
@@ -56,7 +56,7 @@ def test_an_answer_that_is_not_an_estimate_fails_its_episode_as_error() -> None:
     result = play_episode("car", SEED, Tuple())
     assert result.failure_reason == "error"
     assert result.notes == [
-        "estimator 'tuple' returned tuple, not an Estimate (posegrasp.core.contract, version 2)"
+        "estimator 'tuple' returned tuple, not an Estimate (posegrasp.core.contract, version 3)"
     ]
 
 
@@ -86,7 +86,7 @@ def test_any_exception_of_an_episode_is_recorded_not_raised(
         raise error
 
     monkeypatch.setattr("sim.episode.play_episode", broken)
-    d = _run_one(EpisodeJob("phone", SEED, "oracle", "isolated"))
+    d = run_job(EpisodeJob("phone", SEED, "oracle", Protocol(["phone"], 1, SEED, "isolated")))
     assert (d["success"], d["failure_reason"], d["notes"]) == (False, "error", [note])
 
 

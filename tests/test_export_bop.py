@@ -185,6 +185,7 @@ def test_a_folder_of_other_files_is_refused(tmp_path: Path) -> None:
         (["--objects", "car,boat"], "valid objects: car, faucet"),
         (["--episodes", "0"], "--episodes 0; valid: integers 1..100000"),
         (["--seed-start", "-1"], "--seed-start -1; valid: integers 0.."),
+        (["--sensor", "lidar"], "valid sensors: ideal, kinect-v1, azure-tof"),
     ],
 )
 def test_a_bad_argument_is_one_line_naming_the_valid_choices(
@@ -251,3 +252,45 @@ def test_png16_bytes_decode_to_the_same_values() -> None:
     np.testing.assert_array_equal(back, img)
     d = xb.depth_to_png(np.array([[0.5, np.inf], [7.0, 0.0]]))
     np.testing.assert_array_equal(d, [[5000, 0], [0, 0]])
+
+
+def test_a_sensor_export_writes_the_sensor_images_and_records_it(
+    export: Path, tmp_path: Path, capsys
+) -> None:
+    sensor = "kinect-v1+camera"
+    out = tmp_path / "kinect"
+    args = ["--tier", TIER, "--objects", "car", "--episodes", "1", "--out", str(out)]
+    assert xb.main([*args, "--sensor", sensor]) == 0
+    assert load(out / MAP_FILE)["sensor"] == sensor and load(export / MAP_FILE)["sensor"] == "ideal"
+    ep = Episode("car", SEED, EpisodeConfig(tier=TIER, obs_mode="rgbd", sensor=sensor))
+    try:
+        obs = ep.observe()
+    finally:
+        ep.close()
+    sdir = scene(out, "car")
+    np.testing.assert_array_equal(read_png(sdir / "rgb" / "000000.png", out, None), obs.rgb)
+    png = cv2.imread(str(sdir / "depth" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(png, xb.depth_to_png(obs.depth))
+    ideal_png = cv2.imread(str(scene(export, "car") / "depth" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    assert (png == 0).sum() > (ideal_png == 0).sum() and not np.array_equal(png, ideal_png)
+    # BOP's px_count_valid counts the object's pixels with depth, under the sensor.
+    (info,) = load(sdir / "scene_gt_info.json")["0"]
+    (ideal_info,) = load(scene(export, "car") / "scene_gt_info.json")["0"]
+    assert info["px_count_all"] == ideal_info["px_count_all"]
+    assert info["px_count_valid"] < ideal_info["px_count_valid"]
+    capsys.readouterr()
+    # The folder holds that sensor's export: another sensor does not rewrite it.
+    assert xb.main([*args, "--sensor", "azure-tof"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"sensor {sensor})" in err and "sensor azure-tof" in err and "\n" not in err
+
+
+def test_a_map_written_before_sensors_were_recorded_is_the_ideal_one(
+    export: Path, tmp_path: Path
+) -> None:
+    old = load(export / MAP_FILE)
+    del old["sensor"]
+    (tmp_path / MAP_FILE).write_text(json.dumps(old))
+    xb.check_out_folder(tmp_path, xb.export_protocol(OBJECTS, 1, SEED, TIER, True))  # no error
+    with pytest.raises(xb.InvalidArgumentError, match=r"sensor ideal\).*sensor azure-tof"):
+        xb.check_out_folder(tmp_path, xb.export_protocol(OBJECTS, 1, SEED, TIER, True, "azure-tof"))

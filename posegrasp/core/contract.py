@@ -25,8 +25,10 @@ from posegrasp.core.errors import InvalidArgumentError
 #: Version of this contract: raised when `Observation`, `Estimate` or `PoseEstimator` change in a
 #: way an estimator must follow. 1: ``estimate(obs) -> Estimate``. 2: `Observation` gains the
 #: optional ``depth`` (None unless the episode's ``obs_mode`` is ``"rgbd"``); nothing else
-#: changed, so an estimator written for version 1 keeps working unchanged.
-CONTRACT_VERSION = 2
+#: changed, so an estimator written for version 1 keeps working unchanged. 3: `Estimate` gains the
+#: optional ``confidence`` (how sure the estimator is, higher is surer; None when it does not
+#: say); estimators of versions 1 and 2 keep working unchanged.
+CONTRACT_VERSION = 3
 
 #: Largest deviation ``max |R^T R - I|`` of a pose's rotation block from orthonormality.
 ROTATION_TOL = 1e-6
@@ -121,11 +123,16 @@ class Estimate:
             robot keeps its gripper clear of them and of nothing else.
         info: a JSON-serialisable description of the estimate (detection score, timings, ...),
             recorded in the episode as ``estimate_info``.
+        confidence: how sure the estimator is of ``T_C_O``, any finite real scale on which
+            higher is surer (a verification score, votes, a fitness), or None when it does not
+            say (contract version 3). A robot may attempt only the grasps above a threshold:
+            the reports' risk-coverage curve (`sim.stats.risk_coverage`) says what that buys.
     """
 
     T_C_O: np.ndarray | None
     neighbours: tuple[tuple[str, np.ndarray], ...] = ()
     info: dict[str, Any] = field(default_factory=dict)
+    confidence: float | None = None
 
 
 class PoseEstimator(Protocol):
@@ -137,6 +144,25 @@ class PoseEstimator(Protocol):
     def estimate(self, obs: Observation) -> Estimate:
         """The requested object's pose, the neighbours seen and a description."""
         ...
+
+
+def confidence_problem(confidence: object) -> str | None:
+    """What keeps an estimate's ``confidence`` from being valid, or None when it is: None or one
+    finite real number.
+
+    Args:
+        confidence: the estimate's confidence.
+
+    Returns:
+        One line naming the problem, or None.
+    """
+    if confidence is None:
+        return None
+    if isinstance(confidence, bool) or not isinstance(confidence, (int, float, np.number)):
+        return f"confidence must be a real number or None, got {type(confidence).__name__}"
+    if not np.isfinite(float(confidence)):
+        return f"confidence must be finite, got {float(confidence)}"
+    return None
 
 
 def as_pose_array(T: object, what: str = "pose") -> np.ndarray:
