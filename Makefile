@@ -8,6 +8,8 @@ STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 EGL_PACKAGES := libegl1 libgl1 libgl1-mesa-dri libegl-mesa0 libglvnd0 libglx-mesa0
+# Open3D (the extra peers) loads libusb when imported.
+PEER_PACKAGES := libusb-1.0-0
 
 .PHONY: run test test-slow lint bench data weights system-deps setup clean
 
@@ -24,10 +26,20 @@ test-slow: setup
 
 lint: setup
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check . && $(VENV)/bin/lint-imports
-	$(VENV)/bin/vulture sim perception grasping posegrasp bench tests/vulture_whitelist.py
+	$(VENV)/bin/vulture sim perception grasping posegrasp bench studies tests/vulture_whitelist.py
 
+# The speed benchmarks against their targets, in short runs (bench/README.md): every bench runs
+# even after a miss, and the target fails when any bench missed a target or failed.
+BENCHES := "sim_speed.py --seeds 3 --sim-seconds 2 --frames 10" "episode_speed.py --episodes 1" \
+	"estimate_latency.py --images 12" "estimate_latency.py --stages --images 6" \
+	"evaluate_speed.py --estimator hybrid --episodes 3" "refine_speed.py --images 10" \
+	"datagen_speed.py --paper 200 --headcam 40" \
+	"trainer_speed.py --nets posenet --batches 64 --seconds 2 --rounds 1"
 bench: setup
-	$(PY) bench/sim_speed.py
+	@failed=""; for b in $(BENCHES); do echo "== python bench/$$b"; \
+	  $(PY) bench/$$b || failed="$$failed bench/$${b%% *}"; done; \
+	if [ -n "$$failed" ]; then echo "missed a target or failed:$$failed"; exit 1; fi; \
+	echo "every bench met its targets"
 
 # Training data (outside git: $$POSEGRASP_DATA, else data/) and the shipped weights, from scratch.
 DATA_COUNTS := paper:train:70000 paper:val:1000 paper:test:1000 \
@@ -43,81 +55,14 @@ data: setup
 	  $(PY) -m perception.training.datagen --dist headcam --tier $$tier --split $$split \
 	  --count $$count --workers 2 || exit 1; done
 
-# The shipped weights were trained with exactly these commands, in this order (each `--init`
-# names the stage it starts from); perception/weights/manifest.json records each stage's command,
-# data seeds, validation figures and, where measured, wall time, and docs/DESIGN.md §7
-# ("Training") says what the stages are for.
-CKPT := $${POSEGRASP_DATA:-data}/checkpoints
+# The shipped weights, from scratch: every stage of the recipe (perception/training/recipe.py,
+# `python -m perception.training.recipe --dry-run` prints it) that is not done yet, each resuming
+# its checkpoint under $$POSEGRASP_DATA/checkpoints/<stage>; then one step ships them into
+# perception/weights/ (copied, hashed, their manifests recorded), draws the pose nets' curves and
+# records the test figures of the weights shipped.
 weights: data
-	$(PY) -m perception.training.train_posenet --variant ours --epochs 16 --limit headcam=5000,paper=20000 \
-	  --name posenet_ours_mixed
-	$(PY) -m perception.training.train_posenet --variant ours --epochs 14 --dists headcam \
-	  --limit headcam=10000 --lr 0.001 --init posenet_ours_mixed --name posenet_ours_head
-	$(PY) -m perception.training.train_posenet --variant ours --epochs 6 --dists headcam \
-	  --limit headcam=20000 --lr 0.0005 --init posenet_ours_head --name posenet_ours_ft20k
-	$(PY) -m perception.training.train_posenet --variant ours --epochs 5 --dists headcam \
-	  --limit headcam=40000 --lr 0.0005 --init posenet_ours_ft20k --name posenet_ours_ft40k
-	$(PY) -m perception.training.train_posenet --variant ours --epochs 3 --dists headcam,headcam_far \
-	  --limit headcam=40000,headcam_far=5000 --lr 0.0002 --init posenet_ours_ft40k \
-	  --name posenet_ours_far
-	$(PY) -m perception.training.train_posenet --variant ours --epochs 3 --dists headcam,headcam_far \
-	  --limit headcam=80000,headcam_far=5000 --lr 0.0003 --init posenet_ours_far \
-	  --name posenet_ours_ft80k
-	$(PY) -m perception.training.train_posenet --variant ours --epochs 2 --dists headcam,headcam_far \
-	  --limit headcam=120000,headcam_far=10000 --lr 0.0003 --init posenet_ours_ft80k \
-	  --name posenet_ours_ft120k
-	$(PY) -m perception.training.train_posenet --variant ours --epochs 2 --dists headcam,headcam_far \
-	  --lr 0.0003 --init posenet_ours_ft120k
-	$(PY) -m perception.training.train_posenet --variant ours --dists headcam,headcam_hard \
-	  --limit headcam=5000,headcam_hard=3000 --epochs 5 --lr 0.0005 --init posenet_ours_head --name posenet_ours_hard
-	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 10 --batch 64 \
-	  --limit paper=40000 --precision bf16 --name posenet_paper_bf16
-	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 25 --batch 64 \
-	  --limit paper=40000 --precision bf16 --channels-last --threads 2 --lr 0.001 \
-	  --init posenet_paper_bf16 --name posenet_paper_s2
-	$(PY) -m perception.training.train_posenet --variant paper --dists paper --epochs 25 --batch 64 \
-	  --limit paper=40000 --precision bf16 --channels-last --threads 2 --lr 0.001 \
-	  --init posenet_paper_s2
-	$(PY) -m perception.training.export --plot docs/training_curves.png
-	$(PY) -m perception.training.train_detector --epochs 8 --out $(CKPT)/detector_base
-	$(PY) -m perception.training.train_detector --also headcam_hard --limit 2500 --epochs 1 \
-	  --lr 0.0005 --init $(CKPT)/detector_base/detector.pt --export
-	$(PY) -m perception.training.train_detector --also paper --limit 2500 --epochs 1 --lr 0.0005 \
-	  --init perception/weights/detector.pt --out $(CKPT)/detector_paper --export \
-	  --weights-out perception/weights/paper_protocol
-	$(PY) -m perception.training.train_detector --data $${POSEGRASP_DATA:-data}/paper --limit 10000 \
-	  --epochs 1 --lr 0.0003 --precision bf16 --channels-last \
-	  --init perception/weights/paper_protocol/detector.pt --out $(CKPT)/detector_paper2 --export \
-	  --weights-out perception/weights/paper_protocol
-	$(PY) -m perception.training.train_detector --data $${POSEGRASP_DATA:-data}/headcam_hard \
-	  --also headcam_any-pose,headcam --limit 3000 --epochs 3 --lr 0.0005 --precision bf16 \
-	  --channels-last --init perception/weights/detector.pt --out $(CKPT)/detector_tiers --export \
-	  --weights-out perception/weights/tiers
-	$(PY) -m perception.training.train_detector --data $${POSEGRASP_DATA:-data}/headcam_hard \
-	  --also headcam_any-pose,headcam --limit 9000 --epochs 1 --lr 0.0003 --precision bf16 \
-	  --channels-last --init perception/weights/tiers/detector.pt --out $(CKPT)/detector_tiers2 \
-	  --export --weights-out perception/weights/tiers
-	$(PY) -m perception.training.train_masknet --epochs 5 --channels-last --out $(CKPT)/masknet \
-	  --export
-	$(PY) -m perception.training.train_masknet --init perception/weights/tiers/masknet.pt --seed 1 \
-	  --epochs 3 --lr 0.001 --channels-last --out $(CKPT)/masknet_ft --export
-	$(PY) -m perception.training.train_masknet --protocol paper --epochs 6 --channels-last \
-	  --out $(CKPT)/masknet_paper --export
-	$(PY) -m perception.training.train_masknet --protocol paper \
-	  --init perception/weights/paper_protocol/masknet.pt --seed 1 --epochs 4 --lr 0.001 \
-	  --channels-last --out $(CKPT)/masknet_paper_ft --export
-	$(PY) -m perception.training.train_masknet --protocol paper \
-	  --init perception/weights/paper_protocol/masknet.pt --seed 2 --epochs 4 --lr 0.0005 \
-	  --channels-last --out $(CKPT)/masknet_paper_ft2 --export
-	$(PY) -m perception.training.train_masknet --protocol paper \
-	  --init perception/weights/paper_protocol/masknet.pt --seed 3 --epochs 3 --lr 0.0005 \
-	  --detected 10000 --channels-last --out $(CKPT)/masknet_paper_det --export
-	$(PY) -m perception.training.train_masknet --protocol paper \
-	  --init perception/weights/paper_protocol/masknet.pt --seed 4 --epochs 2 --lr 0.0005 \
-	  --detected 20000 --channels-last --out $(CKPT)/masknet_paper_det2 --export
-	$(PY) -m perception.training.train_masknet --protocol paper \
-	  --init perception/weights/paper_protocol/masknet.pt --seed 5 --epochs 2 --lr 0.0005 \
-	  --detected 40000 --channels-last --out $(CKPT)/masknet_paper_det3 --export --expert faucet
+	$(PY) -m perception.training.recipe
+	$(PY) -m perception.training.recipe --ship --plot docs/training_curves.png
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_ours.pt --record
 	$(PY) -m perception.training.tables --weights perception/weights/posenet_paper.pt --record
 	$(PY) -m perception.training.tables --boxes detector --record
@@ -127,9 +72,9 @@ weights: data
 
 setup: system-deps $(STAMP)
 
-# Software EGL needs Mesa; install it with apt-get when it is missing and we are root.
+# Software EGL needs Mesa, Open3D libusb; install them with apt-get when missing and we are root.
 system-deps:
-	@missing=""; for p in $(EGL_PACKAGES); do \
+	@missing=""; for p in $(EGL_PACKAGES) $(PEER_PACKAGES); do \
 	  dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
@@ -138,10 +83,15 @@ system-deps:
 	  else echo "missing system packages:$$missing (install them with apt-get as root)"; fi; \
 	fi
 
+# opencv-contrib-python-headless replaced opencv-python-headless: both own cv2/, so a venv that
+# has the plain build drops both and gets the contrib build afresh.
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e ".[dev,ray]"
+	@if $(PY) -m pip show -q opencv-python-headless >/dev/null 2>&1; then \
+	  $(PY) -m pip uninstall -q -y opencv-python-headless opencv-contrib-python-headless; fi
+	$(PY) -m pip install -q -e ".[dev,ray,peers]"
+	$(PY) -m pip install -q --no-deps -e examples/crude-estimator
 	@touch $(STAMP)
 
 clean:

@@ -1,5 +1,6 @@
 """The estimator registry of the experiment: the oracles, the learned estimators by name
-(`perception.estimators`) and plug-ins.
+(`perception.estimators`), the classical peers (`perception.peers`, which need the depth image:
+`needs_depth`) and plug-ins.
 
 Real estimators implement `posegrasp.core.contract.PoseEstimator`. The oracles are the experiment's
 own instruments, not estimators a robot could run: they implement `PrivilegedEstimator` and are
@@ -32,9 +33,11 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from perception.estimators import LEARNED_ESTIMATORS, weights_files
+from perception.peers import PEER_ESTIMATORS, peer_weights_files
 from posegrasp.core.contract import CONTRACT_VERSION, Estimate, Observation, PoseEstimator
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
 from posegrasp.core.validate import arg, check_choice
+from posegrasp.world.sensors import SENSOR_NAMES
 from sim.pose_noise import NOISE_FORMAT, PoseNoise, parse_noise, perturb_pose
 
 #: Other objects' poses: (class, T_C_N) pairs in the camera frame.
@@ -93,11 +96,12 @@ ESTIMATORS: dict[str, Callable[[], PoseEstimator | PrivilegedEstimator]] = {
     "oracle": OracleEstimator,
     "noisy-oracle": NoisyOracleEstimator,
     **LEARNED_ESTIMATORS,
+    **PEER_ESTIMATORS,
 }
 
 
 #: What the CLIs and the gate use unless told otherwise: the estimator that grasps best on every
-#: tier (docs/RESULTS.md, "Does `hybrid-global` grasp better than `hybrid`?").
+#: tier (docs/RESULTS.md, "How often does each estimator's grasp succeed per tier?").
 DEFAULT_ESTIMATOR = "hybrid-global"
 
 
@@ -243,6 +247,8 @@ def estimator_weights(spec: str) -> tuple[Path, ...] | None:
     """
     if spec in LEARNED_ESTIMATORS:
         return weights_files(spec)
+    if spec in PEER_ESTIMATORS:
+        return peer_weights_files(spec)
     if spec in ESTIMATORS:
         return ()
     report = getattr(make_estimator(spec), "weights_files", None)
@@ -330,3 +336,37 @@ def add_obs_mode_argument(parser: argparse.ArgumentParser) -> None:
         help="what the estimator sees: rgb (default) or rgbd (adds depth, float32 metres, z along "
         "the optical axis)",
     )
+
+
+def add_sensor_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--sensor NAME``: the head camera's sensor model the estimator observes through
+    (`posegrasp.world.sensors.SENSOR_NAMES`, `sim.episode.EpisodeConfig.sensor`); a bad name is
+    one line listing the valid ones."""
+    parser.add_argument(
+        "--sensor",
+        default="ideal",
+        type=arg(check_choice, SENSOR_NAMES, "sensor"),
+        metavar="NAME",
+        help=f"the head camera's sensor model, one of: {', '.join(SENSOR_NAMES)} (default ideal: "
+        "the rendered images; a depth model changes the depth image, seen with --obs-mode rgbd; "
+        "+camera adds a colour camera's noise)",
+    )
+
+
+def needs_depth(spec: str) -> bool:
+    """Whether the estimator a spec names needs the depth image (the classical peers,
+    `perception.peers.PEER_ESTIMATORS`); a plug-in is not known to."""
+    return spec in PEER_ESTIMATORS
+
+
+def check_depth(spec: str, obs_mode: str) -> None:
+    """Refuse an estimator that needs depth in an observation mode without it.
+
+    Raises:
+        InvalidArgumentError: `needs_depth(spec)` and `obs_mode` is not ``rgbd``.
+    """
+    if needs_depth(spec) and obs_mode != "rgbd":
+        raise InvalidArgumentError(
+            f"estimator {spec} needs the depth image: add --obs-mode rgbd (observation mode "
+            f"{obs_mode!r} has none)"
+        )

@@ -1,0 +1,253 @@
+"""The classical peers (`perception.peers`): their geometry checked against independent
+computations, their contract (no depth, no extra), and their poses on ideal depth of one object
+alone on the table."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+from perception.metrics import rotation_error_sym_deg
+from perception.peers import PEER_ESTIMATORS, extra
+from perception.peers.estimator import PeerEstimator, Registered
+from perception.peers.points import (
+    CropConfig,
+    back_project,
+    model_surface,
+    nearest_rigid,
+    object_points,
+)
+from posegrasp.core.contract import Observation, pose_problem
+from posegrasp.core.errors import AssetError, InvalidArgumentError
+from posegrasp.world.constants import EVAL_SEED_BASE
+from posegrasp.world.objects import OBJECT_NAMES, load_object
+from sim.estimators import ESTIMATORS, check_depth, make_estimator, needs_depth
+
+HAS_PPF = extra.has_ppf()
+HAS_OPEN3D = extra.has_open3d()
+needs_ppf = pytest.mark.skipif(not HAS_PPF, reason="the extra peers is not installed")
+needs_open3d = pytest.mark.skipif(not HAS_OPEN3D, reason="the extra peers is not installed")
+#: A training seed (below `EVAL_SEED_BASE`) for the scenes of these tests.
+SEED = 1000
+
+
+def _scene(obj: str, seed: int = SEED) -> tuple[Observation, np.ndarray]:
+    """An isolated-tier scene of obj with ideal depth: its observation and the true T_C_O."""
+    from sim.episode import Episode, EpisodeConfig
+
+    assert seed < EVAL_SEED_BASE
+    ep = Episode(obj, seed, EpisodeConfig(obs_mode="rgbd"))
+    try:
+        return ep.observe(), ep.T_C_O_true.copy()
+    finally:
+        ep.close()
+
+
+def _errors(obj: str, T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(rotation error up to the object's symmetries [deg], translation error [mm])."""
+    from sim.episode import object_symmetries
+
+    syms = object_symmetries(load_object(obj))
+    rot = rotation_error_sym_deg(T_est[:3, :3], T_true[:3, :3], syms)
+    return rot, 1000 * float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+
+
+class _Unreachable:
+    """A registration stage that must not be reached."""
+
+    def register(self, model, points_C, seed) -> Registered:
+        raise AssertionError("registration reached")
+
+
+def test_every_peer_is_registered_and_needs_depth() -> None:
+    assert set(PEER_ESTIMATORS) == {"ppf", "ppf-det", "fpfh-icp", "fpfh-icp-det",
+                                    "hybrid-global-icp"}  # fmt: skip
+    for name in PEER_ESTIMATORS:
+        assert name in ESTIMATORS and needs_depth(name)
+        check_depth(name, "rgbd")
+    assert not needs_depth("hybrid-global") and not needs_depth("oracle")
+
+
+def test_a_peer_without_depth_is_refused_in_one_line() -> None:
+    with pytest.raises(InvalidArgumentError) as exc:
+        check_depth("fpfh-icp", "rgb")
+    message = str(exc.value)
+    assert "\n" not in message and "--obs-mode rgbd" in message and "fpfh-icp" in message
+    check_depth("hybrid-global", "rgb")
+
+
+def test_without_depth_there_is_no_estimate_and_the_note_says_why() -> None:
+    rgb = np.zeros((4, 4, 3), np.uint8)
+    obs = Observation(rgb, np.eye(3), np.eye(4), "phone", 1, table_top_z=0.55)
+    est = PeerEstimator("ppf", _Unreachable()).estimate(obs)
+    assert est.T_C_O is None and "--obs-mode rgbd" in est.info["note"]
+    obs.depth, obs.table_top_z = np.ones((4, 4), np.float32), None
+    est = PeerEstimator("ppf", _Unreachable()).estimate(obs)
+    assert est.T_C_O is None and "table" in est.info["note"]
+
+
+@pytest.mark.parametrize("name", ["ppf", "fpfh-icp", "hybrid-global-icp"])
+def test_without_the_extra_a_peer_is_one_line_saying_how_to_install_it(
+    name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(extra, "has_ppf", lambda: False)
+    monkeypatch.setattr(extra, "has_open3d", lambda: False)
+    with pytest.raises(AssetError) as exc:
+        make_estimator(name)
+    message = str(exc.value)
+    assert "\n" not in message and "pip install -e '.[peers]'" in message and name in message
+
+
+def test_back_projection_inverts_the_pinhole_projection() -> None:
+    rng = np.random.default_rng(0)
+    K = np.array([[520.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
+    depth = rng.uniform(0.5, 2.0, (48, 64)).astype(np.float32)
+    depth[3, 5], depth[7, 9] = 0.0, np.nan  # no depth: no point
+    pts = back_project(depth, K)
+    assert pts.shape == (48 * 64 - 2, 3)
+    uv = pts @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    v, u = np.nonzero(np.isfinite(depth) & (depth > 0))
+    np.testing.assert_allclose(uv, np.stack([u, v], axis=1), atol=1e-9)
+    np.testing.assert_allclose(pts[:, 2], depth[v, u], rtol=1e-6)
+
+
+def test_nearest_rigid_is_a_rotation_and_keeps_a_rotation() -> None:
+    rng = np.random.default_rng(1)
+    T = np.eye(4)
+    T[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    T[:3, :3] *= np.sign(np.linalg.det(T[:3, :3]))
+    T[:3, 3] = (0.1, -0.2, 0.8)
+    np.testing.assert_allclose(nearest_rigid(T), T, atol=1e-12)
+    skewed = T.copy()
+    skewed[:3, :3] += 1e-4 * rng.normal(size=(3, 3))
+    assert pose_problem(skewed) is not None and pose_problem(nearest_rigid(skewed)) is None
+
+
+def _plane_depth(part, points: np.ndarray) -> np.ndarray:
+    """How far each point lies outside a convex part's face planes (< 0: inside), shape (N,)."""
+    mesh = part.mesh()
+    normals = np.asarray(mesh.face_normals)
+    offsets = np.einsum("ij,ij->i", normals, np.asarray(mesh.triangles)[:, 0])
+    return (points @ normals.T - offsets).max(axis=1)
+
+
+def test_model_samples_lie_on_the_visible_surface() -> None:
+    model = load_object("car")
+    pts, normals = model_surface(model, 4000, 0)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-9)
+    depths = np.stack([_plane_depth(part, pts) for part in model.parts])
+    # On the boundary of one part, inside none: the car's parts overlap, and the samples on
+    # faces hidden inside another part were dropped.
+    assert np.abs(depths).min(axis=0).max() < 1e-6
+    assert depths.min(axis=0).min() > -1e-5
+    assert 0 < len(pts) < 4000
+
+
+def test_the_objects_points_lie_on_the_object() -> None:
+    from scipy.spatial import cKDTree
+
+    obs, T_true = _scene("phone")
+    model = load_object("phone")
+    pts = object_points(
+        obs.depth, obs.K, obs.T_world_cam, obs.table_top_z, model.diameter, CropConfig()
+    )
+    assert len(pts) > 1000
+    R, t = T_true[:3, :3], T_true[:3, 3]
+    pts_O = (pts - t) @ R
+    surface, normals = model_surface(model, 50000, 1)
+    _, nearest = cKDTree(surface).query(pts_O)
+    off_plane = np.abs(np.einsum("ij,ij->i", pts_O - surface[nearest], normals[nearest]))
+    assert np.percentile(off_plane, 99) < 0.002
+
+
+#: A peer's score from which its pose is taken as found (the ICP fitness of ``fpfh-icp``).
+CONFIDENT = 0.9
+
+
+@needs_open3d
+@pytest.mark.slow
+def test_fpfh_icp_is_exact_when_confident_on_ideal_depth() -> None:
+    # RANSAC's global search misses some views (a pose turned half round, the share of the
+    # scene it explains well below CONFIDENT): a confident pose must be exact, and at least
+    # half of them are confident.
+    estimator = make_estimator("fpfh-icp")
+    confident = 0
+    for obj in OBJECT_NAMES:
+        obs, T_true = _scene(obj)
+        est = estimator.estimate(obs)
+        assert est.T_C_O is not None, (obj, est.info)
+        assert {"features", "ransac", "icp"} <= set(est.info["timings_ms"])
+        rot, trans = _errors(obj, est.T_C_O, T_true)
+        if est.info["score"] >= CONFIDENT:
+            confident += 1
+            assert rot < 2.0 and trans < 2.0, (obj, rot, trans, est.info)
+    assert confident >= len(OBJECT_NAMES) // 2
+
+
+@needs_open3d
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["fpfh-icp-det", "hybrid-global-icp"])
+def test_the_detection_and_learned_peers_on_ideal_depth(name: str) -> None:
+    estimator = make_estimator(name)
+    confident = 0
+    for obj in ("phone", "pistol", "car"):
+        obs, T_true = _scene(obj)
+        est = estimator.estimate(obs)
+        assert est.T_C_O is not None, (obj, est.info)
+        assert "score" in est.info and "icp" in est.info["timings_ms"]
+        rot, trans = _errors(obj, est.T_C_O, T_true)
+        if est.info["score"] >= CONFIDENT:
+            confident += 1
+            assert rot < 2.0 and trans < 2.0, (name, obj, rot, trans)
+    assert confident >= 2
+
+
+@needs_ppf
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["ppf", "ppf-det"])
+@pytest.mark.xfail(
+    strict=True,
+    reason="OpenCV's PPF3DDetector joins pose hypotheses at one position whatever their "
+    "rotations and returns their mean (studies/peer_tuning.json, clustering_check)",
+)
+def test_ppf_finds_each_object_alone_on_ideal_depth(name: str) -> None:
+    estimator = make_estimator(name)
+    for obj in OBJECT_NAMES:
+        obs, T_true = _scene(obj)
+        est = estimator.estimate(obs)
+        assert est.T_C_O is not None and pose_problem(est.T_C_O) is None
+        assert {"match", "icp"} <= set(est.info["timings_ms"]) and est.info["votes"] > 0
+        rot, trans = _errors(obj, est.T_C_O, T_true)
+        assert rot < 2.0 and trans < 2.0, (name, obj, rot, trans)
+
+
+@needs_open3d
+@needs_ppf
+def test_peers_pickle_without_their_trained_models() -> None:
+    obs, _ = _scene("phone")
+    for name in ("ppf", "fpfh-icp"):
+        estimator = make_estimator(name)
+        first = estimator.estimate(obs)
+        copy = pickle.loads(pickle.dumps(estimator))
+        assert copy.registration._models == {} and copy.registration.config == (
+            estimator.registration.config
+        )
+        again = copy.estimate(obs)  # the same pose, but for the last bits of Open3D's sums
+        np.testing.assert_allclose(first.T_C_O, again.T_C_O, rtol=0, atol=1e-9)
+
+
+@needs_open3d
+@pytest.mark.slow
+def test_a_peer_runs_in_evaluate_workers() -> None:
+    from sim.evaluate import evaluate
+
+    report = evaluate(["phone", "pistol"], 1, "fpfh-icp", SEED, workers=2, obs_mode="rgbd")
+    episodes = report["episodes"]
+    assert len(episodes) == 2
+    for ep in episodes:
+        assert ep["estimator"] == "fpfh-icp" and ep["pose_error"] is not None, ep["notes"]
+        assert ep["estimate_info"]["score"] > 0.9
+        assert ep["pose_error"]["rotation_deg"] < 2.0
