@@ -1,0 +1,469 @@
+"""The leaderboard: every (estimator, tier, sensor) cell on the same held-out episodes.
+
+    python -m sim.leaderboard [--estimators LIST] [--tiers LIST] [--sensors LIST] \
+        [--objects all] [--episodes N] [--workers N] [--backend local|ray] [--out DIR] \
+        [--markdown docs/LEADERBOARD.md] [--plots docs/leaderboard] [--json PATH]
+
+Each cell is one `sim.evaluate` run (its report and journal under ``--out``/cells), so an
+interrupted leaderboard resumes where it stopped: a finished cell is read back, a started one
+resumes from its journal. An estimator that needs depth (`sim.estimators.needs_depth`) sees
+``rgbd`` observations, every other one ``rgb``; an RGB-only estimator sees only the sensor's
+colour model, so its cells under sensors that differ only in depth are one run, shown under each.
+A cell that cannot run (an estimator whose extra is not installed) is reported as such, not
+dropped. Then it writes the whole board as JSON, the Markdown page (`docs/LEADERBOARD.md` is its
+output, never edited by hand) and three plots: success per cell, AR against success, and
+success against coverage for the estimators that give a confidence.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from posegrasp.core.backends import add_backend_arguments, check_backend
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    add_out_argument,
+    add_workers_argument,
+    command,
+    write_json,
+)
+from posegrasp.core.errors import PosegraspError
+from posegrasp.core.files import atomic_write_bytes, atomic_write_json
+from posegrasp.core.paths import DOCS_DIR, in_repo
+from posegrasp.core.validate import arg, check_int, check_names
+from posegrasp.world.constants import EVAL_SEED_BASE
+from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.sensors import SENSOR_NAMES, Sensor
+from posegrasp.world.tiers import TIERS
+from sim.grasp_vs_bop import ar_for_success, episode_aucs, spearman_with_interval
+from sim.stats import risk_coverage, wilson_interval
+
+#: The rows, in order: the true pose, our estimators, the classical peers, the crude example.
+ESTIMATORS: tuple[str, ...] = (
+    "oracle",
+    "hybrid-global",
+    "hybrid",
+    "hybrid-global-icp",
+    "ppf",
+    "ppf-det",
+    "fpfh-icp",
+    "fpfh-icp-det",
+    "crude",
+)
+#: The default sensors: the ideal camera and a structured-light depth camera.
+SENSORS: tuple[str, ...] = ("ideal", "kinect-v1")
+#: The ARs reported per cell, and against success.
+AR_KEYS: tuple[str, ...] = ("ar_mssd", "ar_mspd", "ar_vsd")
+#: Failure reasons shown per cell.
+TOP_REASONS = 2
+#: The success a method should reach; the AR that predicts it is reported per tier.
+TARGET_SUCCESS = 0.95
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One leaderboard cell and the run that fills it."""
+
+    estimator: str
+    tier: str
+    sensor: str
+    obs_mode: str
+    #: The sensor the run actually uses: an RGB-only estimator's ignores the depth model.
+    run_sensor: str
+
+    @property
+    def run_key(self) -> str:
+        """File stem of the run (shared by cells that are the same run)."""
+        return _safe(f"{self.tier}__{self.run_sensor}__{self.estimator}")
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.+-]", "_", name)
+
+
+def cells_of(estimators: Sequence[str], tiers: Sequence[str], sensors: Sequence[str]) -> list[Cell]:
+    """Every (estimator, tier, sensor) cell, with the observation mode and sensor it runs in."""
+    from sim.estimators import needs_depth
+
+    out = []
+    for sensor in sensors:
+        parsed = Sensor.parse(sensor)
+        for tier in tiers:
+            for est in estimators:
+                depth = needs_depth(est)
+                run_sensor = parsed.name if depth else Sensor("ideal", parsed.rgb).name
+                out.append(Cell(est, tier, parsed.name, "rgbd" if depth else "rgb", run_sensor))
+    return out
+
+
+def run_cell(cell: Cell, args, cells_dir: Path) -> dict:
+    """Run (or read back, or resume) one cell's `sim.evaluate` report."""
+    from sim.evaluate import evaluate
+
+    report_path = cells_dir / f"{cell.run_key}.json"
+    journal = cells_dir / f"{cell.run_key}.journal.jsonl"
+    if report_path.exists():
+        import json
+
+        report = json.loads(report_path.read_text())
+        if report.get("episodes_per_object") == args.episodes and report.get("objects") == list(
+            args.objects
+        ):
+            return report
+    start = time.perf_counter()
+    report = evaluate(
+        list(args.objects),
+        args.episodes,
+        cell.estimator,
+        EVAL_SEED_BASE,
+        workers=args.workers,
+        tier=cell.tier,
+        backend=args.backend,
+        address=args.address,
+        journal=journal,
+        resume=journal.exists(),
+        obs_mode=cell.obs_mode,
+        sensor=cell.run_sensor,
+    )
+    report["leaderboard_wall_s"] = time.perf_counter() - start
+    report["episodes_per_object"] = args.episodes
+    atomic_write_json(report_path, report)
+    return report
+
+
+def cell_summary(report: dict) -> dict:
+    """A cell's figures from its report: success with its Wilson interval, pose-correct rate,
+    grasped with a wrong pose, the ARs, time per image and the leading failure reasons."""
+    g = report["overall"]
+    eps = report["episodes"]
+    lo, hi = wilson_interval(g["successes"], g["episodes"])
+    times = [e["timings_ms"]["estimate"] for e in eps if "estimate" in e.get("timings_ms", {})]
+    reasons = Counter(e["failure_reason"] for e in eps if not e["success"])
+    rc = risk_coverage([e.get("confidence") for e in eps], [bool(e["success"]) for e in eps])
+    return {
+        "episodes": g["episodes"],
+        "successes": g["successes"],
+        "success_rate": g["success_rate"],
+        "wilson": [lo, hi],
+        "pose_correct_rate": g["pose_correct"] / g["episodes"] if g["episodes"] else None,
+        "grasped_wrong_pose": g["grasped_wrong_pose"],
+        **{k: g.get(k) for k in AR_KEYS},
+        "time_ms_median": float(np.median(times)) if times else None,
+        "time_ms_p90": float(np.percentile(times, 90)) if times else None,
+        "failures": reasons.most_common(TOP_REASONS),
+        "risk_coverage": rc,
+        "wall_s": report.get("leaderboard_wall_s"),
+    }
+
+
+def analyse(cells: list[dict], reports: dict[str, dict]) -> dict:
+    """What BOP scores say about grasps over the board: per AR, Spearman's rho of AR against
+    success over the cells; per tier, each error's separation AUC over the episodes of every
+    estimator but the oracle, and the AR that a logistic fit says gives `TARGET_SUCCESS`."""
+    scored = [c for c in cells if c.get("summary") and c["estimator"] != "oracle"]
+    out: dict = {"spearman": {}, "auc": {}, "ar_for_success": {}}
+    for key in AR_KEYS:
+        pts = [c for c in scored if c["summary"][key] is not None]
+        out["spearman"][key] = spearman_with_interval(
+            [c["summary"][key] for c in pts], [c["summary"]["success_rate"] for c in pts]
+        )
+    for tier in dict.fromkeys(c["tier"] for c in scored):
+        in_tier = [c for c in scored if c["tier"] == tier]
+        runs = dict.fromkeys(c["run_key"] for c in in_tier)
+        episodes = [e for k in runs for e in reports[k]["episodes"]]
+        out["auc"][tier] = episode_aucs(episodes)
+        out["ar_for_success"][tier] = {}
+        for key in AR_KEYS:
+            pts = [c["summary"] for c in in_tier if c["summary"][key] is not None]
+            out["ar_for_success"][tier][key] = ar_for_success(
+                [p[key] for p in pts],
+                [p["successes"] for p in pts],
+                [p["episodes"] for p in pts],
+                TARGET_SUCCESS,
+            )
+    return out
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.0f} %"
+
+
+def _num(x: float | None, fmt: str = ".3f") -> str:
+    return "-" if x is None else format(x, fmt)
+
+
+def markdown(board: dict) -> str:
+    """The leaderboard page: how it was made, one table per (sensor, tier), the BOP analysis."""
+    lines = [
+        "# Leaderboard",
+        "",
+        "Generated by the command below; do not edit by hand. Each cell: grasp success on the",
+        "same held-out episodes (Wilson 95 % interval), the share of poses BOP would call right",
+        "(MSSD < 10 % of the diameter), grasps held on a wrong pose, BOP's AR of the same poses,",
+        "the estimator's time per image on 2 cores and its leading failure reasons.",
+        "",
+        "```bash",
+        board["command"],
+        "```",
+        "",
+        f"{board['episodes_per_cell']} episodes per cell ({board['episodes']} per object x "
+        f"{len(board['objects'])} objects), seeds from {board['seed_start']}; "
+        f"wall time {board['wall_s'] / 60:.0f} min on this machine's cores.",
+        "",
+        "![success per cell](leaderboard/success.png)",
+        "",
+    ]
+    head = (
+        "| estimator | obs | success | 95 % CI | pose right | held, wrong pose | AR_MSSD | "
+        "AR_MSPD | AR_VSD | ms/image (med, p90) | RC area | leading failures |"
+    )
+    for sensor in board["sensors"]:
+        for tier in board["tiers"]:
+            lines += [f"## {tier}, sensor `{sensor}`", "", head, "|" + "---|" * 12]
+            for c in board["cells"]:
+                if c["tier"] != tier or c["sensor"] != sensor:
+                    continue
+                s = c.get("summary")
+                if s is None:
+                    lines.append(
+                        f"| {c['estimator']} | {c['obs_mode']} | {c['error']} |" + " |" * 9
+                    )
+                    continue
+                fails = ", ".join(f"{r} {n}" for r, n in s["failures"]) or "-"
+                rc = s["risk_coverage"]
+                lines.append(
+                    f"| {c['estimator']} | {c['obs_mode']} | {s['successes']}/{s['episodes']} "
+                    f"| {_pct(s['wilson'][0])}-{_pct(s['wilson'][1])} "
+                    f"| {_pct(s['pose_correct_rate'])} | {s['grasped_wrong_pose']} "
+                    f"| {_num(s['ar_mssd'])} | {_num(s['ar_mspd'])} | {_num(s['ar_vsd'])} "
+                    f"| {_num(s['time_ms_median'], '.0f')}, {_num(s['time_ms_p90'], '.0f')} "
+                    f"| {_num(rc['area'] if rc else None, '.2f')} | {fails} |"
+                )
+            lines.append("")
+    a = board["analysis"]
+    lines += [
+        "## What BOP scores say about grasps",
+        "",
+        "![AR against grasp success](leaderboard/ar_vs_success.png)",
+        "",
+        "Spearman's rank correlation of each AR with grasp success over the cells (oracle left",
+        "out; 95 % bootstrap interval over cells):",
+        "",
+        "| AR | rho | 95 % CI | cells |",
+        "|---|---|---|---|",
+    ]
+    for key, r in a["spearman"].items():
+        lines.append(
+            f"| {key.upper()} | {_num(r['rho'], '.2f')} | {_num(r['low'], '.2f')} to "
+            f"{_num(r['high'], '.2f')} | {r['n']} |"
+        )
+    errs = list(next(iter(a["auc"].values()), {}).keys())
+    lines += [
+        "",
+        "How well each per-episode error separates held grasps from failed ones (ROC AUC; 0.5",
+        "says nothing, 1 separates perfectly), over every estimator's episodes with a pose:",
+        "",
+        "| tier | " + " | ".join(errs) + " |",
+        "|---|" + "---|" * len(errs),
+    ]
+    for tier, aucs in a["auc"].items():
+        lines.append(f"| {tier} | " + " | ".join(_num(aucs[e]["auc"], ".2f") for e in errs) + " |")
+    lines += [
+        "",
+        f"The AR at which a logistic fit of success on AR over a tier's cells reaches "
+        f"{TARGET_SUCCESS:.0%} grasps:",
+        "",
+        "| tier | " + " | ".join(k.upper() for k in AR_KEYS) + " |",
+        "|---|" + "---|" * len(AR_KEYS),
+    ]
+    for tier, fits in a["ar_for_success"].items():
+        row = [_num(f["ar"], ".2f") if f["ar"] is not None else f["note"] for f in fits.values()]
+        lines.append(f"| {tier} | " + " | ".join(row) + " |")
+    lines += [
+        "",
+        "## Confidence and abstention",
+        "",
+        "![success against coverage](leaderboard/risk_coverage.png)",
+        "",
+        "Success among attempted grasps when the robot attempts only the estimates above a",
+        "confidence threshold, for the estimators that give a confidence (`RC area` above: the",
+        "mean success over attempts ranked by confidence).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def plots(board: dict, folder: Path) -> None:
+    """success.png, ar_vs_success.png and risk_coverage.png in folder."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cells = [c for c in board["cells"] if c.get("summary")]
+    names = list(dict.fromkeys(c["estimator"] for c in cells))
+    groups = [(s, t) for s in board["sensors"] for t in board["tiers"]]
+    fig, ax = plt.subplots(figsize=(max(8, 1.1 * len(groups) * len(names) / 3), 4.5))
+    width = 0.8 / max(1, len(names))
+    for i, name in enumerate(names):
+        xs, ys, lo, hi = [], [], [], []
+        for j, (s, t) in enumerate(groups):
+            c = next(
+                (c for c in cells if (c["estimator"], c["sensor"], c["tier"]) == (name, s, t)), None
+            )
+            if c is None:
+                continue
+            m = c["summary"]
+            xs.append(j + (i - (len(names) - 1) / 2) * width)
+            ys.append(m["success_rate"])
+            lo.append(m["success_rate"] - m["wilson"][0])
+            hi.append(m["wilson"][1] - m["success_rate"])
+        ax.bar(xs, ys, width, yerr=[lo, hi], capsize=2, label=name)
+    ax.set_xticks(range(len(groups)), [f"{t}\n{s}" for s, t in groups])
+    ax.set_ylabel("grasp success (Wilson 95 %)")
+    ax.set_ylim(0, 1.05)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(folder / "success.png", dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, len(AR_KEYS), figsize=(4 * len(AR_KEYS), 4), sharey=True)
+    for ax, key in zip(np.atleast_1d(axes), AR_KEYS, strict=True):
+        for name in names:
+            pts = [
+                c["summary"]
+                for c in cells
+                if c["estimator"] == name and c["summary"][key] is not None
+            ]
+            ax.scatter([p[key] for p in pts], [p["success_rate"] for p in pts], label=name, s=18)
+        r = board["analysis"]["spearman"][key]
+        ax.set_title(f"{key.upper()}: rho {_num(r['rho'], '.2f')}")
+        ax.set_xlabel(key.upper())
+        ax.set_xlim(-0.02, 1.02)
+    np.atleast_1d(axes)[0].set_ylabel("grasp success")
+    np.atleast_1d(axes)[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(folder / "ar_vs_success.png", dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for c in cells:
+        rc = c["summary"]["risk_coverage"]
+        if rc and c["estimator"] != "oracle":
+            ax.step(
+                rc["coverage"],
+                rc["success"],
+                where="post",
+                label=f"{c['estimator']} ({c['tier']}, {c['sensor']})",
+            )
+    ax.set_xlabel("coverage (share of episodes attempted)")
+    ax.set_ylabel("success among attempted")
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.05)
+    if ax.lines:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
+    fig.tight_layout()
+    fig.savefig(folder / "risk_coverage.png", dpi=110)
+    plt.close(fig)
+
+
+def _command(argv: Sequence[str]) -> str:
+    return "python -m sim.leaderboard " + " ".join(argv)
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    argv = sys.argv[1:] if argv is None else argv
+    p = ArgumentParser(prog="python -m sim.leaderboard", description=__doc__.split("\n")[0])
+    p.add_argument(
+        "--estimators",
+        default=list(ESTIMATORS),
+        type=arg(check_names, ESTIMATORS, "estimator", "--estimators"),
+        help=f"'all' (default: {', '.join(ESTIMATORS)}) or a comma list",
+    )
+    p.add_argument(
+        "--tiers",
+        default=list(TIERS),
+        type=arg(check_names, TIERS, "tier", "--tiers"),
+        help=f"'all' (default: {', '.join(TIERS)}) or a comma list",
+    )
+    p.add_argument(
+        "--sensors",
+        default=list(SENSORS),
+        type=arg(check_names, SENSOR_NAMES, "sensor", "--sensors"),
+        help=f"a comma list of {', '.join(SENSOR_NAMES)} (default {','.join(SENSORS)})",
+    )
+    p.add_argument(
+        "--objects",
+        default=list(OBJECT_NAMES),
+        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
+        help="'all' or a comma list",
+    )
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 1, 100_000, "--episodes", base=int),
+        default=20,
+        help="episodes per object and cell (default 20)",
+    )
+    add_workers_argument(p)
+    add_backend_arguments(p)
+    add_out_argument(p, "every cell's report and journal", Path("out/leaderboard"))
+    p.add_argument("--markdown", type=Path, default=DOCS_DIR / "LEADERBOARD.md")
+    p.add_argument("--plots", type=Path, default=DOCS_DIR / "leaderboard")
+    add_json_argument(p, "the whole board", DOCS_DIR / "leaderboard.json")
+    args = p.parse_args(argv)
+    check_backend(args.backend, args.address)
+    cells_dir = Path(args.out) / "cells"
+    cells_dir.mkdir(parents=True, exist_ok=True)
+    cells = cells_of(args.estimators, args.tiers, args.sensors)
+    reports: dict[str, dict] = {}
+    board_cells = []
+    start = time.perf_counter()
+    for i, cell in enumerate(cells, 1):
+        print(f"cell {i}/{len(cells)}: {cell.estimator}, {cell.tier}, {cell.sensor}", flush=True)
+        row = {**asdict(cell), "run_key": cell.run_key}
+        try:
+            if cell.run_key not in reports:
+                reports[cell.run_key] = run_cell(cell, args, cells_dir)
+            row["summary"] = cell_summary(reports[cell.run_key])
+        except PosegraspError as exc:
+            row["error"] = str(exc).splitlines()[0]
+            print(f"  cannot run: {row['error']}", flush=True)
+        board_cells.append(row)
+    wall = (
+        sum((r.get("leaderboard_wall_s") or 0.0) for r in reports.values())
+        or time.perf_counter() - start
+    )
+    board = {
+        "command": _command(argv),
+        "estimators": list(args.estimators),
+        "tiers": list(args.tiers),
+        "sensors": [Sensor.parse(s).name for s in args.sensors],
+        "objects": list(args.objects),
+        "episodes": args.episodes,
+        "episodes_per_cell": args.episodes * len(args.objects),
+        "seed_start": EVAL_SEED_BASE,
+        "wall_s": wall,
+        "cells": board_cells,
+        "analysis": analyse(board_cells, reports),
+    }
+    write_json(args.json, board)
+    atomic_write_bytes(args.markdown, markdown(board).encode())
+    plots(board, args.plots)
+    print(f"wrote {in_repo(args.markdown)} and the plots in {in_repo(args.plots)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
