@@ -38,7 +38,7 @@ BUILTIN_ERRORS = {
 
 def _source_files() -> list[Path]:
     out = []
-    for pkg in (*PACKAGES, "bench"):
+    for pkg in (*PACKAGES, "bench", "studies"):
         out.extend(p for p in (REPO / pkg).rglob("*.py") if "__pycache__" not in p.parts)
     return sorted(out)
 

@@ -21,7 +21,7 @@ def _bench():
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(
-        "bop_round_trip", Path(__file__).resolve().parent.parent / "bench" / "bop_round_trip.py"
+        "bop_round_trip", Path(__file__).resolve().parent.parent / "studies" / "bop_round_trip.py"
     )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -124,7 +124,7 @@ def test_a_csv_of_another_export_is_refused(export: Path, tmp_path: Path, capsys
 
 
 def _report(episodes: list[dict]) -> dict:
-    return ev.make_report(episodes, ["car"], "mine", "isolated", SEED, len(episodes))
+    return ev.make_report(episodes, ev.Protocol(["car"], len(episodes), SEED, "isolated"), "mine")
 
 
 def _failed(reason: str, notes: list[str]) -> dict:

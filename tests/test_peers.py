@@ -224,6 +224,7 @@ def test_ppf_finds_each_object_alone_on_ideal_depth(name: str) -> None:
         assert rot < 2.0 and trans < 2.0, (name, obj, rot, trans)
 
 
+@pytest.mark.slow
 @needs_open3d
 @needs_ppf
 def test_peers_pickle_without_their_trained_models() -> None:

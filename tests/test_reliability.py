@@ -394,8 +394,11 @@ def test_every_cli_refuses_bad_input_in_one_line_before_any_work(
 
 
 def _bench(name: str, monkeypatch):
-    """A script of bench/ as a module (bench/ is no package), registered while the test runs."""
-    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "bench" / f"{name}.py")
+    """A script of bench/ or studies/ as a module (neither is a package), registered while the
+    test runs."""
+    paths = [REPO_ROOT / folder / f"{name}.py" for folder in ("bench", "studies")]
+    path = next(p for p in paths if p.exists())
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, name, module)  # dataclasses look their module up
     spec.loader.exec_module(module)
@@ -403,8 +406,8 @@ def _bench(name: str, monkeypatch):
 
 
 BENCH_REJECTIONS = [
-    ("soak", ["--workers", "0"], "1..64"),
-    ("soak", ["--json", "out/"], "it is a folder"),
+    ("estimate_latency", ["--stages", "--tier", "hard"], "valid there: --seed"),
+    ("estimate_latency", ["--random-weights"], "valid there: --estimator, --tier"),
     ("gate_power", ["--workers", "65"], "1..64"),
     ("noise_curves", ["--workers", "0"], "1..64"),
     ("noise_curves", ["--out", "{file}"], "a file, not a folder"),
@@ -478,17 +481,17 @@ def test_evaluation_computes_a_learned_estimator_on_one_thread(monkeypatch) -> N
     # an episode's pose independent of the number of workers and the backend.
     import torch
 
-    from sim import evaluate as ev
+    from sim.evaluation import harness
 
     before = torch.get_num_threads()
-    monkeypatch.setattr(ev, "make_estimator", lambda name, noise=None: (name, noise))
-    ev._estimator.cache_clear()
+    monkeypatch.setattr(harness, "make_estimator", lambda name, noise=None: (name, noise))
+    harness.cached_estimator.cache_clear()
     try:
         torch.set_num_threads(2)
-        assert ev._estimator("hybrid") == ("hybrid", None)
+        assert harness.cached_estimator("hybrid") == ("hybrid", None)
         assert torch.get_num_threads() == 1
     finally:
-        ev._estimator.cache_clear()
+        harness.cached_estimator.cache_clear()
         torch.set_num_threads(before)
 
 

@@ -1,6 +1,6 @@
 """Names vulture reports as unused that are used, each with the reason (`make lint` runs vulture).
 
-Run: vulture sim perception grasping posegrasp bench tests/vulture_whitelist.py
+Run: vulture sim perception grasping posegrasp bench studies tests/vulture_whitelist.py
 """
 
 from vulture.whitelist_utils import Whitelist
