@@ -17,6 +17,7 @@ success against coverage for the estimators that give a confidence.
 
 from __future__ import annotations
 
+import json
 import re
 import sys
 import time
@@ -112,8 +113,6 @@ def run_cell(cell: Cell, args, cells_dir: Path) -> dict:
     report_path = cells_dir / f"{cell.run_key}.json"
     journal = cells_dir / f"{cell.run_key}.journal.jsonl"
     if report_path.exists():
-        import json
-
         report = json.loads(report_path.read_text())
         if report.get("episodes_per_object") == args.episodes and report.get("objects") == list(
             args.objects
@@ -386,30 +385,18 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     argv = sys.argv[1:] if argv is None else argv
     p = ArgumentParser(prog="python -m sim.leaderboard", description=__doc__.split("\n")[0])
-    p.add_argument(
-        "--estimators",
-        default=list(ESTIMATORS),
-        type=arg(check_names, ESTIMATORS, "estimator", "--estimators"),
-        help=f"'all' (default: {', '.join(ESTIMATORS)}) or a comma list",
-    )
-    p.add_argument(
-        "--tiers",
-        default=list(TIERS),
-        type=arg(check_names, TIERS, "tier", "--tiers"),
-        help=f"'all' (default: {', '.join(TIERS)}) or a comma list",
-    )
-    p.add_argument(
-        "--sensors",
-        default=list(SENSORS),
-        type=arg(check_names, SENSOR_NAMES, "sensor", "--sensors"),
-        help=f"a comma list of {', '.join(SENSOR_NAMES)} (default {','.join(SENSORS)})",
-    )
-    p.add_argument(
-        "--objects",
-        default=list(OBJECT_NAMES),
-        type=arg(check_names, OBJECT_NAMES, "object", "--objects"),
-        help="'all' or a comma list",
-    )
+    for flag, choices, default in (
+        ("--estimators", ESTIMATORS, ESTIMATORS),
+        ("--tiers", TIERS, TIERS),
+        ("--sensors", SENSOR_NAMES, SENSORS),
+        ("--objects", OBJECT_NAMES, OBJECT_NAMES),
+    ):
+        p.add_argument(
+            flag,
+            default=list(default),
+            type=arg(check_names, choices, flag[2:-1], flag),
+            help=f"a comma list of {', '.join(choices)}, or 'all' (default {','.join(default)})",
+        )
     p.add_argument(
         "--episodes",
         type=arg(check_int, 1, 100_000, "--episodes", base=int),
