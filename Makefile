@@ -27,6 +27,7 @@ test-slow: setup
 lint: setup
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check . && $(VENV)/bin/lint-imports
 	$(VENV)/bin/vulture sim perception grasping posegrasp bench studies tests/vulture_whitelist.py
+	$(VENV)/bin/mypy
 
 # The speed benchmarks against their targets, in short runs (bench/README.md): every bench runs
 # even after a miss, and the target fails when any bench missed a target or failed.

@@ -342,10 +342,10 @@ def make_object(
     stored: dict[str, list[dict[str, Any]]] = {}
     drawn: dict[str, list[tuple[np.ndarray, float]]] = {}
     for i in order:
-        up = R @ found[i].up
-        pname = CANONICAL if i == canon else axis_name(up, taken)
+        up_dir = R @ found[i].up
+        pname = CANONICAL if i == canon else axis_name(up_dir, taken)
         taken.add(pname)
-        quat = np.array([1.0, 0.0, 0.0, 0.0]) if i == canon else upright_quat(up)
+        quat = np.array([1.0, 0.0, 0.0, 0.0]) if i == canon else upright_quat(up_dir)
         pg: PoseGrasps = grasps_s[f"p{i}"]
         entry = {
             "name": pname,

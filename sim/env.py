@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import Any, ClassVar
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -229,7 +229,8 @@ class GraspEvalEnv(gym.Env):
       added without a version change (the defaults observe and act as before).
     """
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 10}
+    # gymnasium declares metadata an instance attribute with a class default; so does this.
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 10}  # noqa: RUF012
 
     def __init__(
         self,
@@ -262,7 +263,7 @@ class GraspEvalEnv(gym.Env):
         self.object = object
         self.timings = timings
         self.render_mode = render_mode
-        observations = {
+        observations: dict[str, spaces.Space] = {
             "rgb": spaces.Box(0, 255, (height, width, 3), np.uint8),
             "K": spaces.Box(-np.inf, np.inf, (3, 3), np.float64),
             "T_world_cam": spaces.Box(-np.inf, np.inf, (4, 4), np.float64),
@@ -412,8 +413,8 @@ class GraspEvalEnv(gym.Env):
                     f"0..{len(self.classes) - 1}"
                 )
             T, error = _pose(pos[i], quat[i], f"neighbour {i}")
-            if error is not None:
-                return error
+            if T is None:
+                return error or f"neighbour {i} has no pose"
             out.append((self.classes[int(ids[i])], T))
         return out
 

@@ -149,7 +149,7 @@ def _load_factory(spec: str) -> Callable[[], Any]:
     return obj
 
 
-def check_estimator(estimator: Any, spec: str) -> PoseEstimator:
+def check_estimator(estimator: Any, spec: str) -> PoseEstimator | PrivilegedEstimator:
     """`estimator` when it implements the contract: a ``name`` string and a callable
     ``estimate``.
 

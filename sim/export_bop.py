@@ -265,6 +265,7 @@ def _export_image(
     scene_gt_info entries, and the (full, visible) masks (H, W) bool of each object of the
     head-camera view of an episode observing ``rgbd`` (no gt and masks without ground_truth)."""
     obs = ep.observe()
+    assert obs.depth is not None, "an export observes rgbd"
     depth = depth_to_png(obs.depth)
     T_C_W = invert_transform(obs.T_world_cam)
     camera = {

@@ -245,10 +245,16 @@ def compare(
     p = mcnemar_exact(lost, won, one_sided=True)
     k_run, k_base = sum(run[k][0] for k in keys), sum(base[k][0] for k in keys)
     success_bad = p < ALPHA
-    both = [k for k in keys if run[k][0] and base[k][0] and None not in (run[k][1], base[k][1])]
+    margins = [
+        (r, b)
+        for k in keys
+        if run[k][0] and base[k][0]
+        for r, b in [(run[k][1], base[k][1])]
+        if r is not None and b is not None
+    ]
     rise, lo = 0.0, 0.0
-    if both:
-        d = np.array([run[k][1] - base[k][1] for k in both])
+    if margins:
+        d = np.array([r - b for r, b in margins])
         rise = float(d.mean())
         boot = bootstrap_means(d, BOOTSTRAP, np.random.default_rng(0))
         lo = float(np.percentile(boot, 2.5))
@@ -258,7 +264,7 @@ def compare(
         f"{'PASS' if ok else 'FAIL'}: {k_run}/{len(keys)} grasped against the baseline's "
         f"{k_base}/{len(keys)}; {lost} lost and {won} gained, one-sided McNemar p = {p:.3g} "
         f"(fails below {ALPHA}); friction margin "
-        f"{rise:+.3f} on {len(both)} grasped by both (fails above +{MARGIN_RISE} when the "
+        f"{rise:+.3f} on {len(margins)} grasped by both (fails above +{MARGIN_RISE} when the "
         f"bootstrap interval's low end {lo:+.3f} is above 0)"
     )
     return ok, verdict

@@ -94,7 +94,7 @@ def spearman_with_interval(
     """
     xa, ya = np.asarray(x, float), np.asarray(y, float)
     n = len(xa)
-    none = {"rho": None, "low": None, "high": None, "n": n}
+    none: dict[str, float | int | None] = {"rho": None, "low": None, "high": None, "n": n}
     if n < 3 or np.ptp(xa) == 0 or np.ptp(ya) == 0:
         return none
     rho = float(spearmanr(xa, ya).statistic)
@@ -104,7 +104,9 @@ def spearman_with_interval(
         i = rng.integers(0, n, n)
         if np.ptp(xa[i]) > 0 and np.ptp(ya[i]) > 0:
             draws.append(spearmanr(xa[i], ya[i]).statistic)
-    low, high = np.percentile(draws, [2.5, 97.5]) if draws else (None, None)
+    if not draws:
+        return {**none, "rho": rho}
+    low, high = np.percentile(draws, [2.5, 97.5])
     return {"rho": rho, "low": float(low), "high": float(high), "n": n}
 
 

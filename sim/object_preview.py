@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import io
 import math
+from collections.abc import Sequence
 
 import mujoco
 import numpy as np
 from PIL import Image, ImageDraw
 
+from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.transforms import mat_to_quat, quat_to_mat
 from posegrasp.world.camera import CameraRenderer, RenderOptions
 from posegrasp.world.objects import COLLISION_GROUP, VISUAL_GROUP, ObjectModel
@@ -48,8 +50,8 @@ def _palette(n: int) -> list[tuple[float, float, float]]:
     for i in range(n):
         h = (i * 0.61803398875) % 1.0
         k = np.array([5.0, 3.0, 1.0])
-        rgb = 0.85 - 0.6 * np.clip(np.minimum(np.abs((h * 6 + k) % 6 - 3) - 1, 1), 0, 1)
-        out.append(tuple(float(v) for v in 1.0 - rgb))
+        r, g, b = 1.0 - (0.85 - 0.6 * np.clip(np.minimum(np.abs((h * 6 + k) % 6 - 3) - 1, 1), 0, 1))
+        out.append((float(r), float(g), float(b)))
     return out
 
 
@@ -91,7 +93,7 @@ def _add_grasp(spec: mujoco.MjSpec, T: np.ndarray, width: float, rgb) -> None:
 def _panel(
     obj: ObjectModel,
     quat: np.ndarray,
-    grasps: list[tuple[np.ndarray, float]] = (),
+    grasps: Sequence[tuple[np.ndarray, float]] = (),
     hulls: bool = False,
 ) -> np.ndarray:
     """One render (H, W, 3) uint8 of the object resting in orientation quat, optionally with its
@@ -138,6 +140,10 @@ def preview_sheet(
             order each).
         title: the sheet's heading.
     """
+    if obj.geometry is None:
+        raise InvalidArgumentError(
+            f"{obj.name} is a built-in object; a preview sheet is of a user mesh"
+        )
     canon = np.asarray(poses[0]["quat"], float)
     panels = [
         (_panel(obj, canon), "visual mesh"),

@@ -63,8 +63,10 @@ DEFAULT_SEED_START = C.EVAL_SEED_BASE
 def _noise(kind: str, value: float):
     from sim.pose_noise import PoseNoise
 
-    si = value / 1000 if kind.endswith("_mm") else np.deg2rad(value)
-    return PoseNoise(**{kind.split("_")[0]: si}, mode="fixed")
+    si = value / 1000 if kind.endswith("_mm") else float(np.deg2rad(value))
+    size = dict.fromkeys(("ray", "lateral", "inplane", "outplane"), 0.0)
+    size[kind.split("_")[0]] = si
+    return PoseNoise(size["ray"], size["lateral"], size["inplane"], size["outplane"], mode="fixed")
 
 
 def _job(args: tuple[str, str, float, int, str]) -> tuple[str, str, float, int, bool, str | None]:

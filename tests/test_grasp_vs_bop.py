@@ -77,3 +77,9 @@ def test_no_ar_when_success_does_not_rise_or_never_reaches_the_target() -> None:
     assert "does not rise" in ar_for_success(ar, [9, 5, 1], [10, 10, 10])["note"]
     assert "below 95%" in ar_for_success(ar, [1, 2, 3], [10, 10, 10])["note"]
     assert ar_for_success([0.5, 0.5, 0.5], [1, 2, 3], [10] * 3)["ar"] is None
+
+
+def test_spearman_without_a_varying_resample_has_rho_and_no_interval() -> None:
+    # Seed 4's one resample of three pairs draws pair 2 thrice: constant ranks, so no interval.
+    r = spearman_with_interval([1, 2, 3], [1, 3, 2], boot=1, seed=4)
+    assert (r["rho"], r["low"], r["high"], r["n"]) == (pytest.approx(0.5), None, None, 3)

@@ -151,7 +151,7 @@ def run_map(
             yield (result, node) if with_node else result
     finally:
         bar.close()
-        if owned:
+        if owned and ray is not None:
             ray.shutdown()
 
 

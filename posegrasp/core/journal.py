@@ -233,10 +233,10 @@ def run_journaled(
     """
     from posegrasp.core.backends import by_import_name, run_map
 
-    fn = by_import_name(fn)  # a Ray worker cannot import a function of ``python -m``'s __main__
+    target = by_import_name(fn)  # a Ray worker cannot import a function of ``python -m``'s __main__
     done = {int(u["key"]): u["result"] for u in (journal.start(resume) if journal else [])}
     results = dict(done)
-    pending = ((fn, k, job) for k, job in enumerate(jobs) if k not in done)
+    pending = ((target, k, job) for k, job in enumerate(jobs) if k not in done)
     try:
         with interruptible():
             for (key, result), node in run_map(

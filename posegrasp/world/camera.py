@@ -164,7 +164,10 @@ def same_render_assets(a: mujoco.MjModel, b: mujoco.MjModel) -> bool:
         return False
     if _render_sizes(a) != _render_sizes(b):
         return False
-    return all(np.array_equal(getattr(a, n, None), getattr(b, n, None)) for n in _ASSET_ARRAYS)
+    return all(
+        np.array_equal(np.asarray(getattr(a, n, ())), np.asarray(getattr(b, n, ())))
+        for n in _ASSET_ARRAYS
+    )
 
 
 def scene_capacity(model: mujoco.MjModel) -> int:

@@ -87,7 +87,7 @@ def mesh_colour(mesh: trimesh.Trimesh) -> np.ndarray:
     """The mesh's main colour as rgba in [0, 1] (4,): the material's diffuse colour or the
     average vertex or face colour; a neutral clay when it has none."""
     default = np.array([0.72, 0.6, 0.45, 1.0])
-    visual = mesh.visual
+    visual: Any = mesh.visual  # trimesh's visuals differ in kind; each is read for what it has
     try:
         if visual.kind == "texture" and getattr(visual, "material", None) is not None:
             material = visual.material

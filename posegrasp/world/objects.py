@@ -16,7 +16,7 @@ from __future__ import annotations
 import functools
 import json
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import mujoco
 import numpy as np
@@ -205,7 +205,7 @@ class ObjectModel:
         fused), a user object's visual mesh."""
         if self.geometry is not None:
             return self.geometry.visual
-        return trimesh.util.concatenate([p.mesh() for p in self.parts])
+        return cast(trimesh.Trimesh, trimesh.util.concatenate([p.mesh() for p in self.parts]))
 
     def convex_pieces(self) -> list[tuple[trimesh.Trimesh, np.ndarray]]:
         """The object as convex pieces in O [m], each with its RGBA (4,): a built-in object's

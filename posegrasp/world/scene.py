@@ -354,8 +354,8 @@ def _assemble(
         positions = _sample_positions(models, cfg, rng)
         poses = []
         for i, (obj, xy) in enumerate(zip(models, positions, strict=True)):
-            rest = _resting(obj, cfg, rng, i == 0)
-            poses.append((xy, rest, float(rng.uniform(-np.pi, np.pi))))
+            resting = _resting(obj, cfg, rng, i == 0)
+            poses.append((xy, resting, float(rng.uniform(-np.pi, np.pi))))
     placed: list[PlacedObject] = []
     counts: dict[str, int] = {}
     for obj, (xy, (rest_name, rest), yaw) in zip(models, poses, strict=True):

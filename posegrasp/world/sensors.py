@@ -439,10 +439,10 @@ def azure_tof(
     flat = z.reshape(-1).copy()
     lo_e = lo.reshape(-1)[edge]
     flat[edge] = lo_e + mix * (hi.reshape(-1)[edge] - lo_e)
-    seen = valid.reshape(-1).copy()
-    seen[edge[drop]] = False
+    seen_flat = valid.reshape(-1).copy()
+    seen_flat[edge[drop]] = False
     z = flat.reshape(z.shape)
-    seen = seen.reshape(z.shape)
+    seen = seen_flat.reshape(z.shape)
     zn = z + sigma_z("azure-tof", z).astype(np.float32) * noise
     if rgb is not None:
         seen &= rng.random(z.shape, dtype=np.float32) >= azure_dark_drop(luminance(rgb))

@@ -297,7 +297,7 @@ def read_user_object(name: str) -> UserObjectRecord:
             description=raw,
             geometry=geometry,
             mass=mass,
-            friction=friction,  # type: ignore[arg-type]
+            friction=friction,
             symmetries=symmetry_transforms(raw.get("models_info", {})),
             resting_poses=rest,
             ungraspable=ungraspable,

@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from sim.stats import wilson_interval
+
+if TYPE_CHECKING:
+    from matplotlib.artist import Artist
 
 #: The error components of `perception.metrics.error_components`, as the tolerance study names them
 #: (``sim.tolerance``: key, unit scale from the episode's SI value, bin edges).
@@ -94,7 +98,7 @@ def plot_success_vs_error(report: dict, path: Path, tolerance: dict | None = Non
         ax.set_ylim(-0.1, 1.1)
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("grasp success rate")
-    named: dict[str, object] = {}  # one entry per label, over all panels
+    named: dict[str, Artist] = {}  # one entry per label, over all panels
     for ax in axes:
         for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
             named.setdefault(label, handle)
