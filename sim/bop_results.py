@@ -36,6 +36,7 @@ from posegrasp.core.contract import MAX_POSE_DISTANCE, Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.validate import check_int, check_seed
 from posegrasp.world.objects import check_object, object_names
+from posegrasp.world.sensors import Sensor
 from posegrasp.world.tiers import check_tier
 
 #: The export's map file: its episodes and how they map to BOP scene and image ids.
@@ -113,6 +114,8 @@ class ExportEpisodes:
         images: (object, seed) -> (scene_id, im_id) of the episode's image.
         table_top_z: (object, seed) -> height of the table top in the world frame [m] (what
             ``Observation.table_top_z`` tells a live estimator).
+        sensor: the sensor model its images were rendered through (`posegrasp.world.sensors`;
+            ``ideal`` in maps written before exports recorded it).
     """
 
     root: Path
@@ -123,6 +126,7 @@ class ExportEpisodes:
     ground_truth: bool
     images: dict[tuple[str, int], tuple[int, int]]
     table_top_z: dict[tuple[str, int], float]
+    sensor: str = "ideal"
 
     @property
     def image_ids(self) -> set[tuple[int, int]]:
@@ -133,7 +137,8 @@ class ExportEpisodes:
         """The export's episodes in a few words."""
         last = self.seed_start + self.episodes - 1
         return (
-            f"tier {self.tier}, objects {','.join(self.objects)}, seeds {self.seed_start}..{last}"
+            f"tier {self.tier}, objects {','.join(self.objects)}, seeds {self.seed_start}..{last}, "
+            f"sensor {self.sensor}"
         )
 
 
@@ -192,6 +197,7 @@ def read_export(root: Path | str) -> ExportEpisodes:
             )
             tables[key] = float(im["table_top_z"])
         ground_truth = bool(raw["ground_truth"])
+        sensor = Sensor.parse(raw.get("sensor", "ideal")).name
     except (KeyError, TypeError, ValueError) as exc:
         raise _bad_map(path, f"missing or malformed field {exc}") from None
     except PosegraspError as exc:
@@ -204,7 +210,9 @@ def read_export(root: Path | str) -> ExportEpisodes:
         raise _bad_map(
             path, "its image ids are not those of its episodes (sim.bop_results.scene_ids)"
         )
-    return ExportEpisodes(root, tier, seed_start, objects, episodes, ground_truth, images, tables)
+    return ExportEpisodes(
+        root, tier, seed_start, objects, episodes, ground_truth, images, tables, sensor
+    )
 
 
 # --- the results CSV -----------------------------------------------------------------------

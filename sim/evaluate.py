@@ -156,7 +156,13 @@ def _protocol(args, poses: BopPosesEstimator | None) -> Protocol:
         "sensor": args.sensor,
     }
     if poses is not None:
-        return export_protocol(poses, **settings)
+        rendered = poses.export.sensor
+        if args.sensor not in ("ideal", rendered):
+            raise InvalidArgumentError(
+                f"the export {poses.export.root} was rendered through sensor {rendered}, not "
+                f"{args.sensor}; leave out --sensor (the export's is recorded)"
+            )
+        return export_protocol(poses, **{**settings, "sensor": rendered})
     return Protocol(
         objects=tuple(args.objects),
         episodes=args.episodes,

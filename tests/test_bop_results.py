@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import pickle
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -322,3 +323,19 @@ def test_the_tail_is_the_binomial_one() -> None:
 def test_nearest_rotation_of_a_rotation_is_itself() -> None:
     R = Rotation.from_euler("xyz", [1, 2, 3]).as_matrix()
     np.testing.assert_allclose(br.nearest_rotation(R), R, atol=1e-14)
+
+
+def test_read_export_reads_its_sensor_and_the_poses_route_takes_it(tmp_path: Path) -> None:
+    from sim import evaluate as ev
+
+    assert br.read_export(write_map(tmp_path / "a")).sensor == "ideal"  # maps from before
+    ex = br.read_export(write_map(tmp_path / "b", sensor="kinect-v1+camera"))
+    assert ex.sensor == "kinect-v1+camera" and "sensor kinect-v1+camera" in ex.describe()
+    with pytest.raises(InvalidArgumentError, match="unknown sensor 'sonar'"):
+        br.read_export(write_map(tmp_path / "c", sensor="sonar"))
+    poses = SimpleNamespace(export=ex)
+    args = ev._parser().parse_args([])
+    assert ev._protocol(args, poses).sensor == "kinect-v1+camera"
+    args.sensor = "azure-tof"
+    with pytest.raises(InvalidArgumentError, match="rendered through sensor kinect-v1\\+camera"):
+        ev._protocol(args, poses)
