@@ -351,7 +351,7 @@ def make_object(
             "name": pname,
             "quat": [round(float(v), 6) for v in quat],
             "share": round(found[i].share, 3),
-            "up": [round(float(v), 6) for v in up],
+            "up": [round(float(v), 6) for v in up_dir],
             "graspable": bool(pg.grasps),
             "grasp_search": {
                 "generated": pg.generated,
