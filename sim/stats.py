@@ -25,7 +25,7 @@ def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float,
     """Wilson score interval of a binomial proportion (95 % for the default z).
 
     Returns:
-        (low, high); (0, 1) when n == 0.
+        (low, high), which always holds successes / n; (0, 1) when n == 0.
     """
     if n == 0:
         return 0.0, 1.0
@@ -33,7 +33,8 @@ def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float,
     denom = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / denom
     half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
+    # At p = 0 or 1 a bound equals p exactly; rounding must not leave p outside its interval.
+    return float(max(0.0, min(p, centre - half))), float(min(1.0, max(p, centre + half)))
 
 
 def bootstrap_means(values: np.ndarray, boot: int, rng: np.random.Generator) -> np.ndarray:

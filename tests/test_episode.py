@@ -148,6 +148,15 @@ def test_wilson_interval_matches_hand_values() -> None:
     assert hi == pytest.approx(1.0) and lo == pytest.approx(0.9287, abs=1e-4)
 
 
+def test_wilson_interval_holds_the_rate_itself() -> None:
+    """At 4/4 the upper bound rounds below 1 unless it is held at the rate: an error bar drawn
+    from it would then be negative, which matplotlib refuses."""
+    for n in range(1, 301):
+        for k in range(n + 1):
+            lo, hi = evaluate.wilson_interval(k, n)
+            assert 0.0 <= lo <= k / n <= hi <= 1.0, (k, n)
+
+
 def test_unknown_estimator() -> None:
     with pytest.raises(ValueError, match="valid estimators: oracle, noisy-oracle"):
         make_estimator("magic")

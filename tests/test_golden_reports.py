@@ -2,13 +2,17 @@
 `tests/golden/record_reports.py` (every tier with the default estimator, the oracles, ``--margin``
 and the BOP route), with only wall times and paths left out.
 
-A change meant to alter them re-records them: ``python tests/golden/record_reports.py``.
+A change meant to alter them re-records them: ``python tests/golden/record_reports.py``. They
+are kept per CPU kind (`tests/golden/cpu.py`): equal to the bit to any recorded set passes; on a
+kind with a set of its own nothing else does; on a kind with none, the printed summary must be a
+set's, and the test says that it fell back.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import warnings
 from pathlib import Path
 
 import pytest
@@ -46,8 +50,25 @@ def _differences(a, b, path: str = "") -> list[str]:
 @pytest.mark.parametrize("case", list(rec.CASES))
 def test_the_report_is_the_golden_one(case: str, tmp_path: Path) -> None:
     report, text = rec.run_case(case, tmp_path)
-    golden = (rec.GOLDEN_DIR / f"{case}.json").read_text()
-    if rec.canonical(report) != golden:
-        diff = _differences(report, json.loads(golden))
-        pytest.fail(f"{len(diff)} difference(s) from the golden {case} report: {diff[:8]}")
-    assert text == (rec.GOLDEN_DIR / f"{case}.txt").read_text()
+    sets = rec.CPU.golden_sets(rec.GOLDEN_DIR)
+    golden = {
+        f: (f / f"{case}.json", f / f"{case}.txt") for f in sets if (f / f"{case}.json").exists()
+    }
+    if any(
+        rec.canonical(report) == j.read_text() and text == t.read_text() for j, t in golden.values()
+    ):
+        return
+    own = rec.CPU.own_set(rec.GOLDEN_DIR)
+    if own is not None:
+        j, t = golden[own]
+        diff = _differences(report, json.loads(j.read_text()))
+        assert not diff, f"{len(diff)} difference(s) from this CPU kind's {case} report: {diff[:8]}"
+        assert text == t.read_text()
+    assert any(text == t.read_text() for _, t in golden.values()), (
+        f"the {case} summary is no golden set's:\n{text}"
+    )
+    warnings.warn(
+        f"no golden reports recorded on this CPU kind ({rec.CPU.cpu_kind()}): the {case} summary "
+        "compared, not the report; record its set with python tests/golden/record_reports.py",
+        stacklevel=1,
+    )

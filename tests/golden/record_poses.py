@@ -24,20 +24,37 @@ Run from the commit whose poses are golden, e.g. in a separate worktree::
     git worktree add /tmp/golden HEAD
     cd /tmp/golden && PYTHONPATH=/tmp/golden python /path/to/tests/golden/record_poses.py
 
-The estimates are those of this machine's CPU kernels; another CPU may differ in the last bit.
+The estimates are those of this machine's CPU kernels, which differ from another processor's
+in the last bits: the files go to this CPU kind's set (`cpu.py`), with the kind noted.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
 
+
+def _sibling(stem: str) -> ModuleType:
+    """A module beside this script (the tests folder is no package)."""
+    spec = importlib.util.spec_from_file_location(
+        f"golden_{stem}", Path(__file__).resolve().parent / f"{stem}.py"
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+#: The CPU kinds' golden sets.
+CPU = _sibling("cpu")
 #: Where the golden files live.
 GOLDEN_DIR = Path(__file__).resolve().parent / "poses"
 #: Head-camera episodes per tier.
@@ -177,11 +194,18 @@ def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(
         prog="python tests/golden/record_poses.py", description=__doc__.splitlines()[0]
     )
-    parser.add_argument("--out", type=Path, default=GOLDEN_DIR, help="folder of the files")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="folder of the files (default: this CPU kind's set in the golden folder)",
+    )
     args = parser.parse_args(argv)
-    doc = record(args.out)
+    out = args.out or CPU.default_out(GOLDEN_DIR)
+    doc = record(out)
+    CPU.note_kind(out)
     n = sum(len(v) for v in doc["estimates"].values())
-    print(f"{n} estimates of {len(doc['estimates'])} estimators written to {args.out}")
+    print(f"{n} estimates of {len(doc['estimates'])} estimators written to {out}")
     return 0
 
 

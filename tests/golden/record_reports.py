@@ -20,7 +20,8 @@ commit whose reports are golden, e.g. in a separate worktree::
     git worktree add /tmp/golden HEAD
     cd /tmp/golden && PYTHONPATH=/tmp/golden python /path/to/tests/golden/record_reports.py
 
-The estimates are those of this machine's CPU kernels; another CPU may differ in the last bit.
+The estimates are those of this machine's CPU kernels, which differ from another processor's
+in the last bits: the files go to this CPU kind's set (`cpu.py`), with the kind noted.
 """
 
 from __future__ import annotations
@@ -34,8 +35,23 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
+
+def _sibling(stem: str) -> ModuleType:
+    """A module beside this script (the tests folder is no package)."""
+    spec = importlib.util.spec_from_file_location(
+        f"golden_{stem}", Path(__file__).resolve().parent / f"{stem}.py"
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+#: The CPU kinds' golden sets.
+CPU = _sibling("cpu")
 #: Where the golden files live.
 GOLDEN_DIR = Path(__file__).resolve().parent / "reports"
 #: The tests' own data folder (as ``tests/conftest.py``): the codebooks are cached there.
@@ -217,7 +233,12 @@ def run_case(name: str, folder: Path) -> tuple[dict[str, Any], str]:
 def main(argv: list[str] | None = None) -> int:
     """Record the golden reports (see the module docstring)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=GOLDEN_DIR, help="folder of the files")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="folder of the files (default: this CPU kind's set in the golden folder)",
+    )
     parser.add_argument(
         "--cases", default=",".join(CASES), help=f"comma list of: {', '.join(CASES)} (all)"
     )
@@ -226,14 +247,16 @@ def main(argv: list[str] | None = None) -> int:
     if unknown := [n for n in names if n not in CASES]:
         parser.error(f"unknown case {', '.join(unknown)}; cases: {', '.join(CASES)}")
     print(f"running sim.evaluate from {source_root()}", file=sys.stderr)
-    args.out.mkdir(parents=True, exist_ok=True)
+    out = args.out or CPU.default_out(GOLDEN_DIR)
+    out.mkdir(parents=True, exist_ok=True)
+    CPU.note_kind(out)
     for name in names:
         with tempfile.TemporaryDirectory(prefix="golden-report-") as tmp:
             report, text = run_case(name, Path(tmp))
-        (args.out / f"{name}.json").write_text(canonical(report))
-        (args.out / f"{name}.txt").write_text(text)
+        (out / f"{name}.json").write_text(canonical(report))
+        (out / f"{name}.txt").write_text(text)
         print(f"{name}: {report['overall']['successes']}/{report['overall']['episodes']} grasped")
-    print(f"{len(names)} case(s) written to {args.out}")
+    print(f"{len(names)} case(s) written to {out}")
     return 0
 
 
