@@ -10,15 +10,20 @@ fastest). It also records how OpenCV's PPF pose clustering treats two copies of 
 position turned apart (`clustering_check`).
 
     python studies/peer_tuning.py --json studies/peer_tuning.json
+
+``--methods fpfh-icp`` sweeps one grid alone; with ``--json`` naming an earlier record of the
+same scenes, the other methods' entries are kept from it.
 """
 
 from __future__ import annotations
 
 import itertools
+import json
 import statistics
 import sys
 import time
 from dataclasses import asdict, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,9 +31,10 @@ import numpy as np
 from perception.metrics import mssd, rotation_error_sym_deg
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
+from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import arg, check_int
+from posegrasp.core.validate import arg, check_int, check_names
 from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.objects import OBJECT_NAMES, load_object
 
@@ -41,12 +47,15 @@ FPFH_GRID: dict[str, tuple] = {
     "voxel_m": (0.005, 0.004, 0.007),
     "confidence": (0.999, 0.9999),
     "mutual_filter": (False, True),
+    "restarts": (1, 3),
 }
 PPF_GRID: dict[str, tuple] = {
     "sampling_step": (0.1, 0.07),
     "scene_sample_step": (0.2, 1.0),
     "hypotheses": (2, 5),
 }
+#: Each method's grid.
+GRIDS = {"fpfh-icp": FPFH_GRID, "ppf": PPF_GRID}
 
 
 def scenes(per_object: int) -> list[tuple[Observation, np.ndarray]]:
@@ -155,26 +164,42 @@ def main(argv: list[str] | None = None) -> int:
         default=8,
         help="training scenes per object (default 8)",
     )
+    p.add_argument(
+        "--methods",
+        type=arg(check_names, tuple(GRIDS), "method", "--methods"),
+        default=list(GRIDS),
+        help=f"a comma list of {', '.join(GRIDS)} (default both)",
+    )
     add_json_argument(p, "the grids' figures and the chosen values")
     args = p.parse_args(argv)
-    setup_rendering(threads=2)
-    views = scenes(args.per_object)
-    report = {
+    report: dict[str, Any] = {
         "tier": "isolated",
         "seeds": [SEED_START, SEED_START + args.per_object - 1],
         "objects": list(OBJECT_NAMES),
-        "fpfh-icp": sweep("fpfh-icp", FPFH_GRID, views),
-        "ppf": sweep("ppf", PPF_GRID, views),
-        "clustering_check": clustering_check(),
     }
-    for method in ("fpfh-icp", "ppf"):
+    if args.json and set(args.methods) != set(GRIDS) and Path(args.json).exists():
+        earlier = json.loads(Path(args.json).read_text())
+        if {k: earlier.get(k) for k in report} != report:
+            raise InvalidArgumentError(
+                f"{args.json} records other scenes ({earlier.get('seeds')}); sweep every method "
+                "or write another file"
+            )
+        report = earlier
+    setup_rendering(threads=2)
+    views = scenes(args.per_object)
+    for method in args.methods:
+        report[method] = sweep(method, GRIDS[method], views)
+    if "ppf" in args.methods:
+        report["clustering_check"] = clustering_check()
+    for method in args.methods:
         best = report[method]["points"][0]
         print(
             f"{method}: best {best['values']}: {best['correct']}/{best['images']} correct, "
             f"median {best['rotation_deg_median']:.2f} deg, {best['translation_mm_median']:.2f} "
             f"mm, {best['time_s_median']:.2f} s per image"
         )
-    print(f"ppf clustering check: {report['clustering_check']}")
+    if "ppf" in args.methods:
+        print(f"ppf clustering check: {report['clustering_check']}")
     if args.json:
         write_json(args.json, report)
     return 0

@@ -170,9 +170,9 @@ CONFIDENT = 0.9
 @needs_open3d
 @pytest.mark.slow
 def test_fpfh_icp_is_exact_when_confident_on_ideal_depth() -> None:
-    # RANSAC's global search misses some views (a pose turned half round, the share of the
-    # scene it explains well below CONFIDENT): a confident pose must be exact, and at least
-    # half of them are confident.
+    # RANSAC's global search, even from three seeds, misses some views (the screen's flat
+    # panel fits turned, explaining well under CONFIDENT of the scene): a confident pose must
+    # be exact, and every object but one is confident.
     estimator = make_estimator("fpfh-icp")
     confident = 0
     for obj in OBJECT_NAMES:
@@ -184,7 +184,7 @@ def test_fpfh_icp_is_exact_when_confident_on_ideal_depth() -> None:
         if est.info["score"] >= CONFIDENT:
             confident += 1
             assert rot < 2.0 and trans < 2.0, (obj, rot, trans, est.info)
-    assert confident >= len(OBJECT_NAMES) // 2
+    assert confident >= len(OBJECT_NAMES) - 1
 
 
 @needs_open3d
@@ -252,3 +252,11 @@ def test_a_peer_runs_in_evaluate_workers() -> None:
         assert ep["estimator"] == "fpfh-icp" and ep["pose_error"] is not None, ep["notes"]
         assert ep["estimate_info"]["score"] > 0.9
         assert ep["pose_error"]["rotation_deg"] < 2.0
+
+
+@needs_open3d
+def test_fpfh_restarts_are_checked_under_their_own_name() -> None:
+    from perception.peers.fpfh import FpfhConfig
+
+    with pytest.raises(InvalidArgumentError, match="restarts must be >= 1, not 0"):
+        FpfhConfig(restarts=0)
