@@ -23,6 +23,8 @@ import platform
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
 from typing import Any
@@ -232,7 +234,149 @@ def make_object(
     def say(text: str) -> None:
         print(text, file=log, flush=True)
 
-    # The mesh, in metres, centred (frame S: the file's axes).
+    src = _source(
+        mesh_path, name, units, scale, mass, density, friction, symmetry, seed, coacd, say, timings
+    )
+
+    t = time.perf_counter()
+    found = find_resting_poses(src.obj_s, drops=drops, seed=seed, progress=True, settled=True)
+    timings["resting_poses"] = time.perf_counter() - t
+    if not found:
+        raise InvalidArgumentError(
+            f"cannot use {mesh_path.name}: it comes to rest in no stable pose on a plane "
+            "(it rolls, or rocks without settling)"
+        )
+    axis = np.eye(3)["xyz".index((up if up != "auto" else "+z")[1])]
+    axis = axis * (-1.0 if up.startswith("-") else 1.0)
+    found = _merged(found, src.syms_s, axis)
+    say(f"  {len(found)} resting poses ({sum(p.share for p in found) * 100:.0f} % of the drops)")
+
+    t = time.perf_counter()
+    by_pose = {f"p{i}": p.quat for i, p in enumerate(found)}
+    grasps_s = mesh_grasps(src.obj_s, by_pose, keep=keep, progress=True)
+    timings["grasps"] = time.perf_counter() - t
+    graspable = _graspable(mesh_path, found, grasps_s, src.dec, seed)
+    canon, why = _canonical(mesh_path, found, graspable, axis, up)
+
+    T_O_S = M.canonical_frame(src.visual_s, found[canon].up)
+    visual = src.visual_s.copy()
+    visual.apply_transform(T_O_S)
+    hulls = [h.copy() for h in src.dec.hulls]
+    for h in hulls:
+        h.apply_transform(T_O_S)
+    props = M.transform_inertia(src.props_s, T_O_S)
+    poses, stored, drawn = _pose_records(found, canon, grasps_s, T_O_S)
+    syms = src.syms_s.transformed(T_O_S)
+
+    t = time.perf_counter()
+    obj = ObjectModel(
+        name=name,
+        description="",
+        parts=(),
+        mass=props.mass,
+        friction=src.friction,
+        resting_poses={p["name"]: np.asarray(p["quat"]) for p in poses},
+        geometry=MeshGeometry("preview", visual, tuple(hulls), src.rgba, props.com, props.inertia),
+    )
+    title = (
+        f"{name}: {mesh_path.name}, {len(hulls)} hulls, {props.mass * 1000:.0f} g, "
+        f"symmetries {syms.describe()}"
+    )
+    png = preview_sheet(obj, poses, drawn, title)
+    timings["preview"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_start
+
+    description: dict[str, Any] = {
+        "format": FORMAT_VERSION,
+        "name": name,
+        "description": f"made from {mesh_path.name}",
+        "units": units,
+        "scale": scale,
+        "source": {
+            "file": str(mesh_path.resolve()),
+            "sha256": sha256_file(mesh_path),
+            "triangles": len(src.raw.faces),
+            "watertight": bool(src.raw.is_watertight),
+        },
+        "T_O_source": [
+            [round(float(v), 9) for v in row] for row in T_O_S @ _centring(src.raw, units, scale)
+        ],
+        "mass": props.mass,
+        "mass_from": "given" if mass is not None else "density x hull volume",
+        "density": props.density,
+        "hull_volume": props.volume,
+        "centre_of_mass": [float(v) for v in props.com],
+        "inertia": [[float(v) for v in row] for row in props.inertia],
+        "friction": list(src.friction),
+        "rgba": [round(float(v), 4) for v in src.rgba],
+        "decomposition": {
+            "tool": src.dec.tool,
+            "parameters": src.dec.parameters,
+            "hulls": len(hulls),
+            "seconds": round(src.dec.seconds, 2),
+        },
+        "symmetries": {
+            "source": "given" if symmetry else "detected",
+            "given": symmetry or [],
+            "summary": syms.describe(),
+            "errors_rel_diameter": [round(e, 5) for e in syms.errors],
+        },
+        "models_info": {**_bop_size(obj.diameter, visual), **syms.models_info()},
+        "resting_poses": poses,
+        "canonical_pose": why,
+        "resting_search": {"drops": drops, "seed": seed},
+        "grasps": stored,
+        "grasp_search": {"kept_per_pose": keep, "both_finger_orders": True},
+        "timings_s": {k: round(v, 2) for k, v in timings.items()},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "load_at_start": load_start,
+            "load_at_end": _load(),
+            "platform": platform.platform(),
+        },
+        "tools": {
+            "posegrasp": git_commit(),
+            "trimesh": version("trimesh"),
+            "mujoco": version("mujoco"),
+            "coacd": version("coacd"),
+        },
+    }
+    folder = write_object_folder(name, description, visual, hulls, png, replace=force)
+    description["folder"] = str(folder)
+    _report(description, log)
+    return description
+
+
+@dataclass(frozen=True)
+class _Source:
+    """The mesh made into an object in frame S (the file's axes, centred, in metres)."""
+
+    raw: trimesh.Trimesh
+    visual_s: trimesh.Trimesh
+    rgba: np.ndarray
+    syms_s: Any
+    dec: Any
+    props_s: Any
+    friction: tuple[float, float, float]
+    obj_s: ObjectModel
+
+
+def _source(
+    mesh_path: Path,
+    name: str,
+    units: str,
+    scale: float,
+    mass: float | None,
+    density: float | None,
+    friction: float | None,
+    symmetry: list[str] | None,
+    seed: int,
+    coacd: dict[str, Any] | None,
+    say: Callable[[str], None],
+    timings: dict[str, float],
+) -> _Source:
+    """Read the mesh, find its symmetries, decompose it into convex hulls and give it mass (see
+    `make_object` for the arguments); each step's time goes into `timings`."""
     t = time.perf_counter()
     raw = M.read_mesh(mesh_path)
     visual_s, _ = M.centred(M.scaled_mesh(raw, units, scale, mesh_path.name))
@@ -274,44 +418,40 @@ def make_object(
         friction=fr,
         geometry=MeshGeometry("s", visual_s, tuple(dec.hulls), rgba, props_s.com, props_s.inertia),
     )
+    return _Source(raw, visual_s, rgba, syms_s, dec, props_s, fr, obj_s)
 
-    t = time.perf_counter()
-    found = find_resting_poses(obj_s, drops=drops, seed=seed, progress=True, settled=True)
-    timings["resting_poses"] = time.perf_counter() - t
-    if not found:
+
+def _graspable(
+    mesh_path: Path, found: list[Any], grasps_s: dict[str, PoseGrasps], dec: Any, seed: int
+) -> list[int]:
+    """The indices of the resting poses with a grasp; raises `InvalidArgumentError` saying why
+    when there is none (too wide everywhere, or no grasp held in physics)."""
+    graspable = [i for i in range(len(found)) if grasps_s[f"p{i}"].grasps]
+    if graspable:
+        return graspable
+    points, _ = hull_points(list(dec.hulls), 4000, seed)
+    narrow = min(_narrowest(points, p.up) for p in found)
+    generated = sum(g.generated for g in grasps_s.values())
+    if generated == 0 and narrow > MAX_WIDTH:
         raise InvalidArgumentError(
-            f"cannot use {mesh_path.name}: it comes to rest in no stable pose on a plane "
-            "(it rolls, or rocks without settling)"
+            f"cannot grasp {mesh_path.name}: too wide for the gripper in every resting pose "
+            f"(narrowest {narrow * 1000:.0f} mm across; the fingers take at most "
+            f"{MAX_WIDTH * 1000:.0f} mm)"
         )
-    axis = np.eye(3)["xyz".index((up if up != "auto" else "+z")[1])]
-    axis = axis * (-1.0 if up.startswith("-") else 1.0)
-    found = _merged(found, syms_s, axis)
-    say(f"  {len(found)} resting poses ({sum(p.share for p in found) * 100:.0f} % of the drops)")
+    outcomes = sum((g.outcomes for g in grasps_s.values()), Counter())
+    tried = ", ".join(f"{k} {v}" for k, v in sorted(outcomes.items())) or "none checked"
+    raise InvalidArgumentError(
+        f"cannot grasp {mesh_path.name}: no grasp from above holds in any resting pose "
+        f"({generated} antipodal grasps found in {len(found)} poses; in physics: {tried})"
+    )
 
-    t = time.perf_counter()
-    by_pose = {f"p{i}": p.quat for i, p in enumerate(found)}
-    grasps_s = mesh_grasps(obj_s, by_pose, keep=keep, progress=True)
-    timings["grasps"] = time.perf_counter() - t
-    graspable = [i for i, p in enumerate(found) if grasps_s[f"p{i}"].grasps]
-    if not graspable:
-        points, _ = hull_points(list(dec.hulls), 4000, seed)
-        narrow = min(_narrowest(points, p.up) for p in found)
-        generated = sum(g.generated for g in grasps_s.values())
-        if generated == 0 and narrow > MAX_WIDTH:
-            raise InvalidArgumentError(
-                f"cannot grasp {mesh_path.name}: too wide for the gripper in every resting pose "
-                f"(narrowest {narrow * 1000:.0f} mm across; the fingers take at most "
-                f"{MAX_WIDTH * 1000:.0f} mm)"
-            )
-        outcomes = sum((g.outcomes for g in grasps_s.values()), Counter())
-        tried = ", ".join(f"{k} {v}" for k, v in sorted(outcomes.items())) or "none checked"
-        raise InvalidArgumentError(
-            f"cannot grasp {mesh_path.name}: no grasp from above holds in any resting pose "
-            f"({generated} antipodal grasps found in {len(found)} poses; in physics: {tried})"
-        )
 
-    # The canonical pose: the one --up names, or the mesh as it stands in its file when that is
-    # a graspable resting pose, else the graspable pose most drops end in.
+def _canonical(
+    mesh_path: Path, found: list[Any], graspable: list[int], axis: np.ndarray, up: str
+) -> tuple[int, str]:
+    """The canonical pose's index and why it was chosen: the one --up names, or the mesh as it
+    stands in its file when that is a graspable resting pose, else the graspable pose most
+    drops end in."""
     cos = math.cos(math.radians(CLUSTER_DEG))
     as_given = [i for i in graspable if found[i].up @ axis > cos]
     if up != "auto" and not as_given:
@@ -320,48 +460,45 @@ def make_object(
             f"--up {up}: {mesh_path.name} does not rest graspably with {up} up; the graspable "
             f"resting poses have up (file frame) {rests}"
         )
-    canon = as_given[0] if as_given else max(graspable, key=lambda i: found[i].share)
-    why = (
-        f"{up if up != 'auto' else '+z'} of the mesh file up"
-        if as_given
-        else "the graspable pose most drops end in"
-    )
-    T_O_S = M.canonical_frame(visual_s, found[canon].up)
-    R = T_O_S[:3, :3]
-    visual = visual_s.copy()
-    visual.apply_transform(T_O_S)
-    hulls = [h.copy() for h in dec.hulls]
-    for h in hulls:
-        h.apply_transform(T_O_S)
-    props = M.transform_inertia(props_s, T_O_S)
+    if as_given:
+        return as_given[0], f"{up if up != 'auto' else '+z'} of the mesh file up"
+    return max(graspable, key=lambda i: found[i].share), "the graspable pose most drops end in"
 
+
+def _pose_records(
+    found: list[Any], canon: int, grasps_s: dict[str, PoseGrasps], T_O_S: np.ndarray
+) -> tuple[
+    list[dict[str, Any]], dict[str, list[dict[str, Any]]], dict[str, list[tuple[np.ndarray, float]]]
+]:
+    """The resting poses in frame O, canonical first then by share: their records, their
+    grasps' records by pose name, and every other grasp by pose name for the preview."""
+    R = T_O_S[:3, :3]
     rest = sorted((i for i in range(len(found)) if i != canon), key=lambda i: -found[i].share)
-    order = [canon, *rest]
     poses: list[dict[str, Any]] = []
     taken: set[str] = {CANONICAL}
     stored: dict[str, list[dict[str, Any]]] = {}
     drawn: dict[str, list[tuple[np.ndarray, float]]] = {}
-    for i in order:
+    for i in [canon, *rest]:
         up_dir = R @ found[i].up
         pname = CANONICAL if i == canon else axis_name(up_dir, taken)
         taken.add(pname)
         quat = np.array([1.0, 0.0, 0.0, 0.0]) if i == canon else upright_quat(up_dir)
         pg: PoseGrasps = grasps_s[f"p{i}"]
-        entry = {
-            "name": pname,
-            "quat": [round(float(v), 6) for v in quat],
-            "share": round(found[i].share, 3),
-            "up": [round(float(v), 6) for v in up_dir],
-            "graspable": bool(pg.grasps),
-            "grasp_search": {
-                "generated": pg.generated,
-                "checked": pg.checked,
-                "outcomes": dict(pg.outcomes),
-            },
-        }
-        poses.append(entry)
-        stored[pname] = []
-        drawn[pname] = []
+        poses.append(
+            {
+                "name": pname,
+                "quat": [round(float(v), 6) for v in quat],
+                "share": round(found[i].share, 3),
+                "up": [round(float(v), 6) for v in up_dir],
+                "graspable": bool(pg.grasps),
+                "grasp_search": {
+                    "generated": pg.generated,
+                    "checked": pg.checked,
+                    "outcomes": dict(pg.outcomes),
+                },
+            }
+        )
+        stored[pname], drawn[pname] = [], []
         for k, g in enumerate(pg.grasps):
             T = T_O_S @ g.T_O_G
             stored[pname].append(
@@ -374,18 +511,13 @@ def make_object(
             )
             if k % 2 == 0:
                 drawn[pname].append((T, g.width))
+    return poses, stored, drawn
 
-    syms = syms_s.transformed(T_O_S)
+
+def _bop_size(diameter: float, visual: trimesh.Trimesh) -> dict[str, float]:
+    """BOP's models_info size entries [mm]: the diameter, the box's lower corner and size."""
     bounds = visual.bounds
-    diameter = ObjectModel(
-        name,
-        "",
-        (),
-        props.mass,
-        fr,
-        geometry=MeshGeometry("d", visual, tuple(hulls), rgba, props.com, props.inertia),
-    ).diameter
-    models_info = {
+    return {
         "diameter": round(diameter * 1000, 4),
         "min_x": round(float(bounds[0, 0]) * 1000, 4),
         "min_y": round(float(bounds[0, 1]) * 1000, 4),
@@ -393,86 +525,7 @@ def make_object(
         "size_x": round(float(visual.extents[0]) * 1000, 4),
         "size_y": round(float(visual.extents[1]) * 1000, 4),
         "size_z": round(float(visual.extents[2]) * 1000, 4),
-        **syms.models_info(),
     }
-
-    t = time.perf_counter()
-    obj = ObjectModel(
-        name=name,
-        description="",
-        parts=(),
-        mass=props.mass,
-        friction=fr,
-        resting_poses={p["name"]: np.asarray(p["quat"]) for p in poses},
-        geometry=MeshGeometry("preview", visual, tuple(hulls), rgba, props.com, props.inertia),
-    )
-    title = (
-        f"{name}: {mesh_path.name}, {len(hulls)} hulls, {props.mass * 1000:.0f} g, "
-        f"symmetries {syms.describe()}"
-    )
-    png = preview_sheet(obj, poses, drawn, title)
-    timings["preview"] = time.perf_counter() - t
-    timings["total"] = time.perf_counter() - t_start
-
-    description: dict[str, Any] = {
-        "format": FORMAT_VERSION,
-        "name": name,
-        "description": f"made from {mesh_path.name}",
-        "units": units,
-        "scale": scale,
-        "source": {
-            "file": str(mesh_path.resolve()),
-            "sha256": sha256_file(mesh_path),
-            "triangles": len(raw.faces),
-            "watertight": bool(raw.is_watertight),
-        },
-        "T_O_source": [
-            [round(float(v), 9) for v in row] for row in T_O_S @ _centring(raw, units, scale)
-        ],
-        "mass": props.mass,
-        "mass_from": "given" if mass is not None else "density x hull volume",
-        "density": props.density,
-        "hull_volume": props.volume,
-        "centre_of_mass": [float(v) for v in props.com],
-        "inertia": [[float(v) for v in row] for row in props.inertia],
-        "friction": list(fr),
-        "rgba": [round(float(v), 4) for v in rgba],
-        "decomposition": {
-            "tool": dec.tool,
-            "parameters": dec.parameters,
-            "hulls": len(hulls),
-            "seconds": round(dec.seconds, 2),
-        },
-        "symmetries": {
-            "source": "given" if symmetry else "detected",
-            "given": symmetry or [],
-            "summary": syms.describe(),
-            "errors_rel_diameter": [round(e, 5) for e in syms.errors],
-        },
-        "models_info": models_info,
-        "resting_poses": poses,
-        "canonical_pose": why,
-        "resting_search": {"drops": drops, "seed": seed},
-        "grasps": stored,
-        "grasp_search": {"kept_per_pose": keep, "both_finger_orders": True},
-        "timings_s": {k: round(v, 2) for k, v in timings.items()},
-        "machine": {
-            "cpus": os.cpu_count(),
-            "load_at_start": load_start,
-            "load_at_end": _load(),
-            "platform": platform.platform(),
-        },
-        "tools": {
-            "posegrasp": git_commit(),
-            "trimesh": version("trimesh"),
-            "mujoco": version("mujoco"),
-            "coacd": version("coacd"),
-        },
-    }
-    folder = write_object_folder(name, description, visual, hulls, png, replace=force)
-    description["folder"] = str(folder)
-    _report(description, log)
-    return description
 
 
 def _centring(raw: trimesh.Trimesh, units: str, scale: float) -> np.ndarray:
