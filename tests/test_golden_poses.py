@@ -4,9 +4,9 @@ recorded in `tests/golden/poses/` to the bit: the pose, the neighbours and the d
 The golden files are written by `tests/golden/record_poses.py` from the commit before a change
 that should move no pose (see its docstring); torch runs on the threads they were recorded with,
 since its kernels sum in another order on another number of threads. They are kept per CPU kind
-(`tests/golden/cpu.py`): equal to the bit to any recorded set passes; on a kind with a set of its
-own nothing else does; on a kind with none, every pose must lie within `TOLERANCE` of a set's,
-and the test says that it fell back."""
+(`tests/golden/golden_cpu.py`): equal to the bit to any recorded set passes; on a kind with a
+set of its own nothing else does; on a kind with none, every pose must lie within `TOLERANCE`
+of a set's, and the test says that it fell back."""
 
 from __future__ import annotations
 

@@ -3,9 +3,9 @@
 and the BOP route), with only wall times and paths left out.
 
 A change meant to alter them re-records them: ``python tests/golden/record_reports.py``. They
-are kept per CPU kind (`tests/golden/cpu.py`): equal to the bit to any recorded set passes; on a
-kind with a set of its own nothing else does; on a kind with none, the printed summary must be a
-set's, and the test says that it fell back.
+are kept per CPU kind (`tests/golden/golden_cpu.py`): equal to the bit to any recorded set
+passes; on a kind with a set of its own nothing else does; on a kind with none, the printed
+summary must be a set's, and the test says that it fell back.
 """
 
 from __future__ import annotations

@@ -25,36 +25,24 @@ Run from the commit whose poses are golden, e.g. in a separate worktree::
     cd /tmp/golden && PYTHONPATH=/tmp/golden python /path/to/tests/golden/record_poses.py
 
 The estimates are those of this machine's CPU kernels, which differ from another processor's
-in the last bits: the files go to this CPU kind's set (`cpu.py`), with the kind noted.
+in the last bits: the files go to this CPU kind's set (`golden_cpu.py`), with the kind noted.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
 
+if str(Path(__file__).resolve().parent) not in sys.path:  # run as a script or loaded by a test
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+import golden_cpu as CPU
 
-def _sibling(stem: str) -> ModuleType:
-    """A module beside this script (the tests folder is no package)."""
-    spec = importlib.util.spec_from_file_location(
-        f"golden_{stem}", Path(__file__).resolve().parent / f"{stem}.py"
-    )
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-#: The CPU kinds' golden sets.
-CPU = _sibling("cpu")
 #: Where the golden files live.
 GOLDEN_DIR = Path(__file__).resolve().parent / "poses"
 #: Head-camera episodes per tier.
