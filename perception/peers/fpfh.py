@@ -165,21 +165,16 @@ class FpfhRegistration:
         timings["features"] = (time.perf_counter() - t0) * 1000
         distance = cfg.distance * cfg.voxel_m
         timings["ransac"], timings["icp"] = 0.0, 0.0
-        best = None
+        tries = []
         for restart in range(cfg.restarts):
             t0 = time.perf_counter()
             found = self._ransac(scene, target, features, target_features, distance, seed + restart)
             timings["ransac"] += (time.perf_counter() - t0) * 1000
             T_C_O = invert_transform(nearest_rigid(np.asarray(found.transformation)))
-            candidate = self.icp.refine(model, points_C, T_C_O)
-            timings["icp"] += candidate.ms
-            if best is None or (candidate.fitness, -candidate.rmse) > (
-                best[1].fitness,
-                -best[1].rmse,
-            ):
-                best = (found, candidate)
-        assert best is not None  # restarts >= 1
-        ransac, refined = best
+            tries.append((found, self.icp.refine(model, points_C, T_C_O)))
+            timings["icp"] += tries[-1][1].ms
+        # The first of the best fits: the highest fitness, then the lowest error.
+        ransac, refined = max(tries, key=lambda t: (t[1].fitness, -t[1].rmse))
         info = {
             "ransac_fitness": float(ransac.fitness),
             "icp_fitness": refined.fitness,

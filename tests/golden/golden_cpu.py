@@ -11,6 +11,7 @@ tolerance and say so.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import platform
 from pathlib import Path
@@ -19,6 +20,7 @@ from pathlib import Path
 ISA_PREFIXES = ("avx", "amx", "fma", "f16c", "sse4", "ssse3")
 
 
+@functools.cache
 def cpu_kind() -> str:
     """This processor's kind: the machine, then a short hash of its model name and its
     instruction-set flags (``x86_64-1a2b3c4d``)."""
