@@ -5,11 +5,13 @@ so running some of them on another process gives each the result this process gi
 `Executor` maps a job over a batch of items and returns the results in order:
 
 - `OneProcess` runs every item here;
-- `TwoProcesses` runs every other item on a worker process (a `concurrent.futures`
-  process pool of one, started from a fresh interpreter) while this process runs the rest. The
-  worker holds the last job of each kind it was sent, so a job travels once for all its
-  batches. Until the worker is up, after it has failed, or in a process forked from the one
-  that started it, every item runs here. An error a job raises on the worker is raised here.
+- `TwoProcesses` runs every other item on a worker process (a `concurrent.futures` process pool
+  of one, started from a fresh interpreter) while this process runs the rest. The worker holds
+  the `HELD` jobs of each kind it was sent last, so a job travels once for all its batches, also
+  when jobs take turns (the codebooks of the objects an evaluation's episodes take in turn,
+  between which each detection's verification job passes). Until the worker is up, after it has
+  failed, or in a process forked from the one that started it, every item runs here. An error a
+  job raises on the worker is raised here.
 
 The worker is started as `multiprocessing` starts a fresh interpreter (``spawn``): it imports
 the main module of the program, so a script that makes estimates keeps its work under
@@ -23,6 +25,7 @@ import concurrent.futures
 import multiprocessing
 import os
 import weakref
+from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol
@@ -53,8 +56,12 @@ class OneProcess:
         return [job.run(item) for item in items]
 
 
-#: The worker's jobs by kind (the worker is a process of its own; this is its state).
-_HELD: dict[str, Job] = {}
+#: Jobs of each kind the worker holds at once: the most recently used are kept.
+HELD = 8
+
+#: The worker's jobs by the token its parent gave them (the worker is a process of its own;
+#: this is its state).
+_HELD: dict[int, Job] = {}
 
 
 def _worker_start() -> None:
@@ -70,11 +77,16 @@ def _worker_start() -> None:
     threadpoolctl.threadpool_limits(limits=1)
 
 
-def _run_held(kind: str, job: Job | None, items: Sequence[Any]) -> list[Any]:
-    """On the worker: `job` (None: the one held for `kind`) run over `items`."""
+def _run_held(
+    token: int, job: Job | None, items: Sequence[Any], dropped: Sequence[int]
+) -> list[Any]:
+    """On the worker: `job` (None: the one held as `token`) run over `items`, after the jobs
+    held as `dropped` are let go."""
+    for gone in dropped:
+        _HELD.pop(gone, None)
     if job is not None:
-        _HELD[kind] = job
-    return [_HELD[kind].run(item) for item in items]
+        _HELD[token] = job
+    return [_HELD[token].run(item) for item in items]
 
 
 def _ready() -> bool:
@@ -96,7 +108,10 @@ class TwoProcesses:
         )
         self._up = self._pool.submit(_ready)
         self._pid = os.getpid()
-        self._sent: dict[str, Job] = {}  # by kind: the job the worker holds
+        # the jobs the worker holds by kind, least recently used first; a job's token is its
+        # id(), which stays its own while it is held here
+        self._sent: dict[str, OrderedDict[int, Job]] = {}
+        self._dropped: list[int] = []  # tokens the worker is to let go with the next batch
         self._broken = False
         self._finalizer = weakref.finalize(self, self._pool.shutdown, False, cancel_futures=True)
 
@@ -112,15 +127,20 @@ class TwoProcesses:
         """`job.run(item)` of each item, in order: every other one on the worker."""
         if len(items) < 2 or not self.available():
             return OneProcess.map(job, items)
-        kind = type(job).__name__
+        held = self._sent.setdefault(type(job).__name__, OrderedDict())
+        token = id(job)
         theirs = list(items[1::2])
-        fresh = self._sent.get(kind) is not job
+        fresh = held.get(token) is not job
+        held[token] = job
+        held.move_to_end(token)
+        dropped, self._dropped = self._dropped, []
+        while len(held) > HELD:
+            dropped.append(held.popitem(last=False)[0])
         try:
-            future = self._pool.submit(_run_held, kind, job if fresh else None, theirs)
+            future = self._pool.submit(_run_held, token, job if fresh else None, theirs, dropped)
         except (BrokenProcessPool, RuntimeError):  # gone, or shut down
             self._broken = True
             return OneProcess.map(job, items)
-        self._sent[kind] = job
         mine = OneProcess.map(job, items[0::2])
         try:
             done = future.result()
@@ -128,7 +148,8 @@ class TwoProcesses:
             self._broken = True
             done = OneProcess.map(job, theirs)
         except BaseException:  # raised by the job there, or it never arrived: send it again
-            self._sent.pop(kind, None)
+            held.pop(token, None)
+            self._dropped.append(token)
             raise
         return [mine[i // 2] if i % 2 == 0 else done[i // 2] for i in range(len(items))]
 

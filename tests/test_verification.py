@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import os
 import time
+from collections import Counter
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from perception.codebook import Codebook, TemplateMatch
-from perception.parallel import OneProcess, TwoProcesses
+from perception.parallel import HELD, OneProcess, TwoProcesses
 from perception.parts import ConvexParts, Parts
 from perception.priors import Gravity, GravityConfig, Plausibility
 from perception.refine import PoseRefiner, RefineConfig
@@ -141,6 +142,37 @@ def test_the_worker_matches_half_the_templates_as_this_process_would(workers) ->
     assert np.array_equal(match.scores(views[:1], workers), here[: len(book.rotations)])
     _kill(workers)
     assert np.array_equal(match.scores(views, workers), here)  # done here without it
+
+
+def test_codebooks_that_take_turns_travel_to_the_worker_once_each(workers, monkeypatch) -> None:
+    """An evaluation's episodes take the objects in turn, and each detection's verification job
+    passes between them: each object's codebook is sent to the worker once and held, while no
+    more than `HELD` jobs of a kind are held; one let go is sent again."""
+    books = [Codebook.build(name, 60, 6) for name in ("car", "phone")]
+    sent: Counter[str] = Counter()
+
+    def counted(book: Codebook) -> dict:
+        sent[book.name] += 1
+        return dict(book.__dict__)
+
+    monkeypatch.setattr(Codebook, "__getstate__", counted, raising=False)
+    matches = [TemplateMatch(book) for book in books]
+    views = {b.name: [(b.bits[i].copy(), None) for i in (3, 40)] for b in books}
+    here = {m.book.name: m.scores(views[m.book.name], OneProcess()) for m in matches}
+    job, starts = _job(), _starts()
+    _up(workers)
+    for _ in range(3):
+        for m in matches:
+            assert np.array_equal(m.scores(views[m.book.name], workers), here[m.book.name])
+            for _ in range(HELD):
+                workers.map(replace(job), starts[:2])  # a new verification job each time
+    assert sent == {"car": 1, "phone": 1}
+    others = [TemplateMatch(books[0]) for _ in range(HELD)]  # as many new jobs as it holds
+    for m in others:
+        m.scores(views["car"], workers)
+    assert sent["car"] == 1 + HELD
+    assert np.array_equal(matches[1].scores(views["phone"], workers), here["phone"])
+    assert sent["phone"] == 2  # let go, so sent again
 
 
 def test_an_interrupted_batch_or_a_forked_child_leaves_the_results_in_order(
