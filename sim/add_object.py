@@ -237,7 +237,70 @@ def make_object(
     src = _source(
         mesh_path, name, units, scale, mass, density, friction, symmetry, seed, coacd, say, timings
     )
+    found, axis = _resting(src, mesh_path, drops, seed, up, say, timings)
 
+    t = time.perf_counter()
+    by_pose = {f"p{i}": p.quat for i, p in enumerate(found)}
+    grasps_s = mesh_grasps(src.obj_s, by_pose, keep=keep, progress=True)
+    timings["grasps"] = time.perf_counter() - t
+    graspable = _graspable(mesh_path, found, grasps_s, src.dec, seed)
+    canon, why = _canonical(mesh_path, found, graspable, axis, up)
+    made = _in_canonical_frame(src, found, canon, why, grasps_s)
+
+    t = time.perf_counter()
+    obj, png = _preview(name, mesh_path, src, made)
+    timings["preview"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_start
+
+    request = _Request(mesh_path, name, units, scale, mass, symmetry, drops, seed, keep)
+    description = _description(request, src, made, obj.diameter, timings, load_start)
+    folder = write_object_folder(name, description, made.visual, made.hulls, png, replace=force)
+    description["folder"] = str(folder)
+    _report(description, log)
+    return description
+
+
+@dataclass(frozen=True)
+class _Request:
+    """What the description records of the call."""
+
+    mesh_path: Path
+    name: str
+    units: str
+    scale: float
+    mass: float | None
+    symmetry: list[str] | None
+    drops: int
+    seed: int
+    keep: int
+
+
+@dataclass(frozen=True)
+class _Made:
+    """The object in its canonical frame O: the resting pose chosen as canonical stands upright."""
+
+    T_O_S: np.ndarray
+    visual: trimesh.Trimesh
+    hulls: list[trimesh.Trimesh]
+    props: Any
+    syms: Any
+    poses: list[dict[str, Any]]
+    stored: dict[str, list[dict[str, Any]]]
+    drawn: dict[str, list[tuple[np.ndarray, float]]]
+    why: str
+
+
+def _resting(
+    src: _Source,
+    mesh_path: Path,
+    drops: int,
+    seed: int,
+    up: str,
+    say: Callable[[str], None],
+    timings: dict[str, float],
+) -> tuple[list[RestingPose], np.ndarray]:
+    """The resting poses found by dropping the object, merged up to its symmetries, and the
+    axis --up names (+z for "auto"); raises `InvalidArgumentError` when it never settles."""
     t = time.perf_counter()
     found = find_resting_poses(src.obj_s, drops=drops, seed=seed, progress=True, settled=True)
     timings["resting_poses"] = time.perf_counter() - t
@@ -250,59 +313,83 @@ def make_object(
     axis = axis * (-1.0 if up.startswith("-") else 1.0)
     found = _merged(found, src.syms_s, axis)
     say(f"  {len(found)} resting poses ({sum(p.share for p in found) * 100:.0f} % of the drops)")
+    return found, axis
 
-    t = time.perf_counter()
-    by_pose = {f"p{i}": p.quat for i, p in enumerate(found)}
-    grasps_s = mesh_grasps(src.obj_s, by_pose, keep=keep, progress=True)
-    timings["grasps"] = time.perf_counter() - t
-    graspable = _graspable(mesh_path, found, grasps_s, src.dec, seed)
-    canon, why = _canonical(mesh_path, found, graspable, axis, up)
 
+def _in_canonical_frame(
+    src: _Source, found: list[Any], canon: int, why: str, grasps_s: dict[str, PoseGrasps]
+) -> _Made:
+    """The mesh, hulls, inertia, symmetries, resting poses and grasps moved from frame S into
+    the canonical frame O."""
     T_O_S = M.canonical_frame(src.visual_s, found[canon].up)
     visual = src.visual_s.copy()
     visual.apply_transform(T_O_S)
     hulls = [h.copy() for h in src.dec.hulls]
     for h in hulls:
         h.apply_transform(T_O_S)
-    props = M.transform_inertia(src.props_s, T_O_S)
     poses, stored, drawn = _pose_records(found, canon, grasps_s, T_O_S)
-    syms = src.syms_s.transformed(T_O_S)
+    return _Made(
+        T_O_S=T_O_S,
+        visual=visual,
+        hulls=hulls,
+        props=M.transform_inertia(src.props_s, T_O_S),
+        syms=src.syms_s.transformed(T_O_S),
+        poses=poses,
+        stored=stored,
+        drawn=drawn,
+        why=why,
+    )
 
-    t = time.perf_counter()
+
+def _preview(name: str, mesh_path: Path, src: _Source, made: _Made) -> tuple[ObjectModel, Any]:
+    """The object as a model and its preview sheet (every resting pose with its grasps)."""
     obj = ObjectModel(
         name=name,
         description="",
         parts=(),
-        mass=props.mass,
+        mass=made.props.mass,
         friction=src.friction,
-        resting_poses={p["name"]: np.asarray(p["quat"]) for p in poses},
-        geometry=MeshGeometry("preview", visual, tuple(hulls), src.rgba, props.com, props.inertia),
+        resting_poses={p["name"]: np.asarray(p["quat"]) for p in made.poses},
+        geometry=MeshGeometry(
+            "preview", made.visual, tuple(made.hulls), src.rgba, made.props.com, made.props.inertia
+        ),
     )
     title = (
-        f"{name}: {mesh_path.name}, {len(hulls)} hulls, {props.mass * 1000:.0f} g, "
-        f"symmetries {syms.describe()}"
+        f"{name}: {mesh_path.name}, {len(made.hulls)} hulls, {made.props.mass * 1000:.0f} g, "
+        f"symmetries {made.syms.describe()}"
     )
-    png = preview_sheet(obj, poses, drawn, title)
-    timings["preview"] = time.perf_counter() - t
-    timings["total"] = time.perf_counter() - t_start
+    return obj, preview_sheet(obj, made.poses, made.drawn, title)
 
-    description: dict[str, Any] = {
+
+def _description(
+    req: _Request,
+    src: _Source,
+    made: _Made,
+    diameter: float,
+    timings: dict[str, float],
+    load_start: list[float] | None,
+) -> dict[str, Any]:
+    """The object's description, its object.json: where it came from, its physics, symmetries,
+    resting poses and grasps, and how they were found (parameters, times, machine, versions)."""
+    props, syms = made.props, made.syms
+    return {
         "format": FORMAT_VERSION,
-        "name": name,
-        "description": f"made from {mesh_path.name}",
-        "units": units,
-        "scale": scale,
+        "name": req.name,
+        "description": f"made from {req.mesh_path.name}",
+        "units": req.units,
+        "scale": req.scale,
         "source": {
-            "file": str(mesh_path.resolve()),
-            "sha256": sha256_file(mesh_path),
+            "file": str(req.mesh_path.resolve()),
+            "sha256": sha256_file(req.mesh_path),
             "triangles": len(src.raw.faces),
             "watertight": bool(src.raw.is_watertight),
         },
         "T_O_source": [
-            [round(float(v), 9) for v in row] for row in T_O_S @ _centring(src.raw, units, scale)
+            [round(float(v), 9) for v in row]
+            for row in made.T_O_S @ _centring(src.raw, req.units, req.scale)
         ],
         "mass": props.mass,
-        "mass_from": "given" if mass is not None else "density x hull volume",
+        "mass_from": "given" if req.mass is not None else "density x hull volume",
         "density": props.density,
         "hull_volume": props.volume,
         "centre_of_mass": [float(v) for v in props.com],
@@ -312,21 +399,21 @@ def make_object(
         "decomposition": {
             "tool": src.dec.tool,
             "parameters": src.dec.parameters,
-            "hulls": len(hulls),
+            "hulls": len(made.hulls),
             "seconds": round(src.dec.seconds, 2),
         },
         "symmetries": {
-            "source": "given" if symmetry else "detected",
-            "given": symmetry or [],
+            "source": "given" if req.symmetry else "detected",
+            "given": req.symmetry or [],
             "summary": syms.describe(),
             "errors_rel_diameter": [round(e, 5) for e in syms.errors],
         },
-        "models_info": {**_bop_size(obj.diameter, visual), **syms.models_info()},
-        "resting_poses": poses,
-        "canonical_pose": why,
-        "resting_search": {"drops": drops, "seed": seed},
-        "grasps": stored,
-        "grasp_search": {"kept_per_pose": keep, "both_finger_orders": True},
+        "models_info": {**_bop_size(diameter, made.visual), **syms.models_info()},
+        "resting_poses": made.poses,
+        "canonical_pose": made.why,
+        "resting_search": {"drops": req.drops, "seed": req.seed},
+        "grasps": made.stored,
+        "grasp_search": {"kept_per_pose": req.keep, "both_finger_orders": True},
         "timings_s": {k: round(v, 2) for k, v in timings.items()},
         "machine": {
             "cpus": os.cpu_count(),
@@ -341,10 +428,6 @@ def make_object(
             "coacd": version("coacd"),
         },
     }
-    folder = write_object_folder(name, description, visual, hulls, png, replace=force)
-    description["folder"] = str(folder)
-    _report(description, log)
-    return description
 
 
 @dataclass(frozen=True)
