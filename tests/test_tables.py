@@ -201,3 +201,44 @@ def test_unknown_dataset_lists_the_tier_folders(capsys) -> None:
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "headcam_hard" in err[0] and "headcam_far" in err[0]
     assert tables.datagen_command("paper").endswith("--dist paper --split test --count N")
+
+
+@pytest.mark.parametrize("split, tag", [("headcam", ""), ("paper", "paper_")])
+def test_a_split_with_detector_boxes_adds_detection_and_the_ratio_to_true_boxes(
+    split, tag, monkeypatch
+) -> None:
+    import argparse
+    import io
+    import types
+
+    def fake_split(model, root, limit, data=None, success=None):
+        error = 2.0 if data is not None else 1.0  # detector boxes err twice as much
+        return {"average": {k: error for k in tables.RATIO_KEYS}}
+
+    monkeypatch.setattr(tables, "evaluate_split", fake_split)
+    monkeypatch.setattr(tables.Detector, "from_weights", staticmethod(lambda *a, **k: None))
+    detection = {"detection": {"AP": 0.9}, "images": 3}
+    monkeypatch.setattr(tables, "detector_crops", lambda *a, **k: ("crops", detection))
+    monkeypatch.setattr(tables, "format_detection", lambda det: "the detection")
+    monkeypatch.setattr(tables, "format_tables", lambda title, res: f"tables of {title}")
+    args = argparse.Namespace(boxes="detector", detector=Path("d.pt"), limit=3)
+    model = types.SimpleNamespace(cfg=types.SimpleNamespace(crop=64))
+    log = io.StringIO()
+    report = tables._split_tables(split, Path("r"), model, {}, args, log)  # type: ignore[arg-type]
+    assert list(report) == [
+        f"{tag}detection",
+        f"{tag}detection_summary",
+        split,
+        f"{split}_gt_boxes",
+        f"{tag}detector_to_gt_ratio",
+    ]
+    assert report[f"{tag}detection_summary"] == {"images": 3}
+    assert report[split]["boxes"] == "detector"
+    assert report[f"{tag}detector_to_gt_ratio"] == dict.fromkeys(tables.RATIO_KEYS, 2.0)
+    printed = log.getvalue().splitlines()
+    assert printed[:2] == ["the detection", f"tables of {split} (detector boxes)"]
+    assert printed[2].startswith(
+        "detector boxes / ground-truth boxes (average): center_px_mean 2.00x"
+    )
+    args.boxes = "gt"
+    assert list(tables._split_tables(split, Path("r"), model, {}, args, log)) == [split]  # type: ignore[arg-type]

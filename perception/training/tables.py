@@ -30,6 +30,7 @@ from __future__ import annotations
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
@@ -304,9 +305,8 @@ def _estimator_tables(
     return 0
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def _parser() -> ArgumentParser:
+    """The command line."""
     p = ArgumentParser(
         prog="python -m perception.training.tables", description=__doc__.split("\n")[0]
     )
@@ -369,7 +369,45 @@ def main(argv: list[str] | None = None) -> int:
         help="store the test averages in perception/weights/manifest.json: only the shipped "
         "weights on the full shipped test splits of the default data folder",
     )
-    args = p.parse_args(argv)
+    return p
+
+
+def _split_tables(d: str, root: Path, model: PoseNet, models: dict, args, log: TextIO) -> dict:
+    """The report entries of one test split: its tables (and, with detector boxes, the
+    detection figures and the ratio of the errors to those from ground-truth boxes)."""
+    report: dict = {}
+    data = None
+    # Keys without the split's name are the head camera's (the manifest's record).
+    tag = "" if d == "headcam" else f"{d}_"
+    if args.boxes == "detector":
+        detector = Detector.from_weights(args.detector, score_threshold=0.05)
+        data, det = detector_crops(root, detector, args.limit, size=model.cfg.crop)
+        report[f"{tag}detection"] = det["detection"]
+        report[f"{tag}detection_summary"] = {k: v for k, v in det.items() if k != "detection"}
+        print(format_detection(det), file=log)
+    report[d] = evaluate_split(model, root, args.limit, data, _success_models(models, d))
+    if args.boxes == "detector":
+        report[d]["boxes"] = "detector"
+        gt = evaluate_split(model, root, args.limit)
+        report[f"{d}_gt_boxes"] = gt
+        report[f"{tag}detector_to_gt_ratio"] = {
+            k: report[d]["average"][k] / gt["average"][k] for k in RATIO_KEYS
+        }
+    title = d if args.boxes == "gt" else f"{d} (detector boxes)"
+    print(format_tables(title, report[d]), file=log)
+    if args.boxes == "detector":
+        print(
+            "detector boxes / ground-truth boxes (average): "
+            + ", ".join(f"{k} {v:.2f}x" for k, v in report[f"{tag}detector_to_gt_ratio"].items()),
+            file=log,
+        )
+    return report
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
     setup_rendering()
     log = summary_stream(args.json)
     dists = args.dists
@@ -387,35 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     models = {} if args.success_model is None else load_models(args.success_model)
     report: dict = {}
     for d in dists:
-        data = None
-        if args.boxes == "detector":
-            detector = Detector.from_weights(args.detector, score_threshold=0.05)
-            data, det = detector_crops(roots[d], detector, args.limit, size=model.cfg.crop)
-            # Keys without the split's name are the head camera's (the manifest's record).
-            tag = "" if d == "headcam" else f"{d}_"
-            report[f"{tag}detection"] = det["detection"]
-            summary = {k: v for k, v in det.items() if k != "detection"}
-            report[f"{tag}detection_summary"] = summary
-            print(format_detection(det), file=log)
-        success = _success_models(models, d)
-        report[d] = evaluate_split(model, roots[d], args.limit, data, success)
-        if args.boxes == "detector":
-            report[d]["boxes"] = "detector"
-            gt = evaluate_split(model, roots[d], args.limit)
-            report[f"{d}_gt_boxes"] = gt
-            report[f"{tag}detector_to_gt_ratio"] = {
-                k: report[d]["average"][k] / gt["average"][k] for k in RATIO_KEYS
-            }
-        title = d if args.boxes == "gt" else f"{d} (detector boxes)"
-        print(format_tables(title, report[d]), file=log)
-        if args.boxes == "detector":
-            print(
-                "detector boxes / ground-truth boxes (average): "
-                + ", ".join(
-                    f"{k} {v:.2f}x" for k, v in report[f"{tag}detector_to_gt_ratio"].items()
-                ),
-                file=log,
-            )
+        report |= _split_tables(d, roots[d], model, models, args, log)
     if args.record:
         variant = record_in_manifest(report, args.weights, args.boxes, record_command(args))
         print(f"recorded the test figures of {variant} in the manifest", file=log)
