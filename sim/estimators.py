@@ -18,14 +18,17 @@ An estimator is named by a *spec*, which every ``--estimator`` option and `make_
 `estimator_weights` says which weights files an estimator loads, for the gate's fingerprint: a
 learned estimator's as its factory opens them (`perception.estimators.weights_files`), none for
 an oracle, and a plug-in's as its optional ``weights_files()`` method reports them (a sequence of
-paths).
+paths). `estimator_settings` adds the settings it holds, for the leaderboard's cells.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import importlib
 import importlib.metadata
+import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -36,6 +39,7 @@ from perception.estimators import LEARNED_ESTIMATORS, weights_files
 from perception.peers import PEER_ESTIMATORS, peer_weights_files
 from posegrasp.core.contract import CONTRACT_VERSION, Estimate, Observation, PoseEstimator
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
+from posegrasp.core.paths import in_repo
 from posegrasp.core.validate import arg, check_choice
 from posegrasp.world.sensors import SENSOR_NAMES
 from sim.pose_noise import NOISE_FORMAT, PoseNoise, parse_noise, perturb_pose
@@ -261,6 +265,53 @@ def estimator_weights(spec: str) -> tuple[Path, ...] | None:
             f"estimator {spec!r}: its weights_files() failed ({type(exc).__name__}: {exc}); "
             "it must return a sequence of paths"
         ) from None
+
+
+#: The packages whose objects `estimator_settings` looks into.
+OWN_PACKAGES = ("perception", "sim", "posegrasp", "grasping", "examples")
+
+
+def estimator_settings(spec: str) -> dict[str, Any]:
+    """What besides the code shapes the estimates of the estimator `spec` names, as JSON: the
+    SHA-256 of each weights file it loads (`estimator_weights`; None where a plug-in does not
+    say) and its settings, as `settings_of` reads them from a freshly made estimator.
+
+    Raises:
+        as `make_estimator` and `estimator_weights`.
+    """
+    files = estimator_weights(spec)
+    weights = None
+    if files is not None:
+        weights = {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in files}
+    return {"weights": weights, "settings": settings_of(make_estimator(spec))}
+
+
+def settings_of(obj: Any, depth: int = 0) -> Any:
+    """The settings an object holds: every ``...Config`` dataclass and plain value (bool, int,
+    float, str, and lists of them) among the public attributes of the object and of its parts of
+    posegrasp's own classes (`OWN_PACKAGES`), down to 5 levels, as JSON; {} where there is none.
+    A path inside the repository is written relative to it, so that every checkout reads the
+    same."""
+    if isinstance(obj, bool | int | float):
+        return obj
+    if isinstance(obj, str | Path):
+        return str(in_repo(obj)) if Path(obj).is_absolute() else str(obj)
+    if isinstance(obj, list | tuple) and all(isinstance(v, bool | int | float | str) for v in obj):
+        return list(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        if type(obj).__name__.endswith("Config"):
+            fields = {f.name: settings_of(getattr(obj, f.name), 0) for f in dataclasses.fields(obj)}
+            return json.loads(json.dumps(fields, default=str))
+    own = type(obj).__module__.split(".")[0] in OWN_PACKAGES
+    if depth >= 5 or not own or not hasattr(obj, "__dict__"):
+        return {}
+    out = {}
+    for key, value in sorted(vars(obj).items()):
+        if not key.startswith("_"):
+            found = settings_of(value, depth + 1)
+            if found != {}:
+                out[key] = found
+    return out
 
 
 def check_noise(spec: str) -> str:

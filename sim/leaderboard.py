@@ -6,13 +6,16 @@
 
 Each cell is one `sim.evaluate` run (its report and journal under ``--out``/cells), so an
 interrupted leaderboard resumes where it stopped: a finished cell is read back, a started one
-resumes from its journal. An estimator that needs depth (`sim.estimators.needs_depth`) sees
-``rgbd`` observations, every other one ``rgb``; an RGB-only estimator sees only the sensor's
-colour model, so its cells under sensors that differ only in depth are one run, shown under each.
-A cell that cannot run (an estimator whose extra is not installed) is reported as such, not
-dropped. Then it writes the whole board as JSON, the Markdown page (`docs/LEADERBOARD.md` is its
-output, never edited by hand) and three plots: success per cell, AR against success, and
-success against coverage for the estimators that give a confidence.
+resumes from its journal. A cell records the estimator's settings and weights it ran with
+(`sim.estimators.estimator_settings`); where they are not today's, the board refuses to run and
+names the cells, rather than mix runs of other settings into it. An estimator that needs depth
+(`sim.estimators.needs_depth`) sees ``rgbd`` observations, every other one ``rgb``; an RGB-only
+estimator sees only the sensor's colour model, so its cells under sensors that differ only in
+depth are one run, shown under each. A cell that cannot run (an estimator whose extra is not
+installed) is reported as such, not dropped. Then it writes the whole board as JSON, the
+Markdown page (`docs/LEADERBOARD.md` is its output, never edited by hand) and three plots:
+success per cell, AR against success, and success against coverage for the estimators that give
+a confidence.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from posegrasp.core.cli import (
     command,
     write_json,
 )
-from posegrasp.core.errors import PosegraspError
+from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.files import atomic_write_bytes, atomic_write_json
 from posegrasp.core.paths import DOCS_DIR, in_repo
 from posegrasp.core.validate import arg, check_int, check_names
@@ -106,12 +109,55 @@ def cells_of(estimators: Sequence[str], tiers: Sequence[str], sensors: Sequence[
     return out
 
 
-def run_cell(cell: Cell, args, cells_dir: Path) -> dict:
-    """Run (or read back, or resume) one cell's `sim.evaluate` report."""
+def _settings_path(cells_dir: Path, cell: Cell) -> Path:
+    return cells_dir / f"{cell.run_key}.settings.json"
+
+
+def stale_cells(
+    cells: Sequence[Cell], cells_dir: Path, settings: dict[str, dict | None]
+) -> list[str]:
+    """The cells with files in `cells_dir` (a report or a journal) whose recorded estimator
+    settings are not `settings` of their estimator (or are not recorded), each with the first
+    settings that differ. An estimator whose settings are None (it cannot be made) is left to
+    fail when its cells run."""
+    out = []
+    for cell in cells:
+        today = settings.get(cell.estimator)
+        started = [cells_dir / f"{cell.run_key}{ext}" for ext in (".json", ".journal.jsonl")]
+        if today is None or not any(f.exists() for f in started):
+            continue
+        path = _settings_path(cells_dir, cell)
+        recorded = json.loads(path.read_text()) if path.exists() else None
+        if recorded != today:
+            differ = "no settings recorded" if recorded is None else _differences(recorded, today)
+            out.append(f"{cell.run_key} ({differ})")
+    return sorted(set(out))
+
+
+def _differences(a: dict, b: dict, prefix: str = "", most: int = 3) -> str:
+    """The first `most` dotted keys whose values differ between `a` and `b`."""
+    keys: list[str] = []
+
+    def walk(x: object, y: object, at: str) -> None:
+        if isinstance(x, dict) and isinstance(y, dict):
+            for k in sorted(set(x) | set(y)):
+                walk(x.get(k), y.get(k), f"{at}.{k}" if at else k)
+        elif x != y:
+            keys.append(at)
+
+    walk(a, b, prefix)
+    return ", ".join(keys[:most]) + (f" and {len(keys) - most} more" if len(keys) > most else "")
+
+
+def run_cell(cell: Cell, args, cells_dir: Path, settings: dict | None = None) -> dict:
+    """Run (or read back, or resume) one cell's `sim.evaluate` report; a run that starts
+    records `settings` (`stale_cells` checks them)."""
     from sim.evaluate import evaluate
 
     report_path = cells_dir / f"{cell.run_key}.json"
     journal = cells_dir / f"{cell.run_key}.journal.jsonl"
+    if settings is not None and not report_path.exists() and not journal.exists():
+        atomic_write_json(_settings_path(cells_dir, cell), settings)
     if report_path.exists():
         report = json.loads(report_path.read_text())
         if report.get("episodes_per_object") == args.episodes and report.get("objects") == list(
@@ -387,6 +433,16 @@ def plots(board: dict, folder: Path) -> None:
     plt.close(fig)
 
 
+def _settings_or_none(name: str) -> dict | None:
+    """`estimator_settings` of `name`; None where it cannot be made (its cells say why)."""
+    from sim.estimators import estimator_settings
+
+    try:
+        return estimator_settings(name)
+    except PosegraspError:
+        return None
+
+
 def _command(argv: Sequence[str]) -> str:
     return "python -m sim.leaderboard " + " ".join(argv)
 
@@ -425,6 +481,14 @@ def main(argv: list[str] | None = None) -> int:
     cells_dir = Path(args.out) / "cells"
     cells_dir.mkdir(parents=True, exist_ok=True)
     cells = cells_of(args.estimators, args.tiers, args.sensors)
+    settings = {name: _settings_or_none(name) for name in args.estimators}
+    stale = stale_cells(cells, cells_dir, settings)
+    if stale:
+        raise InvalidArgumentError(
+            f"{len(stale)} cells in {cells_dir} ran with other estimator settings or weights than "
+            f"today's: {'; '.join(stale[:4])}{' ...' if len(stale) > 4 else ''}; move their files "
+            "away to run them again, or give another --out"
+        )
     reports: dict[str, dict] = {}
     board_cells = []
     start = time.perf_counter()
@@ -433,7 +497,7 @@ def main(argv: list[str] | None = None) -> int:
         row = {**asdict(cell), "run_key": cell.run_key}
         try:
             if cell.run_key not in reports:
-                reports[cell.run_key] = run_cell(cell, args, cells_dir)
+                reports[cell.run_key] = run_cell(cell, args, cells_dir, settings[cell.estimator])
             row["summary"] = cell_summary(reports[cell.run_key])
         except PosegraspError as exc:
             row["error"] = str(exc).splitlines()[0]

@@ -88,7 +88,7 @@ def test_a_bad_name_is_one_line_naming_the_choices(capsys) -> None:
     assert "moon" in err and "isolated" in err and "Traceback" not in err
 
 
-def test_a_small_board_runs_reads_back_and_writes_its_files(tmp_path: Path) -> None:
+def test_a_small_board_runs_reads_back_and_writes_its_files(tmp_path: Path, capsys) -> None:
     argv = [
         "--estimators",
         "oracle,crude",
@@ -125,3 +125,28 @@ def test_a_small_board_runs_reads_back_and_writes_its_files(tmp_path: Path) -> N
     assert leaderboard.main(argv) == 0
     again = json.loads((tmp_path / "board.json").read_text())
     assert again["cells"] == board["cells"] and again["wall_s"] == board["wall_s"]
+    # A cell run with other settings of its estimator is refused, naming the cell and the key.
+    recorded = tmp_path / "out" / "cells" / "isolated__ideal__crude.settings.json"
+    settings = json.loads(recorded.read_text())
+    assert "settings" in settings and "weights" in settings
+    recorded.write_text(json.dumps(settings | {"settings": {"noise_m": 0.5}}))
+    capsys.readouterr()
+    assert leaderboard.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "isolated__ideal__crude (settings" in err
+    recorded.unlink()  # a cell that records none is refused too
+    assert leaderboard.main(argv) == 2
+    assert "no settings recorded" in capsys.readouterr().err
+
+
+def test_the_settings_of_an_estimator_tell_its_configs_apart() -> None:
+    from perception.peers.estimator import PeerEstimator
+    from perception.peers.ppf import PpfConfig, PpfRegistration
+    from sim.estimators import settings_of
+
+    one = settings_of(PeerEstimator("ppf", PpfRegistration(PpfConfig())))
+    other = settings_of(PeerEstimator("ppf", PpfRegistration(PpfConfig(hypotheses=5))))
+    assert one["registration"]["config"]["hypotheses"] == 2
+    assert other["registration"]["config"]["hypotheses"] == 5
+    assert one["crop"] == other["crop"] and one["name"] == "ppf"
+    assert leaderboard._differences(one, other) == "registration.config.hypotheses"
