@@ -5,8 +5,11 @@ Renders isolated-tier scenes of every built-in object with seeds below
 small grid of `FpfhConfig` and `PpfConfig` values around the libraries' sample values on them,
 and records, per point, how many poses are correct (MSSD below a tenth of the diameter, as
 `sim.episode` judges), the median rotation and translation errors and the median time per
-image. The defaults of `perception.peers` are the best point of each grid (most correct, then
-fastest). It also records how OpenCV's PPF pose clustering treats two copies of a model at one
+image. The defaults of `perception.peers` are each grid's chosen point, by the one-standard-error
+rule: the fastest point whose count of correct poses is within one binomial standard error of
+the most correct (`chosen`; on 48 images the counts of one grid differ by that much by chance).
+``--reselect`` applies the rule to the points an earlier record holds, without running them
+again. It also records how OpenCV's PPF pose clustering treats two copies of a model at one
 position turned apart (`clustering_check`).
 
     python studies/peer_tuning.py --json studies/peer_tuning.json
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import statistics
 import sys
 import time
@@ -104,26 +108,54 @@ def score(estimator: Any, views: list[tuple[Observation, np.ndarray]]) -> dict[s
     }
 
 
+def chosen(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The one-standard-error rule: of the points whose correct count is within one binomial
+    standard error of the most correct, the fastest."""
+    top = max(r["correct"] for r in rows)
+    n = rows[0]["images"]
+    se = math.sqrt(top * (n - top) / n)  # in poses: n * sqrt(p (1 - p) / n)
+    near = [r for r in rows if r["correct"] >= top - se]
+    return min(near, key=lambda r: (r["time_s_median"], -r["correct"]))
+
+
+def _config(method: str) -> tuple[type, type]:
+    """`method`'s config and registration stage."""
+    if method == "ppf":
+        from perception.peers.ppf import PpfConfig, PpfRegistration
+
+        return PpfConfig, PpfRegistration
+    from perception.peers.fpfh import FpfhConfig, FpfhRegistration
+
+    return FpfhConfig, FpfhRegistration
+
+
+def chosen_record(method: str, grid: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """A grid's record: its points (most correct first) and the chosen point's whole config."""
+    Config, _ = _config(method)
+    rows = sorted(rows, key=lambda r: (-r["correct"], r["time_s_median"]))
+    pick = chosen(rows)
+    return {
+        "grid": {k: list(v) for k, v in grid.items()},
+        "points": rows,
+        "rule": "one standard error: the fastest point within one binomial SE of the most correct",
+        "chosen": pick["values"],
+        "best": asdict(replace(Config(), **pick["values"])),
+    }
+
+
 def sweep(method: str, grid: dict[str, tuple], views: list) -> dict[str, Any]:
-    """Every point of `grid` for `method` (``fpfh-icp`` or ``ppf``); the best first."""
+    """Every point of `grid` for `method` (``fpfh-icp`` or ``ppf``), and the chosen one."""
     from perception.peers.estimator import PeerEstimator
     from sim.estimators import check_depth
 
     check_depth(method, OBS_MODE)
-    if method == "ppf":
-        from perception.peers.ppf import PpfConfig as Config
-        from perception.peers.ppf import PpfRegistration as Stage
-    else:
-        from perception.peers.fpfh import FpfhConfig as Config
-        from perception.peers.fpfh import FpfhRegistration as Stage
+    Config, Stage = _config(method)
     points = [dict(zip(grid, values, strict=True)) for values in itertools.product(*grid.values())]
     rows = []
     for values in progress_bar(points, desc=method, unit="config"):
         config = replace(Config(), **values)
         rows.append({"values": values} | score(PeerEstimator(method, Stage(config)), views))
-    rows.sort(key=lambda r: (-r["correct"], r["time_s_median"]))
-    best = replace(Config(), **rows[0]["values"])
-    return {"grid": {k: list(v) for k, v in grid.items()}, "points": rows, "best": asdict(best)}
+    return chosen_record(method, grid, rows)
 
 
 def clustering_check() -> dict[str, Any]:
@@ -170,8 +202,15 @@ def main(argv: list[str] | None = None) -> int:
         default=list(GRIDS),
         help=f"a comma list of {', '.join(GRIDS)} (default both)",
     )
+    p.add_argument(
+        "--reselect",
+        action="store_true",
+        help="apply the rule to the points the --json record holds, running nothing",
+    )
     add_json_argument(p, "the grids' figures and the chosen values")
     args = p.parse_args(argv)
+    if args.reselect:
+        return _reselect(args.json)
     report: dict[str, Any] = {
         "tier": "isolated",
         "seeds": [SEED_START, SEED_START + args.per_object - 1],
@@ -192,16 +231,35 @@ def main(argv: list[str] | None = None) -> int:
     if "ppf" in args.methods:
         report["clustering_check"] = clustering_check()
     for method in args.methods:
-        best = report[method]["points"][0]
-        print(
-            f"{method}: best {best['values']}: {best['correct']}/{best['images']} correct, "
-            f"median {best['rotation_deg_median']:.2f} deg, {best['translation_mm_median']:.2f} "
-            f"mm, {best['time_s_median']:.2f} s per image"
-        )
+        _say_chosen(method, report[method])
     if "ppf" in args.methods:
         print(f"ppf clustering check: {report['clustering_check']}")
     if args.json:
         write_json(args.json, report)
+    return 0
+
+
+def _say_chosen(method: str, record: dict[str, Any]) -> None:
+    pick = next(r for r in record["points"] if r["values"] == record["chosen"])
+    top = record["points"][0]
+    print(
+        f"{method}: chosen {pick['values']}: {pick['correct']}/{pick['images']} correct "
+        f"(the most: {top['correct']}), median {pick['rotation_deg_median']:.2f} deg, "
+        f"{pick['translation_mm_median']:.2f} mm, {pick['time_s_median']:.2f} s per image"
+    )
+
+
+def _reselect(path: str | None) -> int:
+    """The rule applied again to the record at `path`, which is rewritten."""
+    if not path or path == "-" or not Path(path).exists():
+        raise InvalidArgumentError("--reselect needs --json naming an existing record")
+    report = json.loads(Path(path).read_text())
+    for method in GRIDS:
+        if method in report:
+            grid, rows = report[method]["grid"], report[method]["points"]
+            report[method] = chosen_record(method, grid, rows)
+            _say_chosen(method, report[method])
+    write_json(path, report)
     return 0
 
 

@@ -260,3 +260,37 @@ def test_fpfh_restarts_are_checked_under_their_own_name() -> None:
 
     with pytest.raises(InvalidArgumentError, match="restarts must be >= 1, not 0"):
         FpfhConfig(restarts=0)
+
+
+@needs_open3d
+@needs_ppf
+def test_the_peers_defaults_are_the_points_their_tuning_chose() -> None:
+    """`studies/peer_tuning.json` records each grid and the point its rule chose; the configs'
+    defaults are those points, and the rule picks the fastest point near the most correct."""
+    import json
+    from dataclasses import asdict
+    from pathlib import Path
+
+    from perception.peers.fpfh import FpfhConfig
+    from perception.peers.ppf import PpfConfig
+
+    studies = Path(__file__).resolve().parents[1] / "studies"
+    record = json.loads((studies / "peer_tuning.json").read_text())
+    for config, name in ((PpfConfig(), "ppf"), (FpfhConfig(), "fpfh-icp")):
+        assert json.loads(json.dumps(asdict(config))) == record[name]["best"]
+
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("peer_tuning", studies / "peer_tuning.py")
+    assert spec is not None and spec.loader is not None
+    study = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(study)
+    rows = [
+        {"values": {"a": 1}, "correct": 40, "images": 48, "time_s_median": 3.0},
+        {"values": {"a": 2}, "correct": 39, "images": 48, "time_s_median": 1.0},
+        {"values": {"a": 3}, "correct": 37, "images": 48, "time_s_median": 0.5},
+    ]
+    assert study.chosen(rows)["values"] == {"a": 2}  # SE of 40/48 is 2.6 poses: 37 is outside
+    assert study.chosen(rows[:1] + rows[2:])["values"] == {"a": 1}
+    for name in ("ppf", "fpfh-icp"):
+        assert study.chosen(record[name]["points"])["values"] == record[name]["chosen"]

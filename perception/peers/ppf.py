@@ -58,7 +58,7 @@ class PpfConfig:
     sampling_step: float = 0.07
     distance_step: float = 0.05
     num_angles: int = 30
-    scene_sample_step: float = 1.0
+    scene_sample_step: float = 0.2
     scene_distance: float = 0.05
     normal_neighbours: int = 6
     hypotheses: int = 2
