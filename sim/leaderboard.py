@@ -63,6 +63,9 @@ ESTIMATORS: tuple[str, ...] = (
     "fpfh-icp-det",
     "crude",
 )
+#: Our RGB-only estimator, and the classical depth peers the board holds it against.
+OURS = "hybrid-global"
+CLASSICAL: tuple[str, ...] = ("ppf", "ppf-det", "fpfh-icp", "fpfh-icp-det")
 #: The default sensors: the ideal camera and a structured-light depth camera.
 SENSORS: tuple[str, ...] = ("ideal", "kinect-v1")
 #: The ARs reported per cell, and against success.
@@ -248,6 +251,73 @@ def analyse(cells: list[dict], reports: dict[str, dict]) -> dict:
     return out
 
 
+def findings(board: dict) -> list[str]:
+    """The board's findings in plain words, every figure read from the board: `OURS` against
+    the classical depth peers per sensor (success and time per image), how closely the ARs rank
+    the cells, which per-episode error separates grasps best and worst, and the AR needed."""
+    by = {
+        (c["estimator"], c["sensor"], c["tier"]): c["summary"]
+        for c in board["cells"]
+        if c.get("summary")
+    }
+    out = ["## In short", ""]
+    for sensor in board["sensors"]:
+        groups = [(t, by.get((OURS, sensor, t))) for t in board["tiers"]]
+        groups = [(t, m) for t, m in groups if m is not None]
+        peers = [p for p in CLASSICAL if any((p, sensor, t) in by for t, _ in groups)]
+        if not groups or not peers:
+            continue
+        lost, ratios = [], {p: [] for p in peers}
+        for tier, ours in groups:
+            theirs = {p: by[p, sensor, tier] for p in peers if (p, sensor, tier) in by}
+            best = max(theirs, key=lambda p: theirs[p]["successes"])
+            if theirs[best]["successes"] > ours["successes"]:
+                lost.append(
+                    f"{tier} ({best} {theirs[best]['successes']} against {ours['successes']})"
+                )
+            for p, m in theirs.items():
+                if m["time_ms_median"]:
+                    ratios[p].append(ours["time_ms_median"] / m["time_ms_median"])
+        wins = len(groups) - len(lost)
+        spans = [f"{p}'s {min(r):.2f}-{max(r):.2f}" for p, r in ratios.items() if r]
+        out.append(
+            f"- Under `{sensor}`, `{OURS}` (RGB only) grasps at least as often as every classical "
+            f"depth peer on {wins} of {len(groups)} tiers"
+            + (f"; a peer grasps more on {'; '.join(lost)}" if lost else "")
+            + ". Its median time per image, as a share of each peer's over the tiers: "
+            + ", ".join(spans)
+            + "."
+        )
+    a = board["analysis"]
+    rhos = [(k, r) for k, r in a["spearman"].items() if r["rho"] is not None]
+    if rhos:
+        out.append(
+            f"- Over {rhos[0][1]['n']} cells, BOP's ARs rank the cells by grasp success closely: "
+            + ", ".join(f"{k.upper()} rho {r['rho']:.2f}" for k, r in rhos)
+            + "."
+        )
+    for tier, aucs in a["auc"].items():
+        known = {e: v["auc"] for e, v in aucs.items() if v["auc"] is not None}
+        if known:
+            hi, lo = max(known, key=known.__getitem__), min(known, key=known.__getitem__)
+            out.append(
+                f"- On {tier}, the per-episode error that separates held grasps from failed ones "
+                f"best is {hi} (AUC {known[hi]:.2f}), the worst {lo} ({known[lo]:.2f})."
+            )
+    need = {
+        t: f["ar_mssd"]["ar"]
+        for t, f in a["ar_for_success"].items()
+        if f["ar_mssd"]["ar"] is not None
+    }
+    if need:
+        lo_t, hi_t = min(need, key=need.__getitem__), max(need, key=need.__getitem__)
+        out.append(
+            f"- For {TARGET_SUCCESS:.0%} grasps a method needs AR_MSSD of about {need[lo_t]:.2f} "
+            f"({lo_t}) to {need[hi_t]:.2f} ({hi_t})."
+        )
+    return [*out, ""]
+
+
 def _pct(x: float | None) -> str:
     return "-" if x is None else f"{100 * x:.0f} %"
 
@@ -277,6 +347,7 @@ def markdown(board: dict) -> str:
         "",
         "![success per cell](leaderboard/success.png)",
         "",
+        *findings(board),
     ]
     head = (
         "| estimator | obs | success | 95 % CI | pose right | held, wrong pose | AR_MSSD | "
@@ -368,31 +439,10 @@ def plots(board: dict, folder: Path) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     cells = [c for c in board["cells"] if c.get("summary")]
     names = list(dict.fromkeys(c["estimator"] for c in cells))
-    groups = [(s, t) for s in board["sensors"] for t in board["tiers"]]
-    fig, ax = plt.subplots(figsize=(max(8, 1.1 * len(groups) * len(names) / 3), 4.5))
-    width = 0.8 / max(1, len(names))
-    for i, name in enumerate(names):
-        xs, ys, lo, hi = [], [], [], []
-        for j, (s, t) in enumerate(groups):
-            c = next(
-                (c for c in cells if (c["estimator"], c["sensor"], c["tier"]) == (name, s, t)), None
-            )
-            if c is None:
-                continue
-            m = c["summary"]
-            xs.append(j + (i - (len(names) - 1) / 2) * width)
-            ys.append(m["success_rate"])
-            lo.append(m["success_rate"] - m["wilson"][0])
-            hi.append(m["wilson"][1] - m["success_rate"])
-        ax.bar(xs, ys, width, yerr=[lo, hi], capsize=2, label=name)
-    ax.set_xticks(range(len(groups)), [f"{t}\n{s}" for s, t in groups])
-    ax.set_ylabel("grasp success (Wilson 95 %)")
-    ax.set_ylim(0, 1.05)
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    fig.tight_layout()
-    fig.savefig(folder / "success.png", dpi=110)
-    plt.close(fig)
-
+    colour = {n: f"C{i % 10}" for i, n in enumerate(names)}
+    by_key = {(c["estimator"], c["sensor"], c["tier"]): c["summary"] for c in cells}
+    sensors, tiers = board["sensors"], board["tiers"]
+    _success_plot(plt, by_key, names, colour, sensors, tiers, folder / "success.png")
     fig, axes = plt.subplots(1, len(AR_KEYS), figsize=(4 * len(AR_KEYS), 4), sharey=True)
     for ax, key in zip(np.atleast_1d(axes), AR_KEYS, strict=True):
         for name in names:
@@ -412,24 +462,89 @@ def plots(board: dict, folder: Path) -> None:
     fig.savefig(folder / "ar_vs_success.png", dpi=110)
     plt.close(fig)
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for c in cells:
-        rc = c["summary"]["risk_coverage"]
-        if rc and c["estimator"] != "oracle":
-            ax.step(
-                rc["coverage"],
-                rc["success"],
-                where="post",
-                label=f"{c['estimator']} ({c['tier']}, {c['sensor']})",
+    _risk_coverage_plot(plt, by_key, names, colour, sensors, tiers, folder / "risk_coverage.png")
+
+
+def _success_plot(plt, by_key, names, colour, sensors, tiers, path: Path) -> None:
+    """Grasp success with its Wilson interval: a panel per sensor, the tiers as groups."""
+    width = 0.8 / max(1, len(names))
+    figsize = (max(8.0, 0.16 * len(tiers) * len(names) + 2.5), 2.6 * len(sensors) + 0.6)
+    fig, axes = plt.subplots(len(sensors), 1, figsize=figsize, sharey=True, squeeze=False)
+    for ax, sensor in zip(axes[:, 0], sensors, strict=True):
+        for i, name in enumerate(names):
+            at = [
+                (j, by_key[name, sensor, t])
+                for j, t in enumerate(tiers)
+                if (name, sensor, t) in by_key
+            ]
+            if not at:
+                continue
+            rates = [m["success_rate"] for _, m in at]
+            ax.bar(
+                [j + (i - (len(names) - 1) / 2) * width for j, _ in at],
+                rates,
+                width,
+                yerr=[
+                    [r - m["wilson"][0] for r, (_, m) in zip(rates, at, strict=True)],
+                    [m["wilson"][1] - r for r, (_, m) in zip(rates, at, strict=True)],
+                ],
+                capsize=1.5,
+                color=colour[name],
+                label=name,
             )
-    ax.set_xlabel("coverage (share of episodes attempted)")
-    ax.set_ylabel("success among attempted")
-    ax.set_xlim(0, 1.02)
-    ax.set_ylim(0, 1.05)
-    if ax.lines:
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
-    fig.tight_layout()
-    fig.savefig(folder / "risk_coverage.png", dpi=110)
+        ax.set_xticks(range(len(tiers)), tiers)
+        ax.set_ylim(0, 1.05)
+        ax.set_ylabel("grasp success")
+        ax.set_title(f"sensor {sensor}", fontsize=10, loc="left")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper left", bbox_to_anchor=(0.86, 0.95), fontsize=8)
+    fig.subplots_adjust(left=0.06, right=0.85, hspace=0.35)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _risk_coverage_plot(plt, by_key, names, colour, sensors, tiers, path: Path) -> None:
+    """Success among the attempted episodes against the share attempted, the most confident
+    first: a panel per (sensor, tier), a curve per estimator that gives a confidence."""
+    shown = [n for n in names if n != "oracle"]
+    fig, axes = plt.subplots(
+        len(sensors),
+        len(tiers),
+        figsize=(2.6 * len(tiers) + 1.8, 2.4 * len(sensors) + 0.5),
+        sharex=True,
+        sharey=True,
+        squeeze=False,
+    )
+    drawn: dict[str, object] = {}
+    for r, sensor in enumerate(sensors):
+        for k, tier in enumerate(tiers):
+            ax = axes[r, k]
+            for name in shown:
+                m = by_key.get((name, sensor, tier))
+                rc = m and m["risk_coverage"]
+                if rc:
+                    (line,) = ax.step(
+                        rc["coverage"], rc["success"], where="post", color=colour[name], lw=1.2
+                    )
+                    drawn[name] = line
+            ax.set_title(f"{tier}, {sensor}", fontsize=9)
+            ax.set_xlim(0, 1.02)
+            ax.set_xticks([0, 0.5, 1])
+            ax.set_ylim(0, 1.05)
+            if r == len(sensors) - 1:
+                ax.set_xlabel("coverage")
+            if k == 0:
+                ax.set_ylabel("success among attempted")
+    if drawn:
+        fig.legend(
+            list(drawn.values()),
+            list(drawn),
+            loc="upper left",
+            bbox_to_anchor=(0.87, 0.93),
+            fontsize=8,
+        )
+    fig.subplots_adjust(left=0.07, right=0.86, wspace=0.12, hspace=0.35)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 

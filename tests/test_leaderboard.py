@@ -150,3 +150,25 @@ def test_the_settings_of_an_estimator_tell_its_configs_apart() -> None:
     assert other["registration"]["config"]["hypotheses"] == 5
     assert one["crop"] == other["crop"] and one["name"] == "ppf"
     assert leaderboard._differences(one, other) == "registration.config.hypotheses"
+
+
+def test_the_findings_name_the_tiers_a_peer_wins_and_the_time_shares() -> None:
+    def cell(name: str, tier: str, oks: list[bool], ms: float) -> dict:
+        summary = leaderboard.cell_summary(_report(oks))
+        summary["time_ms_median"] = ms
+        return {"estimator": name, "sensor": "kinect-v1", "tier": tier, "summary": summary}
+
+    board = {
+        "sensors": ["kinect-v1"],
+        "tiers": ["isolated", "hard"],
+        "cells": [
+            cell("hybrid-global", "isolated", [True] * 4, 100.0),
+            cell("ppf", "isolated", [True, False, False, False], 400.0),
+            cell("hybrid-global", "hard", [True, False, False, False], 100.0),
+            cell("ppf", "hard", [True, True, False, False], 1000.0),
+        ],
+        "analysis": {"spearman": {}, "auc": {}, "ar_for_success": {}},
+    }
+    text = "\n".join(leaderboard.findings(board))
+    assert "on 1 of 2 tiers; a peer grasps more on hard (ppf 2 against 1)" in text
+    assert "ppf's 0.10-0.25" in text
