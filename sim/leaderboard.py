@@ -349,6 +349,25 @@ def markdown(board: dict) -> str:
         "",
         *findings(board),
     ]
+    lines += _cell_tables(board)
+    lines += _bop_section(board["analysis"])
+    lines += [
+        "",
+        "## Confidence and abstention",
+        "",
+        "![success against coverage](leaderboard/risk_coverage.png)",
+        "",
+        "Success among attempted grasps when the robot attempts only the estimates above a",
+        "confidence threshold, for the estimators that give a confidence (`RC area` above: the",
+        "mean success over attempts ranked by confidence).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _cell_tables(board: dict) -> list[str]:
+    """One Markdown table per (sensor, tier): a row per estimator."""
+    lines: list[str] = []
     head = (
         "| estimator | obs | success | 95 % CI | pose right | held, wrong pose | AR_MSSD | "
         "AR_MSPD | AR_VSD | ms/image (med, p90) | RC area | leading failures |"
@@ -376,8 +395,13 @@ def markdown(board: dict) -> str:
                     f"| {_num(rc['area'] if rc else None, '.2f')} | {fails} |"
                 )
             lines.append("")
-    a = board["analysis"]
-    lines += [
+    return lines
+
+
+def _bop_section(a: dict) -> list[str]:
+    """What BOP scores say about grasps: Spearman's rho per AR, the separation AUC per tier
+    and error, the AR needed for `TARGET_SUCCESS` per tier."""
+    lines = [
         "## What BOP scores say about grasps",
         "",
         "![AR against grasp success](leaderboard/ar_vs_success.png)",
@@ -415,18 +439,7 @@ def markdown(board: dict) -> str:
     for tier, fits in a["ar_for_success"].items():
         row = [_num(f["ar"], ".2f") if f["ar"] is not None else f["note"] for f in fits.values()]
         lines.append(f"| {tier} | " + " | ".join(row) + " |")
-    lines += [
-        "",
-        "## Confidence and abstention",
-        "",
-        "![success against coverage](leaderboard/risk_coverage.png)",
-        "",
-        "Success among attempted grasps when the robot attempts only the estimates above a",
-        "confidence threshold, for the estimators that give a confidence (`RC area` above: the",
-        "mean success over attempts ranked by confidence).",
-        "",
-    ]
-    return "\n".join(lines)
+    return lines
 
 
 def plots(board: dict, folder: Path) -> None:
