@@ -10,9 +10,18 @@ the least ICP residual wins, its votes being the score.
 
 OpenCV's training time grows steeply with the model points left after its sampling (the
 relative sampling step): that step is the coarsest at which training takes seconds, not
-minutes. ``studies/peer_tuning.py`` also records how OpenCV 5.1's pose clustering behaves: it
-joins hypotheses at one position whatever their rotations and returns their mean, so two copies
-of a model at one place turned 90 deg apart come back as one pose between them.
+minutes.
+
+The clouds go to OpenCV in units of the object's diameter. Its pose clustering joins the poses
+whose positions differ by less than the relative sampling step, compared with absolute
+distances, and whose rotation angles differ by less than a threshold it computes as about 30
+rad, so never; it returns the mean pose of each cluster, and its Python binding does not expose
+``setSearchParams``, which sets both thresholds. In metres every pose within 7 cm would be one
+cluster and its rotations averaged (``studies/peer_tuning.py`` records two copies of a model
+at one place turned 90 deg apart coming back as one pose between them); in diameters the
+clusters are the 7 % of the object that the relative step means. Every other parameter of
+OpenCV's PPF is relative to the model's or the scene's extent and reads the same in either
+unit; ICP's residual is then in diameters.
 """
 
 from __future__ import annotations
@@ -55,7 +64,7 @@ class PpfConfig:
     """
 
     model_points: int = 5000
-    sampling_step: float = 0.07
+    sampling_step: float = 0.1
     distance_step: float = 0.05
     num_angles: int = 30
     scene_sample_step: float = 0.2
@@ -97,14 +106,14 @@ class PpfRegistration:
         self.__init__(state["config"])
 
     def trained(self, model: ObjectModel) -> tuple[object, np.ndarray, float]:
-        """The detector trained on `model`, its training cloud (N, 6) float32 (points [m],
-        normals; O) and the time training took [ms]."""
+        """The detector trained on `model`, its training cloud (N, 6) float32 (points in units
+        of the object's diameter, normals; O) and the time training took [ms]."""
         key = (model.name, model.revision)
         if key not in self._models:
             cfg = self.config
             t0 = time.perf_counter()
             pts, normals = model_surface(model, cfg.model_points, cfg.seed)
-            pc = np.hstack([pts, normals]).astype(np.float32)
+            pc = np.hstack([pts / model.diameter, normals]).astype(np.float32)
             detector = cv2.ppf_match_3d.PPF3DDetector(
                 cfg.sampling_step, cfg.distance_step, cfg.num_angles
             )
@@ -131,7 +140,7 @@ class PpfRegistration:
         if first:
             timings["train"] = train_ms
         t0 = time.perf_counter()
-        scene = np.ascontiguousarray(points_C, np.float32)
+        scene = np.ascontiguousarray(points_C / model.diameter, np.float32)
         _, scene = cv2.ppf_match_3d.computeNormalsPC3d(
             scene, cfg.normal_neighbours, True, (0.0, 0.0, 0.0)
         )
@@ -151,9 +160,10 @@ class PpfRegistration:
         timings["icp"] = (time.perf_counter() - t0) * 1000
         best = min(range(len(refined)), key=lambda i: float(refined[i].residual))
         T = nearest_rigid(np.asarray(refined[best].pose, np.float64))
+        T[:3, 3] *= model.diameter
         info = {
             "votes": votes[best],
-            "icp_residual": float(refined[best].residual),
+            "icp_residual_diameters": float(refined[best].residual),
             "hypotheses": len(results),
         }
         return Registered(T, float(votes[best]), info, timings)
