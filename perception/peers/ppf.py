@@ -37,6 +37,10 @@ from perception.peers.points import model_surface, nearest_rigid
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.world.objects import ObjectModel
 
+#: The residual at or above which OpenCV's ICP says it failed (it reports 1e10 and leaves the
+#: pose wherever its iterations went).
+ICP_FAILED = 1e9
+
 
 @dataclass(frozen=True)
 class PpfConfig:
@@ -158,7 +162,11 @@ class PpfRegistration:
         )
         _, refined = icp.registerModelToScene(pc, scene, results[: cfg.hypotheses])
         timings["icp"] = (time.perf_counter() - t0) * 1000
-        best = min(range(len(refined)), key=lambda i: float(refined[i].residual))
+        fitted = [i for i in range(len(refined)) if float(refined[i].residual) < ICP_FAILED]
+        if not fitted:
+            info = {"votes": max(votes), "hypotheses": len(results), "note": "ICP failed"}
+            return Registered(None, 0.0, info, timings)
+        best = min(fitted, key=lambda i: float(refined[i].residual))
         T = nearest_rigid(np.asarray(refined[best].pose, np.float64))
         T[:3, 3] *= model.diameter
         info = {
