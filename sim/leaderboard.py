@@ -262,12 +262,12 @@ def findings(board: dict) -> list[str]:
     }
     out = ["## In short", ""]
     for sensor in board["sensors"]:
-        groups = [(t, by.get((OURS, sensor, t))) for t in board["tiers"]]
-        groups = [(t, m) for t, m in groups if m is not None]
+        groups = [(t, by[OURS, sensor, t]) for t in board["tiers"] if (OURS, sensor, t) in by]
         peers = [p for p in CLASSICAL if any((p, sensor, t) in by for t, _ in groups)]
         if not groups or not peers:
             continue
-        lost, ratios = [], {p: [] for p in peers}
+        lost: list[str] = []
+        ratios: dict[str, list[float]] = {p: [] for p in peers}
         for tier, ours in groups:
             theirs = {p: by[p, sensor, tier] for p in peers if (p, sensor, tier) in by}
             best = max(theirs, key=lambda p: theirs[p]["successes"])
