@@ -16,11 +16,13 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import ray
 from ray import cloudpickle
 from ray.cluster_utils import Cluster
 
+from perception.peers import extra
 from perception.training.datagen import main as datagen_main
 from perception.training.writer import WALL_TIME_FILE
 from posegrasp.core.backends import default_chunk, run_map
@@ -200,6 +202,26 @@ class TestOnALocalRay:
         assert [_outcome(r) for r in results] == [  # ... and the report is complete and the same
             _outcome(e) for e in local_report["episodes"]
         ]
+
+    @pytest.mark.skipif(
+        not (extra.has_ppf() and extra.has_open3d()), reason="the extra peers is not installed"
+    )
+    def test_the_classical_peers_run_on_ray_as_in_the_local_pool(self) -> None:
+        """Each library's peer (OpenCV's PPF, Open3D's FPFH) on Ray's workers: the same
+        episodes as the local pool's (its detectors are trained again on each worker), the
+        poses equal but for the last bits of Open3D's sums."""
+        for name in ("ppf", "fpfh-icp"):
+            local, on_ray = (
+                evaluate(["phone", "pistol"], 1, name, SEED, workers=2, obs_mode="rgbd", **kw)[
+                    "episodes"
+                ]
+                for kw in ({}, {"backend": "ray"})
+            )
+            for a, b in zip(local, on_ray, strict=True):
+                keys = ("object", "seed", "estimator", "success", "failure_reason")
+                assert [a[k] for k in keys] == [b[k] for k in keys]
+                assert b["estimator"] == name and b["T_C_O_est"] is not None, b["notes"]
+                np.testing.assert_allclose(b["T_C_O_est"], a["T_C_O_est"], rtol=0, atol=1e-9)
 
 
 @pytest.mark.slow
