@@ -326,3 +326,37 @@ def test_ppf_reports_no_pose_when_opencv_icp_fails_on_every_hypothesis(monkeypat
     monkeypatch.setattr(cv2.ppf_match_3d, "ICP", FailingIcp)
     failed = stage.register(model, scene, 0)
     assert failed.T_C_O is None and failed.info["note"] == "ICP failed"
+
+
+@pytest.mark.slow
+def test_the_table_band_grows_with_the_sensors_noise_and_not_on_ideal_depth(monkeypatch) -> None:
+    """Ideal depth: the table's measured spread is nil and the points are those of the
+    configured band, to the bit. A noisy table top (kinect-v1): the band grows to three robust
+    standard deviations, and the table's noise no longer stays in the scene as points."""
+    from perception.peers import points as P
+    from sim.episode import Episode, EpisodeConfig
+
+    def cut(obs: Observation) -> np.ndarray:
+        model = load_object(obs.object)
+        assert obs.depth is not None and obs.table_top_z is not None
+        return P.object_points(
+            obs.depth, obs.K, obs.T_world_cam, obs.table_top_z, model.diameter, P.CropConfig()
+        )
+
+    views = {}
+    for sensor in ("ideal", "kinect-v1"):
+        ep = Episode("pistol", SEED, EpisodeConfig(obs_mode="rgbd", sensor=sensor))
+        views[sensor] = ep.observe()
+        ep.close()
+    adaptive = {s: cut(o) for s, o in views.items()}
+    monkeypatch.setattr(P, "table_noise", lambda height: 0.0)
+    fixed = {s: cut(o) for s, o in views.items()}
+    assert np.array_equal(adaptive["ideal"], fixed["ideal"])
+    model = load_object("pistol")
+    far = [
+        np.linalg.norm(p - np.median(p, axis=0), axis=1) > model.diameter for p in fixed.values()
+    ]
+    assert far[0].mean() < 0.01  # ideal: every point near the object
+    assert far[1].mean() > 0.2  # kinect-v1 at the configured band: the table's noise stays
+    stray = np.linalg.norm(adaptive["kinect-v1"] - np.median(adaptive["kinect-v1"], axis=0), axis=1)
+    assert (stray > model.diameter).mean() < 0.05

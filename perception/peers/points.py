@@ -8,7 +8,9 @@ support plane: the points on the table top (within `CropConfig.table_band_m` of 
 give the table's footprint (their convex hull seen from above), and a point belongs to an
 object when it lies over that footprint, at least `CropConfig.min_height_m` above the top and
 no higher than the object's diameter. What is left is the objects on the table (with a mask,
-only those inside it).
+only those inside it). A real sensor's table top is noisy: both thresholds grow to
+`TABLE_NOISE_SIGMAS` times the spread of the table's measured heights (`table_noise`), so that
+its noise does not stay in the scene as points; with ideal depth they stay as configured.
 
 The model: points sampled uniformly over the mesh surface in the object frame O with the
 normals of their faces; a built-in object's parts overlap, and a sample inside another part
@@ -29,6 +31,21 @@ from posegrasp.world.objects import ObjectModel
 
 #: Least number of table-top points that make a footprint (fewer: the footprint is not used).
 MIN_TABLE_POINTS = 16
+#: The table band and the least object height grow to this many robust standard deviations
+#: of the table top's measured heights (a Gaussian's 99.7 %).
+TABLE_NOISE_SIGMAS = 3.0
+#: The table top's noise is measured on the points within this height of it [m].
+TABLE_NOISE_WINDOW_M = 0.02
+
+
+def table_noise(height: np.ndarray) -> float:
+    """A robust standard deviation of the table top's measured heights [m]: 1.4826 times the
+    median absolute deviation of the heights (above the top) within `TABLE_NOISE_WINDOW_M` of
+    it, where the table's points outnumber the objects' lowest ones; 0 with too few points."""
+    near = height[np.abs(height) < TABLE_NOISE_WINDOW_M]
+    if len(near) < MIN_TABLE_POINTS:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(near - np.median(near))))
 
 
 @dataclass(frozen=True)
@@ -128,8 +145,10 @@ def object_points(
     T = np.asarray(T_world_cam, np.float64)
     pts_W = pts_C @ T[:3, :3].T + T[:3, 3]
     height = pts_W[:, 2] - float(table_top_z)
-    keep = (height > crop.min_height_m) & (height < crop.max_height_factor * diameter)
-    on_top = np.abs(height) < crop.table_band_m
+    spread = TABLE_NOISE_SIGMAS * table_noise(height)
+    low = max(crop.min_height_m, spread)
+    keep = (height > low) & (height < crop.max_height_factor * diameter)
+    on_top = np.abs(height) < max(crop.table_band_m, spread)
     planes = _footprint(pts_W[on_top][:: crop.table_stride, :2])
     if planes is not None:
         xy = pts_W[keep, :2]
