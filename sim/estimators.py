@@ -18,14 +18,14 @@ An estimator is named by a *spec*, which every ``--estimator`` option and `make_
 `estimator_weights` says which weights files an estimator loads, for the gate's fingerprint: a
 learned estimator's as its factory opens them (`perception.estimators.weights_files`), none for
 an oracle, and a plug-in's as its optional ``weights_files()`` method reports them (a sequence of
-paths). `estimator_settings` adds the settings it holds, for the leaderboard's cells.
+paths); `estimator_fingerprint` hashes them. `estimator_settings` adds the settings it holds,
+for the leaderboard's cells.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import importlib
 import importlib.metadata
 import json
@@ -39,7 +39,8 @@ from perception.estimators import LEARNED_ESTIMATORS, weights_files
 from perception.peers import PEER_ESTIMATORS, peer_weights_files
 from posegrasp.core.contract import CONTRACT_VERSION, Estimate, Observation, PoseEstimator
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
-from posegrasp.core.paths import in_repo
+from posegrasp.core.files import sha256_file
+from posegrasp.core.paths import REPO_ROOT, in_repo
 from posegrasp.core.validate import arg, check_choice
 from posegrasp.world.sensors import SENSOR_NAMES
 from sim.pose_noise import NOISE_FORMAT, PoseNoise, parse_noise, perturb_pose
@@ -271,18 +272,40 @@ def estimator_weights(spec: str) -> tuple[Path, ...] | None:
 OWN_PACKAGES = ("perception", "sim", "posegrasp", "grasping", "examples")
 
 
+def weights_fingerprint(files: Sequence[Path]) -> dict[str, str]:
+    """SHA-256 (first 16 hex digits) of each weights file, "missing" when absent, by its path
+    (relative to the repository, POSIX, when inside it)."""
+    out = {}
+    for f in files:
+        p = Path(f).resolve()
+        key = p.relative_to(REPO_ROOT).as_posix() if p.is_relative_to(REPO_ROOT) else str(p)
+        out[key] = sha256_file(p)[:16] if p.is_file() else "missing"
+    return out
+
+
+def estimator_fingerprint(estimator: str) -> tuple[dict[str, str], str | None]:
+    """The fingerprint of the weights files `estimator` loads (`weights_fingerprint` of
+    `sim.estimators.estimator_weights`), and a note when it reports none (a plug-in without
+    ``weights_files()``: the fingerprint is then empty)."""
+    files = estimator_weights(estimator)
+    if files is None:
+        return {}, (
+            f"{estimator} does not report the weights files it loads (no weights_files() "
+            "method): its fingerprint is empty, so the gate cannot tell its weights changed"
+        )
+    return weights_fingerprint(files), None
+
+
 def estimator_settings(spec: str) -> dict[str, Any]:
     """What besides the code shapes the estimates of the estimator `spec` names, as JSON: the
-    SHA-256 of each weights file it loads (`estimator_weights`; None where a plug-in does not
-    say) and its settings, as `settings_of` reads them from a freshly made estimator.
+    `weights_fingerprint` of the weights files it loads (None where a plug-in does not say) and
+    its settings, as `settings_of` reads them from a freshly made estimator.
 
     Raises:
         as `make_estimator` and `estimator_weights`.
     """
     files = estimator_weights(spec)
-    weights = None
-    if files is not None:
-        weights = {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in files}
+    weights = None if files is None else weights_fingerprint(files)
     return {"weights": weights, "settings": settings_of(make_estimator(spec))}
 
 

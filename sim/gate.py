@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +47,6 @@ import numpy as np
 from posegrasp.core.backends import add_backend_arguments, check_backend
 from posegrasp.core.cli import ArgumentParser, add_workers_argument, command, write_json
 from posegrasp.core.errors import AssetError, PosegraspError
-from posegrasp.core.files import sha256_file
-from posegrasp.core.paths import REPO_ROOT
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
@@ -59,7 +56,7 @@ from sim.estimators import (
     add_obs_mode_argument,
     add_sensor_argument,
     check_depth,
-    estimator_weights,
+    estimator_fingerprint,
 )
 from sim.evaluate import evaluate, execution_settings, format_report
 from sim.report_schema import validate_report
@@ -126,30 +123,6 @@ def load_baselines(path: Path = BASELINE) -> dict[str, dict]:
                 f"{_rewrite_hint(path)}"
             )
     return data
-
-
-def weights_fingerprint(files: Sequence[Path]) -> dict[str, str]:
-    """SHA-256 (first 16 hex digits) of each weights file, "missing" when absent, by its path
-    (relative to the repository, POSIX, when inside it)."""
-    out = {}
-    for f in files:
-        p = Path(f).resolve()
-        key = p.relative_to(REPO_ROOT).as_posix() if p.is_relative_to(REPO_ROOT) else str(p)
-        out[key] = sha256_file(p)[:16] if p.is_file() else "missing"
-    return out
-
-
-def estimator_fingerprint(estimator: str) -> tuple[dict[str, str], str | None]:
-    """The fingerprint of the weights files `estimator` loads (`weights_fingerprint` of
-    `sim.estimators.estimator_weights`), and a note when it reports none (a plug-in without
-    ``weights_files()``: the fingerprint is then empty)."""
-    files = estimator_weights(estimator)
-    if files is None:
-        return {}, (
-            f"{estimator} does not report the weights files it loads (no weights_files() "
-            "method): its fingerprint is empty, so the gate cannot tell its weights changed"
-        )
-    return weights_fingerprint(files), None
 
 
 def gate_protocol(estimator: str, obs_mode: str = "rgb", sensor: str = "ideal") -> dict:

@@ -112,8 +112,14 @@ def cells_of(estimators: Sequence[str], tiers: Sequence[str], sensors: Sequence[
     return out
 
 
-def _settings_path(cells_dir: Path, cell: Cell) -> Path:
-    return cells_dir / f"{cell.run_key}.settings.json"
+def _cell_files(cells_dir: Path, cell: Cell) -> tuple[Path, Path, Path]:
+    """A cell's report, its journal and the settings it ran with."""
+    key = cell.run_key
+    return (
+        cells_dir / f"{key}.json",
+        cells_dir / f"{key}.journal.jsonl",
+        cells_dir / f"{key}.settings.json",
+    )
 
 
 def stale_cells(
@@ -126,10 +132,9 @@ def stale_cells(
     out = []
     for cell in cells:
         today = settings.get(cell.estimator)
-        started = [cells_dir / f"{cell.run_key}{ext}" for ext in (".json", ".journal.jsonl")]
-        if today is None or not any(f.exists() for f in started):
+        report, journal, path = _cell_files(cells_dir, cell)
+        if today is None or not (report.exists() or journal.exists()):
             continue
-        path = _settings_path(cells_dir, cell)
         recorded = json.loads(path.read_text()) if path.exists() else None
         if recorded != today:
             differ = "no settings recorded" if recorded is None else _differences(recorded, today)
@@ -137,7 +142,7 @@ def stale_cells(
     return sorted(set(out))
 
 
-def _differences(a: dict, b: dict, prefix: str = "", most: int = 3) -> str:
+def _differences(a: dict, b: dict, most: int = 3) -> str:
     """The first `most` dotted keys whose values differ between `a` and `b`."""
     keys: list[str] = []
 
@@ -148,7 +153,7 @@ def _differences(a: dict, b: dict, prefix: str = "", most: int = 3) -> str:
         elif x != y:
             keys.append(at)
 
-    walk(a, b, prefix)
+    walk(a, b, "")
     return ", ".join(keys[:most]) + (f" and {len(keys) - most} more" if len(keys) > most else "")
 
 
@@ -157,10 +162,9 @@ def run_cell(cell: Cell, args, cells_dir: Path, settings: dict | None = None) ->
     records `settings` (`stale_cells` checks them)."""
     from sim.evaluate import evaluate
 
-    report_path = cells_dir / f"{cell.run_key}.json"
-    journal = cells_dir / f"{cell.run_key}.journal.jsonl"
+    report_path, journal, settings_path = _cell_files(cells_dir, cell)
     if settings is not None and not report_path.exists() and not journal.exists():
-        atomic_write_json(_settings_path(cells_dir, cell), settings)
+        atomic_write_json(settings_path, settings)
     if report_path.exists():
         report = json.loads(report_path.read_text())
         if report.get("episodes_per_object") == args.episodes and report.get("objects") == list(
@@ -251,15 +255,18 @@ def analyse(cells: list[dict], reports: dict[str, dict]) -> dict:
     return out
 
 
+def _summaries(cells: list[dict]) -> dict[tuple[str, str, str], dict]:
+    """The cells' summaries by (estimator, sensor, tier); cells that could not run left out."""
+    return {
+        (c["estimator"], c["sensor"], c["tier"]): c["summary"] for c in cells if c.get("summary")
+    }
+
+
 def findings(board: dict) -> list[str]:
     """The board's findings in plain words, every figure read from the board: `OURS` against
     the classical depth peers per sensor (success and time per image), how closely the ARs rank
     the cells, which per-episode error separates grasps best and worst, and the AR needed."""
-    by = {
-        (c["estimator"], c["sensor"], c["tier"]): c["summary"]
-        for c in board["cells"]
-        if c.get("summary")
-    }
+    by = _summaries(board["cells"])
     out = ["## In short", ""]
     for sensor in board["sensors"]:
         groups = [(t, by[OURS, sensor, t]) for t in board["tiers"] if (OURS, sensor, t) in by]
@@ -453,7 +460,7 @@ def plots(board: dict, folder: Path) -> None:
     cells = [c for c in board["cells"] if c.get("summary")]
     names = list(dict.fromkeys(c["estimator"] for c in cells))
     colour = {n: f"C{i % 10}" for i, n in enumerate(names)}
-    by_key = {(c["estimator"], c["sensor"], c["tier"]): c["summary"] for c in cells}
+    by_key = _summaries(cells)
     sensors, tiers = board["sensors"], board["tiers"]
     _success_plot(plt, by_key, names, colour, sensors, tiers, folder / "success.png")
     fig, axes = plt.subplots(1, len(AR_KEYS), figsize=(4 * len(AR_KEYS), 4), sharey=True)

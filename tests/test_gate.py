@@ -9,6 +9,7 @@ import pytest
 
 from posegrasp.core.contract import Estimate
 from posegrasp.core.errors import AssetError
+from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import REPO_ROOT
 from posegrasp.world.objects import OBJECT_NAMES
 from sim import gate
@@ -138,7 +139,7 @@ def test_plugins_fingerprint_what_they_report() -> None:
     weights, note = gate.estimator_fingerprint("tests.test_gate:ReportingPlugin")
     assert note is None
     assert weights == {
-        "tests/test_gate.py": gate.sha256_file(Path(__file__))[:16],
+        "tests/test_gate.py": sha256_file(Path(__file__))[:16],
         "/nonexistent/w.pt": "missing",
     }
     weights, note = gate.estimator_fingerprint("tests.test_gate:Plugin")
