@@ -96,7 +96,9 @@ def _same(a: dict, b: dict) -> int:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python studies/bop_round_trip.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(
+        prog="python studies/bop_round_trip.py", description=__doc__.split("\n\n")[0]
+    )
     p.add_argument(
         "--tier",
         default=DEFAULT_TIER,

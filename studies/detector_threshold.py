@@ -68,12 +68,23 @@ def measure(detector: Detector, data: PoseDataset, n: int, scores: list[float]) 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(
-        prog="python studies/detector_threshold.py", description=__doc__.split("\n")[0]
+        prog="python studies/detector_threshold.py", description=__doc__.split("\n\n")[0]
     )
     p.add_argument("--split", default="headcam_hard", help="dataset folder under the data root")
     p.add_argument("--subset", default="val", help="the split's subset (default val)")
-    p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=200)
-    p.add_argument("--scores", type=arg(check_scores), default=[0.5, 0.4, 0.3, 0.2, 0.1])
+    p.add_argument(
+        "--images",
+        type=arg(check_int, 1, 100000, "--images", base=int),
+        default=200,
+        help="the first N images of the subset, 1..100000 (default 200)",
+    )
+    p.add_argument(
+        "--scores",
+        type=arg(check_scores),
+        default=[0.5, 0.4, 0.3, 0.2, 0.1],
+        help="comma list of detector scores to measure, each in 0.01..1 "
+        "(default 0.5,0.4,0.3,0.2,0.1)",
+    )
     p.add_argument("--detector", type=Path, default=TIERS_DETECTOR, help="detector weights")
     add_json_argument(p, "the figures")
     args = p.parse_args(argv)

@@ -115,7 +115,7 @@ def norm_ratios(p: np.ndarray, p_hat: np.ndarray) -> dict[str, dict]:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(
-        prog="python studies/distance_baseline.py", description=__doc__.split("\n")[0]
+        prog="python studies/distance_baseline.py", description=__doc__.split("\n\n")[0]
     )
     p.add_argument(
         "--weights",

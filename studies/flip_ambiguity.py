@@ -107,9 +107,16 @@ def _plot(
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python studies/flip_ambiguity.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(
+        prog="python studies/flip_ambiguity.py", description=__doc__.split("\n\n")[0]
+    )
     p.add_argument("--split", default="test", help="the paper protocol's split (default test)")
-    p.add_argument("--images", type=arg(check_int, 1, 1000000, "--images", base=int), default=1000)
+    p.add_argument(
+        "--images",
+        type=arg(check_int, 1, 1000000, "--images", base=int),
+        default=1000,
+        help="the first N images of the split, 1..1000000 (default 1000)",
+    )
     p.add_argument(
         "--below",
         type=arg(check_float, 0.0, 180.0, "--below", base=float),

@@ -98,7 +98,7 @@ def _resume(path: Path | None, protocol: dict) -> dict:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python studies/gate_power.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/gate_power.py", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--runs",
         type=arg(check_int, 1, 1000, "--runs", base=int),

@@ -485,10 +485,17 @@ SWEEPS: dict[str, tuple[str | tuple[str, ...], Callable, str, str, Callable[[Any
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python studies/global_ablation.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(
+        prog="python studies/global_ablation.py", description=__doc__.split("\n\n")[0]
+    )
     p.add_argument("--split", default="headcam_any-pose", help="dataset folder under the data root")
     p.add_argument("--subset", default="val", help="the split's subset (default val)")
-    p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=150)
+    p.add_argument(
+        "--images",
+        type=arg(check_int, 1, 100000, "--images", base=int),
+        default=150,
+        help="the first N images of the subset, 1..100000 (default 150)",
+    )
     add_json_argument(p, "every start's scores and the ablation")
     for flag, (field, check, metavar, text, _) in SWEEPS.items():
         p.add_argument(

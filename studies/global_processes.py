@@ -43,16 +43,32 @@ ESTIMATORS = ("hybrid-global", "hybrid-global-table", "hybrid-global-paper")
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(
-        prog="python studies/global_processes.py", description=__doc__.split("\n")[0]
+        prog="python studies/global_processes.py", description=__doc__.split("\n\n")[0]
     )
     p.add_argument(
         "--estimator",
         default="hybrid-global",
         type=arg(check_choice, ESTIMATORS, "estimator"),
+        help=f"one of: {', '.join(ESTIMATORS)} (default hybrid-global)",
     )
-    p.add_argument("--tier", default="hard", type=arg(check_choice, list(TIERS), "tier"))
-    p.add_argument("--images", default=24, type=arg(check_int, 2, 10000, "--images", base=int))
-    p.add_argument("--repeat", default=3, type=arg(check_int, 1, 20, "--repeat", base=int))
+    p.add_argument(
+        "--tier",
+        default="hard",
+        type=arg(check_choice, list(TIERS), "tier"),
+        help=f"the episodes' tier, one of: {', '.join(TIERS)} (default hard)",
+    )
+    p.add_argument(
+        "--images",
+        default=24,
+        type=arg(check_int, 2, 10000, "--images", base=int),
+        help="the first N held-out episodes' head images, 2..10000 (default 24)",
+    )
+    p.add_argument(
+        "--repeat",
+        default=3,
+        type=arg(check_int, 1, 20, "--repeat", base=int),
+        help="timed runs per image and setting, the fastest kept, 1..20 (default 3)",
+    )
     add_threads_argument(p)
     add_json_argument(p, "the figures")
     args = p.parse_args(argv)

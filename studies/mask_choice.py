@@ -42,7 +42,7 @@ MASKS = ("mask net", "truth")
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python studies/mask_choice.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/mask_choice.py", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--estimator",
         type=arg(check_choice, ESTIMATORS, "estimator"),
@@ -51,7 +51,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--split", default="headcam_hard", help="dataset folder under the data root")
     p.add_argument("--subset", default="test", help="the split's subset (default test)")
-    p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=100)
+    p.add_argument(
+        "--images",
+        type=arg(check_int, 1, 100000, "--images", base=int),
+        default=100,
+        help="the first N images of the subset, 1..100000 (default 100)",
+    )
     p.add_argument("--targets", action="store_true", help="only each image's episode target")
     add_json_argument(p, "the errors per object and mask")
     args = p.parse_args(argv)

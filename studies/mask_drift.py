@@ -36,10 +36,15 @@ MASKS = ("detector", "mask net", "truth")
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python studies/mask_drift.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/mask_drift.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--split", default="headcam_hard", help="dataset folder under the data root")
     p.add_argument("--subset", default="test", help="the split's subset (default test)")
-    p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=300)
+    p.add_argument(
+        "--images",
+        type=arg(check_int, 1, 100000, "--images", base=int),
+        default=300,
+        help="the first N images of the subset, 1..100000 (default 300)",
+    )
     add_json_argument(p, "the drift and IoU per mask")
     args = p.parse_args(argv)
     setup_rendering(threads=1)

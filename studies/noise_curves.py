@@ -144,7 +144,7 @@ def plot(chains: dict[str, list[dict]], path: Path) -> None:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python studies/noise_curves.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/noise_curves.py", description=__doc__.split("\n\n")[0])
     tiers = arg(check_names, list(TIERS), "tier", "--tiers")
     p.add_argument(
         "--tiers",

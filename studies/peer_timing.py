@@ -86,7 +86,7 @@ def measure(name: str, views: list, warm_up: list) -> dict[str, Any]:
 
 @command
 def main(argv: list[str] | None = None) -> int:
-    p = ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python studies/peer_timing.py", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--images",
         type=arg(check_int, 1, 60, "--images", base=int),

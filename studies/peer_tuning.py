@@ -191,7 +191,7 @@ def clustering_check() -> dict[str, Any]:
 
 @command
 def main(argv: list[str] | None = None) -> int:
-    p = ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python studies/peer_tuning.py", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--per-object",
         type=arg(check_int, 1, 100, "--per-object", base=int),

@@ -305,7 +305,7 @@ def _print(results: dict, log: TextIO | None = None) -> None:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     p = ArgumentParser(
-        prog="python studies/posenet_ablation.py", description=__doc__.split("\n")[0]
+        prog="python studies/posenet_ablation.py", description=__doc__.split("\n\n")[0]
     )
     p.add_argument(
         "--study",

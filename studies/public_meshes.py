@@ -166,7 +166,7 @@ def table(rows: list[dict]) -> str:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python studies/public_meshes.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/public_meshes.py", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--episodes",
         type=arg(check_int, 1, 10_000, "--episodes", base=int),

@@ -35,11 +35,21 @@ ANGLES_DEG = (5.0, 10.0, 15.0, 20.0, 30.0, 45.0)
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python studies/refine_basin.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/refine_basin.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--split", default="headcam_any-pose", help="dataset folder under the data root")
     p.add_argument("--subset", default="val", help="the split's subset (default val)")
-    p.add_argument("--images", type=arg(check_int, 1, 100000, "--images", base=int), default=100)
-    p.add_argument("--passes", type=arg(check_int, 1, 10, "--passes", base=int), default=2)
+    p.add_argument(
+        "--images",
+        type=arg(check_int, 1, 100000, "--images", base=int),
+        default=100,
+        help="the first N images of the subset, 1..100000 (default 100)",
+    )
+    p.add_argument(
+        "--passes",
+        type=arg(check_int, 1, 10, "--passes", base=int),
+        default=2,
+        help="refiner passes from each start, 1..10 (default 2, as hybrid-global runs)",
+    )
     add_json_argument(p, "the final errors per start angle")
     args = p.parse_args(argv)
     setup_rendering(threads=1)

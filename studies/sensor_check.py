@@ -359,7 +359,7 @@ def format_report(report: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status (1 when a model misses its formula by more than
     `TOLERANCE`)."""
-    p = ArgumentParser(prog="python studies/sensor_check.py", description=__doc__.split("\n")[0])
+    p = ArgumentParser(prog="python studies/sensor_check.py", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--repeats",
         type=arg(check_int, 1, 1000, "--repeats", base=int),

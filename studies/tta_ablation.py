@@ -94,7 +94,7 @@ def fuse(uv: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    p = ArgumentParser(prog="python studies/tta_ablation.py", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="python studies/tta_ablation.py", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--weights",
         type=Path,
