@@ -444,3 +444,32 @@ def check_depth(spec: str, obs_mode: str) -> None:
             f"estimator {spec} needs the depth image: add --obs-mode rgbd (observation mode "
             f"{obs_mode!r} has none)"
         )
+
+
+def depth_unused_note(obs_mode: str, sensor: str) -> str | None:
+    """The note a command prints (one line, on standard error) when the sensor's depth model
+    changes the depth image but the estimator sees none: an RGB-only observation (``obs_mode``
+    ``rgb``) through a sensor whose depth model is not ``ideal`` (``kinect-v1``,
+    ``azure-tof+camera``, ...) observes exactly what it would with that sensor's colour model
+    alone.
+
+    Args:
+        obs_mode: the observation mode, one of `OBS_MODES`.
+        sensor: the sensor's name, one of `posegrasp.world.sensors.SENSOR_NAMES`.
+
+    Returns:
+        The line, starting with ``note: ``; None when the depth is seen (``rgbd``) or the depth
+        model is ``ideal``.
+
+    Raises:
+        UnknownNameError: an observation mode not in `OBS_MODES` or a sensor not in
+            `SENSOR_NAMES`.
+    """
+    check_choice(obs_mode, OBS_MODES, "observation mode")
+    depth = check_choice(sensor, SENSOR_NAMES, "sensor").partition("+")[0]
+    if obs_mode == "rgbd" or depth == "ideal":
+        return None
+    return (
+        f"note: the depth of sensor {sensor} goes unused: --obs-mode {obs_mode} hands the "
+        "estimator no depth image (--obs-mode rgbd does)"
+    )
