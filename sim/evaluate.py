@@ -27,7 +27,7 @@ from posegrasp.core.cli import (
     write_json,
 )
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.core.journal import journal_path
+from posegrasp.core.journal import journal_path, resumable
 from posegrasp.core.paths import DOCS_DIR
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import (
@@ -278,26 +278,27 @@ def main(argv: list[str] | None = None) -> int:
     journal = journal_path(
         args.json, "evaluate", run_protocol(protocol, estimator_label(estimator))
     )
-    report = evaluate_protocol(
-        protocol,
-        estimator,
-        workers=args.workers,
-        backend=args.backend,
-        address=args.address,
-        journal=journal,
-        resume=args.resume,
-    )
-    if poses is not None:
-        report["poses"] = poses_record(poses, args.poses, report)
-    log = summary_stream(args.json)
-    print(format_report(report), file=log)
-    if poses is not None:
-        print(format_poses_record(report["poses"]), file=log)
-    if args.plot is not None:
-        plot_success_vs_error(report, args.plot, tolerance)
-        print(f"wrote {args.plot}", file=log)
-    if args.json is not None:
-        write_json(args.json, report)
+    with resumable(journal, protocol.total):
+        report = evaluate_protocol(
+            protocol,
+            estimator,
+            workers=args.workers,
+            backend=args.backend,
+            address=args.address,
+            journal=journal,
+            resume=args.resume,
+        )
+        if poses is not None:
+            report["poses"] = poses_record(poses, args.poses, report)
+        log = summary_stream(args.json)
+        print(format_report(report), file=log)
+        if poses is not None:
+            print(format_poses_record(report["poses"]), file=log)
+        if args.plot is not None:
+            plot_success_vs_error(report, args.plot, tolerance)
+            print(f"wrote {args.plot}", file=log)
+        if args.json is not None:
+            write_json(args.json, report)
     Path(journal).unlink(missing_ok=True)  # the report now holds every episode
     return 0
 

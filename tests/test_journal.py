@@ -52,7 +52,15 @@ def test_a_journal_keeps_units_and_resumes_past_a_cut_line(tmp_path: Path) -> No
 
 def test_a_journal_is_never_overwritten_or_mixed(tmp_path: Path) -> None:
     path = tmp_path / "run.jsonl"
-    Journal(path, "evaluate", PROTOCOL).start(resume=False)
+    first = Journal(path, "evaluate", {**PROTOCOL, "seeds": [7]})
+    first.start(resume=False)
+    first.close()
+    # A run stopped before its first unit left nothing to lose: a new run replaces it.
+    j = Journal(path, "evaluate", PROTOCOL)
+    j.start(resume=False)
+    j.append({"key": 0, "result": 1})
+    j.close()
+    assert json.loads(path.read_text().splitlines()[0])["protocol"] == PROTOCOL
     with pytest.raises(InvalidArgumentError, match="--resume"):
         Journal(path, "evaluate", PROTOCOL).start(resume=False)
     with pytest.raises(InvalidArgumentError, match="differs in seeds"):

@@ -32,6 +32,8 @@ import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sized
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownNameError
@@ -161,6 +163,28 @@ def _pool_init(initializer: Callable[..., None] | None, initargs: tuple) -> None
         initializer(*initargs)
 
 
+class WorkerDied(BackendError):
+    """A local pool's worker process ended before returning its job (killed by a signal, by the
+    kernel for memory, or crashed): the job it held has no result, so the run stops rather than
+    wait for it forever or record it as an outcome.
+
+    Attributes:
+        exitcode: the dead worker's exit status (negative: the signal that ended it), None when
+            it is not known.
+    """
+
+    def __init__(self, exitcode: int | None) -> None:
+        how = (
+            "ended for an unknown reason"
+            if exitcode is None
+            else f"was killed by {signal.Signals(-exitcode).name}"
+            if exitcode < 0 and -exitcode in signal.valid_signals()
+            else f"exited with status {exitcode}"
+        )
+        super().__init__(f"a worker process {how} before finishing its job")
+        self.exitcode = exitcode
+
+
 def _local_map(fn, jobs, workers, chunk, initializer, initargs, ordered) -> Iterator[Any]:
     if workers <= 1:
         yield from map(fn, jobs)
@@ -171,17 +195,71 @@ def _local_map(fn, jobs, workers, chunk, initializer, initargs, ordered) -> Iter
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
     try:
-        pool = mp.get_context("spawn").Pool(workers, _pool_init, (initializer, initargs))
+        pool = ProcessPoolExecutor(
+            workers, mp.get_context("spawn"), _pool_init, (initializer, initargs)
+        )
+        # Every worker starts now, with SIGINT still ignored (else each would start at its
+        # first job, after this process listens to Ctrl-C again).
+        launch = getattr(pool, "_launch_processes", None)
+        if launch is not None:
+            launch()
     finally:
         if in_main:
             signal.signal(signal.SIGINT, previous)
-    with pool:
-        imap = pool.imap if ordered else pool.imap_unordered
-        # Pool.imap queues its whole input at once: fed in windows, a long stream of jobs is
-        # never held in memory.
-        it = iter(jobs)
-        while window := list(itertools.islice(it, LOCAL_WINDOW * workers)):
-            yield from imap(fn, window, chunksize=chunk or 1)
+    try:
+        yield from _pool_results(pool, fn, jobs, workers * LOCAL_WINDOW, chunk or 1, ordered)
+    except BrokenProcessPool:
+        raise WorkerDied(_dead_exitcode(pool)) from None
+    finally:
+        _stop_pool(pool)
+
+
+def _run_items(fn: Callable[[Any], Any], items: list) -> list:
+    return [fn(item) for item in items]
+
+
+def _pool_results(pool, fn, jobs, window: int, chunk: int, ordered: bool) -> Iterator[Any]:
+    """`fn` over `jobs` in `pool`, `chunk` jobs a task, at most `window` jobs in flight: the
+    input is read as the workers free up, so a long stream of jobs is never held in memory."""
+    it = iter(jobs)
+    pending: dict[Future, int] = {}
+    done: dict[int, list] = {}
+    submitted = emitted = 0
+    while True:
+        while len(pending) * chunk < window and (items := list(itertools.islice(it, chunk))):
+            pending[pool.submit(_run_items, fn, items)] = submitted
+            submitted += 1
+        if not pending:
+            return
+        finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+        for future in finished:
+            done[pending.pop(future)] = future.result()
+        keys = (
+            list(itertools.takewhile(done.__contains__, itertools.count(emitted)))
+            if ordered
+            else sorted(done)
+        )
+        for key in keys:
+            emitted += 1
+            yield from done.pop(key)
+
+
+def _dead_exitcode(pool: ProcessPoolExecutor) -> int | None:
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    codes = [p.exitcode for p in procs if p.exitcode not in (None, 0)]
+    return codes[0] if codes else None
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Shut the pool down; on the way out of an interrupted run its workers are terminated
+    rather than left to finish the jobs they hold."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    for p in procs:
+        p.join(timeout=10)
 
 
 # --- Ray -------------------------------------------------------------------------------------

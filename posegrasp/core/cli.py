@@ -24,7 +24,7 @@ from typing import Any, NoReturn, TextIO
 
 from posegrasp.core.errors import PosegraspError
 from posegrasp.core.files import atomic_write_json
-from posegrasp.core.journal import INTERRUPTED_EXIT, Interrupted
+from posegrasp.core.journal import INTERRUPTED_EXIT, Interrupted, interruptible
 from posegrasp.core.validate import (
     DEFAULT_WORKERS,
     MAX_WORKERS,
@@ -55,7 +55,8 @@ def command(main: Callable[..., int]) -> Callable[..., int]:
     """Decorate a command's ``main(argv) -> int`` so that it always returns its exit status.
 
     A `PosegraspError` becomes one ``error:`` line on stderr and status 2 (`fail`); Ctrl-C or
-    SIGTERM one line (for a journaled run, the command that resumes it) and status 130; argparse's
+    SIGTERM, wherever the command is (`posegrasp.core.journal.interruptible` holds while it
+    runs), one line (for a journaled run, the command that resumes it) and status 130; argparse's
     exit (``--help``: 0, a bad argument, already reported in one line: 2) becomes its status. The
     decorated function is a console-script entry point as it is (``sys.exit(main())``).
 
@@ -69,11 +70,15 @@ def command(main: Callable[..., int]) -> Callable[..., int]:
     @functools.wraps(main)
     def run(*args: Any, **kwargs: Any) -> int:
         try:
-            return main(*args, **kwargs)
+            with interruptible():
+                return main(*args, **kwargs)
         except PosegraspError as exc:
             return fail(str(exc))
         except Interrupted as exc:  # a journaled run: the line says how to resume
-            print(str(exc), file=sys.stderr)
+            line = str(exc)
+            if exc.journal is None and not line.startswith("interrupted"):
+                line = f"interrupted by {line or 'a signal'}; nothing was recorded"
+            print(line, file=sys.stderr)
             return INTERRUPTED_EXIT
         except KeyboardInterrupt:
             print("interrupted", file=sys.stderr)

@@ -15,6 +15,7 @@ import contextlib
 import hashlib
 import json
 import os
+import re
 import shlex
 import signal
 import sys
@@ -33,8 +34,13 @@ JOURNAL_VERSION = 1
 INTERRUPTED_EXIT = 130
 
 
-class Interrupted(Exception):
-    """Ctrl-C or SIGTERM arrived; what had finished is in the journal.
+class Interrupted(BaseException):
+    """Ctrl-C or SIGTERM arrived, or a worker process was killed; what had finished is in the
+    journal.
+
+    A `BaseException`, as KeyboardInterrupt is: raised wherever the run is (in an episode, in
+    an estimator), it passes every ``except Exception`` that turns a failure into an outcome, so
+    a stopped run is never scored.
 
     Attributes:
         journal: the journal that holds the finished units (None when the run kept none).
@@ -73,11 +79,13 @@ class Journal:
 
         Raises:
             InvalidArgumentError: resuming with no journal, or another run's; starting anew
-                over an unfinished run's journal (its finished work is never overwritten).
+                over an unfinished run's journal that holds finished units (they are never
+                overwritten; one that holds none, a run stopped before its first unit, is
+                replaced).
         """
         header = {"journal": self.kind, "version": JOURNAL_VERSION, "protocol": self.protocol}
         if not resume:
-            if self.path.exists():
+            if self.path.exists() and self._holds_units():
                 raise InvalidArgumentError(
                     f"{self.path} holds an unfinished run; add --resume to finish it, or delete "
                     "the file to start over"
@@ -93,6 +101,12 @@ class Journal:
             f.truncate(good_bytes)
         self._file = self.path.open("a", encoding="utf-8")
         return units
+
+    def _holds_units(self) -> bool:
+        """Whether the file holds a unit after its header (one cut short counts too)."""
+        with self.path.open("rb") as f:
+            f.readline()
+            return bool(f.read(1))
 
     def _read(self, header: dict[str, Any]) -> tuple[list[dict[str, Any]], int]:
         raw = self.path.read_bytes()
@@ -175,8 +189,24 @@ def interruptible() -> Iterator[None]:
             signal.signal(signal.SIGTERM, previous)
 
 
+def command_line(argv: list[str] | None = None, flag: str | None = None) -> str:
+    """The command that is running, as a shell runs it again: ``python -m <module>`` (or the
+    script's name) and its arguments (None: ``sys.argv[1:]``), `flag` appended when missing."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if flag is not None and flag not in args:
+        args.append(flag)
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    cmd = f"python -m {spec.name}" if spec is not None else Path(sys.argv[0]).name
+    return f"{cmd} {shlex.join(args)}".rstrip()
+
+
 def resume_hint(
-    journal: Path, done: int, total: int, argv: list[str] | None = None, why: str = "interrupted"
+    journal: Path,
+    done: int,
+    total: int,
+    argv: list[str] | None = None,
+    why: str = "interrupted",
+    flag: str | None = "--resume",
 ) -> str:
     """The one line an interrupted command prints: what is kept, and the command that resumes.
 
@@ -185,16 +215,41 @@ def resume_hint(
         done, total: units finished, and units of the run.
         argv: the command's arguments (None: ``sys.argv[1:]``).
         why: what stopped the run, the line's first words.
+        flag: what the command needs to resume (None: it resumes by itself when run again).
     """
-    args = list(sys.argv[1:] if argv is None else argv)
-    if "--resume" not in args:
-        args.append("--resume")
-    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
-    cmd = f"python -m {spec.name}" if spec is not None else Path(sys.argv[0]).name
     return (
         f"{why}: {done} of {total} finished and kept in {journal}; resume with: "
-        f"{cmd} {shlex.join(args)}"
+        f"{command_line(argv, flag)}"
     )
+
+
+#: The note an episode carries when an interruption was recorded as its outcome (as runs did
+#: before `Interrupted` passed the episode's error handling).
+INTERRUPTED_NOTE = re.compile(r"^(Interrupted|KeyboardInterrupt)\b")
+
+
+def interrupted(unit: Any) -> bool:
+    """Whether a finished unit (an episode's record) holds an interruption instead of an
+    outcome: failed as ``error`` with an `INTERRUPTED_NOTE`. Such a unit is run again on resume
+    and refused in a report."""
+    if not isinstance(unit, dict) or unit.get("failure_reason") != "error":
+        return False
+    return any(INTERRUPTED_NOTE.match(str(n)) for n in unit.get("notes") or [])
+
+
+@contextlib.contextmanager
+def resumable(journal: Path, total: int, flag: str | None = "--resume") -> Iterator[None]:
+    """Around a journaled command's work: an interruption outside its journaled map (while the
+    report is made or written, say) still says what the journal keeps and how to resume."""
+    try:
+        yield
+    except Interrupted as exc:
+        if exc.journal is not None or not Path(journal).is_file():
+            raise
+        with Path(journal).open("rb") as f:
+            done = max(0, sum(1 for _ in f) - 1)
+        hint = resume_hint(Path(journal), done, total, flag=flag)
+        raise Interrupted(hint, Path(journal), done, total) from None
 
 
 def _keyed(item: tuple[Callable[[Any], Any], int, Any]) -> tuple[int, Any]:
@@ -208,6 +263,7 @@ def run_journaled(
     total: int,
     journal: Journal | None = None,
     resume: bool = False,
+    resume_flag: str | None = "--resume",
     **map_options: Any,
 ) -> list[Any]:
     """``[fn(job) for job in jobs]`` through `posegrasp.core.backends.run_map`, each result kept
@@ -219,22 +275,28 @@ def run_journaled(
         jobs: the `total` jobs, in order; with `resume`, those the journal holds are not run.
         total: the number of jobs.
         journal: where finished results are kept (None: nowhere).
-        resume: continue the run the journal holds (`Journal.start`).
+        resume: continue the run the journal holds (`Journal.start`); a unit it holds that
+            records an interruption (`interrupted`) runs again.
+        resume_flag: what the command needs to resume, for the line (`resume_hint`).
         map_options: passed to `run_map` (backend, workers, desc, initializer, ...).
 
     Returns:
         The results in job order, the resumed ones as the journal holds them.
 
     Raises:
-        Interrupted: Ctrl-C or SIGTERM; with a journal, its message is the line that resumes.
+        Interrupted: Ctrl-C or SIGTERM, or a local worker process killed
+            (`posegrasp.core.backends.WorkerDied`); with a journal, its message is the line that
+            resumes.
         Any error of the run itself (an unreachable cluster, a worker that died ...): a journal
         that holds no finished result then is removed, so the same command can simply be run
         again; one that holds some is kept, and the line that resumes goes to stderr first.
     """
-    from posegrasp.core.backends import by_import_name, run_map
+    from posegrasp.core.backends import WorkerDied, by_import_name, run_map
 
     target = by_import_name(fn)  # a Ray worker cannot import a function of ``python -m``'s __main__
-    done = {int(u["key"]): u["result"] for u in (journal.start(resume) if journal else [])}
+    # A later line of a key wins; a unit that holds an interruption runs again.
+    kept = {int(u["key"]): u["result"] for u in (journal.start(resume) if journal else [])}
+    done = {k: r for k, r in kept.items() if not interrupted(r)}
     results = dict(done)
     pending = ((target, k, job) for k, job in enumerate(jobs) if k not in done)
     try:
@@ -252,17 +314,19 @@ def run_journaled(
                 results[key] = result
                 if journal:
                     journal.append({"key": key, "result": result})
-    except Interrupted as exc:
+    except (Interrupted, WorkerDied) as exc:
         if journal is None:
             raise
-        hint = resume_hint(journal.path, len(results), total)
-        raise Interrupted(hint, journal.path, len(results), total) from exc
+        why = "interrupted" if isinstance(exc, Interrupted) else f"stopped: {exc}"
+        hint = resume_hint(journal.path, len(results), total, why=why, flag=resume_flag)
+        raise Interrupted(hint, journal.path, len(results), total) from None
     except BaseException as exc:
         if journal and not results:  # failed before anything finished: nothing to resume
             journal.finish()
         elif journal:  # a crash keeps what finished, as an interruption does
             why = f"stopped by {type(exc).__name__}"
-            print(resume_hint(journal.path, len(results), total, why=why), file=sys.stderr)
+            hint = resume_hint(journal.path, len(results), total, why=why, flag=resume_flag)
+            print(hint, file=sys.stderr)
         raise
     finally:
         if journal:
