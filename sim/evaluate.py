@@ -50,6 +50,7 @@ from sim.estimators import (
     add_obs_mode_argument,
     add_sensor_argument,
     check_depth,
+    depth_unused_note,
     make_estimator,
 )
 from sim.evaluation import (
@@ -265,6 +266,8 @@ def main(argv: list[str] | None = None) -> int:
     if poses is None:
         check_depth(args.estimator, args.obs_mode)
     protocol = _protocol(args, poses)
+    if poses is None and (note := depth_unused_note(protocol.obs_mode, protocol.sensor)):
+        print(note, file=sys.stderr)
     check_seed(protocol.seed_start, "--seed-start", protocol.episodes)
     check_backend(args.backend, args.address)
     if args.noise is not None:

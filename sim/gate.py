@@ -47,9 +47,11 @@ import numpy as np
 from posegrasp.core.backends import add_backend_arguments, check_backend
 from posegrasp.core.cli import ArgumentParser, add_workers_argument, command, write_json
 from posegrasp.core.errors import AssetError, PosegraspError
+from posegrasp.core.journal import journal_path, resumable
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
+from sim.episode import execution_settings
 from sim.estimators import (
     DEFAULT_ESTIMATOR,
     add_estimator_arguments,
@@ -58,7 +60,7 @@ from sim.estimators import (
     check_depth,
     estimator_fingerprint,
 )
-from sim.evaluate import evaluate, execution_settings, format_report
+from sim.evaluation import Protocol, evaluate_protocol, format_report, run_protocol
 from sim.report_schema import validate_report
 from sim.stats import BOOTSTRAP, bootstrap_means, mcnemar_exact
 
@@ -170,23 +172,44 @@ def run_gate(
     address: str | None = None,
     obs_mode: str = "rgb",
     sensor: str = "ideal",
+    journal: Path | None = None,
+    resume: bool = False,
 ) -> dict:
     """The gate's evaluation: `episodes` per object of `GATE_TIER` from `GATE_SEED_START`,
     friction margins measured, the estimator seeing `obs_mode`, on `backend`
-    (`posegrasp.core.backends.run_map`)."""
-    return evaluate(
-        list(OBJECT_NAMES),
-        episodes,
+    (`posegrasp.core.backends.run_map`), its finished episodes kept in `journal` (resumed with
+    `resume`; `sim.evaluation.evaluate_protocol`)."""
+    return evaluate_protocol(
+        gate_run_protocol(episodes, obs_mode, sensor),
         estimator,
-        GATE_SEED_START,
-        workers,
-        GATE_TIER,
-        margin=True,
+        workers=workers,
         backend=backend,
         address=address,
+        journal=journal,
+        resume=resume,
+    )
+
+
+def gate_run_protocol(
+    episodes: int = GATE_EPISODES, obs_mode: str = "rgb", sensor: str = "ideal"
+) -> Protocol:
+    """The episodes of a gate run (`sim.evaluation.Protocol`)."""
+    return Protocol(
+        objects=tuple(OBJECT_NAMES),
+        episodes=episodes,
+        seed_start=GATE_SEED_START,
+        tier=GATE_TIER,
+        margin=True,
         obs_mode=obs_mode,
         sensor=sensor,
     )
+
+
+def gate_journal(estimator: str, obs_mode: str = "rgb", sensor: str = "ideal") -> Path:
+    """Where a gate run of `estimator` keeps its finished episodes until the gate's verdict or
+    baseline is written: the data folder's runs/ (`posegrasp.core.journal.journal_path`)."""
+    protocol = run_protocol(gate_run_protocol(GATE_EPISODES, obs_mode, sensor), estimator)
+    return journal_path(None, "gate", protocol)
 
 
 def _outcomes(episodes: list[dict]) -> dict[tuple[str, int], tuple[bool, float | None]]:
@@ -284,6 +307,12 @@ def main(argv: list[str] | None = None) -> int:
     add_obs_mode_argument(p)
     add_sensor_argument(p)
     add_backend_arguments(p)
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="finish an interrupted gate of the same arguments from its journals (one per "
+        "estimator, under the data folder's runs/)",
+    )
     args = p.parse_args(argv)
     if args.estimator:
         check_depth(args.estimator, args.obs_mode)
@@ -307,7 +336,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{', '.join(baselines)}; write one with `python -m sim.gate --write --estimator E`"
             )
     failed = False
-    for name in names:
+    journals = [gate_journal(name, args.obs_mode, args.sensor) for name in names]
+    for name, journal in zip(names, journals, strict=True):
         weights, note = estimator_fingerprint(name)
         if note is None:
             note = f"weights fingerprint of {', '.join(weights) or 'no file (it loads none)'}"
@@ -320,18 +350,21 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{name}: {why}")
                 failed = True
                 continue
-        report = validate_report(
-            run_gate(
-                name,
-                GATE_EPISODES,
-                args.workers,
-                args.backend,
-                args.address,
-                args.obs_mode,
-                args.sensor,
-            ),
-            f"the gate's run of {name}",
-        )
+        with resumable(journal, gate_run_protocol().total):
+            report = validate_report(
+                run_gate(
+                    name,
+                    GATE_EPISODES,
+                    args.workers,
+                    args.backend,
+                    args.address,
+                    args.obs_mode,
+                    args.sensor,
+                    journal,
+                    args.resume and journal.is_file(),
+                ),
+                f"the gate's run of {name}",
+            )
         print(format_report(report))
         if args.write:
             baselines[name] = baseline_of(report, weights)
@@ -341,6 +374,8 @@ def main(argv: list[str] | None = None) -> int:
         failed |= not ok
     if args.write:
         write_json(args.baseline, baselines)
+    for journal in journals:  # the verdicts are given, the baseline written: nothing to resume
+        journal.unlink(missing_ok=True)
     return 1 if failed else 0
 
 

@@ -3,7 +3,9 @@ and shipped in the package (`SCHEMA_FILE`), and the reader that `sim.compare` an
 
 Every report names its schema in its ``schema`` field (`REPORT_SCHEMA`). A reader validates a
 report against the schema before it trusts any field, and refuses one that does not conform in
-one line naming the field.
+one line naming the field. A field added to the schema without raising its number is optional
+(the groups' ``risk_coverage``, the episodes' ``confidence``, ``vsd`` and ``sensor``), so reports
+written before it still read.
 """
 
 from __future__ import annotations

@@ -7,6 +7,8 @@ import pytest
 
 from posegrasp.core.contract import CONTRACT_VERSION, Estimate, confidence_problem
 from posegrasp.core.errors import InvalidArgumentError
+from sim.evaluation import Protocol, format_report, make_report
+from sim.report_schema import validate_report
 from sim.stats import risk_coverage
 
 
@@ -58,3 +60,85 @@ def test_no_confidence_is_no_curve_and_lengths_must_agree() -> None:
     assert risk_coverage([None, None], [True, False]) is None
     with pytest.raises(InvalidArgumentError, match="3 confidences for 2 episodes"):
         risk_coverage([1.0, 2.0, 3.0], [True, False])
+
+
+def _episode(obj: str, seed: int, confidence: float | None, held: bool) -> dict:
+    """An episode record as `sim.evaluate` writes it (schema `sim.report_schema`); a confidence
+    of None is left out, as `sim.episode.EpisodeResult.to_json` leaves it."""
+    e = {
+        "object": obj,
+        "seed": seed,
+        "estimator": "x",
+        "tier": "isolated",
+        "success": held,
+        "failure_reason": None if held else "missed",
+        "pose_error": None,
+        "notes": [],
+        "timings_ms": {},
+        "wall_ms": 1.0,
+    }
+    return e if confidence is None else {**e, "confidence": confidence}
+
+
+#: (object, confidence, held) of a hand-made evaluation: the car's estimator says nothing.
+HAND_MADE = [
+    ("phone", 0.9, True),
+    ("phone", 0.8, False),
+    ("phone", 0.8, True),
+    ("phone", 0.3, False),
+    ("phone", None, True),
+    ("car", None, True),
+    ("car", None, False),
+]
+
+
+def _report(rows=HAND_MADE, sensor: str = "ideal") -> dict:
+    eps = [_episode(o, s, c, h) for s, (o, c, h) in enumerate(rows)]
+    protocol = Protocol(["phone", "car"], len(eps), seed_start=0, sensor=sensor)
+    return make_report(eps, protocol, "x")
+
+
+def test_every_report_holds_the_curve_and_its_area_by_hand() -> None:
+    report = validate_report(_report())
+    phone, car, overall = (
+        report["per_object"]["phone"]["risk_coverage"],
+        report["per_object"]["car"]["risk_coverage"],
+        report["overall"]["risk_coverage"],
+    )
+    # Ranked 0.9 (held), 0.8 and 0.8 (tied: one held), 0.3 (dropped): the first attempt holds
+    # 1 of 1, the tie 2 of 3 each, the last 2 of 4.
+    assert phone["area"] == pytest.approx((1 + 2 / 3 + 2 / 3 + 2 / 4) / 4)
+    assert phone["threshold"] == [0.9, 0.8, 0.3]
+    assert phone["coverage"] == pytest.approx([1 / 5, 3 / 5, 4 / 5])
+    assert phone["success"] == pytest.approx([1, 2 / 3, 2 / 4])
+    assert car is None  # no confidence in any of its episodes
+    assert overall["area"] == pytest.approx(phone["area"])
+    assert overall["coverage"][-1] == pytest.approx(4 / 7)
+    none = _report([(o, None, h) for o, _, h in HAND_MADE])
+    assert none["overall"]["risk_coverage"] is None
+
+
+def test_a_report_without_the_curve_still_reads() -> None:
+    report = _report()
+    for g in [report["overall"], *report["per_object"].values()]:
+        del g["risk_coverage"]
+    assert validate_report(report) is report
+    assert "risk-coverage area" not in format_report(report)  # not recorded, so not claimed
+    report["overall"]["risk_coverage"] = {"area": 0.5}
+    with pytest.raises(
+        InvalidArgumentError, match=r"lacks the field overall\.risk_coverage\.threshold"
+    ):
+        validate_report(report)
+
+
+def test_the_summary_names_the_sensor_and_prints_the_area() -> None:
+    text = format_report(_report(sensor="kinect-v1"))
+    head = text.splitlines()[0]
+    assert head.startswith("estimator x, tier isolated, sensor kinect-v1: ")
+    area = (1 + 2 / 3 + 2 / 3 + 2 / 4) / 4
+    line = next(x for x in text.splitlines() if x.startswith("risk-coverage area"))
+    assert line.endswith(f"phone {area:.3f}, car -, overall {area:.3f}")
+    # No sensor recorded is the ideal camera; no confidence anywhere is said in words.
+    plain = format_report(_report([(o, None, h) for o, _, h in HAND_MADE]))
+    assert ", sensor ideal: " in plain.splitlines()[0]
+    assert "risk-coverage area: none, the estimator gives no confidence" in plain

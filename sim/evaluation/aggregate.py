@@ -1,5 +1,6 @@
 """The evaluation report of finished episodes: per object and overall, success with its Wilson
-interval, pose errors, BOP's average recalls, friction margins and times.
+interval, pose errors, BOP's average recalls, the risk-coverage curve of the estimator's
+confidence, friction margins and times.
 
 Pure functions of the episode records (`sim.episode.EpisodeResult.to_json` plus ``wall_ms``);
 nothing here runs an episode.
@@ -16,7 +17,13 @@ from perception import metrics
 from sim.episode import execution_settings
 from sim.evaluation.protocol import Protocol
 from sim.report_schema import REPORT_SCHEMA, validate_report
-from sim.stats import BOOTSTRAP, bootstrap_means, margin_error_correlation, wilson_interval
+from sim.stats import (
+    BOOTSTRAP,
+    bootstrap_means,
+    margin_error_correlation,
+    risk_coverage,
+    wilson_interval,
+)
 
 #: The head camera's width the episodes render at [px] (BOP scales MSPD's thresholds by it).
 IMAGE_WIDTH = 640
@@ -46,8 +53,10 @@ def group_summary(episodes: list[dict]) -> dict[str, Any]:
     """The aggregates of a group of episodes (one object's, or all): successes, rate and Wilson
     95 % interval, failure reasons, median and 90th-percentile pose errors ([m], [deg]), friction
     margin mean with its bootstrap 95 % interval and its Spearman correlation with the pose
-    error (when measured), how often pose and grasp disagree, `bop_scores`, and the median
-    episode wall time and planning time [ms]."""
+    error (when measured), how often pose and grasp disagree, `bop_scores`, the risk-coverage
+    curve of the estimates' confidences with its area (``risk_coverage``,
+    `sim.stats.risk_coverage`; None when no episode has a confidence), and the median episode
+    wall time and planning time [ms]."""
     n = len(episodes)
     k = sum(bool(e["success"]) for e in episodes)
     lo, hi = wilson_interval(k, n)
@@ -81,6 +90,9 @@ def group_summary(episodes: list[dict]) -> dict[str, Any]:
     out["grasped_wrong_pose"] = sum(bool(e["success"]) and not e["pose_correct"] for e in judged)
     out["missed_right_pose"] = sum(not e["success"] and bool(e["pose_correct"]) for e in judged)
     out.update(bop_scores(episodes))
+    out["risk_coverage"] = risk_coverage(
+        [e.get("confidence") for e in episodes], [bool(e["success"]) for e in episodes]
+    )
     walls = [e["wall_ms"] for e in episodes]
     plans = [e["timings_ms"]["ik"] for e in episodes if "ik" in e.get("timings_ms", {})]
     out["episode_wall_ms_median"] = float(np.median(walls)) if walls else None

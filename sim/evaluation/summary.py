@@ -1,6 +1,7 @@
-"""The evaluation report as text: a table per object and overall (success, pose errors, BOP's
-average recalls, times, failures), the most frequent notes of each failure reason, and the
-friction margins when measured.
+"""The evaluation report as text: the sensor observed through, a table per object and overall
+(success, pose errors, BOP's average recalls, times, failures), the risk-coverage area of the
+estimator's confidence, the most frequent notes of each failure reason, and the friction margins
+when measured.
 """
 
 from __future__ import annotations
@@ -56,12 +57,28 @@ def _one_line(note: str) -> str:
     return line if len(line) <= NOTE_CHARS else line[: NOTE_CHARS - 3] + "..."
 
 
+def area_line(groups: list[tuple[str, dict]]) -> str | None:
+    """The risk-coverage area of each group (`sim.stats.risk_coverage`, ``-`` for a group
+    without a confidence), or that the estimator gives none; None for a report written before
+    the area was recorded."""
+    recorded = [(name, g["risk_coverage"]) for name, g in groups if "risk_coverage" in g]
+    if not recorded:
+        return None
+    if all(rc is None for _, rc in recorded):
+        return "risk-coverage area: none, the estimator gives no confidence"
+    return "risk-coverage area (success over the attempts ranked by confidence): " + ", ".join(
+        f"{name} {_ar(None if rc is None else rc['area'])}" for name, rc in recorded
+    )
+
+
 def format_report(report: dict) -> str:
-    """The report as a table: per object and overall, success, pose errors, BOP's AR_MSSD,
-    AR_MSPD and AR_VSD, times and failures; then the most frequent notes of each failure
-    reason (`failure_notes`)."""
+    """The report as a table, headed by the sensor the episodes were observed through (the
+    report's ``sensor``; ``ideal`` when it records none): per object and overall, success, pose
+    errors, BOP's AR_MSSD, AR_MSPD and AR_VSD, times and failures; then the risk-coverage area
+    (`area_line`) and the most frequent notes of each failure reason (`failure_notes`)."""
     rows = [
-        f"estimator {report['estimator']}, tier {report.get('tier', DEFAULT_TIER)}: "
+        f"estimator {report['estimator']}, tier {report.get('tier', DEFAULT_TIER)}, "
+        f"sensor {report.get('sensor', 'ideal')}: "
         f"{report['episodes_per_object']} episodes per object, "
         f"seeds from {report['seed_start']}, {report['workers']} worker(s), "
         f"{report['wall_s']:.1f} s wall",
@@ -88,6 +105,8 @@ def format_report(report: dict) -> str:
         f"estimates; grasped with a wrong pose: {o['grasped_wrong_pose']}; missed with a right "
         f"pose: {o['missed_right_pose']}"
     )
+    if (area := area_line(items)) is not None:
+        rows.append(area)
     notes = failure_notes(report["episodes"])
     if notes:
         rows.append("why episodes failed (most frequent notes, episodes with each):")
