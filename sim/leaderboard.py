@@ -1,27 +1,38 @@
 """The leaderboard: every (estimator, tier, sensor) cell on the same held-out episodes.
 
-    python -m sim.leaderboard [--estimators LIST] [--tiers LIST] [--sensors LIST] \
-        [--objects all] [--episodes N] [--workers N] [--backend local|ray] [--out DIR] \
-        [--markdown docs/LEADERBOARD.md] [--plots docs/leaderboard] [--json PATH]
+    python -m sim.leaderboard [--estimators LIST] [--poses CSV EXPORT ...] [--tiers LIST] \
+        [--sensors LIST] [--objects all] [--episodes N] [--workers N] [--backend local|ray] \
+        [--out DIR] [--publish]
 
-Each cell is one `sim.evaluate` run (its report and journal under ``--out``/cells), so an
-interrupted leaderboard resumes where it stopped: a finished cell is read back, a started one
-resumes from its journal. A cell records the estimator's settings and weights it ran with
-(`sim.estimators.estimator_settings`); where they are not today's, the board refuses to run and
-names the cells, rather than mix runs of other settings into it. An estimator that needs depth
-(`sim.estimators.needs_depth`) sees ``rgbd`` observations, every other one ``rgb``; an RGB-only
-estimator sees only the sensor's colour model, so its cells under sensors that differ only in
-depth are one run, shown under each. A cell that cannot run (an estimator whose extra is not
-installed) is reported as such, not dropped. Then it writes the whole board as JSON, the
-Markdown page (`docs/LEADERBOARD.md` is its output, never edited by hand) and three plots:
-success per cell, AR against success, and success against coverage for the estimators that give
-a confidence.
+A row is any estimator a spec names (`sim.estimators`: a built-in name, an installed entry point,
+a plug-in ``package.module:factory``) or the poses of a BOP results CSV of a method run
+elsewhere (``--poses CSV EXPORT``: the CSV answers the export of `sim.export_bop` it names, whose
+episodes must be the board's), ranked with the others on the same episodes.
+
+Each cell is one evaluation (`sim.evaluation`; its report and journal under ``--out``/cells), so
+a stopped leaderboard resumes where it stopped when its command runs again, as the line it
+prints says: a finished cell is read back, a started one resumes from its journal. A cell
+records the estimator's settings and weights it ran with (`sim.estimators.estimator_settings`;
+a CSV's and its export's hashes); where they are not today's, the board refuses to run and names
+the cells, rather than mix runs of other settings into it; so it does for a cell that holds an
+episode stopped rather than played, or other episodes than the board's. An estimator that cannot
+be made here (an extra not installed) is refused before any cell runs, in one line naming the
+install. An estimator that needs depth (`sim.estimators.needs_depth`) sees ``rgbd``
+observations, every other one ``rgb``; an RGB-only estimator sees only the sensor's colour
+model, so its cells under sensors that differ only in depth are one run, shown under each.
+
+The board goes under ``--out``: the whole board as JSON, the Markdown page and three plots
+(`sim.leaderboard_plots`), the page linking its plots relative to where it is written;
+``--publish`` writes the shipped page instead (`docs/LEADERBOARD.md`, its JSON and plots, never
+edited by hand).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
+import shlex
 import sys
 import time
 from collections import Counter
@@ -41,13 +52,15 @@ from posegrasp.core.cli import (
     write_json,
 )
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError
-from posegrasp.core.files import atomic_write_bytes, atomic_write_json
+from posegrasp.core.files import atomic_write_bytes, atomic_write_json, sha256_file
+from posegrasp.core.journal import Interrupted, interrupted
 from posegrasp.core.paths import DOCS_DIR, in_repo
-from posegrasp.core.validate import arg, check_int, check_names
+from posegrasp.core.validate import arg, check_input_file, check_int, check_names
 from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.sensors import SENSOR_NAMES, Sensor
 from posegrasp.world.tiers import TIERS
+from sim import leaderboard_plots
 from sim.grasp_vs_bop import ar_for_success, episode_aucs, spearman_with_interval
 from sim.stats import risk_coverage, wilson_interval
 
@@ -75,6 +88,13 @@ TOP_REASONS = 2
 #: The success a method should reach; the AR that predicts it is reported per tier.
 TARGET_SUCCESS = 0.95
 
+#: Where ``--publish`` writes the board: the shipped page, its JSON and its plots.
+PUBLISHED = {
+    "markdown": DOCS_DIR / "LEADERBOARD.md",
+    "json": DOCS_DIR / "leaderboard.json",
+    "plots": DOCS_DIR / "leaderboard",
+}
+
 
 @dataclass(frozen=True)
 class Cell:
@@ -86,6 +106,8 @@ class Cell:
     obs_mode: str
     #: The sensor the run actually uses: an RGB-only estimator's ignores the depth model.
     run_sensor: str
+    #: A row of a BOP results CSV: the CSV and the export it answers (None: a live estimator).
+    poses: tuple[str, str] | None = None
 
     @property
     def run_key(self) -> str:
@@ -97,18 +119,92 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.+-]", "_", name)
 
 
-def cells_of(estimators: Sequence[str], tiers: Sequence[str], sensors: Sequence[str]) -> list[Cell]:
-    """Every (estimator, tier, sensor) cell, with the observation mode and sensor it runs in."""
+@dataclass(frozen=True)
+class PosesRow:
+    """A row of the board from a BOP results CSV: the poses of a method run elsewhere, on the
+    episodes of the export the CSV answers.
+
+    Attributes:
+        name: the row's name, ``bop:<method>`` (the CSV's name up to its first underscore, as
+            BOP names results files ``METHOD_DATASET-SPLIT.csv``).
+        csv: the results CSV.
+        export: the export folder of `sim.export_bop` that the CSV answers.
+        tier, sensor: the export's tier and the sensor its images were rendered through.
+    """
+
+    name: str
+    csv: str
+    export: str
+    tier: str
+    sensor: str
+
+
+def poses_rows(
+    pairs: Sequence[Sequence[str]], objects: Sequence[str], episodes: int
+) -> list[PosesRow]:
+    """The CSV rows ``--poses CSV EXPORT`` gives, each checked against the board's episodes.
+
+    Raises:
+        InvalidArgumentError: an export that cannot be read, holds other episodes than the
+            board's (objects, episodes per object, first seed), or two CSVs of one method for the
+            same tier and sensor.
+    """
+    from sim.bop_results import BopPosesEstimator
+
+    rows: list[PosesRow] = []
+    for csv, folder in pairs:
+        export = BopPosesEstimator(csv, folder).export  # reads and checks both
+        theirs = (list(export.objects), export.episodes, export.seed_start)
+        ours = (list(objects), episodes, EVAL_SEED_BASE)
+        if theirs != ours:
+            raise InvalidArgumentError(
+                f"the export {folder} holds {theirs[1]} episodes of {','.join(theirs[0])} from "
+                f"seed {theirs[2]}, the board {ours[1]} of {','.join(ours[0])} from {ours[2]}; "
+                f"export the board's: python -m sim.export_bop --tier {export.tier} --sensor "
+                f"{export.sensor} --objects {','.join(ours[0])} --episodes {ours[1]} --out DIR"
+            )
+        name = "bop:" + Path(csv).stem.split("_")[0]
+        row = PosesRow(name, str(csv), str(folder), export.tier, export.sensor)
+        if any((r.name, r.tier, r.sensor) == (name, row.tier, row.sensor) for r in rows):
+            raise InvalidArgumentError(
+                f"two CSVs of {name} answer tier {row.tier} under sensor {row.sensor}; give one"
+            )
+        rows.append(row)
+    return rows
+
+
+def cells_of(
+    estimators: Sequence[str],
+    tiers: Sequence[str],
+    sensors: Sequence[str],
+    rows: Sequence[PosesRow] = (),
+) -> list[Cell]:
+    """Every (estimator, tier, sensor) cell, with the observation mode and sensor it runs in;
+    then each CSV row's cell, of its export's tier and sensor (it must be on the board).
+
+    Raises:
+        InvalidArgumentError: a CSV row whose tier or sensor the board does not show.
+    """
     from sim.estimators import needs_depth
 
     out = []
-    for sensor in sensors:
+    names = [Sensor.parse(s).name for s in sensors]
+    for sensor in names:
         parsed = Sensor.parse(sensor)
         for tier in tiers:
             for est in estimators:
                 depth = needs_depth(est)
                 run_sensor = parsed.name if depth else Sensor("ideal", parsed.rgb).name
                 out.append(Cell(est, tier, parsed.name, "rgbd" if depth else "rgb", run_sensor))
+            for row in rows:
+                if (row.tier, row.sensor) == (tier, sensor):
+                    out.append(Cell(row.name, tier, sensor, "rgb", sensor, (row.csv, row.export)))
+    for row in rows:
+        if row.tier not in tiers or row.sensor not in names:
+            raise InvalidArgumentError(
+                f"{row.csv} answers tier {row.tier} under sensor {row.sensor}, which the board "
+                f"does not show; add them to --tiers and --sensors"
+            )
     return out
 
 
@@ -122,16 +218,13 @@ def _cell_files(cells_dir: Path, cell: Cell) -> tuple[Path, Path, Path]:
     )
 
 
-def stale_cells(
-    cells: Sequence[Cell], cells_dir: Path, settings: dict[str, dict | None]
-) -> list[str]:
-    """The cells with files in `cells_dir` (a report or a journal) whose recorded estimator
-    settings are not `settings` of their estimator (or are not recorded), each with the first
-    settings that differ. An estimator whose settings are None (it cannot be made) is left to
-    fail when its cells run."""
+def stale_cells(cells: Sequence[Cell], cells_dir: Path, settings: dict[Cell, dict]) -> list[str]:
+    """The cells with files in `cells_dir` (a report or a journal) whose recorded settings are
+    not their `settings` today (`today_settings`; or are not recorded), each with the first
+    settings that differ."""
     out = []
     for cell in cells:
-        today = settings.get(cell.estimator)
+        today = settings.get(cell)
         report, journal, path = _cell_files(cells_dir, cell)
         if today is None or not (report.exists() or journal.exists()):
             continue
@@ -157,36 +250,89 @@ def _differences(a: dict, b: dict, most: int = 3) -> str:
     return ", ".join(keys[:most]) + (f" and {len(keys) - most} more" if len(keys) > most else "")
 
 
+def poses_settings(csv: str, export: str) -> dict:
+    """What shapes a CSV row's results, as a cell records it: the CSV's and the export's map
+    file's hashes."""
+    from sim.bop_results import MAP_FILE
+
+    return {
+        "weights": None,
+        "settings": {
+            "csv_sha256": sha256_file(Path(csv)),
+            "export_map_sha256": sha256_file(Path(export) / MAP_FILE),
+        },
+    }
+
+
+def unfit_cells(
+    cells: Sequence[Cell], cells_dir: Path, objects: Sequence[str], episodes: int
+) -> list[str]:
+    """The cells whose report in `cells_dir` cannot stand on this board, each with why: one that
+    holds an episode stopped rather than played (`posegrasp.core.journal.interrupted`), or other
+    episodes than the board's."""
+    out = []
+    for cell in cells:
+        report_path = _cell_files(cells_dir, cell)[0]
+        if not report_path.exists():
+            continue
+        try:
+            report = json.loads(report_path.read_text())
+        except ValueError:
+            out.append(f"{report_path} (not JSON)")
+            continue
+        stopped = [e for e in report.get("episodes", []) if interrupted(e)]
+        if stopped:
+            out.append(f"{report_path} (holds {len(stopped)} episodes stopped, not played)")
+        elif (
+            report.get("episodes_per_object"),
+            list(report.get("per_object") or {}),
+            report.get("seed_start"),
+        ) != (episodes, list(objects), EVAL_SEED_BASE):
+            out.append(
+                f"{report_path} (holds {report.get('episodes_per_object')} episodes of "
+                f"{','.join(report.get('per_object') or {})} from seed {report.get('seed_start')})"
+            )
+    return sorted(set(out))
+
+
 def run_cell(cell: Cell, args, cells_dir: Path, settings: dict | None = None) -> dict:
-    """Run (or read back, or resume) one cell's `sim.evaluate` report; a run that starts
-    records `settings` (`stale_cells` checks them)."""
-    from sim.evaluate import evaluate
+    """Run (or read back, or resume) one cell's evaluation report; a run that starts records
+    `settings` (`stale_cells` checks them)."""
+    from sim.evaluation import (
+        Protocol,
+        evaluate_protocol,
+        export_protocol,
+        poses_estimator,
+        poses_record,
+    )
 
     report_path, journal, settings_path = _cell_files(cells_dir, cell)
-    if settings is not None and not report_path.exists() and not journal.exists():
-        atomic_write_json(settings_path, settings)
     if report_path.exists():
-        report = json.loads(report_path.read_text())
-        if report.get("episodes_per_object") == args.episodes and report.get("objects") == list(
-            args.objects
-        ):
-            return report
-    report = evaluate(
-        list(args.objects),
-        args.episodes,
-        cell.estimator,
-        EVAL_SEED_BASE,
-        workers=args.workers,
-        tier=cell.tier,
-        backend=args.backend,
-        address=args.address,
-        journal=journal,
-        resume=journal.exists(),
-        obs_mode=cell.obs_mode,
-        sensor=cell.run_sensor,
-    )
-    report["episodes_per_object"] = args.episodes
+        return json.loads(report_path.read_text())
+    if settings is not None and not journal.exists():
+        atomic_write_json(settings_path, settings)
+    run = {"workers": args.workers, "backend": args.backend, "address": args.address}
+    if cell.poses is None:
+        protocol = Protocol(
+            objects=tuple(args.objects),
+            episodes=args.episodes,
+            seed_start=EVAL_SEED_BASE,
+            tier=cell.tier,
+            obs_mode=cell.obs_mode,
+            sensor=cell.run_sensor,
+        )
+        report = evaluate_protocol(
+            protocol, cell.estimator, journal=journal, resume=journal.exists(), **run
+        )
+    else:
+        csv, export = cell.poses
+        poses = poses_estimator(Path(csv), Path(export))
+        poses.name = cell.estimator
+        protocol = export_protocol(poses, obs_mode=cell.obs_mode, sensor=cell.run_sensor)
+        report = evaluate_protocol(protocol, poses, journal=journal, resume=journal.exists(), **run)
+        report["poses"] = poses_record(poses, Path(csv), report)
     atomic_write_json(report_path, report)
+    journal.unlink(missing_ok=True)  # the report now holds every episode
     return report
 
 
@@ -202,13 +348,23 @@ def run_time_s(reports: Iterable[dict]) -> float:
     )
 
 
+def _times_ms(report: dict) -> list[float]:
+    """The estimator's time per image [ms]: a live estimator's as the episodes timed it; a CSV
+    row's as the method's results file states it (BOP's ``time`` column, seconds)."""
+    eps = report["episodes"]
+    if "poses" in report:
+        times = [(e.get("estimate_info") or {}).get("time") for e in eps]
+        return [1000.0 * t for t in times if isinstance(t, int | float) and t >= 0]
+    return [e["timings_ms"]["estimate"] for e in eps if "estimate" in e.get("timings_ms", {})]
+
+
 def cell_summary(report: dict) -> dict:
     """A cell's figures from its report: success with its Wilson interval, pose-correct rate,
     grasped with a wrong pose, the ARs, time per image and the leading failure reasons."""
     g = report["overall"]
     eps = report["episodes"]
     lo, hi = wilson_interval(g["successes"], g["episodes"])
-    times = [e["timings_ms"]["estimate"] for e in eps if "estimate" in e.get("timings_ms", {})]
+    times = _times_ms(report)
     reasons = Counter(e["failure_reason"] for e in eps if not e["success"])
     rc = risk_coverage([e.get("confidence") for e in eps], [bool(e["success"]) for e in eps])
     return {
@@ -333,8 +489,9 @@ def _num(x: float | None, fmt: str = ".3f") -> str:
     return "-" if x is None else format(x, fmt)
 
 
-def markdown(board: dict) -> str:
-    """The leaderboard page: how it was made, one table per (sensor, tier), the BOP analysis."""
+def markdown(board: dict, plots: str = "leaderboard") -> str:
+    """The leaderboard page: how it was made, one table per (sensor, tier), the BOP analysis;
+    its images are in the folder `plots`, as a link from the page's folder reads it."""
     lines = [
         "# Leaderboard",
         "",
@@ -352,17 +509,17 @@ def markdown(board: dict) -> str:
         f"wall time {board['wall_s'] / 3600:.1f} h with {board.get('workers', 1)} workers (the "
         "episodes' own times, shared over the workers that ran them).",
         "",
-        "![success per cell](leaderboard/success.png)",
+        f"![success per cell]({plots}/success.png)",
         "",
         *findings(board),
     ]
     lines += _cell_tables(board)
-    lines += _bop_section(board["analysis"])
+    lines += _bop_section(board["analysis"], plots)
     lines += [
         "",
         "## Confidence and abstention",
         "",
-        "![success against coverage](leaderboard/risk_coverage.png)",
+        f"![success against coverage]({plots}/risk_coverage.png)",
         "",
         "Success among attempted grasps when the robot attempts only the estimates above a",
         "confidence threshold, for the estimators that give a confidence (`RC area` above: the",
@@ -405,13 +562,13 @@ def _cell_tables(board: dict) -> list[str]:
     return lines
 
 
-def _bop_section(a: dict) -> list[str]:
+def _bop_section(a: dict, plots: str) -> list[str]:
     """What BOP scores say about grasps: Spearman's rho per AR, the separation AUC per tier
     and error, the AR needed for `TARGET_SUCCESS` per tier."""
     lines = [
         "## What BOP scores say about grasps",
         "",
-        "![AR against grasp success](leaderboard/ar_vs_success.png)",
+        f"![AR against grasp success]({plots}/ar_vs_success.png)",
         "",
         "Spearman's rank correlation of each AR with grasp success over the cells (oracle left",
         "out; 95 % bootstrap interval over cells):",
@@ -450,145 +607,103 @@ def _bop_section(a: dict) -> list[str]:
 
 
 def plots(board: dict, folder: Path) -> None:
-    """success.png, ar_vs_success.png and risk_coverage.png in folder."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """success.png, ar_vs_success.png and risk_coverage.png in folder (`sim.leaderboard_plots`)."""
     folder.mkdir(parents=True, exist_ok=True)
     cells = [c for c in board["cells"] if c.get("summary")]
     names = list(dict.fromkeys(c["estimator"] for c in cells))
     colour = {n: f"C{i % 10}" for i, n in enumerate(names)}
     by_key = _summaries(cells)
     sensors, tiers = board["sensors"], board["tiers"]
-    _success_plot(plt, by_key, names, colour, sensors, tiers, folder / "success.png")
-    fig, axes = plt.subplots(1, len(AR_KEYS), figsize=(4 * len(AR_KEYS), 4), sharey=True)
-    for ax, key in zip(np.atleast_1d(axes), AR_KEYS, strict=True):
-        for name in names:
-            pts = [
-                c["summary"]
-                for c in cells
-                if c["estimator"] == name and c["summary"][key] is not None
-            ]
-            ax.scatter([p[key] for p in pts], [p["success_rate"] for p in pts], label=name, s=18)
-        r = board["analysis"]["spearman"][key]
-        ax.set_title(f"{key.upper()}: rho {_num(r['rho'], '.2f')}")
-        ax.set_xlabel(key.upper())
-        ax.set_xlim(-0.02, 1.02)
-    np.atleast_1d(axes)[0].set_ylabel("grasp success")
-    np.atleast_1d(axes)[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)
-    fig.tight_layout()
-    fig.savefig(folder / "ar_vs_success.png", dpi=110)
-    plt.close(fig)
-
-    _risk_coverage_plot(plt, by_key, names, colour, sensors, tiers, folder / "risk_coverage.png")
-
-
-def _success_plot(plt, by_key, names, colour, sensors, tiers, path: Path) -> None:
-    """Grasp success with its Wilson interval: a panel per sensor, the tiers as groups."""
-    width = 0.8 / max(1, len(names))
-    figsize = (max(8.0, 0.16 * len(tiers) * len(names) + 2.5), 2.6 * len(sensors) + 0.6)
-    fig, axes = plt.subplots(len(sensors), 1, figsize=figsize, sharey=True, squeeze=False)
-    for ax, sensor in zip(axes[:, 0], sensors, strict=True):
-        for i, name in enumerate(names):
-            at = [
-                (j, by_key[name, sensor, t])
-                for j, t in enumerate(tiers)
-                if (name, sensor, t) in by_key
-            ]
-            if not at:
-                continue
-            rates = [m["success_rate"] for _, m in at]
-            ax.bar(
-                [j + (i - (len(names) - 1) / 2) * width for j, _ in at],
-                rates,
-                width,
-                yerr=[
-                    [r - m["wilson"][0] for r, (_, m) in zip(rates, at, strict=True)],
-                    [m["wilson"][1] - r for r, (_, m) in zip(rates, at, strict=True)],
-                ],
-                capsize=1.5,
-                color=colour[name],
-                label=name,
-            )
-        ax.set_xticks(range(len(tiers)), tiers)
-        ax.set_ylim(0, 1.05)
-        ax.set_ylabel("grasp success")
-        ax.set_title(f"sensor {sensor}", fontsize=10, loc="left")
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="upper left", bbox_to_anchor=(0.86, 0.95), fontsize=8)
-    fig.subplots_adjust(left=0.06, right=0.85, hspace=0.35)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def _risk_coverage_plot(plt, by_key, names, colour, sensors, tiers, path: Path) -> None:
-    """Success among the attempted episodes against the share attempted, the most confident
-    first: a panel per (sensor, tier), a curve per estimator that gives a confidence."""
-    shown = [n for n in names if n != "oracle"]
-    fig, axes = plt.subplots(
-        len(sensors),
-        len(tiers),
-        figsize=(2.6 * len(tiers) + 1.8, 2.4 * len(sensors) + 0.5),
-        sharex=True,
-        sharey=True,
-        squeeze=False,
+    leaderboard_plots.success_plot(by_key, names, colour, sensors, tiers, folder / "success.png")
+    leaderboard_plots.ar_plot(
+        cells,
+        names,
+        colour,
+        AR_KEYS,
+        board["analysis"]["spearman"],
+        folder / "ar_vs_success.png",
     )
-    drawn: dict[str, object] = {}
-    for r, sensor in enumerate(sensors):
-        for k, tier in enumerate(tiers):
-            ax = axes[r, k]
-            for name in shown:
-                m = by_key.get((name, sensor, tier))
-                rc = m and m["risk_coverage"]
-                if rc:
-                    (line,) = ax.step(
-                        rc["coverage"], rc["success"], where="post", color=colour[name], lw=1.2
-                    )
-                    drawn[name] = line
-            ax.set_title(f"{tier}, {sensor}", fontsize=9)
-            ax.set_xlim(0, 1.02)
-            ax.set_xticks([0, 0.5, 1])
-            ax.set_ylim(0, 1.05)
-            if r == len(sensors) - 1:
-                ax.set_xlabel("coverage")
-            if k == 0:
-                ax.set_ylabel("success among attempted")
-    if drawn:
-        fig.legend(
-            list(drawn.values()),
-            list(drawn),
-            loc="upper left",
-            bbox_to_anchor=(0.87, 0.93),
-            fontsize=8,
-        )
-    fig.subplots_adjust(left=0.07, right=0.86, wspace=0.12, hspace=0.35)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    leaderboard_plots.risk_coverage_plot(
+        by_key, names, colour, sensors, tiers, folder / "risk_coverage.png"
+    )
 
 
-def _settings_or_none(name: str) -> dict | None:
-    """`estimator_settings` of `name`; None where it cannot be made (its cells say why)."""
+def check_estimators(value: str) -> list[str]:
+    """``--estimators``: a comma list of specs (`sim.estimators`: built-in names, installed entry
+    points, plug-ins ``package.module:factory``), or ``all`` (`ESTIMATORS`).
+
+    Raises:
+        UnknownNameError: a name that is neither built in nor installed, listing the valid ones.
+        InvalidArgumentError: an empty list, a name given twice, a plug-in that does not import.
+    """
+    from sim.estimators import check_estimator_spec
+
+    if value.strip() == "all":
+        return list(ESTIMATORS)
+    names = [v.strip() for v in value.split(",") if v.strip()]
+    if not names:
+        raise InvalidArgumentError("--estimators needs at least one estimator")
+    if twice := sorted({n for n in names if names.count(n) > 1}):
+        raise InvalidArgumentError(f"--estimators names {', '.join(twice)} more than once")
+    return [check_estimator_spec(n) for n in names]
+
+
+def today_settings(cells: Sequence[Cell]) -> dict[Cell, dict]:
+    """What each cell runs with today: its estimator's settings and weights
+    (`sim.estimators.estimator_settings`), or a CSV row's hashes (`poses_settings`); made once
+    per estimator, before any cell runs.
+
+    Raises:
+        InvalidArgumentError: an estimator that cannot be made here (an optional extra not
+            installed, weights missing, a plug-in's factory failing), in one line that says how
+            to install it or to leave it out.
+    """
     from sim.estimators import estimator_settings
 
-    try:
-        return estimator_settings(name)
-    except PosegraspError:
-        return None
+    made: dict[str, dict] = {}
+    out = {}
+    for cell in cells:
+        if cell.poses is not None:
+            out[cell] = poses_settings(*cell.poses)
+            continue
+        if cell.estimator not in made:
+            try:
+                made[cell.estimator] = estimator_settings(cell.estimator)
+            except PosegraspError as exc:
+                first = (str(exc).splitlines() or [type(exc).__name__])[0]
+                raise InvalidArgumentError(
+                    f"{first}; or leave {cell.estimator} out of --estimators"
+                ) from None
+        out[cell] = made[cell.estimator]
+    return out
 
 
 def _command(argv: Sequence[str]) -> str:
-    return "python -m sim.leaderboard " + " ".join(argv)
+    return f"python -m sim.leaderboard {shlex.join(argv)}".rstrip()
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
-    argv = sys.argv[1:] if argv is None else argv
+def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m sim.leaderboard", description=__doc__.split("\n")[0])
+    p.add_argument(
+        "--estimators",
+        default=list(ESTIMATORS),
+        type=arg(check_estimators),
+        metavar="LIST",
+        help="a comma list of estimators: built-in names, installed entry points or plug-ins "
+        f"package.module:factory; 'all' is the board's rows (default {','.join(ESTIMATORS)})",
+    )
+    p.add_argument(
+        "--poses",
+        nargs=2,
+        action="append",
+        default=[],
+        type=arg(check_input_file, "--poses"),
+        metavar=("CSV", "EXPORT"),
+        help="a row of a method run elsewhere: its BOP results CSV and the export of python -m "
+        "sim.export_bop it answers (the board's objects and episodes, one tier and sensor); "
+        "repeat for more tiers or methods",
+    )
     for flag, choices, default in (
-        ("--estimators", ESTIMATORS, ESTIMATORS),
         ("--tiers", TIERS, TIERS),
         ("--sensors", SENSOR_NAMES, SENSORS),
         ("--objects", OBJECT_NAMES, OBJECT_NAMES),
@@ -597,6 +712,7 @@ def main(argv: list[str] | None = None) -> int:
             flag,
             default=list(default),
             type=arg(check_names, choices, flag[2:-1], flag),
+            metavar="LIST",
             help=f"a comma list of {', '.join(choices)}, or 'all' (default {','.join(default)})",
         )
     p.add_argument(
@@ -607,57 +723,136 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_workers_argument(p)
     add_backend_arguments(p)
-    add_out_argument(p, "every cell's report and journal", Path("out/leaderboard"))
-    p.add_argument("--markdown", type=Path, default=DOCS_DIR / "LEADERBOARD.md")
-    p.add_argument("--plots", type=Path, default=DOCS_DIR / "leaderboard")
-    add_json_argument(p, "the whole board", DOCS_DIR / "leaderboard.json")
-    args = p.parse_args(argv)
+    add_out_argument(
+        p,
+        "every cell's report and journal (cells/) and, unless --publish, the board: "
+        "leaderboard.json, LEADERBOARD.md and its plots (leaderboard/)",
+        Path("out/leaderboard"),
+    )
+    p.add_argument(
+        "--publish",
+        action="store_true",
+        help=f"write the board as the shipped page: {in_repo(PUBLISHED['markdown'])}, "
+        f"{in_repo(PUBLISHED['json'])} and the plots in {in_repo(PUBLISHED['plots'])}/ (the "
+        "cells stay under --out)",
+    )
+    p.add_argument(
+        "--markdown",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="the page (default: LEADERBOARD.md under --out, or the shipped one with --publish)",
+    )
+    p.add_argument(
+        "--plots",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="the folder of the page's plots (default: leaderboard/ beside the page); the page "
+        "links them relative to where it is written",
+    )
+    add_json_argument(
+        p, "the whole board (default: leaderboard.json under --out, or the shipped one)"
+    )
+    return p
+
+
+def _outputs(args) -> tuple[Path, Path, Path | str]:
+    """The page, its plots' folder and the JSON (a path or ``-``) the command line asks for."""
+    out = Path(args.out)
+    if args.publish:
+        page, board = PUBLISHED["markdown"], PUBLISHED["json"]
+    else:
+        page, board = out / "LEADERBOARD.md", out / "leaderboard.json"
+    page = args.markdown or page
+    return page, args.plots or page.parent / "leaderboard", args.json or board
+
+
+def _refuse(cells_dir: Path, what: str, found: list[str], how: str) -> InvalidArgumentError:
+    return InvalidArgumentError(
+        f"{len(found)} cells in {cells_dir} {what}: {'; '.join(found[:4])}"
+        f"{' ...' if len(found) > 4 else ''}; {how}"
+    )
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    argv = sys.argv[1:] if argv is None else argv
+    args = _parser().parse_args(argv)
     check_backend(args.backend, args.address)
     cells_dir = Path(args.out) / "cells"
-    cells_dir.mkdir(parents=True, exist_ok=True)
-    cells = cells_of(args.estimators, args.tiers, args.sensors)
-    settings = {name: _settings_or_none(name) for name in args.estimators}
-    stale = stale_cells(cells, cells_dir, settings)
-    if stale:
-        raise InvalidArgumentError(
-            f"{len(stale)} cells in {cells_dir} ran with other estimator settings or weights than "
-            f"today's: {'; '.join(stale[:4])}{' ...' if len(stale) > 4 else ''}; move their files "
-            "away to run them again, or give another --out"
+    page, plot_dir, board_json = _outputs(args)
+    rows = poses_rows(args.poses, args.objects, args.episodes)
+    cells = cells_of(args.estimators, args.tiers, args.sensors, rows)
+    settings = today_settings(cells)
+    again = _command(argv)
+    if stale := stale_cells(cells, cells_dir, settings):
+        raise _refuse(
+            cells_dir,
+            "ran with other estimator settings or weights than today's",
+            stale,
+            "move their files away to run them again, or give another --out",
         )
+    if unfit := unfit_cells(cells, cells_dir, args.objects, args.episodes):
+        raise _refuse(
+            cells_dir,
+            "cannot stand on this board",
+            unfit,
+            f"remove them and run the board again ({again}), or give another --out",
+        )
+    cells_dir.mkdir(parents=True, exist_ok=True)
     reports: dict[str, dict] = {}
     board_cells = []
     start = time.perf_counter()
-    for i, cell in enumerate(cells, 1):
-        print(f"cell {i}/{len(cells)}: {cell.estimator}, {cell.tier}, {cell.sensor}", flush=True)
-        row = {**asdict(cell), "run_key": cell.run_key}
-        try:
-            if cell.run_key not in reports:
-                reports[cell.run_key] = run_cell(cell, args, cells_dir, settings[cell.estimator])
-            row["summary"] = cell_summary(reports[cell.run_key])
-        except PosegraspError as exc:
-            row["error"] = str(exc).splitlines()[0]
-            print(f"  cannot run: {row['error']}", flush=True)
-        board_cells.append(row)
-    wall = run_time_s(reports.values()) or time.perf_counter() - start
-    board = {
+    at = "before its first cell"
+    try:
+        for i, cell in enumerate(cells, 1):
+            at = f"at cell {i} of {len(cells)} ({cell.run_key})"
+            print(
+                f"cell {i}/{len(cells)}: {cell.estimator}, {cell.tier}, {cell.sensor}", flush=True
+            )
+            row = {**asdict(cell), "run_key": cell.run_key}
+            try:
+                if cell.run_key not in reports:
+                    reports[cell.run_key] = run_cell(cell, args, cells_dir, settings[cell])
+                row["summary"] = cell_summary(reports[cell.run_key])
+            except PosegraspError as exc:
+                row["error"] = str(exc).splitlines()[0]
+                print(f"  cannot run: {row['error']}", flush=True)
+            board_cells.append(row)
+        at = "while writing the board"
+        board = _board(argv, args, board_cells, reports, start)
+        write_json(board_json, board)
+        links = Path(os.path.relpath(plot_dir, page.parent)).as_posix()
+        atomic_write_bytes(page, markdown(board, links).encode())
+        plots(board, plot_dir)
+    except Interrupted as exc:
+        kept = f"; {exc.done} of {exc.total} of its episodes are kept" if exc.journal else ""
+        raise Interrupted(
+            f"interrupted {at}{kept}; every finished cell is kept in {cells_dir}; resume with: "
+            f"{again}"
+        ) from None
+    print(f"wrote {in_repo(page)} and the plots in {in_repo(plot_dir)}")
+    return 0
+
+
+def _board(argv, args, board_cells: list[dict], reports: dict[str, dict], start: float) -> dict:
+    """The whole board as JSON: how it was made, every cell and the analysis."""
+    return {
         "command": _command(argv),
-        "estimators": list(args.estimators),
+        "estimators": list(dict.fromkeys(c["estimator"] for c in board_cells)),
         "tiers": list(args.tiers),
         "sensors": [Sensor.parse(s).name for s in args.sensors],
         "objects": list(args.objects),
         "episodes": args.episodes,
         "episodes_per_cell": args.episodes * len(args.objects),
         "seed_start": EVAL_SEED_BASE,
-        "wall_s": wall,
+        "wall_s": run_time_s(reports.values()) or time.perf_counter() - start,
         "workers": args.workers,
         "cells": board_cells,
         "analysis": analyse(board_cells, reports),
     }
-    write_json(args.json, board)
-    atomic_write_bytes(args.markdown, markdown(board).encode())
-    plots(board, args.plots)
-    print(f"wrote {in_repo(args.markdown)} and the plots in {in_repo(args.plots)}")
-    return 0
 
 
 if __name__ == "__main__":
