@@ -11,7 +11,10 @@ reports measured friction margins (`sim.evaluate --margin`), the mean margin dif
 episodes both grasped comes with its paired bootstrap interval too. BOP's average recalls are
 linear in the episodes, so they pair too: the difference B - A of AR_MSSD, AR_MSPD and, when
 both reports hold every episode's VSD errors (``vsd``), AR_VSD, each with its paired bootstrap
-interval (an episode without an estimate counts 0).
+interval (an episode without an estimate counts 0). The risk-coverage area of each estimator's
+confidence (`sim.stats.risk_coverage`) over the shared episodes pairs too: both areas and B - A
+with a paired bootstrap interval when both give a confidence (reports written before the area
+was recorded hold it in their episodes' ``confidence``).
 
 Reports whose grasps ran with different execution settings (``execution``), or whose estimators
 observed through different sensor models (``sensor``, `posegrasp.world.sensors`; a report that
@@ -46,6 +49,7 @@ from sim.stats import (
     margin_difference,
     margin_error_correlation,
     paired,
+    paired_area_difference,
     paired_mean_difference,
     wilson_interval,
 )
@@ -146,6 +150,38 @@ def recall_differences(
     return out
 
 
+def episode_confidences(report: dict) -> dict[Key, tuple[float | None, bool]]:
+    """Each episode's confidence (None where its estimator gave none) and success, by (object,
+    tier, seed), of a validated report (one that lists no pair twice, `outcomes_of`)."""
+    return {
+        (str(e["object"]), str(e["tier"]), int(e["seed"])): (
+            None if e.get("confidence") is None else float(e["confidence"]),
+            bool(e["success"]),
+        )
+        for e in report["episodes"]
+    }
+
+
+def area_difference(
+    a: dict[Key, tuple[float | None, bool]],
+    b: dict[Key, tuple[float | None, bool]],
+    boot: int = BOOTSTRAP,
+    seed: int = 0,
+) -> dict:
+    """The risk-coverage areas of A and B over the episodes both ran (`episode_confidences`)
+    and their difference B - A with its paired bootstrap 95 % interval
+    (`sim.stats.paired_area_difference`; a side without a confidence has area None)."""
+    common = sorted(set(a) & set(b))
+    return paired_area_difference(
+        [a[k][0] for k in common],
+        [a[k][1] for k in common],
+        [b[k][0] for k in common],
+        [b[k][1] for k in common],
+        boot,
+        np.random.default_rng(seed),
+    )
+
+
 def run_labels(a: dict, b: dict, path_a: Path | str, path_b: Path | str) -> tuple[str, str]:
     """Labels of two reports: the estimator (with its noise), the observation mode when the two
     differ in it, and the file only when the labels would still coincide."""
@@ -197,8 +233,9 @@ def comparison_warnings(res: dict, obs_a: str, obs_b: str) -> list[str]:
 
 def compare_reports(path_a: Path, path_b: Path, boot: int = BOOTSTRAP) -> dict:
     """The paired comparison of two report files (`compare`), with their labels
-    (`run_labels`), the paired average recalls (``average_recall``, `recall_differences`) and
-    the warnings (`comparison_warnings`).
+    (`run_labels`), the paired average recalls (``average_recall``, `recall_differences`), the
+    paired risk-coverage area (``risk_coverage_area``, `area_difference`) and the warnings
+    (`comparison_warnings`).
 
     Raises:
         InvalidArgumentError: a report unreadable or not conforming, or no shared episode.
@@ -209,6 +246,9 @@ def compare_reports(path_a: Path, path_b: Path, boot: int = BOOTSTRAP) -> dict:
     res["obs_mode_a"], res["obs_mode_b"] = ra["obs_mode"], rb["obs_mode"]
     res["average_recall"] = recall_differences(
         episode_recalls(ra, str(path_a)), episode_recalls(rb, str(path_b)), boot
+    )
+    res["risk_coverage_area"] = area_difference(
+        episode_confidences(ra), episode_confidences(rb), boot
     )
     res["warnings"] = comparison_warnings(res, ra["obs_mode"], rb["obs_mode"])
     return res
@@ -341,7 +381,33 @@ def format_comparison(res: dict, name_a: str, name_b: str) -> str:
             f"{r['difference']:+.3f} [{r['bootstrap_low']:+.3f}, {r['bootstrap_high']:+.3f}] "
             f"(paired over {r['episodes']} episodes, bootstrap 95 %)"
         )
+    if (area := res.get("risk_coverage_area")) is not None:
+        rows.append(format_area(area))
     return "\n".join(rows)
+
+
+def format_area(r: dict) -> str:
+    """The paired risk-coverage area (`area_difference`) as one line."""
+    if r["a"] is None and r["b"] is None:
+        return "RC area  neither estimator gives a confidence"
+    if r["a"] is None or r["b"] is None:
+        side = "A" if r["a"] is None else "B"
+        return (
+            f"RC area  A {_area(r['a'])} B {_area(r['b'])}: {side} gives no confidence, "
+            "so the areas do not pair"
+        )
+    if r["bootstrap_low"] is None:
+        interval = "no resample held both confidences"
+    else:
+        interval = f"[{r['bootstrap_low']:+.3f}, {r['bootstrap_high']:+.3f}]"
+    return (
+        f"RC area  A {r['a']:.3f} B {r['b']:.3f}, B - A {r['difference']:+.3f} {interval} "
+        f"(risk-coverage area, paired over {r['episodes']} episodes, bootstrap 95 %)"
+    )
+
+
+def _area(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
 
 
 def curve(paths: list[Path], boot: int = BOOTSTRAP) -> list[dict]:

@@ -1,8 +1,9 @@
 """The statistics of paired grasp experiments: pure functions, no I/O.
 
-Wilson intervals of a success rate, the exact McNemar test on discordant pairs, and paired
-bootstrap intervals of success, friction-margin and per-episode score differences
-(`sim.compare`, `sim.evaluate`, `sim.gate`).
+Wilson intervals of a success rate, the exact McNemar test on discordant pairs, the
+risk-coverage curve of a confidence, and paired bootstrap intervals of success, friction-margin,
+per-episode score and risk-coverage area differences (`sim.compare`, `sim.evaluate`,
+`sim.gate`).
 """
 
 from __future__ import annotations
@@ -180,19 +181,96 @@ def risk_coverage(confidence: Sequence[float | None], success: Sequence[bool]) -
     if not pairs:
         return None
     n = len(confidence)
-    conf = np.array([c for c, _ in pairs])
-    held = np.array([s for _, s in pairs], dtype=float)
+    conf, cum, ends, area = _ranked(
+        np.array([c for c, _ in pairs]), np.array([s for _, s in pairs], dtype=float)
+    )
+    attempted = ends + 1
+    return {
+        "threshold": conf[ends].tolist(),
+        "coverage": (attempted / n).tolist(),
+        "success": (cum[ends] / attempted).tolist(),
+        "area": area,
+    }
+
+
+def _ranked(conf: np.ndarray, held: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The attempted episodes of `risk_coverage` (confidences and successes, (N,) each) ranked
+    by confidence, highest first: their confidences (N,), the running count of successes (N,),
+    the last index of each run of equal confidences, and the area."""
     order = np.argsort(-conf, kind="stable")
     conf, held = conf[order], held[order]
     cum = np.cumsum(held)
     # The last index of each run of equal confidences: a threshold attempts the whole run.
     ends = np.flatnonzero(np.append(conf[1:] != conf[:-1], True))
-    attempted = ends + 1
     # Each attempted episode counts the success rate of the threshold that first attempts it.
     group_end = ends[np.searchsorted(ends, np.arange(len(conf)))]
-    return {
-        "threshold": conf[ends].tolist(),
-        "coverage": (attempted / n).tolist(),
-        "success": (cum[ends] / attempted).tolist(),
-        "area": float(np.mean(cum[group_end] / (group_end + 1))),
+    return conf, cum, ends, float(np.mean(cum[group_end] / (group_end + 1)))
+
+
+def _area_or_nan(conf: np.ndarray, held: np.ndarray) -> float:
+    """`risk_coverage`'s area of episodes whose confidence is NaN where they have none (N,);
+    NaN when none has one."""
+    ok = ~np.isnan(conf)
+    return _ranked(conf[ok], held[ok])[3] if ok.any() else float("nan")
+
+
+def paired_area_difference(
+    confidence_a: Sequence[float | None],
+    success_a: Sequence[bool],
+    confidence_b: Sequence[float | None],
+    success_b: Sequence[bool],
+    boot: int,
+    rng: np.random.Generator,
+) -> dict:
+    """The risk-coverage areas (`risk_coverage`) of A and B on the same episodes and their
+    difference B - A, with its paired bootstrap 95 % interval: the episodes are resampled
+    with replacement and both areas computed on each resample (a resample in which either side
+    has no confidence is left out).
+
+    Args:
+        confidence_a: per episode, A's confidence or None; (N,) like the others.
+        success_a: per episode, whether A's grasp held.
+        confidence_b: B's confidences, the episodes in the same order.
+        success_b: B's successes.
+        boot: bootstrap resamples.
+        rng: the resampling's generator.
+
+    Returns:
+        ``episodes``, ``a`` and ``b`` (each None when that side has no confidence), and
+        ``difference``, ``bootstrap_low`` and ``bootstrap_high`` (None unless both have one).
+
+    Raises:
+        InvalidArgumentError: sequences of different lengths.
+    """
+    n = len(confidence_a)
+    if not n == len(success_a) == len(confidence_b) == len(success_b):
+        raise InvalidArgumentError(
+            f"paired_area_difference: {len(confidence_a)}, {len(success_a)}, "
+            f"{len(confidence_b)} and {len(success_b)} values; pair the same episodes"
+        )
+    ra, rb = risk_coverage(confidence_a, success_a), risk_coverage(confidence_b, success_b)
+    out: dict = {
+        "episodes": n,
+        "a": None if ra is None else ra["area"],
+        "b": None if rb is None else rb["area"],
+        "difference": None,
+        "bootstrap_low": None,
+        "bootstrap_high": None,
     }
+    if ra is None or rb is None:
+        return out
+
+    def arrays(conf: Sequence[float | None], held: Sequence[bool]) -> tuple[np.ndarray, ...]:
+        c = np.array([np.nan if v is None else float(v) for v in conf])
+        return c, np.array(held, dtype=float)
+
+    (ca, ha), (cb, hb) = arrays(confidence_a, success_a), arrays(confidence_b, success_b)
+    idx = rng.integers(0, n, size=(boot, n))
+    d = np.array([_area_or_nan(cb[i], hb[i]) - _area_or_nan(ca[i], ha[i]) for i in idx])
+    out["difference"] = rb["area"] - ra["area"]
+    d = d[~np.isnan(d)]
+    if d.size:
+        out["bootstrap_low"], out["bootstrap_high"] = (
+            float(v) for v in np.percentile(d, [2.5, 97.5])
+        )
+    return out

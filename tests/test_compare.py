@@ -376,3 +376,43 @@ def test_runs_of_other_sensors_are_not_paired(tmp_path: Path, capsys) -> None:
     )
     assert cmp.main([str(kinect), str(mixed), "--boot", "200"]) == 2
     assert "holds episodes of several sensors (azure-tof, kinect-v1)" in capsys.readouterr().err
+
+
+def _confident(seed: int, held: bool, confidence: float | None) -> dict:
+    """An episode whose estimator gave `confidence` (None: gave none, the field left out)."""
+    e = _episode("phone", seed, "hard", held, 0.2)
+    return e if confidence is None else {**e, "confidence": confidence}
+
+
+def test_cli_pairs_the_risk_coverage_area(tmp_path: Path, capsys) -> None:
+    """A ranks its held grasps last, B first: B's area is higher on the same episodes; a report
+    written before the area was recorded pairs it from its episodes' confidences."""
+    held = [s % 3 != 0 for s in range(30)]
+    a = _write(
+        tmp_path / "a.json", [_confident(s, h, -float(h)) for s, h in enumerate(held)], "hard"
+    )
+    eps_b = [_confident(s, h, float(h) + s / 100) for s, h in enumerate(held)]
+    b = _write(tmp_path / "b.json", eps_b, "hard")
+    out = tmp_path / "cmp.json"
+    assert cmp.main([str(a), str(b), "--boot", "200", "--json", str(out)]) == 0
+    area = json.loads(out.read_text())["risk_coverage_area"]
+    ra, rb = (json.loads(p.read_text())["overall"]["risk_coverage"]["area"] for p in (a, b))
+    assert area["a"] == pytest.approx(ra) and area["b"] == pytest.approx(rb)
+    assert area["episodes"] == 30 and area["difference"] == pytest.approx(rb - ra)
+    assert rb > ra and area["bootstrap_low"] > 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("RC area"))
+    assert line.startswith(f"RC area  A {ra:.3f} B {rb:.3f}, B - A {rb - ra:+.3f} [")
+    # B as written before the area was recorded: no group holds it, the episodes still do.
+    old = json.loads(b.read_text())
+    for g in [old["overall"], *old["per_object"].values()]:
+        del g["risk_coverage"]
+    b.write_text(json.dumps(old))
+    assert cmp.main([str(a), str(b), "--boot", "200", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["risk_coverage_area"] == area
+    # An estimator that gives no confidence: the areas are not paired, and the line says why.
+    c = _write(tmp_path / "c.json", [_confident(s, h, None) for s, h in enumerate(held)], "hard")
+    assert cmp.main([str(a), str(c), "--boot", "200"]) == 0
+    text = capsys.readouterr().out
+    assert f"RC area  A {ra:.3f} B -: B gives no confidence, so the areas do not pair" in text
+    assert cmp.main([str(c), str(c), "--boot", "200"]) == 0
+    assert "RC area  neither estimator gives a confidence" in capsys.readouterr().out

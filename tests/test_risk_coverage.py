@@ -9,7 +9,7 @@ from posegrasp.core.contract import CONTRACT_VERSION, Estimate, confidence_probl
 from posegrasp.core.errors import InvalidArgumentError
 from sim.evaluation import Protocol, format_report, make_report
 from sim.report_schema import validate_report
-from sim.stats import risk_coverage
+from sim.stats import paired_area_difference, risk_coverage
 
 
 def test_an_estimate_of_an_older_contract_has_no_confidence() -> None:
@@ -142,3 +142,19 @@ def test_the_summary_names_the_sensor_and_prints_the_area() -> None:
     plain = format_report(_report([(o, None, h) for o, _, h in HAND_MADE]))
     assert ", sensor ideal: " in plain.splitlines()[0]
     assert "risk-coverage area: none, the estimator gives no confidence" in plain
+
+
+def test_the_paired_area_difference_by_hand() -> None:
+    rng = np.random.default_rng(0)
+    held = [True] * 6 + [False] * 4
+    ranked, flat = list(range(10, 0, -1)), [1.0] * 10
+    same = paired_area_difference(ranked, held, ranked, held, 500, rng)
+    assert same["difference"] == 0.0 and same["bootstrap_low"] == same["bootstrap_high"] == 0.0
+    r = paired_area_difference(flat, held, ranked, held, 2000, rng)
+    assert r["a"] == pytest.approx(0.6) and r["b"] == risk_coverage(ranked, held)["area"]
+    assert r["difference"] == pytest.approx(r["b"] - 0.6) and r["episodes"] == 10
+    assert 0 < r["bootstrap_low"] < r["difference"] < r["bootstrap_high"]
+    silent = paired_area_difference([None] * 10, held, ranked, held, 100, rng)
+    assert silent["a"] is None and silent["b"] == r["b"] and silent["difference"] is None
+    with pytest.raises(InvalidArgumentError, match="pair the same episodes"):
+        paired_area_difference(flat, held, flat[:9], held[:9], 100, rng)
