@@ -45,9 +45,11 @@ missing depth. The map file also holds each image's table height in the world fr
 ``table_top_z`` a live estimator's observation carries; ``scene_camera``'s ``cam_R_w2c`` and
 ``cam_t_w2c`` give the world frame).
 
-A folder holds one export: the same arguments again rewrite the same bytes (which completes an
-interrupted export; the map file says ``"complete": false`` until the last file is written), other
-arguments or other files are refused.
+A folder holds one export: the same arguments again write the same bytes, other arguments or
+other files are refused. An export under way keeps each finished image's index entries in a
+journal in its folder (`JOURNAL_FILE`; the map file says ``"complete": false`` until the last file
+is written), so a stopped one resumes after its last finished image when the same command runs
+again, and ends with the bytes an unstopped one writes.
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ from perception.training.writer import write_models
 from posegrasp.core.cli import ArgumentParser, add_out_argument, command
 from posegrasp.core.contract import CONTRACT_VERSION
 from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.journal import Interrupted, Journal, resume_hint
 from posegrasp.core.paths import git_commit
 from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
@@ -107,6 +110,8 @@ _PROTOCOL_BEFORE = {"sensor": "ideal"}
 
 #: The im_id of every image: each scene holds one.
 IM_ID = 0
+#: The journal of an export under way, in its folder: each finished image's index entries.
+JOURNAL_FILE = ".export.journal.jsonl"
 
 
 def depth_path(sdir: Path, im_id: int) -> Path:
@@ -384,35 +389,65 @@ def export_bop(
             for o, seed in jobs
         ],
     }
-    write_json(out / MAP_FILE, info)  # first: an interrupted export is known by it
-    write_models(out, [*OBJECT_NAMES, *(o for o in objects if o not in OBJECT_NAMES)])
-    _copy_models(out)
-    scenes: dict[int, dict[str, dict[str, Any]]] = {}
-    bar = progress_bar(info["images"], desc="images", unit="image", disable=not progress)
-    for image in bar:
-        scene_id, im_id = image["scene_id"], IM_ID
-        ep = Episode(image["object"], image["seed"], cfg)
-        try:
-            rgb, depth, camera, gts, infos, masks = _export_image(ep, ground_truth)
-            image["table_top_z"] = float(ep.scene.table_top_z)
-        finally:
-            ep.close()
-        sdir = scene_dir(out, SPLIT, scene_id)
-        write_png(rgb_path(sdir, im_id), rgb)
-        write_bytes(depth_path(sdir, im_id), png16_bytes(depth))
-        for gt_idx, (full, visible) in enumerate(masks):
-            write_png(mask_path(sdir, im_id, gt_idx, False), full.astype(np.uint8) * 255)
-            write_png(mask_path(sdir, im_id, gt_idx, True), visible.astype(np.uint8) * 255)
-        files = scenes.setdefault(
-            scene_id, {"scene_camera": {}, "scene_gt": {}, "scene_gt_info": {}}
-        )
-        files["scene_camera"][str(im_id)] = camera
-        files["scene_gt"][str(im_id)] = gts
-        files["scene_gt_info"][str(im_id)] = infos
-    _write_index(out, scenes, info["images"], ground_truth)
-    info["complete"] = True
-    write_json(out / MAP_FILE, info)
+    # The images' index entries, kept as each image's files are written: a stopped export
+    # resumes after the last image it finished.
+    journal = Journal(out / JOURNAL_FILE, "export_bop", protocol)
+    held = {int(u["key"]): u["result"] for u in journal.start(resume=journal.path.is_file())}
+    try:
+        write_json(out / MAP_FILE, info)  # first: an interrupted export is known by it
+        write_models(out, [*OBJECT_NAMES, *(o for o in objects if o not in OBJECT_NAMES)])
+        _copy_models(out)
+        scenes: dict[int, dict[str, dict[str, Any]]] = {}
+        bar = progress_bar(info["images"], desc="images", unit="image", disable=not progress)
+        for key, image in enumerate(bar):
+            if key not in held:
+                held[key] = _write_image(out, image, cfg, ground_truth)
+                journal.append({"key": key, "result": held[key]})
+            entry = held[key]
+            image["table_top_z"] = entry["table_top_z"]
+            files = scenes.setdefault(
+                image["scene_id"], {"scene_camera": {}, "scene_gt": {}, "scene_gt_info": {}}
+            )
+            for name in ("scene_camera", "scene_gt", "scene_gt_info"):
+                files[name][str(IM_ID)] = entry[name]
+        _write_index(out, scenes, info["images"], ground_truth)
+        info["complete"] = True
+        write_json(out / MAP_FILE, info)
+    except Interrupted:
+        done = len(held)
+        hint = resume_hint(journal.path, done, len(jobs), why="interrupted", flag=None)
+        raise Interrupted(hint, journal.path, done, len(jobs)) from None
+    finally:
+        journal.close()
+    journal.finish()
     return info
+
+
+def _write_image(
+    out: Path, image: dict[str, Any], cfg: EpisodeConfig, ground_truth: bool
+) -> dict[str, Any]:
+    """Render one episode's image and write its files (colour, depth, masks); returns its
+    entries of the scene files and its table height, as JSON reads them back."""
+    scene_id, im_id = image["scene_id"], IM_ID
+    ep = Episode(image["object"], image["seed"], cfg)
+    try:
+        rgb, depth, camera, gts, infos, masks = _export_image(ep, ground_truth)
+        table_top_z = float(ep.scene.table_top_z)
+    finally:
+        ep.close()
+    sdir = scene_dir(out, SPLIT, scene_id)
+    write_png(rgb_path(sdir, im_id), rgb)
+    write_bytes(depth_path(sdir, im_id), png16_bytes(depth))
+    for gt_idx, (full, visible) in enumerate(masks):
+        write_png(mask_path(sdir, im_id, gt_idx, False), full.astype(np.uint8) * 255)
+        write_png(mask_path(sdir, im_id, gt_idx, True), visible.astype(np.uint8) * 255)
+    entry = {
+        "scene_camera": camera,
+        "scene_gt": gts,
+        "scene_gt_info": infos,
+        "table_top_z": table_top_z,
+    }
+    return json.loads(json.dumps(entry))  # as a resumed export reads it back
 
 
 @command
