@@ -35,7 +35,7 @@ from posegrasp.core.cli import (
 )
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.files import atomic_write_json
-from posegrasp.core.journal import Interrupted, journal_path
+from posegrasp.core.journal import Interrupted, command_line, journal_path
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int, check_names, check_plot_path
 from posegrasp.world.constants import EVAL_SEED_BASE
@@ -98,7 +98,7 @@ def run_tier(
             except Interrupted as exc:
                 raise Interrupted(
                     f"interrupted: {exc.done} of {exc.total} episodes of {tier} {label} kept in "
-                    f"{exc.journal}; rerun the same command to resume"
+                    f"{exc.journal}; resume with: {command_line()}"
                 ) from None
             atomic_write_json(path, report)
             journal.unlink()

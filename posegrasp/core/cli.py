@@ -24,7 +24,7 @@ from typing import Any, NoReturn, TextIO
 
 from posegrasp.core.errors import PosegraspError
 from posegrasp.core.files import atomic_write_json
-from posegrasp.core.journal import INTERRUPTED_EXIT, Interrupted, interruptible
+from posegrasp.core.journal import INTERRUPTED_EXIT, Interrupted, command_line, interruptible
 from posegrasp.core.validate import (
     DEFAULT_WORKERS,
     MAX_WORKERS,
@@ -77,7 +77,10 @@ def command(main: Callable[..., int]) -> Callable[..., int]:
         except Interrupted as exc:  # a journaled run: the line says how to resume
             line = str(exc)
             if exc.journal is None and not line.startswith("interrupted"):
-                line = f"interrupted by {line or 'a signal'}; nothing was recorded"
+                line = (
+                    f"interrupted by {line or 'a signal'}: the work under way is not recorded; "
+                    f"run again with: {command_line()}"
+                )
             print(line, file=sys.stderr)
             return INTERRUPTED_EXIT
         except KeyboardInterrupt:
