@@ -55,7 +55,7 @@ from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.files import atomic_write_bytes, atomic_write_json, sha256_file
 from posegrasp.core.journal import Interrupted, interrupted
 from posegrasp.core.paths import DOCS_DIR, in_repo
-from posegrasp.core.validate import arg, check_input_file, check_int, check_names
+from posegrasp.core.validate import arg, check_int, check_names
 from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.sensors import SENSOR_NAMES, Sensor
@@ -451,6 +451,8 @@ def findings(board: dict) -> list[str]:
             + ", ".join(spans)
             + "."
         )
+    if len(out) == 2:
+        out.append(f"- No classical depth peer shares a sensor with `{OURS}` on this board.")
     a = board["analysis"]
     rhos = [(k, r) for k, r in a["spearman"].items() if r["rho"] is not None]
     if rhos:
@@ -697,7 +699,7 @@ def _parser() -> ArgumentParser:
         nargs=2,
         action="append",
         default=[],
-        type=arg(check_input_file, "--poses"),
+        type=Path,
         metavar=("CSV", "EXPORT"),
         help="a row of a method run elsewhere: its BOP results CSV and the export of python -m "
         "sim.export_bop it answers (the board's objects and episodes, one tier and sensor); "

@@ -56,7 +56,7 @@ def success_plot(
     """Grasp success with its Wilson interval: a panel per sensor, the tiers as groups, a bar
     per estimator (the oracle among them, the ceiling)."""
     plt = _pyplot()
-    width = 0.8 / max(1, len(names))
+    width = min(0.3, 0.8 / max(1, len(names)))
     figsize = (max(4.0, 0.22 * len(tiers) * len(names) + 1.5), 2.4 * len(sensors) + 0.4)
     fig, axes = plt.subplots(len(sensors), 1, figsize=figsize, sharey=True, squeeze=False)
     drawn: dict[str, Any] = {}

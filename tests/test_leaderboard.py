@@ -4,10 +4,12 @@ whole small board run, read back and resumed."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
 
+from posegrasp.world.constants import EVAL_SEED_BASE
 from sim import leaderboard
 from sim.stats import wilson_interval
 
@@ -172,3 +174,140 @@ def test_the_findings_name_the_tiers_a_peer_wins_and_the_time_shares() -> None:
     text = "\n".join(leaderboard.findings(board))
     assert "on 1 of 2 tiers; a peer grasps more on hard (ppf 2 against 1)" in text
     assert "ppf's 0.10-0.25" in text
+
+
+def _board_argv(out: Path, estimators: str, *extra: str) -> list[str]:
+    return [
+        "--estimators",
+        estimators,
+        "--tiers",
+        "isolated",
+        "--sensors",
+        "ideal",
+        "--objects",
+        "phone",
+        "--episodes",
+        "2",
+        "--workers",
+        "1",
+        "--out",
+        str(out),
+        *extra,
+    ]
+
+
+def _images_resolve(page: Path) -> list[str]:
+    """The page's image links, each checked to name a file from the page's folder."""
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", page.read_text())
+    assert links, f"{page} shows no image"
+    for link in links:
+        assert (page.parent / link).is_file(), f"{page} links {link}, which is not there"
+    return links
+
+
+def test_a_plug_in_and_a_bop_csv_are_rows_beside_the_built_in_ones(tmp_path: Path) -> None:
+    """A plug-in's ``package.module:factory`` and the poses of a BOP results CSV of a method run
+    elsewhere (here: the truth, written as BOP's CSV) rank beside the oracle on the same
+    episodes; the board and its page go under --out, the page's plots resolve from there."""
+    from sim.export_bop import export_bop
+    from studies.bop_round_trip import write_csv
+
+    export = tmp_path / "export"
+    export_bop(export, ["phone"], 2, EVAL_SEED_BASE, "isolated", progress=False)
+    csv = tmp_path / "mymethod_posegrasp-test.csv"
+    assert write_csv(export, csv, None) == 2
+    out = tmp_path / "out"
+    plug = "posegrasp_crude:CrudeTableEstimator"
+    argv = _board_argv(out, f"oracle,{plug}", "--poses", str(csv), str(export))
+    assert leaderboard.main(argv) == 0
+    board = json.loads((out / "leaderboard.json").read_text())
+    assert [c["estimator"] for c in board["cells"]] == ["oracle", plug, "bop:mymethod"]
+    cells = {c["estimator"]: c for c in board["cells"]}
+    assert all(c["summary"]["episodes"] == 2 for c in cells.values())
+    # The truth's CSV grasps as the oracle does, and every row played the same episodes.
+    assert cells["bop:mymethod"]["summary"]["successes"] == cells["oracle"]["summary"]["successes"]
+    played = {
+        name: [
+            (e["object"], e["seed"])
+            for e in json.loads((out / "cells" / f"{c['run_key']}.json").read_text())["episodes"]
+        ]
+        for name, c in cells.items()
+    }
+    assert played["oracle"] == played[plug] == played["bop:mymethod"]
+    page = out / "LEADERBOARD.md"
+    assert "| bop:mymethod | rgb | 2/2 |" in page.read_text()
+    assert _images_resolve(page) == [
+        "leaderboard/success.png",
+        "leaderboard/ar_vs_success.png",
+        "leaderboard/risk_coverage.png",
+    ]
+    # A page written elsewhere links the plots from where it is.
+    elsewhere = tmp_path / "site" / "docs" / "board.md"
+    plots = tmp_path / "images"
+    again = [*argv, "--markdown", str(elsewhere), "--plots", str(plots)]
+    assert leaderboard.main(again) == 0
+    assert _images_resolve(elsewhere)[0] == "../../images/success.png"
+    # An export of other episodes than the board's is refused in one line.
+    other = _board_argv(tmp_path / "other", "oracle", "--poses", str(csv), str(export))
+    other[other.index("--episodes") + 1] = "3"
+    assert leaderboard.main(other) == 2
+
+
+def test_a_missing_extra_is_refused_before_any_cell_runs(tmp_path, monkeypatch, capsys) -> None:
+    from perception.peers import extra
+
+    monkeypatch.setattr(extra, "has_open3d", lambda: False)
+    out = tmp_path / "out"
+    assert leaderboard.main(_board_argv(out, "oracle,fpfh-icp")) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "pip install" in err and "fpfh-icp" in err
+    assert not (out / "cells").exists()
+
+
+def test_a_cell_that_holds_a_stopped_episode_is_refused(tmp_path: Path, capsys) -> None:
+    """A cell written by a run that scored an interruption as a failed grasp is not a result:
+    the board refuses it and says how to redo it."""
+    out = tmp_path / "out"
+    argv = _board_argv(out, "oracle")
+    assert leaderboard.main(argv) == 0
+    cell = out / "cells" / "isolated__ideal__oracle.json"
+    report = json.loads(cell.read_text())
+    report["episodes"][1].update(
+        success=False, failure_reason="error", notes=["Interrupted: SIGTERM"]
+    )
+    cell.write_text(json.dumps(report))
+    capsys.readouterr()
+    assert leaderboard.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "stopped, not played" in err and "python -m sim.leaderboard --estimators oracle" in err
+
+
+def test_the_default_outputs_stay_under_out(tmp_path: Path, monkeypatch) -> None:
+    """A newcomer's board never writes the shipped page: only --publish does."""
+    monkeypatch.setattr(
+        leaderboard,
+        "PUBLISHED",
+        {k: tmp_path / "docs" / Path(v).name for k, v in leaderboard.PUBLISHED.items()},
+    )
+    out = tmp_path / "out"
+    assert leaderboard.main(_board_argv(out, "oracle")) == 0
+    assert not (tmp_path / "docs").exists()
+    assert {p.name for p in out.iterdir()} == {
+        "cells",
+        "leaderboard",
+        "leaderboard.json",
+        "LEADERBOARD.md",
+    }
+    assert leaderboard.main([*_board_argv(out, "oracle"), "--publish"]) == 0
+    assert {p.name for p in (tmp_path / "docs").iterdir()} == {
+        "leaderboard",
+        "leaderboard.json",
+        "LEADERBOARD.md",
+    }
+    _images_resolve(tmp_path / "docs" / "LEADERBOARD.md")
+
+
+def test_every_flag_has_help() -> None:
+    for action in leaderboard._parser()._actions:
+        assert action.help, f"{action.option_strings} has no help"
