@@ -1,18 +1,23 @@
 """Render a seeded scene from the head camera (and optionally from the external camera).
 
     python -m sim.render_scene --object phone --seed 0 --png head.png [--external]
-        [--width 640 --height 480] [--distractors N] [--no-shadows]
+        [--width 640 --height 480] [--distractors N] [--no-shadows] [--sensor NAME] [--depth]
 
     python -m sim.render_scene --sheet docs/tiers.png [--object phone --seed 0]
-        [--estimator hybrid]
+        [--estimator hybrid] [--sensor NAME]
 
-writes the head camera's RGB image to `--png`; with `--sheet` instead one picture of every tier
-(`posegrasp.world.tiers`), head camera above the external view, labelled; on each head image the
-target's true pose (white) and the pose `--estimator` finds in that image (green), with the
-estimate's errors in the label (`--estimator none`: no poses); with `--external` also writes
-`<stem>_external.png` next to it, a view from the world camera "external" that shows the robot,
-the table and the objects. Every argument is checked before the scene is built; a bad one gives a
-single `error: ...` line on stderr that names the valid choices, and exit status 2.
+writes the head camera's RGB image to `--png`, as the sensor `--sensor` returns it (the sensor
+models of `posegrasp.world.sensors`, with the noise an episode of the same seed observes;
+``ideal``, the default: the rendered image); with `--depth` also the head camera's depth as that
+sensor returns it, `<stem>_depth.png` (metric, 16-bit, millimetres, 0 where the sensor returns
+nothing) and `<stem>_depth_view.png` (coloured, with its scale). With `--sheet` instead one
+picture of every tier (`posegrasp.world.tiers`), head camera above the external view, labelled;
+on each head image the target's true pose (white) and the pose `--estimator` finds in that image
+(green), seen through the sensor as in an episode, with the estimate's errors in the label
+(`--estimator none`: no poses); with `--external` also writes `<stem>_external.png` next to it,
+a view from the world camera "external" that shows the robot, the table and the objects. Every
+argument is checked before the scene is built; a bad one gives a single `error: ...` line on
+stderr that names the valid choices, and exit status 2.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
+import mujoco
 import numpy as np
 
 from perception.overlay import draw_estimate
@@ -32,16 +38,25 @@ from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int, check_output_file, check_seed
 from posegrasp.world import constants as C  # importing sim defaults MUJOCO_GL to egl
-from posegrasp.world.camera import CameraRenderer, RenderOptions, check_resolution
+from posegrasp.world.camera import (
+    CameraRenderer,
+    RenderOptions,
+    camera_intrinsics,
+    check_resolution,
+)
 from posegrasp.world.objects import OBJECT_NAMES, object_names
 from posegrasp.world.scene import SceneConfig, build_scene
+from posegrasp.world.sensors import Sensor
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
 from sim.episode import Episode, EpisodeConfig
 from sim.estimators import (
     DEFAULT_ESTIMATOR,
     PrivilegedEstimator,
     add_estimator_arguments,
+    add_sensor_argument,
+    depth_unused_note,
     make_estimator,
+    needs_depth,
 )
 
 EXTERNAL_CAMERA = "external"
@@ -49,6 +64,19 @@ EXTERNAL_CAMERA = "external"
 NO_ESTIMATOR = "none"
 #: RGB of a sheet's label lines.
 TEXT_COLOUR, ERRORS_COLOUR, MISSED_COLOUR = (0, 0, 0), (0, 120, 0), (190, 0, 0)
+#: Millimetres per metre: the metric depth PNGs hold depth in millimetres.
+MM_PER_M = 1000.0
+#: A depth at or beyond this share of the far clipping plane is where the renderer drew nothing.
+FAR_SHARE = 0.999
+#: Percentiles of the valid depths that span a depth view's colours (the rest is clipped to the
+#: ends of the scale, marked <= and >=).
+VIEW_PERCENTILES = (1.0, 99.0)
+#: Width of a depth view's scale panel and height of its caption band [px].
+SCALE_W, CAPTION_H = 96, 24
+#: Tick labels on a depth view's scale.
+SCALE_TICKS = 5
+#: Colour of a depth view's pixels without a reading (not on the colour scale).
+NO_READING_RGB = (255, 255, 255)
 
 
 @dataclass(frozen=True)
@@ -66,6 +94,8 @@ class RenderRequest:
         tier: the scene tier (`posegrasp.world.tiers`); its presets override `distractors`.
         estimator: the estimator (`sim.estimators.ESTIMATORS`) whose poses a sheet shows, or
             `NO_ESTIMATOR`.
+        sensor: the head camera's sensor model (`posegrasp.world.sensors.SENSOR_NAMES`).
+        depth: also write the head camera's depth as the sensor returns it (`depth_paths`).
     """
 
     object: str
@@ -78,11 +108,21 @@ class RenderRequest:
     shadows: bool
     tier: str = DEFAULT_TIER
     estimator: str = NO_ESTIMATOR
+    sensor: str = "ideal"
+    depth: bool = False
 
     @property
     def external_path(self) -> Path:
         """`<stem>_external.png` next to `out`."""
         return self.out.with_name(f"{self.out.stem}_external{self.out.suffix}")
+
+    @property
+    def depth_paths(self) -> tuple[Path, Path]:
+        """`<stem>_depth.png` (metric) and `<stem>_depth_view.png` (coloured) next to `out`."""
+        return (
+            self.out.with_name(f"{self.out.stem}_depth{self.out.suffix}"),
+            self.out.with_name(f"{self.out.stem}_depth_view{self.out.suffix}"),
+        )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -142,6 +182,14 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"scene tier, one of: {', '.join(TIERS)}",
     )
     p.add_argument("--no-shadows", action="store_true", help="render without shadows (faster)")
+    add_sensor_argument(p)
+    p.add_argument(
+        "--depth",
+        action="store_true",
+        help="also write the head camera's depth as the sensor returns it: <stem>_depth.png "
+        "(16-bit, millimetres, 0: no reading) and <stem>_depth_view.png (coloured, with its "
+        "scale); not with --sheet",
+    )
     add_estimator_arguments(
         p,
         default=None,
@@ -166,6 +214,8 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
         estimator = args.estimator or DEFAULT_ESTIMATOR
     elif args.estimator is not None:
         raise InvalidArgumentError("--estimator applies to --sheet only")
+    if args.depth and args.sheet is not None:
+        raise InvalidArgumentError("--depth applies to --png only, not to --sheet")
     req = RenderRequest(
         object=args.object,
         seed=args.seed,
@@ -177,36 +227,130 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
         shadows=not args.no_shadows,
         tier=args.tier,
         estimator=estimator,
+        sensor=args.sensor,
+        depth=args.depth,
     )
     if req.external:
         check_output_file(req.external_path, "--external")
+    for path in req.depth_paths if req.depth else ():
+        check_output_file(path, "--depth")
     return req
 
 
-def _write_png(path: Path, rgb: np.ndarray) -> None:
+def _write_png(path: Path, image: np.ndarray) -> None:
+    """Write an RGB image (H, W, 3) uint8, or a grey one (H, W) of uint8 or uint16, as PNG."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), rgb[..., ::-1]):
+    if not cv2.imwrite(str(path), image[..., ::-1] if image.ndim == 3 else image):
         raise PosegraspError(f"cannot write {str(path)!r}")
 
 
-def render(req: RenderRequest) -> list[Path]:
-    """Build the scene of req and write its images.
+def depth_to_mm(depth_m: np.ndarray, far_m: float | None = None) -> np.ndarray:
+    """A depth image as a metric 16-bit image: the depth in whole millimetres, 0 where there is
+    no reading.
+
+    Args:
+        depth_m: depth along the optical axis (H, W) [m]; 0 where the sensor returns nothing.
+        far_m: the far clipping plane [m]; a depth at or beyond `FAR_SHARE` of it is where the
+            renderer drew nothing, so no reading (None: not checked).
 
     Returns:
-        The paths written, head camera first.
+        (H, W) uint16 [mm]; 0 where the depth is not finite, not positive, beyond the far plane
+        or past the 16-bit range.
+    """
+    z = np.asarray(depth_m, np.float64) * MM_PER_M
+    ok = np.isfinite(z) & (z > 0) & (z < 65535.5)
+    if far_m is not None:
+        ok &= z < FAR_SHARE * far_m * MM_PER_M
+    return np.where(ok, np.rint(np.where(ok, z, 0.0)), 0.0).astype(np.uint16)
+
+
+def _text(img: np.ndarray, text: str, xy: tuple[int, int], scale: float = 0.4) -> None:
+    cv2.putText(img, text, xy, cv2.FONT_HERSHEY_SIMPLEX, scale, TEXT_COLOUR, 1, cv2.LINE_AA)
+
+
+def depth_view(depth_mm: np.ndarray, caption: str) -> np.ndarray:
+    """A metric depth image (`depth_to_mm`) in colour for a person to read: the valid depths
+    between the `VIEW_PERCENTILES` coloured near (blue) to far (red), white where there is no
+    reading, a scale in metres on the right and `caption` above.
+
+    Args:
+        depth_mm: (H, W) uint16 [mm], 0: no reading.
+        caption: what the image is (the sensor, whether the estimator saw it).
+
+    Returns:
+        RGB (H + `CAPTION_H`, W + `SCALE_W`, 3) uint8.
+    """
+    h, w = depth_mm.shape
+    valid = depth_mm > 0
+    lo, hi = np.percentile(depth_mm[valid], VIEW_PERCENTILES) if valid.any() else (0.0, 1.0)
+    hi = max(float(hi), float(lo) + 1.0)
+    level = np.clip((depth_mm.astype(np.float64) - lo) / (hi - lo), 0.0, 1.0)
+    grey = np.rint(255 * level).astype(np.uint8)
+    colour = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)[..., ::-1]
+    colour[~valid] = NO_READING_RGB
+    out = np.full((h + CAPTION_H, w + SCALE_W, 3), 255, np.uint8)
+    out[CAPTION_H:, :w] = colour
+    _text(out, caption + "; white: no reading", (4, CAPTION_H - 8), 0.42)
+    top, bottom = CAPTION_H + 8, CAPTION_H + h - 8
+    ramp = np.linspace(0, 255, max(bottom - top, 2)).astype(np.uint8)[:, None]
+    bar = cv2.applyColorMap(ramp, cv2.COLORMAP_TURBO)[..., ::-1]
+    out[top : top + len(ramp), w + 6 : w + 22] = bar
+    for k in range(SCALE_TICKS):
+        share = k / (SCALE_TICKS - 1)
+        y = round(top + share * (len(ramp) - 1))
+        mark = "<=" if k == 0 else ">=" if k == SCALE_TICKS - 1 else ""
+        metres = (lo + share * (hi - lo)) / MM_PER_M
+        out[y, w + 22 : w + 27] = 0
+        _text(out, f"{mark}{metres:.2f} m", (w + 29, y + 4), 0.36)
+    return out
+
+
+def write_depth(paths: tuple[Path, Path], depth_m: np.ndarray, caption: str, far_m: float) -> None:
+    """Write a depth image as `depth_to_mm`'s metric 16-bit PNG and `depth_view`'s coloured one.
+
+    Args:
+        paths: the metric PNG and the coloured one.
+        depth_m: depth along the optical axis (H, W) [m], 0 where the sensor returns nothing.
+        caption: what the coloured view says it shows.
+        far_m: the far clipping plane [m] (beyond it the renderer drew nothing).
+    """
+    mm = depth_to_mm(depth_m, far_m)
+    _write_png(paths[0], mm)
+    _write_png(paths[1], depth_view(mm, caption))
+
+
+def far_plane(model: mujoco.MjModel) -> float:
+    """The far clipping plane of a MuJoCo model's cameras [m]."""
+    return float(model.vis.map.zfar * model.stat.extent)
+
+
+def render(req: RenderRequest) -> list[Path]:
+    """Build the scene of req and write its images: the head camera's through the sensor
+    (with the noise an episode of the same seed observes), with `req.depth` its depth too.
+
+    Returns:
+        The paths written, head camera first, then its depth images, then the external view.
     """
     scene = build_scene(
         req.object, req.seed, tier_scene(req.tier, SceneConfig(n_distractors=req.distractors))
     )
+    sensor = Sensor.parse(req.sensor)
     written = [req.out]
-    cameras = [(C.HEAD_CAMERA, req.out)]
-    if req.external:
-        cameras.append((EXTERNAL_CAMERA, req.external_path))
-        written.append(req.external_path)
     options = RenderOptions(shadows=req.shadows, reflections=False)
     with CameraRenderer(scene.model, req.width, req.height, options) as renderer:
-        for camera, path in cameras:
-            _write_png(path, renderer.rgb(scene.data, camera))
+        rgb = renderer.rgb(scene.data, C.HEAD_CAMERA)
+        depth = renderer.depth(scene.data, C.HEAD_CAMERA) if req.depth else None
+        if sensor.name != "ideal":
+            K = camera_intrinsics(scene.model, C.HEAD_CAMERA, req.width, req.height)
+            rgb, depth = sensor.apply(rgb, depth, K, req.seed)
+        _write_png(req.out, rgb)
+        if depth is not None:
+            caption = f"head camera depth, sensor {sensor.name}"
+            write_depth(req.depth_paths, depth, caption, far_plane(scene.model))
+            written.extend(req.depth_paths)
+        if req.external:
+            _write_png(req.external_path, renderer.rgb(scene.data, EXTERNAL_CAMERA))
+            written.append(req.external_path)
     return written
 
 
@@ -231,11 +375,21 @@ def render_sheet(req: RenderRequest, path: Path) -> Path:
     external view, each at `req.width` x `req.height`, with the tier's name and summary. Unless
     `req.estimator` is `NO_ESTIMATOR`, the estimator runs on each head image as in an episode
     (`sim.episode.Episode.estimate`); the image shows the true pose and the estimate, the label
-    the estimate's translation and rotation errors, or that it found no target."""
+    the estimate's translation and rotation errors, or that it found no target. The head images
+    are seen through `req.sensor`, with the depth image for an estimator that needs it
+    (`sim.estimators.needs_depth`)."""
     estimator = None if req.estimator == NO_ESTIMATOR else make_estimator(req.estimator)
+    obs_mode = "rgbd" if needs_depth(req.estimator) else "rgb"
     columns = []
     for name, tier in TIERS.items():
-        cfg = EpisodeConfig(width=req.width, height=req.height, shadows=req.shadows, tier=name)
+        cfg = EpisodeConfig(
+            width=req.width,
+            height=req.height,
+            shadows=req.shadows,
+            tier=name,
+            obs_mode=obs_mode,
+            sensor=req.sensor,
+        )
         ep = Episode(req.object, req.seed, cfg)
         try:
             obs = ep.observe()
@@ -266,12 +420,27 @@ def render_sheet(req: RenderRequest, path: Path) -> Path:
     return path
 
 
+def depth_note(req: RenderRequest, sheet: bool) -> str | None:
+    """The one ``note:`` line when the sensor's depth model changes a depth image that nothing
+    written shows: a sheet whose estimator sees colour only (`sim.estimators.depth_unused_note`)
+    or shows no estimate, or a head image without ``--depth``; None otherwise."""
+    if sheet and req.estimator != NO_ESTIMATOR:
+        return None if needs_depth(req.estimator) else depth_unused_note("rgb", req.sensor)
+    if Sensor.parse(req.sensor).depth == "ideal" or req.depth:
+        return None
+    where = "a sheet does not show" if sheet else "only --depth writes"
+    return f"note: sensor {req.sensor} changes the depth image, which {where}"
+
+
 @command
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
     args = build_parser().parse_args(argv)
     setup_rendering()
     req = check_request(args)
+    note = depth_note(req, args.sheet is not None)
+    if note is not None:
+        print(note, file=sys.stderr)
     for path in [render_sheet(req, req.out)] if args.sheet is not None else render(req):
         print(path)
     return 0

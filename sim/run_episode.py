@@ -2,6 +2,13 @@
 
 python -m sim.run_episode --object phone [--seed N] [--estimator hybrid] [--tier T]
     [--noise SIGMAS] [--obs-mode rgbd] [--sensor NAME] [--json PATH] [--out DIR]
+
+The summary names the sensor the head camera observed through. ``--out DIR`` writes what the
+estimator was shown and what the grasp did: the head image with the true and estimated poses
+drawn on it, the head camera's depth image as the episode's sensor produced it (what the
+estimator saw with ``--obs-mode rgbd``; with ``rgb`` it was not given it), the grasp as a GIF and
+a strip of its stages. A depth sensor with an RGB-only observation prints one note: its depth
+goes unused.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from sim.estimators import (
     add_obs_mode_argument,
     add_sensor_argument,
     check_depth,
+    depth_unused_note,
     make_estimator,
 )
 from sim.pose_noise import parse_noise
@@ -65,7 +73,7 @@ def summary(result) -> str:
     """A readable multi-line summary of an EpisodeResult."""
     lines = [
         f"episode  object={result.object}  seed={result.seed}  estimator={result.estimator}  "
-        f"tier={result.tier}" + ("" if result.sensor == "ideal" else f"  sensor={result.sensor}"),
+        f"tier={result.tier}  sensor={result.sensor}",
         f"  true pose (camera frame)      {_fmt_pose(result.T_C_O_true)}",
         f"  estimated pose (camera frame) {_fmt_pose(result.T_C_O_est)}",
     ]
@@ -376,26 +384,69 @@ def _run(
     ep = Episode(obj, seed, cfg)
     try:
         film = Film() if save is not None else None
+        # The depth the sensor produces, rendered before the episode moves anything; with rgbd
+        # the observation carries the same image.
+        depth = sensor_depth(ep) if save is not None and obs_mode != "rgbd" else None
         obs, result = ep.run(estimator, film)
         if save is not None and film is not None:
-            _save(save, obs, result.T_C_O_est, ep, result, film, log or sys.stdout)
+            seen = obs.depth if depth is None else depth
+            assert seen is not None, "rgbd observes depth; rgb renders it above"
+            _save(save, obs, seen, ep, result, film, log or sys.stdout)
         return result
     finally:
         ep.close()
 
 
-def _save(folder: Path, obs, est, ep, result, film: Film, log: TextIO) -> None:
+def sensor_depth(ep) -> np.ndarray:
+    """The head camera's depth image as the episode's sensor produces it in the current state
+    (called before `Episode.run`, the state `Episode.observe` sees): the same image, noise
+    included, that ``obs_mode="rgbd"`` hands the estimator.
+
+    Returns:
+        Depth (H, W) float32 [m] along the optical axis; 0 where the sensor returns nothing.
+    """
+    depth = ep.renderer.depth(ep.scene.data, C.HEAD_CAMERA)
+    if ep.sensor.name == "ideal":
+        return depth
+    rgb = ep.renderer.rgb(ep.scene.data, C.HEAD_CAMERA)
+    return ep.sensor.apply(rgb, depth, ep.K, ep.seed)[1]
+
+
+def depth_names(sensor: str) -> tuple[str, str]:
+    """File names of the depth images `--out` writes: the metric PNG and its coloured view,
+    both named after the sensor that produced them."""
+    return f"depth_{sensor}.png", f"depth_{sensor}_view.png"
+
+
+def depth_caption(sensor: str, seen: bool) -> str:
+    """What a depth image shows: whose depth, and whether the estimator was given it."""
+    given = "seen by the estimator" if seen else "not given to the estimator (--obs-mode rgb)"
+    return f"depth of sensor {sensor}, {given}"
+
+
+def _save(folder: Path, obs, depth: np.ndarray, ep, result, film: Film, log: TextIO) -> None:
+    """Write the head image, the sensor's depth image (`depth_names`) and, when a grasp was
+    executed, the grasp's GIF and strip into `folder`; say on `log` what was written."""
     import cv2
     from PIL import Image
 
     from perception.overlay import draw_estimate
+    from sim.render_scene import far_plane, write_depth
 
     folder.mkdir(parents=True, exist_ok=True)
     model = ep.scene.model
     mesh = ep.scene.target.model.mesh
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    img = draw_estimate(obs.rgb, obs.K, result.T_C_O_true, est, v, f)
+    img = draw_estimate(obs.rgb, obs.K, result.T_C_O_true, result.T_C_O_est, v, f)
     cv2.imwrite(str(folder / "head.png"), img[..., ::-1])
+    sensor = ep.sensor.name
+    names = depth_names(sensor)
+    caption = depth_caption(sensor, obs.depth is not None)
+    write_depth((folder / names[0], folder / names[1]), depth, caption, far_plane(model))
+    depth_line = (
+        f"wrote {folder / names[0]} (16-bit, millimetres, 0: no reading) and "
+        f"{folder / names[1]}: the {caption}"
+    )
     strip = grasp_strip(model, film, ep.scene.target.body, result)
     if strip is None:
         print(
@@ -403,6 +454,7 @@ def _save(folder: Path, obs, est, ep, result, film: Film, log: TextIO) -> None:
             "grasp.gif or grasp_strip.png",
             file=log,
         )
+        print(depth_line, file=log)
         return
     cv2.imwrite(str(folder / "grasp_strip.png"), strip[..., ::-1])
     stages = label_stages(np.array([s.ctrl for s in film.snapshots]), finger_actuators(model))
@@ -426,6 +478,7 @@ def _save(folder: Path, obs, est, ep, result, film: Film, log: TextIO) -> None:
         f"{folder / 'grasp_strip.png'}",
         file=log,
     )
+    print(depth_line, file=log)
 
 
 @command
@@ -459,15 +512,21 @@ def main(argv: list[str] | None = None) -> int:
     add_json_argument(p, "the episode")
     add_out_argument(
         p,
-        "head.png (the head image with the true and estimated poses drawn on it), grasp.gif (the "
-        "grasp from the external camera) and grasp_strip.png (a close-up of each stage, the "
-        "outcome on the last)",
+        "head.png (the head image with the true and estimated poses drawn on it), "
+        "depth_SENSOR.png (the head camera's depth as the sensor produced it, what the estimator "
+        "saw with --obs-mode rgbd: 16-bit, millimetres, 0 where there is no reading) with "
+        "depth_SENSOR_view.png (the same in colour, with its scale), grasp.gif (the grasp from "
+        "the external camera) and grasp_strip.png (a close-up of each stage, the outcome on the "
+        "last)",
         aliases=("--save",),
     )
     args = p.parse_args(argv)
     check_depth(args.estimator, args.obs_mode)
     setup_rendering()
     log = summary_stream(args.json)
+    note = depth_unused_note(args.obs_mode, args.sensor)
+    if note is not None:
+        print(note, file=sys.stderr)
     noise = None if args.noise is None else parse_noise(args.noise)
     estimator = make_estimator(args.estimator, noise)
     result = _run(

@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 
 from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.sensors import SENSOR_NAMES
 from posegrasp.world.tiers import TIERS
-from sim.render_scene import main
+from sim.episode import Episode, EpisodeConfig
+from sim.render_scene import depth_to_mm, far_plane, main
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -53,7 +55,17 @@ def test_default_size_without_external(tmp_path: Path) -> None:
 def test_help(capsys: pytest.CaptureFixture) -> None:
     assert main(["--help"]) == 0
     text = capsys.readouterr().out
-    options = ("--object", "--seed", "--png", "--sheet", "--external", "--width", "--distractors")
+    options = (
+        "--object",
+        "--seed",
+        "--png",
+        "--sheet",
+        "--external",
+        "--width",
+        "--distractors",
+        "--sensor",
+        "--depth",
+    )
     for option in options:
         assert option in text
     assert ", ".join(OBJECT_NAMES) in " ".join(text.split())
@@ -78,6 +90,12 @@ BAD_INPUTS = [
     (["--seed", str(2**32)], ["0..4294967295"]),
     (["--width", "wide"], ["--width", "invalid int value", "--help"]),
     (["--colour", "red"], ["unrecognized arguments: --colour", "--help"]),
+    (
+        ["--sensor", "lidar"],
+        ["unknown sensor 'lidar'", "valid sensors: " + ", ".join(SENSOR_NAMES)],
+    ),
+    (["--sheet", "{tmp}/s.png", "--depth"], ["--depth applies to --png only"]),
+    (["--png", "{tmp}/h.png", "--depth"], ["--depth", "is a folder"]),
 ]
 
 
@@ -85,6 +103,7 @@ def _fill(args: list[str], tmp_path: Path) -> list[str]:
     blocker = tmp_path / "file"
     blocker.write_text("not a directory")
     (tmp_path / "dir.png").mkdir()
+    (tmp_path / "h_depth_view.png").mkdir()  # where --png h.png --depth would write its view
     args = [a.format(file=blocker, tmp=tmp_path) for a in args]
     named = "--png" in args or "--sheet" in args
     return args if named else [*args, "--png", str(tmp_path / "x.png")]
@@ -128,3 +147,43 @@ def test_sheet_shows_every_tier(tmp_path) -> None:
     # Every column holds two real renders (not blank).
     for k in range(len(TIERS)):
         assert img[40:, 64 * k : 64 * (k + 1)].std() > 5
+
+
+def test_depth_through_a_sensor_is_the_depth_an_episode_of_the_seed_observes(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    out = tmp_path / "head.png"
+    argv = ["--object", "phone", "--seed", "3", "--png", str(out), "--no-shadows"]
+    assert main([*argv, "--sensor", "kinect-v1", "--depth"]) == 0
+    metric, view = tmp_path / "head_depth.png", tmp_path / "head_depth_view.png"
+    captured = capsys.readouterr()
+    assert captured.out.split() == [str(out), str(metric), str(view)]
+    assert "note:" not in captured.err  # the depth is written: nothing goes unused
+    written = cv2.imread(str(metric), cv2.IMREAD_UNCHANGED)
+    assert written is not None and written.dtype == np.uint16
+    ep = Episode("phone", 3, EpisodeConfig(shadows=False, obs_mode="rgbd", sensor="kinect-v1"))
+    try:
+        depth = ep.observe().depth
+        far = far_plane(ep.scene.model)
+    finally:
+        ep.close()
+    assert depth is not None and (depth == 0).any()  # the sensor's holes
+    np.testing.assert_array_equal(written, depth_to_mm(depth, far))
+    coloured = cv2.imread(str(view))
+    assert coloured is not None and coloured.shape[0] > written.shape[0]
+
+
+def test_a_colour_model_changes_the_head_image_and_a_depth_model_says_its_depth_is_unseen(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    argv = ["--object", "phone", "--seed", "3", "--no-shadows", "--width", "200", "--height", "150"]
+    images = {}
+    for sensor in ("ideal", "ideal+camera", "azure-tof"):
+        out = tmp_path / f"{sensor}.png"
+        assert main([*argv, "--png", str(out), "--sensor", sensor]) == 0
+        images[sensor] = cv2.imread(str(out)).astype(int)
+        notes = [x for x in capsys.readouterr().err.splitlines() if x.startswith("note:")]
+        assert len(notes) == (sensor == "azure-tof")
+    assert np.abs(images["ideal+camera"] - images["ideal"]).mean() > 0.5
+    np.testing.assert_array_equal(images["azure-tof"], images["ideal"])  # a depth model alone
+    assert not list(tmp_path.glob("*_depth*.png"))  # no --depth: no depth images
