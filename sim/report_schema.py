@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import functools
 import json
+import shlex
 from pathlib import Path
 from typing import Any
 
 from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.journal import interrupted
 
 #: The id of the schema reports are written in; its number rises when a field changes meaning or
 #: a required field is added.
@@ -63,7 +65,7 @@ def validate_report(report: Any, source: str = "the report") -> dict[str, Any]:
         )
     errors = sorted(_validator().iter_errors(report), key=lambda e: list(map(str, e.path)))
     if not errors:
-        return report
+        return check_played(report, source)
     err = errors[0]
     where = _where(err.absolute_path)
     if err.validator == "required":
@@ -71,6 +73,60 @@ def validate_report(report: Any, source: str = "the report") -> dict[str, Any]:
         field = f"{where}.{missing}" if err.absolute_path else missing
         raise InvalidArgumentError(f"{source} lacks the field {field} ({REPORT_SCHEMA})")
     raise InvalidArgumentError(f"{source}: {where}: {err.message} ({REPORT_SCHEMA})")
+
+
+def check_played(report: dict[str, Any], source: str = "the report") -> dict[str, Any]:
+    """`report` when every episode in it was played to its outcome; runs before an interruption
+    passed the episode's error handling recorded a stopped episode as a failed grasp
+    (`posegrasp.core.journal.interrupted`), and such a report is no result.
+
+    Raises:
+        InvalidArgumentError: one line naming the first stopped episode and the command that
+            redoes the run.
+    """
+    stopped = [e for e in report.get("episodes", []) if interrupted(e)]
+    if not stopped:
+        return report
+    first = stopped[0]
+    raise InvalidArgumentError(
+        f"{source} holds {len(stopped)} episodes stopped by an interruption, not played "
+        f"({first.get('object')} seed {first.get('seed')}: {(first.get('notes') or ['?'])[0]}); "
+        f"redo the run: {redo_command(report, source if source.endswith('.json') else 'OUT.json')}"
+    )
+
+
+def redo_command(report: dict[str, Any], path: str = "REPORT.json") -> str:
+    """The ``python -m sim.evaluate`` command that plays a report's episodes again, from what
+    the report records (a BOP route's report: the same ``--poses`` and ``--from``)."""
+    estimator = str(report.get("estimator"))
+    if estimator.startswith("bop:"):
+        args = ["--poses", "CSV", "--from", "EXPORT"]
+    else:
+        args = [
+            "--estimator",
+            estimator,
+            "--objects",
+            ",".join(report.get("per_object") or {}),
+            "--episodes",
+            str(report.get("episodes_per_object")),
+            "--seed-start",
+            str(report.get("seed_start")),
+            "--tier",
+            str(report.get("tier")),
+        ]
+        if report.get("noise") is not None:
+            args += ["--noise", str(report["noise"])]
+        if report.get("distractor_pool"):
+            args += ["--pool", ",".join(report["distractor_pool"])]
+        if report.get("candidates", "designed") != "designed":
+            args += ["--candidates", str(report["candidates"])]
+        if any(e.get("friction_margin") is not None for e in report.get("episodes", [])):
+            args.append("--margin")
+    if report.get("obs_mode", "rgb") != "rgb":
+        args += ["--obs-mode", str(report["obs_mode"])]
+    if report.get("sensor", "ideal") != "ideal":
+        args += ["--sensor", str(report["sensor"])]
+    return shlex.join(["python", "-m", "sim.evaluate", *args, "--json", path])
 
 
 def read_report(path: Path | str) -> dict[str, Any]:

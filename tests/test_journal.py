@@ -19,9 +19,11 @@ from posegrasp.core.journal import (
     INTERRUPTED_EXIT,
     Interrupted,
     Journal,
+    interrupted,
     journal_path,
     run_journaled,
 )
+from sim.report_schema import read_report
 
 REPO = Path(__file__).resolve().parent.parent
 PROTOCOL = {"estimator": "oracle", "seeds": [1, 2, 3]}
@@ -205,3 +207,52 @@ def test_an_interrupted_evaluation_resumes_to_the_uninterrupted_report(tmp_path,
     )
     assert not journal.exists()
     assert _strip(json.loads(out.read_text())) == _strip(json.loads(whole.read_text()))
+
+
+def test_a_unit_kept_as_an_interruption_runs_again_on_resume(tmp_path: Path) -> None:
+    """Runs before an interruption passed the episode's error handling kept it as a failed
+    episode; a resume plays it again instead of keeping it."""
+    path = tmp_path / "j.jsonl"
+    j = Journal(path, "square", PROTOCOL)
+    j.start(resume=False)
+    j.append({"key": 0, "result": _square(0)})
+    stopped = {"failure_reason": "error", "notes": ["Interrupted: SIGTERM"], "success": False}
+    j.append({"key": 1, "result": stopped})
+    j.close()
+    calls = []
+
+    def counted(x: int) -> dict:
+        calls.append(x)
+        return _square(x)
+
+    out = run_journaled(counted, range(3), 3, Journal(path, "square", PROTOCOL), resume=True)
+    assert out == [_square(0), _square(1), _square(2)] and calls == [1, 2]
+    assert interrupted(stopped) and not interrupted({**stopped, "notes": ["Interrupted: nah"]})
+
+
+def test_a_report_that_holds_a_stopped_episode_is_refused_with_the_redo(tmp_path, capsys) -> None:
+    from sim import compare
+    from sim.evaluation import Protocol, make_report
+
+    golden = json.loads((REPO / "tests" / "golden" / "reports" / "oracle.json").read_text())
+    episodes = [e | {"wall_ms": 1.0, "timings_ms": {}} for e in golden["episodes"]]
+    objects = tuple(dict.fromkeys(e["object"] for e in episodes))
+    protocol = Protocol(
+        objects, len(episodes) // len(objects), golden["seed_start"], golden["tier"]
+    )
+    report = make_report(episodes, protocol, "oracle")
+    good = tmp_path / "good.json"
+    good.write_text(json.dumps(report))
+    report["episodes"][0].update(
+        success=False, failure_reason="error", notes=["Interrupted: SIGTERM"]
+    )
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(report))
+    with pytest.raises(InvalidArgumentError, match="stopped by an interruption") as exc:
+        read_report(bad)
+    redo = str(exc.value).split("redo the run: ")[1]
+    assert redo.startswith("python -m sim.evaluate --estimator oracle --objects ")
+    assert redo.endswith(f"--json {bad}")
+    assert compare.main([str(good), str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "redo the run: python -m sim.evaluate" in err

@@ -196,7 +196,7 @@ def command_line(argv: list[str] | None = None, flag: str | None = None) -> str:
     if flag is not None and flag not in args:
         args.append(flag)
     spec = getattr(sys.modules.get("__main__"), "__spec__", None)
-    cmd = f"python -m {spec.name}" if spec is not None else Path(sys.argv[0]).name
+    cmd = f"python -m {spec.name}" if spec is not None else f"python {sys.argv[0]}"
     return f"{cmd} {shlex.join(args)}".rstrip()
 
 
@@ -225,7 +225,7 @@ def resume_hint(
 
 #: The note an episode carries when an interruption was recorded as its outcome (as runs did
 #: before `Interrupted` passed the episode's error handling).
-INTERRUPTED_NOTE = re.compile(r"^(Interrupted|KeyboardInterrupt)\b")
+INTERRUPTED_NOTE = re.compile(r"^Interrupted: SIG[A-Z]+$")
 
 
 def interrupted(unit: Any) -> bool:
