@@ -8,17 +8,36 @@ Pure functions over `sim.evaluate` episodes and leaderboard cells (`sim.leaderbo
   with a percentile bootstrap interval over the cells;
 - `ar_for_success`: the AR at which a logistic fit of grasp success on AR reaches a target
   success (e.g. 95 %), per tier.
+
+`study` applies them to `sim.evaluate` reports, each report one cell; the command prints it:
+
+    python -m sim.grasp_vs_bop REPORT [REPORT ...] [--target 0.95] [--boot N] [--json PATH]
+
+per report and pooled over them, each per-episode error's separation AUC; given several
+reports, Spearman's rho of each AR against grasp success over them and the AR each needs for
+the target success.
 """
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
 from scipy.stats import rankdata, spearmanr
 
+from posegrasp.core.cli import (
+    ArgumentParser,
+    add_json_argument,
+    command,
+    summary_stream,
+    write_json,
+)
 from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.validate import arg, check_float, check_input_file, check_int
 
 #: The per-episode errors whose separation of success from failure is measured: name -> how to
 #: read it from an episode (None when the episode has no estimate or lacks that error).
@@ -149,3 +168,190 @@ def ar_for_success(
         )
         return {"ar": None, "a": a, "b": b, "note": note}
     return {"ar": float(need), "a": a, "b": b, "note": ""}
+
+
+#: The reports' ARs (keys of a report's ``overall``) set against grasp success, and their names.
+AR_NAMES: dict[str, str] = {"ar_mssd": "AR_MSSD", "ar_mspd": "AR_MSPD", "ar_vsd": "AR_VSD"}
+#: The success whose AR is reported unless told otherwise.
+DEFAULT_TARGET = 0.95
+#: Bootstrap resamples of Spearman's interval unless told otherwise.
+DEFAULT_BOOT = 2000
+
+
+def cell_of(report: dict[str, Any], label: str) -> dict[str, Any]:
+    """One report as a cell: what it ran, its successes and ARs, and its episodes' AUCs.
+
+    Args:
+        report: a `sim.evaluate` report (`sim.report_schema`).
+        label: how the study names it (its file).
+    """
+    g = report["overall"]
+    return {
+        "report": label,
+        "estimator": report["estimator"],
+        "tier": report["tier"],
+        "sensor": report.get("sensor", "ideal"),
+        "episodes": g["episodes"],
+        "successes": g["successes"],
+        "success_rate": g["success_rate"],
+        **{key: g.get(key) for key in AR_NAMES},
+        "auc": episode_aucs(report["episodes"]),
+    }
+
+
+def study(
+    reports: Sequence[tuple[str, dict[str, Any]]],
+    target: float = DEFAULT_TARGET,
+    boot: int = DEFAULT_BOOT,
+) -> dict[str, Any]:
+    """What BOP scores say about the grasps of some `sim.evaluate` reports, each a cell.
+
+    Args:
+        reports: (label, report) pairs, at least one.
+        target: the grasp success whose AR `ar_for_success` finds, in (0, 1).
+        boot: bootstrap resamples of Spearman's interval.
+
+    Returns:
+        ``cells`` (`cell_of` of each report), ``pooled`` (the episodes of every report and their
+        `episode_aucs`), and with several reports ``across_cells``: per AR, ``spearman``
+        (`spearman_with_interval` of the AR against the success rate over the cells that have
+        the AR) and ``ar_for_success`` (`ar_for_success` at `target`); None with one report.
+
+    Raises:
+        InvalidArgumentError: no report.
+    """
+    if not reports:
+        raise InvalidArgumentError("no report to study; give one or more sim.evaluate reports")
+    cells = [cell_of(report, label) for label, report in reports]
+    pooled = [e for _, report in reports for e in report["episodes"]]
+    across = None
+    if len(cells) > 1:
+        across = {}
+        for key in AR_NAMES:
+            pts = [c for c in cells if c[key] is not None]
+            across[key] = {
+                "spearman": spearman_with_interval(
+                    [c[key] for c in pts], [c["success_rate"] for c in pts], boot
+                ),
+                "ar_for_success": ar_for_success(
+                    [c[key] for c in pts],
+                    [c["successes"] for c in pts],
+                    [c["episodes"] for c in pts],
+                    target,
+                ),
+            }
+    return {
+        "target": target,
+        "cells": cells,
+        "pooled": {"episodes": len(pooled), "auc": episode_aucs(pooled)},
+        "across_cells": across,
+    }
+
+
+def _num(v: float | None, fmt: str = ".3f") -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def format_study(result: dict[str, Any]) -> str:
+    """The study as text: the cells, the AUC table (cells and pooled) and, with several cells,
+    Spearman's rho and the AR for the target success per AR."""
+    cells = result["cells"]
+    width = max(len("pooled"), *(len(c["report"]) for c in cells))
+    lines = [
+        f"{'report':<{width}}  {'estimator':<16} {'tier':<9} {'sensor':<16} episodes  success  "
+        + "  ".join(f"{name:>7}" for name in AR_NAMES.values())
+    ]
+    for c in cells:
+        lines.append(
+            f"{c['report']:<{width}}  {c['estimator']:<16} {c['tier']:<9} {c['sensor']:<16} "
+            f"{c['episodes']:>8}  {c['success_rate']:>7.3f}  "
+            + "  ".join(f"{_num(c[key]):>7}" for key in AR_NAMES)
+        )
+    errors = list(EPISODE_ERRORS)
+    lines += [
+        "",
+        "separation AUC of each pose error: the chance that a failed grasp's error exceeds a "
+        "held one's (0.5: no separation; -: the error not measured, or no grasp failed or "
+        "none held)",
+        f"{'report':<{width}}  " + "  ".join(f"{name:>10}" for name in errors),
+    ]
+    rows = [(c["report"], c["auc"]) for c in cells]
+    if len(cells) > 1:
+        rows.append(("pooled", result["pooled"]["auc"]))
+    for label, aucs in rows:
+        lines.append(
+            f"{label:<{width}}  " + "  ".join(f"{_num(aucs[e]['auc']):>10}" for e in errors)
+        )
+    across = result["across_cells"]
+    if across is not None:
+        target = result["target"]
+        lines += ["", f"over the {len(cells)} reports as cells:"]
+        for key, name in AR_NAMES.items():
+            rho = across[key]["spearman"]
+            interval = f" [{rho['low']:.2f}, {rho['high']:.2f}]" if rho["low"] is not None else ""
+            spearman = (
+                f"rho {rho['rho']:.2f}{interval} over {rho['n']} cells"
+                if rho["rho"] is not None
+                else f"rho - ({rho['n']} cells with this AR; needs 3 of varying AR and success)"
+            )
+            fit = across[key]["ar_for_success"]
+            need = f"{fit['ar']:.2f}" if fit["ar"] is not None else f"- ({fit['note']})"
+            lines.append(f"  {name:<8} {spearman}; AR for {target:.0%} success: {need}")
+    return "\n".join(lines)
+
+
+def read_reports(paths: Sequence[Path]) -> list[tuple[str, dict[str, Any]]]:
+    """The reports in `paths`, validated (`sim.report_schema.read_report`), each labelled by its
+    file name (its path where two share a name).
+
+    Raises:
+        InvalidArgumentError: a file that is unreadable, not JSON or not a report, naming it.
+    """
+    from sim.report_schema import read_report
+
+    names = [Path(p).name for p in paths]
+    return [
+        (name if names.count(name) == 1 else str(p), read_report(p))
+        for p, name in zip(paths, names, strict=True)
+    ]
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    p = ArgumentParser(
+        prog="python -m sim.grasp_vs_bop",
+        description="What BOP scores say about grasps: per sim.evaluate report and pooled, how "
+        "well each pose error separates held grasps from failed ones; over several reports "
+        "(cells), how AR ranks them by grasp success and the AR a target success needs.",
+    )
+    p.add_argument(
+        "reports",
+        nargs="+",
+        type=arg(check_input_file, "report", base=Path),
+        metavar="REPORT",
+        help="a report of python -m sim.evaluate --json; several are the cells of the study",
+    )
+    p.add_argument(
+        "--target",
+        type=arg(check_float, 0.5, 0.999, "--target", base=float),
+        default=DEFAULT_TARGET,
+        help=f"the grasp success whose AR is found, 0.5..0.999 (default {DEFAULT_TARGET})",
+    )
+    p.add_argument(
+        "--boot",
+        type=arg(check_int, 100, 100_000, "--boot", base=int),
+        default=DEFAULT_BOOT,
+        help=f"bootstrap resamples of Spearman's interval, 100..100000 (default {DEFAULT_BOOT})",
+    )
+    add_json_argument(p, "the study")
+    args = p.parse_args(argv)
+    result = study(read_reports(args.reports), args.target, args.boot)
+    print(format_study(result), file=summary_stream(args.json))
+    if args.json is not None:
+        write_json(args.json, result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

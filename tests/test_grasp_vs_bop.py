@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.stats import mannwhitneyu
@@ -11,9 +16,12 @@ from sim.grasp_vs_bop import (
     ar_for_success,
     episode_aucs,
     logistic_fit,
+    main,
     separation_auc,
     spearman_with_interval,
 )
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 def test_separation_auc_is_mann_whitney_u_over_the_pairs() -> None:
@@ -83,3 +91,152 @@ def test_spearman_without_a_varying_resample_has_rho_and_no_interval() -> None:
     # Seed 4's one resample of three pairs draws pair 2 thrice: constant ranks, so no interval.
     r = spearman_with_interval([1, 2, 3], [1, 3, 2], boot=1, seed=4)
     assert (r["rho"], r["low"], r["high"], r["n"]) == (pytest.approx(0.5), None, None, 3)
+
+
+# --- the command ---------------------------------------------------------------------------------
+
+
+def _episode(i: int, success: bool, mssd: float | None) -> dict:
+    """One episode of a hand-made report; `mssd` None: no estimate."""
+    pose = None
+    if mssd is not None:
+        pose = {
+            "mssd_rel_diameter": mssd,
+            "mspd_px": 100 * mssd,
+            "adi_m": mssd / 10,
+            "ray_m": mssd / 10,
+            "lateral_m": 0.0,
+            "rotation_deg": 30 * mssd,
+        }
+    return {
+        "object": "phone",
+        "seed": 1_000_000_000 + i,
+        "estimator": "hand",
+        "tier": "isolated",
+        "success": success,
+        "failure_reason": None if success else ("slipped" if pose else "no_estimate"),
+        "pose_error": pose,
+        "notes": [],
+        "timings_ms": {"total": 1.0},
+        "wall_ms": 1.0,
+    }
+
+
+def _report(estimator: str, outcomes: list[tuple[bool, float | None]], ar: float) -> dict:
+    """A small report of `sim.evaluate` made by hand: its episodes, and `ar` as every AR."""
+    episodes = [_episode(i, ok, mssd) for i, (ok, mssd) in enumerate(outcomes)]
+    n, k = len(episodes), sum(ok for ok, _ in outcomes)
+    group = {
+        "episodes": n,
+        "successes": k,
+        "success_rate": k / n,
+        "wilson_low": 0.0,
+        "wilson_high": 1.0,
+        "failure_reasons": {},
+        "pose_judged": n,
+        "pose_correct": k,
+        "grasped_wrong_pose": 0,
+        "missed_right_pose": 0,
+        "ar_mssd": ar,
+        "ar_mspd": ar,
+        "ar_vsd": ar,
+        "episode_wall_ms_median": 1.0,
+        "planning_ms_median": 1.0,
+    }
+    return {
+        "schema": "posegrasp-evaluate-report-1",
+        "estimator": estimator,
+        "tier": "isolated",
+        "noise": None,
+        "obs_mode": "rgb",
+        "execution": {},
+        "seed_start": 1_000_000_000,
+        "episodes_per_object": n,
+        "workers": 1,
+        "wall_s": 1.0,
+        "per_object": {"phone": group},
+        "overall": group,
+        "episodes": episodes,
+    }
+
+
+#: Three cells: the better the AR, the more grasps hold; within each, the failed grasps' MSSD
+#: above the held ones' (a perfect separation).
+CELLS = {
+    "low.json": _report("low", [(True, 0.05), (False, 0.4), (False, 0.5), (False, None)], 0.2),
+    "mid.json": _report("mid", [(True, 0.05), (True, 0.08), (False, 0.3), (False, 0.6)], 0.5),
+    "high.json": _report("high", [(True, 0.01), (True, 0.02), (True, 0.04), (False, 0.2)], 0.8),
+}
+
+
+def _write(folder: Path) -> list[str]:
+    paths = []
+    for name, report in CELLS.items():
+        (folder / name).write_text(json.dumps(report))
+        paths.append(str(folder / name))
+    return paths
+
+
+def test_the_command_studies_each_report_pooled_and_across_cells(tmp_path, capsys) -> None:
+    paths = _write(tmp_path)
+    assert main([*paths, "--json", "-", "--boot", "200"]) == 0
+    captured = capsys.readouterr()
+    got = json.loads(captured.out)  # the JSON alone on standard output
+    assert [c["report"] for c in got["cells"]] == list(CELLS)
+    for cell, report in zip(got["cells"], CELLS.values(), strict=True):
+        assert cell["auc"] == episode_aucs(report["episodes"])
+        assert cell["auc"]["MSSD"]["auc"] == 1.0
+    pooled = [e for r in CELLS.values() for e in r["episodes"]]
+    assert got["pooled"] == {"episodes": 12, "auc": episode_aucs(pooled)}
+    ar = got["across_cells"]["ar_mssd"]
+    assert ar["spearman"]["rho"] == pytest.approx(1.0) and ar["spearman"]["n"] == 3
+    want = ar_for_success([0.2, 0.5, 0.8], [1, 2, 3], [4, 4, 4], 0.95)
+    assert ar["ar_for_success"] == pytest.approx(want)
+    text = captured.err  # the summary, on standard error
+    assert "pooled" in text and "over the 3 reports as cells" in text and "rho 1.00" in text
+
+
+def test_one_report_is_studied_alone_and_printed(tmp_path, capsys) -> None:
+    path = _write(tmp_path)[1]
+    assert main([path]) == 0
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    assert lines[0].startswith("report") and "AR_MSSD" in lines[0]
+    (auc_row,) = [x for x in lines if x.startswith("mid.json") and "1.000" in x]
+    assert "pooled" not in out and "cells" not in out
+    assert auc_row.split()[1] == "1.000"  # MSSD separates this report's grasps perfectly
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        ([], "the following arguments are required: REPORT"),
+        (["{tmp}/missing.json"], "invalid report '{tmp}/missing.json': no such file"),
+        (["{tmp}"], "a folder"),
+        (["{tmp}/bad.json"], "is not a report of python -m sim.evaluate --json"),
+        (["{tmp}/other.json"], "names no schema"),
+        (["{tmp}/low.json", "--target", "1.5"], "--target"),
+    ],
+)
+def test_the_command_refuses_bad_input_in_one_line(argv, needle, tmp_path, capsys) -> None:
+    _write(tmp_path)
+    (tmp_path / "bad.json").write_text("{not json")
+    (tmp_path / "other.json").write_text('{"episodes": []}')
+    tmp = str(tmp_path)
+    assert main([a.replace("{tmp}", tmp) for a in argv]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and captured.out == ""
+    assert needle.replace("{tmp}", tmp) in lines[0]
+
+
+def test_the_command_as_a_process_answers_help_and_a_missing_file(tmp_path) -> None:
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        cmd = [sys.executable, "-m", "sim.grasp_vs_bop", *args]
+        return subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=120)
+
+    helped = run("--help")
+    assert helped.returncode == 0 and "separates held grasps from failed ones" in helped.stdout
+    missing = run(str(tmp_path / "none.json"))
+    assert missing.returncode == 2 and missing.stdout == ""
+    assert missing.stderr.startswith("error: ") and len(missing.stderr.splitlines()) == 1
