@@ -164,3 +164,26 @@ def test_every_section_cited_by_name_exists() -> None:
                 if name not in names[doc]:
                     problems.append(f'{path.relative_to(REPO)}:{lineno}: {doc} "{name}"')
     assert not problems, "sections cited by a name no heading carries:\n" + "\n".join(problems)
+
+
+GUIDE_ESTIMATORS = REPO / "docs" / "guide-estimators.md"
+#: A row of the guide's list of built-in estimators: name, what it is, observes, extra.
+ESTIMATOR_ROW = re.compile(r"^\| `([^`]+)`[^|]*\|.+\| `(rgbd?)` \| ([^|]+?) \|$", re.M)
+CRUDE = REPO / "examples" / "crude-estimator"
+
+
+def test_the_estimators_guide_lists_every_built_in_estimator_with_its_mode_and_extra() -> None:
+    import tomllib
+
+    from sim.estimators import ENTRY_POINT_GROUP, ESTIMATORS, needs_depth
+
+    section = GUIDE_ESTIMATORS.read_text(encoding="utf-8").split("## Built-in estimators", 1)[1]
+    rows = {m[1]: (m[2], m[3]) for m in ESTIMATOR_ROW.finditer(section)}
+    example = tomllib.loads((CRUDE / "pyproject.toml").read_text())
+    installed = set(example["project"]["entry-points"][ENTRY_POINT_GROUP])  # crude, by make setup
+    assert set(ESTIMATORS) | installed == set(rows), "not listed, or listed but not built in"
+    extras = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    known = {f"`{name}`" for name in extras["optional-dependencies"]} | {"-"}
+    for name, (mode, extra) in rows.items():
+        assert mode == ("rgbd" if needs_depth(name) else "rgb"), name
+        assert extra in known or (name in installed and "examples/crude-estimator" in extra), name
