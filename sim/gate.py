@@ -350,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{name}: {why}")
                 failed = True
                 continue
-        with resumable(journal, gate_run_protocol().total):
+        with resumable(journal, gate_run_protocol(GATE_EPISODES).total):
             report = validate_report(
                 run_gate(
                     name,

@@ -139,7 +139,20 @@ def run_map(
         ray = _import_ray()
         owned = not ray.is_initialized()  # a caller's own Ray session is used and left running
         if owned:
-            connect(ray, address, workers)
+            # Ray's start-up takes SIGTERM over (it exits at once); the run's own handler (a
+            # stop that keeps what finished, `posegrasp.core.journal.interruptible`) stays.
+            in_main = threading.current_thread() is threading.main_thread()
+            on_term = signal.getsignal(signal.SIGTERM) if in_main else None
+            try:
+                connect(ray, address, workers)
+            except SystemExit as exc:  # SIGTERM while Ray started: Ray's handler exits
+                if exc.code != signal.SIGTERM or not callable(on_term):
+                    raise
+                on_term(signal.SIGTERM, None)  # the run's own stop
+                raise
+            finally:
+                if on_term is not None:
+                    signal.signal(signal.SIGTERM, on_term)
     bar = progress_bar(total=total, desc=desc, unit=unit, disable=desc is None)
     try:
         if ray is not None:
