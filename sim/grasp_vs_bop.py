@@ -42,8 +42,8 @@ from posegrasp.core.validate import (
     check_float,
     check_input_file,
     check_int,
-    check_json_file,
 )
+from sim.report_schema import read_report
 
 #: The per-episode errors whose separation of success from failure is measured: name -> how to
 #: read it from an episode (None when the episode has no estimate or lacks that error).
@@ -306,69 +306,18 @@ def format_study(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _is_number(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
-def _episode_problem(e: Any) -> str | None:
-    """What keeps an episode from being studied, None when nothing."""
-    if not isinstance(e, dict) or not isinstance(e.get("success"), bool):
-        return "no success"
-    pose = e.get("pose_error")
-    if pose is not None and not (isinstance(pose, dict) and all(map(_is_number, pose.values()))):
-        return "a pose_error that is not numbers"
-    vsd = e.get("vsd")
-    if vsd is not None and not (isinstance(vsd, list) and vsd and all(map(_is_number, vsd))):
-        return "a vsd that is not numbers"
-    return None
-
-
-def report_problem(report: Any) -> str | None:
-    """What keeps a `sim.evaluate` report from being studied: the first field the study reads
-    (`cell_of`) that is missing or of the wrong type; None when there is none.
-
-    This module is a layer below the reports' schema (`sim.report_schema`), so it checks what it
-    reads itself."""
-    if not isinstance(report, dict):
-        return "not a JSON object"
-    for key in ("estimator", "tier"):
-        if not isinstance(report.get(key), str):
-            return f"no {key}"
-    overall = report.get("overall")
-    if not isinstance(overall, dict):
-        return "no overall"
-    for key in ("episodes", "successes", "success_rate"):
-        if not _is_number(overall.get(key)):
-            return f"no overall.{key}"
-    for key in AR_NAMES:
-        if overall.get(key) is not None and not _is_number(overall[key]):
-            return f"overall.{key} is not a number"
-    episodes = report.get("episodes")
-    if not isinstance(episodes, list):
-        return "no episodes"
-    for i, e in enumerate(episodes):
-        if (problem := _episode_problem(e)) is not None:
-            return f"episodes[{i}]: {problem}"
-    return None
-
-
 def read_reports(paths: Sequence[Path]) -> list[tuple[str, dict[str, Any]]]:
     """The reports in `paths`, each labelled by its file name (its path where two share a name).
 
     Raises:
-        InvalidArgumentError: a file that is unreadable, not JSON or not a report
-            (`report_problem`), naming it.
+        InvalidArgumentError: a file that is unreadable, not JSON, not a conforming report or
+            one that holds a stopped episode (`sim.report_schema.read_report`), naming it.
     """
     names = [Path(p).name for p in paths]
-    out = []
-    for path, name in zip(paths, names, strict=True):
-        report = check_json_file(path, "report")
-        if (problem := report_problem(report)) is not None:
-            raise InvalidArgumentError(
-                f"{path} is not a report of python -m sim.evaluate --json ({problem})"
-            )
-        out.append((name if names.count(name) == 1 else str(path), report))
-    return out
+    return [
+        (name if names.count(name) == 1 else str(path), read_report(path))
+        for path, name in zip(paths, names, strict=True)
+    ]
 
 
 @command
