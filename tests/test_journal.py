@@ -1,22 +1,16 @@
 """Runs that survive interruption (`posegrasp.core.journal`): the journal keeps what finished,
-a resumed run gives the report an uninterrupted one gives, and Ctrl-C or SIGTERM on a real
-`sim.evaluate` stops it in one line that says how to resume."""
+a resumed map runs only the rest, a unit kept as an interruption runs again and a report that
+holds one is refused (real commands stopped by signals: tests/test_stopping.py)."""
 
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.journal import (
-    INTERRUPTED_EXIT,
     Interrupted,
     Journal,
     interrupted,
@@ -128,85 +122,6 @@ def test_an_interrupt_inside_a_journaled_map_names_the_resume(tmp_path: Path) ->
     with pytest.raises(Interrupted, match=r"2 of 5 finished .* resume with: .*--resume"):
         run_journaled(stop, range(5), 5, Journal(path, "square", PROTOCOL))
     assert len(path.read_text().splitlines()) == 3  # the header and two units
-
-
-def _strip(report: dict) -> dict:
-    """A report without what differs between runs of one protocol: wall-clock times and the
-    worker count."""
-    out = {k: v for k, v in report.items() if k not in ("wall_s", "workers")}
-    out["episodes"] = [
-        {k: v for k, v in e.items() if k not in ("wall_ms", "timings_ms")} for e in out["episodes"]
-    ]
-    for g in [out["overall"], *out["per_object"].values()]:
-        for k in ("episode_wall_ms_median", "planning_ms_median"):
-            g.pop(k)
-    return out
-
-
-def _default_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
-def _evaluate_cmd(out: Path, *extra: str) -> list[str]:
-    return [
-        sys.executable,
-        "-m",
-        "sim.evaluate",
-        "--estimator",
-        "noisy-oracle",
-        "--objects",
-        "phone,car",
-        "--episodes",
-        "4",
-        "--json",
-        str(out),
-        *extra,
-    ]
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_an_interrupted_evaluation_resumes_to_the_uninterrupted_report(tmp_path, sig) -> None:
-    env = {**os.environ, "MUJOCO_GL": "egl", "POSEGRASP_DATA": str(tmp_path)}
-    whole = tmp_path / "whole.json"
-    subprocess.run(_evaluate_cmd(whole), env=env, cwd=REPO, check=True, capture_output=True)
-    out = tmp_path / "cut.json"
-    journal = tmp_path / "cut.journal.jsonl"
-    proc = subprocess.Popen(
-        _evaluate_cmd(out, "--workers", "2"),
-        env=env,
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        # A shell without job control starts background jobs with SIGINT ignored, and Python
-        # then leaves it ignored: give the run the default disposition a terminal gives it.
-        preexec_fn=_default_sigint,
-    )
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and proc.poll() is None:
-        if journal.is_file() and len(journal.read_text().splitlines()) >= 3:  # 2 episodes kept
-            break
-        time.sleep(0.05)
-    assert proc.poll() is None, "the run ended before it could be interrupted"
-    sent = time.monotonic()
-    proc.send_signal(sig)
-    _, err = proc.communicate(timeout=60)
-    assert time.monotonic() - sent < 15, "the run took too long to stop"
-    assert proc.returncode == INTERRUPTED_EXIT
-    lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln and "episodes" not in ln[:9]]
-    assert len(lines) == 1 and "resume with:" in lines[0] and "--resume" in lines[0], err
-    assert "Traceback" not in err and not out.exists()
-    kept = len(journal.read_text().splitlines()) - 1
-    assert 2 <= kept < 8
-    # Starting anew over the unfinished run is refused; --resume finishes it.
-    again = subprocess.run(_evaluate_cmd(out), env=env, cwd=REPO, capture_output=True, text=True)
-    assert again.returncode == 2 and "--resume" in again.stderr
-    subprocess.run(
-        _evaluate_cmd(out, "--resume"), env=env, cwd=REPO, check=True, capture_output=True
-    )
-    assert not journal.exists()
-    assert _strip(json.loads(out.read_text())) == _strip(json.loads(whole.read_text()))
 
 
 def test_a_unit_kept_as_an_interruption_runs_again_on_resume(tmp_path: Path) -> None:

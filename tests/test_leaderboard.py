@@ -90,10 +90,10 @@ def test_a_bad_name_is_one_line_naming_the_choices(capsys) -> None:
     assert "moon" in err and "isolated" in err and "Traceback" not in err
 
 
-def test_a_small_board_runs_reads_back_and_writes_its_files(tmp_path: Path, capsys) -> None:
-    argv = [
+def _board_argv(out: Path, estimators: str, *extra: str) -> list[str]:
+    return [
         "--estimators",
-        "oracle,crude",
+        estimators,
         "--tiers",
         "isolated",
         "--sensors",
@@ -105,14 +105,22 @@ def test_a_small_board_runs_reads_back_and_writes_its_files(tmp_path: Path, caps
         "--workers",
         "1",
         "--out",
-        str(tmp_path / "out"),
+        str(out),
+        *extra,
+    ]
+
+
+def test_a_small_board_runs_reads_back_and_writes_its_files(tmp_path: Path, capsys) -> None:
+    argv = _board_argv(
+        tmp_path / "out",
+        "oracle,crude",
         "--markdown",
         str(tmp_path / "LEADERBOARD.md"),
         "--plots",
         str(tmp_path / "plots"),
         "--json",
         str(tmp_path / "board.json"),
-    ]
+    )
     assert leaderboard.main(argv) == 0
     board = json.loads((tmp_path / "board.json").read_text())
     assert [c["estimator"] for c in board["cells"]] == ["oracle", "crude"]
@@ -174,26 +182,6 @@ def test_the_findings_name_the_tiers_a_peer_wins_and_the_time_shares() -> None:
     text = "\n".join(leaderboard.findings(board))
     assert "on 1 of 2 tiers; a peer grasps more on hard (ppf 2 against 1)" in text
     assert "ppf's 0.10-0.25" in text
-
-
-def _board_argv(out: Path, estimators: str, *extra: str) -> list[str]:
-    return [
-        "--estimators",
-        estimators,
-        "--tiers",
-        "isolated",
-        "--sensors",
-        "ideal",
-        "--objects",
-        "phone",
-        "--episodes",
-        "2",
-        "--workers",
-        "1",
-        "--out",
-        str(out),
-        *extra,
-    ]
 
 
 def _images_resolve(page: Path) -> list[str]:

@@ -1,4 +1,5 @@
-"""Stopping is never an outcome: SIGTERM at random points of a run (one local worker, two, Ray)
+"""Stopping is never an outcome: Ctrl-C or SIGTERM on a real `sim.evaluate` stops it in one line
+that says how to resume; SIGTERM at random points of a run (one local worker, two, Ray)
 and of a leaderboard, an export and the gate stops it with the command that resumes it, the
 journal never holds a stopped episode, and the resumed run ends with what an unstopped one
 gives, to the bit but for wall-clock times; a local worker killed under a run stops it the same
@@ -173,6 +174,51 @@ def test_sigterm_at_random_points_resumes_to_the_unstopped_report(
     assert lines and all("resume with:" in ln for ln in lines), lines
     assert out.is_file() and not journal.exists()
     assert _strip(json.loads(out.read_text())) == _strip(unstopped)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_evaluation_resumes_to_the_uninterrupted_report(tmp_path, sig) -> None:
+    env = {**_env(), "POSEGRASP_DATA": str(tmp_path)}
+    whole = tmp_path / "whole.json"
+    subprocess.run(_evaluate_cmd(whole), env=env, cwd=REPO, check=True, capture_output=True)
+    out = tmp_path / "cut.json"
+    journal = tmp_path / "cut.journal.jsonl"
+    proc = subprocess.Popen(
+        _evaluate_cmd(out, "--workers", "2"),
+        env=env,
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        # A shell without job control starts background jobs with SIGINT ignored, and Python
+        # then leaves it ignored: give the run the default disposition a terminal gives it.
+        preexec_fn=_default_sigint,
+    )
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        if journal.is_file() and len(journal.read_text().splitlines()) >= 3:  # 2 episodes kept
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be interrupted"
+    sent = time.monotonic()
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert time.monotonic() - sent < 15, "the run took too long to stop"
+    assert proc.returncode == INTERRUPTED_EXIT
+    lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln and "episodes" not in ln[:9]]
+    assert len(lines) == 1 and "resume with:" in lines[0] and "--resume" in lines[0], err
+    assert "Traceback" not in err and not out.exists()
+    kept = len(journal.read_text().splitlines()) - 1
+    assert 2 <= kept < 8
+    # Starting anew over the unfinished run is refused; --resume finishes it.
+    again = subprocess.run(_evaluate_cmd(out), env=env, cwd=REPO, capture_output=True, text=True)
+    assert again.returncode == 2 and "--resume" in again.stderr
+    subprocess.run(
+        _evaluate_cmd(out, "--resume"), env=env, cwd=REPO, check=True, capture_output=True
+    )
+    assert not journal.exists()
+    assert _strip(json.loads(out.read_text())) == _strip(json.loads(whole.read_text()))
 
 
 def _board_cmd(out: Path) -> list[str]:
