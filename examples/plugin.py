@@ -17,7 +17,7 @@ class MyEstimator:
 
 
 if __name__ == "__main__":
-    ArgumentParser(description=__doc__).parse_known_args()  # --help says what this is
+    ArgumentParser(description=__doc__).parse_args()  # --help says what this is
     report = evaluate(["phone"], 1, MyEstimator(), seed_start=1_000_000_000)
     episode = report["episodes"][0]
     print(f"{report['estimator']}: success {episode['success']}, {episode['failure_reason']}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import runpy
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,9 +18,13 @@ SEED = 1_000_000_000
 
 
 def _run(name: str, capsys: pytest.CaptureFixture[str]) -> str:
-    """What running examples/<name> as a script prints."""
+    """What running examples/<name> as a script, with no arguments, prints."""
     capsys.readouterr()
-    runpy.run_path(str(EXAMPLES / name), run_name="__main__")
+    argv, sys.argv = sys.argv, [str(EXAMPLES / name)]
+    try:
+        runpy.run_path(str(EXAMPLES / name), run_name="__main__")
+    finally:
+        sys.argv = argv
     return capsys.readouterr().out
 
 
