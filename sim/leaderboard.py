@@ -285,9 +285,9 @@ def unfit_cells(
             out.append(f"{report_path} (holds {len(stopped)} episodes stopped, not played)")
         elif (
             report.get("episodes_per_object"),
-            list(report.get("per_object") or {}),
+            sorted(report.get("per_object") or {}),
             report.get("seed_start"),
-        ) != (episodes, list(objects), EVAL_SEED_BASE):
+        ) != (episodes, sorted(objects), EVAL_SEED_BASE):
             out.append(
                 f"{report_path} (holds {report.get('episodes_per_object')} episodes of "
                 f"{','.join(report.get('per_object') or {})} from seed {report.get('seed_start')})"

@@ -83,7 +83,7 @@ def stop_and_resume(
     journals: Callable[[], list[Path]],
     rng: random.Random,
     stops: int = 2,
-    first_within: float = 1.5,
+    first_within: float = 1.0,
 ) -> list[str]:
     """Run `cmd` and SIGTERM it `stops` times: the first time at a random moment within
     `first_within` seconds of the first unit kept (so that the signal lands mid-run), later at
@@ -122,9 +122,12 @@ def stop_and_resume(
         assert not any(interrupted(u) for u in _units(journals())), "a stopped unit was kept"
         if proc.returncode == 0:
             return lines
-        if proc.returncode == -signal.SIGTERM:  # after the command's work, as Python exits
-            assert out.strip().splitlines()[-1].startswith("wrote "), out
-            return lines
+        if proc.returncode == -signal.SIGTERM:
+            # Before the command listened (its imports: nothing done, the same command again),
+            # or after its work, as Python exits.
+            if out.strip().splitlines()[-1:] and out.strip().splitlines()[-1].startswith("wrote "):
+                return lines
+            continue
         assert proc.returncode == INTERRUPTED_EXIT, err
         last = err.strip().splitlines()[-1]
         lines.append(last)
@@ -146,7 +149,7 @@ def _evaluate_cmd(out: Path, *extra: str) -> list[str]:
         "--objects",
         "phone,car",
         "--episodes",
-        "4",
+        "10",
         "--json",
         str(out),
         *extra,
@@ -210,7 +213,7 @@ def test_an_interrupted_evaluation_resumes_to_the_uninterrupted_report(tmp_path,
     assert len(lines) == 1 and "resume with:" in lines[0] and "--resume" in lines[0], err
     assert "Traceback" not in err and not out.exists()
     kept = len(journal.read_text().splitlines()) - 1
-    assert 2 <= kept < 8
+    assert 2 <= kept < 20
     # Starting anew over the unfinished run is refused; --resume finishes it.
     again = subprocess.run(_evaluate_cmd(out), env=env, cwd=REPO, capture_output=True, text=True)
     assert again.returncode == 2 and "--resume" in again.stderr

@@ -219,12 +219,13 @@ def _local_map(fn, jobs, workers, chunk, initializer, initargs, ordered) -> Iter
     finally:
         if in_main:
             signal.signal(signal.SIGINT, previous)
+    procs = list((getattr(pool, "_processes", None) or {}).values())
     try:
         yield from _pool_results(pool, fn, jobs, workers * LOCAL_WINDOW, chunk or 1, ordered)
     except BrokenProcessPool:
-        raise WorkerDied(_dead_exitcode(pool)) from None
+        raise WorkerDied(_dead_exitcode(procs)) from None
     finally:
-        _stop_pool(pool)
+        _stop_pool(pool, procs)
 
 
 def _run_items(fn: Callable[[Any], Any], items: list) -> list:
@@ -257,16 +258,16 @@ def _pool_results(pool, fn, jobs, window: int, chunk: int, ordered: bool) -> Ite
             yield from done.pop(key)
 
 
-def _dead_exitcode(pool: ProcessPoolExecutor) -> int | None:
-    procs = list((getattr(pool, "_processes", None) or {}).values())
-    codes = [p.exitcode for p in procs if p.exitcode not in (None, 0)]
+def _dead_exitcode(procs: list) -> int | None:
+    """The exit status of the first of the pool's worker processes `procs` that died."""
+    codes = [p.exitcode for p in procs if not p.is_alive() and p.exitcode not in (None, 0)]
     return codes[0] if codes else None
 
 
-def _stop_pool(pool: ProcessPoolExecutor) -> None:
-    """Shut the pool down; on the way out of an interrupted run its workers are terminated
-    rather than left to finish the jobs they hold."""
-    procs = list((getattr(pool, "_processes", None) or {}).values())
+def _stop_pool(pool: ProcessPoolExecutor, procs: list) -> None:
+    """Shut the pool down; on the way out of an interrupted run its workers (`procs`) are
+    terminated rather than left to finish the jobs they hold."""
+    procs = procs or list((getattr(pool, "_processes", None) or {}).values())
     pool.shutdown(wait=False, cancel_futures=True)
     for p in procs:
         if p.is_alive():
