@@ -110,6 +110,24 @@ ESTIMATORS: dict[str, Callable[[], PoseEstimator | PrivilegedEstimator]] = {
 DEFAULT_ESTIMATOR = "hybrid-global"
 
 
+#: The leaderboard's rows unless told otherwise, in order: the true pose, our estimators, the
+#: classical peers and the crude example (an installed entry point, `examples/crude-estimator`).
+BOARD_ESTIMATORS: tuple[str, ...] = (
+    "oracle",
+    DEFAULT_ESTIMATOR,
+    "hybrid",
+    "hybrid-global-icp",
+    "ppf",
+    "ppf-det",
+    "fpfh-icp",
+    "fpfh-icp-det",
+    "crude",
+)
+#: The classical depth peers, the field's own methods (`perception.peers`), that the board holds
+#: `DEFAULT_ESTIMATOR` against; the other peer, ``hybrid-global-icp``, is ours with ICP.
+CLASSICAL_PEERS: tuple[str, ...] = tuple(n for n in PEER_ESTIMATORS if n != "hybrid-global-icp")
+
+
 #: The entry-point group through which installed packages offer estimators (each entry point
 #: names a factory, as ``package.module:factory``).
 ENTRY_POINT_GROUP = "posegrasp.estimators"

@@ -11,6 +11,9 @@ import pytest
 
 from posegrasp.world.constants import EVAL_SEED_BASE
 from sim import leaderboard
+from sim.board import cells as board_cells
+from sim.board.analysis import findings
+from sim.board.plots import plots
 from sim.stats import wilson_interval
 
 
@@ -36,7 +39,7 @@ def _report(successes: list[bool], workers: int = 2, wall_ms: float = 500.0) -> 
             "success_rate": k / n,
             "pose_correct": k,
             "grasped_wrong_pose": 0,
-            **{key: 0.5 for key in leaderboard.AR_KEYS},
+            **{key: 0.5 for key in board_cells.AR_KEYS},
         },
     }
 
@@ -45,11 +48,11 @@ def test_the_wall_time_is_the_episodes_own_shared_over_the_workers() -> None:
     """A cell read back from its report (or resumed from its journal) counts the time its
     episodes took, not the moment it took to read them."""
     reports = [_report([True] * 4, workers=2), _report([False] * 3, workers=1, wall_ms=1000.0)]
-    assert leaderboard.run_time_s(reports) == pytest.approx(4 * 0.5 / 2 + 3 * 1.0)
+    assert board_cells.run_time_s(reports) == pytest.approx(4 * 0.5 / 2 + 3 * 1.0)
 
 
 def test_a_cell_summary_holds_its_rate_inside_its_interval() -> None:
-    s = leaderboard.cell_summary(_report([True] * 4))
+    s = board_cells.cell_summary(_report([True] * 4))
     assert s["success_rate"] == 1.0
     assert s["wilson"][0] <= s["success_rate"] <= s["wilson"][1]
     assert s["wilson"] == list(wilson_interval(4, 4))
@@ -65,18 +68,18 @@ def test_the_plots_draw_a_cell_where_every_grasp_held(tmp_path: Path) -> None:
             "tier": "isolated",
             "sensor": "ideal",
             "run_key": f"isolated__ideal__{name}",
-            "summary": leaderboard.cell_summary(_report(oks)),
+            "summary": board_cells.cell_summary(_report(oks)),
         }
         for name, oks in (("oracle", [True] * 4), ("crude", [True, False, False, False]))
     ]
-    spearman = {key: {"rho": None} for key in leaderboard.AR_KEYS}
+    spearman = {key: {"rho": None} for key in board_cells.AR_KEYS}
     board = {
         "cells": cells,
         "sensors": ["ideal"],
         "tiers": ["isolated"],
         "analysis": {"spearman": spearman},
     }
-    leaderboard.plots(board, tmp_path)
+    plots(board, tmp_path)
     assert {p.name for p in tmp_path.iterdir()} == {
         "success.png",
         "ar_vs_success.png",
@@ -160,12 +163,12 @@ def test_the_settings_of_an_estimator_tell_its_configs_apart() -> None:
     assert one["registration"]["config"]["hypotheses"] == 2
     assert other["registration"]["config"]["hypotheses"] == 5
     assert one["crop"] == other["crop"] and one["name"] == "ppf"
-    assert leaderboard._differences(one, other) == "registration.config.hypotheses"
+    assert board_cells.differences(one, other) == "registration.config.hypotheses"
 
 
 def test_the_findings_name_the_tiers_a_peer_wins_and_the_time_shares() -> None:
     def cell(name: str, tier: str, oks: list[bool], ms: float) -> dict:
-        summary = leaderboard.cell_summary(_report(oks))
+        summary = board_cells.cell_summary(_report(oks))
         summary["time_ms_median"] = ms
         return {"estimator": name, "sensor": "kinect-v1", "tier": tier, "summary": summary}
 
@@ -180,7 +183,7 @@ def test_the_findings_name_the_tiers_a_peer_wins_and_the_time_shares() -> None:
         ],
         "analysis": {"spearman": {}, "auc": {}, "ar_for_success": {}},
     }
-    text = "\n".join(leaderboard.findings(board))
+    text = "\n".join(findings(board))
     assert "on 1 of 2 tiers; a peer grasps more on hard (ppf 2 against 1)" in text
     assert "ppf's 0.10-0.25" in text
 

@@ -1,4 +1,4 @@
-"""The leaderboard's plots, legible at every board size, from one cell to the full board:
+"""The leaderboard's plots (`plots`), legible at every board size, from one cell to the full board:
 success per cell, AR against success, and success against coverage.
 
 Each plot is sized by what it holds (panels, groups, bars), keeps every estimator's full name in
@@ -14,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from sim.board.cells import AR_KEYS, summaries
 
 #: The estimator left out of the AR and coverage plots.
 ORACLE = "oracle"
@@ -180,3 +182,23 @@ def risk_coverage_plot(
     fig.tight_layout()
     _legend(fig, list(drawn.values()), list(drawn), (1.0, 0.95))
     _save(fig, path)
+
+
+def plots(board: dict, folder: Path) -> None:
+    """success.png, ar_vs_success.png and risk_coverage.png in folder."""
+    folder.mkdir(parents=True, exist_ok=True)
+    cells = [c for c in board["cells"] if c.get("summary")]
+    names = list(dict.fromkeys(c["estimator"] for c in cells))
+    colour = {n: f"C{i % 10}" for i, n in enumerate(names)}
+    by_key = summaries(cells)
+    sensors, tiers = board["sensors"], board["tiers"]
+    success_plot(by_key, names, colour, sensors, tiers, folder / "success.png")
+    ar_plot(
+        cells,
+        names,
+        colour,
+        AR_KEYS,
+        board["analysis"]["spearman"],
+        folder / "ar_vs_success.png",
+    )
+    risk_coverage_plot(by_key, names, colour, sensors, tiers, folder / "risk_coverage.png")

@@ -1,0 +1,106 @@
+"""What the leaderboard says: what BOP scores tell of grasps over its cells (`analyse`) and its
+findings in plain words (`findings`), every figure read from the board.
+"""
+
+from __future__ import annotations
+
+from sim.board.cells import AR_KEYS, summaries
+from sim.estimators import CLASSICAL_PEERS
+from sim.estimators import DEFAULT_ESTIMATOR as OURS
+from sim.grasp_vs_bop import ar_for_success, episode_aucs, spearman_with_interval
+
+#: The success a method should reach; the AR that predicts it is reported per tier.
+TARGET_SUCCESS = 0.95
+
+
+def analyse(cells: list[dict], reports: dict[str, dict]) -> dict:
+    """What BOP scores say about grasps over the board: per AR, Spearman's rho of AR against
+    success over the cells; per tier, each error's separation AUC over the episodes of every
+    estimator but the oracle, and the AR that a logistic fit says gives `TARGET_SUCCESS`."""
+    scored = [c for c in cells if c.get("summary") and c["estimator"] != "oracle"]
+    out: dict = {"spearman": {}, "auc": {}, "ar_for_success": {}}
+    for key in AR_KEYS:
+        pts = [c for c in scored if c["summary"][key] is not None]
+        out["spearman"][key] = spearman_with_interval(
+            [c["summary"][key] for c in pts], [c["summary"]["success_rate"] for c in pts]
+        )
+    for tier in dict.fromkeys(c["tier"] for c in scored):
+        in_tier = [c for c in scored if c["tier"] == tier]
+        runs = dict.fromkeys(c["run_key"] for c in in_tier)
+        episodes = [e for k in runs for e in reports[k]["episodes"]]
+        out["auc"][tier] = episode_aucs(episodes)
+        out["ar_for_success"][tier] = {}
+        for key in AR_KEYS:
+            pts = [c["summary"] for c in in_tier if c["summary"][key] is not None]
+            out["ar_for_success"][tier][key] = ar_for_success(
+                [p[key] for p in pts],
+                [p["successes"] for p in pts],
+                [p["episodes"] for p in pts],
+                TARGET_SUCCESS,
+            )
+    return out
+
+
+def findings(board: dict) -> list[str]:
+    """The board's findings in plain words, every figure read from the board: `OURS` against
+    the classical depth peers per sensor (success and time per image), how closely the ARs rank
+    the cells, which per-episode error separates grasps best and worst, and the AR needed."""
+    by = summaries(board["cells"])
+    out = ["## In short", ""]
+    for sensor in board["sensors"]:
+        groups = [(t, by[OURS, sensor, t]) for t in board["tiers"] if (OURS, sensor, t) in by]
+        peers = [p for p in CLASSICAL_PEERS if any((p, sensor, t) in by for t, _ in groups)]
+        if not groups or not peers:
+            continue
+        lost: list[str] = []
+        ratios: dict[str, list[float]] = {p: [] for p in peers}
+        for tier, ours in groups:
+            theirs = {p: by[p, sensor, tier] for p in peers if (p, sensor, tier) in by}
+            best = max(theirs, key=lambda p: theirs[p]["successes"])
+            if theirs[best]["successes"] > ours["successes"]:
+                lost.append(
+                    f"{tier} ({best} {theirs[best]['successes']} against {ours['successes']})"
+                )
+            for p, m in theirs.items():
+                if m["time_ms_median"]:
+                    ratios[p].append(ours["time_ms_median"] / m["time_ms_median"])
+        wins = len(groups) - len(lost)
+        spans = [f"{p}'s {min(r):.2f}-{max(r):.2f}" for p, r in ratios.items() if r]
+        out.append(
+            f"- Under `{sensor}`, `{OURS}` (RGB only) grasps at least as often as every classical "
+            f"depth peer on {wins} of {len(groups)} tiers"
+            + (f"; a peer grasps more on {'; '.join(lost)}" if lost else "")
+            + ". Its median time per image, as a share of each peer's over the tiers: "
+            + ", ".join(spans)
+            + "."
+        )
+    if len(out) == 2:
+        out.append(f"- No classical depth peer shares a sensor with `{OURS}` on this board.")
+    a = board["analysis"]
+    rhos = [(k, r) for k, r in a["spearman"].items() if r["rho"] is not None]
+    if rhos:
+        out.append(
+            f"- Over {rhos[0][1]['n']} cells, BOP's ARs rank the cells by grasp success closely: "
+            + ", ".join(f"{k.upper()} rho {r['rho']:.2f}" for k, r in rhos)
+            + "."
+        )
+    for tier, aucs in a["auc"].items():
+        known = {e: v["auc"] for e, v in aucs.items() if v["auc"] is not None}
+        if known:
+            hi, lo = max(known, key=known.__getitem__), min(known, key=known.__getitem__)
+            out.append(
+                f"- On {tier}, the per-episode error that separates held grasps from failed ones "
+                f"best is {hi} (AUC {known[hi]:.2f}), the worst {lo} ({known[lo]:.2f})."
+            )
+    need = {
+        t: f["ar_mssd"]["ar"]
+        for t, f in a["ar_for_success"].items()
+        if f["ar_mssd"]["ar"] is not None
+    }
+    if need:
+        lo_t, hi_t = min(need, key=need.__getitem__), max(need, key=need.__getitem__)
+        out.append(
+            f"- For {TARGET_SUCCESS:.0%} grasps a method needs AR_MSSD of about {need[lo_t]:.2f} "
+            f"({lo_t}) to {need[hi_t]:.2f} ({hi_t})."
+        )
+    return [*out, ""]
