@@ -4,16 +4,16 @@
     python bench/evaluate_speed.py --backend ray [--workers 2] [--address ADDR] [--json PATH]
 
 Runs the same held-out episodes (`--episodes` per object) with 1 and with 2 workers through
-`sim.evaluate.evaluate`, prints the median episode wall time (one process, estimator loaded) and
-the wall time of both runs; then twice as many episodes with 2 workers, so that the rate of a
-long run (the episodes it adds over the wall time it adds: the workers' start-up, imports and
-estimator loading, cancels) is printed beside the end-to-end rate, with the start-up that
-separates them. The speed-up of 2 workers over 1 compares the long-run rate with the one
-worker's rate after its first episode (which imports torch and loads the estimator in this
-process). Targets: a hybrid episode <= 3 s wall median on 2 cores; 2 workers at least 1.6x
-faster than 1; at least 10 episodes/s with 2 workers (the long-run rate). The runs must agree
-episode by episode, pose errors to the last bit (they are seeded, and the estimator computes on
-one thread in every worker); the script says so.
+`sim.evaluation.evaluate_protocol`, prints the median episode wall time (one process, estimator
+loaded) and the wall time of both runs; then twice as many episodes with 2 workers, so that the
+rate of a long run (the episodes it adds over the wall time it adds: the workers' start-up, imports
+and estimator loading, cancels) is printed beside the end-to-end rate, with the start-up that
+separates them. The speed-up of 2 workers over 1 compares the long-run rate with the one worker's
+rate after its first episode (which imports torch and loads the estimator in this process).
+Targets: a hybrid episode <= 3 s wall median on 2 cores; 2 workers at least 1.6x faster than 1; at
+least 10 episodes/s with 2 workers (the long-run rate). The runs must agree episode by episode,
+pose errors to the last bit (they are seeded, and the estimator computes on one thread in every
+worker); the script says so.
 
 ``--backend ray`` instead runs the episodes on the local pool and on Ray
 (`posegrasp.core.backends`), both with `--workers` CPUs (or on the cluster at `--address`), and
@@ -57,11 +57,16 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int
 from posegrasp.world.objects import OBJECT_NAMES
 from sim.estimators import add_estimator_arguments
-from sim.evaluate import evaluate
+from sim.evaluation import Protocol, evaluate_protocol
 
 SEED_START = 1_200_000_000  # held out (posegrasp.world.constants.EVAL_SEED_BASE and above)
 #: CPUs of each backend in the Ray comparison unless told otherwise: the target is for 2 cores.
 TARGET_WORKERS = 2
+
+
+def _protocol(objects: list[str], episodes: int) -> Protocol:
+    """The bench's episodes: `episodes` per object of the default tier from `SEED_START`."""
+    return Protocol(tuple(objects), episodes, SEED_START)
 
 
 def _outcomes(report: dict) -> list[tuple]:
@@ -101,7 +106,7 @@ def ray_side_by_side(args: argparse.Namespace, objs: list[str]) -> dict:
     """Episodes/s of the local pool and of Ray, Ray's start-up and per-task overhead."""
     import ray
 
-    local = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=args.workers)
+    local = evaluate_protocol(_protocol(objs, args.episodes), args.estimator, workers=args.workers)
     t = time.perf_counter()
     if args.address is None:
         ray.init(
@@ -119,8 +124,8 @@ def ray_side_by_side(args: argparse.Namespace, objs: list[str]) -> dict:
         assert list(run_map(abs, range(n_noop), backend="ray", chunk=1)) == list(range(n_noop))
         slots = int(ray.cluster_resources().get("CPU", 1))
         overhead_ms = (time.perf_counter() - t) * 1000 * slots / n_noop
-        on_ray = evaluate(
-            objs, args.episodes, args.estimator, SEED_START, workers=args.workers, backend="ray"
+        on_ray = evaluate_protocol(
+            _protocol(objs, args.episodes), args.estimator, workers=args.workers, backend="ray"
         )
     finally:
         ray.shutdown()
@@ -185,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.json is not None:
             write_json(args.json, out | {"targets_met": met})
         return 0 if all(met.values()) else 1
-    one = evaluate(objs, args.episodes, args.estimator, SEED_START, workers=1)
+    one = evaluate_protocol(_protocol(objs, args.episodes), args.estimator, workers=1)
     two = _fresh_evaluation(args.episodes, args.estimator, workers=2)
     longer = _fresh_evaluation(2 * args.episodes, args.estimator, workers=2)
     walls = [e["wall_ms"] for e in one["episodes"]]

@@ -4,7 +4,7 @@ import numpy as np
 
 from posegrasp.core.cli import ArgumentParser
 from posegrasp.core.contract import Estimate, Observation
-from sim.evaluate import evaluate
+from sim.evaluation import Protocol, evaluate_protocol
 
 
 class MyEstimator:
@@ -18,7 +18,7 @@ class MyEstimator:
 
 if __name__ == "__main__":
     ArgumentParser(description=__doc__).parse_args()  # --help says what this is
-    report = evaluate(["phone"], 1, MyEstimator(), seed_start=1_000_000_000)
+    report = evaluate_protocol(Protocol(["phone"], episodes=1), MyEstimator())
     episode = report["episodes"][0]
     print(f"{report['estimator']}: success {episode['success']}, {episode['failure_reason']}")
     print(f"position error {episode['pose_error']['translation_m'] * 1000:.1f} mm")

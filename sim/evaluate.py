@@ -8,7 +8,7 @@ generator renders training images from, so a learned estimator is never scored o
 trained on.
 
 The command line over `sim.evaluation` (the `Protocol`, the harness, the report, its text and
-plot, the BOP route), whose names it re-exports for the code that imports them from here.
+plot, the BOP route); code evaluates through that library, never through this module.
 """
 
 from __future__ import annotations
@@ -43,7 +43,6 @@ from posegrasp.world import constants as C
 from posegrasp.world.objects import OBJECT_NAMES, check_objects
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, add_pool_argument, check_tier
 from sim.bop_results import BopPosesEstimator
-from sim.episode import execution_settings
 from sim.estimators import (
     DEFAULT_ESTIMATOR,
     add_estimator_arguments,
@@ -54,55 +53,19 @@ from sim.estimators import (
     make_estimator,
 )
 from sim.evaluation import (
-    COMPONENTS,
-    IMAGE_WIDTH,
-    NOTE_CHARS,
-    NOTES_SHOWN,
-    EpisodeJob,
-    EstimatorRef,
     Protocol,
-    bop_scores,
     cached_estimator,
     estimator_label,
-    evaluate,
     evaluate_protocol,
     export_protocol,
-    failure_notes,
     format_poses_record,
     format_report,
-    make_report,
     plot_success_vs_error,
     poses_estimator,
     poses_record,
     run_protocol,
 )
 from sim.pose_noise import parse_noise
-from sim.stats import wilson_interval
-
-__all__ = [
-    "COMPONENTS",
-    "DEFAULT_TOLERANCE",
-    "IMAGE_WIDTH",
-    "MAX_EPISODES",
-    "NOTES_SHOWN",
-    "NOTE_CHARS",
-    "EpisodeJob",
-    "EstimatorRef",
-    "Protocol",
-    "bop_scores",
-    "estimator_label",
-    "evaluate",
-    "evaluate_protocol",
-    "execution_settings",
-    "failure_notes",
-    "format_report",
-    "main",
-    "make_report",
-    "plot_success_vs_error",
-    "poses_record",
-    "run_protocol",
-    "wilson_interval",
-]
 
 DEFAULT_TOLERANCE = DOCS_DIR / "tolerance.json"
 #: Most episodes per object one evaluation runs.

@@ -34,7 +34,7 @@ from posegrasp.core.paths import DOCS_DIR
 from posegrasp.core.validate import arg, check_int, check_names, check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
-from sim.evaluate import evaluate
+from sim.evaluation import Protocol, evaluate_protocol
 
 #: The noise of the sampled episodes (`--noise` of noisy-oracle): largest sigmas along and across
 #: the ray [mm] and in and out of the image plane [deg].
@@ -47,7 +47,8 @@ DEFAULT_MODELS = DOCS_DIR / "success_model.json"
 def sample(objects: list[str], episodes: int, tier: str, workers: int) -> list[dict]:
     """Noisy-oracle episodes of every object, each as its error components and outcome:
     [{"object", "seed", "x" (4,), "success"}]."""
-    report = evaluate(objects, episodes, "noisy-oracle", SEED_START, workers, tier, SPREAD)
+    protocol = Protocol(tuple(objects), episodes, SEED_START, tier, SPREAD)
+    report = evaluate_protocol(protocol, "noisy-oracle", workers=workers)
     return [
         {
             "object": e["object"],

@@ -42,7 +42,7 @@ from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.bop_results import CSV_COLUMNS, read_export
 from sim.compare import compare, load_report
 from sim.estimators import NoisyOracleEstimator
-from sim.evaluate import evaluate, poses_record
+from sim.evaluation import Protocol, evaluate_protocol, poses_record
 from sim.export_bop import export_bop
 from sim.pose_noise import PoseNoise, perturb_pose
 from sim.stats import wilson_interval
@@ -140,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     for label, est in runs.items():
         path = out / f"{label}.report.json"
         print(f"{label}: {args.episodes} episodes of {', '.join(args.objects)}", file=sys.stderr)
-        r = evaluate(args.objects, args.episodes, est, EVAL_SEED_BASE, args.workers, args.tier)
+        protocol = Protocol(args.objects, args.episodes, EVAL_SEED_BASE, args.tier)
+        r = evaluate_protocol(protocol, est, workers=args.workers)
         if label.endswith(".csv"):
             r["poses"] = poses_record(est, csvs[label.removesuffix(".csv")], r)
         atomic_write_json(path, r)

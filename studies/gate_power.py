@@ -39,7 +39,7 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import STDOUT, arg, check_int
 from posegrasp.world.objects import OBJECT_NAMES
 from sim import gate
-from sim.evaluate import evaluate
+from sim.evaluation import Protocol, evaluate_protocol
 
 BASE_NOISE = "5,5,2,2"
 WORSE_NOISE = "10,10,4,4"
@@ -47,16 +47,10 @@ FINGERPRINT = {"noisy-oracle": "no weights"}
 
 
 def _run(noise: str, workers: int, margin: bool = True) -> dict:
-    return evaluate(
-        list(OBJECT_NAMES),
-        gate.GATE_EPISODES,
-        "noisy-oracle",
-        gate.GATE_SEED_START,
-        workers,
-        gate.GATE_TIER,
-        noise=noise,
-        margin=margin,
+    protocol = Protocol(
+        OBJECT_NAMES, gate.GATE_EPISODES, gate.GATE_SEED_START, gate.GATE_TIER, noise, margin
     )
+    return evaluate_protocol(protocol, "noisy-oracle", workers=workers)
 
 
 def _baseline(report: dict) -> dict:

@@ -42,7 +42,7 @@ from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.objects import OBJECT_NAMES, check_objects
 from posegrasp.world.tiers import TIERS
 from sim.compare import check_same_execution, curve, format_curve
-from sim.evaluate import evaluate
+from sim.evaluation import Protocol, evaluate_protocol
 from sim.stats import wilson_interval
 
 #: (label, noise) along the curve; None is the true pose.
@@ -83,15 +83,10 @@ def run_tier(
             print(f"{tier}: {estimator} {noise or ''}", file=sys.stderr)
             journal = journal_path(path, "evaluate", {})
             try:
-                report = evaluate(
-                    list(objects),
-                    episodes,
+                report = evaluate_protocol(
+                    Protocol(tuple(objects), episodes, EVAL_SEED_BASE, tier, noise, margin=True),
                     estimator,
-                    EVAL_SEED_BASE,
-                    workers,
-                    tier,
-                    noise=noise,
-                    margin=True,
+                    workers=workers,
                     journal=journal,
                     resume=journal.is_file(),
                 )

@@ -112,13 +112,14 @@ def make(mesh: PublicMesh, path: Path, objects: Path) -> dict:
 
 def grasp(name: str, tier: str, episodes: int, out: Path, workers: int) -> dict:
     """The oracle's report on the object in the tier (reused when in ``out``)."""
-    from sim.evaluate import evaluate
+    from sim.evaluation import Protocol, evaluate_protocol
 
     path = out / "reports" / f"{name}_{tier}.json"
     if path.is_file():
         return json.loads(path.read_text())
     print(f"oracle {name} {tier}", file=sys.stderr)
-    report = evaluate([name], episodes, "oracle", EVAL_SEED_BASE, workers, tier)
+    protocol = Protocol([name], episodes, EVAL_SEED_BASE, tier)
+    report = evaluate_protocol(protocol, "oracle", workers=workers)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(path, report)
     return report

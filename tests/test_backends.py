@@ -26,8 +26,7 @@ from perception.peers import extra
 from perception.training.datagen import main as datagen_main
 from perception.training.writer import WALL_TIME_FILE
 from posegrasp.core.backends import default_chunk, run_map
-from sim.evaluate import evaluate
-from sim.evaluation import EpisodeJob, Protocol, run_job
+from sim.evaluation import EpisodeJob, Protocol, evaluate_protocol, run_job
 
 REPO = Path(__file__).resolve().parent.parent
 OBJECTS = ["phone", "car"]
@@ -54,7 +53,7 @@ def _stats(report: dict) -> dict:
 
 
 def _evaluate(**kwargs) -> dict:
-    return evaluate(OBJECTS, EPISODES, "oracle", SEED, tier="isolated", **kwargs)
+    return evaluate_protocol(Protocol(OBJECTS, EPISODES, SEED, "isolated"), "oracle", **kwargs)
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +92,7 @@ def test_results_come_in_job_order_locally() -> None:
 
 
 def test_a_pool_of_two_workers_gives_the_same_episodes(local_report) -> None:
-    pooled = evaluate(OBJECTS, EPISODES, "oracle", SEED, tier="isolated", workers=2)
+    pooled = _evaluate(workers=2)
     assert [_outcome(e) for e in pooled["episodes"]] == [
         _outcome(e) for e in local_report["episodes"]
     ]
@@ -212,9 +211,9 @@ class TestOnALocalRay:
         poses equal but for the last bits of Open3D's sums."""
         for name in ("ppf", "fpfh-icp"):
             local, on_ray = (
-                evaluate(["phone", "pistol"], 1, name, SEED, workers=2, obs_mode="rgbd", **kw)[
-                    "episodes"
-                ]
+                evaluate_protocol(
+                    Protocol(["phone", "pistol"], 1, SEED, obs_mode="rgbd"), name, workers=2, **kw
+                )["episodes"]
                 for kw in ({}, {"backend": "ray"})
             )
             for a, b in zip(local, on_ray, strict=True):

@@ -10,6 +10,7 @@ import pytest
 
 from sim import compare as cmp
 from sim import evaluate as ev
+from sim import evaluation
 from sim.bop_results import read_export
 from sim.export_bop import export_bop
 
@@ -124,7 +125,9 @@ def test_a_csv_of_another_export_is_refused(export: Path, tmp_path: Path, capsys
 
 
 def _report(episodes: list[dict]) -> dict:
-    return ev.make_report(episodes, ev.Protocol(["car"], len(episodes), SEED, "isolated"), "mine")
+    return evaluation.make_report(
+        episodes, evaluation.Protocol(["car"], len(episodes), SEED, "isolated"), "mine"
+    )
 
 
 def _failed(reason: str, notes: list[str]) -> dict:
@@ -151,22 +154,26 @@ def test_the_summary_says_why_episodes_failed() -> None:
         *(_failed("no_estimate", [f"note {k}"]) for k in "abcd"),
         _failed("no_estimate", []),
     ]
-    notes = ev.failure_notes(episodes)
+    notes = evaluation.failure_notes(episodes)
     # Notes alike but for their numbers count as one, shown by the first; at most 3 per reason.
     assert notes["invalid_action"] == [(far.format(575.2), 2)]
-    assert len(notes["no_estimate"]) == ev.NOTES_SHOWN
+    assert len(notes["no_estimate"]) == evaluation.NOTES_SHOWN
     assert notes["no_estimate"][0][0].startswith("user object 'can'")
-    text = ev.format_report(_report(episodes))
+    text = evaluation.format_report(_report(episodes))
     assert "AR_VSD" in text.splitlines()[1]
     assert "  invalid_action: 2x estimated pose T_C_O: position is 575.2 m" in text
     line = next(ln for ln in text.splitlines() if "user object 'can'" in ln)
     assert line.startswith("  no_estimate: 1x") and line.endswith("second line")
     long = _failed("collision", ["x" * 500])
-    long_line = next(ln for ln in ev.format_report(_report([long])).splitlines() if "xxx" in ln)
-    assert len(long_line) <= len("  collision: 1x ") + ev.NOTE_CHARS and long_line.endswith("...")
+    long_line = next(
+        ln for ln in evaluation.format_report(_report([long])).splitlines() if "xxx" in ln
+    )
+    assert len(long_line) <= len("  collision: 1x ") + evaluation.NOTE_CHARS and long_line.endswith(
+        "..."
+    )
 
 
 def test_ar_vsd_counts_an_episode_without_vsd_as_a_miss_and_old_reports_have_none() -> None:
     ok = {**_failed("missed", []), "vsd": [0.0] * 10}
-    assert ev.bop_scores([ok, _failed("no_estimate", [])])["ar_vsd"] == 0.5
-    assert ev.bop_scores([_failed("no_estimate", [])])["ar_vsd"] is None
+    assert evaluation.bop_scores([ok, _failed("no_estimate", [])])["ar_vsd"] == 0.5
+    assert evaluation.bop_scores([_failed("no_estimate", [])])["ar_vsd"] is None

@@ -20,7 +20,7 @@ from posegrasp.world.tiers import TIERS
 from sim.env import MAX_NEIGHBOURS, GraspEvalEnv, pose_action
 from sim.episode import Episode, EpisodeConfig
 from sim.estimators import make_estimator
-from sim.evaluate import evaluate
+from sim.evaluation import Protocol, evaluate_protocol
 
 CRUDE = Path(__file__).resolve().parent.parent / "examples" / "crude-estimator"
 #: sim.evaluate's first episode seed.
@@ -259,7 +259,8 @@ class _Digest:
 
 def test_evaluate_and_the_env_hand_an_estimator_the_same_sensor_images() -> None:
     sensor = "azure-tof+camera"
-    report = evaluate(["car"], 1, _Digest(), SEED + 3, obs_mode="rgbd", sensor=sensor)
+    protocol = Protocol(["car"], 1, SEED + 3, obs_mode="rgbd", sensor=sensor)
+    report = evaluate_protocol(protocol, _Digest())
     (episode,) = report["episodes"]
     seen = {}
     for name in (sensor, "ideal"):
@@ -318,7 +319,7 @@ def test_the_env_route_estimates_as_evaluate_does(
     answers in `sim.evaluate`'s episode of the same seed, and the grasp on it ends alike."""
     monkeypatch.syspath_prepend(str(CRUDE))
     estimator = make_estimator(spec)
-    episode = evaluate(["phone"], 1, estimator, SEED)["episodes"][0]
+    episode = evaluate_protocol(Protocol(["phone"], 1, SEED), estimator)["episodes"][0]
     env = GraspEvalEnv(object="phone")
     obs, info = env.reset(seed=SEED)
     est = estimator.estimate(Observation.from_env(obs, info))

@@ -25,6 +25,7 @@ from sim.episode import (
 from sim.episode import play_episode as run
 from sim.estimators import NoisyOracleEstimator, OracleEstimator, make_estimator
 from sim.pose_noise import PoseNoise, perturb_pose
+from sim.stats import wilson_interval
 
 
 @pytest.mark.parametrize("name", OBJECT_NAMES)
@@ -140,11 +141,11 @@ def test_fixed_noise_has_exact_magnitudes() -> None:
 
 
 def test_wilson_interval_matches_hand_values() -> None:
-    lo, hi = evaluate.wilson_interval(8, 10)
+    lo, hi = wilson_interval(8, 10)
     assert lo == pytest.approx(0.4902, abs=1e-4)
     assert hi == pytest.approx(0.9433, abs=1e-4)
-    assert evaluate.wilson_interval(0, 0) == (0.0, 1.0)
-    lo, hi = evaluate.wilson_interval(50, 50)
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    lo, hi = wilson_interval(50, 50)
     assert hi == pytest.approx(1.0) and lo == pytest.approx(0.9287, abs=1e-4)
 
 
@@ -153,7 +154,7 @@ def test_wilson_interval_holds_the_rate_itself() -> None:
     from it would then be negative, which matplotlib refuses."""
     for n in range(1, 301):
         for k in range(n + 1):
-            lo, hi = evaluate.wilson_interval(k, n)
+            lo, hi = wilson_interval(k, n)
             assert 0.0 <= lo <= k / n <= hi <= 1.0, (k, n)
 
 

@@ -1,15 +1,15 @@
 """The evaluation's `Protocol`: handed whole to the episodes, the journal and the report, checked
-when made, and the same evaluation whether given whole or field by field (`evaluate`)."""
+when made; it is the one way into an evaluation (`evaluate_protocol`), and the command line's
+module exports nothing that code needs."""
 
 from __future__ import annotations
 
 import pytest
 
-import sim.evaluate
 import sim.evaluation
 from posegrasp.core.errors import UnknownNameError
 from sim.episode import execution_settings
-from sim.evaluation import Protocol, evaluate, evaluate_protocol, make_report, run_protocol
+from sim.evaluation import Protocol, evaluate_protocol, make_report, run_protocol
 
 SEED = 1_000_000_000
 
@@ -93,18 +93,8 @@ def test_a_field_that_does_not_exist_is_one_line_naming_the_valid_ones(
     assert valid in str(exc.value) and len(str(exc.value).splitlines()) == 1
 
 
-def test_evaluate_by_fields_is_evaluate_protocol_of_those_fields() -> None:
-    # Positional, as sim.fit_success calls it: objects, episodes, estimator, seed, workers,
-    # tier, noise.
-    by_fields = evaluate(["phone"], 1, "noisy-oracle", SEED, 1, "clutter", "5,5,2,2")
+def test_a_protocol_run_records_its_fields() -> None:
     whole = evaluate_protocol(Protocol(["phone"], 1, SEED, "clutter", "5,5,2,2"), "noisy-oracle")
-    for r in (by_fields, whole):
-        del r["wall_s"]
-        for g in (*r["per_object"].values(), r["overall"]):
-            del g["episode_wall_ms_median"], g["planning_ms_median"]
-        for e in r["episodes"]:
-            del e["wall_ms"], e["timings_ms"]
-    assert by_fields == whole
     assert (whole["tier"], whole["noise"], whole["episodes"][0]["seed"]) == (
         "clutter",
         "5,5,2,2",
@@ -112,6 +102,27 @@ def test_evaluate_by_fields_is_evaluate_protocol_of_those_fields() -> None:
     )
 
 
-@pytest.mark.parametrize("module", [sim.evaluate, sim.evaluation])
+def test_code_evaluates_through_the_library_never_the_command_line() -> None:
+    """Every caller (the gate, the fits, the leaderboard, the examples, the studies, the benches,
+    the tests) builds a `Protocol` and calls `sim.evaluation`; from `sim.evaluate`, the command
+    line, only its ``main`` (and the tests its parsing) is imported."""
+    import re
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    pattern = re.compile(r"from sim\.evaluate import \(?([^)\n]*)")
+    found = {}
+    for path in repo.glob("*/**/*.py"):
+        if ".venv" in path.parts or path.parts[len(repo.parts)].startswith("."):
+            continue
+        for names in pattern.findall(path.read_text(encoding="utf-8")):
+            taken = {n.split(" as ")[0].strip() for n in names.split(",") if n.strip()}
+            if taken - {"main"}:
+                found[str(path.relative_to(repo))] = sorted(taken - {"main"})
+    assert found == {}
+    assert not hasattr(sim.evaluation, "evaluate")
+
+
+@pytest.mark.parametrize("module", [sim.evaluation])
 def test_every_name_the_evaluation_exports_exists(module) -> None:
     assert [name for name in module.__all__ if not hasattr(module, name)] == []

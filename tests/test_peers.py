@@ -243,9 +243,10 @@ def test_peers_pickle_without_their_trained_models() -> None:
 @needs_open3d
 @pytest.mark.slow
 def test_a_peer_runs_in_evaluate_workers() -> None:
-    from sim.evaluate import evaluate
+    from sim.evaluation import Protocol, evaluate_protocol
 
-    report = evaluate(["phone", "pistol"], 1, "fpfh-icp", SEED, workers=2, obs_mode="rgbd")
+    protocol = Protocol(["phone", "pistol"], 1, SEED, obs_mode="rgbd")
+    report = evaluate_protocol(protocol, "fpfh-icp", workers=2)
     episodes = report["episodes"]
     assert len(episodes) == 2
     for ep in episodes:

@@ -131,11 +131,11 @@ def test_the_plot_draws_only_the_reports_objects_with_the_legend_below(
 ) -> None:
     import matplotlib.pyplot as plt
 
-    from sim import evaluate
+    from sim import evaluation
 
     def episode(obj: str, ok: bool, err: float) -> dict:
         e = {"translation_m": 0.0}
-        for key, scale, _ in evaluate.COMPONENTS.values():
+        for key, scale, _ in evaluation.COMPONENTS.values():
             e[key] = err / scale
         return {"object": obj, "success": ok, "pose_error": e}
 
@@ -145,11 +145,11 @@ def test_the_plot_draws_only_the_reports_objects_with_the_legend_below(
     }
     curve = {"levels": [0.0, 10.0, 20.0], "success_rate": [1.0, 0.8, 0.2]}
     tolerance = {
-        obj: dict.fromkeys(evaluate.COMPONENTS, curve) for obj in ("phone", "car", "chair")
+        obj: dict.fromkeys(evaluation.COMPONENTS, curve) for obj in ("phone", "car", "chair")
     }
     figures = []
     monkeypatch.setattr(plt, "close", figures.append)
-    evaluate.plot_success_vs_error(report, tmp_path / "p.png", tolerance)
+    evaluation.plot_success_vs_error(report, tmp_path / "p.png", tolerance)
     (fig,) = figures
     assert (tmp_path / "p.png").stat().st_size > 10_000
     assert all(ax.get_legend() is None for ax in fig.axes)

@@ -15,7 +15,7 @@ import pytest
 from posegrasp.core.contract import Estimate
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from sim import estimators as E
-from sim.evaluate import evaluate
+from sim.evaluation import Protocol, evaluate_protocol
 from sim.report_schema import validate_report
 
 REPO = Path(__file__).resolve().parent.parent
@@ -94,8 +94,9 @@ def test_every_command_refuses_a_bad_plugin_in_one_line(module: str) -> None:
 def test_evaluate_takes_an_estimator_object_and_a_spec_alike(example_on_path) -> None:
     from posegrasp_crude import CrudeTableEstimator
 
-    by_object = evaluate(["phone"], 2, CrudeTableEstimator(), SEED, tier="isolated")
-    by_spec = evaluate(["phone"], 2, SPEC, SEED, tier="isolated")
+    two = Protocol(["phone"], 2, SEED, "isolated")
+    by_object = evaluate_protocol(two, CrudeTableEstimator())
+    by_spec = evaluate_protocol(two, SPEC)
     validate_report(by_object)
     assert by_object["estimator"] == "crude" and by_spec["estimator"] == SPEC
 
@@ -103,7 +104,7 @@ def test_evaluate_takes_an_estimator_object_and_a_spec_alike(example_on_path) ->
         return [{k: v for k, v in e.items() if k not in ("wall_ms", "timings_ms")} for e in r]
 
     assert outcome(by_object["episodes"]) == outcome(by_spec["episodes"])
-    none = evaluate(["car"], 1, NoEstimate(), SEED, tier="isolated")
+    none = evaluate_protocol(Protocol(["car"], 1, SEED, "isolated"), NoEstimate())
     assert none["overall"]["failure_reasons"] == {"no_estimate": 1}
 
 
@@ -197,8 +198,8 @@ def test_rgbd_runs_hand_the_estimator_depth() -> None:
     from sim import episode
 
     assert E.OBS_MODES == episode.OBS_MODES
-    rgb = evaluate(["phone"], 1, SeesDepth(), SEED, tier="isolated")
-    rgbd = evaluate(["phone"], 1, SeesDepth(), SEED, tier="isolated", obs_mode="rgbd")
+    rgb = evaluate_protocol(Protocol(["phone"], 1, SEED, "isolated"), SeesDepth())
+    rgbd = evaluate_protocol(Protocol(["phone"], 1, SEED, "isolated", obs_mode="rgbd"), SeesDepth())
     assert rgb["episodes"][0]["estimate_info"] == {"depth": False}
     assert rgbd["episodes"][0]["estimate_info"] == {"depth": True}
     assert rgbd["obs_mode"] == "rgbd" and validate_report(rgbd)

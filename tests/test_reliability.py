@@ -499,9 +499,10 @@ def test_evaluation_computes_a_learned_estimator_on_one_thread(monkeypatch) -> N
 def test_hybrid_episodes_are_bit_identical_with_one_or_two_workers() -> None:
     # The whole chain with the shipped nets: same seeds, same poses to the last bit, however the
     # evaluation is spread over processes.
-    from sim.evaluate import evaluate
+    from sim.evaluation import Protocol, evaluate_protocol
 
-    runs = [evaluate(["phone", "chair"], 2, "hybrid", 1_200_000_000, workers=w) for w in (1, 2)]
+    protocol = Protocol(["phone", "chair"], 2, 1_200_000_000)
+    runs = [evaluate_protocol(protocol, "hybrid", workers=w) for w in (1, 2)]
     keep = ("object", "seed", "success", "failure_reason", "pose_error", "T_C_O_est")
     one, two = ([{k: e.get(k) for k in keep} for e in r["episodes"]] for r in runs)
     assert len(one) == 4 and one == two

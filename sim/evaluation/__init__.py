@@ -2,8 +2,9 @@
 
 One job per module, top to bottom:
 
-- `harness`: `evaluate_protocol` (and `evaluate`, its call by fields) runs the episodes on a
-  backend, journaled, and hands them to the report;
+- `harness`: `evaluate_protocol` runs a `Protocol`'s episodes on a backend, journaled, and hands
+  them to the report: the one way into an evaluation, for the commands, the gate, the
+  leaderboard, the studies, the benches and a user's own code;
 - `aggregate`: `make_report`, the aggregates per object and overall (`group_summary`,
   `bop_scores`);
 - `summary`: `format_report`, the report as text, with `failure_notes`;
@@ -30,7 +31,6 @@ from sim.evaluation.harness import (
     EstimatorRef,
     cached_estimator,
     estimator_label,
-    evaluate,
     evaluate_protocol,
     run_job,
 )
@@ -49,7 +49,6 @@ __all__ = [
     "bop_scores",
     "cached_estimator",
     "estimator_label",
-    "evaluate",
     "evaluate_protocol",
     "export_protocol",
     "failure_notes",

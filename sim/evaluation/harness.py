@@ -11,7 +11,6 @@ from __future__ import annotations
 import functools
 import sys
 import time
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -23,7 +22,6 @@ from posegrasp.core.journal import Journal, run_journaled
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import effective_workers
 from posegrasp.world.objects import OBJECT_NAMES
-from posegrasp.world.tiers import DEFAULT_TIER
 from sim.estimators import PrivilegedEstimator, make_estimator
 from sim.evaluation.aggregate import make_report
 from sim.evaluation.protocol import Protocol, run_protocol
@@ -173,56 +171,3 @@ def evaluate_protocol(
         initializer=_init_worker,
     )
     return make_report(ordered, protocol, label, workers, time.perf_counter() - t)
-
-
-def evaluate(
-    objects: Sequence[str],
-    episodes: int,
-    estimator: EstimatorRef,
-    seed_start: int,
-    workers: int = 1,
-    tier: str = DEFAULT_TIER,
-    noise: str | None = None,
-    margin: bool = False,
-    backend: str = "local",
-    address: str | None = None,
-    journal: Path | None = None,
-    resume: bool = False,
-    obs_mode: str = "rgb",
-    pool: Sequence[str] = (),
-    candidates: str = "designed",
-    sensor: str = "ideal",
-) -> dict[str, Any]:
-    """Run episodes (objects x seeds) of one tier and aggregate per object and overall:
-    `evaluate_protocol` of the `Protocol` these arguments make.
-
-    Args:
-        objects, episodes, seed_start, tier, noise, margin, obs_mode, pool, candidates, sensor:
-            the `Protocol`'s fields; episode i of object X plays scene seed ``seed_start + i``.
-        estimator, workers, backend, address, journal, resume: as `evaluate_protocol`'s.
-
-    Raises:
-        UnknownNameError: a protocol field that does not exist (`Protocol`).
-        Interrupted: Ctrl-C or SIGTERM; with a journal, its line says how to resume.
-    """
-    protocol = Protocol(
-        objects=tuple(objects),
-        episodes=episodes,
-        seed_start=seed_start,
-        tier=tier,
-        noise=noise,
-        margin=margin,
-        obs_mode=obs_mode,
-        pool=tuple(pool),
-        candidates=candidates,
-        sensor=sensor,
-    )
-    return evaluate_protocol(
-        protocol,
-        estimator,
-        workers=workers,
-        backend=backend,
-        address=address,
-        journal=journal,
-        resume=resume,
-    )
