@@ -1,5 +1,5 @@
-"""The detector score a target's detection needs (`GlobalConfig.target_score`), chosen on a
-validation split (never on a test split).
+"""The detector score a target's detection needs (`GlobalConfig.detection.target_score`),
+chosen on a validation split (never on a test split).
 
     python studies/detector_threshold.py [--split headcam_hard] [--subset val] [--images 200]
         [--scores 0.5,0.4,0.3,0.2,0.1] [--detector PATH] [--json PATH]

@@ -18,25 +18,25 @@ ablation then replays the choice offline:
 - a resting prior (the camera pose's gravity and the object's resting poses): starts further
   than a tilt from every resting pose are passed over.
 
-With `--keeps`, it measures instead the verification that refines every start once, scores them
-and gives the second refiner run only to the best few (`GlobalConfig.keep_after_first`; 0 is
+With `--keeps`, it measures instead the verification that refines every start once, scores them and
+gives the second refiner run only to the best few (`GlobalConfig.refinement.keep_after_first`; 0 is
 every start twice); with `--screens`, a first run of fewer refiner steps for every start
-(`GlobalConfig.screen_iterations`); with `--tilts`, the resting prior
-(`GlobalConfig.resting_tilt_deg`, with the image's camera pose); with `--snaps`, how many of the
-best starts are snapped onto their resting poses (`GlobalConfig.snap_candidates`), with
-`--snap-steps`, the refiner steps of a snapped start's run (`GlobalConfig.snap_iterations`);
-with `--appearances` and `--edge-weights`, the verification score's weights
-(`GlobalConfig.appearance_weight`, `GlobalConfig.edge_weight`) with the rest as shipped; with
-`--ks`, the codebook hypotheses per detection (`GlobalConfig.hypotheses`); with `--rests`, the
-extra codebook hypotheses among the templates that could be resting
-(`GlobalConfig.resting_hypotheses`); with `--passes`, the full refiner runs of the best few
-(`GlobalConfig.refine_passes`); with `--grows`, the codebook's extra framings of a mask another
-detection touches (`GlobalConfig.occluded_grow`); with `--looks`, the second look
-(`GlobalConfig.second_look` more hypotheses when the best score is below
-`GlobalConfig.second_look_below`): for each setting, the chosen pose's rotation
-errors, those of the best verified start, the chosen translation's error and the verification's
-time per detection (median, one thread), each setting on the same images with the same
-detections.
+(`GlobalConfig.refinement.screen_iterations`); with `--tilts`, the resting prior
+(`GlobalConfig.gravity.tilt_deg`, with the image's camera pose); with `--snaps`, how many of the
+best starts are snapped onto their resting poses (`GlobalConfig.gravity.snap_candidates`), with
+`--snap-steps`, the refiner steps of a snapped start's run
+(`GlobalConfig.gravity.snap_iterations`); with `--appearances` and `--edge-weights`, the
+verification score's weights (`GlobalConfig.scoring.appearance_weight`,
+`GlobalConfig.scoring.edge_weight`) with the rest as shipped; with `--ks`, the codebook hypotheses
+per detection (`GlobalConfig.codebook.hypotheses`); with `--rests`, the extra codebook hypotheses
+among the templates that could be resting (`GlobalConfig.codebook.resting_hypotheses`); with
+`--passes`, the full refiner runs of the best few (`GlobalConfig.refinement.passes`); with
+`--grows`, the codebook's extra framings of a mask another detection touches
+(`GlobalConfig.codebook.occluded_grow`); with `--looks`, the second look
+(`GlobalConfig.second_look.hypotheses` more hypotheses when the best score is below
+`GlobalConfig.second_look.below`): for each setting, the chosen pose's rotation errors, those of
+the best verified start, the chosen translation's error and the verification's time per detection
+(median, one thread), each setting on the same images with the same detections.
 
     python studies/global_ablation.py --split headcam_hard --grows "none;1.4;1.5;1.3,1.6"
     python studies/global_ablation.py --split headcam_hard --tilts none,5,10,20

@@ -21,7 +21,7 @@ class PriorConfig:
 
     Attributes:
         target_score: the detector score a detection of the requested object needs
-            (`hybrid-global`'s own, `perception.global_pose.GlobalConfig.target_score`).
+            (`hybrid-global`'s own, `perception.global_pose.GlobalConfig.detection.target_score`).
         detector: the detector's weights.
     """
 
