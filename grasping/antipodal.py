@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import trimesh
@@ -96,7 +97,7 @@ def hull_points(hulls: list[trimesh.Trimesh], samples: int = SAMPLES, seed: int 
     Returns:
         (points (N, 3) [m], normals (N, 3)).
     """
-    mesh = trimesh.util.concatenate(hulls)
+    mesh = cast(trimesh.Trimesh, trimesh.util.concatenate(hulls))
     pts, faces = trimesh.sample.sample_surface(mesh, samples, seed=seed)
     pts = np.asarray(pts)
     normals = np.asarray(mesh.face_normals)[faces]

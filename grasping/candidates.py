@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import inspect
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -205,7 +206,7 @@ def _generator_key(name: str) -> str:
     generator's code (a change to either makes them anew)."""
     h = hashlib.sha256((OBJECTS_DIR / f"{name}.json").read_bytes())
     for module in (antipodal, grasp_check, mesh_grasps):
-        h.update(Path(module.__file__).read_bytes())
+        h.update(Path(inspect.getfile(module)).read_bytes())
     return h.hexdigest()[:16]
 
 
