@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 from torchvision.models.detection import MaskRCNN
 from torchvision.models.detection.transform import resize_boxes
 
@@ -59,7 +60,7 @@ class Detection:
     mask: np.ndarray = field(repr=False)
 
 
-def to_model_box(box_xyxy: np.ndarray) -> np.ndarray:
+def to_model_box(box_xyxy: ArrayLike) -> np.ndarray:
     """Box, pixel (0, 0) centred at (0, 0) -> torchvision's convention (centred at (0.5, 0.5))."""
     return np.asarray(box_xyxy, np.float64) + PIXEL_OFFSET
 

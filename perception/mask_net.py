@@ -130,7 +130,9 @@ def window_of(mask: np.ndarray, margin: float) -> tuple[int, int, int] | None:
     return round(cx - grown / 2), round(cy - grown / 2), grown
 
 
-def _overlap(window: tuple[int, int, int], shape: tuple[int, ...]) -> tuple[slice, slice] | None:
+def _overlap(
+    window: tuple[int, int, int], shape: tuple[int, ...]
+) -> tuple[tuple[slice, slice], tuple[slice, slice]] | None:
     """Where a window (x0, y0, side) and an image of `shape` (H, W, ...) overlap: the image's
     and the window's slices of it, (rows, columns) each; None when they do not."""
     x0, y0, side = window

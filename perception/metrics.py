@@ -32,7 +32,8 @@ References:
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+from typing import cast
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -554,7 +555,9 @@ def _errors(errors: object, name: str) -> np.ndarray:
     if isinstance(errors, np.ndarray):
         arr = errors.astype(np.float64)
     else:
-        arr = np.array([np.nan if e is None else e for e in errors], np.float64)
+        arr = np.array(
+            [np.nan if e is None else e for e in cast(Iterable[object], errors)], np.float64
+        )
     if arr.size == 0:
         raise InvalidArgumentError(f"{name} must not be empty")
     return np.nan_to_num(arr, nan=np.inf, posinf=np.inf)
@@ -627,7 +630,9 @@ def ar_vsd(errors: object) -> float:
     """
     n_taus = len(BOP_VSD_TAUS)
     if not isinstance(errors, np.ndarray):
-        errors = [[np.nan] * n_taus if row is None else row for row in errors]
+        errors = [
+            [np.nan] * n_taus if row is None else row for row in cast(Iterable[object], errors)
+        ]
     e = _errors(errors, "errors")
     if e.ndim != 2 or e.shape[1] != n_taus:
         raise InvalidArgumentError(

@@ -93,6 +93,7 @@ class Separations:
                 n, b = faces[own]
                 if n is None:
                     continue
+                assert b is not None  # None only with n (a flat piece)
                 reach = pieces[other] @ n.T - b  # >= 0: outside the face
                 margin = reach.min(0) / np.maximum(np.ptp(pieces[other] @ n.T, axis=0), 1e-9)
                 k = int(np.argmax(margin))

@@ -119,7 +119,7 @@ def _window(
     x1, y1 = min(W, bx1 + pad), min(H, by1 + pad)
     m = np.ascontiguousarray(mask[y0:y1, x0:x1])
     m8 = m.view(np.uint8)
-    sdf = cv2.distanceTransform(1 - m8, cv2.DIST_L2, cv2.DIST_MASK_3)
+    sdf: np.ndarray = cv2.distanceTransform(1 - m8, cv2.DIST_L2, cv2.DIST_MASK_3)
     sdf -= cv2.distanceTransform(m8, cv2.DIST_L2, cv2.DIST_MASK_3)
     sdf -= 0.5 * np.sign(sdf)  # the boundary lies half-way between pixel centres
     hidden = np.zeros(m.shape, bool)

@@ -90,13 +90,14 @@ class FpfhRegistration:
         return {"config": self.config}
 
     def __setstate__(self, state: dict) -> None:
-        self.__init__(state["config"])
+        type(self).__init__(self, state["config"])
 
     def _features(self, pc: o3d.geometry.PointCloud) -> o3d.pipelines.registration.Feature:
         cfg = self.config
         radius = cfg.feature_radius * cfg.voxel_m
         search = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=cfg.feature_max_nn)
-        return _REG.compute_fpfh_feature(pc, search)
+        # Open3D's stub drops the default of `indices` (all points), which the binding has.
+        return _REG.compute_fpfh_feature(pc, search)  # type: ignore[call-arg]
 
     def model(self, model: ObjectModel) -> tuple[o3d.geometry.PointCloud, object, float]:
         """The model's thinned cloud (face normals), its features and the time they took [ms]."""

@@ -92,7 +92,7 @@ class PointToPlaneIcp:
         return {"config": self.config}
 
     def __setstate__(self, state: dict) -> None:
-        self.__init__(state["config"])
+        type(self).__init__(self, state["config"])
 
     def target(self, model: ObjectModel) -> o3d.geometry.PointCloud:
         """The model's surface samples with normals, in O."""

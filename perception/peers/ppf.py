@@ -107,9 +107,11 @@ class PpfRegistration:
         return {"config": self.config}
 
     def __setstate__(self, state: dict) -> None:
-        self.__init__(state["config"])
+        type(self).__init__(self, state["config"])
 
-    def trained(self, model: ObjectModel) -> tuple[object, np.ndarray, float]:
+    def trained(
+        self, model: ObjectModel
+    ) -> tuple[cv2.ppf_match_3d.PPF3DDetector, np.ndarray, float]:
         """The detector trained on `model`, its training cloud (N, 6) float32 (points in units
         of the object's diameter, normals; O) and the time training took [ms]."""
         key = (model.name, model.revision)
@@ -144,7 +146,7 @@ class PpfRegistration:
         if first:
             timings["train"] = train_ms
         t0 = time.perf_counter()
-        scene = np.ascontiguousarray(points_C / model.diameter, np.float32)
+        scene: np.ndarray = np.ascontiguousarray(points_C / model.diameter, np.float32)
         _, scene = cv2.ppf_match_3d.computeNormalsPC3d(
             scene, cfg.normal_neighbours, True, (0.0, 0.0, 0.0)
         )

@@ -7,7 +7,7 @@ is counted outside it too, so ``visib_fract`` counts cut-off pixels as not visib
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -55,8 +55,9 @@ def full_silhouette(
     pts = np.round(((uv - [ox, oy] + 0.5) * ss - 0.5) * 16).astype(np.int32)
     for tri in np.asarray(obj.mesh.faces):
         cv2.fillConvexPoly(fine, pts[tri], 1, cv2.LINE_8, 4)
-    rows = sum(fine[i::ss].astype(np.uint16) for i in range(ss))  # (ch, cw * ss)
-    covered = sum(rows[:, j::ss] for j in range(ss))  # (ch, cw): samples covered per pixel
+    # (ch, cw * ss), then (ch, cw): samples covered per pixel; arrays, as ss >= 2
+    rows = cast(np.ndarray, sum(fine[i::ss].astype(np.uint16) for i in range(ss)))
+    covered = cast(np.ndarray, sum(rows[:, j::ss] for j in range(ss)))
     canvas = (covered > ss * ss // 2).astype(np.uint8)
     canvas[-oy : -oy + h, -ox : -ox + w] = mask
     x, y, bw, bh = bbox_xywh(canvas)

@@ -9,8 +9,10 @@ cuts them the same way with its own `CropConfig`, or collects crops around detec
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 
@@ -45,12 +47,12 @@ class CropConfig:
 
 
 def data_seed_ranges(
-    dists: tuple[str, ...] | list[str], limits: dict[str, int] | None = None
+    dists: Sequence[str], limits: dict[str, int] | None = None
 ) -> dict[str, dict[str, list[int]]]:
     """Seed range [first, end) of every generated split of each distribution, from its
     info.json: dist -> split -> range. `limits` (dist -> images) shortens the ranges to the first
     images of each split, as training with that limit uses them."""
-    out = {}
+    out: dict[str, dict[str, list[int]]] = {}
     for d in dists:
         splits = load_info(data_root() / d).get("splits", {})
         out[d] = {}
@@ -174,7 +176,7 @@ def build_crops(root: Path, split: str, cfg: CropConfig, limit: int | None = Non
     if m:
         arrays = concat([_load_cache(_cache_path(root, split, cfg, m)), arrays])
     tmp = cache.with_suffix(".tmp.npz")
-    np.savez(tmp, **arrays)
+    np.savez(tmp, **cast("dict[str, Any]", arrays))  # NumPy: a key could be allow_pickle
     tmp.replace(cache)
     return arrays
 

@@ -24,6 +24,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 import torch.distributed as dist
@@ -38,6 +39,8 @@ MAX_THREADS = 256
 #: How long a rank waits for the others (rank 0 validating and saving) [min].
 TIMEOUT_MIN = 60
 CPU = torch.device("cpu")
+
+_M = TypeVar("_M", bound=nn.Module)
 
 
 @dataclass(frozen=True)
@@ -95,7 +98,7 @@ class Ranks:
         _globalise(model, self)
         return nn.parallel.DistributedDataParallel(model)
 
-    def on_cpu(self, model: nn.Module) -> nn.Module:
+    def on_cpu(self, model: _M) -> _M:
         """`model` if it is on the CPU, else a copy of it there."""
         return model if self.device.type == "cpu" else copy.deepcopy(model).cpu()
 
@@ -150,6 +153,9 @@ class GlobalBatchNorm2d(nn.BatchNorm2d):
         mean = sums[:c] / n
         centred = x - mean.view(1, c, 1, 1)
         var = all_reduce((centred * centred).sum(dims)) / n
+        # _globalise swaps in only layers that track running statistics: they have these buffers.
+        assert self.num_batches_tracked is not None
+        assert self.running_mean is not None and self.running_var is not None
         with torch.no_grad():
             self.num_batches_tracked += 1
             m = self.momentum if self.momentum is not None else 1 / int(self.num_batches_tracked)

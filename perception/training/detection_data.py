@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -107,7 +108,7 @@ def training_images(
     min_visible_px: int,
     cfg: DetectorConfig,
     limits: tuple[int | None, ...],
-) -> tuple[torch.utils.data.Dataset, list[DetectionSet]]:
+) -> tuple[DetectionSet | torch.utils.data.ConcatDataset[Any], list[DetectionSet]]:
     """The train images of root and of the dataset folders `also` (under the data root), at
     most `limits[i]` of the i-th of them (None: all): (the mix, its parts)."""
     parts = [DetectionSet(root, "train", min_visible_px, cfg, limits[0])]

@@ -63,6 +63,7 @@ def coco_ap(
     def rle(mask: np.ndarray) -> dict:
         return mask_utils.encode(np.asfortranarray(mask.astype(np.uint8)))
 
+    anns: list[dict[str, Any]]
     images, anns, box_res, seg_res = [], [], [], []
     for i, (gt, dd) in enumerate(zip(gts, dets, strict=True)):
         h, w = gt[0][1].shape if gt else (dd[0].mask.shape if dd else (1, 1))

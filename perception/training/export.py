@@ -64,6 +64,7 @@ def shipped_weights(kind: str, state: dict[str, Any]) -> dict[str, Any]:
         AssetError: a detector checkpoint whose weights do not build its model.
     """
     check_choice(kind, KINDS, "kind")
+    model: dict[str, torch.Tensor]
     if kind == "detector":
         model = state_dict_fp16(_detector(state))
     else:
@@ -292,6 +293,7 @@ def _stages(state: dict) -> list[dict]:
     """The training runs that led to a pose-net checkpoint, first to last (`checkpoint_record`
     of each, following the checkpoints each started from; a run started from shipped weights
     continues with the stages their manifest records)."""
+    node: dict | None
     chain, node = [], state
     while node:
         if node.get("stages"):  # shipped weights: the stages their manifest recorded
@@ -323,7 +325,7 @@ def training_curves(checkpoints: Path) -> dict[str, list[list[dict]]]:
     shipped weights continues with the stages they record (`_stage_history`)."""
     curves = {}
     for variant in SHIPPED:
-        path = checkpoints / f"posenet_{variant}.pt"
+        path: Path | None = checkpoints / f"posenet_{variant}.pt"
         stages, seen = [], set()
         while path is not None and path.is_file() and path not in seen:
             seen.add(path)
@@ -356,6 +358,7 @@ def plot_curves(curves: dict[str, list[list[dict]]], path: Path) -> None:
     )
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
     for variant, stages in curves.items():
+        ys: dict[str, list[float]]
         offset, xs, ys = 0, [], {k: [] for k, _ in keys}
         for i, hist in enumerate(stages):
             if i > 0:

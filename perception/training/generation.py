@@ -205,6 +205,7 @@ def _generate(
     if cfg.views == 1:
         images = [gen.render(cfg.object_of(indices[0]), seed)]
     else:
+        assert isinstance(gen, HeadcamGenerator)  # datagen allows views > 1 for headcam only
         views = [cfg.view(i) for i in indices]
         images = gen.render_views(cfg.object_of(indices[0]), seed, views)
     for index, image in zip(indices, images, strict=True):

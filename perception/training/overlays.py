@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import cast
 
 import cv2
 
@@ -34,7 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     """
 
     p = ArgumentParser(
-        prog="python -m perception.training.overlays", description=main.__doc__.split("\n")[0]
+        prog="python -m perception.training.overlays",
+        description=cast(str, main.__doc__).split("\n")[0],
     )
     p.add_argument(
         "--dist",

@@ -84,6 +84,7 @@ class OffscreenRenderer:
     def _drawn_context(self) -> mujoco.MjrContext:
         if self._drawn is None:
             raise StateError("nothing is drawn yet: call draw() before reading pixels back")
+        assert self._gl is not None  # draw() made it
         self._gl.make_current()
         return self._drawn
 

@@ -175,6 +175,7 @@ class Recipe:
 
     def chain(self, artefact: Artefact) -> tuple[Stage, ...]:
         """The stages behind an artefact, first to last (its stage and that stage's starts)."""
+        name: str | None
         out, name = [], artefact.stage
         while name is not None:
             out.append(self.stage(name))

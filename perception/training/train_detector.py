@@ -353,6 +353,7 @@ def _start_run(
     out = cfg.out or checkpoint_dir()
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / CHECKPOINT_NAME
+    history: list[dict]
     step, epoch0, history, g_state, wall_s = 0, 0, [], None, 0.0
     if resume and ckpt.is_file():
         step, epoch0, history, g_state, wall_s = _resume(

@@ -42,7 +42,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -207,7 +207,7 @@ def _keep(name: str, cache: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     path = data_root() / "masknet" / f"{name}.npz"
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **cache)
+    np.savez(tmp, **cast("dict[str, Any]", cache))  # NumPy: a key could be allow_pickle
     tmp.replace(path)
     return cache
 
@@ -334,6 +334,7 @@ def _detected_block(
             win = None if best is None else window_of(best.mask, net.margin)
             if win is None:
                 continue
+            assert best is not None  # win is None when best is
             rgbs.append(cut(sample.rgb, win, S))
             coarse.append((cut(best.mask.astype(np.float32), win, S) >= 0.5).astype(np.uint8))
             cover = cut(truth.astype(np.float32), win, S)

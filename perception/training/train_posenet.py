@@ -339,7 +339,11 @@ def _start_run(
     steps_per_epoch = max(1, n_train // cfg.batch)
     ckpt = checkpoint_path(cfg)
     ckpt.parent.mkdir(parents=True, exist_ok=True)
-    lineage = {"command": command or command_line(cfg), "init_from": None, "wall_s": 0.0}
+    lineage: dict[str, Any] = {
+        "command": command or command_line(cfg),
+        "init_from": None,
+        "wall_s": 0.0,
+    }
     resuming = resume and ckpt.is_file()
     if cfg.init and not resuming:
         lineage["init_from"] = _start_from(model, _resolve_init(cfg.init, ckpt.parent))
