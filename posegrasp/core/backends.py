@@ -139,20 +139,7 @@ def run_map(
         ray = _import_ray()
         owned = not ray.is_initialized()  # a caller's own Ray session is used and left running
         if owned:
-            # Ray's start-up takes SIGTERM over (it exits at once); the run's own handler (a
-            # stop that keeps what finished, `posegrasp.core.journal.interruptible`) stays.
-            in_main = threading.current_thread() is threading.main_thread()
-            on_term = signal.getsignal(signal.SIGTERM) if in_main else None
-            try:
-                connect(ray, address, workers)
-            except SystemExit as exc:  # SIGTERM while Ray started: Ray's handler exits
-                if exc.code != signal.SIGTERM or not callable(on_term):
-                    raise
-                on_term(signal.SIGTERM, None)  # the run's own stop
-                raise
-            finally:
-                if on_term is not None:
-                    signal.signal(signal.SIGTERM, on_term)
+            _connect_keeping_sigterm(ray, address, workers)
     bar = progress_bar(total=total, desc=desc, unit=unit, disable=desc is None)
     try:
         if ray is not None:
@@ -259,9 +246,14 @@ def _pool_results(pool, fn, jobs, window: int, chunk: int, ordered: bool) -> Ite
 
 
 def _dead_exitcode(procs: list) -> int | None:
-    """The exit status of the first of the pool's worker processes `procs` that died."""
-    codes = [p.exitcode for p in procs if not p.is_alive() and p.exitcode not in (None, 0)]
-    return codes[0] if codes else None
+    """The exit status of the worker that broke the pool, of its worker processes `procs`: the
+    pool terminates the others (SIGTERM) once one died, so a status of another kind, where there
+    is one, is the first death's."""
+    for p in procs:
+        p.join(timeout=2.0)  # each is dead or being terminated; this reaps it
+    codes = [p.exitcode for p in procs if p.exitcode not in (None, 0)]
+    other = [c for c in codes if c != -signal.SIGTERM]
+    return (other or codes or [None])[0]
 
 
 def _stop_pool(pool: ProcessPoolExecutor, procs: list) -> None:
@@ -312,6 +304,38 @@ def _host_port(address: str) -> tuple[str, int]:
             "ray://host:port or auto"
         )
     return host, int(port)
+
+
+def _connect_keeping_sigterm(ray, address: str | None, workers: int) -> None:
+    """`connect`, the caller's SIGTERM handler kept and a SIGTERM during the start-up held back
+    until Ray has started.
+
+    Ray's start-up installs handlers that exit at once on SIGTERM (Python's `sys.exit` through
+    ``ray._private.utils.set_sigterm_handler``, and its core worker's own); a run's handler
+    instead stops it keeping what finished (`posegrasp.core.journal.interruptible`), and a Ray
+    stopped half-started can abort the process on its way out. So while Ray starts, a SIGTERM is
+    only noted; once it has started, the run's handler is put back and a noted SIGTERM is handed
+    to it, after Ray is shut down again."""
+    in_main = threading.current_thread() is threading.main_thread()
+    on_term = signal.getsignal(signal.SIGTERM) if in_main else None
+    if not callable(on_term):
+        connect(ray, address, workers)
+        return
+    noted: list[int] = []
+    utils = sys.modules.get("ray._private.utils")
+    ray_sets = getattr(utils, "set_sigterm_handler", None)
+    signal.signal(signal.SIGTERM, lambda signum, frame: noted.append(signum))
+    if ray_sets is not None:
+        utils.set_sigterm_handler = lambda _handler: None  # type: ignore[union-attr]
+    try:
+        connect(ray, address, workers)
+    finally:
+        if ray_sets is not None:
+            utils.set_sigterm_handler = ray_sets  # type: ignore[union-attr]
+        signal.signal(signal.SIGTERM, on_term)
+    if noted:
+        ray.shutdown()
+        on_term(signal.SIGTERM, None)  # the run's own stop
 
 
 def connect(ray, address: str | None, workers: int) -> None:

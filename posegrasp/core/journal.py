@@ -34,13 +34,14 @@ JOURNAL_VERSION = 1
 INTERRUPTED_EXIT = 130
 
 
-class Interrupted(BaseException):
+class Interrupted(KeyboardInterrupt):
     """Ctrl-C or SIGTERM arrived, or a worker process was killed; what had finished is in the
     journal.
 
-    A `BaseException`, as KeyboardInterrupt is: raised wherever the run is (in an episode, in
-    an estimator), it passes every ``except Exception`` that turns a failure into an outcome, so
-    a stopped run is never scored.
+    A KeyboardInterrupt, as Ctrl-C's is: raised wherever the run is (in an episode, in an
+    estimator), it passes every ``except Exception`` that turns a failure into an outcome, so a
+    stopped run is never scored; and the libraries that watch for Ctrl-C while they wait (Ray's
+    ``get`` and ``wait``) stop for it as they do for Ctrl-C.
 
     Attributes:
         journal: the journal that holds the finished units (None when the run kept none).
@@ -175,15 +176,20 @@ def interruptible() -> Iterator[None]:
     """Turn SIGTERM into `Interrupted` as Ctrl-C (KeyboardInterrupt) already is, so that both
     stop a run between two Python steps and leave its journal intact."""
 
+    received: list[str] = []
+
     def on_term(signum: int, frame: Any) -> None:
-        raise Interrupted(signal.Signals(signum).name)
+        received.append(signal.Signals(signum).name)
+        raise Interrupted(received[-1])
 
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, on_term) if in_main else None
     try:
         yield
-    except KeyboardInterrupt:
-        raise Interrupted("SIGINT") from None
+    except Interrupted:
+        raise
+    except KeyboardInterrupt:  # Ctrl-C, or a SIGTERM that a library turned into one
+        raise Interrupted(received[-1] if received else "SIGINT") from None
     finally:
         if in_main:
             signal.signal(signal.SIGTERM, previous)
