@@ -373,22 +373,7 @@ def export_bop(
     out = Path(out)
     protocol = export_protocol(objects, episodes, seed_start, tier, ground_truth, sensor)
     check_out_folder(out, protocol)
-    jobs = [(o, seed_start + i) for o in objects for i in range(episodes)]
-    ids = scene_ids(tier, jobs)
-    info = {
-        **protocol,
-        "complete": False,
-        "commit": git_commit(),
-        "contract_version": CONTRACT_VERSION,
-        "execution": execution_settings(),
-        "layout": "one scene per episode, its one image im_id 0; scene_id = "
-        "sim.bop_results.scene_ids(tier, object, seed); scene_gt: the target first, then the "
-        "other objects; table_top_z: the table top's height in the world frame [m]",
-        "images": [
-            {"scene_id": ids[(o, seed)], "im_id": IM_ID, "object": o, "seed": seed}
-            for o, seed in jobs
-        ],
-    }
+    info = _map_info(protocol, objects, episodes, seed_start, tier)
     # The images' index entries, kept as each image's files are written: a stopped export
     # resumes after the last image it finished.
     journal = Journal(out / JOURNAL_FILE, "export_bop", protocol)
@@ -403,24 +388,44 @@ def export_bop(
             if key not in held:
                 held[key] = _write_image(out, image, cfg, ground_truth)
                 journal.append({"key": key, "result": held[key]})
-            entry = held[key]
-            image["table_top_z"] = entry["table_top_z"]
-            files = scenes.setdefault(
-                image["scene_id"], {"scene_camera": {}, "scene_gt": {}, "scene_gt_info": {}}
-            )
+            image["table_top_z"] = held[key]["table_top_z"]
+            files = scenes.setdefault(image["scene_id"], {})
             for name in ("scene_camera", "scene_gt", "scene_gt_info"):
-                files[name][str(IM_ID)] = entry[name]
+                files.setdefault(name, {})[str(IM_ID)] = held[key][name]
         _write_index(out, scenes, info["images"], ground_truth)
         info["complete"] = True
         write_json(out / MAP_FILE, info)
     except Interrupted:
-        done = len(held)
-        hint = resume_hint(journal.path, done, len(jobs), why="interrupted", flag=None)
-        raise Interrupted(hint, journal.path, done, len(jobs)) from None
+        total = len(info["images"])
+        hint = resume_hint(journal.path, len(held), total, flag=None)
+        raise Interrupted(hint, journal.path, len(held), total) from None
     finally:
         journal.close()
     journal.finish()
     return info
+
+
+def _map_info(
+    protocol: dict[str, Any], objects: list[str], episodes: int, seed_start: int, tier: str
+) -> dict[str, Any]:
+    """The map file of an export under way: its protocol, how it was made and every image's
+    scene, object and seed (``complete`` False until the last file is written)."""
+    jobs = [(o, seed_start + i) for o in objects for i in range(episodes)]
+    ids = scene_ids(tier, jobs)
+    return {
+        **protocol,
+        "complete": False,
+        "commit": git_commit(),
+        "contract_version": CONTRACT_VERSION,
+        "execution": execution_settings(),
+        "layout": "one scene per episode, its one image im_id 0; scene_id = "
+        "sim.bop_results.scene_ids(tier, object, seed); scene_gt: the target first, then the "
+        "other objects; table_top_z: the table top's height in the world frame [m]",
+        "images": [
+            {"scene_id": ids[(o, seed)], "im_id": IM_ID, "object": o, "seed": seed}
+            for o, seed in jobs
+        ],
+    }
 
 
 def _write_image(

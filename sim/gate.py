@@ -289,6 +289,44 @@ def baseline_of(report: dict, weights: dict[str, str] | None = None) -> dict:
     }
 
 
+def _gate_one(name: str, args, baselines: dict, journal: Path) -> bool:
+    """Run the gate's episodes of one estimator (its finished ones kept in `journal`) and
+    compare them with its baseline, or (``--write``) put its baseline in `baselines`; prints the
+    fingerprint, the report and the verdict. Returns whether it passed (a baseline of another
+    protocol or other weights fails before any episode runs)."""
+    weights, note = estimator_fingerprint(name)
+    if note is None:
+        note = f"weights fingerprint of {', '.join(weights) or 'no file (it loads none)'}"
+    print(f"{name}: {note}")
+    if not args.write:
+        why = mismatch(gate_protocol(name, args.obs_mode, args.sensor), baselines[name], weights)
+        if why is not None:
+            print(f"{name}: {why}")
+            return False
+    with resumable(journal, gate_run_protocol(GATE_EPISODES).total):
+        report = validate_report(
+            run_gate(
+                name,
+                GATE_EPISODES,
+                args.workers,
+                args.backend,
+                args.address,
+                args.obs_mode,
+                args.sensor,
+                journal,
+                args.resume and journal.is_file(),
+            ),
+            f"the gate's run of {name}",
+        )
+    print(format_report(report))
+    if args.write:
+        baselines[name] = baseline_of(report, weights)
+        return True
+    ok, verdict = compare(report, baselines[name], weights)
+    print(f"{name}: {verdict}")
+    return ok
+
+
 @command
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status (1 when the gate fails)."""
@@ -338,40 +376,7 @@ def main(argv: list[str] | None = None) -> int:
     failed = False
     journals = [gate_journal(name, args.obs_mode, args.sensor) for name in names]
     for name, journal in zip(names, journals, strict=True):
-        weights, note = estimator_fingerprint(name)
-        if note is None:
-            note = f"weights fingerprint of {', '.join(weights) or 'no file (it loads none)'}"
-        print(f"{name}: {note}")
-        if not args.write:
-            why = mismatch(
-                gate_protocol(name, args.obs_mode, args.sensor), baselines[name], weights
-            )
-            if why is not None:  # refused before any episode runs
-                print(f"{name}: {why}")
-                failed = True
-                continue
-        with resumable(journal, gate_run_protocol(GATE_EPISODES).total):
-            report = validate_report(
-                run_gate(
-                    name,
-                    GATE_EPISODES,
-                    args.workers,
-                    args.backend,
-                    args.address,
-                    args.obs_mode,
-                    args.sensor,
-                    journal,
-                    args.resume and journal.is_file(),
-                ),
-                f"the gate's run of {name}",
-            )
-        print(format_report(report))
-        if args.write:
-            baselines[name] = baseline_of(report, weights)
-            continue
-        ok, verdict = compare(report, baselines[name], weights)
-        print(f"{name}: {verdict}")
-        failed |= not ok
+        failed |= not _gate_one(name, args, baselines, journal)
     if args.write:
         write_json(args.baseline, baselines)
     for journal in journals:  # the verdicts are given, the baseline written: nothing to resume
