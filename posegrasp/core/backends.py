@@ -258,7 +258,8 @@ def _dead_exitcode(procs: list) -> int | None:
 
 def _stop_pool(pool: ProcessPoolExecutor, procs: list) -> None:
     """Shut the pool down; on the way out of an interrupted run its workers (`procs`) are
-    terminated rather than left to finish the jobs they hold."""
+    terminated rather than left to finish the jobs they hold, and then the pool's own thread is
+    joined, so that nothing of it is left for the interpreter's exit to trip over."""
     procs = procs or list((getattr(pool, "_processes", None) or {}).values())
     pool.shutdown(wait=False, cancel_futures=True)
     for p in procs:
@@ -266,6 +267,7 @@ def _stop_pool(pool: ProcessPoolExecutor, procs: list) -> None:
             p.terminate()
     for p in procs:
         p.join(timeout=10)
+    pool.shutdown(wait=True)
 
 
 # --- Ray -------------------------------------------------------------------------------------
