@@ -362,14 +362,8 @@ def export_bop(
         InvalidArgumentError: out holds other files or another export; a bad argument.
         UnknownNameError: a sensor not in `posegrasp.world.sensors.SENSOR_NAMES`.
     """
-    check_tier(tier)
-    cfg = EpisodeConfig(tier=tier, obs_mode="rgbd", sensor=sensor)
-    if not objects or len(set(objects)) != len(objects):
-        raise InvalidArgumentError(f"objects must be distinct and at least one, got {objects}")
-    for o in objects:
-        obj_id(o)
-    check_int(episodes, 1, MAX_EPISODES, "episodes")
-    check_seed(seed_start, "seed start", episodes)
+    cfg = EpisodeConfig(tier=check_tier(tier), obs_mode="rgbd", sensor=sensor)
+    _check_episodes(objects, episodes, seed_start)
     out = Path(out)
     protocol = export_protocol(objects, episodes, seed_start, tier, ground_truth, sensor)
     check_out_folder(out, protocol)
@@ -403,6 +397,21 @@ def export_bop(
         journal.close()
     journal.finish()
     return info
+
+
+def _check_episodes(objects: list[str], episodes: int, seed_start: int) -> None:
+    """Refuse objects that are not distinct built-in or user objects (at least one), an episode
+    count out of range and seeds that would run past the last one.
+
+    Raises:
+        InvalidArgumentError, UnknownNameError: in one line.
+    """
+    if not objects or len(set(objects)) != len(objects):
+        raise InvalidArgumentError(f"objects must be distinct and at least one, got {objects}")
+    for o in objects:
+        obj_id(o)
+    check_int(episodes, 1, MAX_EPISODES, "episodes")
+    check_seed(seed_start, "seed start", episodes)
 
 
 def _map_info(

@@ -258,6 +258,19 @@ def resumable(journal: Path, total: int, flag: str | None = "--resume") -> Itera
         raise Interrupted(hint, Path(journal), done, total) from None
 
 
+def _results(pending: Iterator, count: int, map_options: dict[str, Any]) -> Iterator[tuple]:
+    """(key, result) of each pending (fn, key, job), as `run_map` returns them; a dict result
+    gets the Ray ``node`` that ran it."""
+    from posegrasp.core.backends import run_map
+
+    for (key, result), node in run_map(
+        _keyed, pending, total=count, ordered=False, with_node=True, **map_options
+    ):
+        if node is not None and isinstance(result, dict):
+            result["node"] = node
+        yield key, result
+
+
 def _keyed(item: tuple[Callable[[Any], Any], int, Any]) -> tuple[int, Any]:
     fn, key, job = item
     return key, fn(job)
@@ -297,7 +310,7 @@ def run_journaled(
         that holds no finished result then is removed, so the same command can simply be run
         again; one that holds some is kept, and the line that resumes goes to stderr first.
     """
-    from posegrasp.core.backends import WorkerDied, by_import_name, run_map
+    from posegrasp.core.backends import WorkerDied, by_import_name
 
     target = by_import_name(fn)  # a Ray worker cannot import a function of ``python -m``'s __main__
     # A later line of a key wins; a unit that holds an interruption runs again.
@@ -307,16 +320,7 @@ def run_journaled(
     pending = ((target, k, job) for k, job in enumerate(jobs) if k not in done)
     try:
         with interruptible():
-            for (key, result), node in run_map(
-                _keyed,
-                pending,
-                total=total - len(done),
-                ordered=False,
-                with_node=True,
-                **map_options,
-            ):
-                if node is not None and isinstance(result, dict):
-                    result["node"] = node
+            for key, result in _results(pending, total - len(done), map_options):
                 results[key] = result
                 if journal:
                     journal.append({"key": key, "result": result})
