@@ -104,6 +104,35 @@ def _command(argv: Sequence[str]) -> str:
     return f"python -m sim.leaderboard {shlex.join(argv)}".rstrip()
 
 
+def _add_output_arguments(p: ArgumentParser) -> None:
+    """Add where the board goes: ``--publish``, ``--markdown``, ``--plots`` and ``--json``."""
+    p.add_argument(
+        "--publish",
+        action="store_true",
+        help=f"write the board as the shipped page: {in_repo(PUBLISHED['markdown'])}, "
+        f"{in_repo(PUBLISHED['json'])} and the plots in {in_repo(PUBLISHED['plots'])}/ (the "
+        "cells stay under --out)",
+    )
+    p.add_argument(
+        "--markdown",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="the page (default: LEADERBOARD.md under --out, or the shipped one with --publish)",
+    )
+    p.add_argument(
+        "--plots",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="the folder of the page's plots (default: leaderboard/ beside the page); the page "
+        "links them relative to where it is written",
+    )
+    add_json_argument(
+        p, "the whole board (default: leaderboard.json under --out, or the shipped one)"
+    )
+
+
 def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m sim.leaderboard", description=__doc__.split("\n")[0])
     p.add_argument(
@@ -151,31 +180,7 @@ def _parser() -> ArgumentParser:
         "leaderboard.json, LEADERBOARD.md and its plots (leaderboard/)",
         Path("out/leaderboard"),
     )
-    p.add_argument(
-        "--publish",
-        action="store_true",
-        help=f"write the board as the shipped page: {in_repo(PUBLISHED['markdown'])}, "
-        f"{in_repo(PUBLISHED['json'])} and the plots in {in_repo(PUBLISHED['plots'])}/ (the "
-        "cells stay under --out)",
-    )
-    p.add_argument(
-        "--markdown",
-        type=Path,
-        default=None,
-        metavar="PATH",
-        help="the page (default: LEADERBOARD.md under --out, or the shipped one with --publish)",
-    )
-    p.add_argument(
-        "--plots",
-        type=Path,
-        default=None,
-        metavar="DIR",
-        help="the folder of the page's plots (default: leaderboard/ beside the page); the page "
-        "links them relative to where it is written",
-    )
-    add_json_argument(
-        p, "the whole board (default: leaderboard.json under --out, or the shipped one)"
-    )
+    _add_output_arguments(p)
     return p
 
 
