@@ -125,6 +125,18 @@ class RenderRequest:
         )
 
 
+def _add_sensing_arguments(p: argparse.ArgumentParser) -> None:
+    """Add what the head camera senses: ``--sensor`` and ``--depth``."""
+    add_sensor_argument(p)
+    p.add_argument(
+        "--depth",
+        action="store_true",
+        help="also write the head camera's depth as the sensor returns it: <stem>_depth.png "
+        "(16-bit, millimetres, 0: no reading) and <stem>_depth_view.png (coloured, with its "
+        "scale); not with --sheet",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser: every value is checked while parsing, the combinations by
     `check_request`."""
@@ -182,14 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"scene tier, one of: {', '.join(TIERS)}",
     )
     p.add_argument("--no-shadows", action="store_true", help="render without shadows (faster)")
-    add_sensor_argument(p)
-    p.add_argument(
-        "--depth",
-        action="store_true",
-        help="also write the head camera's depth as the sensor returns it: <stem>_depth.png "
-        "(16-bit, millimetres, 0: no reading) and <stem>_depth_view.png (coloured, with its "
-        "scale); not with --sheet",
-    )
+    _add_sensing_arguments(p)
     add_estimator_arguments(
         p,
         default=None,
