@@ -87,7 +87,7 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.transforms import invert_transform
 from posegrasp.core.validate import arg, check_int, check_seed
 from posegrasp.world import constants as C
-from posegrasp.world.camera import body_mask
+from posegrasp.world.camera import body_mask, depth_to_uint16
 from posegrasp.world.objects import OBJECT_NAMES, check_objects, load_object
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.bop_results import EXPORT_FORMAT, EXPORT_VERSION, MAP_FILE, scene_ids
@@ -160,9 +160,7 @@ def depth_to_png(depth_m: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.nd
     Returns:
         Shape (H, W), uint16; 0 where the depth is not finite, not positive or out of range.
     """
-    v = np.asarray(depth_m, np.float64) * (MM_PER_M / depth_scale)
-    ok = np.isfinite(v) & (v > 0) & (v < 65535.5)
-    return np.where(ok, np.round(np.where(ok, v, 0.0)), 0).astype(np.uint16)
+    return depth_to_uint16(depth_m, depth_scale)
 
 
 def export_protocol(

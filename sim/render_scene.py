@@ -28,7 +28,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
-import mujoco
 import numpy as np
 
 from perception.overlay import draw_estimate
@@ -39,10 +38,13 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int, check_output_file, check_seed
 from posegrasp.world import constants as C  # importing sim defaults MUJOCO_GL to egl
 from posegrasp.world.camera import (
+    MM_PER_M,
     CameraRenderer,
     RenderOptions,
     camera_intrinsics,
     check_resolution,
+    depth_to_uint16,
+    far_plane,
 )
 from posegrasp.world.objects import OBJECT_NAMES, object_names
 from posegrasp.world.scene import SceneConfig, build_scene
@@ -64,10 +66,6 @@ EXTERNAL_CAMERA = "external"
 NO_ESTIMATOR = "none"
 #: RGB of a sheet's label lines.
 TEXT_COLOUR, ERRORS_COLOUR, MISSED_COLOUR = (0, 0, 0), (0, 120, 0), (190, 0, 0)
-#: Millimetres per metre: the metric depth PNGs hold depth in millimetres.
-MM_PER_M = 1000.0
-#: A depth at or beyond this share of the far clipping plane is where the renderer drew nothing.
-FAR_SHARE = 0.999
 #: Percentiles of the valid depths that span a depth view's colours (the rest is clipped to the
 #: ends of the scale, marked <= and >=).
 VIEW_PERCENTILES = (1.0, 99.0)
@@ -250,23 +248,9 @@ def _write_png(path: Path, image: np.ndarray) -> None:
 
 
 def depth_to_mm(depth_m: np.ndarray, far_m: float | None = None) -> np.ndarray:
-    """A depth image as a metric 16-bit image: the depth in whole millimetres, 0 where there is
-    no reading.
-
-    Args:
-        depth_m: depth along the optical axis (H, W) [m]; 0 where the sensor returns nothing.
-        far_m: the far clipping plane [m]; a depth at or beyond `FAR_SHARE` of it is where the
-            renderer drew nothing, so no reading (None: not checked).
-
-    Returns:
-        (H, W) uint16 [mm]; 0 where the depth is not finite, not positive, beyond the far plane
-        or past the 16-bit range.
-    """
-    z = np.asarray(depth_m, np.float64) * MM_PER_M
-    ok = np.isfinite(z) & (z > 0) & (z < 65535.5)
-    if far_m is not None:
-        ok &= z < FAR_SHARE * far_m * MM_PER_M
-    return np.where(ok, np.rint(np.where(ok, z, 0.0)), 0.0).astype(np.uint16)
+    """A depth image [m] in whole millimetres, 16-bit, 0 where there is no reading (also at the
+    far plane `far_m` where given): `posegrasp.world.camera.depth_to_uint16`."""
+    return depth_to_uint16(depth_m, 1.0, far_m)
 
 
 def _text(img: np.ndarray, text: str, xy: tuple[int, int], scale: float = 0.4) -> None:
@@ -322,11 +306,6 @@ def write_depth(paths: tuple[Path, Path], depth_m: np.ndarray, caption: str, far
     mm = depth_to_mm(depth_m, far_m)
     _write_png(paths[0], mm)
     _write_png(paths[1], depth_view(mm, caption))
-
-
-def far_plane(model: mujoco.MjModel) -> float:
-    """The far clipping plane of a MuJoCo model's cameras [m]."""
-    return float(model.vis.map.zfar * model.stat.extent)
 
 
 def render(req: RenderRequest) -> list[Path]:

@@ -33,7 +33,7 @@ from posegrasp.core.cli import (
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_seed
 from posegrasp.world import constants as C
-from posegrasp.world.camera import CameraRenderer, RenderOptions
+from posegrasp.world.camera import CameraRenderer, RenderOptions, far_plane
 from posegrasp.world.objects import object_names
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, add_pool_argument, check_tier
 from sim.estimators import (
@@ -431,7 +431,7 @@ def _save(folder: Path, obs, depth: np.ndarray, ep, result, film: Film, log: Tex
     from PIL import Image
 
     from perception.overlay import draw_estimate
-    from sim.render_scene import far_plane, write_depth
+    from sim.render_scene import write_depth
 
     folder.mkdir(parents=True, exist_ok=True)
     model = ep.scene.model

@@ -21,6 +21,41 @@ R_CV_FROM_MJ = np.diag([1.0, -1.0, -1.0])
 MAX_RESOLUTION = (4096, 4096)
 
 
+#: Millimetres per metre: 16-bit depth images count millimetres (or a share of one).
+MM_PER_M = 1000.0
+#: A depth at or beyond this share of the far clipping plane is where the renderer drew nothing.
+FAR_SHARE = 0.999
+
+
+def far_plane(model: mujoco.MjModel) -> float:
+    """The far clipping plane of a model's cameras [m]: the depth `CameraRenderer.depth` gives
+    where nothing is drawn."""
+    return float(model.vis.map.zfar * model.stat.extent)
+
+
+def depth_to_uint16(
+    depth_m: np.ndarray, mm_per_value: float = 1.0, far_m: float | None = None
+) -> np.ndarray:
+    """A z-depth image as 16-bit values, ``round(depth [mm] / mm_per_value)`` (BOP's depth images
+    with their ``depth_scale``; whole millimetres by default).
+
+    Args:
+        depth_m: depth along the optical axis, shape (H, W) [m].
+        mm_per_value: millimetres per value.
+        far_m: the far clipping plane [m]; a depth at or beyond `FAR_SHARE` of it is where the
+            renderer drew nothing (None: not checked).
+
+    Returns:
+        Shape (H, W), uint16; 0 where the depth is not finite, not positive, past the 16-bit
+        range or (with `far_m`) at the far plane: no reading.
+    """
+    v = np.asarray(depth_m, np.float64) * (MM_PER_M / mm_per_value)
+    ok = np.isfinite(v) & (v > 0) & (v < 65535.5)
+    if far_m is not None:
+        ok &= v < FAR_SHARE * far_m * (MM_PER_M / mm_per_value)
+    return np.where(ok, np.round(np.where(ok, v, 0.0)), 0).astype(np.uint16)
+
+
 def camera_names(model: mujoco.MjModel) -> list[str]:
     """Names of every camera in the model."""
     return [model.camera(i).name for i in range(model.ncam)]
