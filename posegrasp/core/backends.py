@@ -260,7 +260,6 @@ def _stop_pool(pool: ProcessPoolExecutor, procs: list) -> None:
     """Shut the pool down; on the way out of an interrupted run its workers (`procs`) are
     terminated rather than left to finish the jobs they hold, and then the pool's own thread is
     joined, so that nothing of it is left for the interpreter's exit to trip over."""
-    procs = procs or list((getattr(pool, "_processes", None) or {}).values())
     pool.shutdown(wait=False, cancel_futures=True)
     for p in procs:
         if p.is_alive():

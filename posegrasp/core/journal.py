@@ -282,7 +282,6 @@ def run_journaled(
     total: int,
     journal: Journal | None = None,
     resume: bool = False,
-    resume_flag: str | None = "--resume",
     **map_options: Any,
 ) -> list[Any]:
     """``[fn(job) for job in jobs]`` through `posegrasp.core.backends.run_map`, each result kept
@@ -296,7 +295,6 @@ def run_journaled(
         journal: where finished results are kept (None: nowhere).
         resume: continue the run the journal holds (`Journal.start`); a unit it holds that
             records an interruption (`interrupted`) runs again.
-        resume_flag: what the command needs to resume, for the line (`resume_hint`).
         map_options: passed to `run_map` (backend, workers, desc, initializer, ...).
 
     Returns:
@@ -328,14 +326,14 @@ def run_journaled(
         if journal is None:
             raise
         why = "interrupted" if isinstance(exc, Interrupted) else f"stopped: {exc}"
-        hint = resume_hint(journal.path, len(results), total, why=why, flag=resume_flag)
+        hint = resume_hint(journal.path, len(results), total, why=why)
         raise Interrupted(hint, journal.path, len(results), total) from None
     except BaseException as exc:
         if journal and not results:  # failed before anything finished: nothing to resume
             journal.finish()
         elif journal:  # a crash keeps what finished, as an interruption does
             why = f"stopped by {type(exc).__name__}"
-            hint = resume_hint(journal.path, len(results), total, why=why, flag=resume_flag)
+            hint = resume_hint(journal.path, len(results), total, why=why)
             print(hint, file=sys.stderr)
         raise
     finally:

@@ -298,7 +298,11 @@ def cell_summary(report: dict) -> dict:
     lo, hi = wilson_interval(g["successes"], g["episodes"])
     times = _times_ms(report)
     reasons = Counter(e["failure_reason"] for e in eps if not e["success"])
-    rc = risk_coverage([e.get("confidence") for e in eps], [bool(e["success"]) for e in eps])
+    rc = (
+        g["risk_coverage"]  # reports hold it; a cell written before they did is read too
+        if "risk_coverage" in g
+        else risk_coverage([e.get("confidence") for e in eps], [bool(e["success"]) for e in eps])
+    )
     return {
         "episodes": g["episodes"],
         "successes": g["successes"],
