@@ -261,24 +261,56 @@ class PoseRefiner:
         """
         t_start = time.perf_counter() if t_start is None else t_start
         T0 = _check_pose(T_C_O)
-        cfg = self.config
-        if target.margins != (cfg.margin, cfg.occluder_margin_px):
-            raise InvalidArgumentError(
-                f"the target was prepared with margins {target.margins}, this refiner uses "
-                f"{(cfg.margin, cfg.occluder_margin_px)}"
-            )
-        if axis is not None:
-            axis = np.asarray(axis, np.float64)
-            if axis.shape != (3,) or not abs(float(np.linalg.norm(axis)) - 1.0) < 1e-6:
-                raise InvalidArgumentError(f"axis must be a unit 3-vector, got {axis!r}")
+        self._check_margins(target)
+        axis = _check_axis(axis)
         info: dict = {"iterations": 0, "points": 0, "edge_points": 0, "accepted": False}
         if (win := target.window) is None:
             info |= {"iou_before": 0.0, "iou_after": 0.0, "reason": "empty mask"}
             return T0.copy(), info | {"time_ms": (time.perf_counter() - t_start) * 1000}
         Kw = window_intrinsics(target.K, win.x0, win.y0)
         verts, slices = parts.stacked
+        T, iou_before = self._descend(T0, Kw, verts, slices, win, axis, info)
+        info |= self._verdict(T, T0, Kw, verts, slices, win, iou_before)
+        info |= {"time_ms": (time.perf_counter() - t_start) * 1000}
+        return (T if info["accepted"] else T0.copy()), info
+
+    def _check_margins(self, target: RefineTarget) -> None:
+        """Fail unless `target` was prepared with this refiner's margins."""
+        cfg = self.config
+        if target.margins != (cfg.margin, cfg.occluder_margin_px):
+            raise InvalidArgumentError(
+                f"the target was prepared with margins {target.margins}, this refiner uses "
+                f"{(cfg.margin, cfg.occluder_margin_px)}"
+            )
+
+    def _descend(
+        self,
+        T0: np.ndarray,
+        Kw: np.ndarray,
+        verts: np.ndarray,
+        slices: np.ndarray,
+        win: _Window,
+        axis: np.ndarray | None,
+        info: dict,
+    ) -> tuple[np.ndarray, float | None]:
+        """The Levenberg-Marquardt steps from `T0` (`RefineConfig.iterations` at most).
+
+        Args:
+            T0: the start pose in the camera frame, shape (4, 4), metres.
+            Kw: the window's intrinsics, shape (3, 3) [px].
+            verts: the parts' vertices in O, shape (n, 3) [m]; `slices`: each part's first
+                vertex, and n last (`Parts.stacked`).
+            win: the working window.
+            axis: the only axis of rotation (unit, camera frame), or None: any rotation.
+            info: updated in place with ``iterations``, ``points`` and ``edge_points``.
+
+        Returns:
+            (T (4, 4), iou_before): the pose after the last step, and the silhouette IoU at
+            `T0` (None when the model could not be drawn there).
+        """
+        cfg = self.config
         T, lam = T0.copy(), 1e-3
-        last: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
+        last: _Linearisation | None = None
         iou_before = None
         for it in range(cfg.iterations):
             c = _contour(T, Kw, verts, slices, win, cfg)
@@ -295,25 +327,30 @@ class PoseRefiner:
             if axis is not None:  # one rotation parameter: the turn about the axis
                 J = np.column_stack([J[:, :3] @ axis, J[:, 3:]])
             info |= {"iterations": it + 1, "points": len(p), "edge_points": n_edge}
-            w = np.minimum(1.0, cfg.huber_px / np.maximum(np.abs(r), 1e-9))
-            cost = float(np.mean(w * r * r * (2 - w)))
-            if last is not None and cost > last[3] and not use_edges:
-                T, H, g, _ = last[0], last[1], last[2], last[3]
-                lam *= 4.0
-            else:
-                H = (J * w[:, None]).T @ J
-                g = (J * w[:, None]).T @ r
-                last = (T.copy(), H, g, cost)
-                lam = max(lam / 2, 1e-6)
-            step = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(len(g)), g)
-            if axis is not None:
-                step = np.concatenate([step[0] * axis, step[1:]])
-            T = T.copy()
-            if (angle := float(np.linalg.norm(step[:3]))) > 0:
-                T[:3, :3] = axis_angle(step[:3], angle) @ T[:3, :3]
-            T[:3, 3] += step[3:]
-            if angle < 1e-5 and np.abs(step[3:]).max() < 1e-6:
+            T, step, lam, last = _damped_step(T, r, J, lam, last, cfg.huber_px, use_edges)
+            T, converged = _apply_step(T, step, axis)
+            if converged:
                 break
+        return T, iou_before
+
+    def _verdict(
+        self,
+        T: np.ndarray,
+        T0: np.ndarray,
+        Kw: np.ndarray,
+        verts: np.ndarray,
+        slices: np.ndarray,
+        win: _Window,
+        iou_before: float | None,
+    ) -> dict:
+        """Whether the refined pose `T` is kept over the start `T0` (both (4, 4), camera
+        frame, metres; the other arguments as in `_descend`).
+
+        Returns:
+            ``iou_before``, ``iou_after``, ``accepted``, ``rotation_deg`` and ``shift_m``, as
+            `refine`'s info (the last three: 0 when rejected).
+        """
+        cfg = self.config
         final = _draw(T, Kw, verts, slices, win.mask.shape)
         iou_after = _iou(final[1], win) if final is not None else 0.0
         iou_before = iou_before if iou_before is not None else 0.0
@@ -325,15 +362,81 @@ class PoseRefiner:
             and rot <= cfg.max_rotation_deg
             and shift <= cfg.max_shift * float(np.linalg.norm(T0[:3, 3]))
         )
-        info |= {
+        return {
             "iou_before": float(iou_before),
             "iou_after": float(iou_after if accepted else iou_before),
             "accepted": bool(accepted),
             "rotation_deg": rot if accepted else 0.0,
             "shift_m": shift if accepted else 0.0,
-            "time_ms": (time.perf_counter() - t_start) * 1000,
         }
-        return (T if accepted else T0.copy()), info
+
+
+#: A linearisation the damped steps return to when a step raised the cost: the pose (4, 4), the
+#: Gauss-Newton matrix (P, P), the gradient (P,) (P: 6, or 4 about an axis) and the cost [px^2].
+_Linearisation = tuple[np.ndarray, np.ndarray, np.ndarray, float]
+
+
+def _check_axis(axis: np.ndarray | None) -> np.ndarray | None:
+    """The validated float64 axis of rotation, shape (3,), unit; None stays None."""
+    if axis is not None:
+        axis = np.asarray(axis, np.float64)
+        if axis.shape != (3,) or not abs(float(np.linalg.norm(axis)) - 1.0) < 1e-6:
+            raise InvalidArgumentError(f"axis must be a unit 3-vector, got {axis!r}")
+    return axis
+
+
+def _damped_step(
+    T: np.ndarray,
+    r: np.ndarray,
+    J: np.ndarray,
+    lam: float,
+    last: _Linearisation | None,
+    huber_px: float,
+    use_edges: bool,
+) -> tuple[np.ndarray, np.ndarray, float, _Linearisation]:
+    """One Levenberg-Marquardt step on the Huber-weighted residuals.
+
+    When the cost rose since the last accepted linearisation (mask-only steps), the step is
+    taken again from that linearisation with four times the damping; otherwise from this one,
+    with half the damping.
+
+    Args:
+        T: the current pose, shape (4, 4), metres.
+        r: the residuals, shape (R,) [px]; `J`: their Jacobians, shape (R, P).
+        lam: the damping; `last`: the last accepted linearisation (None: none yet).
+        huber_px: the Huber threshold [px]; `use_edges`: whether `r` holds image edges.
+
+    Returns:
+        (T, step, lam, last): the pose the step starts from, the step (P,) in (rotation [rad],
+        translation [m]), and the damping and linearisation for the next step.
+    """
+    w = np.minimum(1.0, huber_px / np.maximum(np.abs(r), 1e-9))
+    cost = float(np.mean(w * r * r * (2 - w)))
+    if last is not None and cost > last[3] and not use_edges:
+        T, H, g, _ = last[0], last[1], last[2], last[3]
+        lam *= 4.0
+    else:
+        H = (J * w[:, None]).T @ J
+        g = (J * w[:, None]).T @ r
+        last = (T.copy(), H, g, cost)
+        lam = max(lam / 2, 1e-6)
+    step = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(len(g)), g)
+    return T, step, lam, last
+
+
+def _apply_step(
+    T: np.ndarray, step: np.ndarray, axis: np.ndarray | None
+) -> tuple[np.ndarray, bool]:
+    """The pose `T` (4, 4) moved by `step` (rotation about the object's origin, then
+    translation, both in the camera frame; its rotation a turn about `axis` when given), and
+    whether the step was small enough to stop."""
+    if axis is not None:
+        step = np.concatenate([step[0] * axis, step[1:]])
+    T = T.copy()
+    if (angle := float(np.linalg.norm(step[:3]))) > 0:
+        T[:3, :3] = axis_angle(step[:3], angle) @ T[:3, :3]
+    T[:3, 3] += step[3:]
+    return T, bool(angle < 1e-5 and np.abs(step[3:]).max() < 1e-6)
 
 
 def _check_pose(T_C_O: np.ndarray) -> np.ndarray:
