@@ -322,22 +322,8 @@ class GraspPlanner:
         check_rigid(T_world_O, "estimated object pose", tol=POSE_TOL)
         t0 = time.perf_counter()
         q_start, transit = self._drive(T_world_O, q_start)
-        base_xy = q_start[self.qadr[:2]]
-        horiz = float(np.linalg.norm(T_world_O[:2, 3] - base_xy))
-        if horiz > self.cfg.max_reach:
-            raise PlanningError(
-                "unreachable",
-                f"object is {horiz:.2f} m from the base; reach limit is {self.cfg.max_reach} m",
-            )
-        for posture in TRANSIT_POSTURES:
-            q = q_start[self.qadr].copy()
-            q[3:] = posture
-            transit.append(q)
-        seed = q_start.copy()
-        seed[self.qadr] = transit[-1]
-        target = q_start.copy()
-        target[self.qadr[3:]] = READY_POSTURE
-        self.posture.set_target(target)
+        self._check_reach(T_world_O, q_start)
+        seed = self._prepare_transit(q_start, transit)
         tried = 0
         last = ""
         cands = grasp_candidates(name, self.cfg.candidates)
@@ -350,25 +336,8 @@ class GraspPlanner:
             if tried >= self.cfg.max_candidates:
                 break
             tried += 1
-            self.configuration.update(seed.copy())
-            approach_dir = T_grasp[:3, 0]
-            T_pre = T_grasp.copy()
-            T_pre[:3, 3] -= self.cfg.pregrasp_offset * approach_dir
-            T_hover = T_pre.copy()
-            T_hover[2, 3] += self.cfg.hover_height
-            n = self.cfg.approach_waypoints
-            T_approach = []
-            for k in range(1, n + 1):
-                T_k = T_grasp.copy()
-                T_k[:3, 3] -= (1 - k / n) * self.cfg.pregrasp_offset * approach_dir
-                T_approach.append(T_k)
-            T_lift = T_grasp.copy()
-            T_lift[2, 3] += self.cfg.lift_height
             try:
-                q_hover = self._reach(T_hover, "hover")
-                q_pre = self._reach(T_pre, "pre-grasp")
-                waypoints = [self._reach(T_k, "approach") for T_k in T_approach]
-                q_lift = self._reach(T_lift, "lift")
+                q_hover, q_pre, waypoints, q_lift = self._reach_grasp(T_grasp, seed)
             except _NoConvergence as exc:
                 last = str(exc)
                 continue
@@ -384,3 +353,70 @@ class GraspPlanner:
                 tried,
             )
         raise PlanningError("ik_infeasible", f"no grasp candidate is feasible: {last}")
+
+    def _check_reach(self, T_world_O: np.ndarray, q_start: np.ndarray) -> None:
+        """Fail with "unreachable" when the object at T_world_O (4, 4) lies farther than
+        `max_reach` [m], horizontally, from the base in the full qpos `q_start` (after the
+        drive)."""
+        base_xy = q_start[self.qadr[:2]]
+        horiz = float(np.linalg.norm(T_world_O[:2, 3] - base_xy))
+        if horiz > self.cfg.max_reach:
+            raise PlanningError(
+                "unreachable",
+                f"object is {horiz:.2f} m from the base; reach limit is {self.cfg.max_reach} m",
+            )
+
+    def _prepare_transit(self, q_start: np.ndarray, transit: list[np.ndarray]) -> np.ndarray:
+        """Append the `TRANSIT_POSTURES` to `transit` (planned joints, from the full qpos
+        `q_start` after the drive), pull the posture task toward `READY_POSTURE`, and return
+        the full qpos every candidate's IK starts from: the last transit posture."""
+        for posture in TRANSIT_POSTURES:
+            q = q_start[self.qadr].copy()
+            q[3:] = posture
+            transit.append(q)
+        seed = q_start.copy()
+        seed[self.qadr] = transit[-1]
+        target = q_start.copy()
+        target[self.qadr[3:]] = READY_POSTURE
+        self.posture.set_target(target)
+        return seed
+
+    def _grasp_targets(
+        self, T_grasp: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], np.ndarray]:
+        """The grasp-site poses (world, (4, 4) each) of a grasp at T_grasp: hover (above the
+        pre-grasp by `hover_height`), pre-grasp (backed off `pregrasp_offset` along the
+        approach), the `approach_waypoints` on the approach line ending at T_grasp, and lift
+        (`lift_height` above T_grasp)."""
+        approach_dir = T_grasp[:3, 0]
+        T_pre = T_grasp.copy()
+        T_pre[:3, 3] -= self.cfg.pregrasp_offset * approach_dir
+        T_hover = T_pre.copy()
+        T_hover[2, 3] += self.cfg.hover_height
+        n = self.cfg.approach_waypoints
+        T_approach = []
+        for k in range(1, n + 1):
+            T_k = T_grasp.copy()
+            T_k[:3, 3] -= (1 - k / n) * self.cfg.pregrasp_offset * approach_dir
+            T_approach.append(T_k)
+        T_lift = T_grasp.copy()
+        T_lift[2, 3] += self.cfg.lift_height
+        return T_hover, T_pre, T_approach, T_lift
+
+    def _reach_grasp(
+        self, T_grasp: np.ndarray, seed: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], np.ndarray]:
+        """IK, from the full qpos `seed`, through the targets of a grasp at T_grasp (4, 4,
+        world; `_grasp_targets`) in turn; planned joints at hover, pre-grasp, each approach
+        waypoint and lift.
+
+        Raises:
+            _NoConvergence: a target was not reached.
+        """
+        self.configuration.update(seed.copy())
+        T_hover, T_pre, T_approach, T_lift = self._grasp_targets(T_grasp)
+        q_hover = self._reach(T_hover, "hover")
+        q_pre = self._reach(T_pre, "pre-grasp")
+        waypoints = [self._reach(T_k, "approach") for T_k in T_approach]
+        q_lift = self._reach(T_lift, "lift")
+        return q_hover, q_pre, waypoints, q_lift
