@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from grasping.execute import ExecutionConfig, Executor
-from grasping.planner import GraspPlanner, PlannerConfig, PlanningError
+from grasping.execute import ExecutionConfig, Executor, GraspOutcome
+from grasping.planner import GraspPlan, GraspPlanner, PlannerConfig, PlanningError
 from perception import metrics
 from perception.metrics import Symmetry, error_components, identity_symmetry
 from posegrasp.core.contract import (
@@ -360,32 +360,12 @@ class Episode:
         if problem is not None:
             return self.reject(problem, estimator, T_C_O_est)
         self._done = True
-        timings = self.timings_ms
         notes: list[str] = []
         errors = correct = vsd = None
         if T_C_O_est is not None:
             errors = self.pose_errors(T_C_O_est)
             correct = errors["mssd_rel_diameter"] < POSE_CORRECT_MSSD
-            # BOP's VSD against the ideal depth the head camera sees now, before anything moves
-            # (BOP's ground-truth depth; what sim.export_bop writes with the ideal sensor),
-            # whatever the sensor: it scores the pose, not the sensor. No surface is missing
-            # depth (0).
-            t = time.perf_counter()
-            depth = self.renderer.depth(self.scene.data, C.HEAD_CAMERA).astype(np.float64)
-            depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
-            model = self.scene.target.model
-            vsd = metrics.vsd(
-                T_C_O_est[:3, :3],
-                T_C_O_est[:3, 3],
-                self.T_C_O_true[:3, :3],
-                self.T_C_O_true[:3, 3],
-                depth,
-                self.K,
-                np.asarray(model.mesh.vertices),
-                np.asarray(model.mesh.faces),
-                model.diameter,
-            ).tolist()
-            timings["vsd"] = (time.perf_counter() - t) * 1000
+            vsd = self._vsd(T_C_O_est)
 
         def result(success: bool, reason: str | None, part: str | None = None) -> EpisodeResult:
             res = self._result(estimator, success, reason, T_C_O_est, errors, notes, part)
@@ -395,27 +375,70 @@ class Episode:
 
         if T_C_O_est is None:
             return result(False, "no_estimate")
+        try:
+            plan = self._plan(T_C_O_est, neighbours)
+        except PlanningError as exc:
+            notes.append(str(exc))
+            return result(False, exc.reason)
+        outcome, events = self._execute(plan, recorder)
+        notes.extend(events)
+        res = result(outcome.success, outcome.failure_reason, plan.candidate.part)
+        res.friction_margin = outcome.friction_margin
+        return res
+
+    def _vsd(self, T_C_O_est: np.ndarray) -> list[float]:
+        """BOP's VSD of an estimate (4, 4, camera frame [m]) at each of its tolerances (timed
+        as ``vsd``), against the ideal depth the head camera sees now, before anything moves
+        (BOP's ground-truth depth; what sim.export_bop writes with the ideal sensor), whatever
+        the sensor: it scores the pose, not the sensor. No surface is missing depth (0)."""
+        t = time.perf_counter()
+        depth = self.renderer.depth(self.scene.data, C.HEAD_CAMERA).astype(np.float64)
+        depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
+        model = self.scene.target.model
+        vsd = metrics.vsd(
+            T_C_O_est[:3, :3],
+            T_C_O_est[:3, 3],
+            self.T_C_O_true[:3, :3],
+            self.T_C_O_true[:3, 3],
+            depth,
+            self.K,
+            np.asarray(model.mesh.vertices),
+            np.asarray(model.mesh.faces),
+            model.diameter,
+        ).tolist()
+        self.timings_ms["vsd"] = (time.perf_counter() - t) * 1000
+        return vsd
+
+    def _plan(self, T_C_O_est: np.ndarray, neighbours: list[tuple[str, np.ndarray]]) -> GraspPlan:
+        """Plan a grasp of the target at its estimate (4, 4, camera frame [m]), clear of the
+        `neighbours` ((class, T_C_N) pairs, camera frame); timed as ``plan``, its IK as
+        ``ik``.
+
+        Raises:
+            PlanningError: no plan (`GraspPlanner.plan`).
+        """
         T_world_O = self.T_world_cam @ T_C_O_est
         t = time.perf_counter()
         try:
             planner = GraspPlanner(self.scene.model, config=self.cfg.planner)
             told = [(n, self.T_world_cam @ T) for n, T in neighbours]
             plan = planner.plan(self.object, T_world_O, self.scene.data.qpos.copy(), told)
-        except PlanningError as exc:
-            timings["plan"] = (time.perf_counter() - t) * 1000
-            notes.append(str(exc))
-            return result(False, exc.reason)
-        timings["plan"] = (time.perf_counter() - t) * 1000
-        timings["ik"] = plan.ik_ms
+        except PlanningError:
+            self.timings_ms["plan"] = (time.perf_counter() - t) * 1000
+            raise
+        self.timings_ms["plan"] = (time.perf_counter() - t) * 1000
+        self.timings_ms["ik"] = plan.ik_ms
+        return plan
+
+    def _execute(self, plan: GraspPlan, recorder=None) -> tuple[GraspOutcome, list[str]]:
+        """Execute the plan in the scene (each of its stages timed as ``exec_<stage>``, its
+        frames kept as `frames`); the outcome and the executor's events, in order."""
         executor = Executor(self.scene, self.cfg.execution, recorder=recorder)
         outcome = executor.execute(plan)
         for k, v in outcome.timings_ms.items():
-            timings[f"exec_{k}"] = v
-        notes.extend(executor.events)
+            self.timings_ms[f"exec_{k}"] = v
         self.frames = outcome.frames
-        res = result(outcome.success, outcome.failure_reason, plan.candidate.part)
-        res.friction_margin = outcome.friction_margin
-        return res
+        return outcome, executor.events
 
     def reject(
         self, problem: str, estimator: str = "external", T_C_O_est: np.ndarray | None = None
