@@ -123,13 +123,22 @@ def fetch_spec(config: RobotConfig | None = None, world: Path | None = None) -> 
 def _fetch_template(cfg: RobotConfig, world: str | None) -> mujoco.MjSpec:
     """The spec `fetch_spec` copies; never modified."""
     spec = mujoco.MjSpec.from_string(_shipped_fetch_xml(world))
+    _remove_gym_task_parts(spec)
+    _make_base_holonomic(spec)
+    _fix_cameras(spec)
+    _add_grasp_site(spec)
+    _lighten_fingers(spec, cfg)
+    _set_gravcomp_and_contacts(spec)
+    _add_actuators(spec, cfg)
+    return spec
 
-    # Remove the mocap weld and the mocap body.
+
+def _remove_gym_task_parts(spec: mujoco.MjSpec) -> None:
+    """Delete what the shipped file carries for the gym task: the mocap weld and body, the
+    skybox, the block texture and the scene materials."""
     for eq in list(spec.equalities):
         spec.delete(eq)
     spec.delete(spec.body(C.PREFIX + "mocap"))
-
-    # The shipped file also carries the gym task's skybox, block texture and scene materials.
     for name in ("floor_mat", "table_mat", "block_mat", "puck_mat"):
         if (mat := spec.material(name)) is not None:
             spec.delete(mat)
@@ -137,7 +146,10 @@ def _fetch_template(cfg: RobotConfig, world: str | None) -> mujoco.MjSpec:
         if tex.name in ("", "texture_block"):
             spec.delete(tex)
 
-    # Holonomic base: replace the x/y/z slides by x, y slides and a yaw hinge.
+
+def _make_base_holonomic(spec: mujoco.MjSpec) -> None:
+    """Replace the base's x/y/z slides by x, y slides and a yaw hinge (`C.BASE_JOINTS`,
+    armature 1), the base at the origin of its parent."""
     base = spec.body(C.BASE_BODY)
     for j in list(base.joints):
         spec.delete(j)
@@ -150,13 +162,18 @@ def _fetch_template(cfg: RobotConfig, world: str | None) -> mujoco.MjSpec:
         j.name, j.type, j.axis, j.armature = name, jtype, list(axis), 1.0
     base.pos = [0.0, 0.0, 0.0]
 
-    # The head camera is rotated by 3.1415 in the shipped file; make it exactly pi.
+
+def _fix_cameras(spec: mujoco.MjSpec) -> None:
+    """Turn the head camera by exactly pi (the shipped file has 3.1415) and delete the gym
+    env's external camera, which is not ours."""
     cam = spec.camera(C.HEAD_CAMERA)
     cam.alt.euler = [np.pi, 0.0, 0.0]
-    # The gym env's external camera is not ours.
     spec.delete(spec.camera("external_camera_0"))
 
-    # Grasp site between the finger pads.
+
+def _add_grasp_site(spec: mujoco.MjSpec) -> None:
+    """Add the grasp site between the finger pads (`C.GRASP_SITE`, at `C.GRASP_SITE_OFFSET`
+    [m] in the gripper body; invisible, group 4)."""
     grip = spec.body(C.GRIPPER_BODY)
     site = grip.add_site()
     site.name = C.GRASP_SITE
@@ -165,26 +182,37 @@ def _fetch_template(cfg: RobotConfig, world: str | None) -> mujoco.MjSpec:
     site.rgba = [1, 0, 0, 0]
     site.group = 4
 
-    # Saner fingers: light, with little armature, so the gripper closes in a fraction of a second.
+
+def _lighten_fingers(spec: mujoco.MjSpec, cfg: RobotConfig) -> None:
+    """Saner fingers: light (`RobotConfig.finger_mass` [kg]), with little armature, so the
+    gripper closes in a fraction of a second."""
     for name in C.FINGER_BODIES:
         finger = spec.body(name)
         finger.mass = cfg.finger_mass
         finger.inertia = [1e-4, 1e-4, 1e-4]
         finger.first_joint().armature = cfg.finger_armature
 
-    # Gravity compensation and collision bits on every robot body; the base never touches anything
-    # (it slides holonomically above the floor).
+
+def _set_gravcomp_and_contacts(spec: mujoco.MjSpec) -> None:
+    """Gravity compensation and the robot's collision bits on every robot body; the base and
+    the links fixed on it never touch anything (the base slides holonomically above the
+    floor)."""
     robot_bodies = [b for b in spec.bodies if b.name.startswith(C.PREFIX)]
     for body in robot_bodies:
         body.gravcomp = 1.0
         for g in body.geoms:
             g.contype, g.conaffinity = ROBOT_CONTYPE, ROBOT_CONAFFINITY
-    for g in base.geoms:
+    for g in spec.body(C.BASE_BODY).geoms:
         g.contype, g.conaffinity = 0, 0
     for child in ("estop_link", "laser_link", "torso_fixed_link"):
         for g in spec.body(C.PREFIX + child).geoms:
             g.contype, g.conaffinity = 0, 0
 
+
+def _add_actuators(spec: mujoco.MjSpec, cfg: RobotConfig) -> None:
+    """Position servos on the base (x, y within 5 m, yaw within pi), torso, head, arm and
+    fingers (within their joint ranges), with `cfg`'s gains; the continuous arm rolls are
+    limited to one turn, and the forearm roll's spring is removed (the servo holds it)."""
     for name in C.BASE_JOINTS[:2]:
         _add_position_actuator(spec, spec.joint(name), cfg.base_xy, (-5.0, 5.0))
     _add_position_actuator(spec, spec.joint("base_yaw"), cfg.base_yaw, (-np.pi, np.pi))
@@ -205,7 +233,6 @@ def _fetch_template(cfg: RobotConfig, world: str | None) -> mujoco.MjSpec:
             _add_position_actuator(spec, joint, gains, (float(lo), float(hi)))
     # Shipped forearm roll has a spring; the servo holds it instead.
     spec.joint(C.ARM_JOINTS[4]).stiffness = [0.0, 0.0, 0.0]
-    return spec
 
 
 def home_qpos_ctrl(model: mujoco.MjModel) -> tuple[dict[int, float], np.ndarray]:
