@@ -1,36 +1,34 @@
 """Any orientation: global hypotheses, each refined by render-and-compare, verified, the best kept.
 
 The learned 4D-NET knows upright objects seen from the head camera; on any other orientation it
-is far off. This estimator does not ask it to learn the sphere. It is composed of stages
-(`perception.stages`), each configured by its own part of `GlobalConfig`; per image:
+is far off. This estimator does not ask it to learn the sphere. It is the list of stages
+`STAGES` (`perception.stages`, one interface), each built from its own part of `GlobalConfig`
+and left out where that part is None; per image, in order:
 
-1. **Detection** (`DetectionConfig`): the requested object's best detection (the shipped Mask
+1. **detection** (`DetectionConfig`): the requested object's best detection (the shipped Mask
    R-CNN fine-tuned on the tiers' scenes, `TIERS_DETECTOR`), the others its neighbours and
-   occluders.
-2. **Mask**: the target's mask redrawn by the mask net (`DetectionConfig.mask_net`).
-3. **Hypotheses** (`CodebookConfig`): the nets' pose and the viewpoint codebook's best
-   templates over all of SO(3), the mask also framed as if the object went on behind an
-   occluder; with gravity, templates that could rest.
-4. **Refinement and scoring** (`RefinementConfig`, `ScoringConfig`; `perception.verification`):
-   each hypothesis refined against the mask and the image, scored by its IoU, colours and
-   edges, the best few refined further.
-5. **Priors**: gravity (`GravityConfig`: poses near resting rank first, the best few snapped
-   onto their resting pose) and the in-plane range (`InplaneConfig`) while ranking; when the
-   best is unsure, a second look at more hypotheses (`SecondLookConfig`); on the winner, the
-   known table (`TableConfig`) or, when unsure, the surface its neighbours rest on
-   (`SupportConfig`).
+   occluders;
+2. **mask**: the target's mask redrawn by the mask net (`DetectionConfig.mask_net`);
+3. **hypotheses** (`CodebookConfig`, `GravityConfig`, `InplaneConfig`): the nets' pose and the
+   viewpoint codebook's best templates over all of SO(3), the mask also framed as if the object
+   went on behind an occluder; with gravity, templates that could rest;
+4. **verify** (`RefinementConfig`, `ScoringConfig`; `perception.verification`): each hypothesis
+   refined against the mask and the image, scored by its IoU, colours and edges, the best few
+   refined further; gravity ranks poses near resting first and snaps the best few onto their
+   resting pose;
+5. **second_look** (`SecondLookConfig`): when the best is unsure, more hypotheses;
+6. **table** (`TableConfig`) or, when unsure, **support** (`SupportConfig`): the winner placed
+   on the known table or on the surface its neighbours rest on.
 
-The winner's score is reported as the estimate's confidence. Inputs are the image, K, the
-camera's pose (for gravity) and the requested class; the table's height only with
-`GlobalConfig.table`. Codebooks are built once per object and grid and cached under the data
-folder (``$POSEGRASP_DATA/codebooks``).
+The winner's score is reported as the estimate's confidence, and each stage's time in
+``info["timings_ms"]``. Inputs are the image, K, the camera's pose (for gravity) and the
+requested class; the table's height only with `GlobalConfig.table`. Codebooks are built once
+per object and grid and cached under the data folder (``$POSEGRASP_DATA/codebooks``).
 """
 
 from __future__ import annotations
 
-import functools
-import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -41,100 +39,49 @@ from perception.hybrid import HybridPoseEstimator, occluder_of
 from perception.mask_net import MaskRefiner
 from perception.parallel import Executor, OneProcess, TwoProcesses
 from perception.parts import ConvexParts
-from perception.priors import Gravity, GravityConfig, InplaneConfig, Plausibility
-from perception.refine import PoseRefiner
-from perception.scoring import Scorer, ScoringConfig
 from perception.stages import (
     AnyDetection,
-    CodebookConfig,
-    CodebookHypotheses,
-    DetectionConfig,
+    GlobalConfig,
+    Hypotheses,
+    Kit,
     NeighbourSupport,
-    NetsPose,
     RedrawnMask,
-    RestingHypotheses,
-    SecondLookConfig,
-    SupportConfig,
-    TableConfig,
+    SecondLook,
+    Stage,
+    StageKind,
     TablePrior,
     TargetDetection,
+    Verify,
+    Work,
+    run_stages,
 )
-from perception.verification import RefinementConfig, Verification, Verified, VerifyJob
+from perception.verification import Verified
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.world.objects import load_object
 
 __all__ = ["CodebookCache", "GlobalConfig", "GlobalPoseEstimator"]
 
 
-@dataclass(frozen=True)
-class GlobalConfig:
-    """The composition of `GlobalPoseEstimator`: each stage's settings, None where an optional
-    stage is left out.
+#: The stages of `GlobalPoseEstimator`, in the order an image goes through them; each is built
+#: from its part of `GlobalConfig` (a stage whose part is None is left out). A new stage is
+#: its class (`perception.stages.Stage`, with ``build``), its place here and its config's field.
+STAGES: tuple[StageKind, ...] = (
+    TargetDetection,
+    RedrawnMask,
+    Hypotheses,
+    Verify,
+    SecondLook,
+    TablePrior,
+    NeighbourSupport,
+)
 
-    Attributes:
-        detection: which detections count; whether the target's mask is redrawn.
-        codebook: the codebook's hypotheses.
-        refinement: how each hypothesis is refined.
-        scoring: the verification score's weights.
-        gravity: the gravity prior (None: none, as for images without gravity).
-        inplane: the in-plane prior (None: none).
-        second_look: the second look at more hypotheses (None: none).
-        support: the neighbours' support of an unsure pose (None: none; needs `gravity`).
-        table: the table prior, used where the observation gives the table's height (None:
-            none); it replaces the neighbours' support there.
-        processes: the processes that share the codebook matching and each batch of starts:
-            1, or 2 (a worker process, `perception.parallel.TwoProcesses`, started in the
-            second estimate, used while this process computes on more than one thread).
-    """
-
-    detection: DetectionConfig = field(default_factory=DetectionConfig)
-    codebook: CodebookConfig = field(default_factory=CodebookConfig)
-    refinement: RefinementConfig = field(default_factory=RefinementConfig)
-    scoring: ScoringConfig = field(default_factory=ScoringConfig)
-    gravity: GravityConfig | None = field(default_factory=GravityConfig)
-    inplane: InplaneConfig | None = None
-    second_look: SecondLookConfig | None = field(default_factory=SecondLookConfig)
-    support: SupportConfig | None = field(default_factory=SupportConfig)
-    table: TableConfig | None = None
-    processes: int = 2
-
-    def __post_init__(self) -> None:
-        optional = {"gravity", "inplane", "second_look", "support", "table"}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            kind = {"processes": int}.get(f.name) or _STAGE_TYPES[f.name]
-            if not (isinstance(value, kind) or (value is None and f.name in optional)):
-                allowed = kind.__name__ + (" or None" if f.name in optional else "")
-                raise InvalidArgumentError(
-                    f"GlobalConfig.{f.name} must be a {allowed}, got {type(value).__name__}"
-                )
-        if self.support is not None and self.gravity is None:
-            raise InvalidArgumentError(
-                "GlobalConfig.support needs GlobalConfig.gravity (the neighbours' surface is "
-                "found from their resting poses); set support=None without gravity"
-            )
-        if self.processes not in (1, 2):
-            raise InvalidArgumentError(
-                f"GlobalConfig.processes must be 1 or 2, got {self.processes}"
-            )
-
-
-_STAGE_TYPES: dict[str, type] = {
-    "detection": DetectionConfig,
-    "codebook": CodebookConfig,
-    "refinement": RefinementConfig,
-    "scoring": ScoringConfig,
-    "gravity": GravityConfig,
-    "inplane": InplaneConfig,
-    "second_look": SecondLookConfig,
-    "support": SupportConfig,
-    "table": TableConfig,
-}
+#: The stages that verify one detection, from its hypotheses to its ranking.
+VERIFY_STAGES: tuple[StageKind, ...] = (Hypotheses, Verify, SecondLook)
 
 
 class GlobalPoseEstimator:
-    """The estimators ``hybrid-global`` and its variants (see the module docstring).
+    """The estimators ``hybrid-global`` and its variants (see the module docstring): the
+    stages of `STAGES` its config keeps, run in order on each image.
 
     Args:
         hybrid: the detector and pose nets (`HybridPoseEstimator.from_weights()`).
@@ -143,7 +90,7 @@ class GlobalPoseEstimator:
             in the data folder).
         name: the name results carry.
         masks: the mask net that redraws the target's mask (`DetectionConfig.mask_net`;
-            default: the shipped one when the config asks for it).
+            default: the shipped one, loaded here when the config asks for it).
     """
 
     def __init__(
@@ -154,13 +101,22 @@ class GlobalPoseEstimator:
         name: str = "hybrid-global",
         masks: MaskRefiner | None = None,
     ) -> None:
-        self.hybrid, self.name = hybrid, name
-        self.parts = ConvexParts()
-        self._masks, self.codebooks = masks, codebooks
+        cfg = config or GlobalConfig()
+        if masks is None and cfg.detection.mask_net:
+            masks = MaskRefiner.from_weights()
+        grid = (cfg.codebook.views, cfg.codebook.inplane)
+        if codebooks is None:
+            codebooks = CodebookCache(*grid)
+        elif (codebooks.views, codebooks.inplane) != grid:
+            codebooks = CodebookCache(*grid, codebooks.folder, codebooks.source)
+        self.name, self._config = name, cfg
+        self.kit = Kit(hybrid, masks, codebooks, ConvexParts(), self._executor, self._neighbour)
+        built = (stage.build(cfg, self.kit) for stage in STAGES)
+        self.stages: tuple[Stage, ...] = tuple(s for s in built if s is not None)
+        self._verifying = tuple(s for s in self.stages if type(s) in VERIFY_STAGES)
         self._workers: TwoProcesses | None = None
         self._no_workers = False  # a worker could not be started
         self._estimates = 0  # made so far (the worker starts in the second)
-        self.config = config or GlobalConfig()
 
     def __getstate__(self) -> dict:
         """The estimator without its worker process (a copy on another process starts its
@@ -171,30 +127,38 @@ class GlobalPoseEstimator:
 
     @property
     def config(self) -> GlobalConfig:
-        """The composition; setting it composes the stages anew (the nets, the mask net and
-        the codebooks of the same grid are kept)."""
+        """The composition."""
         return self._config
 
-    @config.setter
-    def config(self, cfg: GlobalConfig) -> None:
-        self._config = cfg
-        self.detection = TargetDetection(self.hybrid, cfg.detection)
-        self.mask = None
-        if cfg.detection.mask_net:
-            self._masks = self._masks or MaskRefiner.from_weights()
-            self.mask = RedrawnMask(self._masks)
-        grid = (cfg.codebook.views, cfg.codebook.inplane)
-        if self.codebooks is None:
-            self.codebooks = CodebookCache(*grid)
-        elif (self.codebooks.views, self.codebooks.inplane) != grid:
-            self.codebooks = CodebookCache(*grid, self.codebooks.folder, self.codebooks.source)
-        self.nets, self.codebook = NetsPose(), CodebookHypotheses(self.codebooks, cfg.codebook)
-        self.resting = RestingHypotheses(cfg.codebook.min_angle_deg)
-        self.refiner = PoseRefiner(cfg.refinement.refiner())
-        self.table = None if cfg.table is None else TablePrior(cfg.table)
-        self.support = None
-        if cfg.support is not None and cfg.gravity is not None:
-            self.support = NeighbourSupport(cfg.support, cfg.gravity.tilt_deg)
+    @property
+    def hybrid(self) -> HybridPoseEstimator:
+        """The detector and the pose nets."""
+        return self.kit.hybrid
+
+    @property
+    def codebooks(self) -> CodebookCache:
+        """Where the codebooks come from."""
+        return self.kit.codebooks
+
+    def with_config(self, config: GlobalConfig) -> GlobalPoseEstimator:
+        """This estimator composed anew of `config`'s stages, with the same nets, mask net,
+        codebooks (of the same grid), name and worker process (handed over: use the new one)."""
+        other = GlobalPoseEstimator(self.hybrid, config, self.codebooks, self.name, self.kit.masks)
+        other._workers, other._no_workers = self._workers, self._no_workers
+        other._estimates, self._workers = self._estimates, None
+        return other
+
+    def stage(self, name: str) -> Stage:
+        """The stage called `name`.
+
+        Raises:
+            InvalidArgumentError: this composition has no such stage.
+        """
+        for s in self.stages:
+            if s.name == name:
+                return s
+        names = ", ".join(s.name for s in self.stages)
+        raise InvalidArgumentError(f"no stage {name!r} in {self.name}; stages: {names}")
 
     @classmethod
     def from_weights(
@@ -212,32 +176,20 @@ class GlobalPoseEstimator:
         """The verified pose of obs.object (None when not detected or nothing verifies), the
         other detections and the description of the estimate."""
         self._estimates += 1
-        found = self.detection(obs)
-        info, neighbours = found.info, found.neighbours
-        if found.target is None:
+        times: dict[str, float] = {}
+        work = run_stages(self.stages, Work.of(obs), times)
+        assert work.found is not None
+        info, neighbours = work.found.info, work.found.neighbours
+        if work.target is None:
             return Estimate(None, neighbours, info)
-        target = found.target
-        if self.mask is not None:
-            t0 = time.perf_counter()
-            target = self.mask(target, obs.rgb)
-            info["timings_ms"]["mask"] = (time.perf_counter() - t0) * 1000
-        R_W_C = np.asarray(obs.T_world_cam, float)[:3, :3]
-        ranked, times = self.verify(target, obs.K, obs.rgb, found.occluder, R_W_C)
         info["timings_ms"] |= times
-        if not ranked:
+        win = work.winner
+        if win is None:
             return Estimate(None, neighbours, info | {"verify": {"hypotheses": 0}})
-        win = ranked[0]
-        info["verify"] = self._described(win, len(ranked), "second_look" in times)
+        info["verify"] = self._described(win, len(work.ranked), work.looked_again)
         T = win.T_C_O.copy()
-        model = load_object(target.name)
-        placed = None if self.table is None else self.table.place(T, obs, model)
-        if placed is None and self.support is not None and self.support.wanted(win, model):
-            t0 = time.perf_counter()
-            neighbour = functools.partial(self._neighbour, every=found.every, obs=obs)
-            placed = self.support.place(T, target, found.every, obs, neighbour)
-            info["timings_ms"]["support"] = (time.perf_counter() - t0) * 1000
-        if placed is not None:
-            T, info["support"] = placed.T_C_O, placed.description
+        if work.placed is not None:
+            T, info["support"] = work.placed.T_C_O, work.placed.description
         return Estimate(T, neighbours, info, confidence=float(win.score))
 
     def _described(self, win: Verified, hypotheses: int, second_look: bool) -> dict:
@@ -254,14 +206,14 @@ class GlobalPoseEstimator:
             "config": asdict(self.config),
         }
 
-    def _neighbour(
-        self, d: AnyDetection, every: list[AnyDetection], obs: Observation
-    ) -> Verified | None:
-        """A neighbour's best pose (None: none), verified as the target's but without the
-        second look, every other detection its occluder."""
-        R_W_C = np.asarray(obs.T_world_cam, float)[:3, :3]
-        occluder = occluder_of(every, d)
-        got, _ = self.verify(self.sharpened(d, obs.rgb), obs.K, obs.rgb, occluder, R_W_C, False)
+    def _neighbour(self, d: AnyDetection, work: Work) -> Verified | None:
+        """A neighbour's best pose in the image of `work` (None: none), verified as the
+        target's but without the second look, every other detection its occluder."""
+        assert work.found is not None
+        occluder = occluder_of(work.found.every, d)
+        got, _ = self.verify(
+            self.sharpened(d, work.rgb), work.K, work.rgb, occluder, work.R_W_C, False
+        )
         return got[0] if got else None
 
     def verify(
@@ -273,60 +225,22 @@ class GlobalPoseEstimator:
         R_W_C: np.ndarray | None = None,
         second_look: bool = True,
     ) -> tuple[list[Verified], dict[str, float]]:
-        """Every hypothesis of one detection, refined and scored, best first (see
-        `perception.verification`; gravity with the camera's rotation in the world `R_W_C`),
-        and the stage times [ms] (``hypotheses``, ``verify``, and ``second_look`` within
-        ``verify`` when it ran; with `second_look` False it never runs). A detection without
-        the nets' pose (of an object they were not trained on) starts from the codebook alone.
-        """
-        cfg = self.config
-        t0 = time.perf_counter()
-        executor = self._executor()
-        priors = self._priors(det.name, R_W_C)
-        gravity, book = priors.gravity, cfg.codebook
-        match = self.codebook.match(det, occluder, K, executor)
-        first = self.nets.hypotheses(det)
-        taken: list[int] = []
-        if match is not None:
-            taken = self.codebook.best(match, 0, book.hypotheses, [])
-            if gravity is not None and book.resting_hypotheses:
-                taken += self.resting.best(match, gravity, book.resting_hypotheses, taken)
-            first += match.hypotheses(taken)
-        t1 = time.perf_counter()
-        parts = self.parts.parts(det.name)
-        target = self.refiner.prepare(K, det.mask, rgb, occluder)
-        scorer = Scorer.of(parts, K, rgb, det.mask, cfg.scoring)
-        job = VerifyJob(parts, target, self.refiner.config, scorer)
-        verification = Verification(job, cfg.refinement, priors, executor)
-        verification.add(first)
-        ranked = verification.ranked()
-        times = {"hypotheses": (t1 - t0) * 1000}
-        look = cfg.second_look if second_look else None
-        if look is not None and match is not None and (not ranked or ranked[0].score < look.below):
-            t_look = time.perf_counter()
-            later = self.codebook.best(match, book.hypotheses, look.hypotheses, taken)
-            if gravity is not None and look.resting:
-                later += self.resting.best(match, gravity, look.resting, taken + later)
-            verification.add(match.hypotheses(later))
-            ranked = verification.ranked()
-            times["second_look"] = (time.perf_counter() - t_look) * 1000
-        times["verify"] = (time.perf_counter() - t1) * 1000
-        return ranked, times
+        """Every hypothesis of one detection, refined and scored, best first: the stages of
+        `VERIFY_STAGES` this composition has (gravity with the camera's rotation in the world
+        `R_W_C`; with `second_look` False the second look never runs), and the times [ms] of
+        those entered. A detection without the nets' pose (of an object they were not trained
+        on) starts from the codebook alone."""
+        times: dict[str, float] = {}
+        work = Work.on(det, K, rgb, occluder, R_W_C, second_look)
+        work = run_stages(self._verifying, work, times)
+        return list(work.ranked), times
 
     def sharpened(self, det: AnyDetection, rgb: np.ndarray) -> AnyDetection:
         """`det` with its mask redrawn by the mask stage, when there is one."""
-        return det if self.mask is None else self.mask(det, rgb)
-
-    def _priors(self, name: str, R_W_C: np.ndarray | None) -> Plausibility:
-        """The priors of a detection of `name`: gravity with the camera's rotation and the
-        object's resting poses, the in-plane range."""
-        cfg = self.config
-        model = load_object(name)
-        gravity = None
-        if cfg.gravity is not None and R_W_C is not None and model.resting_poses:
-            gravity = Gravity(R_W_C, model, cfg.gravity)
-        inplane = None if cfg.inplane is None else cfg.inplane.max_deg
-        return Plausibility(gravity, inplane)
+        for s in self.stages:
+            if isinstance(s, RedrawnMask):
+                return s.redraw(det, rgb)
+        return det
 
     def _executor(self) -> Executor:
         """Where batches run (`GlobalConfig.processes`): with two, a worker process started in

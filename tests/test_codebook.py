@@ -331,7 +331,7 @@ def test_the_second_look_verifies_more_hypotheses_only_when_the_best_is_unsure(t
     counts = {}
     for unsure in (True, False):
         below = 10.0 if unsure else -10.0
-        est.config = replace(est.config, second_look=replace(look, below=below))
+        est = est.with_config(replace(est.config, second_look=replace(look, below=below)))
         e = est.estimate(Observation(rgb, K, T_W_C, name, 0))
         assert e.T_C_O is not None
         assert rotation_error_deg(e.T_C_O[:3, :3], T[:3, :3]) < 3.0
@@ -367,7 +367,7 @@ def test_the_table_variant_slides_the_verified_pose_onto_the_known_table(tmp_pat
     est = _global_on_one_detection(name, mask, T, tmp_path)
     obs = Observation(rgb, K, T_W_C, name, 0, table_top_z=table)
     plain = est.estimate(obs)
-    est.config = replace(est.config, table=TableConfig())
+    est = est.with_config(replace(est.config, table=TableConfig()))
     on = est.estimate(obs)
     assert plain.T_C_O is not None and on.T_C_O is not None
     assert "support" not in plain.info and "translation" in on.info["support"]["applied"]
@@ -433,7 +433,7 @@ def test_an_unsure_pose_slides_onto_the_surface_its_neighbours_rest_on(tmp_path)
         "sure": SupportConfig(below=-10.0),
         "off": None,
     }.items():
-        est.config = replace(cfg, support=support)
+        est = est.with_config(replace(cfg, support=support))
         e = est.estimate(obs)
         assert e.T_C_O is not None
         assert rotation_error_deg(e.T_C_O[:3, :3], T_target[:3, :3]) < 3.0
@@ -527,7 +527,7 @@ def test_resting_hypotheses_are_new_and_could_rest(tmp_path) -> None:
     the codebook's own best and from one another."""
     from perception.codebook import resting_templates
     from perception.priors import Gravity, GravityConfig
-    from perception.stages import CodebookConfig, CodebookMatch
+    from perception.stages import CodebookConfig, CodebookMatch, Hypotheses
 
     name = "pistol"
     model = load_object(name)
@@ -545,7 +545,9 @@ def test_resting_hypotheses_are_new_and_could_rest(tmp_path) -> None:
     scores = book.match(view.bits, view.hidden)
     top = top_hypotheses(scores, book.rotations, cfg.hypotheses, cfg.min_angle_deg)
     gravity = Gravity(R_W_C, model, GravityConfig())
-    extra = est.resting.best(CodebookMatch(book, [view], scores, K), gravity, 4, top)
+    hypotheses = est.stage("hypotheses")
+    assert isinstance(hypotheses, Hypotheses)
+    extra = hypotheses.resting.best(CodebookMatch(book, [view], scores, K), gravity, 4, top)
     assert 0 < len(extra) <= 4
     ups = np.array([quat_to_mat(np.asarray(q, float))[2] for q in model.resting_poses.values()])
     near = resting_templates(book, view, K, R_W_C[2], ups, gravity.config.tilt_deg)
@@ -562,6 +564,7 @@ def test_the_global_refiner_pulls_in_a_start_a_fifth_too_far(tmp_path) -> None:
     distance) rejects the run that would fix it, the global estimator's wider one
     (`RefinementConfig.max_shift`) lets it land."""
     from perception.refine import PoseRefiner
+    from perception.stages import Verify
 
     name = "car"
     T = np.eye(4)
@@ -572,13 +575,15 @@ def test_the_global_refiner_pulls_in_a_start_a_fifth_too_far(tmp_path) -> None:
     far[:3, :3] = rot_z(np.deg2rad(6)) @ T[:3, :3]
     far[:3, 3] *= 1.22
     est = _global_on_one_detection(name, mask, far, tmp_path)
+    verify = est.stage("verify")
+    assert isinstance(verify, Verify)
     cautious = PoseRefiner()
-    assert cautious.config.max_shift == 0.1 < est.refiner.config.max_shift == 0.3
+    assert cautious.config.max_shift == 0.1 < verify.refiner.config.max_shift == 0.3
     kept, info = cautious.refine(name, far, K, mask, rgb)
     assert not info["accepted"] and np.array_equal(kept, far)
     T_est = far
     for _ in range(2):
-        T_est, info = est.refiner.refine(name, T_est, K, mask, rgb)
+        T_est, info = verify.refiner.refine(name, T_est, K, mask, rgb)
         assert info["accepted"]
     assert np.linalg.norm(T_est[:3, 3] - T[:3, 3]) < 0.01
     assert rotation_error_deg(T_est[:3, :3], T[:3, :3]) < 2.0
@@ -639,10 +644,10 @@ def test_the_global_estimator_gives_the_same_pose_on_one_process_or_two(tmp_path
     try:
         first = est.estimate(obs)
         assert est._workers is None  # a process that makes one estimate never starts it
-        est.config = replace(est.config, processes=1)
+        est = est.with_config(replace(est.config, processes=1))
         alone = est.estimate(obs)
         assert est._workers is None
-        est.config = replace(est.config, processes=2)
+        est = est.with_config(replace(est.config, processes=2))
         est.estimate(obs)  # starts the worker
         assert est._workers is not None
         end = time.monotonic() + 60

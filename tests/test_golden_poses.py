@@ -193,3 +193,39 @@ def test_the_estimators_the_record_skipped_still_cannot_be_made_here() -> None:
     for name in RECORD["skipped"]:
         with pytest.raises(AssetError):
             LEARNED_ESTIMATORS[name]()
+
+
+@pytest.mark.slow
+def test_one_image_goes_through_the_default_stages_in_order_each_entered_once(
+    observations, recorded_threads
+) -> None:
+    """The held-out ``hard-0`` image, whose winner is unsure (the second look and the
+    neighbours' support run), through ``hybrid-global``: every stage it declares is entered,
+    in the declared order, once for the target, and each stage's time is reported."""
+    from perception.estimators import LEARNED_ESTIMATORS
+    from perception.global_pose import GlobalPoseEstimator
+    from perception.stages import Stage, Work
+
+    estimator = LEARNED_ESTIMATORS["hybrid-global"]()
+    assert isinstance(estimator, GlobalPoseEstimator)
+    entered: list[str] = []
+
+    class Recorded:
+        def __init__(self, stage: Stage) -> None:
+            self.stage, self.name = stage, stage.name
+
+        def wanted(self, work: Work) -> bool:
+            return self.stage.wanted(work)
+
+        def __call__(self, work: Work) -> Work:
+            entered.append(self.name)
+            return self.stage(work)
+
+    declared = [s.name for s in estimator.stages]
+    assert declared == ["detection", "mask", "hypotheses", "verify", "second_look", "support"]
+    estimator.stages = tuple(Recorded(s) for s in estimator.stages)
+    obs = dict(observations)["hard-0"]
+    est = estimator.estimate(obs)
+    assert entered == declared
+    assert est.T_C_O is not None and est.info["verify"]["second_look"] and "support" in est.info
+    assert set(declared) <= set(est.info["timings_ms"])
