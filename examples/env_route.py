@@ -4,7 +4,7 @@ import gymnasium as gym
 
 from posegrasp.core.contract import Observation
 from sim.env import pose_action
-from sim.estimators import DEFAULT_ESTIMATOR, make_estimator
+from sim.episodes.registry import DEFAULT_ESTIMATOR, make_estimator
 
 estimator = make_estimator(DEFAULT_ESTIMATOR)  # hybrid-global, or "pkg.module:factory" for yours
 env = gym.make("posegrasp:GraspEval-v0", object="phone", tier="isolated", obs_mode="rgb")

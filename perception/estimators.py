@@ -1,5 +1,5 @@
 """The learned estimators by name: each factory loads the shipped weights and returns an object
-implementing `posegrasp.core.contract.PoseEstimator`. `sim.estimators` adds the experiment's
+implementing `posegrasp.core.contract.PoseEstimator`. `sim.episodes.registry` adds the experiment's
 oracles; `perception.training.tables --estimator` scores these on the test images.
 `weights_files` says which weights files an estimator's factory loads (the gate fingerprints
 them), as that factory opens them.

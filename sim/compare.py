@@ -12,9 +12,9 @@ episodes both grasped comes with its paired bootstrap interval too. BOP's averag
 linear in the episodes, so they pair too: the difference B - A of AR_MSSD, AR_MSPD and, when
 both reports hold every episode's VSD errors (``vsd``), AR_VSD, each with its paired bootstrap
 interval (an episode without an estimate counts 0). The risk-coverage area of each estimator's
-confidence (`sim.stats.risk_coverage`) over the shared episodes pairs too: both areas and B - A
-with a paired bootstrap interval when both give a confidence (reports written before the area
-was recorded hold it in their episodes' ``confidence``).
+confidence (`sim.evaluation.stats.risk_coverage`) over the shared episodes pairs too: both areas
+and B - A with a paired bootstrap interval when both give a confidence (reports written before the
+area was recorded hold it in their episodes' ``confidence``).
 
 Reports whose grasps ran with different execution settings (``execution``), or whose estimators
 observed through different sensor models (``sensor``, `posegrasp.world.sensors`; a report that
@@ -42,8 +42,8 @@ from posegrasp.core.cli import (
 )
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.validate import arg, check_int, check_plot_path
-from sim.report_schema import read_report
-from sim.stats import (
+from sim.evaluation.report_schema import read_report
+from sim.evaluation.stats import (
     BOOTSTRAP,
     Outcome,
     margin_difference,
@@ -86,7 +86,7 @@ def outcomes_of(report: dict, source: str) -> dict[Key, Outcome]:
 
 def load_report(path: Path) -> dict[tuple[str, str, int], Outcome]:
     """(success, friction margin or None) by (object, tier, seed) of one evaluation report,
-    validated against the report schema (`sim.report_schema`) first.
+    validated against the report schema (`sim.evaluation.report_schema`) first.
 
     Raises:
         InvalidArgumentError: unreadable, not conforming to the schema (naming the field), or a
@@ -138,7 +138,7 @@ def recall_differences(
 ) -> dict[str, dict]:
     """The paired difference B - A of each average recall (`RECALLS`) that every episode both
     ran holds in both reports (`episode_recalls`), with its paired bootstrap 95 % interval
-    (`sim.stats.paired_mean_difference`); {} when they share no episode."""
+    (`sim.evaluation.stats.paired_mean_difference`); {} when they share no episode."""
     common = sorted(set(a) & set(b))
     rng = np.random.default_rng(seed)
     out = {}
@@ -170,7 +170,7 @@ def area_difference(
 ) -> dict:
     """The risk-coverage areas of A and B over the episodes both ran (`episode_confidences`)
     and their difference B - A with its paired bootstrap 95 % interval
-    (`sim.stats.paired_area_difference`; a side without a confidence has area None)."""
+    (`sim.evaluation.stats.paired_area_difference`; a side without a confidence has area None)."""
     common = sorted(set(a) & set(b))
     return paired_area_difference(
         [a[k][0] for k in common],

@@ -31,8 +31,8 @@ weights, is an error that says how to rewrite it; a baseline of another protocol
 is refused before any episode runs.
 
 The weights fingerprint holds the SHA-256 of every weights file the estimator loads, as its
-factory opens them (`sim.estimators.estimator_weights`): retraining any net the estimator uses
-(detector, pose nets, mask net) refuses the baseline. A plug-in reports its files with a
+factory opens them (`sim.episodes.registry.estimator_weights`): retraining any net the estimator
+uses (detector, pose nets, mask net) refuses the baseline. A plug-in reports its files with a
 ``weights_files()`` method; one without it gets an empty fingerprint, and the gate says so.
 """
 
@@ -52,7 +52,7 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
 from sim.episode import execution_settings
-from sim.estimators import (
+from sim.episodes.registry import (
     DEFAULT_ESTIMATOR,
     add_estimator_arguments,
     add_obs_mode_argument,
@@ -61,8 +61,8 @@ from sim.estimators import (
     estimator_fingerprint,
 )
 from sim.evaluation import Protocol, evaluate_protocol, format_report, run_protocol
-from sim.report_schema import validate_report
-from sim.stats import BOOTSTRAP, bootstrap_means, mcnemar_exact
+from sim.evaluation.report_schema import validate_report
+from sim.evaluation.stats import BOOTSTRAP, bootstrap_means, mcnemar_exact
 
 BASELINE = Path(__file__).resolve().parent / "gate_baseline.json"
 GATE_EPISODES = 40

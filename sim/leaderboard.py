@@ -4,22 +4,23 @@
         [--sensors LIST] [--objects all] [--episodes N] [--workers N] [--backend local|ray] \
         [--out DIR] [--publish]
 
-A row is any estimator a spec names (`sim.estimators`: a built-in name, an installed entry point,
-a plug-in ``package.module:factory``) or the poses of a BOP results CSV of a method run
+A row is any estimator a spec names (`sim.episodes.registry`: a built-in name, an installed entry
+point, a plug-in ``package.module:factory``) or the poses of a BOP results CSV of a method run
 elsewhere (``--poses CSV EXPORT``: the CSV answers the export of `sim.export_bop` it names, whose
 episodes must be the board's), ranked with the others on the same episodes.
 
 Each cell is one evaluation (`sim.evaluation`; its report and journal under ``--out``/cells), so
 a stopped leaderboard resumes where it stopped when its command runs again, as the line it
 prints says: a finished cell is read back, a started one resumes from its journal. A cell
-records the estimator's settings and weights it ran with (`sim.estimators.estimator_settings`;
-a CSV's and its export's hashes); where they are not today's, the board refuses to run and names
-the cells, rather than mix runs of other settings into it; so it does for a cell that holds an
-episode stopped rather than played, or other episodes than the board's. An estimator that cannot
-be made here (an extra not installed) is refused before any cell runs, in one line naming the
-install. An estimator that needs depth (`sim.estimators.needs_depth`) sees ``rgbd``
-observations, every other one ``rgb``; an RGB-only estimator sees only the sensor's colour
-model, so its cells under sensors that differ only in depth are one run, shown under each.
+records the estimator's settings and weights it ran with
+(`sim.episodes.registry.estimator_settings`; a CSV's and its export's hashes); where they are not
+today's, the board refuses to run and names the cells, rather than mix runs of other settings into
+it; so it does for a cell that holds an episode stopped rather than played, or other episodes than
+the board's. An estimator that cannot be made here (an extra not installed) is refused before any
+cell runs, in one line naming the install. An estimator that needs depth
+(`sim.episodes.registry.needs_depth`) sees ``rgbd`` observations, every other one ``rgb``; an
+RGB-only estimator sees only the sensor's colour model, so its cells under sensors that differ only
+in depth are one run, shown under each.
 
 The board goes under ``--out``: the whole board as JSON, the Markdown page and three plots
 (`sim.board`), the page linking its plots relative to where it is written;
@@ -68,7 +69,7 @@ from sim.board.cells import (
 )
 from sim.board.page import markdown
 from sim.board.plots import plots
-from sim.estimators import BOARD_ESTIMATORS
+from sim.episodes.registry import BOARD_ESTIMATORS
 
 #: The default sensors: the ideal camera and a structured-light depth camera.
 SENSORS: tuple[str, ...] = ("ideal", "kinect-v1")
@@ -81,14 +82,14 @@ PUBLISHED = {
 
 
 def check_estimators(value: str) -> list[str]:
-    """``--estimators``: a comma list of specs (`sim.estimators`: built-in names, installed entry
-    points, plug-ins ``package.module:factory``), or ``all`` (`BOARD_ESTIMATORS`).
+    """``--estimators``: a comma list of specs (`sim.episodes.registry`: built-in names, installed
+    entry points, plug-ins ``package.module:factory``), or ``all`` (`BOARD_ESTIMATORS`).
 
     Raises:
         UnknownNameError: a name that is neither built in nor installed, listing the valid ones.
         InvalidArgumentError: an empty list, a name given twice, a plug-in that does not import.
     """
-    from sim.estimators import check_estimator_spec
+    from sim.episodes.registry import check_estimator_spec
 
     if value.strip() == "all":
         return list(BOARD_ESTIMATORS)

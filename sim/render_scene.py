@@ -51,7 +51,7 @@ from posegrasp.world.scene import SceneConfig, build_scene
 from posegrasp.world.sensors import Sensor
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
 from sim.episode import Episode, EpisodeConfig
-from sim.estimators import (
+from sim.episodes.registry import (
     DEFAULT_ESTIMATOR,
     PrivilegedEstimator,
     add_estimator_arguments,
@@ -90,7 +90,7 @@ class RenderRequest:
         distractors: number of other objects on the table.
         shadows: render shadows (about 3x slower on software rendering).
         tier: the scene tier (`posegrasp.world.tiers`); its presets override `distractors`.
-        estimator: the estimator (`sim.estimators.ESTIMATORS`) whose poses a sheet shows, or
+        estimator: the estimator (`sim.episodes.registry.ESTIMATORS`) whose poses a sheet shows, or
             `NO_ESTIMATOR`.
         sensor: the head camera's sensor model (`posegrasp.world.sensors.SENSOR_NAMES`).
         depth: also write the head camera's depth as the sensor returns it (`depth_paths`).
@@ -361,7 +361,7 @@ def render_sheet(req: RenderRequest, path: Path) -> Path:
     (`sim.episode.Episode.estimate`); the image shows the true pose and the estimate, the label
     the estimate's translation and rotation errors, or that it found no target. The head images
     are seen through `req.sensor`, with the depth image for an estimator that needs it
-    (`sim.estimators.needs_depth`)."""
+    (`sim.episodes.registry.needs_depth`)."""
     estimator = None if req.estimator == NO_ESTIMATOR else make_estimator(req.estimator)
     obs_mode = "rgbd" if needs_depth(req.estimator) else "rgb"
     columns = []
@@ -406,8 +406,9 @@ def render_sheet(req: RenderRequest, path: Path) -> Path:
 
 def depth_note(req: RenderRequest, sheet: bool) -> str | None:
     """The one ``note:`` line when the sensor's depth model changes a depth image that nothing
-    written shows: a sheet whose estimator sees colour only (`sim.estimators.depth_unused_note`)
-    or shows no estimate, or a head image without ``--depth``; None otherwise."""
+    written shows: a sheet whose estimator sees colour only
+    (`sim.episodes.registry.depth_unused_note`) or shows no estimate, or a head image without
+    ``--depth``; None otherwise."""
     if sheet and req.estimator != NO_ESTIMATOR:
         return None if needs_depth(req.estimator) else depth_unused_note("rgb", req.sensor)
     if Sensor.parse(req.sensor).depth == "ideal" or req.depth:

@@ -36,7 +36,8 @@ from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, RenderOptions, far_plane
 from posegrasp.world.objects import object_names
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, add_pool_argument, check_tier
-from sim.estimators import (
+from sim.episodes.pose_noise import parse_noise
+from sim.episodes.registry import (
     add_estimator_arguments,
     add_obs_mode_argument,
     add_sensor_argument,
@@ -44,7 +45,6 @@ from sim.estimators import (
     depth_unused_note,
     make_estimator,
 )
-from sim.pose_noise import parse_noise
 
 if TYPE_CHECKING:
     from posegrasp.world.scene import Scene

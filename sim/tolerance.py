@@ -61,7 +61,7 @@ DEFAULT_SEED_START = C.EVAL_SEED_BASE
 
 
 def _noise(kind: str, value: float):
-    from sim.pose_noise import PoseNoise
+    from sim.episodes.pose_noise import PoseNoise
 
     si = value / 1000 if kind.endswith("_mm") else float(np.deg2rad(value))
     size = dict.fromkeys(("ray", "lateral", "inplane", "outplane"), 0.0)
@@ -72,7 +72,7 @@ def _noise(kind: str, value: float):
 def _job(args: tuple[str, str, float, int, str]) -> tuple[str, str, float, int, bool, str | None]:
     obj, kind, value, seed, tier = args
     from sim.episode import Episode, EpisodeConfig
-    from sim.pose_noise import perturb_pose
+    from sim.episodes.pose_noise import perturb_pose
 
     ep = Episode(obj, seed, EpisodeConfig(tier=tier))
     try:

@@ -134,7 +134,7 @@ def test_the_commands_are_found() -> None:
         "bench/sim_speed.py",
     ):
         assert expected in found
-    assert "sim.estimators" not in found  # a library module, no __main__ block
+    assert "sim.episodes.registry" not in found  # a library module, no __main__ block
 
 
 @pytest.mark.slow

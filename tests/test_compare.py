@@ -11,12 +11,11 @@ import pytest
 from perception import metrics
 from posegrasp.core.errors import InvalidArgumentError
 from sim import compare as cmp
-from sim import stats
-from sim.evaluation import Protocol, make_report
+from sim.evaluation import Protocol, make_report, stats
 
 
 def _episode(obj: str, seed: int, tier: str, ok: bool, margin: float | None) -> dict:
-    """An episode record as `sim.evaluate` writes it (schema `sim.report_schema`)."""
+    """An episode record as `sim.evaluate` writes it (schema `sim.evaluation.report_schema`)."""
     return {
         "object": obj,
         "seed": seed,

@@ -175,7 +175,7 @@ CRUDE = REPO / "examples" / "crude-estimator"
 def test_the_estimators_guide_lists_every_built_in_estimator_with_its_mode_and_extra() -> None:
     import tomllib
 
-    from sim.estimators import ENTRY_POINT_GROUP, ESTIMATORS, needs_depth
+    from sim.episodes.registry import ENTRY_POINT_GROUP, ESTIMATORS, needs_depth
 
     section = GUIDE_ESTIMATORS.read_text(encoding="utf-8").split("## Built-in estimators", 1)[1]
     rows = {m[1]: (m[2], m[3]) for m in ESTIMATOR_ROW.finditer(section)}

@@ -19,7 +19,7 @@ from posegrasp.core.errors import InvalidArgumentError, PosegraspError, StateErr
 from posegrasp.world.tiers import TIERS
 from sim.env import MAX_NEIGHBOURS, GraspEvalEnv, pose_action
 from sim.episode import Episode, EpisodeConfig
-from sim.estimators import make_estimator
+from sim.episodes.registry import make_estimator
 from sim.evaluation import Protocol, evaluate_protocol
 
 CRUDE = Path(__file__).resolve().parent.parent / "examples" / "crude-estimator"

@@ -15,7 +15,7 @@ from posegrasp.core.transforms import axis_angle
 from posegrasp.world import constants as C
 from sim.env import GraspEvalEnv, pose_action
 from sim.episode import Episode, EpisodeConfig, play_episode
-from sim.estimators import OracleEstimator
+from sim.episodes.registry import OracleEstimator
 
 SMALL = EpisodeConfig(width=64, height=48)
 

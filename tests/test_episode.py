@@ -23,9 +23,9 @@ from sim.episode import (
     pose_errors,
 )
 from sim.episode import play_episode as run
-from sim.estimators import NoisyOracleEstimator, OracleEstimator, make_estimator
-from sim.pose_noise import PoseNoise, perturb_pose
-from sim.stats import wilson_interval
+from sim.episodes.pose_noise import PoseNoise, perturb_pose
+from sim.episodes.registry import NoisyOracleEstimator, OracleEstimator, make_estimator
+from sim.evaluation.stats import wilson_interval
 
 
 @pytest.mark.parametrize("name", OBJECT_NAMES)

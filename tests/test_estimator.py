@@ -213,7 +213,7 @@ def test_weights_files_are_the_files_the_default_estimator_loads(monkeypatch) ->
     """`weights_files` reports exactly the .pt files torch.load opens while the default
     estimator is made."""
     from perception.estimators import load_estimator, weights_files
-    from sim.estimators import DEFAULT_ESTIMATOR
+    from sim.episodes.registry import DEFAULT_ESTIMATOR
 
     opened: list[Path] = []
     load = torch.load

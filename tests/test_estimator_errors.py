@@ -16,7 +16,7 @@ from posegrasp.core.journal import Journal, run_journaled
 from sim.episode import Episode, play_episode
 from sim.evaluate import main as evaluate_main
 from sim.evaluation import EpisodeJob, Protocol, run_job
-from sim.report_schema import validate_report
+from sim.evaluation.report_schema import validate_report
 
 SEED = 1_000_000_000
 

@@ -12,14 +12,14 @@ import pytest
 from scipy.stats import mannwhitneyu
 
 from posegrasp.core.errors import InvalidArgumentError
-from sim.grasp_vs_bop import (
+from sim.evaluation.bop_agreement import (
     ar_for_success,
     episode_aucs,
     logistic_fit,
-    main,
     separation_auc,
     spearman_with_interval,
 )
+from sim.grasp_vs_bop import main
 
 REPO = Path(__file__).resolve().parent.parent
 

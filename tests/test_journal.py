@@ -17,7 +17,7 @@ from posegrasp.core.journal import (
     journal_path,
     run_journaled,
 )
-from sim.report_schema import read_report
+from sim.evaluation.report_schema import read_report
 
 REPO = Path(__file__).resolve().parent.parent
 PROTOCOL = {"estimator": "oracle", "seeds": [1, 2, 3]}

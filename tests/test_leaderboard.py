@@ -14,7 +14,7 @@ from sim import leaderboard
 from sim.board import cells as board_cells
 from sim.board.analysis import findings
 from sim.board.plots import plots
-from sim.stats import wilson_interval
+from sim.evaluation.stats import wilson_interval
 
 
 def _report(successes: list[bool], workers: int = 2, wall_ms: float = 500.0) -> dict:
@@ -156,7 +156,7 @@ def test_a_small_board_runs_reads_back_and_writes_its_files(tmp_path: Path, caps
 def test_the_settings_of_an_estimator_tell_its_configs_apart() -> None:
     from perception.peers.estimator import PeerEstimator
     from perception.peers.ppf import PpfConfig, PpfRegistration
-    from sim.estimators import settings_of
+    from sim.episodes.registry import settings_of
 
     one = settings_of(PeerEstimator("ppf", PpfRegistration(PpfConfig())))
     other = settings_of(PeerEstimator("ppf", PpfRegistration(PpfConfig(hypotheses=5))))

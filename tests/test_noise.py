@@ -9,13 +9,13 @@ from perception.metrics import error_components
 from posegrasp.core.cli import ArgumentParser
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
-from sim.estimators import (
+from sim.episodes.pose_noise import NOISE_FORMAT, parse_noise
+from sim.episodes.registry import (
     DEFAULT_ESTIMATOR,
     NoisyOracleEstimator,
     add_estimator_arguments,
     make_estimator,
 )
-from sim.pose_noise import NOISE_FORMAT, parse_noise
 
 
 def test_parse_noise_units() -> None:

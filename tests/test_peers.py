@@ -23,7 +23,7 @@ from posegrasp.core.contract import Observation, pose_problem
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.objects import OBJECT_NAMES, load_object
-from sim.estimators import ESTIMATORS, check_depth, make_estimator, needs_depth
+from sim.episodes.registry import ESTIMATORS, check_depth, make_estimator, needs_depth
 
 HAS_PPF = extra.has_ppf()
 HAS_OPEN3D = extra.has_open3d()

@@ -11,8 +11,8 @@ import pytest
 from posegrasp.world import constants as C
 from sim import run_episode
 from sim.episode import Episode
-from sim.estimators import NoisyOracleEstimator, OracleEstimator
-from sim.pose_noise import parse_noise
+from sim.episodes.pose_noise import parse_noise
+from sim.episodes.registry import NoisyOracleEstimator, OracleEstimator
 
 FINGERS = np.array([3, 4])
 

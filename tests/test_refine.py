@@ -147,7 +147,7 @@ def test_bad_inputs_give_clear_errors() -> None:
 
 
 def test_hybrid_refine_is_registered() -> None:
-    from sim.estimators import ESTIMATORS
+    from sim.episodes.registry import ESTIMATORS
 
     assert "hybrid-refine" in ESTIMATORS
 

@@ -17,7 +17,7 @@ from posegrasp.core.contract import Estimate, Observation
 from posegrasp.world.tiers import TIERS
 from sim import render_scene
 from sim.episode import Episode, EpisodeConfig
-from sim.estimators import ESTIMATORS
+from sim.episodes.registry import ESTIMATORS
 from sim.render_scene import main
 
 REPO = Path(__file__).resolve().parent.parent

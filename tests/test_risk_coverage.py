@@ -8,8 +8,8 @@ import pytest
 from posegrasp.core.contract import CONTRACT_VERSION, Estimate, confidence_problem
 from posegrasp.core.errors import InvalidArgumentError
 from sim.evaluation import Protocol, format_report, make_report
-from sim.report_schema import validate_report
-from sim.stats import paired_area_difference, risk_coverage
+from sim.evaluation.report_schema import validate_report
+from sim.evaluation.stats import paired_area_difference, risk_coverage
 
 
 def test_an_estimate_of_an_older_contract_has_no_confidence() -> None:
@@ -63,8 +63,8 @@ def test_no_confidence_is_no_curve_and_lengths_must_agree() -> None:
 
 
 def _episode(obj: str, seed: int, confidence: float | None, held: bool) -> dict:
-    """An episode record as `sim.evaluate` writes it (schema `sim.report_schema`); a confidence
-    of None is left out, as `sim.episode.EpisodeResult.to_json` leaves it."""
+    """An episode record as `sim.evaluate` writes it (schema `sim.evaluation.report_schema`); a
+    confidence of None is left out, as `sim.episode.EpisodeResult.to_json` leaves it."""
     e = {
         "object": obj,
         "seed": seed,

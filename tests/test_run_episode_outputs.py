@@ -16,7 +16,7 @@ from posegrasp.core.errors import UnknownNameError
 from posegrasp.world.sensors import SENSOR_NAMES
 from sim import render_scene, run_episode
 from sim.episode import EpisodeResult
-from sim.estimators import depth_unused_note
+from sim.episodes.registry import depth_unused_note
 
 SEED = 1_000_000_002
 

@@ -42,7 +42,7 @@ from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import TIERS
-from sim.estimators import ESTIMATORS
+from sim.episodes.registry import ESTIMATORS
 
 #: Held-out seeds of the soak's own.
 SEED_START = 1_800_000_000
@@ -75,7 +75,7 @@ def _init_worker() -> None:
 
 @functools.cache
 def _estimator(name: str):
-    from sim.estimators import make_estimator
+    from sim.episodes.registry import make_estimator
 
     return make_estimator(name)
 

@@ -118,7 +118,7 @@ def test_ray_parallel_to_the_table_keeps_the_distance():
 
 def test_error_components_recover_applied_noise():
     from perception.metrics import error_components
-    from sim.pose_noise import PoseNoise, perturb_pose
+    from sim.episodes.pose_noise import PoseNoise, perturb_pose
 
     _model, _T_w_c, T_c_o = resting_truth("car", next(iter(load_object("car").resting_poses)), 10)
     rng = np.random.default_rng(0)

@@ -17,7 +17,7 @@ from perception import metrics
 from posegrasp.core.transforms import axis_angle
 from posegrasp.world.objects import OBJECT_NAMES, load_object
 from sim.episode import Episode, object_symmetries, pose_errors
-from sim.report_schema import report_schema
+from sim.evaluation.report_schema import report_schema
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 #: The keys of `pose_errors` that measure against one pose, and so vanish for a symmetric twin.

@@ -126,7 +126,8 @@ class Estimate:
         confidence: how sure the estimator is of ``T_C_O``, any finite real scale on which
             higher is surer (a verification score, votes, a fitness), or None when it does not
             say (contract version 3). A robot may attempt only the grasps above a threshold:
-            the reports' risk-coverage curve (`sim.stats.risk_coverage`) says what that buys.
+            the reports' risk-coverage curve (`sim.evaluation.stats.risk_coverage`) says what that
+            buys.
     """
 
     T_C_O: np.ndarray | None

@@ -5,9 +5,9 @@ findings in plain words (`findings`), every figure read from the board.
 from __future__ import annotations
 
 from sim.board.cells import AR_KEYS, summaries
-from sim.estimators import CLASSICAL_PEERS
-from sim.estimators import DEFAULT_ESTIMATOR as OURS
-from sim.grasp_vs_bop import ar_for_success, episode_aucs, spearman_with_interval
+from sim.episodes.registry import CLASSICAL_PEERS
+from sim.episodes.registry import DEFAULT_ESTIMATOR as OURS
+from sim.evaluation.bop_agreement import ar_for_success, episode_aucs, spearman_with_interval
 
 #: The success a method should reach; the AR that predicts it is reported per tier.
 TARGET_SUCCESS = 0.95

@@ -20,7 +20,7 @@ from posegrasp.core.files import atomic_write_json, sha256_file
 from posegrasp.core.journal import interrupted
 from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.sensors import Sensor
-from sim.stats import risk_coverage, wilson_interval
+from sim.evaluation.stats import risk_coverage, wilson_interval
 
 #: The ARs reported per cell, and against success.
 AR_KEYS: tuple[str, ...] = ("ar_mssd", "ar_mspd", "ar_vsd")
@@ -117,7 +117,7 @@ def cells_of(
     Raises:
         InvalidArgumentError: a CSV row whose tier or sensor the board does not show.
     """
-    from sim.estimators import needs_depth
+    from sim.episodes.registry import needs_depth
 
     out = []
     names = [Sensor.parse(s).name for s in sensors]
@@ -321,15 +321,15 @@ def cell_summary(report: dict) -> dict:
 
 def today_settings(cells: Sequence[Cell]) -> dict[Cell, dict]:
     """What each cell runs with today: its estimator's settings and weights
-    (`sim.estimators.estimator_settings`), or a CSV row's hashes (`poses_settings`); made once
-    per estimator, before any cell runs.
+    (`sim.episodes.registry.estimator_settings`), or a CSV row's hashes (`poses_settings`); made
+    once per estimator, before any cell runs.
 
     Raises:
         InvalidArgumentError: an estimator that cannot be made here (an optional extra not
             installed, weights missing, a plug-in's factory failing), in one line that says how
             to install it or to leave it out.
     """
-    from sim.estimators import estimator_settings
+    from sim.episodes.registry import estimator_settings
 
     made: dict[str, dict] = {}
     out = {}

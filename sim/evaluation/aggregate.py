@@ -16,8 +16,8 @@ import numpy as np
 from perception import metrics
 from sim.episode import execution_settings
 from sim.evaluation.protocol import Protocol
-from sim.report_schema import REPORT_SCHEMA, validate_report
-from sim.stats import (
+from sim.evaluation.report_schema import REPORT_SCHEMA, validate_report
+from sim.evaluation.stats import (
     BOOTSTRAP,
     bootstrap_means,
     margin_error_correlation,
@@ -55,8 +55,8 @@ def group_summary(episodes: list[dict]) -> dict[str, Any]:
     margin mean with its bootstrap 95 % interval and its Spearman correlation with the pose
     error (when measured), how often pose and grasp disagree, `bop_scores`, the risk-coverage
     curve of the estimates' confidences with its area (``risk_coverage``,
-    `sim.stats.risk_coverage`; None when no episode has a confidence), and the median episode
-    wall time and planning time [ms]."""
+    `sim.evaluation.stats.risk_coverage`; None when no episode has a confidence), and the median
+    episode wall time and planning time [ms]."""
     n = len(episodes)
     k = sum(bool(e["success"]) for e in episodes)
     lo, hi = wilson_interval(k, n)
@@ -107,7 +107,8 @@ def make_report(
     workers: int = 1,
     wall_s: float = 0.0,
 ) -> dict[str, Any]:
-    """The report (schema `sim.report_schema.REPORT_SCHEMA`, checked) of finished episodes.
+    """The report (schema `sim.evaluation.report_schema.REPORT_SCHEMA`, checked) of finished
+    episodes.
 
     Args:
         episodes: the episode records, in run order.

@@ -22,13 +22,13 @@ from posegrasp.core.journal import Journal, run_journaled
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import effective_workers
 from posegrasp.world.objects import OBJECT_NAMES
-from sim.estimators import PrivilegedEstimator, make_estimator
+from sim.episodes.pose_noise import parse_noise
+from sim.episodes.registry import PrivilegedEstimator, make_estimator
 from sim.evaluation.aggregate import make_report
 from sim.evaluation.protocol import Protocol, run_protocol
-from sim.pose_noise import parse_noise
 
-#: An estimator as an evaluation takes it: a spec (`sim.estimators`: a built-in name, an entry
-#: point or ``package.module:factory``) or an object implementing the contract.
+#: An estimator as an evaluation takes it: a spec (`sim.episodes.registry`: a built-in name, an
+#: entry point or ``package.module:factory``) or an object implementing the contract.
 EstimatorRef = str | PoseEstimator | PrivilegedEstimator
 
 
@@ -38,7 +38,7 @@ def cached_estimator(spec: str, noise: str | None = None) -> Any:
     compute thread (`_one_thread`).
 
     Raises:
-        PosegraspError: a spec that cannot be made (`sim.estimators.make_estimator`).
+        PosegraspError: a spec that cannot be made (`sim.episodes.registry.make_estimator`).
     """
     return _one_thread(make_estimator(spec, None if noise is None else parse_noise(noise)))
 
@@ -130,7 +130,7 @@ def evaluate_protocol(
 
     Args:
         protocol: the episodes and their settings.
-        estimator: a spec (`sim.estimators`) or an object implementing the contract
+        estimator: a spec (`sim.episodes.registry`) or an object implementing the contract
             (`posegrasp.core.contract.PoseEstimator`); with more than one worker an object is
             pickled to the workers with every episode, so a heavy one is better given by spec.
         workers: processes (or Ray CPUs) running episodes.

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sim.stats import wilson_interval
+from sim.evaluation.stats import wilson_interval
 
 if TYPE_CHECKING:
     from collections.abc import Iterable

@@ -34,7 +34,7 @@ class Protocol:
         seed_start: the first scene seed (default `posegrasp.world.constants.EVAL_SEED_BASE`:
             held-out scenes, never rendered as training data).
         tier: the scene tier (`posegrasp.world.tiers.TIERS`).
-        noise: the errors of ``noisy-oracle`` (`sim.pose_noise.NOISE_FORMAT`), None for the
+        noise: the errors of ``noisy-oracle`` (`sim.episodes.pose_noise.NOISE_FORMAT`), None for the
             estimator's own.
         margin: measure each successful grasp's friction margin
             (`grasping.execute.ExecutionConfig.measure_margin`).

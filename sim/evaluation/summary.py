@@ -58,7 +58,7 @@ def _one_line(note: str) -> str:
 
 
 def area_line(groups: list[tuple[str, dict]]) -> str | None:
-    """The risk-coverage area of each group (`sim.stats.risk_coverage`, ``-`` for a group
+    """The risk-coverage area of each group (`sim.evaluation.stats.risk_coverage`, ``-`` for a group
     without a confidence), or that the estimator gives none; None for a report written before
     the area was recorded."""
     recorded = [(name, g["risk_coverage"]) for name, g in groups if "risk_coverage" in g]

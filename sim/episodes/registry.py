@@ -43,7 +43,7 @@ from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import REPO_ROOT, in_repo
 from posegrasp.core.validate import arg, check_choice
 from posegrasp.world.sensors import SENSOR_NAMES
-from sim.pose_noise import NOISE_FORMAT, PoseNoise, parse_noise, perturb_pose
+from sim.episodes.pose_noise import NOISE_FORMAT, PoseNoise, parse_noise, perturb_pose
 
 #: Other objects' poses: (class, T_C_N) pairs in the camera frame.
 Neighbours = Sequence[tuple[str, np.ndarray]]
@@ -303,7 +303,7 @@ def weights_fingerprint(files: Sequence[Path]) -> dict[str, str]:
 
 def estimator_fingerprint(estimator: str) -> tuple[dict[str, str], str | None]:
     """The fingerprint of the weights files `estimator` loads (`weights_fingerprint` of
-    `sim.estimators.estimator_weights`), and a note when it reports none (a plug-in without
+    `sim.episodes.registry.estimator_weights`), and a note when it reports none (a plug-in without
     ``weights_files()``: the fingerprint is then empty)."""
     files = estimator_weights(estimator)
     if files is None:
@@ -356,7 +356,8 @@ def settings_of(obj: Any, depth: int = 0) -> Any:
 
 
 def check_noise(spec: str) -> str:
-    """A ``--noise`` value (`sim.pose_noise.NOISE_FORMAT`), returned as given once it parses.
+    """A ``--noise`` value (`sim.episodes.pose_noise.NOISE_FORMAT`), returned as given once it
+    parses.
 
     Raises:
         InvalidArgumentError: not of the format.

@@ -1,0 +1,2 @@
+"""What one episode is made of: the estimators' registry (`sim.episodes.registry`) and the
+oracle's pose noise (`sim.episodes.pose_noise`)."""
