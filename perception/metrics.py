@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from typing import cast
+from typing import NamedTuple, cast
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -414,8 +414,8 @@ def diameter(pts: np.ndarray) -> float:
 
 
 def error_components(T_est: np.ndarray, T_true: np.ndarray) -> dict[str, float]:
-    """A pose error split the way `sim.pose_noise.PoseNoise` applies it, relative to the true
-    camera ray u.
+    """A pose error split the way `sim.episodes.pose_noise.PoseNoise` applies it, relative to the
+    true camera ray u.
 
     Returns:
         ``ray_m``: |translation error along u| [m]; ``lateral_m``: its norm across u [m];
@@ -689,6 +689,42 @@ def render_depth(
     if f.ndim != 2 or f.shape[1] != 3 or f.size == 0 or f.min() < 0 or f.max() >= len(v):
         raise InvalidArgumentError(f"faces must be (F, 3) indices into the {len(v)} vertices")
     inv_depth = np.zeros(height * width)
+    _scan_triangles(_drawn_triangles(v, f, K, width, height), inv_depth, width)
+    with np.errstate(divide="ignore"):
+        depth = np.where(inv_depth > 0, 1.0 / inv_depth, 0.0)
+    return depth.reshape(height, width)
+
+
+class _Triangles(NamedTuple):
+    """The projected triangles `render_depth` draws, T of them, each (T,) unless noted.
+
+    Attributes:
+        A, B, C: the plane of inverse depth, 1/z = A u + B v + C at pixel (u, v) [1/m].
+        a, b, c: (T, 3) each: edge i -> i+1 of the triangle is  a x + b y + c >= 0  inside.
+        y_lo: the first image row whose centre the triangle's bounding box spans.
+        rows: how many rows it spans (>= 1).
+        x_lo, x_hi: the box's columns, clipped to the image [px] (x_lo <= x_hi).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    y_lo: np.ndarray
+    rows: np.ndarray
+    x_lo: np.ndarray
+    x_hi: np.ndarray
+
+
+def _drawn_triangles(
+    v: np.ndarray, f: np.ndarray, K: np.ndarray, width: int, height: int
+) -> _Triangles:
+    """The triangles of vertices `v` (V, 3) in the camera frame [m] and faces `f` (F, 3) that
+    get drawn in a (height, width) image with intrinsics K (3, 3) [px]: all their vertices in
+    front of the camera plane, a projection of non-zero area and a bounding box that meets a
+    pixel centre of the image."""
     z = v[:, 2]
     f = f[np.all(z[f] > 1e-9, axis=1)]
     uv = (v[:, :2] / np.where(z > 1e-9, z, 1.0)[:, None]) * [K[0, 0], K[1, 1]] + K[:2, 2]
@@ -714,33 +750,43 @@ def render_depth(
     a = -s * (pj[:, :, 1] - pi[:, :, 1])
     b = s * (pj[:, :, 0] - pi[:, :, 0])
     c = -(a * pi[:, :, 0] + b * pi[:, :, 1])
-    rows = y_hi - y_lo + 1
-    bound = rows * (np.floor(x_hi) - np.ceil(x_lo) + 1).clip(0).astype(np.int64)
+    return _Triangles(A, B, C, a, b, c, y_lo, y_hi - y_lo + 1, x_lo, x_hi)
+
+
+def _scan_triangles(tris: _Triangles, inv_depth: np.ndarray, width: int) -> None:
+    """Draw the triangles into `inv_depth` (height * width,), the image's inverse depth
+    [1/m] row by row (0: nothing yet), keeping the largest (the nearest surface) at each
+    pixel; in chunks of at most about `_RASTER_CHUNK` pixel samples."""
+    bound = tris.rows * (np.floor(tris.x_hi) - np.ceil(tris.x_lo) + 1).clip(0).astype(np.int64)
     ends = np.cumsum(bound)
     start = 0
-    while start < len(f):
+    while start < len(tris.A):
         base = ends[start - 1] if start else 0
         stop = max(start + 1, int(np.searchsorted(ends, base + _RASTER_CHUNK, side="right")))
-        tri, k = _spans(rows[start:stop])
-        tri += start
-        y = (y_lo[tri] + k).astype(np.float64)
-        r = b[tri] * y[:, None] + c[tri]  # (n, 3): a x + r >= 0
-        at = a[tri]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cut = -r / at
-        lo = np.where(at > 0, cut, -np.inf).max(axis=1)
-        hi = np.where(at < 0, cut, np.inf).min(axis=1)
-        flat = np.any((at == 0) & (r < 0), axis=1)
-        x0 = np.ceil(np.maximum(lo - 1e-9, x_lo[tri])).astype(np.int64)
-        x1 = np.floor(np.minimum(hi + 1e-9, x_hi[tri])).astype(np.int64)
-        n = np.where(flat, 0, x1 - x0 + 1).clip(0)
-        seg, rank = _spans(n)
-        ts, px, py = tri[seg], x0[seg] + rank, y[seg]
-        np.maximum.at(inv_depth, py.astype(np.int64) * width + px, A[ts] * px + B[ts] * py + C[ts])
+        _scan_rows(tris, start, stop, inv_depth, width)
         start = stop
-    with np.errstate(divide="ignore"):
-        depth = np.where(inv_depth > 0, 1.0 / inv_depth, 0.0)
-    return depth.reshape(height, width)
+
+
+def _scan_rows(tris: _Triangles, start: int, stop: int, inv_depth: np.ndarray, width: int) -> None:
+    """Draw triangles start..stop-1 of `tris` into `inv_depth` (`_scan_triangles`): on each
+    row of each, the pixel centres inside all three edges and within its box."""
+    tri, k = _spans(tris.rows[start:stop])
+    tri += start
+    y = (tris.y_lo[tri] + k).astype(np.float64)
+    r = tris.b[tri] * y[:, None] + tris.c[tri]  # (n, 3): a x + r >= 0
+    at = tris.a[tri]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cut = -r / at
+    lo = np.where(at > 0, cut, -np.inf).max(axis=1)
+    hi = np.where(at < 0, cut, np.inf).min(axis=1)
+    flat = np.any((at == 0) & (r < 0), axis=1)
+    x0 = np.ceil(np.maximum(lo - 1e-9, tris.x_lo[tri])).astype(np.int64)
+    x1 = np.floor(np.minimum(hi + 1e-9, tris.x_hi[tri])).astype(np.int64)
+    n = np.where(flat, 0, x1 - x0 + 1).clip(0)
+    seg, rank = _spans(n)
+    ts, px, py = tri[seg], x0[seg] + rank, y[seg]
+    A, B, C = tris.A, tris.B, tris.C
+    np.maximum.at(inv_depth, py.astype(np.int64) * width + px, A[ts] * px + B[ts] * py + C[ts])
 
 
 def _distance_image(depth: np.ndarray, K: np.ndarray, x0: int, y0: int) -> np.ndarray:
