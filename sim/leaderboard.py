@@ -68,7 +68,7 @@ from sim.board.cells import (
     unfit_cells,
 )
 from sim.board.page import markdown
-from sim.board.plots import plots
+from sim.board.figures import plots
 from sim.episodes.registry import BOARD_ESTIMATORS
 
 #: The default sensors: the ideal camera and a structured-light depth camera.

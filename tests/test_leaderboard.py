@@ -13,7 +13,7 @@ from posegrasp.world.constants import EVAL_SEED_BASE
 from sim import leaderboard
 from sim.board import cells as board_cells
 from sim.board.analysis import findings
-from sim.board.plots import plots
+from sim.board.figures import plots
 from sim.evaluation.stats import wilson_interval
 
 

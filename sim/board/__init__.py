@@ -1,3 +1,3 @@
 """The leaderboard as a library, under its command (`sim.leaderboard`): the cells and what keeps
 them off the board (`cells`), what the board says (`analysis`), its page (`page`) and its plots
-(`plots`)."""
+(`figures`)."""
