@@ -56,7 +56,7 @@ from sim.evaluation.stats import (
 
 Key = tuple[str, str, int]
 
-#: The head camera's width the episodes render at [px] (`sim.episode.EpisodeConfig.width`,
+#: The head camera's width the episodes render at [px] (`sim.episodes.episode.EpisodeConfig.width`,
 #: repeated here so that comparing imports no episode machinery; a test keeps the two equal).
 IMAGE_WIDTH = 640
 #: Fewer paired episodes than this make the percentile bootstrap of a success difference
@@ -280,8 +280,8 @@ def check_same_execution(paths: list[Path]) -> None:
 
 def report_sensor(report: dict, source: str) -> str:
     """The sensor model a validated report's estimator observed through: its ``sensor`` field,
-    else the one its episodes record (`sim.episode.EpisodeResult.sensor`), else ``ideal`` (what
-    a report that records none observed, as every report did before sensors were recorded).
+    else the one its episodes record (`sim.episodes.episode.EpisodeResult.sensor`), else ``ideal``
+    (what a report that records none observed, as every report did before sensors were recorded).
 
     Raises:
         InvalidArgumentError: episodes of more than one sensor, naming `source`.

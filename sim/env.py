@@ -29,7 +29,7 @@ from posegrasp.world.camera import CameraRenderer, external_renderer
 from posegrasp.world.constants import EXTERNAL_CAMERA
 from posegrasp.world.objects import OBJECT_NAMES, object_names
 from posegrasp.world.tiers import check_tier
-from sim.episode import Episode, EpisodeConfig, check_estimate
+from sim.episodes.episode import Episode, EpisodeConfig, check_estimate
 
 #: Tolerance on the norm of the action's quaternion.
 UNIT_QUAT_TOL = 1e-3
@@ -137,9 +137,9 @@ class GraspEvalEnv(gym.Env):
     Each episode builds a seeded MuJoCo scene (Fetch in front of a table with one object),
     renders the head camera and asks the agent for the pose of the requested object. The single
     step plans a grasp with mink on that pose and executes it in physics. An episode is
-    `sim.episode.Episode` itself: with the same object, episode seed, tier and config, an env
-    episode and `sim.episode.play_episode` build the same scene, render the same image and, on
-    the same pose, grasp the same way.
+    `sim.episodes.episode.Episode` itself: with the same object, episode seed, tier and config, an
+    env episode and `sim.episodes.episode.play_episode` build the same scene, render the same image
+    and, on the same pose, grasp the same way.
 
     ## Action Space
     `Dict`: `has_estimate` (`Discrete(2)`, 0 = no estimate), `position` (`Box(3,)`, object
@@ -165,8 +165,8 @@ class GraspEvalEnv(gym.Env):
     episode seed's, the same on every reset with that seed.
     ``Observation.from_env(obs, info)`` (`posegrasp.core.contract`) makes of a reset's
     observation and info the `Observation` a pose estimator takes, the table height as a float
-    and the depth included: the one `sim.evaluate` and `sim.episode.play_episode` hand it for the
-    same object and episode seed, so its estimate is the same to the bit.
+    and the depth included: the one `sim.evaluate` and `sim.episodes.episode.play_episode` hand it
+    for the same object and episode seed, so its estimate is the same to the bit.
 
     ## Rewards
     1.0 when the object is lifted at least 0.10 m above the table and still held after a 2 s
@@ -219,9 +219,10 @@ class GraspEvalEnv(gym.Env):
     resolution; `render_mode`: None or "rgb_array" (external camera view); `config`: an
     `EpisodeConfig`; `timings`: add per-stage wall-clock timings to `info`; `tier`: the scene
     tier (`posegrasp.world.tiers.TIERS`, default ``isolated``, or the config's); `obs_mode`:
-    ``rgb`` or ``rgbd`` (`sim.episode.OBS_MODES`; default ``rgb``, or the config's); `sensor`:
-    the head camera's sensor model (`posegrasp.world.sensors.SENSOR_NAMES`; default ``ideal``,
-    or the config's). The env and `sim.evaluate` observe alike when both name the same sensor.
+    ``rgb`` or ``rgbd`` (`sim.episodes.episode.OBS_MODES`; default ``rgb``, or the config's);
+    `sensor`: the head camera's sensor model (`posegrasp.world.sensors.SENSOR_NAMES`; default
+    ``ideal``, or the config's). The env and `sim.evaluate` observe alike when both name the same
+    sensor.
 
     ## Version History
     * v0: first version; the depth observation (``obs_mode``), the sensor models (``sensor``),

@@ -51,7 +51,7 @@ from posegrasp.core.journal import journal_path, resumable
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
-from sim.episode import execution_settings
+from sim.episodes.episode import execution_settings
 from sim.episodes.registry import (
     DEFAULT_ESTIMATOR,
     add_estimator_arguments,

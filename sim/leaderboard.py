@@ -67,8 +67,8 @@ from sim.board.cells import (
     today_settings,
     unfit_cells,
 )
-from sim.board.page import markdown
 from sim.board.figures import plots
+from sim.board.page import markdown
 from sim.episodes.registry import BOARD_ESTIMATORS
 
 #: The default sensors: the ideal camera and a structured-light depth camera.

@@ -50,7 +50,7 @@ from posegrasp.world.objects import OBJECT_NAMES, object_names
 from posegrasp.world.scene import SceneConfig, build_scene
 from posegrasp.world.sensors import Sensor
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
-from sim.episode import Episode, EpisodeConfig
+from sim.episodes.episode import Episode, EpisodeConfig
 from sim.episodes.registry import (
     DEFAULT_ESTIMATOR,
     PrivilegedEstimator,
@@ -358,9 +358,9 @@ def render_sheet(req: RenderRequest, path: Path) -> Path:
     """One column per tier (seed `req.seed`, target `req.object`): the head camera above the
     external view, each at `req.width` x `req.height`, with the tier's name and summary. Unless
     `req.estimator` is `NO_ESTIMATOR`, the estimator runs on each head image as in an episode
-    (`sim.episode.Episode.estimate`); the image shows the true pose and the estimate, the label
-    the estimate's translation and rotation errors, or that it found no target. The head images
-    are seen through `req.sensor`, with the depth image for an estimator that needs it
+    (`sim.episodes.episode.Episode.estimate`); the image shows the true pose and the estimate, the
+    label the estimate's translation and rotation errors, or that it found no target. The head
+    images are seen through `req.sensor`, with the depth image for an estimator that needs it
     (`sim.episodes.registry.needs_depth`)."""
     estimator = None if req.estimator == NO_ESTIMATOR else make_estimator(req.estimator)
     obs_mode = "rgbd" if needs_depth(req.estimator) else "rgb"

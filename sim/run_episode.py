@@ -376,7 +376,7 @@ def _run(
     sensor: str = "ideal",
 ):
     from posegrasp.world.scene import SceneConfig
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
 
     cfg = EpisodeConfig(
         scene=SceneConfig(distractor_pool=pool), tier=tier, obs_mode=obs_mode, sensor=sensor

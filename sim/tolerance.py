@@ -71,7 +71,7 @@ def _noise(kind: str, value: float):
 
 def _job(args: tuple[str, str, float, int, str]) -> tuple[str, str, float, int, bool, str | None]:
     obj, kind, value, seed, tier = args
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
     from sim.episodes.pose_noise import perturb_pose
 
     ep = Episode(obj, seed, EpisodeConfig(tier=tier))

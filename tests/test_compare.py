@@ -235,7 +235,7 @@ def test_paired_mean_difference_by_hand() -> None:
 
 
 def test_image_width_is_the_episodes() -> None:
-    from sim.episode import EpisodeConfig
+    from sim.episodes.episode import EpisodeConfig
 
     assert cmp.IMAGE_WIDTH == EpisodeConfig().width
 
@@ -356,7 +356,7 @@ def test_runs_of_other_sensors_are_not_paired(tmp_path: Path, capsys) -> None:
     old = _write(tmp_path / "old.json", eps, "isolated")  # records no sensor: the ideal one
     ideal = _write(tmp_path / "ideal.json", eps, "isolated", sensor="ideal")
     kinect = _write(tmp_path / "kinect.json", eps, "isolated", sensor="kinect-v1")
-    # A report whose episodes record the sensor (`sim.episode.EpisodeResult.to_json`).
+    # A report whose episodes record the sensor (`sim.episodes.episode.EpisodeResult.to_json`).
     by_episode = _write(
         tmp_path / "episodes.json", [{**e, "sensor": "kinect-v1"} for e in eps], "isolated"
     )

@@ -16,7 +16,7 @@ from posegrasp.core.errors import UnknownNameError
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world import constants as C
 from sim.env import GraspEvalEnv
-from sim.episode import Episode, EpisodeConfig
+from sim.episodes.episode import Episode, EpisodeConfig
 
 W, H = 320, 240
 

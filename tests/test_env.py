@@ -18,7 +18,7 @@ from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, StateError, UnknownNameError
 from posegrasp.world.tiers import TIERS
 from sim.env import MAX_NEIGHBOURS, GraspEvalEnv, pose_action
-from sim.episode import Episode, EpisodeConfig
+from sim.episodes.episode import Episode, EpisodeConfig
 from sim.episodes.registry import make_estimator
 from sim.evaluation import Protocol, evaluate_protocol
 

@@ -14,7 +14,7 @@ from posegrasp.core.errors import InvalidArgumentError, StateError, UnknownNameE
 from posegrasp.core.transforms import axis_angle
 from posegrasp.world import constants as C
 from sim.env import GraspEvalEnv, pose_action
-from sim.episode import Episode, EpisodeConfig, play_episode
+from sim.episodes.episode import Episode, EpisodeConfig, play_episode
 from sim.episodes.registry import OracleEstimator
 
 SMALL = EpisodeConfig(width=64, height=48)

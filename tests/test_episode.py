@@ -15,14 +15,14 @@ from posegrasp.core.transforms import axis_angle
 from posegrasp.world import constants as C
 from posegrasp.world.objects import OBJECT_NAMES, load_object
 from sim import evaluate, run_episode
-from sim.episode import (
+from sim.episodes.episode import (
     POSE_CORRECT_MSSD,
     Episode,
     EpisodeConfig,
     object_symmetries,
     pose_errors,
 )
-from sim.episode import play_episode as run
+from sim.episodes.episode import play_episode as run
 from sim.episodes.pose_noise import PoseNoise, perturb_pose
 from sim.episodes.registry import NoisyOracleEstimator, OracleEstimator, make_estimator
 from sim.evaluation.stats import wilson_interval

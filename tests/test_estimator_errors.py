@@ -13,7 +13,7 @@ import pytest
 
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.journal import Journal, run_journaled
-from sim.episode import Episode, play_episode
+from sim.episodes.episode import Episode, play_episode
 from sim.evaluate import main as evaluate_main
 from sim.evaluation import EpisodeJob, Protocol, run_job
 from sim.evaluation.report_schema import validate_report
@@ -85,7 +85,7 @@ def test_any_exception_of_an_episode_is_recorded_not_raised(
     def broken(*args: object, **kwargs: object) -> None:
         raise error
 
-    monkeypatch.setattr("sim.episode.play_episode", broken)
+    monkeypatch.setattr("sim.episodes.episode.play_episode", broken)
     d = run_job(EpisodeJob("phone", SEED, "oracle", Protocol(["phone"], 1, SEED, "isolated")))
     assert (d["success"], d["failure_reason"], d["notes"]) == (False, "error", [note])
 

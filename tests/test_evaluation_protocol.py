@@ -8,7 +8,7 @@ import pytest
 
 import sim.evaluation
 from posegrasp.core.errors import UnknownNameError
-from sim.episode import execution_settings
+from sim.episodes.episode import execution_settings
 from sim.evaluation import Protocol, evaluate_protocol, make_report, run_protocol
 
 SEED = 1_000_000_000

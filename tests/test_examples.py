@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from posegrasp.core.failures import FAILURE_REASONS
-from sim.episode import Episode
+from sim.episodes.episode import Episode
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 SEED = 1_000_000_000

@@ -282,7 +282,7 @@ def _fuzz_env(examples: int, monkeypatch) -> None:
     def unreachable(self, *args, **kwargs):
         raise PlanningError("unreachable", "stubbed planner: no grasp is executed here")
 
-    monkeypatch.setattr("sim.episode.GraspPlanner.plan", unreachable)
+    monkeypatch.setattr("sim.episodes.episode.GraspPlanner.plan", unreachable)
     env = GraspEvalEnv(object="phone", width=64, height=48)
 
     @settings(

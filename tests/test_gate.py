@@ -13,7 +13,7 @@ from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import REPO_ROOT
 from posegrasp.world.objects import OBJECT_NAMES
 from sim import gate
-from sim.episode import execution_settings
+from sim.episodes.episode import execution_settings
 
 WEIGHTS = {"w.pt": "0123"}
 

@@ -62,7 +62,8 @@ def test_rendering_without_set_up_is_refused_in_one_line() -> None:
 def test_importing_the_packages_changes_no_environment_variable() -> None:
     code = "import os; before = dict(os.environ)\n" + textwrap.dedent(
         """
-        import posegrasp, posegrasp.world.camera, sim.episode, sim.env, perception, grasping
+        import posegrasp, posegrasp.world.camera, sim.episodes.episode, sim.env
+        import perception, grasping
         import sys
         print(sorted(k for k in os.environ if os.environ.get(k) != before.get(k)))
         print("torch" in sys.modules)

@@ -35,7 +35,7 @@ SEED = 1000
 
 def _scene(obj: str, seed: int = SEED) -> tuple[Observation, np.ndarray]:
     """An isolated-tier scene of obj with ideal depth: its observation and the true T_C_O."""
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
 
     assert seed < EVAL_SEED_BASE
     ep = Episode(obj, seed, EpisodeConfig(obs_mode="rgbd"))
@@ -47,7 +47,7 @@ def _scene(obj: str, seed: int = SEED) -> tuple[Observation, np.ndarray]:
 
 def _errors(obj: str, T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """(rotation error up to the object's symmetries [deg], translation error [mm])."""
-    from sim.episode import object_symmetries
+    from sim.episodes.episode import object_symmetries
 
     syms = object_symmetries(load_object(obj))
     rot = rotation_error_sym_deg(T_est[:3, :3], T_true[:3, :3], syms)
@@ -335,7 +335,7 @@ def test_the_table_band_grows_with_the_sensors_noise_and_not_on_ideal_depth(monk
     configured band, to the bit. A noisy table top (kinect-v1): the band grows to three robust
     standard deviations, and the table's noise no longer stays in the scene as points."""
     from perception.peers import points as P
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
 
     def cut(obs: Observation) -> np.ndarray:
         model = load_object(obs.object)

@@ -10,7 +10,7 @@ import pytest
 
 from posegrasp.world import constants as C
 from sim import run_episode
-from sim.episode import Episode
+from sim.episodes.episode import Episode
 from sim.episodes.pose_noise import parse_noise
 from sim.episodes.registry import NoisyOracleEstimator, OracleEstimator
 

@@ -13,7 +13,7 @@ import pytest
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.sensors import SENSOR_NAMES
 from posegrasp.world.tiers import TIERS
-from sim.episode import Episode, EpisodeConfig
+from sim.episodes.episode import Episode, EpisodeConfig
 from sim.render_scene import depth_to_mm, far_plane, main
 
 REPO = Path(__file__).resolve().parent.parent

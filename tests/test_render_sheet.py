@@ -16,7 +16,7 @@ from perception.overlay import silhouette
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.world.tiers import TIERS
 from sim import render_scene
-from sim.episode import Episode, EpisodeConfig
+from sim.episodes.episode import Episode, EpisodeConfig
 from sim.episodes.registry import ESTIMATORS
 from sim.render_scene import main
 

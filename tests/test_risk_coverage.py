@@ -64,7 +64,7 @@ def test_no_confidence_is_no_curve_and_lengths_must_agree() -> None:
 
 def _episode(obj: str, seed: int, confidence: float | None, held: bool) -> dict:
     """An episode record as `sim.evaluate` writes it (schema `sim.evaluation.report_schema`); a
-    confidence of None is left out, as `sim.episode.EpisodeResult.to_json` leaves it."""
+    confidence of None is left out, as `sim.episodes.episode.EpisodeResult.to_json` leaves it."""
     e = {
         "object": obj,
         "seed": seed,

@@ -15,7 +15,7 @@ from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import UnknownNameError
 from posegrasp.world.sensors import SENSOR_NAMES
 from sim import render_scene, run_episode
-from sim.episode import EpisodeResult
+from sim.episodes.episode import EpisodeResult
 from sim.episodes.registry import depth_unused_note
 
 SEED = 1_000_000_002

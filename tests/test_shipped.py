@@ -9,7 +9,7 @@ import pytest
 from perception.hybrid import HybridPoseEstimator
 from perception.training import overlays as estimator_cli
 from posegrasp.world import constants as C
-from sim.episode import Episode
+from sim.episodes.episode import Episode
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 

@@ -83,7 +83,7 @@ def _estimator(name: str):
 def _episode(job: tuple[int, str, str, str, int, bool]) -> dict:
     """One episode in a worker: its outcome, MuJoCo warnings and the worker's RSS and fds."""
     i, obj, estimator, tier, seed, kill = job
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
 
     out = {"i": i, "pid": os.getpid(), "warnings": 0, "crash": None, "error": None}
     try:

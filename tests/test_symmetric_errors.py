@@ -1,7 +1,7 @@
 """Pose errors of symmetric objects: measured against the equivalent true pose ``T_true S`` of
-least MSSD (`perception.metrics.closest_symmetry`, `sim.episode.pose_errors`), checked against a
-brute force over the symmetry set, on hand-made boxes and cylinders and through an episode of a
-user object; objects without symmetries keep their errors to the bit."""
+least MSSD (`perception.metrics.closest_symmetry`, `sim.episodes.episode.pose_errors`), checked
+against a brute force over the symmetry set, on hand-made boxes and cylinders and through an
+episode of a user object; objects without symmetries keep their errors to the bit."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from perception import metrics
 from posegrasp.core.transforms import axis_angle
 from posegrasp.world.objects import OBJECT_NAMES, load_object
-from sim.episode import Episode, object_symmetries, pose_errors
+from sim.episodes.episode import Episode, object_symmetries, pose_errors
 from sim.evaluation.report_schema import report_schema
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])

@@ -130,7 +130,7 @@ def test_a_moved_neighbour_makes_the_grasp_unclean() -> None:
 def test_neighbours_an_estimator_reports_are_validated() -> None:
     """An unknown class is refused; a neighbour pose that is no rigid transform fails the
     episode as invalid_action, naming the neighbour."""
-    from sim.episode import Episode
+    from sim.episodes.episode import Episode
 
     ep = Episode("phone", 1_000_000_000)
     try:

@@ -1,11 +1,11 @@
 """The contract between the experiment and any pose estimator.
 
-Both sides import this module and nothing else of each other: the experiment (`sim.episode`,
-`sim.env`) hands an estimator an `Observation`, the estimator answers with an `Estimate`: the
-requested object's pose in the camera frame, the other objects it saw and a description. An
-observation holds only what a real robot has: the head-camera image (and, when the episode asks
-for it, its depth image), its intrinsics and pose, the requested class and the known table
-height. No ground truth is part of it.
+Both sides import this module and nothing else of each other: the experiment
+(`sim.episodes.episode`, `sim.env`) hands an estimator an `Observation`, the estimator answers with
+an `Estimate`: the requested object's pose in the camera frame, the other objects it saw and a
+description. An observation holds only what a real robot has: the head-camera image (and, when the
+episode asks for it, its depth image), its intrinsics and pose, the requested class and the known
+table height. No ground truth is part of it.
 
 What makes a pose valid (`pose_problem`) is part of the contract: a pose that is not one ends
 the episode as a failed grasp (``invalid_action``), so an estimator can check its answers with
@@ -67,8 +67,8 @@ class Observation:
     @classmethod
     def from_env(cls, obs: Mapping[str, Any], info: Mapping[str, Any]) -> Observation:
         """The observation an estimator gets from a ``GraspEval-v0`` reset: exactly what
-        `sim.evaluate` and `sim.episode.play_episode` hand it for the same object and episode
-        seed, so that an estimate through the env is the same to the bit.
+        `sim.evaluate` and `sim.episodes.episode.play_episode` hand it for the same object and
+        episode seed, so that an estimate through the env is the same to the bit.
 
         Args:
             obs: the env's observation: ``rgb`` (H, W, 3) uint8, ``K`` (3, 3) [px],

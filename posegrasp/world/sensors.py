@@ -24,8 +24,9 @@ derives an episode's generators from its seed, on streams apart from the scene's
 of a frame), so an episode's sensor noise is the same on every run and its scene is the same
 under every sensor.
 
-An episode observes through the sensor its config names (`sim.episode.EpisodeConfig.sensor`,
-``--sensor NAME`` on the commands); ``ideal`` observes the rendered images unchanged.
+An episode observes through the sensor its config names
+(`sim.episodes.episode.EpisodeConfig.sensor`, ``--sensor NAME`` on the commands); ``ideal``
+observes the rendered images unchanged.
 """
 
 from __future__ import annotations

@@ -414,8 +414,8 @@ def add_estimator_arguments(
         )
 
 
-#: What an observation holds (`sim.episode.OBS_MODES`, repeated here so that parsing a command line
-#: imports no episode machinery; a test keeps the two equal).
+#: What an observation holds (`sim.episodes.episode.OBS_MODES`, repeated here so that parsing a
+#: command line imports no episode machinery; a test keeps the two equal).
 OBS_MODES = ("rgb", "rgbd")
 
 
@@ -433,8 +433,8 @@ def add_obs_mode_argument(parser: argparse.ArgumentParser) -> None:
 
 def add_sensor_argument(parser: argparse.ArgumentParser) -> None:
     """Add ``--sensor NAME``: the head camera's sensor model the estimator observes through
-    (`posegrasp.world.sensors.SENSOR_NAMES`, `sim.episode.EpisodeConfig.sensor`); a bad name is
-    one line listing the valid ones."""
+    (`posegrasp.world.sensors.SENSOR_NAMES`, `sim.episodes.episode.EpisodeConfig.sensor`); a bad
+    name is one line listing the valid ones."""
     parser.add_argument(
         "--sensor",
         default="ideal",

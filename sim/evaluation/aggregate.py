@@ -2,8 +2,8 @@
 interval, pose errors, BOP's average recalls, the risk-coverage curve of the estimator's
 confidence, friction margins and times.
 
-Pure functions of the episode records (`sim.episode.EpisodeResult.to_json` plus ``wall_ms``);
-nothing here runs an episode.
+Pure functions of the episode records (`sim.episodes.episode.EpisodeResult.to_json` plus
+``wall_ms``); nothing here runs an episode.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from perception import metrics
-from sim.episode import execution_settings
+from sim.episodes.episode import execution_settings
 from sim.evaluation.protocol import Protocol
 from sim.evaluation.report_schema import REPORT_SCHEMA, validate_report
 from sim.evaluation.stats import (

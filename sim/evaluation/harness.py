@@ -82,12 +82,12 @@ def run_job(job: EpisodeJob) -> dict[str, Any]:
     worker started afresh after another died): it sets up rendering there first.
 
     Returns:
-        The episode's record (`sim.episode.EpisodeResult.to_json`) with its wall time
+        The episode's record (`sim.episodes.episode.EpisodeResult.to_json`) with its wall time
         ``wall_ms`` [ms]. An episode that raises (any exception) is recorded as failed with
         ``error``, the exception in its notes (a `PosegraspError` by its message, any other by
         its type and message), and the run goes on.
     """
-    from sim.episode import play_episode
+    from sim.episodes.episode import play_episode
 
     setup_rendering()
     t = time.perf_counter()

@@ -20,7 +20,7 @@ from posegrasp.core.validate import check_choice
 from posegrasp.world import constants as C
 from posegrasp.world.scene import SceneConfig
 from posegrasp.world.tiers import DEFAULT_TIER, check_tier
-from sim.episode import EpisodeConfig, execution_settings
+from sim.episodes.episode import EpisodeConfig, execution_settings
 
 
 @dataclass(frozen=True)
@@ -38,13 +38,13 @@ class Protocol:
             estimator's own.
         margin: measure each successful grasp's friction margin
             (`grasping.execute.ExecutionConfig.measure_margin`).
-        obs_mode: what the estimator sees (`sim.episode.OBS_MODES`): ``rgbd`` adds depth.
+        obs_mode: what the estimator sees (`sim.episodes.episode.OBS_MODES`): ``rgbd`` adds depth.
         pool: the classes the tier's distractors are drawn from, built-in or user objects
             (`posegrasp.world.scene.SceneConfig.distractor_pool`); empty for the built-in ones.
         candidates: where the built-in objects' grasp candidates come from
             (`grasping.candidates.CANDIDATE_SOURCES`).
         sensor: the head camera's sensor model the estimator observes through
-            (`sim.episode.EpisodeConfig.sensor`; ``ideal``: the rendered images).
+            (`sim.episodes.episode.EpisodeConfig.sensor`; ``ideal``: the rendered images).
 
     Raises:
         UnknownNameError: a tier, observation mode, candidate source or sensor that does not
@@ -81,7 +81,8 @@ class Protocol:
                 yield obj, self.seed_start + i
 
     def episode_config(self) -> EpisodeConfig:
-        """The settings every episode of the protocol plays with (`sim.episode.EpisodeConfig`)."""
+        """The settings every episode of the protocol plays with
+        (`sim.episodes.episode.EpisodeConfig`)."""
         return EpisodeConfig(
             scene=SceneConfig(distractor_pool=self.pool),
             planner=PlannerConfig(candidates=self.candidates),
@@ -105,8 +106,8 @@ class Protocol:
 
 def run_protocol(protocol: Protocol, estimator: str) -> dict[str, Any]:
     """The protocol with the estimator's label (`sim.evaluation.harness.estimator_label`) and
-    the execution settings (`sim.episode.execution_settings`), as JSON: what a journal's header
-    holds, so a resumed run must have the same."""
+    the execution settings (`sim.episodes.episode.execution_settings`), as JSON: what a journal's
+    header holds, so a resumed run must have the same."""
     return {
         "objects": list(protocol.objects),
         "episodes_per_object": protocol.episodes,

@@ -38,7 +38,7 @@ from posegrasp.world.objects import ObjectModel, check_object
 from posegrasp.world.scene import Scene, SceneConfig, build_scene
 from posegrasp.world.sensors import SENSOR_NAMES, Sensor
 from posegrasp.world.tiers import DEFAULT_TIER, tier_scene
-from sim.estimators import PrivilegedEstimator
+from sim.episodes.registry import PrivilegedEstimator
 
 #: What `Episode.observe` renders: ``rgb`` the colour image, ``rgbd`` also the depth image.
 OBS_MODES = ("rgb", "rgbd")
