@@ -29,6 +29,7 @@ afterwards.
 
 from __future__ import annotations
 
+import argparse
 import os
 import resource
 import sys
@@ -36,6 +37,7 @@ import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import TextIO
 
 from perception.training.generation import MAX_VIEWS, GenConfig, generate
 from posegrasp.core.cli import (
@@ -86,9 +88,7 @@ def measure(cfg: GenConfig) -> dict[str, float]:
     }
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns 0 when every target is met, 1 when one is missed."""
+def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="python bench/datagen_speed.py", description=__doc__.splitlines()[0])
     images = arg(check_int, 0, 100_000, "--paper", base=int)
     p.add_argument(
@@ -112,15 +112,17 @@ def main(argv: list[str] | None = None) -> int:
         help=f"headcam views per scene of the last run, 1..{MAX_VIEWS}",
     )
     add_json_argument(p, "every run's rates")
-    a = p.parse_args(argv)
-    setup_rendering()
-    log = summary_stream(a.json)
-    os.environ.setdefault("LP_NUM_THREADS", "1")
-    cores = os.cpu_count() or 1
-    print(f"cores: {cores}, load average: {os.getloadavg()[0]:.2f}", file=log)
+    return p
+
+
+#: A run: label, distribution, images, width, height, workers, views, long-run target or None.
+Run = tuple[str, str, int, int, int, int, int, float | None]
+
+
+def _runs(a: argparse.Namespace) -> list[Run]:
+    """The runs the arguments ask for, in order (those of no images or views skipped later)."""
     w = a.workers
-    # label, distribution, images, width, height, workers, views, long-run target or None
-    runs = [
+    return [
         ("paper 256x256, 1 process", "paper", a.paper, 256, 256, 1, 1, None),
         (f"paper 256x256, {w} workers", "paper", a.paper, 256, 256, w, 1, TARGET_PAPER),
         ("headcam 640x480, 1 process", "headcam", a.headcam, 640, 480, 1, 1, None),
@@ -136,12 +138,19 @@ def main(argv: list[str] | None = None) -> int:
             TARGET_HEADCAM_VIEWS,
         ),
     ]
+
+
+def _measure_runs(
+    runs: list[Run], max_views: int, cores: int, log: TextIO
+) -> tuple[dict[str, dict], dict[str, bool]]:
+    """Each run with images (and, for several views, `max_views` > 1) measured in a temporary
+    folder of the data root and printed to `log`; returns the figures and the targets met."""
     root = data_root()
     root.mkdir(parents=True, exist_ok=True)
     rows, met = {}, {}
     with tempfile.TemporaryDirectory(dir=root, prefix=".datagen_speed_") as tmp:
         for k, (label, dist, n, w, h, workers, views, goal) in enumerate(runs):
-            if n <= 0 or (views > 1 and a.views <= 1):
+            if n <= 0 or (views > 1 and max_views <= 1):
                 continue
             cfg = GenConfig(
                 dist=dist,
@@ -172,6 +181,19 @@ def main(argv: list[str] | None = None) -> int:
                     file=log,
                     flush=True,
                 )
+    return rows, met
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns 0 when every target is met, 1 when one is missed."""
+    a = _parser().parse_args(argv)
+    setup_rendering()
+    log = summary_stream(a.json)
+    os.environ.setdefault("LP_NUM_THREADS", "1")
+    cores = os.cpu_count() or 1
+    print(f"cores: {cores}, load average: {os.getloadavg()[0]:.2f}", file=log)
+    rows, met = _measure_runs(_runs(a), a.views, cores, log)
     print(f"load average after: {os.getloadavg()[0]:.2f}", file=log)
     if a.json is not None:
         write_json(a.json, {"cores": cores, "runs": rows, "targets_met": met})

@@ -33,9 +33,7 @@ from sim.estimators import ESTIMATORS, make_estimator
 SEED_START = 1_400_000_000
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns 0 when every target is met, 1 when one is missed."""
+def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="python bench/episode_speed.py", description=__doc__.split("\n")[0])
     p.add_argument(
         "--episodes",
@@ -58,14 +56,18 @@ def main(argv: list[str] | None = None) -> int:
         help=f"one of: {', '.join(names)} (default oracle)",
     )
     add_json_argument(p, "the figures")
-    args = p.parse_args(argv)
-    setup_rendering()
+    return p
+
+
+def measure(estimator_name: str, tier: str, episodes: int) -> dict:
+    """`episodes` episodes per object of the tier, the estimator loaded before the clock
+    starts: successes, episode wall times and each stage's median [ms]."""
     walls, stages = [], {}
     successes = 0
-    estimator = make_estimator(args.estimator)
-    cfg = EpisodeConfig(tier=args.tier)
+    estimator = make_estimator(estimator_name)
+    cfg = EpisodeConfig(tier=tier)
     for obj in OBJECT_NAMES:
-        for seed in range(SEED_START, SEED_START + args.episodes):
+        for seed in range(SEED_START, SEED_START + episodes):
             t = time.perf_counter()
             r = play_episode(obj, seed, estimator, cfg)
             walls.append((time.perf_counter() - t) * 1000)
@@ -73,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
             for k, v in r.timings_ms.items():
                 stages.setdefault(k, []).append(v)
     med = {k: float(np.median(v)) for k, v in stages.items()}
-    out = {
+    return {
         "episodes": len(walls),
         "successes": successes,
         "planning_ms_median": med.get("ik"),
@@ -81,6 +83,15 @@ def main(argv: list[str] | None = None) -> int:
         "episode_wall_ms_p90": float(np.percentile(walls, 90)),
         "stage_ms_median": med,
     }
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns 0 when every target is met, 1 when one is missed."""
+    args = _parser().parse_args(argv)
+    setup_rendering()
+    out = measure(args.estimator, args.tier, args.episodes)
+    successes, med = out["successes"], out["stage_ms_median"]
     log = summary_stream(args.json)
     wall = out["episode_wall_ms_median"]
     met = {"planning": out["planning_ms_median"] <= 100, "episode": wall <= 3000}

@@ -35,6 +35,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
@@ -143,56 +144,39 @@ def ray_side_by_side(args: argparse.Namespace, objs: list[str]) -> dict:
     }
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns 0 when every target is met, 1 when one is missed."""
-    p = ArgumentParser(prog="python bench/evaluate_speed.py", description=__doc__.split("\n")[0])
-    add_estimator_arguments(p, noise=False)
-    p.add_argument(
-        "--episodes",
-        type=arg(check_int, 1, 10_000, "--episodes", base=int),
-        default=10,
-        help="episodes per object, 1..10000 (default 10)",
+def _ray_targets(out: dict, log: TextIO) -> dict[str, bool]:
+    """The Ray comparison's targets, printed to `log` with its figures."""
+    rel = out["ray_over_local"]
+    met = {"ray_over_local": rel >= 0.85, "same_outcomes": out["same_outcomes"]}
+    print(
+        f"{out['estimator']}: {out['episodes']} episodes on {out['cpus']} CPUs per backend",
+        file=log,
     )
-    add_json_argument(p, "the figures")
-    add_backend_arguments(p)
-    add_workers_argument(p, TARGET_WORKERS, "with --backend ray: processes or Ray CPUs per backend")
-    args = p.parse_args(argv)
-    setup_rendering()
-    check_backend(args.backend, args.address)
-    log = summary_stream(args.json)
-    objs = list(OBJECT_NAMES)
-    if args.backend == "ray":
-        out = ray_side_by_side(args, objs)
-        rel = out["ray_over_local"]
-        met = {"ray_over_local": rel >= 0.85, "same_outcomes": out["same_outcomes"]}
-        print(
-            f"{args.estimator}: {out['episodes']} episodes on {out['cpus']} CPUs per backend",
-            file=log,
-        )
-        print(f"{'backend':<8} {'episodes/s':>10}", file=log)
-        print(f"{'local':<8} {out['episodes_per_s_local']:>10.2f}", file=log)
-        print(
-            f"{'ray':<8} {out['episodes_per_s_ray']:>10.2f}  ({rel:.0%} of local, start-up "
-            f"apart)  {target('>= 85 %', met['ray_over_local'])}",
-            file=log,
-        )
-        print(
-            f"Ray start-up {out['ray_startup_s']:.1f} s; per-task overhead "
-            f"{out['ray_task_overhead_ms']:.1f} ms (no-op tasks of one job)",
-            file=log,
-        )
-        print(
-            f"same outcomes on both backends: {out['same_outcomes']}  "
-            + target("the same", met["same_outcomes"]),
-            file=log,
-        )
-        if args.json is not None:
-            write_json(args.json, out | {"targets_met": met})
-        return 0 if all(met.values()) else 1
-    one = evaluate_protocol(_protocol(objs, args.episodes), args.estimator, workers=1)
-    two = _fresh_evaluation(args.episodes, args.estimator, workers=2)
-    longer = _fresh_evaluation(2 * args.episodes, args.estimator, workers=2)
+    print(f"{'backend':<8} {'episodes/s':>10}", file=log)
+    print(f"{'local':<8} {out['episodes_per_s_local']:>10.2f}", file=log)
+    print(
+        f"{'ray':<8} {out['episodes_per_s_ray']:>10.2f}  ({rel:.0%} of local, start-up "
+        f"apart)  {target('>= 85 %', met['ray_over_local'])}",
+        file=log,
+    )
+    print(
+        f"Ray start-up {out['ray_startup_s']:.1f} s; per-task overhead "
+        f"{out['ray_task_overhead_ms']:.1f} ms (no-op tasks of one job)",
+        file=log,
+    )
+    print(
+        f"same outcomes on both backends: {out['same_outcomes']}  "
+        + target("the same", met["same_outcomes"]),
+        file=log,
+    )
+    return met
+
+
+def workers_speed(objs: list[str], episodes: int, estimator: str) -> dict:
+    """Episode wall times and the rates of 1 and 2 workers, end to end and in a long run."""
+    one = evaluate_protocol(_protocol(objs, episodes), estimator, workers=1)
+    two = _fresh_evaluation(episodes, estimator, workers=2)
+    longer = _fresh_evaluation(2 * episodes, estimator, workers=2)
     walls = [e["wall_ms"] for e in one["episodes"]]
     # One worker runs in this process: its first episode imports torch and loads the estimator.
     one_rate = (len(walls) - 1) / (one["wall_s"] - walls[0] / 1000)
@@ -200,8 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     key = lambda e: (e["object"], e["seed"])  # noqa: E731
     again = {key(e): _outcomes({"episodes": [e]}) for e in longer["episodes"]}
     same = _outcomes(one) == _outcomes(two) == [again[key(e)][0] for e in one["episodes"]]
-    out = {
-        "estimator": args.estimator,
+    return {
+        "estimator": estimator,
         "episodes": len(walls),
         "episode_wall_ms_median": float(np.median(walls)),
         "episode_wall_ms_p90": float(np.percentile(walls, 90)),
@@ -216,14 +200,19 @@ def main(argv: list[str] | None = None) -> int:
         "same_outcomes": same,
         "successes": one["overall"]["successes"],
     }
+
+
+def _workers_targets(out: dict, log: TextIO) -> dict[str, bool]:
+    """The targets of `workers_speed`, printed to `log` with its figures."""
     long_run = out["episodes_per_s_2_workers_long_run"]
+    same = out["same_outcomes"]
     met = {
         "episode": out["episode_wall_ms_median"] <= 3000,
         "speedup_2_workers": out["speedup_2_workers"] >= 1.6,
         "long_run_2_workers": long_run >= 10,
         "same_outcomes": same,
     }
-    print(f"{args.estimator}: {out['episodes']} episodes, {out['successes']} successes", file=log)
+    print(f"{out['estimator']}: {out['episodes']} episodes, {out['successes']} successes", file=log)
     print(
         f"episode wall (1 process), median {out['episode_wall_ms_median']:.0f} ms, "
         f"p90 {out['episode_wall_ms_p90']:.0f} ms  " + target("<= 3000 ms", met["episode"]),
@@ -248,6 +237,38 @@ def main(argv: list[str] | None = None) -> int:
         + target("the same", met["same_outcomes"]),
         file=log,
     )
+    return met
+
+
+def _parser() -> ArgumentParser:
+    p = ArgumentParser(prog="python bench/evaluate_speed.py", description=__doc__.split("\n")[0])
+    add_estimator_arguments(p, noise=False)
+    p.add_argument(
+        "--episodes",
+        type=arg(check_int, 1, 10_000, "--episodes", base=int),
+        default=10,
+        help="episodes per object, 1..10000 (default 10)",
+    )
+    add_json_argument(p, "the figures")
+    add_backend_arguments(p)
+    add_workers_argument(p, TARGET_WORKERS, "with --backend ray: processes or Ray CPUs per backend")
+    return p
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns 0 when every target is met, 1 when one is missed."""
+    args = _parser().parse_args(argv)
+    setup_rendering()
+    check_backend(args.backend, args.address)
+    log = summary_stream(args.json)
+    objs = list(OBJECT_NAMES)
+    if args.backend == "ray":
+        out = ray_side_by_side(args, objs)
+        met = _ray_targets(out, log)
+    else:
+        out = workers_speed(objs, args.episodes, args.estimator)
+        met = _workers_targets(out, log)
     if args.json is not None:
         write_json(args.json, out | {"targets_met": met})
     return 0 if all(met.values()) else 1

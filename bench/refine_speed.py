@@ -34,6 +34,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 import torch
@@ -162,9 +163,7 @@ def headcam_test_split(count: int) -> Iterator[tuple[PoseDataset, str]]:
         yield PoseDataset(cfg.out, "test"), f"headcam/test rendered here (no {root}/test)"
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns 0 when every target is met, 1 when one is missed."""
+def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="python bench/refine_speed.py", description=__doc__.split("\n")[0])
     p.add_argument(
         "--images",
@@ -186,28 +185,30 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_threads_argument(p)
     add_json_argument(p, "the figures")
-    args = p.parse_args(argv)
-    setup_rendering()
-    torch.set_num_threads(args.threads)
-    with headcam_test_split(args.start + args.images) as (ds, source):
-        indices = range(args.start, min(len(ds), args.start + args.images))
-        res = summary(run(ds, indices, args.repeats))
-    res |= {"images": [indices.start, indices.stop], "load_average_1min": os.getloadavg()[0]}
+    return p
+
+
+def _targets(res: dict) -> dict[str, bool]:
+    """Which targets `summary`'s figures meet."""
     after = res["after"]
-    met = {
+    return {
         "fastest_ms": res["fastest_ms"]["median"] <= TARGET_MS,
         "first_ms": res["first_ms"]["median"] <= TARGET_MS,
         "rotation": after["rotation_deg_mean"] <= TARGET_ROTATION_DEG,
         "centre": after["centre_px_mean"] <= TARGET_CENTRE_PX,
         "iou": after["iou_mean"] >= TARGET_IOU,
     }
-    log = summary_stream(args.json)
+
+
+def _print(res: dict, met: dict[str, bool], source: str, repeats: int, log: TextIO) -> None:
+    """The figures and the targets, to `log`."""
+    first, stop = res["images"]
     print(
-        f"refiner on {source}, images {indices.start}..{indices.stop - 1}: "
+        f"refiner on {source}, images {first}..{stop - 1}: "
         f"{res['objects']} objects, load average {res['load_average_1min']:.1f}",
         file=log,
     )
-    for key, label in (("fastest_ms", f"fastest of {args.repeats}"), ("first_ms", "first run")):
+    for key, label in (("fastest_ms", f"fastest of {repeats}"), ("first_ms", "first run")):
         t = res[key]
         print(
             f"time per object [ms] ({label}): median {t['median']:.1f}, p90 {t['p90']:.1f} "
@@ -231,6 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         f"accepted {res['accepted']:.1%}; rotation error lowered for {res['rotation_lowered']:.1%}",
         file=log,
     )
+    after = res["after"]
     print(
         f"after: rotation mean {after['rotation_deg_mean']:.2f} deg "
         f"{target(f'<= {TARGET_ROTATION_DEG} deg', met['rotation'])}, centre mean "
@@ -238,6 +240,20 @@ def main(argv: list[str] | None = None) -> int:
         f", IoU mean {after['iou_mean']:.3f} {target(f'>= {TARGET_IOU}', met['iou'])}",
         file=log,
     )
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns 0 when every target is met, 1 when one is missed."""
+    args = _parser().parse_args(argv)
+    setup_rendering()
+    torch.set_num_threads(args.threads)
+    with headcam_test_split(args.start + args.images) as (ds, source):
+        indices = range(args.start, min(len(ds), args.start + args.images))
+        res = summary(run(ds, indices, args.repeats))
+    res |= {"images": [indices.start, indices.stop], "load_average_1min": os.getloadavg()[0]}
+    met = _targets(res)
+    _print(res, met, source, args.repeats, summary_stream(args.json))
     if args.json is not None:
         write_json(args.json, res | {"targets_met": met})
     return 0 if all(met.values()) else 1

@@ -18,9 +18,11 @@ outcome.
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
@@ -93,9 +95,7 @@ def _same(a: dict, b: dict) -> int:
     )
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def _parser() -> ArgumentParser:
     p = ArgumentParser(
         prog="python studies/bop_round_trip.py", description=__doc__.split("\n\n")[0]
     )
@@ -120,16 +120,27 @@ def main(argv: list[str] | None = None) -> int:
     add_workers_argument(p)
     add_out_argument(p, "the export, the CSVs and every report", "out/bop_round_trip")
     add_json_argument(p, "the table")
-    args = p.parse_args(argv)
-    setup_rendering()
-    from sim.bop_results import BopPosesEstimator
+    return p
 
-    out, log = args.out / args.tier, summary_stream(args.json)
+
+def _export(
+    out: Path, objects: list[str], episodes: int, tier: str
+) -> tuple[Path, dict[str, Path]]:
+    """The episodes exported under `out`/export, and its ``truth.csv`` and ``turned.csv``."""
     root = out / "export"
-    export_bop(root, args.objects, args.episodes, EVAL_SEED_BASE, args.tier)
+    export_bop(root, objects, episodes, EVAL_SEED_BASE, tier)
     csvs = {"truth": out / "truth.csv", "turned": out / "turned.csv"}
     write_csv(root, csvs["truth"], None)
     write_csv(root, csvs["turned"], turn_noise())
+    return root, csvs
+
+
+def _grasp(
+    out: Path, root: Path, csvs: dict[str, Path], args: argparse.Namespace
+) -> dict[str, tuple[Path, dict]]:
+    """The four runs on the same scenes, each report kept in `out`: label -> (path, report)."""
+    from sim.bop_results import BopPosesEstimator
+
     runs = {
         "oracle": "oracle",
         "truth.csv": BopPosesEstimator(csvs["truth"], root),
@@ -146,7 +157,13 @@ def main(argv: list[str] | None = None) -> int:
             r["poses"] = poses_record(est, csvs[label.removesuffix(".csv")], r)
         atomic_write_json(path, r)
         reports[label] = (path, r)
-    table = {"tier": args.tier, "episodes_per_object": args.episodes, "runs": {}}
+    return reports
+
+
+def _table(reports: dict[str, tuple[Path, dict]], log: TextIO) -> dict[str, dict]:
+    """Per run: its success, Wilson interval and ARs; a CSV run's comparison with its
+    estimator's. Printed to `log`."""
+    runs = {}
     print(
         f"{'run':<14} {'success':>9} {'wilson 95%':>15} {'AR_MSSD':>8} {'AR_MSPD':>8} "
         f"{'AR_VSD':>7}  paired",
@@ -176,12 +193,24 @@ def main(argv: list[str] | None = None) -> int:
                 f"against {ref}: same outcome {row['same_outcome']}/{g['episodes']}, "
                 f"difference {row['difference']:+.1%}, McNemar p {row['mcnemar_p']:.3f}"
             )
-        table["runs"][label] = row
+        runs[label] = row
         print(
             f"{label:<14} {g['successes']:>4}/{g['episodes']:<4} [{lo:.3f}, {hi:.3f}] "
             f"{row['ar_mssd']:8.3f} {row['ar_mspd']:8.3f} {_ar(row['ar_vsd']):>7}  {paired}",
             file=log,
         )
+    return runs
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
+    setup_rendering()
+    out, log = args.out / args.tier, summary_stream(args.json)
+    root, csvs = _export(out, args.objects, args.episodes, args.tier)
+    reports = _grasp(out, root, csvs, args)
+    table = {"tier": args.tier, "episodes_per_object": args.episodes, "runs": _table(reports, log)}
     if args.json is not None:
         write_json(args.json, table)
     return 0

@@ -104,9 +104,7 @@ def _plot(
     plt.close(fig)
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def _parser() -> ArgumentParser:
     p = ArgumentParser(
         prog="python studies/flip_ambiguity.py", description=__doc__.split("\n\n")[0]
     )
@@ -133,21 +131,26 @@ def main(argv: list[str] | None = None) -> int:
         "--plot", type=check_plot_path, help="write the figure (a car from below, every view) here"
     )
     add_json_argument(p, "the changes per view")
-    args = p.parse_args(argv)
-    setup_rendering(threads=1)
-    ds = PoseDataset(data_root() / "paper", args.split)
+    return p
+
+
+def _measure(
+    split: str, images: int, turns: list[float], below_deg: float
+) -> tuple[list[dict], tuple[np.ndarray, np.ndarray] | None]:
+    """Per image of paper/`split`: the colour changes of the end-for-end turn and of each of
+    `turns`; and the car view nearest to below (within `below_deg`), plain and turned."""
+    ds = PoseDataset(data_root() / "paper", split)
     studio = Studio(StudioConfig(width=ds[0].rgb.shape[1], height=ds[0].rgb.shape[0]))
-    turns = sorted(args.turns)
     rows: list[dict] = []
     example: tuple[np.ndarray, np.ndarray] | None = None  # the car view nearest to below
-    best_below = float(args.below)
-    for i in progress_bar(range(min(args.images, len(ds))), desc="re-rendered", mininterval=5):
+    best_below = float(below_deg)
+    for i in progress_bar(range(min(images, len(ds))), desc="re-rendered", mininterval=5):
         s = ds[i]
         obj = s.objects[0]
         view = studio.render(obj.name, np.random.default_rng(int(s.seed)))
         if not np.array_equal(view.rgb, s.rgb):
             raise AssetError(
-                f"image {i} of paper/{args.split} does not re-render from its seed: the data was "
+                f"image {i} of paper/{split} does not re-render from its seed: the data was "
                 "made by another version of the generator; render it again with "
                 "`python -m perception.training.datagen`"
             )
@@ -172,17 +175,19 @@ def main(argv: list[str] | None = None) -> int:
         if obj.name == "car" and below < best_below:
             best_below, example = below, (view.rgb, flipped.rgb)
     studio.close()
+    return rows, example
+
+
+def _summarise(rows: list[dict], turns: list[float], below_deg: float) -> dict[str, dict]:
+    """Per object, for the views from below and the others: the medians of the changes and
+    the share of end-for-end turns that change less than the smallest turn; printed."""
     key = str(turns[0])
-    print(
-        f"paper/{args.split}, {len(rows)} images: mean colour change [grey levels] over the "
-        f"object's pixels; below = within {args.below:g} deg of straight below"
-    )
     head = " ".join(f"{a:g} deg" for a in turns)
     print(f"{'object':8} {'views':>10}  n   end-for-end  IoU    {head}   turn < {turns[0]:g} deg")
     summary: dict[str, dict] = {}
     for name in OBJECT_NAMES:
         for part, pick in (("below", True), ("other", False)):
-            sel = [r for r in rows if r["object"] == name and (r["below_deg"] < args.below) == pick]
+            sel = [r for r in rows if r["object"] == name and (r["below_deg"] < below_deg) == pick]
             if not sel:
                 continue
             flip = np.array([r["flip"] for r in sel])
@@ -201,12 +206,27 @@ def main(argv: list[str] | None = None) -> int:
                 f"{name:8} {part:>10} {len(sel):3d}  {np.median(flip):10.1f}  {iou:5.3f}  "
                 f"{refs}   {less:5.1f} %"
             )
+    return summary
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
+    setup_rendering(threads=1)
+    turns = sorted(args.turns)
+    rows, example = _measure(args.split, args.images, turns, args.below)
+    print(
+        f"paper/{args.split}, {len(rows)} images: mean colour change [grey levels] over the "
+        f"object's pixels; below = within {args.below:g} deg of straight below"
+    )
+    summary = _summarise(rows, turns, args.below)
     if args.plot is not None:
         if example is None:
             raise InvalidArgumentError(
                 f"--plot: no car seen from within {args.below:g} deg of below among these images"
             )
-        _plot(args.plot, rows, example, args.below, key)
+        _plot(args.plot, rows, example, args.below, str(turns[0]))
         print(f"figure: {args.plot}")
     if args.json is not None:
         write_json(

@@ -19,10 +19,12 @@ stopped (``--json -`` prints them once at the end, and resumes nothing).
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
 from pathlib import Path
+from typing import TextIO
 
 from posegrasp.core.cli import (
     ArgumentParser,
@@ -89,9 +91,7 @@ def _resume(path: Path | None, protocol: dict) -> dict:
     return {"protocol": protocol, "regressed": [], "redrawn": [], "rerun": [True, "not run"]}
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="python studies/gate_power.py", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--runs",
@@ -116,13 +116,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--no-rerun", action="store_true", help="skip the rerun of the baseline")
     add_json_argument(p, "the baseline and every verdict, after each run (a file resumes)")
-    args = p.parse_args(argv)
-    setup_rendering()
-    log = summary_stream(args.json)
-    record = None if args.json in (None, STDOUT) else args.json
-    margin = not args.no_margin
-    t0 = time.perf_counter()
-    state = _resume(record, _protocol(margin))
+    return p
+
+
+def _collect(
+    state: dict, args: argparse.Namespace, margin: bool, record: Path | None, log: TextIO
+) -> None:
+    """Run what `state` lacks: the baseline, its rerun, the regressed and the redrawn runs;
+    `state` is saved to `record` after each, and each verdict printed to `log`."""
 
     def save() -> None:
         if record is not None:
@@ -150,6 +151,11 @@ def main(argv: list[str] | None = None) -> int:
                 state[kind] = sorted(done.values(), key=lambda v: v[2])
                 save()
             print(f"{kind} run {r}: {done[r][1]}", file=log)
+
+
+def _summarise(state: dict, args: argparse.Namespace, margin: bool, log: TextIO) -> int:
+    """Print to `log` how many of the asked-for runs were flagged (and of the rerun and the
+    redrawn runs); returns the regressed runs flagged."""
     wanted = set(range(args.first_draw, args.first_draw + args.runs))
     regressed = [v for v in state["regressed"] if v[2] in wanted]
     flagged = sum(not v[0] for v in regressed)
@@ -168,6 +174,21 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"redrawn (5 mm, 2 deg) errors flagged: {alarms} of {args.false_alarm_runs}", file=log
         )
+    return flagged
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
+    setup_rendering()
+    log = summary_stream(args.json)
+    record = None if args.json in (None, STDOUT) else args.json
+    margin = not args.no_margin
+    t0 = time.perf_counter()
+    state = _resume(record, _protocol(margin))
+    _collect(state, args, margin, record, log)
+    flagged = _summarise(state, args, margin, log)
     print(f"wall time {time.perf_counter() - t0:.0f} s", file=log)
     if args.json is not None:
         state["flagged"], state["runs"] = flagged, args.runs

@@ -29,6 +29,7 @@ from posegrasp.core.cli import (
     summary_stream,
     write_json,
 )
+from posegrasp.core.contract import Observation, PoseEstimator
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int
 from posegrasp.world import constants as C
@@ -39,9 +40,7 @@ from posegrasp.world.tiers import TIERS
 ESTIMATORS = ("hybrid-global", "hybrid-global-table", "hybrid-global-paper")
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def _parser() -> ArgumentParser:
     p = ArgumentParser(
         prog="python studies/global_processes.py", description=__doc__.split("\n\n")[0]
     )
@@ -71,34 +70,56 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_threads_argument(p)
     add_json_argument(p, "the figures")
-    args = p.parse_args(argv)
-    setup_rendering(threads=args.threads)
-    from perception.estimators import LEARNED_ESTIMATORS
+    return p
+
+
+def _observations(tier: str, images: int) -> list[Observation]:
+    """The head-camera observations of the tier's first `images` held-out episodes, objects
+    in turn."""
     from sim.episode import Episode, EpisodeConfig
 
-    est = LEARNED_ESTIMATORS[args.estimator]()
     observations = []
-    for i in range(args.images):
+    for i in range(images):
         obj = OBJECT_NAMES[i % len(OBJECT_NAMES)]
-        ep = Episode(obj, C.EVAL_SEED_BASE + i // len(OBJECT_NAMES), EpisodeConfig(tier=args.tier))
+        ep = Episode(obj, C.EVAL_SEED_BASE + i // len(OBJECT_NAMES), EpisodeConfig(tier=tier))
         try:
             observations.append(ep.observe())
         finally:
             ep.close()
-    for obs in observations * 2:  # the codebooks, and the worker starts in the second estimate
-        est.estimate(obs)
+    return observations
+
+
+def _timings(
+    est: PoseEstimator, observations: list[Observation], repeat: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per observation, the fastest of `repeat` estimates [ms] with one process and with two,
+    the settings interleaved image by image."""
     config = est.config  # type: ignore[attr-defined]
     ms: dict[int, list[float]] = {1: [], 2: []}
     for obs in observations:
         for processes in (1, 2):
             est.config = replace(config, processes=processes)  # type: ignore[attr-defined]
             runs = []
-            for _ in range(args.repeat):
+            for _ in range(repeat):
                 t0 = time.perf_counter()
                 est.estimate(obs)
                 runs.append((time.perf_counter() - t0) * 1000)
             ms[processes].append(min(runs))
-    one, two = np.array(ms[1]), np.array(ms[2])
+    return np.array(ms[1]), np.array(ms[2])
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
+    setup_rendering(threads=args.threads)
+    from perception.estimators import LEARNED_ESTIMATORS
+
+    est = LEARNED_ESTIMATORS[args.estimator]()
+    observations = _observations(args.tier, args.images)
+    for obs in observations * 2:  # the codebooks, and the worker starts in the second estimate
+        est.estimate(obs)
+    one, two = _timings(est, observations, args.repeat)
     res = {
         "estimator": args.estimator,
         "tier": args.tier,

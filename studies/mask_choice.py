@@ -39,9 +39,7 @@ ESTIMATORS = ("hybrid-global", "hybrid-global-paper")
 MASKS = ("mask net", "truth")
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="python studies/mask_choice.py", description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--estimator",
@@ -59,20 +57,23 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--targets", action="store_true", help="only each image's episode target")
     add_json_argument(p, "the errors per object and mask")
-    args = p.parse_args(argv)
-    setup_rendering(threads=1)
-    est = LEARNED_ESTIMATORS[args.estimator]()
-    assert isinstance(est, GlobalPoseEstimator)
+    return p
+
+
+def _measure(
+    est: GlobalPoseEstimator, ds: PoseDataset, images: int, targets: bool
+) -> list[tuple[str, float, float, float]]:
+    """Per detected object of the first `images` images (with `targets`, only each image's
+    target): its name, the redrawn mask's IoU and the rotation error [deg] with each mask."""
     gravity = est.config.gravity is not None
-    ds = PoseDataset(data_root() / args.split, args.subset)
     rows: list[tuple[str, float, float, float]] = []  # object, IoU, error with each mask
-    for i in progress_bar(range(min(args.images, len(ds))), desc="masks and choice", mininterval=5):
+    for i in progress_bar(range(min(images, len(ds))), desc="masks and choice", mininterval=5):
         s = ds[i]
         T_W_C = np.asarray(s.extra.get("T_W_C", np.eye(4)), float)
         for obj in s.objects:
             if obj.visib_fract < MIN_VISIB or obj.T_C_O[2, 3] <= 0:
                 continue
-            if args.targets and obj.name != s.extra.get("target", obj.name):
+            if targets and obj.name != s.extra.get("target", obj.name):
                 continue
             obs = Observation(s.rgb, s.K, T_W_C, obj.name, int(s.seed))
             found = detect_target(est.hybrid, obs, est.config.detection.target_score, False)
@@ -94,12 +95,13 @@ def main(argv: list[str] | None = None) -> int:
                     rotation_error_deg(T[:3, :3], obj.T_C_O[:3, :3]) if T is not None else 180.0
                 )
             rows.append((obj.name, mask_iou(sharp.mask, obj.mask_visib), *errors))
-    if not rows:
-        print(f"{args.split}/{args.subset}: no object detected")
-        return 0
+    return rows
+
+
+def _tabulate(rows: list[tuple[str, float, float, float]], report: dict) -> None:
+    """Per object and over all: the mask's IoU and each mask's rotation errors, added to
+    `report` and printed."""
     names = sorted({r[0] for r in rows})
-    report: dict = {"split": f"{args.split}/{args.subset}", "estimator": args.estimator}
-    print(f"{args.estimator} on {args.split}/{args.subset}: {len(rows)} detected objects")
     print(
         f"{'object':8s} {'n':>4s} {'mask IoU':>8s}   "
         + "   ".join(f"{m + ': mean / median / > 15 %':>34s}" for m in MASKS)
@@ -117,6 +119,23 @@ def main(argv: list[str] | None = None) -> int:
             )
         report[name] = entry
         print(f"{name:8s} {len(sel):4d} {entry['mask_iou']:8.3f}   " + "   ".join(cells))
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
+    setup_rendering(threads=1)
+    est = LEARNED_ESTIMATORS[args.estimator]()
+    assert isinstance(est, GlobalPoseEstimator)
+    ds = PoseDataset(data_root() / args.split, args.subset)
+    rows = _measure(est, ds, args.images, args.targets)
+    if not rows:
+        print(f"{args.split}/{args.subset}: no object detected")
+        return 0
+    report: dict = {"split": f"{args.split}/{args.subset}", "estimator": args.estimator}
+    print(f"{args.estimator} on {args.split}/{args.subset}: {len(rows)} detected objects")
+    _tabulate(rows, report)
     if args.json is not None:
         write_json(args.json, report)
     return 0
