@@ -44,6 +44,7 @@ the best verified start, the chosen translation's error and the verification's t
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import itertools
 import json
@@ -125,35 +126,15 @@ def check_int_list(spec: str, hi: int = 13, flag: str = "--keeps", lo: int = 0) 
     return [check_int(v, lo, hi, flag) for v in out]
 
 
-#: The flat names the sweeps and the JSON use -> (GlobalConfig group, field of that group).
-FLAT_FIELDS: dict[str, tuple[str, str]] = {
-    "hypotheses": ("codebook", "hypotheses"),
-    "min_angle_deg": ("codebook", "min_angle_deg"),
-    "occluded_grow": ("codebook", "occluded_grow"),
-    "resting_hypotheses": ("codebook", "resting_hypotheses"),
-    "refine_passes": ("refinement", "passes"),
-    "keep_after_first": ("refinement", "keep_after_first"),
-    "screen_iterations": ("refinement", "screen_iterations"),
-    "appearance_weight": ("scoring", "appearance_weight"),
-    "edge_weight": ("scoring", "edge_weight"),
-    "resting_tilt_deg": ("gravity", "tilt_deg"),
-    "snap_candidates": ("gravity", "snap_candidates"),
-    "snap_iterations": ("gravity", "snap_iterations"),
-    "second_look": ("second_look", "hypotheses"),
-    "second_look_resting": ("second_look", "resting"),
-    "second_look_below": ("second_look", "below"),
-    "target_score": ("detection", "target_score"),
-}
-
-
-def flat_config(**flat) -> GlobalConfig:
-    """The shipped `GlobalConfig` with the given flat settings (`FLAT_FIELDS`) changed; a
-    ``resting_tilt_deg`` of None leaves gravity (and the support it needs) out, a
-    ``second_look`` of 0 the second look."""
+def configured(settings: dict[str, Any]) -> GlobalConfig:
+    """The shipped `GlobalConfig` with the given settings changed, each named by its path in the
+    nested config (``"codebook.hypotheses"``, ``"second_look.below"``); a ``gravity.tilt_deg``
+    of None leaves gravity (and the support it needs) out, a ``second_look.hypotheses`` of 0 the
+    second look."""
     cfg = GlobalConfig()
     groups: dict[str, dict] = {}
-    for name, value in flat.items():
-        group, key = FLAT_FIELDS[name]
+    for path, value in settings.items():
+        group, key = path.split(".")
         groups.setdefault(group, {})[key] = value
     changes = {}
     for group, values in groups.items():
@@ -166,16 +147,6 @@ def flat_config(**flat) -> GlobalConfig:
     if changes.get("gravity", cfg.gravity) is None:
         changes["support"] = None  # the neighbours' support is found from resting poses
     return dataclasses.replace(cfg, **changes)
-
-
-def flat_fields(cfg: GlobalConfig) -> dict:
-    """`FLAT_FIELDS` of a config (None for a group left out)."""
-    out = {}
-    for name, (group, key) in FLAT_FIELDS.items():
-        part = getattr(cfg, group)
-        value = None if part is None else getattr(part, key)
-        out[name] = list(value) if isinstance(value, tuple) else value
-    return out
 
 
 def check_snap_list(spec: str) -> list[int]:
@@ -239,7 +210,9 @@ def record(split: str, subset: str, images: int) -> list[dict]:
         gt = next(o for o in s.objects if o.name == name)
         T_W_C, model = np.asarray(s.extra["T_W_C"], float), load_object(name)
         target = detect_target(
-            est.hybrid, Observation(s.rgb, s.K, np.eye(4), name, s.seed), est.config.target_score
+            est.hybrid,
+            Observation(s.rgb, s.K, np.eye(4), name, s.seed),
+            est.config.detection.target_score,
         )
         if target.best is None:
             out.append({"image": i, "object": name, "detected": False})
@@ -282,7 +255,9 @@ def config_sweep(
         name = s.extra.get("target", s.objects[0].name)
         gt = next(o for o in s.objects if o.name == name)
         target = detect_target(
-            est.hybrid, Observation(s.rgb, s.K, np.eye(4), name, s.seed), est.config.target_score
+            est.hybrid,
+            Observation(s.rgb, s.K, np.eye(4), name, s.seed),
+            est.config.detection.target_score,
         )
         if target.best is not None:
             R_W_C = np.asarray(s.extra["T_W_C"], float)[:3, :3] if "T_W_C" in s.extra else None
@@ -305,7 +280,7 @@ def config_sweep(
         out.append(
             {
                 "setting": label,
-                **flat_fields(cfg),
+                "config": dataclasses.asdict(cfg),
                 "second_look_pct": 100 * looks / max(1, len(cases)),
                 "detections": len(cases),
                 "mean": float(e.mean()),
@@ -391,81 +366,81 @@ def _named(name: str, fmt=str) -> Callable[[Any], str]:
     return lambda v: f"{name} {fmt(v) if v not in (None, ()) else 'none'}"
 
 
-#: The settings --FLAG sweeps: GlobalConfig field (or fields, each value then a tuple), parser,
-#: metavar, help, label of a value.
+#: The settings --FLAG sweeps: the path of its setting in `GlobalConfig` (or paths, each value
+#: then a tuple), parser, metavar, help, label of a value.
 SWEEPS: dict[str, tuple[str | tuple[str, ...], Callable, str, str, Callable[[Any], str]]] = {
     "keeps": (
-        "keep_after_first",
+        "refinement.keep_after_first",
         check_int_list,
         "LIST",
         "comma list of 0..13",
         _named("keep"),
     ),
     "grows": (
-        "occluded_grow",
+        "codebook.occluded_grow",
         check_grow_lists,
         "LISTS",
         "';'-separated comma lists of factors 1..4, 'none' for the mask's own box alone",
         _named("grow", lambda g: ",".join(map(str, g))),
     ),
     "screens": (
-        "screen_iterations",
+        "refinement.screen_iterations",
         check_screen_list,
         "LIST",
         "comma list of 0..6, 0 for the refiner's full run",
         _named("screen"),
     ),
     "snaps": (
-        "snap_candidates",
+        "gravity.snap_candidates",
         check_snap_list,
         "LIST",
         "comma list of 0..13, 0: no snap",
         _named("snap"),
     ),
     "snap_steps": (
-        "snap_iterations",
+        "gravity.snap_iterations",
         check_snap_steps,
         "LIST",
         "comma list of 1..6",
         _named("snap steps"),
     ),
     "appearances": (
-        "appearance_weight",
+        "scoring.appearance_weight",
         lambda spec: check_float_list(spec, 0.0, 10.0, "--appearances"),
         "LIST",
         "comma list of weights in [0, 10]",
         _named("appearance"),
     ),
     "edge_weights": (
-        "edge_weight",
+        "scoring.edge_weight",
         lambda spec: check_float_list(spec, 0.0, 10.0, "--edge-weights"),
         "LIST",
         "comma list of weights in [0, 10]",
         _named("edges"),
     ),
     "ks": (
-        "hypotheses",
+        "codebook.hypotheses",
         check_k_list,
         "LIST",
         "comma list of 1..48",
         _named("K"),
     ),
     "rests": (
-        "resting_hypotheses",
+        "codebook.resting_hypotheses",
         check_rest_list,
         "LIST",
         "comma list of 0..24",
         _named("rests"),
     ),
     "passes": (
-        "refine_passes",
+        "refinement.passes",
         check_passes,
         "LIST",
         "comma list of 1..3",
         _named("passes"),
     ),
     "looks": (
-        ("second_look", "second_look_below", "second_look_resting"),
+        ("second_look.hypotheses", "second_look.below", "second_look.resting"),
         check_looks,
         "LIST",
         "comma list of N@S or N+R@S: N more hypotheses, R resting ones, when the best score is "
@@ -473,7 +448,7 @@ SWEEPS: dict[str, tuple[str | tuple[str, ...], Callable, str, str, Callable[[Any
         lambda v: f"look {v[0]}+{v[2]}@{v[1]:g}",
     ),
     "tilts": (
-        "resting_tilt_deg",
+        "gravity.tilt_deg",
         check_tilt_list,
         "LIST",
         "comma list of degrees in (0, 180), 'none' for no resting prior",
@@ -482,9 +457,7 @@ SWEEPS: dict[str, tuple[str | tuple[str, ...], Callable, str, str, Callable[[Any
 }
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def _parser() -> ArgumentParser:
     p = ArgumentParser(
         prog="python studies/global_ablation.py", description=__doc__.split("\n\n")[0]
     )
@@ -497,13 +470,14 @@ def main(argv: list[str] | None = None) -> int:
         help="the first N images of the subset, 1..100000 (default 150)",
     )
     add_json_argument(p, "every start's scores and the ablation")
-    for flag, (field, check, metavar, text, _) in SWEEPS.items():
+    for flag, (path, check, metavar, text, _) in SWEEPS.items():
+        paths = ", ".join(path) if isinstance(path, tuple) else path
         p.add_argument(
             f"--{flag.replace('_', '-')}",
             type=arg(check),
             default=None,
             metavar=metavar,
-            help=f"instead, measure these {field} settings ({text})",
+            help=f"instead, measure these {paths} settings ({text})",
         )
     p.add_argument(
         "--replay",
@@ -512,38 +486,35 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PATH",
         help="replay the starts recorded in an earlier --json instead of measuring",
     )
-    args = p.parse_args(argv)
-    chosen = [flag for flag in SWEEPS if getattr(args, flag) is not None]
-    if chosen:
-        setup_rendering(threads=1)
-        field, _, _, _, label = SWEEPS[chosen[0]]
-        configs = {}
-        for v in getattr(args, chosen[0]):
-            pairs = zip(field, v, strict=True) if isinstance(field, tuple) else [(field, v)]
-            configs[label(v)] = flat_config(**dict(pairs))
-        sweep = config_sweep(args.split, args.subset, args.images, configs)
-        print(f"{args.split}/{args.subset}, {sweep[0]['detections']} detections:")
-        for k in sweep:
-            print(
-                f"  {k['setting']:16s}: mean {k['mean']:6.2f}  median {k['median']:5.2f}  "
-                f"> 15 deg {k['over_15_pct']:5.1f} %  (best start {k['best_mean']:6.2f}, "
-                f"{k['best_over_15_pct']:5.1f} %)  translation {k['translation_pct']:5.2f} %  "
-                f"verify {k['verify_ms_median']:.0f} ms (p90 {k['verify_ms_p90']:.0f}), "
-                f"second look {k['second_look_pct']:.0f} %"
-            )
-        if args.json is not None:
-            write_json(args.json, {"sweep": sweep})
-        return 0
-    if args.replay is not None:
-        rows = json.loads(args.replay.read_text())["rows"]
-    else:
-        setup_rendering(threads=1)
-        rows = record(args.split, args.subset, args.images)
-        if args.json is not None:
-            write_json(args.json, {"rows": rows})
-    res = ablate(rows)
+    return p
+
+
+def _sweep(args: argparse.Namespace, flag: str) -> None:
+    """Measure, print and (with ``--json``) write the settings ``--FLAG`` asks for."""
+    setup_rendering(threads=1)
+    path, _, _, _, label = SWEEPS[flag]
+    configs = {}
+    for v in getattr(args, flag):
+        pairs = zip(path, v, strict=True) if isinstance(path, tuple) else [(path, v)]
+        configs[label(v)] = configured(dict(pairs))
+    sweep = config_sweep(args.split, args.subset, args.images, configs)
+    print(f"{args.split}/{args.subset}, {sweep[0]['detections']} detections:")
+    for k in sweep:
+        print(
+            f"  {k['setting']:16s}: mean {k['mean']:6.2f}  median {k['median']:5.2f}  "
+            f"> 15 deg {k['over_15_pct']:5.1f} %  (best start {k['best_mean']:6.2f}, "
+            f"{k['best_over_15_pct']:5.1f} %)  translation {k['translation_pct']:5.2f} %  "
+            f"verify {k['verify_ms_median']:.0f} ms (p90 {k['verify_ms_p90']:.0f}), "
+            f"second look {k['second_look_pct']:.0f} %"
+        )
+    if args.json is not None:
+        write_json(args.json, {"sweep": sweep})
+
+
+def _print_ablation(res: dict, where: str) -> None:
+    """The offline ablation of `ablate`: the weight grid, the K sweep and the resting prior."""
     print(
-        f"{args.split}/{args.subset}: {res['detected']} of {res['targets']} targets detected; "
+        f"{where}: {res['detected']} of {res['targets']} targets detected; "
         f"verification {res['median_verify_ms']:.0f} ms per detection (median)"
     )
     print("score = IoU + a x colour + e x edges, K = 12:")
@@ -564,6 +535,25 @@ def main(argv: list[str] | None = None) -> int:
             f"  tilt <= {t['max_tilt_deg']:4.0f} deg: mean {t['mean']:6.2f}  "
             f"median {t['median']:5.2f}  > 15 deg {t['over_15_pct']:5.1f} %"
         )
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
+    chosen = [flag for flag in SWEEPS if getattr(args, flag) is not None]
+    if chosen:
+        _sweep(args, chosen[0])
+        return 0
+    if args.replay is not None:
+        rows = json.loads(args.replay.read_text())["rows"]
+    else:
+        setup_rendering(threads=1)
+        rows = record(args.split, args.subset, args.images)
+        if args.json is not None:
+            write_json(args.json, {"rows": rows})
+    res = ablate(rows)
+    _print_ablation(res, f"{args.split}/{args.subset}")
     if args.json is not None:
         write_json(args.json, {"ablation": res, "rows": rows})
     return 0
