@@ -136,8 +136,8 @@ def _protocol(args, poses: BopPosesEstimator | None) -> Protocol:
     )
 
 
-def _parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m sim.evaluate", description=__doc__.split("\n")[0])
+def _add_episode_arguments(p: ArgumentParser) -> None:
+    """Add which episodes run: ``--objects``, ``--pool``, ``--candidates`` and ``--episodes``."""
     p.add_argument(
         "--objects",
         default=None,
@@ -159,6 +159,11 @@ def _parser() -> ArgumentParser:
         default=None,
         help=f"episodes per object, 1..{MAX_EPISODES} (default 50)",
     )
+
+
+def _add_pose_source_arguments(p: ArgumentParser) -> None:
+    """Add where the grasped poses come from: the estimator's options, or ``--poses`` with
+    ``--from`` (a BOP results CSV and the export it answers)."""
     add_estimator_arguments(p, default=None)
     p.add_argument(
         "--poses",
@@ -176,25 +181,11 @@ def _parser() -> ArgumentParser:
         metavar="DIR",
         help="with --poses: the BOP export of python -m sim.export_bop that the CSV answers",
     )
-    add_obs_mode_argument(p)
-    add_sensor_argument(p)
-    p.add_argument(
-        "--seed-start",
-        type=arg(check_seed, "--seed-start", base=int),
-        default=None,
-        help=f"first scene seed (default {C.EVAL_SEED_BASE}: held-out scenes, never rendered as "
-        "training data)",
-    )
-    add_workers_argument(p, what="at most one per episode and core")
-    p.add_argument(
-        "--tier",
-        default=None,
-        type=arg(check_tier),
-        help=f"scene tier, one of: {', '.join(TIERS)} (default {DEFAULT_TIER})",
-    )
-    p.add_argument(
-        "--margin", action="store_true", help="measure each grasp's friction margin (slower)"
-    )
+
+
+def _add_output_arguments(p: ArgumentParser) -> None:
+    """Add what the run writes and resumes from: ``--json``, ``--plot`` (with the
+    ``--tolerance`` curves it overlays) and ``--resume``."""
     add_json_argument(p, "the full report")
     p.add_argument(
         "--plot",
@@ -216,6 +207,35 @@ def _parser() -> ArgumentParser:
         help="finish an interrupted run of the same arguments from its journal (beside the --json "
         "file, else under the data folder's runs/)",
     )
+
+
+def _parser() -> ArgumentParser:
+    """The command-line parser: the episodes, where their poses come from, what is observed,
+    the seeds, workers, tier and friction margin, the outputs and the backend (the order of
+    ``--help``); every value is checked while parsing, the combinations by `_episodes_of`."""
+    p = ArgumentParser(prog="python -m sim.evaluate", description=__doc__.split("\n")[0])
+    _add_episode_arguments(p)
+    _add_pose_source_arguments(p)
+    add_obs_mode_argument(p)
+    add_sensor_argument(p)
+    p.add_argument(
+        "--seed-start",
+        type=arg(check_seed, "--seed-start", base=int),
+        default=None,
+        help=f"first scene seed (default {C.EVAL_SEED_BASE}: held-out scenes, never rendered as "
+        "training data)",
+    )
+    add_workers_argument(p, what="at most one per episode and core")
+    p.add_argument(
+        "--tier",
+        default=None,
+        type=arg(check_tier),
+        help=f"scene tier, one of: {', '.join(TIERS)} (default {DEFAULT_TIER})",
+    )
+    p.add_argument(
+        "--margin", action="store_true", help="measure each grasp's friction margin (slower)"
+    )
+    _add_output_arguments(p)
     add_backend_arguments(p)
     return p
 
