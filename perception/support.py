@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from perception.geometry import rot_z
-from perception.metrics import rotation_error_deg
+from perception.metrics import mask_iou, rotation_error_deg
+from perception.overlay import mask_window, silhouette, window_intrinsics
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world.objects import ObjectModel
@@ -182,54 +183,101 @@ def refine_with_mask(
         model: the object (its mesh).
         mask: the object's segmentation in the image, (H, W) bool (e.g. the detector's).
     """
-    from perception.metrics import mask_iou
-    from perception.overlay import mask_window, silhouette, window_intrinsics
-
     mask = np.asarray(mask, bool)
     T_C_O = np.asarray(T_C_O, np.float64)
     box = mask_window(mask)
     if box is None:
         return MaskRefinement(T_C_O.copy(), 0.0, 0.0, 0.0, (0.0, 0.0), 0)
     x0, y0, x1, y1 = box
-    window = mask[y0:y1, x0:x1]
-    Kw = window_intrinsics(K, x0, y0)
     mesh = model.mesh
-    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    T_cam_world = np.linalg.inv(T_world_cam)
     T_W_O = T_world_cam @ T_C_O
-    R0, p0 = T_W_O[:3, :3], T_W_O[:3, 3]
-    renders = 0
+    scorer = _MaskScorer(
+        mask[y0:y1, x0:x1],
+        window_intrinsics(K, x0, y0),
+        np.asarray(mesh.vertices),
+        np.asarray(mesh.faces),
+        np.linalg.inv(T_world_cam),
+        T_W_O[:3, :3],
+        T_W_O[:3, 3],
+    )
+    before = scorer.score(0.0, 0.0, 0.0)
+    best = _search_yaw(scorer, (before, 0.0, 0.0, 0.0), yaw_range_deg)
+    best = _search_shift(scorer, best, shift_range_m / 2)
+    best = _search_fine_yaw(scorer, best)
+    s, yaw, dx, dy = best
+    return MaskRefinement(
+        scorer.pose(yaw, dx, dy), before, s, float(np.degrees(yaw)), (dx, dy), scorer.renders
+    )
 
-    def pose(yaw: float, dx: float, dy: float) -> np.ndarray:
+
+@dataclass
+class _MaskScorer:
+    """Silhouette IoU with a mask of a resting pose turned and shifted on its support.
+
+    Attributes:
+        window: the mask in its window, (h, w) bool.
+        Kw: the window's intrinsics, (3, 3) [px].
+        v, f: the object's mesh: vertices in O (V, 3) [m], faces (F, 3).
+        T_cam_world: the world in the camera frame, (4, 4).
+        R0, p0: the pose's rotation (3, 3) and origin (3,) [m] in the world (z up).
+        renders: silhouettes rendered so far.
+    """
+
+    window: np.ndarray
+    Kw: np.ndarray
+    v: np.ndarray
+    f: np.ndarray
+    T_cam_world: np.ndarray
+    R0: np.ndarray
+    p0: np.ndarray
+    renders: int = 0
+
+    def pose(self, yaw: float, dx: float, dy: float) -> np.ndarray:
+        """The pose turned by `yaw` [rad] about the world's vertical through its origin and
+        moved by (dx, dy) [m] in the world's horizontal plane, in the camera frame (4, 4)."""
         T = np.eye(4)
-        T[:3, :3] = rot_z(yaw) @ R0
-        T[:3, 3] = p0 + np.array([dx, dy, 0.0])
-        return T_cam_world @ T
+        T[:3, :3] = rot_z(yaw) @ self.R0
+        T[:3, 3] = self.p0 + np.array([dx, dy, 0.0])
+        return self.T_cam_world @ T
 
-    def score(yaw: float, dx: float, dy: float) -> float:
-        nonlocal renders
-        renders += 1
-        return mask_iou(silhouette(pose(yaw, dx, dy), Kw, v, f, window.shape), window)
+    def score(self, yaw: float, dx: float, dy: float) -> float:
+        """The silhouette IoU with the mask of `pose` (yaw, dx, dy); counted in `renders`."""
+        self.renders += 1
+        silh = silhouette(self.pose(yaw, dx, dy), self.Kw, self.v, self.f, self.window.shape)
+        return mask_iou(silh, self.window)
 
-    before = score(0.0, 0.0, 0.0)
-    best = (before, 0.0, 0.0, 0.0)
+
+#: The best (IoU, yaw [rad], dx [m], dy [m]) a search has found.
+_Best = tuple[float, float, float, float]
+
+
+def _search_yaw(scorer: _MaskScorer, best: _Best, yaw_range_deg: float) -> _Best:
+    """`best` after trying yaws in 3 degree steps over +-`yaw_range_deg`, unshifted."""
     for yaw in np.radians(np.arange(-yaw_range_deg, yaw_range_deg + 1e-9, 3.0)):
-        s = score(yaw, 0.0, 0.0)
+        s = scorer.score(yaw, 0.0, 0.0)
         if s > best[0]:
             best = (s, yaw, 0.0, 0.0)
-    step = shift_range_m / 2
+    return best
+
+
+def _search_shift(scorer: _MaskScorer, best: _Best, step: float) -> _Best:
+    """`best` after trying, at its yaw, the 8 shifts of a 3x3 grid of `step` [m] around it."""
     yaw_b = best[1]
     for dx in (-step, 0.0, step):
         for dy in (-step, 0.0, step):
             if dx == 0.0 and dy == 0.0:
                 continue
-            s = score(yaw_b, dx, dy)
+            s = scorer.score(yaw_b, dx, dy)
             if s > best[0]:
                 best = (s, yaw_b, dx, dy)
+    return best
+
+
+def _search_fine_yaw(scorer: _MaskScorer, best: _Best) -> _Best:
+    """`best` after trying, at its shift, yaws 1 to 3 degrees either side of its own."""
     _, yaw_b, dx_b, dy_b = best
     for d in np.radians((-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)):
-        s = score(yaw_b + d, dx_b, dy_b)
+        s = scorer.score(yaw_b + d, dx_b, dy_b)
         if s > best[0]:
             best = (s, yaw_b + d, dx_b, dy_b)
-    s, yaw, dx, dy = best
-    return MaskRefinement(pose(yaw, dx, dy), before, s, float(np.degrees(yaw)), (dx, dy), renders)
+    return best
