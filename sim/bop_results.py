@@ -407,6 +407,28 @@ def read_bop_results(
     if not isinstance(export, ExportEpisodes):
         export = read_export(export)
     csv_path = Path(csv_path)
+    problems = _Problems()
+    parsed = _parse_rows(csv_path, problems)
+    _check_images(csv_path, parsed, export, problems)
+    norms = [float(np.linalg.norm(p.t_mm)) for p in parsed]
+    if norms and float(np.median(norms)) < MIN_MEDIAN_T_MM:
+        problems.lines.insert(
+            0,
+            f"{csv_path}: t is in millimetres, but its poses lie at a median "
+            f"{float(np.median(norms)):.3g} mm from the camera, nearer than any object it sees "
+            f"(at least {MIN_MEDIAN_T_MM:g} mm); written in metres? multiply t by 1000",
+        )
+    problems.raise_if_any(csv_path)
+    return _best_rows(parsed)
+
+
+def _parse_rows(csv_path: Path, problems: _Problems) -> list[_Parsed]:
+    """The rows of the CSV that parse and pass the checks of one row (`_row`), in file
+    order; the problems of the others are added to `problems`.
+
+    Raises:
+        InvalidArgumentError: the file cannot be read, is empty or its header lacks a column.
+    """
     try:
         lines = csv_path.read_text(encoding="utf-8-sig").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
@@ -418,7 +440,6 @@ def read_bop_results(
         )
     first, header = numbered[0]
     cols = _header(header, f"{csv_path} line {first}")
-    problems = _Problems()
     parsed: list[_Parsed] = []
     for row, (line_no, line) in enumerate(numbered[1:], start=1):
         where = f"{csv_path} row {row} (line {line_no})"
@@ -427,6 +448,18 @@ def read_bop_results(
             problems.add(where, f)
         if p is not None:
             parsed.append(p)
+    return parsed
+
+
+def _check_images(
+    csv_path: Path, parsed: list[_Parsed], export: ExportEpisodes, problems: _Problems
+) -> None:
+    """Add to `problems` each row whose image is not one of the export's.
+
+    Raises:
+        InvalidArgumentError: none of the rows' images is the export's (a CSV of another
+            export).
+    """
     ours = export.image_ids
     if parsed and not any(p.key[:2] in ours for p in parsed):
         s, i = parsed[0].key[:2]
@@ -442,15 +475,11 @@ def read_bop_results(
                 f"image scene_id {p.key[0]}, im_id {p.key[1]} is not in the export {export.root} "
                 f"({export.describe()}; its test_targets_bop19.json lists its images)",
             )
-    norms = [float(np.linalg.norm(p.t_mm)) for p in parsed]
-    if norms and float(np.median(norms)) < MIN_MEDIAN_T_MM:
-        problems.lines.insert(
-            0,
-            f"{csv_path}: t is in millimetres, but its poses lie at a median "
-            f"{float(np.median(norms)):.3g} mm from the camera, nearer than any object it sees "
-            f"(at least {MIN_MEDIAN_T_MM:g} mm); written in metres? multiply t by 1000",
-        )
-    problems.raise_if_any(csv_path)
+
+
+def _best_rows(parsed: list[_Parsed]) -> dict[tuple[int, int, int], BopRow]:
+    """The highest-scoring row per (scene_id, im_id, obj_id), the first of equal scores, with
+    its pose T_C_O (4, 4) [m]: the nearest rotation to its R, its t in metres."""
     best: dict[tuple[int, int, int], BopRow] = {}
     for p in parsed:
         if p.key not in best or p.score > best[p.key].score:
