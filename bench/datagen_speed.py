@@ -39,7 +39,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TextIO
 
-from perception.training.generation import MAX_VIEWS, GenConfig, generate
+from perception.training.data.render_split import MAX_VIEWS, GenConfig, generate
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,

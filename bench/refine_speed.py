@@ -44,8 +44,8 @@ from perception.hybrid import HybridPoseEstimator, occluder_of
 from perception.metrics import box_iou, mask_iou, rotation_error_deg
 from perception.overlay import silhouette
 from perception.refine import PoseRefiner
-from perception.training.dataset import PoseDataset
-from perception.training.generation import DEFAULT_SIZE, GenConfig, generate
+from perception.training.data.dataset import PoseDataset
+from perception.training.data.render_split import DEFAULT_SIZE, GenConfig, generate
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,

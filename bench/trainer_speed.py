@@ -5,12 +5,12 @@
                                   [--detector-batches 2,4,8] [--data DIR] [--cut-images 300]
                                   [--json PATH]
 
-Model step: for the ours and the paper variant (the shipped width), times the trainer's own
-training step (`perception.training.train_posenet.training_loss`: forward, loss in fp32; then
-`perception.training.schedule.optimiser_step`: backward, gradient clip, AdamW) on random crops
-shaped as real ones (64x64 RGB, labels in their ranges), at each batch in four arithmetics: fp32,
-channels-last, bf16 autocast, and both. Each configuration starts from a fresh seeded net, takes
-`WARMUP_STEPS` untimed steps and then as many as fit in its share of ``--seconds``; its
+Model step: for the ours and the paper variant (the shipped width), times the trainer's own training
+step (`perception.training.trainers.posenet_trainer.training_loss`: forward, loss in fp32; then
+`perception.training.trainers.schedule.optimiser_step`: backward, gradient clip, AdamW) on random
+crops shaped as real ones (64x64 RGB, labels in their ranges), at each batch in four arithmetics:
+fp32, channels-last, bf16 autocast, and both. Each configuration starts from a fresh seeded net,
+takes `WARMUP_STEPS` untimed steps and then as many as fit in its share of ``--seconds``; its
 samples/s is the batch over the median step time. The configurations are timed in ``--rounds``
 rounds over all of them and the fastest round of each counts, so that bursts of other processes
 on a shared machine move the figures least (the mean's figure and the load average are in the
@@ -24,11 +24,12 @@ written) from the first ``--cut-images`` rendered images of a dataset there; if 
 rendered images either, it says so. The data path's share of each step (medians of both parts)
 is reported alongside.
 
-Detector: the detector trainer's step (`perception.training.train_detector.detection_loss`, then
-the same optimiser step) on real head-camera images and their targets
-(`perception.training.detection_data.DetectionSet`, the first rendered split found under the data
-root, photometric augmentation as in training), starting from the shipped detector weights, at each
-of ``--detector-batches`` in the same four arithmetics; images/s.
+Detector: the detector trainer's step
+(`perception.training.trainers.detector_trainer.detection_loss`, then the same optimiser step) on
+real head-camera images and their targets
+(`perception.training.trainers.detection_data.DetectionSet`, the first rendered split found under
+the data root, photometric augmentation as in training), starting from the shipped detector
+weights, at each of ``--detector-batches`` in the same four arithmetics; images/s.
 
 One process; torch threads 2 unless told otherwise. ``--json PATH`` writes the figures. No
 target is set for training speed: the figures compare arithmetics and batches, and the bench
@@ -49,14 +50,13 @@ import torch
 
 from perception.detector_net import build_detector
 from perception.nets import CROP, PoseNet
-from perception.training.crop_sets import CropConfig, CropSet, random_boxes
-from perception.training.dataset import DATASETS, PoseDataset
-from perception.training.ddp import ONE_PROCESS
-from perception.training.detection_data import DetectionSet, augment_shard, start_from
-from perception.training.loop import MAX_BATCH
-from perception.training.schedule import optimiser_step
-from perception.training.train_detector import DetectorTrainConfig, detection_loss
-from perception.training.train_posenet import (
+from perception.training.data.crop_sets import CropConfig, CropSet, random_boxes
+from perception.training.data.dataset import DATASETS, PoseDataset
+from perception.training.trainers.ddp import ONE_PROCESS
+from perception.training.trainers.detection_data import DetectionSet, augment_shard, start_from
+from perception.training.trainers.detector_trainer import DetectorTrainConfig, detection_loss
+from perception.training.trainers.loop import MAX_BATCH
+from perception.training.trainers.posenet_trainer import (
     BATCH_KEYS,
     GRAD_CLIP,
     PoseNetTrainConfig,
@@ -64,6 +64,7 @@ from perception.training.train_posenet import (
     training_inputs,
     training_loss,
 )
+from perception.training.trainers.schedule import optimiser_step
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
@@ -99,7 +100,8 @@ LR = 1e-4
 
 
 def random_crops(n: int, seed: int = 0) -> dict[str, np.ndarray]:
-    """A crop set of `n` random rows shaped and typed as `perception.training.crop_sets` cuts."""
+    """A crop set of `n` random rows shaped and typed as `perception.training.data.crop_sets`
+    cuts."""
     rng = np.random.default_rng(seed)
     direction = rng.normal(size=(n, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)

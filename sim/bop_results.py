@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from perception.training.bop import MM_PER_M, obj_id, obj_name
+from perception.training.data.bop import MM_PER_M, obj_id, obj_name
 from posegrasp.core.contract import MAX_POSE_DISTANCE, Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.validate import check_int, check_seed

@@ -63,8 +63,8 @@ from typing import Any
 
 import numpy as np
 
-from perception.training.annotations import full_silhouette
-from perception.training.bop import (
+from perception.training.data.annotations import full_silhouette
+from perception.training.data.bop import (
     MM_PER_M,
     PNG_LEVEL,
     bbox_xywh,
@@ -76,7 +76,7 @@ from perception.training.bop import (
     write_json,
     write_png,
 )
-from perception.training.writer import write_models
+from perception.training.data.writer import write_models
 from posegrasp.core.cli import ArgumentParser, add_out_argument, command
 from posegrasp.core.contract import CONTRACT_VERSION
 from posegrasp.core.errors import InvalidArgumentError

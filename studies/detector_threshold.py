@@ -21,7 +21,7 @@ import numpy as np
 
 from perception.detector import TIERS_DETECTOR, Detector
 from perception.metrics import box_iou
-from perception.training.dataset import PoseDataset
+from perception.training.data.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.paths import data_root
 from posegrasp.core.progress import progress_bar

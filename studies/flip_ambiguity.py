@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from perception.metrics import mask_iou
-from perception.training.dataset import PoseDataset
-from perception.training.studio import Studio, StudioConfig, StudioView
+from perception.training.data.dataset import PoseDataset
+from perception.training.data.studio import Studio, StudioConfig, StudioView
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import data_root

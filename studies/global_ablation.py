@@ -60,7 +60,7 @@ from perception.global_pose import GlobalConfig, GlobalPoseEstimator
 from perception.hybrid import detect_target
 from perception.metrics import rotation_error_deg
 from perception.support import snap_to_resting
-from perception.training.dataset import PoseDataset
+from perception.training.data.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError

@@ -25,8 +25,8 @@ from perception.estimators import LEARNED_ESTIMATORS
 from perception.global_pose import GlobalPoseEstimator
 from perception.hybrid import detect_target
 from perception.metrics import mask_iou, rotation_error_deg
-from perception.training.dataset import PoseDataset
-from perception.training.estimator_tables import MIN_VISIB, rotation_summary
+from perception.training.data.dataset import PoseDataset
+from perception.training.evals.estimator_tables import MIN_VISIB, rotation_summary
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
 from posegrasp.core.paths import data_root

@@ -22,7 +22,7 @@ import numpy as np
 from perception.global_pose import GlobalPoseEstimator
 from perception.hybrid import detect_target
 from perception.metrics import mask_iou, rotation_error_deg
-from perception.training.dataset import PoseDataset
+from perception.training.data.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
 from posegrasp.core.paths import data_root

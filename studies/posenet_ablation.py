@@ -60,12 +60,12 @@ import numpy as np
 import torch
 
 from perception.nets import PoseOutput, load_posenet
-from perception.training.checkpoints import read_checkpoint
-from perception.training.crop_sets import build_crops
-from perception.training.generation import GENERATOR_VERSIONS
-from perception.training.posenet_eval import evaluate_arrays
+from perception.training.data.crop_sets import build_crops
+from perception.training.data.render_split import GENERATOR_VERSIONS
+from perception.training.evals.posenet_eval import evaluate_arrays
 from perception.training.tables import TEST_CROPS
-from perception.training.train_posenet import PoseNetTrainConfig, checkpoint_path, train
+from perception.training.trainers.checkpoints import read_checkpoint
+from perception.training.trainers.posenet_trainer import PoseNetTrainConfig, checkpoint_path, train
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,

@@ -20,7 +20,7 @@ import numpy as np
 from perception.hybrid import HybridPoseEstimator, detect_target
 from perception.metrics import rotation_error_deg
 from perception.refine import PoseRefiner
-from perception.training.dataset import PoseDataset
+from perception.training.data.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
 from posegrasp.core.paths import data_root

@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from perception.nets import load_posenet
-from perception.training.crop_sets import CropSet, random_boxes
-from perception.training.dataset import DATASETS, PoseDataset
-from perception.training.posenet_eval import decode_predictions, pose_metrics, predict
+from perception.training.data.crop_sets import CropSet, random_boxes
+from perception.training.data.dataset import DATASETS, PoseDataset
+from perception.training.evals.posenet_eval import decode_predictions, pose_metrics, predict
 from perception.training.tables import TEST_CROPS
 from posegrasp.core.cli import (
     ArgumentParser,

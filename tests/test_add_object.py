@@ -445,7 +445,7 @@ def test_env_takes_a_user_object(made, monkeypatch) -> None:
 
 @pytest.mark.slow
 def test_export_bop_writes_user_models(made, monkeypatch, tmp_path) -> None:
-    from perception.training.bop import obj_id
+    from perception.training.data.bop import obj_id
     from sim.bop_results import read_export
     from sim.export_bop import export_bop
 

@@ -70,7 +70,8 @@ def test_import_contracts_hold() -> None:
         ("posegrasp/world/constants.py", "import sim.episode"),  # the bottom reaching up
         ("posegrasp/core/errors.py", "import posegrasp.world.scene"),  # core reaching into world
         ("grasping/candidates.py", "import perception.geometry"),  # siblings meeting
-        ("perception/hybrid.py", "import perception.training.dataset"),  # run time -> training
+        ("perception/hybrid.py", "import perception.training.data.dataset"),  # run time -> training
+        ("perception/training/data/bop.py", "import perception.training.trainers.ddp"),  # data up
     ],
 )
 def test_import_contracts_catch_a_back_edge(tmp_path: Path, module: str, bad_import: str) -> None:

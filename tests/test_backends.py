@@ -23,8 +23,8 @@ from ray import cloudpickle
 from ray.cluster_utils import Cluster
 
 from perception.peers import extra
+from perception.training.data.writer import WALL_TIME_FILE
 from perception.training.datagen import main as datagen_main
-from perception.training.writer import WALL_TIME_FILE
 from posegrasp.core.backends import default_chunk, run_map
 from sim.evaluation import EpisodeJob, Protocol, evaluate_protocol, run_job
 

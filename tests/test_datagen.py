@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 
 from perception.geometry import encode, invert_transform, project
-from perception.training import bop
-from perception.training import dataset as ds
-from perception.training.annotations import full_silhouette
+from perception.training.data import bop
+from perception.training.data import dataset as ds
+from perception.training.data.annotations import full_silhouette
+from perception.training.data.render_split import SEED_BASES
+from perception.training.data.sheets import draw_annotations
+from perception.training.data.writer import WALL_TIME_FILE
 from perception.training.datagen import main
-from perception.training.generation import SEED_BASES
-from perception.training.sheets import draw_annotations
-from perception.training.writer import WALL_TIME_FILE
 from posegrasp.core.errors import AssetError, StateError
 from posegrasp.world import constants as C
 from posegrasp.world.camera import T_world_cam, camera_intrinsics
@@ -153,7 +153,7 @@ def test_paper_pose_projects_onto_mask(paper: Path) -> None:
 
 
 def test_paper_K_matches_sim_intrinsics(paper: Path) -> None:
-    from perception.training.studio import CAMERA, Studio
+    from perception.training.data.studio import CAMERA, Studio
 
     studio = Studio()  # no GL context is created without rendering
     K = camera_intrinsics(studio.model, CAMERA, 256, 256)
@@ -163,7 +163,7 @@ def test_paper_K_matches_sim_intrinsics(paper: Path) -> None:
 
 
 def test_studio_renders_the_same_scene_with_the_object_turned(paper: Path) -> None:
-    from perception.training.studio import Studio
+    from perception.training.data.studio import Studio
 
     sample = ds.load_sample(paper, "val", 0)
     name = sample.objects[0].name
@@ -249,8 +249,8 @@ def test_wall_time_is_recorded_per_split(paper: Path) -> None:
 def test_depth_read_inside_a_window_is_that_part_of_the_whole_one() -> None:
     # The generator reads each object's depth back only inside its projected box: the box must
     # hold every pixel the object covers, and the part read must equal the whole read there.
-    from perception.training.generators import HeadcamGenerator, _body_window
-    from perception.training.studio import HIDDEN_GROUP
+    from perception.training.data.distributions import HeadcamGenerator, _body_window
+    from perception.training.data.studio import HIDDEN_GROUP
 
     gen = HeadcamGenerator(320, 240)
     try:
@@ -281,7 +281,7 @@ def test_depth_read_inside_a_window_is_that_part_of_the_whole_one() -> None:
 def test_visible_masks_from_depth_match_a_segmentation_render() -> None:
     # The generator tells an object's visible pixels by comparing its own depth with the
     # scene's; a segmentation render of the same view must agree but for depth ties.
-    from perception.training.generators import HeadcamGenerator
+    from perception.training.data.distributions import HeadcamGenerator
     from posegrasp.world.camera import CameraRenderer, body_mask
 
     gen = HeadcamGenerator(320, 240, tier="hard")
@@ -445,7 +445,7 @@ def test_preview_contact_sheet(paper: Path, tmp_path: Path) -> None:
 
 def test_datagen_does_not_import_torch() -> None:
     code = (
-        "import sys, perception.training.datagen, perception.training.dataset; "
+        "import sys, perception.training.datagen, perception.training.data.dataset; "
         "print('torch' in sys.modules)"
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from perception.training import bop
-from perception.training import dataset as ds
+from perception.training.data import bop
+from perception.training.data import dataset as ds
+from perception.training.data.distributions import HeadcamGenerator, _disjoint_batches
 from perception.training.datagen import main
-from perception.training.generators import HeadcamGenerator, _disjoint_batches
 
 W, H = 160, 120
 

@@ -1,5 +1,5 @@
-"""Data-parallel training (`perception.training.ddp`): two gloo processes under torchrun follow the
-loss curve of one process with the same global batch, and rank 0's checkpoint resumes.
+"""Data-parallel training (`perception.training.trainers.ddp`): two gloo processes under torchrun
+follow the loss curve of one process with the same global batch, and rank 0's checkpoint resumes.
 
 The epoch order, the global batches, their augmentation, the batch-norm statistics, the averaged
 gradient and the schedule are those of one process; what differs is the order of floating-point
@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 import torch
 
-from perception.training.augment import photometric_jitter as _augment
 from perception.training.datagen import main as datagen_main
-from perception.training.ddp import Ranks, resolve_device
 from perception.training.train_posenet import main as train_main
+from perception.training.trainers.augment import photometric_jitter as _augment
+from perception.training.trainers.ddp import Ranks, resolve_device
 from posegrasp.core.errors import InvalidArgumentError
 
 REPO = Path(__file__).resolve().parent.parent

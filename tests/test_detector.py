@@ -26,10 +26,11 @@ from perception.detector_net import (
     state_dict_fp16,
 )
 from perception.training import datagen
-from perception.training.bop import box_xyxy
-from perception.training.detection_eval import coco_ap
-from perception.training.export import export_detector
-from perception.training.train_detector import SMOKE, main, train
+from perception.training.data.bop import box_xyxy
+from perception.training.evals.detection_eval import coco_ap
+from perception.training.shipping.ship import export_detector
+from perception.training.train_detector import main
+from perception.training.trainers.detector_trainer import SMOKE, train
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.world.objects import OBJECT_NAMES
 
@@ -321,7 +322,7 @@ def test_cli_smoke_and_errors(
 def test_mixed_data_and_fine_tuning_start(
     tiny_headcam: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from perception.training.detection_data import start_from, training_images
+    from perception.training.trainers.detection_data import start_from, training_images
 
     monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path / "data"))
     (tmp_path / "data").mkdir()
@@ -374,8 +375,8 @@ def test_bf16_and_channels_last_training_follows_fp32_and_is_recorded(
 
 
 def test_the_detector_loss_under_bf16_is_fp32_with_fp32_gradients(tiny_headcam: Path) -> None:
-    from perception.training.detection_data import DetectionSet
-    from perception.training.train_detector import detection_loss
+    from perception.training.trainers.detection_data import DetectionSet
+    from perception.training.trainers.detector_trainer import detection_loss
 
     cfg = replace(SMOKE, precision="bf16", channels_last=True)
     model = build_detector(cfg.detector).to(memory_format=torch.channels_last).train()

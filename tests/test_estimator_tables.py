@@ -1,4 +1,4 @@
-"""A whole estimator scored on test images (`perception.training.estimator_tables`, behind
+"""A whole estimator scored on test images (`perception.training.evals.estimator_tables`, behind
 ``tables --estimator``): every visible object is one query, its errors are those of the pose it
 answered, a query without a pose counts as not found."""
 
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from perception.metrics import rotation_error_deg
+from perception.training.data.dataset import PoseDataset
 from perception.training.datagen import main as datagen_main
-from perception.training.dataset import PoseDataset
-from perception.training.estimator_tables import (
+from perception.training.evals.estimator_tables import (
     MIN_VISIB,
     query_errors,
     shape_alike,

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from perception.training.bop import read_png
+from perception.training.data.bop import read_png
 from posegrasp.core.contract import Observation
 from posegrasp.world import constants as C
 from sim import export_bop as xb

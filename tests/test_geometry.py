@@ -19,7 +19,7 @@ import perception
 from perception import crops, geometry, metrics, summaries
 from perception import geometry as g
 from perception import geometry_torch as gt
-from perception.training import losses
+from perception.training.trainers import losses
 from posegrasp.core import transforms as tf
 from posegrasp.core.transforms import intrinsics
 

@@ -17,7 +17,7 @@ from perception.mask_net import (
     paste,
     window_of,
 )
-from perception.training.train_masknet import degrade
+from perception.training.trainers.masknet_trainer import degrade
 from posegrasp.core.errors import InvalidArgumentError
 
 
@@ -151,8 +151,8 @@ def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch, heavy) -
     import json
 
     from perception.training.datagen import main as datagen
-    from perception.training.export import export_masknet
-    from perception.training.train_masknet import MaskTrainConfig, train
+    from perception.training.shipping.ship import export_masknet
+    from perception.training.trainers.masknet_trainer import MaskTrainConfig, train
     from posegrasp.core.errors import AssetError
 
     monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path / "data"))
@@ -249,7 +249,7 @@ def test_an_objects_own_net_redraws_that_objects_masks_alone() -> None:
 
 def test_the_examples_are_drawn_into_a_picture(tmp_path) -> None:
     """One row per example, the three masks' outlines on its window: a PNG is written."""
-    from perception.training.train_masknet import plot_examples
+    from perception.training.trainers.masknet_trainer import plot_examples
 
     rgb = np.full((64, 64, 3), 120, np.uint8)
     truth = _disc((64, 64), (32, 32), 20)
@@ -265,10 +265,10 @@ def test_the_detectors_own_masks_are_the_coarse_input_of_their_windows(tmp_path,
     masks of the validation scenes too. The cache is kept in blocks: a longer run runs the
     detector only on the images past the blocks a shorter one finished."""
     import perception.detector as detector_module
-    import perception.training.train_masknet as tm
+    import perception.training.trainers.masknet_trainer as tm
     from perception.detector import Detection
+    from perception.training.data.dataset import PoseDataset
     from perception.training.datagen import main as datagen
-    from perception.training.dataset import PoseDataset
 
     monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path / "data"))
     out = tmp_path / "data" / "paper"

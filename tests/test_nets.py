@@ -13,16 +13,16 @@ import torch
 
 from perception.geometry_torch import rotation_from_p_cs
 from perception.nets import NetConfig, PoseNet, _from_6d, load_posenet, normalise
-from perception.training import datagen
-from perception.training import export as export_weights
-from perception.training import train_posenet as train_mod
-from perception.training.crop_sets import CropConfig, build_crops
-from perception.training.dataset import parse_limit
-from perception.training.ddp import ONE_PROCESS
-from perception.training.losses import posenet_loss
-from perception.training.schedule import learning_rate
+from perception.training import datagen, train_posenet
+from perception.training.data.crop_sets import CropConfig, build_crops
+from perception.training.data.dataset import parse_limit
+from perception.training.shipping import ship as export_weights
 from perception.training.tables import evaluate_split
-from perception.training.train_posenet import SMOKE, train
+from perception.training.trainers import posenet_trainer as train_mod
+from perception.training.trainers.ddp import ONE_PROCESS
+from perception.training.trainers.losses import posenet_loss
+from perception.training.trainers.posenet_trainer import SMOKE, train
+from perception.training.trainers.schedule import learning_rate
 from posegrasp.core.errors import AssetError
 from posegrasp.core.paths import WEIGHTS_DIR
 from posegrasp.core.transforms import quat_to_mat
@@ -365,7 +365,7 @@ def test_parse_limit() -> None:
     ],
 )
 def test_train_cli_bad_input(argv, needle, capsys) -> None:
-    assert train_mod.main(argv) == 2
+    assert train_posenet.main(argv) == 2
     err = capsys.readouterr().err
     assert needle in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1 and err.startswith("error: ")

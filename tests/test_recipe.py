@@ -17,9 +17,10 @@ from perception.detector import Detector
 from perception.mask_net import MaskRefiner
 from perception.nets import load_posenet
 from perception.training import recipe as recipe_mod
-from perception.training.dataset import DISTS
+from perception.training import train_detector, train_masknet, train_posenet
+from perception.training.data.dataset import DISTS
 from perception.training.recipe import RECIPE, SMOKE
-from perception.training.stages import (
+from perception.training.shipping.recipe_stages import (
     STAGE_FILE,
     TRAINERS,
     Artefact,
@@ -46,6 +47,8 @@ MODULES = {
     "perception.training.train_detector": "detector",
     "perception.training.train_masknet": "masknet",
 }
+#: Each trainer's command line.
+COMMANDS = {"posenet": train_posenet, "detector": train_detector, "masknet": train_masknet}
 #: What a run computes on, which no stage sets.
 COMPUTE = {"workers", "threads", "device", "loss_log"}
 
@@ -54,7 +57,7 @@ def _parsed(command: str, trainer: str):
     """The config a recorded command line asks for, parsed by its trainer's own parser."""
     words = shlex.split(command)
     assert words[:2] == ["python", "-m"] and MODULES[words[2]] == trainer, command
-    return TRAINERS[trainer].parse_config(words[3:])[0]
+    return COMMANDS[trainer].parse_config(words[3:])[0]
 
 
 def _recorded_data(trainer: str, seeds: dict) -> dict[str, int]:
@@ -152,7 +155,7 @@ def test_each_stages_command_line_reruns_it(tmp_path) -> None:
         got = _parsed(line, stage.trainer)
         assert replace(got, **{k: getattr(want, k) for k in COMPUTE if hasattr(want, k)}) == want
     # One vocabulary: every trainer takes these options.
-    for trainer, module in TRAINERS.items():
+    for trainer, module in COMMANDS.items():
         argv = ["--data", "headcam=3", "--epochs", "2", "--batch", "4", "--lr", "0.01"]
         argv += ["--seed", "7", "--precision", "bf16", "--channels-last"]
         argv += ["--init", "start.pt", "--out", str(tmp_path / trainer)]
@@ -163,13 +166,13 @@ def test_each_stages_command_line_reruns_it(tmp_path) -> None:
 
 
 def test_the_older_spellings_read_as_the_new() -> None:
-    pose = TRAINERS["posenet"].parse_config
+    pose = COMMANDS["posenet"].parse_config
     assert (
         pose(["--dists", "headcam,paper", "--limit", "headcam=5"])[0]
         == pose(["--data", "headcam=5,paper"])[0]
     )
     assert pose([])[0].dists == DISTS
-    detector = TRAINERS["detector"].parse_config
+    detector = COMMANDS["detector"].parse_config
     old = detector(["--data", "x/headcam_hard", "--also", "headcam", "--limit", "7"])[0]
     assert old.limit == 7 and old.also == ("headcam",)
     new = detector(["--data", "headcam_hard=7,headcam=7"])[0]
@@ -191,7 +194,7 @@ def test_the_older_spellings_read_as_the_new() -> None:
     ],
 )
 def test_the_trainers_refuse_bad_data_in_one_line(module, argv, words, capsys) -> None:
-    assert TRAINERS[module].main(argv) == 2
+    assert COMMANDS[module].main(argv) == 2
     err = capsys.readouterr().err
     assert words in err and err.startswith("error: ") and len(err.strip().splitlines()) == 1
 
@@ -301,8 +304,6 @@ def test_the_smoke_recipe_trains_resumes_and_ships_into_its_own_folder(
 
 
 def test_the_mask_net_trainer_records_its_own_argv(tmp_path, monkeypatch) -> None:
-    from perception.training import train_masknet
-
     monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path / "data"))
     recipe_mod.render_smoke_data()
     weights = tmp_path / "w" / "masknet.pt"

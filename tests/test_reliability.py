@@ -17,9 +17,10 @@ from perception import integrity
 from perception.detector import Detector
 from perception.hybrid import HybridPoseEstimator
 from perception.nets import load_posenet
-from perception.training import record, tables
-from perception.training.checkpoints import save_atomically
-from perception.training.manifest import write_manifest
+from perception.training import tables
+from perception.training.shipping import record
+from perception.training.trainers.checkpoints import save_atomically
+from perception.training.trainers.manifest import write_manifest
 from posegrasp.core import files
 from posegrasp.core.backends import run_map
 from posegrasp.core.cli import command, summary_stream, write_json
@@ -148,7 +149,7 @@ def test_unlisted_files_load_and_an_entry_without_hash_fails_closed(weights_copy
 
 
 def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) -> None:
-    from perception.training.train_masknet import PROTOCOLS
+    from perception.training.trainers.masknet_trainer import PROTOCOLS
 
     manifest = json.loads(MANIFEST.read_text())
     entries = integrity.manifest_entries(manifest)

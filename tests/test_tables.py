@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from perception import metrics
-from perception.training import paper_tables, tables
-from perception.training.posenet_eval import pose_metrics
+from perception.training import tables
+from perception.training.evals import paper_tables
+from perception.training.evals.posenet_eval import pose_metrics
 from posegrasp.core.transforms import intrinsics, rot_z
 from posegrasp.world.objects import OBJECT_NAMES, load_object
 from posegrasp.world.tiers import TIERS

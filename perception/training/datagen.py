@@ -5,20 +5,20 @@
         [--workers N] [--backend {local,ray} [--address ADDR]] [--tier T] [--views V]
 
 Two distributions (docs/DESIGN.md §8; the generators are in
-`perception.training.generators`):
+`perception.training.data.distributions`):
 
 - ``paper``: the paper's protocol (section 2.8), one object alone in a randomised studio
-  (`perception.training.studio`): camera uniform on the sphere at a random distance, random roll,
-  procedural backgrounds, clutter, lights and colours; 256x256 by default.
+  (`perception.training.data.studio`): camera uniform on the sphere at a random distance, random
+  roll, procedural backgrounds, clutter, lights and colours; 256x256 by default.
 - ``headcam``: the deployment distribution: the Fetch head camera's view of a seeded
   `posegrasp.world.scene.build_scene` (target + 0-3 distractors on the table, randomised
   appearance), 640x480 by default; every object with visible pixels is annotated.
 
-Layout and units: see `perception.training.bop` (BOP layout, BOP files in millimetres,
+Layout and units: see `perception.training.data.bop` (BOP layout, BOP files in millimetres,
 everything else in metres). Default ``--out``: ``$POSEGRASP_DATA/<dist>`` if the variable is
 set, else ``data/<dist>`` in the repository (git-ignored).
 
-Seeds, views per scene and resuming: see `perception.training.generation`.
+Seeds, views per scene and resuming: see `perception.training.data.render_split`.
 """
 
 from __future__ import annotations
@@ -29,15 +29,15 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from perception.training.dataset import DISTS, SPLITS
-from perception.training.generation import (
+from perception.training.data.dataset import DISTS, SPLITS
+from perception.training.data.render_split import (
     DEFAULT_SIZE,
     MAX_COUNT,
     MAX_VIEWS,
     GenConfig,
     generate,
 )
-from perception.training.sheets import write_preview
+from perception.training.data.sheets import write_preview
 from posegrasp.core.backends import add_backend_arguments, check_backend
 from posegrasp.core.cli import ArgumentParser, add_out_argument, add_workers_argument, command, fail
 from posegrasp.core.errors import InvalidArgumentError

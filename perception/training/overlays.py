@@ -14,8 +14,8 @@ import cv2
 
 from perception.hybrid import HybridPoseEstimator
 from perception.overlay import draw_detections
-from perception.training.dataset import DISTS, SPLITS, PoseDataset
-from perception.training.sheets import contact_sheet
+from perception.training.data.dataset import DISTS, SPLITS, PoseDataset
+from perception.training.data.sheets import contact_sheet
 from posegrasp.core.cli import ArgumentParser, add_out_argument, command
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import data_root

@@ -1,6 +1,6 @@
 """The recipe of the shipped weights: every training stage behind every file under
-``perception/weights/``, as data (`RECIPE`), and the command that runs it (`perception.training.
-stages` says how a stage runs and how the weights ship).
+``perception/weights/``, as data (`RECIPE`), and the command that runs it
+(`perception.training.shipping.recipe_stages` says how a stage runs and how the weights ship).
 
     python -m perception.training.recipe --dry-run   # the plan: recorded wall time, what is done
     python -m perception.training.recipe             # train every stage not done (resumes)
@@ -22,10 +22,8 @@ from pathlib import Path
 from typing import Any
 
 from perception.mask_net import MaskNetConfig
-from perception.training.checkpoints import read_checkpoint
-from perception.training.export import plot_curves
-from perception.training.generation import GenConfig, generate
-from perception.training.stages import (
+from perception.training.data.render_split import GenConfig, generate
+from perception.training.shipping.recipe_stages import (
     Artefact,
     Recipe,
     Stage,
@@ -36,6 +34,8 @@ from perception.training.stages import (
     run_stage,
     ship_all,
 )
+from perception.training.shipping.ship import plot_curves
+from perception.training.trainers.checkpoints import read_checkpoint
 from posegrasp.core.cli import ArgumentParser, command
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
@@ -402,7 +402,7 @@ def plan(recipe: Recipe, checkpoints: Path, weights: Path | None) -> list[str]:
 
 def curves(recipe: Recipe, checkpoints: Path) -> dict[str, list[list[dict]]]:
     """The validation history of every stage behind each shipped pose net, by its name in the
-    manifest (`perception.training.export.plot_curves` draws them); stages not trained yet
+    manifest (`perception.training.shipping.ship.plot_curves` draws them); stages not trained yet
     are left out."""
     out = {}
     for artefact in recipe.artefacts:

@@ -6,7 +6,7 @@ the exact geometry decodes, and the paper's Table 1 (centre error) and Table 2 (
 rotation error, IoU accuracy, invalid poses) are printed per object beside the paper's numbers,
 with ADD(-S) recall at 0.1 d, 5 cm 5 deg recall, medians, 90th percentiles and the rotation
 outlier rate. Which of our figures each paper figure is compared with, and why, is in
-`perception.training.paper_tables`: the centre error in 64x64 crop pixels (also given in
+`perception.training.evals.paper_tables`: the centre error in 64x64 crop pixels (also given in
 full-image pixels as rendered, and rescaled to the paper's 256x256 images: du * 256 / W,
 dv * 256 / H, i.e. 0.4 and 0.5333 for the 640x480 head camera), "acc IoU" as the share of poses
 with silhouette IoU > 0.5, invalid poses as IoU <= 0.5; ADD for objects without symmetries and
@@ -43,13 +43,22 @@ from perception.metrics import box_iou
 from perception.nets import CROP, PoseNet, load_posenet
 from perception.overlay import silhouette
 from perception.success_model import SuccessModel, components_of, load_models
-from perception.training.crop_sets import CropConfig, CropSet, build_crops
-from perception.training.dataset import DATASETS, PoseDataset, load_info
-from perception.training.detection_eval import coco_ap, visible_objects
-from perception.training.estimator_tables import format_summary, query_errors, summarise_queries
-from perception.training.paper_tables import READINGS, average, format_tables, summarise
-from perception.training.posenet_eval import PAPER_IMAGE, decode_predictions, pose_metrics, predict
-from perception.training.record import (
+from perception.training.data.crop_sets import CropConfig, CropSet, build_crops
+from perception.training.data.dataset import DATASETS, PoseDataset, load_info
+from perception.training.evals.detection_eval import coco_ap, visible_objects
+from perception.training.evals.estimator_tables import (
+    format_summary,
+    query_errors,
+    summarise_queries,
+)
+from perception.training.evals.paper_tables import READINGS, average, format_tables, summarise
+from perception.training.evals.posenet_eval import (
+    PAPER_IMAGE,
+    decode_predictions,
+    pose_metrics,
+    predict,
+)
+from perception.training.shipping.record import (
     check_full_splits,
     check_record_request,
     record_command,
@@ -107,7 +116,7 @@ def detector_crops(
     resampled to `size` x `size` (the pose net's input).
 
     Returns:
-        The crop arrays in `perception.training.crop_sets.build_crops`' layout (matched
+        The crop arrays in `perception.training.data.crop_sets.build_crops`' layout (matched
         objects only), and a detection report: ``detection`` (class name -> COCO ``box_ap``,
         ``box_ap50``, ``mask_ap``, ``mask_ap50`` over every object of the images), ``overall``
         (the same over all classes), ``objects`` and ``missed`` (per class: objects to match and

@@ -72,8 +72,8 @@ HOME_POSTURE: dict[str, float] = {
     FINGER_JOINTS[1]: FINGER_TRAVEL,
 }
 
-#: The data generator (`perception.training.generation.SEED_BASES`) draws its scenes from seeds
-#: below this.
+#: The data generator (`perception.training.data.render_split.SEED_BASES`) draws its scenes from
+#: seeds below this.
 DATA_SEED_LIMIT = 300_000_000
 #: Episodes that score a learned estimator start at this seed, so that no evaluated scene was a
 #: training, validation or test image of the networks.

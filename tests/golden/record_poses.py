@@ -1,11 +1,12 @@
 """Record the golden poses: every built-in learned estimator on held-out observations.
 
 The observations are the head camera's on two held-out episodes per scene tier (seeds from
-`posegrasp.world.constants.EVAL_SEED_BASE` up, the objects varied) and two held-out images of
-the paper's protocol (the test split's first two, `perception.training.generators.PaperGenerator`,
-seeds from the test split's base, no camera pose). For each learned estimator
-(`perception.estimators.LEARNED_ESTIMATORS`) that can be made here, each estimate is stored: its
-``T_C_O`` exactly, its neighbours (class and pose) and its ``info`` without wall times.
+`posegrasp.world.constants.EVAL_SEED_BASE` up, the objects varied) and two held-out images of the
+paper's protocol (the test split's first two,
+`perception.training.data.distributions.PaperGenerator`, seeds from the test split's base, no camera
+pose). For each learned estimator (`perception.estimators.LEARNED_ESTIMATORS`) that can be made
+here, each estimate is stored: its ``T_C_O`` exactly, its neighbours (class and pose) and its
+``info`` without wall times.
 `tests/test_golden_poses.py` recomputes them and compares to the bit, so a refactoring of an
 estimator that changes no pose is shown to change none.
 
@@ -57,8 +58,8 @@ TIME_KEYS = ("timings_ms", "time_ms")
 
 def observations() -> list[tuple[str, Any, str]]:
     """The held-out observations: (label, `Observation`, source), head camera first."""
-    from perception.training.generation import SEED_BASES
-    from perception.training.generators import PaperGenerator
+    from perception.training.data.distributions import PaperGenerator
+    from perception.training.data.render_split import SEED_BASES
     from posegrasp.core.contract import Observation
     from posegrasp.world.constants import EVAL_SEED_BASE
     from posegrasp.world.objects import OBJECT_NAMES

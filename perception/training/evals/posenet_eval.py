@@ -1,7 +1,7 @@
 """The pose nets over arrays of crops: predictions, decoding to full-image poses, per-crop errors
 (docs/DESIGN.md §9) and their means.
 
-The crop arrays are `perception.training.crop_sets.build_crops`' layout.
+The crop arrays are `perception.training.data.crop_sets.build_crops`' layout.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Reading the on-disk pose dataset: validating loaders of one split's images and annotations.
 
-The layout, units and file formats are those of `perception.training.bop` (BOP layout, BOP files
-in millimetres); everything the loaders here return is in metres (docs/DESIGN.md §4), with pixel
-(0, 0) centred at (0, 0).
+The layout, units and file formats are those of `perception.training.data.bop` (BOP layout, BOP
+files in millimetres); everything the loaders here return is in metres (docs/DESIGN.md §4), with
+pixel (0, 0) centred at (0, 0).
 
 A sample is complete when its record file exists (it is written last, by atomic rename); the
 scene files are merged from the records. `load_sample` checks every file it reads and raises
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from perception.training.bop import (
+from perception.training.data.bop import (
     SCENE_FILES,
     mask_path,
     obj_name,

@@ -19,7 +19,7 @@ import numpy as np
 from perception.crops import crop_and_resize, image_to_crop, random_square_box, to_unit
 from perception.geometry import encode
 from perception.nets import CROP
-from perception.training.dataset import PoseDataset, load_info
+from perception.training.data.dataset import PoseDataset, load_info
 from posegrasp.core.errors import AssetError
 from posegrasp.core.paths import data_root
 from posegrasp.core.progress import progress_bar

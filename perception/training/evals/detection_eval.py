@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 
 from perception.detector import Detection, Detector, to_model_box
-from perception.training.bop import obj_name
-from perception.training.dataset import PoseDataset, Sample
+from perception.training.data.bop import obj_name
+from perception.training.data.dataset import PoseDataset, Sample
 from posegrasp.core.errors import AssetError
 from posegrasp.world.objects import OBJECT_NAMES
 

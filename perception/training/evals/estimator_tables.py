@@ -24,7 +24,7 @@ from perception.geometry import project
 from perception.hybrid import DEFAULT_CROP_SCALE
 from perception.metrics import render_depth, rotation_error_deg, translation_error_pct, vsd
 from perception.nets import CROP
-from perception.training.dataset import PoseDataset
+from perception.training.data.dataset import PoseDataset
 from posegrasp.core.contract import Observation, PoseEstimator
 from posegrasp.core.progress import progress_bar
 from posegrasp.world.objects import OBJECT_NAMES, load_object

@@ -1,7 +1,7 @@
 """The image generators of the two distributions: rendered images with their annotated instances.
 
 - `PaperGenerator`: the paper's protocol, one object alone in the randomised studio
-  (`perception.training.studio`).
+  (`perception.training.data.studio`).
 - `HeadcamGenerator`: the Fetch head camera's view of a seeded `posegrasp.world.scene.build_scene`
   (target + 0..`MAX_DISTRACTORS` distractors, randomised appearance); every object with visible
   pixels is annotated.
@@ -18,9 +18,9 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from perception.training.dataset import DISTS
-from perception.training.rendering import OffscreenRenderer
-from perception.training.studio import HIDDEN_GROUP, Studio, StudioConfig
+from perception.training.data.dataset import DISTS
+from perception.training.data.offscreen import OffscreenRenderer
+from perception.training.data.studio import HIDDEN_GROUP, Studio, StudioConfig
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from posegrasp.core.transforms import invert_transform
 from posegrasp.world import constants as C

@@ -8,7 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from perception.training.dataset import PoseDataset, Sample
+from perception.training.data.dataset import PoseDataset, Sample
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.world.objects import load_object
 

@@ -26,10 +26,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from perception.training import bop
-from perception.training.dataset import load_info
-from perception.training.generators import HeadcamGenerator, PaperGenerator, make_generator
-from perception.training.writer import (
+from perception.training.data import bop
+from perception.training.data.dataset import load_info
+from perception.training.data.distributions import HeadcamGenerator, PaperGenerator, make_generator
+from perception.training.data.writer import (
     add_wall_time,
     merge_scene,
     write_camera,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from perception.training.ddp import ONE_PROCESS, Ranks
+from perception.training.trainers.ddp import ONE_PROCESS, Ranks
 
 
 def photometric_jitter(

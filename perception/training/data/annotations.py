@@ -1,6 +1,6 @@
 """The annotation record of a rendered image: its entries of the four BOP scene files.
 
-Poses and boxes follow `perception.training.bop` (BOP files in millimetres, ``scene_posegrasp``
+Poses and boxes follow `perception.training.data.bop` (BOP files in millimetres, ``scene_posegrasp``
 in metres, pixel (0, 0) centred at (0, 0)). The full silhouette of an object that leaves the image
 is counted outside it too, so ``visib_fract`` counts cut-off pixels as not visible.
 """
@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 
 from perception.geometry import project
-from perception.training.bop import MM_PER_M, bbox_xywh, box_xyxy, obj_id, pose_to_bop
-from perception.training.generators import RenderedImage
+from perception.training.data.bop import MM_PER_M, bbox_xywh, box_xyxy, obj_id, pose_to_bop
+from perception.training.data.distributions import RenderedImage
 from posegrasp.core.transforms import invert_transform
 from posegrasp.world.objects import ObjectModel, load_object
 

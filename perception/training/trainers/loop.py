@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from perception.training.dataset import DATASETS, parse_data
+from perception.training.data.dataset import DATASETS, parse_data
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.validate import arg, check_choice, check_int, check_seed
 
@@ -75,7 +75,7 @@ def add_schedule_arguments(
 def add_data_argument(parser, what: str, default: str, folder_first: bool = False) -> None:
     """Add ``--data NAME[=COUNT],...``: the dataset folders under the data root a run trains on
     and how many training images of each (all when no COUNT), checked while parsing
-    (`perception.training.dataset.parse_data`; None when not given).
+    (`perception.training.data.dataset.parse_data`; None when not given).
 
     Args:
         parser: the command line.

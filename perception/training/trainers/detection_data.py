@@ -1,7 +1,7 @@
 """The detector's training images and targets, and their photometric augmentation.
 
 Targets come from the *visible* masks (docs/DESIGN.md §7): boxes enclose
-them (`perception.training.bop.box_xyxy`), labels are BOP object ids. Augmentation is
+them (`perception.training.data.bop.box_xyxy`), labels are BOP object ids. Augmentation is
 photometric only: no flips, since some objects are chiral (the faucet's spout, the pistol's grip).
 """
 
@@ -16,9 +16,9 @@ import torch
 
 from perception.detector import image_tensor, load_detector_model, to_model_box
 from perception.detector_net import DetectorConfig, input_transform
-from perception.training.bop import box_xyxy
-from perception.training.dataset import PoseDataset
-from perception.training.ddp import Ranks
+from perception.training.data.bop import box_xyxy
+from perception.training.data.dataset import PoseDataset
+from perception.training.trainers.ddp import Ranks
 from posegrasp.core.errors import AssetError
 from posegrasp.core.paths import data_root
 

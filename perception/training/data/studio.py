@@ -14,7 +14,7 @@ Domain randomisation per sample (every choice drawn from the sample's `rng`):
   in-plane angle theta (the roll of the virtual camera C', `perception.geometry.encode`) is drawn
   uniformly from -60..60 deg in 3 deg steps, as the paper's dataset was made;
 - room: random orientation and size (the camera always inside), each wall a random texture from a
-  fixed bank (`perception.training.textures`), tint, scale and shininess;
+  fixed bank (`perception.training.data.textures`), tint, scale and shininess;
 - clutter: 0..`max_clutter` boxes, spheres, cylinders, capsules and ellipsoids with random
   textures, never in front of the object (the object is never occluded);
 - lights: 1..`max_lights` spot, point or directional lights of random position, colour and
@@ -33,9 +33,9 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from perception.training.rendering import OffscreenRenderer
-from perception.training.textures import PLAIN_TEXTURE, add_texture_bank, bank_texture_name
-from perception.training.views import roll_to_theta, unit_vector
+from perception.training.data.offscreen import OffscreenRenderer
+from perception.training.data.textures import PLAIN_TEXTURE, add_texture_bank, bank_texture_name
+from perception.training.data.views import roll_to_theta, unit_vector
 from posegrasp.core.errors import StateError, UnknownNameError
 from posegrasp.core.transforms import invert_transform, mat_to_quat
 from posegrasp.world.camera import R_CV_FROM_MJ, T_world_cam, camera_intrinsics

@@ -10,7 +10,7 @@ in the recipe never resumes or counts as done from another stage's checkpoint.
 
 An `Artefact` is a shipped file and the stage whose checkpoint it is; the stages behind it are
 that stage's chain of starts. Nothing under the weights folder changes until `ship` runs: it
-copies every artefact's checkpoint there (float16, `perception.training.export.ship`), hashes
+copies every artefact's checkpoint there (float16, `perception.training.shipping.ship.ship`), hashes
 it and records its manifest entry, the stages behind it one by one.
 """
 
@@ -22,10 +22,10 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from perception.training import train_detector, train_masknet, train_posenet
-from perception.training.checkpoints import read_checkpoint
-from perception.training.export import checkpoint_record, ship
-from perception.training.manifest import MANIFEST_NAME, read_manifest, stage_record
+from perception.training.shipping.ship import checkpoint_record, ship
+from perception.training.trainers import detector_trainer, masknet_trainer, posenet_trainer
+from perception.training.trainers.checkpoints import read_checkpoint
+from perception.training.trainers.manifest import MANIFEST_NAME, read_manifest, stage_record
 from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 from posegrasp.core.files import atomic_write_json
 from posegrasp.core.paths import git_commit
@@ -33,15 +33,15 @@ from posegrasp.core.paths import git_commit
 #: The trainers a stage may use: their modules, each with ``train(config)`` and
 #: ``command_line(config)``.
 TRAINERS: dict[str, ModuleType] = {
-    "posenet": train_posenet,
-    "detector": train_detector,
-    "masknet": train_masknet,
+    "posenet": posenet_trainer,
+    "detector": detector_trainer,
+    "masknet": masknet_trainer,
 }
 #: Each trainer's config class.
 CONFIGS: dict[str, type] = {
-    "posenet": train_posenet.PoseNetTrainConfig,
-    "detector": train_detector.DetectorTrainConfig,
-    "masknet": train_masknet.MaskTrainConfig,
+    "posenet": posenet_trainer.PoseNetTrainConfig,
+    "detector": detector_trainer.DetectorTrainConfig,
+    "masknet": masknet_trainer.MaskTrainConfig,
 }
 #: The checkpoint file of a stage of each trainer, in the stage's folder.
 CHECKPOINT_FILES = {"posenet": "posenet.pt", "detector": "detector.pt", "masknet": "last.pt"}

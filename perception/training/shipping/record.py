@@ -15,8 +15,8 @@ from pathlib import Path
 from perception.detector import DEFAULT_WEIGHTS
 from perception.integrity import UNVERIFIED_ENV, verification_overridden
 from perception.nets import VARIANTS
-from perception.training.dataset import DISTS, PoseDataset
-from perception.training.manifest import MANIFEST_NAME, read_manifest, write_manifest
+from perception.training.data.dataset import DISTS, PoseDataset
+from perception.training.trainers.manifest import MANIFEST_NAME, read_manifest, write_manifest
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import DATA_ENV, REPO_ROOT, WEIGHTS_DIR, data_root, git_commit, in_repo

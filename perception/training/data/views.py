@@ -1,4 +1,4 @@
-"""Camera placement of the paper protocol's studio (`perception.training.studio`): where a view
+"""Camera placement of the paper protocol's studio (`perception.training.data.studio`): where a view
 looks from and how it is rolled so that its label's in-plane angle is the one drawn."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Writing a dataset folder: one image's files, the merged scene files, the models and camera.
 
-Every file goes through the atomic writers of `perception.training.bop`. An image's record is
+Every file goes through the atomic writers of `perception.training.data.bop`. An image's record is
 written last, so an image is done once its record exists; a scene's four BOP files are merged
 from its records.
 """
@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from perception.training.annotations import annotate
-from perception.training.bop import (
+from perception.training.data.annotations import annotate
+from perception.training.data.bop import (
     MM_PER_M,
     SCENE_FILES,
     mask_path,
@@ -32,7 +32,7 @@ from perception.training.bop import (
     write_png,
     write_same,
 )
-from perception.training.generators import RenderedImage
+from perception.training.data.distributions import RenderedImage
 from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
 
 

@@ -1,0 +1,1 @@
+"""Rendering, writing and reading the datasets (BOP layout), and the pose nets' crops."""

@@ -1,0 +1,2 @@
+"""Measuring nets on held-out images: pose errors, COCO AP, whole estimators, the paper's
+tables."""
