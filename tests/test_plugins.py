@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -108,12 +109,13 @@ def test_evaluate_takes_an_estimator_object_and_a_spec_alike(example_on_path) ->
     assert none["overall"]["failure_reasons"] == {"no_estimate": 1}
 
 
-@pytest.mark.slow
-def test_the_example_package_installs_and_is_scored_by_name(tmp_path: Path) -> None:
-    """pip installs examples/crude-estimator (to a folder on PYTHONPATH, as into any
-    environment); its entry point then names it on the command line, and evaluate and the gate
-    score it with the episodes the factory spec gives."""
-    site = tmp_path / "site"
+#: Runs ``python -m <args>`` and returns the finished process (`_module_runner`).
+_Run = Callable[..., subprocess.CompletedProcess]
+
+
+def _install_example(site: Path) -> None:
+    """pip installs examples/crude-estimator into the folder `site`, as into any environment
+    (no dependencies, no build isolation)."""
     subprocess.run(
         [
             sys.executable,
@@ -130,11 +132,16 @@ def test_the_example_package_installs_and_is_scored_by_name(tmp_path: Path) -> N
         check=True,
         capture_output=True,
     )
+
+
+def _module_runner(site: Path, data: Path) -> _Run:
+    """A runner of ``python -m <args>`` in the repository, with `site` on PYTHONPATH and
+    `data` as the data folder; it returns the finished process, its output as text."""
     env = {
         **os.environ,
         "PYTHONPATH": str(site),
         "MUJOCO_GL": "egl",
-        "POSEGRASP_DATA": str(tmp_path),
+        "POSEGRASP_DATA": str(data),
     }
 
     def run(*args: str) -> subprocess.CompletedProcess:
@@ -142,33 +149,38 @@ def test_the_example_package_installs_and_is_scored_by_name(tmp_path: Path) -> N
             [sys.executable, "-m", *args], cwd=REPO, env=env, capture_output=True, text=True
         )
 
-    by_name = run(
+    return run
+
+
+def _evaluate(run: _Run, estimator: str, out: Path, *extra: str) -> dict:
+    """The report of ``sim.evaluate`` of `estimator` on 3 episodes each of the phone and the
+    car, written to `out`; the command must succeed."""
+    done = run(
         "sim.evaluate",
         "--estimator",
-        "crude",
+        estimator,
         "--objects",
         "phone,car",
         "--episodes",
         "3",
         "--json",
-        str(tmp_path / "a.json"),
+        str(out),
+        *extra,
     )
-    assert by_name.returncode == 0, by_name.stderr
-    by_spec = run(
-        "sim.evaluate",
-        "--estimator",
-        SPEC,
-        "--objects",
-        "phone,car",
-        "--episodes",
-        "3",
-        "--json",
-        str(tmp_path / "b.json"),
-        "--workers",
-        "2",
-    )
-    assert by_spec.returncode == 0, by_spec.stderr
-    a, b = (json.loads((tmp_path / f).read_text()) for f in ("a.json", "b.json"))
+    assert done.returncode == 0, done.stderr
+    return json.loads(out.read_text())
+
+
+@pytest.mark.slow
+def test_the_example_package_installs_and_is_scored_by_name(tmp_path: Path) -> None:
+    """pip installs examples/crude-estimator (to a folder on PYTHONPATH, as into any
+    environment); its entry point then names it on the command line, and evaluate and the gate
+    score it with the episodes the factory spec gives."""
+    site = tmp_path / "site"
+    _install_example(site)
+    run = _module_runner(site, tmp_path)
+    a = _evaluate(run, "crude", tmp_path / "a.json")
+    b = _evaluate(run, SPEC, tmp_path / "b.json", "--workers", "2")
     keep = ("object", "seed", "success", "failure_reason", "T_C_O_est", "pose_error")
     assert [{k: e[k] for k in keep} for e in a["episodes"]] == [
         {k: e[k] for k in keep} for e in b["episodes"]
