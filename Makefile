@@ -91,7 +91,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	@if $(PY) -m pip show -q opencv-python-headless >/dev/null 2>&1; then \
 	  $(PY) -m pip uninstall -q -y opencv-python-headless opencv-contrib-python-headless; fi
-	$(PY) -m pip install -q -e ".[dev,ray,peers]"
+	$(PY) -m pip install -q -e ".[dev,ray,peers,shifts]"
 	$(PY) -m pip install -q --no-deps -e examples/crude-estimator
 	@touch $(STAMP)
 

@@ -17,7 +17,7 @@ from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from posegrasp.core.paths import SCENES_DIR
 from posegrasp.core.transforms import quat_mul, yaw_quat
 from posegrasp.world import constants as C
-from posegrasp.world.layout import sample_layout
+from posegrasp.world.layout import footprint, sample_layout
 from posegrasp.world.objects import (
     OBJECT_NAMES,
     ObjectModel,
@@ -27,6 +27,7 @@ from posegrasp.world.objects import (
 )
 from posegrasp.world.occlusion import occlusion
 from posegrasp.world.robot import RobotConfig, fetch_spec, home_qpos_ctrl
+from posegrasp.world.shifts import Shift, apply_shifts, canonical, shift_spec
 
 WORLD_XML = SCENES_DIR / "world.xml"
 #: Layouts drawn at most for a scene whose occlusion is bounded. The draws are the seed's, in
@@ -65,6 +66,9 @@ class SceneConfig:
             drawn again (from the same seed's stream) until one falls in it.
         distractor_pool: the classes distractors are drawn from (built-in or user objects);
             empty for the built-in ones (`OBJECT_NAMES`). The target's own classes are left out.
+        shifts: purely visual scene shifts (`posegrasp.world.shifts.parse_shifts`), drawn from
+            their own streams of the seed: the layout and the physics are the same with or
+            without them, only the images change.
     """
 
     n_distractors: int = 0
@@ -87,6 +91,7 @@ class SceneConfig:
     occlusion: tuple[float, float] | None = None
     distractor_pool: tuple[str, ...] = ()
     robot: RobotConfig = field(default_factory=RobotConfig)
+    shifts: tuple[Shift, ...] = ()
 
 
 @dataclass
@@ -304,9 +309,12 @@ def build_scene(
 
     Raises:
         UnknownNameError: an unknown object class.
-        InvalidArgumentError: the objects do not fit on the table.
+        InvalidArgumentError: the objects do not fit on the table; shifts that are not `Shift`
+            values or name a factor twice.
+        AssetError: the `distractors` shift without pybullet installed.
     """
     cfg = config or SceneConfig()
+    shifts = canonical(cfg.shifts)
     if cfg.resting_pose not in RESTING_MODES:
         raise UnknownNameError("resting pose mode", cfg.resting_pose, RESTING_MODES)
     names = [objects] if isinstance(objects, str) else list(objects)
@@ -325,14 +333,22 @@ def build_scene(
     names = [*names, *distractors]
     models = [load_object(n) for n in names]
     if cfg.occlusion is None:
-        return _assemble(models, cfg, rng, seed)
+        return _assemble(models, cfg, rng, seed, shifts)
     lo, hi = cfg.occlusion
     for _attempt in range(OCCLUSION_ATTEMPTS):
+        # The occlusion is measured without the shifts (visual distractors, a moved camera), so
+        # they never change which layout is taken; the one taken is then built again with them
+        # from the same draws.
+        state = rng.bit_generator.state
         scene = _assemble(models, cfg, rng, seed)
-        scene.occlusion = occlusion(
+        hidden = occlusion(
             scene.model, scene.data, scene.target.body, [o.body for o in scene.objects[1:]]
         )
-        if lo <= scene.occlusion <= hi:
+        if lo <= hidden <= hi:
+            if shifts:
+                rng.bit_generator.state = state
+                scene = _assemble(models, cfg, rng, seed, shifts)
+            scene.occlusion = hidden
             return scene
     raise InvalidArgumentError(
         f"no layout of seed {seed} hides {lo:.0%}-{hi:.0%} of the {names[0]} in "
@@ -341,9 +357,14 @@ def build_scene(
 
 
 def _assemble(
-    models: list[ObjectModel], cfg: SceneConfig, rng: np.random.Generator, seed: int
+    models: list[ObjectModel],
+    cfg: SceneConfig,
+    rng: np.random.Generator,
+    seed: int,
+    shifts: tuple[Shift, ...] = (),
 ) -> Scene:
-    """Lay out the objects, compile the scene, place the robot and let physics settle."""
+    """Lay out the objects, compile the scene, place the robot and let physics settle; then
+    apply the visual `shifts` (`posegrasp.world.shifts`), which change no physics."""
     spec = fetch_spec(cfg.robot, world=WORLD_XML)
     table_top = spec.geom("table_top")
     table_top_z = float(spec.body("table").pos[2] + table_top.pos[2] + table_top.size[2])
@@ -358,6 +379,7 @@ def _assemble(
             poses.append((xy, resting, float(rng.uniform(-np.pi, np.pi))))
     placed: list[PlacedObject] = []
     counts: dict[str, int] = {}
+    footprints: list[np.ndarray] = []
     for obj, (xy, (rest_name, rest), yaw) in zip(models, poses, strict=True):
         k = counts.get(obj.name, 0)
         counts[obj.name] = k + 1
@@ -366,6 +388,10 @@ def _assemble(
         z = table_top_z + obj.resting_height(rest) + 0.001
         obj.add_to_spec(spec, body, np.array([xy[0], xy[1], z]), quat)
         placed.append(PlacedObject(obj.name, body, obj, rest_name))
+        if shifts:
+            footprints.append(footprint(obj, rest, yaw) + xy)
+    if shifts:
+        shift_spec(spec, shifts, seed, footprints, table_top_z)
 
     model = spec.compile()
     if cfg.randomize_appearance:
@@ -387,4 +413,6 @@ def _assemble(
     scene = Scene(model, data, seed, placed, table_top_z, ctrl.copy())
     scene.step(cfg.settle_time)
     mujoco.mj_forward(model, data)
+    if shifts:
+        apply_shifts(model, data, shifts, seed, placed[0].body)
     return scene
