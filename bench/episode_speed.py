@@ -27,8 +27,8 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import TIERS, check_tier
-from sim.episode import EpisodeConfig, play_episode
-from sim.estimators import ESTIMATORS, make_estimator
+from sim.episodes.episode import EpisodeConfig, play_episode
+from sim.episodes.registry import ESTIMATORS, make_estimator
 
 SEED_START = 1_400_000_000
 

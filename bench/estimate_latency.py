@@ -80,7 +80,7 @@ def whole_estimates(estimator_name: str, tier: str, images: int, repeat: int) ->
         ``stage_median_ms`` with the images each stage ran on, ``stage_images``.
     """
     from perception.estimators import LEARNED_ESTIMATORS
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
 
     estimator = LEARNED_ESTIMATORS[estimator_name]()
     observations = []

@@ -57,7 +57,7 @@ from posegrasp.core.cli import (
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int
 from posegrasp.world.objects import OBJECT_NAMES
-from sim.estimators import add_estimator_arguments
+from sim.episodes.registry import add_estimator_arguments
 from sim.evaluation import Protocol, evaluate_protocol
 
 SEED_START = 1_200_000_000  # held out (posegrasp.world.constants.EVAL_SEED_BASE and above)

@@ -42,8 +42,8 @@ from posegrasp.core.validate import (
 from posegrasp.world import constants as C
 from posegrasp.world.objects import OBJECT_NAMES, check_objects
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, add_pool_argument, check_tier
-from sim.bop_results import BopPosesEstimator
-from sim.estimators import (
+from sim.episodes.pose_noise import parse_noise
+from sim.episodes.registry import (
     DEFAULT_ESTIMATOR,
     add_estimator_arguments,
     add_obs_mode_argument,
@@ -65,7 +65,7 @@ from sim.evaluation import (
     poses_record,
     run_protocol,
 )
-from sim.pose_noise import parse_noise
+from sim.evaluation.bop_results import BopPosesEstimator
 
 DEFAULT_TOLERANCE = DOCS_DIR / "tolerance.json"
 #: Most episodes per object one evaluation runs.

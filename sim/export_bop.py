@@ -4,16 +4,16 @@
         [--sensor NAME] --out DIR [--no-gt]
 
 Any estimator that reads BOP datasets can then estimate the poses of these images offline and
-hand back a BOP results CSV, which `sim.bop_results` turns into the estimates of the very same
-episodes (``sim.evaluate`` with the same tier, objects, episodes and seed start). Episode i of
-object X is scene seed ``S + i``, built by `sim.episode.Episode` and rendered by its
+hand back a BOP results CSV, which `sim.evaluation.bop_results` turns into the estimates of the
+very same episodes (``sim.evaluate`` with the same tier, objects, episodes and seed start). Episode
+i of object X is scene seed ``S + i``, built by `sim.episodes.episode.Episode` and rendered by its
 ``observe()``, so each RGB image is byte for byte what a live estimator gets, and each depth
 image that of ``--obs-mode rgbd`` to the depth step, both as the sensor model ``--sensor``
 returns them (`posegrasp.world.sensors`; default ``ideal``, the rendered images): with a real
 sensor's model the depth has its noise and its holes (0, BOP's missing depth), and
 ``px_count_valid`` counts the pixels with depth under it. The episodes' own VSD
-(`sim.episode.EpisodeResult.vsd`) is measured against the ideal depth whatever the sensor, so
-it is that against the exported depth only for ``ideal``.
+(`sim.episodes.episode.EpisodeResult.vsd`) is measured against the ideal depth whatever the sensor,
+so it is that against the exported depth only for ``ideal``.
 
 Layout of ``DIR`` (BOP toolkit, docs/bop_datasets_format.md; millimetres in every BOP file)::
 
@@ -34,11 +34,11 @@ Layout of ``DIR`` (BOP toolkit, docs/bop_datasets_format.md; millimetres in ever
                                             ids, table_top_z [m] per image
 
 One scene per episode, one image each (im_id 0): a BOP scene is one static arrangement, and
-each episode is its own. Its ``scene_id`` is `sim.bop_results.scene_ids` of the episode's tier,
-target and seed, so that exports of other tiers, objects or seeds do not share ids and a CSV of
-one is refused by another. ``scene_gt`` lists every object of the scene, the target first, then
-the others in the scene's order; ``scene_gt_info`` and the masks follow BOP's public test sets:
-the visible mask is the object's pixels in a segmentation render, the full silhouette the
+each episode is its own. Its ``scene_id`` is `sim.evaluation.bop_results.scene_ids` of the
+episode's tier, target and seed, so that exports of other tiers, objects or seeds do not share ids
+and a CSV of one is refused by another. ``scene_gt`` lists every object of the scene, the target
+first, then the others in the scene's order; ``scene_gt_info`` and the masks follow BOP's public
+test sets: the visible mask is the object's pixels in a segmentation render, the full silhouette the
 object rendered alone, ``px_count_all`` its pixels also outside the image, ``px_count_valid``
 its pixels with depth. Depth beyond ``65535 * depth_scale`` mm (or no surface) is 0, BOP's
 missing depth. The map file also holds each image's table height in the world frame (the
@@ -90,9 +90,9 @@ from posegrasp.world import constants as C
 from posegrasp.world.camera import body_mask, depth_to_uint16
 from posegrasp.world.objects import OBJECT_NAMES, check_objects, load_object
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
-from sim.bop_results import EXPORT_FORMAT, EXPORT_VERSION, MAP_FILE, scene_ids
-from sim.episode import Episode, EpisodeConfig, execution_settings
-from sim.estimators import add_sensor_argument
+from sim.episodes.episode import Episode, EpisodeConfig, execution_settings
+from sim.episodes.registry import add_sensor_argument
+from sim.evaluation.bop_results import EXPORT_FORMAT, EXPORT_VERSION, MAP_FILE, scene_ids
 
 #: BOP split the images go to.
 SPLIT = "test"
@@ -354,7 +354,7 @@ def export_bop(
             colour and depth images are written.
 
     Returns:
-        The map file's content (`sim.bop_results.MAP_FILE`).
+        The map file's content (`sim.evaluation.bop_results.MAP_FILE`).
 
     Raises:
         InvalidArgumentError: out holds other files or another export; a bad argument.
@@ -426,8 +426,8 @@ def _map_info(
         "contract_version": CONTRACT_VERSION,
         "execution": execution_settings(),
         "layout": "one scene per episode, its one image im_id 0; scene_id = "
-        "sim.bop_results.scene_ids(tier, object, seed); scene_gt: the target first, then the "
-        "other objects; table_top_z: the table top's height in the world frame [m]",
+        "sim.evaluation.bop_results.scene_ids(tier, object, seed); scene_gt: the target first, "
+        "then the other objects; table_top_z: the table top's height in the world frame [m]",
         "images": [
             {"scene_id": ids[(o, seed)], "im_id": IM_ID, "object": o, "seed": seed}
             for o, seed in jobs

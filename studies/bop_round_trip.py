@@ -7,7 +7,7 @@ on the CSV's poses, and check that the route changes nothing.
 Writes `python -m sim.export_bop` of the episodes to ``--out``/<tier>/export and two CSVs from
 the export's own ground truth: ``truth.csv`` (the true poses) and ``turned.csv`` (each target turned
 by exactly `TURN_DEG` out of the image plane, about a seeded random direction: the draw of
-`noisy-oracle` with fixed errors, `sim.pose_noise.PoseNoise(mode="fixed")`). Then it grasps
+`noisy-oracle` with fixed errors, `sim.episodes.pose_noise.PoseNoise(mode="fixed")`). Then it grasps
 four times on the same scenes: on ``truth.csv`` and with ``oracle``, on ``turned.csv`` and with
 that ``noisy-oracle``, and pairs each CSV run with its estimator episode by episode
 (`sim.compare`). The CSVs print R with 9 decimals and t in mm with 6, as BOP results do. Every
@@ -41,13 +41,13 @@ from posegrasp.core.validate import arg, check_int, check_names
 from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
-from sim.bop_results import CSV_COLUMNS, read_export
 from sim.compare import compare, load_report
-from sim.estimators import NoisyOracleEstimator
+from sim.episodes.pose_noise import PoseNoise, perturb_pose
+from sim.episodes.registry import NoisyOracleEstimator
 from sim.evaluation import Protocol, evaluate_protocol, poses_record
+from sim.evaluation.bop_results import CSV_COLUMNS, read_export
+from sim.evaluation.stats import wilson_interval
 from sim.export_bop import export_bop
-from sim.pose_noise import PoseNoise, perturb_pose
-from sim.stats import wilson_interval
 
 #: The out-of-plane turn of ``turned.csv`` [deg].
 TURN_DEG = 10.0
@@ -139,7 +139,7 @@ def _grasp(
     out: Path, root: Path, csvs: dict[str, Path], args: argparse.Namespace
 ) -> dict[str, tuple[Path, dict]]:
     """The four runs on the same scenes, each report kept in `out`: label -> (path, report)."""
-    from sim.bop_results import BopPosesEstimator
+    from sim.evaluation.bop_results import BopPosesEstimator
 
     runs = {
         "oracle": "oracle",

@@ -5,8 +5,8 @@
 The gate's protocol (`sim.gate`: `GATE_TIER` scenes from `GATE_SEED_START`, `GATE_EPISODES` per
 object, friction margins measured) is run once with ``noisy-oracle`` at sigma (5 mm, 2 deg) on
 all four error components; that report is the baseline. Each of `--runs` runs then draws its
-own, independent errors (`sim.pose_noise.PoseNoise.draw` 1, 2, ...) at (10 mm, 4 deg) and is
-compared with the baseline by the gate's rule (`sim.gate.compare`). Printed: the number of runs
+own, independent errors (`sim.episodes.pose_noise.PoseNoise.draw` 1, 2, ...) at (10 mm, 4 deg) and
+is compared with the baseline by the gate's rule (`sim.gate.compare`). Printed: the number of runs
 flagged (target: at least 19 of 20), each run's verdict, and a rerun of the baseline's own
 errors, which must pass. With `--false-alarm-runs N`, N runs at (5 mm, 2 deg) with other draws
 are compared too: how often the gate flags a change of errors that is no regression.

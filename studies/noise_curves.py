@@ -43,7 +43,7 @@ from posegrasp.world.objects import OBJECT_NAMES, check_objects
 from posegrasp.world.tiers import TIERS
 from sim.compare import check_same_execution, curve, format_curve
 from sim.evaluation import Protocol, evaluate_protocol
-from sim.stats import wilson_interval
+from sim.evaluation.stats import wilson_interval
 
 #: (label, noise) along the curve; None is the true pose.
 LEVELS: tuple[tuple[str, str | None], ...] = (

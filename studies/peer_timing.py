@@ -6,7 +6,7 @@ each estimator up on a training scene of every object it will see (its models ar
 sampled, its weights loaded, then), and times ``estimate(obs)`` on each image on `--threads`
 threads. Prints one line per estimator: the median and largest time per image, the median
 rotation and translation errors and how many poses are correct (MSSD below a tenth of the
-diameter, as `sim.episode` judges).
+diameter, as `sim.episodes.episode` judges).
 
     python studies/peer_timing.py [--images 5] [--threads 2] [--json PATH]
 """
@@ -42,7 +42,7 @@ WARM_UP_SEED = 1000
 
 
 def _view(obj: str, seed: int) -> tuple[Any, np.ndarray]:
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
 
     ep = Episode(obj, seed, EpisodeConfig(obs_mode="rgbd"))
     try:
@@ -53,8 +53,8 @@ def _view(obj: str, seed: int) -> tuple[Any, np.ndarray]:
 
 def measure(name: str, views: list, warm_up: list) -> dict[str, Any]:
     """One estimator's times and errors on the views, after its warm-up."""
-    from sim.episode import object_symmetries
-    from sim.estimators import make_estimator
+    from sim.episodes.episode import object_symmetries
+    from sim.episodes.registry import make_estimator
 
     estimator = make_estimator(name)
     for obs, _ in warm_up:

@@ -4,7 +4,7 @@ Renders isolated-tier scenes of every built-in object with seeds below
 `posegrasp.world.constants.EVAL_SEED_BASE` (never the held-out ones), runs each point of a
 small grid of `FpfhConfig` and `PpfConfig` values around the libraries' sample values on them,
 and records, per point, how many poses are correct (MSSD below a tenth of the diameter, as
-`sim.episode` judges), the median rotation and translation errors and the median time per
+`sim.episodes.episode` judges), the median rotation and translation errors and the median time per
 image. The defaults of `perception.peers` are each grid's chosen point, by the one-standard-error
 rule: the fastest point whose count of correct poses is within one binomial standard error of
 the most correct (`chosen`; on 48 images the counts of one grid differ by that much by chance).
@@ -66,7 +66,7 @@ GRIDS = {"fpfh-icp": FPFH_GRID, "ppf": PPF_GRID}
 
 def scenes(per_object: int) -> list[tuple[Observation, np.ndarray]]:
     """The isolated training scenes: (observation with depth, true T_C_O) per object and seed."""
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
 
     out = []
     for obj, i in itertools.product(OBJECT_NAMES, range(per_object)):
@@ -80,7 +80,7 @@ def scenes(per_object: int) -> list[tuple[Observation, np.ndarray]]:
 def score(estimator: Any, views: list[tuple[Observation, np.ndarray]]) -> dict[str, Any]:
     """Correct poses, median errors and time per image of one estimator on the scenes (the
     first image of each object, which trains or samples its model, is timed apart)."""
-    from sim.episode import object_symmetries
+    from sim.episodes.episode import object_symmetries
 
     correct, rot, trans, times, first = 0, [], [], [], []
     seen: set[str] = set()
@@ -148,7 +148,7 @@ def chosen_record(method: str, grid: dict[str, Any], rows: list[dict[str, Any]])
 def sweep(method: str, grid: dict[str, tuple], views: list) -> dict[str, Any]:
     """Every point of `grid` for `method` (``fpfh-icp`` or ``ppf``), and the chosen one."""
     from perception.peers.estimator import PeerEstimator
-    from sim.estimators import check_depth
+    from sim.episodes.registry import check_depth
 
     check_depth(method, OBS_MODE)
     Config, Stage = _config(method)

@@ -223,7 +223,7 @@ def _timed(fn, repeats: int) -> tuple[float, float]:
 
 def render_scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ideal rgbd observation of `SCENE`: (rgb, depth, K)."""
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
 
     obj, seed, tier = SCENE
     ep = Episode(obj, seed, EpisodeConfig(obs_mode="rgbd", tier=tier))

@@ -67,7 +67,7 @@ def test_import_contracts_hold() -> None:
 @pytest.mark.parametrize(
     "module, bad_import",
     [
-        ("posegrasp/world/constants.py", "import sim.episode"),  # the bottom reaching up
+        ("posegrasp/world/constants.py", "import sim.episodes.episode"),  # the bottom reaching up
         ("posegrasp/core/errors.py", "import posegrasp.world.scene"),  # core reaching into world
         ("grasping/candidates.py", "import perception.geometry"),  # siblings meeting
         ("perception/hybrid.py", "import perception.training.data.dataset"),  # run time -> training
@@ -160,7 +160,7 @@ def test_making_the_env_loads_no_training_or_evaluation_code() -> None:
         env.close()
         """
     )
-    assert "sim.episode" in loaded
+    assert "sim.episodes.episode" in loaded
     assert sorted(m for m in loaded if OFFLINE_MODULES.match(m)) == []
 
 

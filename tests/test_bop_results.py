@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
-from sim import bop_results as br
+from sim.evaluation import bop_results as br
 
 SEED = 1_000_000_000
 HEADER = "scene_id,im_id,obj_id,score,R,t,time"

@@ -11,7 +11,7 @@ import pytest
 from sim import compare as cmp
 from sim import evaluate as ev
 from sim import evaluation
-from sim.bop_results import read_export
+from sim.evaluation.bop_results import read_export
 from sim.export_bop import export_bop
 
 SEED = 1_000_000_000

@@ -13,8 +13,8 @@ from perception.training.data.bop import read_png
 from posegrasp.core.contract import Observation
 from posegrasp.world import constants as C
 from sim import export_bop as xb
-from sim.bop_results import MAP_FILE, BopPosesEstimator, read_export
-from sim.episode import Episode, EpisodeConfig
+from sim.episodes.episode import Episode, EpisodeConfig
+from sim.evaluation.bop_results import MAP_FILE, BopPosesEstimator, read_export
 
 OBJECTS = ["car", "phone"]
 SEED = C.EVAL_SEED_BASE

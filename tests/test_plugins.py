@@ -1,6 +1,6 @@
-"""Plug-in estimators (`sim.estimators`): ``package.module:factory`` and the entry-point group on
-every command that takes ``--estimator``, the Python `evaluate` taking an estimator object, and
-the example package in examples/ installed and scored as a user would."""
+"""Plug-in estimators (`sim.episodes.registry`): ``package.module:factory`` and the entry-point
+group on every command that takes ``--estimator``, the Python `evaluate` taking an estimator
+object, and the example package in examples/ installed and scored as a user would."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ import pytest
 
 from posegrasp.core.contract import Estimate
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
-from sim import estimators as E
+from sim.episodes import registry as E
 from sim.evaluation import Protocol, evaluate_protocol
-from sim.report_schema import validate_report
+from sim.evaluation.report_schema import validate_report
 
 REPO = Path(__file__).resolve().parent.parent
 EXAMPLE = REPO / "examples" / "crude-estimator"
@@ -207,7 +207,7 @@ class SeesDepth:
 
 
 def test_rgbd_runs_hand_the_estimator_depth() -> None:
-    from sim import episode
+    from sim.episodes import episode
 
     assert E.OBS_MODES == episode.OBS_MODES
     rgb = evaluate_protocol(Protocol(["phone"], 1, SEED, "isolated"), SeesDepth())

@@ -55,8 +55,8 @@ def test_the_chain_trains_a_detector_for_a_user_object(tmp_path, monkeypatch) ->
     parent = Detector.from_weights(shipped).model.state_dict()[key]
     assert parent.shape[0] == len(OBJECT_NAMES) + 1
 
-    from sim.episode import play_episode
-    from sim.estimators import make_estimator
+    from sim.episodes.episode import play_episode
+    from sim.episodes.registry import make_estimator
 
     r = play_episode("box", 1_000_000_000, make_estimator("hybrid-global-user"))
     assert r.estimator == "hybrid-global-user"
@@ -69,7 +69,7 @@ def test_the_chain_trains_a_detector_for_a_user_object(tmp_path, monkeypatch) ->
 
 def test_without_a_user_detector_the_estimator_says_how_to_train_one(tmp_path, monkeypatch):
     from posegrasp.core.errors import AssetError
-    from sim.estimators import make_estimator
+    from sim.episodes.registry import make_estimator
 
     monkeypatch.setenv(OBJECTS_ENV, str(tmp_path))
     with pytest.raises(AssetError, match="train_detector --objects"):

@@ -81,7 +81,7 @@ def poses_rows(
             board's (objects, episodes per object, first seed), or two CSVs of one method for the
             same tier and sensor.
     """
-    from sim.bop_results import BopPosesEstimator
+    from sim.evaluation.bop_results import BopPosesEstimator
 
     rows: list[PosesRow] = []
     for csv, folder in pairs:
@@ -185,7 +185,7 @@ def differences(a: dict, b: dict, most: int = 3) -> str:
 def poses_settings(csv: str, export: str) -> dict:
     """What shapes a CSV row's results, as a cell records it: the CSV's and the export's map
     file's hashes."""
-    from sim.bop_results import MAP_FILE
+    from sim.evaluation.bop_results import MAP_FILE
 
     return {
         "weights": None,

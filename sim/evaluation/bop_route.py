@@ -8,18 +8,18 @@ from pathlib import Path
 from typing import Any
 
 from posegrasp.core.files import sha256_file
-from sim.bop_results import BopPosesEstimator, time_summary, truth_match
+from sim.evaluation.bop_results import BopPosesEstimator, time_summary, truth_match
 from sim.evaluation.protocol import Protocol
 
 
 def poses_estimator(csv_path: Path, export: Path) -> BopPosesEstimator:
     """The estimator that answers each episode of the export at `export` with its rows of the
-    CSV at `csv_path` (`sim.bop_results.BopPosesEstimator`), named ``bop:<csv name>@<first 12
-    hex digits of its SHA-256>``.
+    CSV at `csv_path` (`sim.evaluation.bop_results.BopPosesEstimator`), named ``bop:<csv
+    name>@<first 12 hex digits of its SHA-256>``.
 
     Raises:
         InvalidArgumentError, AssetError: an export or a CSV that cannot be read, or a CSV that
-            answers another export (`sim.bop_results`).
+            answers another export (`sim.evaluation.bop_results`).
     """
     estimator = BopPosesEstimator(csv_path, export)
     estimator.name = f"bop:{Path(csv_path).name}@{sha256_file(csv_path)[:12]}"
@@ -42,8 +42,8 @@ def export_protocol(estimator: BopPosesEstimator, **settings: Any) -> Protocol:
 def poses_record(estimator: BopPosesEstimator, csv_path: Path, report: dict) -> dict[str, Any]:
     """Where the poses of a ``--poses`` run came from (the CSV and its hash, the export), how many
     of the export's targets the CSV had a row for, the method's time per image from the CSV's
-    ``time`` column (`sim.bop_results.time_summary`), and whether the poses belong to these
-    episodes at all (``truth_match``, `sim.bop_results.truth_match`)."""
+    ``time`` column (`sim.evaluation.bop_results.time_summary`), and whether the poses belong to
+    these episodes at all (``truth_match``, `sim.evaluation.bop_results.truth_match`)."""
     eps = report["episodes"]
     times = [(e.get("estimate_info") or {}).get("time") for e in eps]
     return {

@@ -64,7 +64,7 @@ def observations() -> list[tuple[str, Any, str]]:
     from posegrasp.world.constants import EVAL_SEED_BASE
     from posegrasp.world.objects import OBJECT_NAMES
     from posegrasp.world.tiers import TIERS
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
 
     out = []
     for t, tier in enumerate(TIERS):

@@ -208,7 +208,8 @@ def read_export(root: Path | str) -> ExportEpisodes:
     order = [(o, seed_start + i) for o in objects for i in range(episodes)]
     if images != {k: (sid, 0) for k, sid in scene_ids(tier, order).items()}:
         raise _bad_map(
-            path, "its image ids are not those of its episodes (sim.bop_results.scene_ids)"
+            path,
+            "its image ids are not those of its episodes (sim.evaluation.bop_results.scene_ids)",
         )
     return ExportEpisodes(
         root, tier, seed_start, objects, episodes, ground_truth, images, tables, sensor
