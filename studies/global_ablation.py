@@ -265,7 +265,7 @@ def config_sweep(
             cases.append((det, s.K, s.rgb, target.occluder(), gt.T_C_O, R_W_C))
     out = []
     for label, cfg in configs.items():
-        est.config = cfg
+        est = est.with_config(cfg)
         errors, best, shift, ms, looks = [], [], [], [], 0
         for det, K, rgb, occluder, T_true, R_W_C in progress_bar(cases, desc=label, leave=False):
             t0 = time.perf_counter()

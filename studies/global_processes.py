@@ -18,6 +18,7 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,7 +30,7 @@ from posegrasp.core.cli import (
     summary_stream,
     write_json,
 )
-from posegrasp.core.contract import Observation, PoseEstimator
+from posegrasp.core.contract import Observation
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int
 from posegrasp.world import constants as C
@@ -37,6 +38,9 @@ from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import TIERS
 
 #: The estimators with a worker process.
+if TYPE_CHECKING:
+    from perception.global_pose import GlobalPoseEstimator
+
 ESTIMATORS = ("hybrid-global", "hybrid-global-table", "hybrid-global-paper")
 
 
@@ -76,7 +80,7 @@ def _parser() -> ArgumentParser:
 def _observations(tier: str, images: int) -> list[Observation]:
     """The head-camera observations of the tier's first `images` held-out episodes, objects
     in turn."""
-    from sim.episode import Episode, EpisodeConfig
+    from sim.episodes.episode import Episode, EpisodeConfig
 
     observations = []
     for i in range(images):
@@ -90,15 +94,15 @@ def _observations(tier: str, images: int) -> list[Observation]:
 
 
 def _timings(
-    est: PoseEstimator, observations: list[Observation], repeat: int
+    est: GlobalPoseEstimator, observations: list[Observation], repeat: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per observation, the fastest of `repeat` estimates [ms] with one process and with two,
-    the settings interleaved image by image."""
-    config = est.config  # type: ignore[attr-defined]
+    the settings interleaved image by image (each composition hands the worker on)."""
+    config = est.config
     ms: dict[int, list[float]] = {1: [], 2: []}
     for obs in observations:
         for processes in (1, 2):
-            est.config = replace(config, processes=processes)  # type: ignore[attr-defined]
+            est = est.with_config(replace(config, processes=processes))
             runs = []
             for _ in range(repeat):
                 t0 = time.perf_counter()
@@ -114,8 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     setup_rendering(threads=args.threads)
     from perception.estimators import LEARNED_ESTIMATORS
+    from perception.global_pose import GlobalPoseEstimator
 
     est = LEARNED_ESTIMATORS[args.estimator]()
+    assert isinstance(est, GlobalPoseEstimator)  # ESTIMATORS are its variants
     observations = _observations(args.tier, args.images)
     for obs in observations * 2:  # the codebooks, and the worker starts in the second estimate
         est.estimate(obs)

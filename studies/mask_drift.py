@@ -22,6 +22,7 @@ import numpy as np
 from perception.global_pose import GlobalPoseEstimator
 from perception.hybrid import detect_target
 from perception.metrics import mask_iou, rotation_error_deg
+from perception.stages import Verify
 from perception.training.data.dataset import PoseDataset
 from posegrasp.core.cli import ArgumentParser, add_json_argument, command, write_json
 from posegrasp.core.contract import Observation
@@ -49,7 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     setup_rendering(threads=1)
     est = GlobalPoseEstimator.from_weights()
-    refiner, cfg = est.refiner, est.config
+    verify, cfg = est.stage("verify"), est.config
+    assert isinstance(verify, Verify)
+    refiner = verify.refiner
     ds = PoseDataset(data_root() / args.split, args.subset)
     ray: dict[str, list[float]] = {m: [] for m in MASKS}
     rot: dict[str, list[float]] = {m: [] for m in MASKS}
