@@ -13,12 +13,16 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+from grasping.place import PlacePlan
 from grasping.planner import PLANNED_JOINTS, GraspPlan
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.failures import check_failure_reason
 from posegrasp.world import constants as C
 from posegrasp.world.scene import Scene
 
+#: The carry to the goal takes this many times the transit's time for the same motion: a held
+#: object slips less under a gentler acceleration.
+PLACE_CARRY_SLOWDOWN = 2.0
 #: How the arm travels to the pre-grasp (`ExecutionConfig.transit`).
 TRANSIT_MODES: tuple[str, ...] = ("kinematic", "dynamic")
 
@@ -97,6 +101,20 @@ class GraspOutcome:
     friction_margin: float | None = None
 
 
+@dataclass
+class PlaceOutcome:
+    """What happened when a place was executed.
+
+    Attributes:
+        failure_reason: ``dropped`` when the object left the hand before the set-down, else
+            None (where it came to rest is scored by the caller).
+        timings_ms: wall time per stage [ms].
+    """
+
+    failure_reason: str | None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
 def _smoothstep(s: float) -> float:
     return s * s * s * (10 - 15 * s + 6 * s * s)
 
@@ -142,6 +160,7 @@ class Executor:
         self.table_hit = False
         self.events: list[str] = []
         self._kinematic = False  # playing the transit back without physics (see `_transit`)
+        self.T_world_G_closed: np.ndarray | None = None  # the grasp site as the fingers closed
 
     # -- low level ---------------------------------------------------------------------------
     def _advance(self, seconds: float) -> None:
@@ -222,6 +241,15 @@ class Executor:
     def held(self) -> bool:
         """Both fingers touch the target object."""
         return all(self._touching(f, self.object_geoms) for f in self.finger_geoms)
+
+    def grasp_site_pose(self) -> np.ndarray:
+        """The grasp site's pose in the world now, T_world_G (4, 4) [m] (what the robot's own
+        kinematics tell it)."""
+        site = self.scene.data.site(C.GRASP_SITE)
+        T = np.eye(4)
+        T[:3, :3] = site.xmat.reshape(3, 3)
+        T[:3, 3] = site.xpos
+        return T
 
     def lift_height(self) -> float:
         """Clearance of the target's lowest point over the table top [m]."""
@@ -321,6 +349,7 @@ class Executor:
                 break
             prev = now
         timings["close"] = (time.perf_counter() - t) * 1000
+        self.T_world_G_closed = self.grasp_site_pose()
         if not self.held():
             return fail("missed")
 
@@ -343,3 +372,50 @@ class Executor:
                 timings["margin"] = (time.perf_counter() - t) * 1000
             return GraspOutcome(True, None, h, timings, self.frames, margin)
         return fail("slipped")
+
+    # -- the place ---------------------------------------------------------------------------
+    def place(self, plan: PlacePlan, settle_time: float) -> PlaceOutcome:
+        """From the held lift: carry the object to above its set-down at `PLACE_CARRY_SLOWDOWN`
+        times the transit's time, descend until the object touches the table (a guarded move:
+        the arm feels the table through its joint efforts) or the set-down is reached, release,
+        retreat straight up and let the object settle for `settle_time` [s]."""
+        timings: dict[str, float] = {}
+        t = time.perf_counter()
+        q0 = self.scene.data.ctrl[self.act].copy()
+        self.move(plan.hover, duration=PLACE_CARRY_SLOWDOWN * self._duration(q0, plan.hover))
+        self._advance(0.2)
+        timings["carry"] = (time.perf_counter() - t) * 1000
+        if not self.held():
+            self.events.append("the object left the hand on the way to the goal")
+            return PlaceOutcome(check_failure_reason("dropped"), timings)
+        t = time.perf_counter()
+        touched = self._guarded_descent(plan)
+        if touched is not None:
+            self.events.append(f"the object touched the table {touched * 1000:.0f} mm early")
+        timings["set_down"] = (time.perf_counter() - t) * 1000
+        t = time.perf_counter()
+        self.set_fingers(C.FINGER_TRAVEL)
+        self._advance(0.4)
+        self.move(plan.retreat)
+        self._advance(settle_time)
+        timings["release"] = (time.perf_counter() - t) * 1000
+        return PlaceOutcome(None, timings)
+
+    def _guarded_descent(self, plan: PlacePlan) -> float | None:
+        """Lower the held object through the plan's descent at the approach speed, stopping
+        where it first touches the table; how far above the set-down [m] it stopped (None: it
+        reached the set-down without touching)."""
+        d = self.scene.data
+        q_prev = d.ctrl[self.act].copy()
+        duration = max(0.15, plan.step_m / self.cfg.approach_speed)
+        steps = max(1, round(duration / self.cfg.control_dt))
+        for q in plan.descent:
+            for k in range(1, steps + 1):
+                d.ctrl[self.act] = q_prev + _smoothstep(k / steps) * (q - q_prev)
+                self._advance(self.cfg.control_dt)
+                if self._touching(self.object_geoms, self.table_geoms):
+                    d.ctrl[self.act] = d.qpos[self.qadr]
+                    return max(0.0, float(self.grasp_site_pose()[2, 3] - plan.T_world_G[2, 3]))
+            q_prev = q
+        self._advance(0.2)
+        return None

@@ -63,7 +63,7 @@ class PlanningError(PosegraspError):
         self.reason = check_failure_reason(reason)
 
 
-class _NoConvergence(Exception):
+class NoConvergence(Exception):
     """One IK target of a candidate was not reached."""
 
 
@@ -214,11 +214,11 @@ class GraspPlanner:
             self.configuration.integrate_inplace(v, cfg.dt)
         return pe < cfg.pos_tol and re < cfg.rot_tol, pe, re
 
-    def _reach(self, T_target: np.ndarray, stage: str) -> np.ndarray:
+    def reach(self, T_target: np.ndarray, stage: str) -> np.ndarray:
         """Solve IK for a grasp-site pose from the current configuration; planned joints."""
         ok, pe, re = self._solve(T_target)
         if not ok:
-            raise _NoConvergence(
+            raise NoConvergence(
                 f"{stage} IK did not converge ({pe * 1000:.1f} mm, {np.rad2deg(re):.1f} deg)"
             )
         return self.configuration.q[self.qadr].copy()
@@ -338,7 +338,7 @@ class GraspPlanner:
             tried += 1
             try:
                 q_hover, q_pre, waypoints, q_lift = self._reach_grasp(T_grasp, seed)
-            except _NoConvergence as exc:
+            except NoConvergence as exc:
                 last = str(exc)
                 continue
             return GraspPlan(
@@ -411,12 +411,12 @@ class GraspPlanner:
         waypoint and lift.
 
         Raises:
-            _NoConvergence: a target was not reached.
+            NoConvergence: a target was not reached.
         """
         self.configuration.update(seed.copy())
         T_hover, T_pre, T_approach, T_lift = self._grasp_targets(T_grasp)
-        q_hover = self._reach(T_hover, "hover")
-        q_pre = self._reach(T_pre, "pre-grasp")
-        waypoints = [self._reach(T_k, "approach") for T_k in T_approach]
-        q_lift = self._reach(T_lift, "lift")
+        q_hover = self.reach(T_hover, "hover")
+        q_pre = self.reach(T_pre, "pre-grasp")
+        waypoints = [self.reach(T_k, "approach") for T_k in T_approach]
+        q_lift = self.reach(T_lift, "lift")
         return q_hover, q_pre, waypoints, q_lift

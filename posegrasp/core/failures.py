@@ -19,6 +19,11 @@ FAILURE_REASONS: dict[str, str] = {
     "rotation off orthonormal by more than 1e-6 or a reflection, a position beyond 10 m of the "
     "camera (metres, not millimetres), or a non-unit quaternion (the cause is the episode's first "
     "note and, in the env, info['error'])",
+    "place_infeasible": "place task: the inverse kinematics of the set-down at the goal did not "
+    "converge",
+    "dropped": "place task: the object left the hand on the way to the goal",
+    "tipped": "place task: the object came to rest with its up axis over 20 deg from the goal's",
+    "off_target": "place task: the object rests over 2 cm or 10 deg (symmetry-aware) from its goal",
     "error": "the episode raised an error, recorded in its notes (sim.evaluate keeps going)",
 }
 

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from grasping.execute import ExecutionConfig, Executor, GraspOutcome
+from grasping.place import PlaceConfig, PlacePlanner, held_transform, set_down_pose
 from grasping.planner import GraspPlan, GraspPlanner, PlannerConfig, PlanningError
 from perception import metrics
 from perception.metrics import Symmetry, error_components, identity_symmetry
@@ -34,6 +35,7 @@ from posegrasp.core.errors import InvalidArgumentError, StateError, UnknownNameE
 from posegrasp.core.failures import check_failure_reason
 from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, RenderOptions, T_world_cam, camera_intrinsics
+from posegrasp.world.goals import GoalConfig, PlaceGoal, draw_goal
 from posegrasp.world.objects import ObjectModel, check_object
 from posegrasp.world.scene import Scene, SceneConfig, build_scene
 from posegrasp.world.sensors import SENSOR_NAMES, Sensor
@@ -42,6 +44,17 @@ from sim.episodes.registry import PrivilegedEstimator
 
 #: What `Episode.observe` renders: ``rgb`` the colour image, ``rgbd`` also the depth image.
 OBS_MODES = ("rgb", "rgbd")
+#: What the robot does with the object: ``lift`` it and hold it, or lift it and ``place`` it at
+#: a goal pose on the table (`posegrasp.world.goals`).
+TASKS = ("lift", "place")
+#: A place succeeds when the object rests within this distance [m] and this rotation [deg] of
+#: its goal (symmetry-aware, `pose_errors`): the play of a fixture or a shelf slot with a
+#: centimetre to spare each side, and a turn that a chamfered slot still takes.
+PLACE_TOLERANCE = (0.02, 10.0)
+#: A placed object whose up axis is further than this from the goal's [deg] has tipped over.
+TIPPED_DEG = 20.0
+#: Physics time the placed object is left to settle after the gripper withdrew [s].
+PLACE_SETTLE_S = 1.0
 #: An estimate is correct (``EpisodeResult.pose_correct``) when its MSSD is below this fraction
 #: of the object's diameter (BOP's MSSD, at the threshold of the ADD(-S) < 0.1 d test).
 POSE_CORRECT_MSSD = 0.1
@@ -61,9 +74,13 @@ class EpisodeConfig:
         sensor: the head camera's sensor model, one of
             `posegrasp.world.sensors.SENSOR_NAMES`: what `Episode.observe` hands the estimator
             is the rendered images as that sensor returns them (``ideal``: unchanged).
+        task: one of `TASKS`: ``lift`` scores the lift; ``place`` then carries the object to
+            a goal pose drawn from the seed (`goal`) and sets it down (`place`), scored by
+            where it rests.
 
     Raises:
-        UnknownNameError: an obs_mode not in `OBS_MODES`, a sensor not in `SENSOR_NAMES`.
+        UnknownNameError: an obs_mode not in `OBS_MODES`, a sensor not in `SENSOR_NAMES`, a
+            task not in `TASKS`.
     """
 
     width: int = 640
@@ -75,8 +92,13 @@ class EpisodeConfig:
     tier: str = DEFAULT_TIER
     obs_mode: str = "rgb"
     sensor: str = "ideal"
+    task: str = "lift"
+    goal: GoalConfig = field(default_factory=GoalConfig)
+    place: PlaceConfig = field(default_factory=PlaceConfig)
 
     def __post_init__(self) -> None:
+        if self.task not in TASKS:
+            raise UnknownNameError("task", str(self.task), TASKS)
         if self.obs_mode not in OBS_MODES:
             raise UnknownNameError("observation mode", str(self.obs_mode), OBS_MODES)
         if self.sensor not in SENSOR_NAMES:
@@ -118,17 +140,21 @@ class EpisodeResult:
     sensor: str = "ideal"
     #: The estimate's confidence (contract version 3), None when it gives none.
     confidence: float | None = None
+    #: The place task's record (`Episode.place_record`), None on the lift task.
+    place: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-serialisable dict (strict JSON: an estimate with non-finite entries, which
         ends as ``invalid_action``, is written as null). ``sensor`` is left out for ``ideal``
-        and ``confidence`` when None, as in the records written before them: a record without
-        them observed the ideal camera and had no confidence."""
+        and ``confidence`` and ``place`` when None, as in the records written before them: a
+        record without them observed the ideal camera, had no confidence and lifted."""
         d = asdict(self)
         if self.sensor == "ideal":
             del d["sensor"]
         if self.confidence is None:
             del d["confidence"]
+        if self.place is None:
+            del d["place"]
         d["T_C_O_true"] = self.T_C_O_true.tolist()
         est = self.T_C_O_est
         d["T_C_O_est"] = None if est is None or not np.all(np.isfinite(est)) else est.tolist()
@@ -283,6 +309,11 @@ class Episode:
         self.T_C_O_true = np.linalg.inv(self.T_world_cam) @ self.scene.object_pose()
         self._done = False
         self.frames: list[np.ndarray] = []
+        self.goal: PlaceGoal | None = None
+        if self.cfg.task == "place":
+            self.goal = draw_goal(self.scene, self.cfg.goal)
+        self._planner: GraspPlanner | None = None
+        self._executor: Executor | None = None
 
     def scene_info(self) -> dict[str, Any]:
         """What makes this scene hard: the target's resting pose and, when the tier bounds
@@ -384,6 +415,9 @@ class Episode:
         notes.extend(events)
         res = result(outcome.success, outcome.failure_reason, plan.candidate.part)
         res.friction_margin = outcome.friction_margin
+        if self.goal is not None and outcome.success:
+            res.lift_height = outcome.lift_height
+            self._place(res, self.T_world_cam @ T_C_O_est)
         return res
 
     def _vsd(self, T_C_O_est: np.ndarray) -> list[float]:
@@ -420,7 +454,7 @@ class Episode:
         T_world_O = self.T_world_cam @ T_C_O_est
         t = time.perf_counter()
         try:
-            planner = GraspPlanner(self.scene.model, config=self.cfg.planner)
+            planner = self._planner = GraspPlanner(self.scene.model, config=self.cfg.planner)
             told = [(n, self.T_world_cam @ T) for n, T in neighbours]
             plan = planner.plan(self.object, T_world_O, self.scene.data.qpos.copy(), told)
         except PlanningError:
@@ -433,12 +467,87 @@ class Episode:
     def _execute(self, plan: GraspPlan, recorder=None) -> tuple[GraspOutcome, list[str]]:
         """Execute the plan in the scene (each of its stages timed as ``exec_<stage>``, its
         frames kept as `frames`); the outcome and the executor's events, in order."""
-        executor = Executor(self.scene, self.cfg.execution, recorder=recorder)
+        executor = self._executor = Executor(self.scene, self.cfg.execution, recorder=recorder)
         outcome = executor.execute(plan)
         for k, v in outcome.timings_ms.items():
             self.timings_ms[f"exec_{k}"] = v
         self.frames = outcome.frames
         return outcome, executor.events
+
+    def _place(self, res: EpisodeResult, T_world_O_est: np.ndarray) -> None:
+        """Carry the lifted object to the goal, set it down and score where it rests, into
+        `res`: the robot places it as the estimate T_world_O_est (4, 4) [m] says it lies in
+        the hand (`grasping.place.held_transform`); the set-down's planning is timed as
+        ``place_plan``, its execution's stages as ``exec_<stage>``."""
+        assert self.goal is not None and self._planner is not None
+        executor = self._executor
+        assert executor is not None and executor.T_world_G_closed is not None
+        T_G_O = held_transform(executor.T_world_G_closed, T_world_O_est)
+        if self.cfg.place.belief == "truth":
+            T_G_O = held_transform(executor.grasp_site_pose(), self.scene.object_pose())
+        T_set = set_down_pose(self.goal.T_world_O, T_G_O, self.cfg.place.drop)
+        t = time.perf_counter()
+        try:
+            plan = PlacePlanner(self._planner, self.cfg.place).plan(T_set, self.scene.data.qpos)
+        except PlanningError as exc:
+            res.notes.append(str(exc))
+            reason: str | None = exc.reason
+        else:
+            self.timings_ms["place_plan"] = (time.perf_counter() - t) * 1000
+            before = len(executor.events)
+            outcome = executor.place(plan, PLACE_SETTLE_S)
+            self.timings_ms |= {f"exec_{k}": v for k, v in outcome.timings_ms.items()}
+            self.frames = executor.frames
+            res.notes.extend(executor.events[before:])
+            reason = outcome.failure_reason
+        res.place = self.place_record(reason)
+        res.success, res.failure_reason = res.place["placed"], res.place["failure_reason"]
+        self.timings_ms["total"] = sum(
+            v for k, v in self.timings_ms.items() if k not in ("total", "ik")
+        )
+        res.timings_ms = dict(self.timings_ms)
+
+    def place_record(self, reason: str | None) -> dict[str, Any]:
+        """Where the target rests now against its goal: the goal, the final pose T_world_O,
+        the errors (`place_errors`), whether it is placed and, if not, why: `reason` when the
+        place failed on the way, else ``tipped`` or ``off_target`` by `TIPPED_DEG` and
+        `PLACE_TOLERANCE`."""
+        assert self.goal is not None
+        final = self.scene.object_pose()
+        errors = self.place_errors(final)
+        if reason is None and errors["tilt_deg"] > TIPPED_DEG:
+            reason = "tipped"
+        far = errors["translation_m"] > PLACE_TOLERANCE[0]
+        if reason is None and (far or errors["rotation_deg"] > PLACE_TOLERANCE[1]):
+            reason = "off_target"
+        return {
+            "goal": self.goal.to_json(),
+            "T_world_O_final": final.tolist(),
+            "errors": errors,
+            "placed": reason is None,
+            "failure_reason": check_failure_reason(reason),
+        }
+
+    def place_errors(self, T_world_O: np.ndarray) -> dict[str, float]:
+        """The errors of a resting pose T_world_O (4, 4) from the goal: the symmetry-aware
+        ``translation_m``, ``rotation_deg``, ``mssd_m`` and ``mssd_rel_diameter``
+        (`pose_errors`), and ``tilt_deg``, the angle between the goal's up axis and where the
+        object's now points."""
+        assert self.goal is not None
+        T_cam_world = np.linalg.inv(self.T_world_cam)
+        obj = self.scene.target.model
+        every = pose_errors(
+            T_cam_world @ T_world_O,
+            T_cam_world @ self.goal.T_world_O,
+            np.asarray(obj.mesh.vertices),
+            obj.diameter,
+            None,
+            object_symmetries(obj),
+        )
+        up = self.goal.T_world_O[:3, :3].T[:, 2]  # the world's up in the object's frame
+        tilt = float(np.degrees(np.arccos(np.clip((T_world_O[:3, :3] @ up)[2], -1.0, 1.0))))
+        keys = ("translation_m", "rotation_deg", "mssd_m", "mssd_rel_diameter")
+        return {k: every[k] for k in keys} | {"tilt_deg": tilt}
 
     def reject(
         self, problem: str, estimator: str = "external", T_C_O_est: np.ndarray | None = None
