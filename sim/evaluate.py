@@ -48,6 +48,8 @@ from sim.episodes.registry import (
     add_estimator_arguments,
     add_obs_mode_argument,
     add_sensor_argument,
+    add_shift_argument,
+    add_task_argument,
     check_depth,
     depth_unused_note,
     make_estimator,
@@ -118,6 +120,8 @@ def _protocol(args, poses: BopPosesEstimator | None) -> Protocol:
         "pool": tuple(args.pool),
         "candidates": args.candidates,
         "sensor": args.sensor,
+        "task": args.task,
+        "shifts": args.shift,
     }
     if poses is not None:
         rendered = poses.export.sensor
@@ -218,6 +222,8 @@ def _parser() -> ArgumentParser:
     _add_pose_source_arguments(p)
     add_obs_mode_argument(p)
     add_sensor_argument(p)
+    add_task_argument(p)
+    add_shift_argument(p)
     p.add_argument(
         "--seed-start",
         type=arg(check_seed, "--seed-start", base=int),

@@ -41,6 +41,8 @@ from sim.episodes.registry import (
     add_estimator_arguments,
     add_obs_mode_argument,
     add_sensor_argument,
+    add_shift_argument,
+    add_task_argument,
     check_depth,
     depth_unused_note,
     make_estimator,
@@ -88,7 +90,14 @@ def summary(result) -> str:
         elif "detected" in info:
             lines.append(f"  detection   no {result.object} detected")
         sup = info.get("support")
-        if sup:
+        if sup and sup.get("source") == "neighbours" and "resting_pose" not in sup:
+            z = sup.get("surface_z")
+            lines.append(
+                f"  support     {len(sup['neighbours'])} neighbour(s) verified; their surface "
+                + ("none found" if z is None else f"at z = {z:.3f} m")
+                + f", the target's own at z = {sup['own_z']:.3f} m: pose kept"
+            )
+        elif sup:
             lines.append(
                 f"  table prior resting pose {sup['resting_pose']}  tilt removed "
                 f"{sup['tilt_deg']:.1f} deg  moved {sup['shift_m'] * 1000:+.1f} mm along the ray  "
@@ -120,6 +129,13 @@ def summary(result) -> str:
         f"  outcome     {outcome}   object lifted {result.lift_height * 1000:.0f} mm"
         + (f"   grasped part: {result.grasp_part}" if result.grasp_part else "")
     )
+    if result.place is not None:
+        goal, pe = result.place["goal"], result.place["errors"]
+        lines.append(
+            f"  place       goal {goal['moved_m'] * 1000:.0f} mm away, turned "
+            f"{goal['turned_deg']:+.0f} deg; rests {pe['translation_m'] * 1000:.1f} mm and "
+            f"{pe['rotation_deg']:.1f} deg from it (tilted {pe['tilt_deg']:.1f} deg)"
+        )
     for note in result.notes:
         lines.append(f"  note        {note}")
     lines.extend(_timing_lines(result.timings_ms, info.get("timings_ms") if info else None))
@@ -374,12 +390,18 @@ def _run(
     obs_mode: str = "rgb",
     pool: tuple[str, ...] = (),
     sensor: str = "ideal",
+    task: str = "lift",
+    shifts: tuple = (),
 ):
     from posegrasp.world.scene import SceneConfig
     from sim.episodes.episode import Episode, EpisodeConfig
 
     cfg = EpisodeConfig(
-        scene=SceneConfig(distractor_pool=pool), tier=tier, obs_mode=obs_mode, sensor=sensor
+        scene=SceneConfig(distractor_pool=pool, shifts=shifts),
+        tier=tier,
+        obs_mode=obs_mode,
+        sensor=sensor,
+        task=task,
     )
     ep = Episode(obj, seed, cfg)
     try:
@@ -502,6 +524,8 @@ def main(argv: list[str] | None = None) -> int:
     add_estimator_arguments(p)
     add_obs_mode_argument(p)
     add_sensor_argument(p)
+    add_task_argument(p)
+    add_shift_argument(p)
     p.add_argument(
         "--tier",
         default=DEFAULT_TIER,
@@ -539,6 +563,8 @@ def main(argv: list[str] | None = None) -> int:
         args.obs_mode,
         args.pool,
         args.sensor,
+        args.task,
+        args.shift,
     )
     if args.seed < C.DATA_SEED_LIMIT and args.estimator.startswith("hybrid"):
         print(

@@ -23,6 +23,9 @@ from scipy.spatial import cKDTree
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.world.scene import Scene
 
+#: What the robot does with the object: ``lift`` it and hold it, or lift it and ``place`` it at
+#: a goal pose on the table (`draw_goal`).
+TASKS = ("lift", "place")
 #: The second word of the goal's random stream, ``default_rng([seed, GOAL_STREAM])``.
 GOAL_STREAM = 0x601
 #: Draws before giving up on a goal.

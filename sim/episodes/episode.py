@@ -35,7 +35,7 @@ from posegrasp.core.errors import InvalidArgumentError, StateError, UnknownNameE
 from posegrasp.core.failures import check_failure_reason
 from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, RenderOptions, T_world_cam, camera_intrinsics
-from posegrasp.world.goals import GoalConfig, PlaceGoal, draw_goal
+from posegrasp.world.goals import TASKS, GoalConfig, PlaceGoal, draw_goal
 from posegrasp.world.objects import ObjectModel, check_object
 from posegrasp.world.scene import Scene, SceneConfig, build_scene
 from posegrasp.world.sensors import SENSOR_NAMES, Sensor
@@ -44,9 +44,6 @@ from sim.episodes.registry import PrivilegedEstimator
 
 #: What `Episode.observe` renders: ``rgb`` the colour image, ``rgbd`` also the depth image.
 OBS_MODES = ("rgb", "rgbd")
-#: What the robot does with the object: ``lift`` it and hold it, or lift it and ``place`` it at
-#: a goal pose on the table (`posegrasp.world.goals`).
-TASKS = ("lift", "place")
 #: A place succeeds when the object rests within this distance [m] and this rotation [deg] of
 #: its goal (symmetry-aware, `pose_errors`): the play of a fixture or a shelf slot with a
 #: centimetre to spare each side, and a turn that a chamfered slot still takes.
@@ -74,9 +71,9 @@ class EpisodeConfig:
         sensor: the head camera's sensor model, one of
             `posegrasp.world.sensors.SENSOR_NAMES`: what `Episode.observe` hands the estimator
             is the rendered images as that sensor returns them (``ideal``: unchanged).
-        task: one of `TASKS`: ``lift`` scores the lift; ``place`` then carries the object to
-            a goal pose drawn from the seed (`goal`) and sets it down (`place`), scored by
-            where it rests.
+        task: one of `posegrasp.world.goals.TASKS`: ``lift`` scores the lift; ``place`` then
+            carries the object to a goal pose drawn from the seed (`goal`) and sets it down
+            (`place`), scored by where it rests.
 
     Raises:
         UnknownNameError: an obs_mode not in `OBS_MODES`, a sensor not in `SENSOR_NAMES`, a
@@ -502,9 +499,8 @@ class Episode:
             reason = outcome.failure_reason
         res.place = self.place_record(reason)
         res.success, res.failure_reason = res.place["placed"], res.place["failure_reason"]
-        self.timings_ms["total"] = sum(
-            v for k, v in self.timings_ms.items() if k not in ("total", "ik")
-        )
+        self.timings_ms.pop("total", None)
+        self.timings_ms["total"] = sum(v for k, v in self.timings_ms.items() if k != "ik")
         res.timings_ms = dict(self.timings_ms)
 
     def place_record(self, reason: str | None) -> dict[str, Any]:

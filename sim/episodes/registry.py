@@ -42,6 +42,7 @@ from posegrasp.core.errors import InvalidArgumentError, PosegraspError, UnknownN
 from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import REPO_ROOT, in_repo
 from posegrasp.core.validate import arg, check_choice
+from posegrasp.world.goals import TASKS
 from posegrasp.world.sensors import SENSOR_NAMES
 from sim.episodes.pose_noise import NOISE_FORMAT, PoseNoise, parse_noise, perturb_pose
 
@@ -443,6 +444,34 @@ def add_sensor_argument(parser: argparse.ArgumentParser) -> None:
         help=f"the head camera's sensor model, one of: {', '.join(SENSOR_NAMES)} (default ideal: "
         "the rendered images; a depth model changes the depth image, seen with --obs-mode rgbd; "
         "+camera adds a colour camera's noise)",
+    )
+
+
+def add_task_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--task lift|place``: what the robot does with the object
+    (`posegrasp.world.goals.TASKS`); a bad name is one line listing the valid ones."""
+    parser.add_argument(
+        "--task",
+        default="lift",
+        type=arg(check_choice, TASKS, "task"),
+        help="lift: grasp, lift and hold (default); place: then carry the object to a goal pose "
+        "drawn from the seed, set it down and score where it rests (2 cm, 10 deg)",
+    )
+
+
+def add_shift_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--shift SPEC``: the scene shifts every episode is seen under
+    (`posegrasp.world.shifts.parse_shifts`: ``NAME[:LEVEL]``, a comma list, ``all[:LEVEL]``);
+    a bad spec is one line listing the factors and levels."""
+    from posegrasp.world.shifts import FACTORS, parse_shifts
+
+    parser.add_argument(
+        "--shift",
+        default=(),
+        type=arg(parse_shifts),
+        metavar="SPEC",
+        help=f"purely visual scene shifts: NAME[:LEVEL], a comma list or all[:LEVEL]; factors: "
+        f"{', '.join(FACTORS)}; levels 1 mild, 2 medium (a bare name), 3 strong (default: none)",
     )
 
 

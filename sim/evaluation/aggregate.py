@@ -53,7 +53,8 @@ def group_summary(episodes: list[dict]) -> dict[str, Any]:
     """The aggregates of a group of episodes (one object's, or all): successes, rate and Wilson
     95 % interval, failure reasons, median and 90th-percentile pose errors ([m], [deg]), friction
     margin mean with its bootstrap 95 % interval and its Spearman correlation with the pose
-    error (when measured), how often pose and grasp disagree, `bop_scores`, the risk-coverage
+    error (when measured), how often pose and grasp disagree, `bop_scores`, `place_summary`,
+    the risk-coverage
     curve of the estimates' confidences with its area (``risk_coverage``,
     `sim.evaluation.stats.risk_coverage`; None when no episode has a confidence), and the median
     episode wall time and planning time [ms]."""
@@ -90,6 +91,7 @@ def group_summary(episodes: list[dict]) -> dict[str, Any]:
     out["grasped_wrong_pose"] = sum(bool(e["success"]) and not e["pose_correct"] for e in judged)
     out["missed_right_pose"] = sum(not e["success"] and bool(e["pose_correct"]) for e in judged)
     out.update(bop_scores(episodes))
+    out.update(place_summary(episodes))
     out["risk_coverage"] = risk_coverage(
         [e.get("confidence") for e in episodes], [bool(e["success"]) for e in episodes]
     )
@@ -97,6 +99,22 @@ def group_summary(episodes: list[dict]) -> dict[str, Any]:
     plans = [e["timings_ms"]["ik"] for e in episodes if "ik" in e.get("timings_ms", {})]
     out["episode_wall_ms_median"] = float(np.median(walls)) if walls else None
     out["planning_ms_median"] = float(np.median(plans)) if plans else None
+    return out
+
+
+def place_summary(episodes: list[dict]) -> dict[str, Any]:
+    """The place task's aggregates (empty for lift episodes): how many episodes lifted the object
+    (``lifted``: those that went on to place it), and over them the median and 90th percentile
+    of where it came to rest against its goal, symmetry-aware (``place_translation_m_*`` [m],
+    ``place_rotation_deg_*`` [deg])."""
+    placed = [e["place"] for e in episodes if e.get("place")]
+    if not any("place" in e for e in episodes) and not placed:
+        return {}
+    out: dict[str, Any] = {"lifted": len(placed)}
+    for key in ("translation_m", "rotation_deg"):
+        v = np.array([p["errors"][key] for p in placed])
+        out[f"place_{key}_median"] = float(np.median(v)) if v.size else None
+        out[f"place_{key}_p90"] = float(np.percentile(v, 90)) if v.size else None
     return out
 
 

@@ -19,6 +19,7 @@ from grasping.planner import PlannerConfig
 from posegrasp.core.validate import check_choice
 from posegrasp.world import constants as C
 from posegrasp.world.scene import SceneConfig
+from posegrasp.world.shifts import Shift, canonical
 from posegrasp.world.tiers import DEFAULT_TIER, check_tier
 from sim.episodes.episode import EpisodeConfig, execution_settings
 
@@ -45,10 +46,14 @@ class Protocol:
             (`grasping.candidates.CANDIDATE_SOURCES`).
         sensor: the head camera's sensor model the estimator observes through
             (`sim.episodes.episode.EpisodeConfig.sensor`; ``ideal``: the rendered images).
+        task: what the robot does with the object (`posegrasp.world.goals.TASKS`): ``lift``
+            it, or lift it and ``place`` it at a goal drawn from the seed.
+        shifts: the scene shifts every episode is seen under (`posegrasp.world.shifts`:
+            purely visual; none: the room as it is).
 
     Raises:
-        UnknownNameError: a tier, observation mode, candidate source or sensor that does not
-            exist, listing the valid ones.
+        UnknownNameError: a tier, observation mode, candidate source, sensor, task or scene
+            shift that does not exist, listing the valid ones.
     """
 
     objects: tuple[str, ...]
@@ -61,10 +66,13 @@ class Protocol:
     pool: tuple[str, ...] = ()
     candidates: str = "designed"
     sensor: str = "ideal"
+    task: str = "lift"
+    shifts: tuple[Shift, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "objects", tuple(self.objects))
         object.__setattr__(self, "pool", tuple(self.pool))
+        object.__setattr__(self, "shifts", canonical(self.shifts))
         check_tier(self.tier)
         check_choice(self.candidates, CANDIDATE_SOURCES, "candidate source")
         self.episode_config()  # checks the observation mode and the sensor as an episode does
@@ -84,23 +92,29 @@ class Protocol:
         """The settings every episode of the protocol plays with
         (`sim.episodes.episode.EpisodeConfig`)."""
         return EpisodeConfig(
-            scene=SceneConfig(distractor_pool=self.pool),
+            scene=SceneConfig(distractor_pool=self.pool, shifts=self.shifts),
             planner=PlannerConfig(candidates=self.candidates),
             tier=self.tier,
             execution=ExecutionConfig(measure_margin=self.margin),
             obs_mode=self.obs_mode,
             sensor=self.sensor,
+            task=self.task,
         )
 
     def recorded_apart(self) -> dict[str, Any]:
         """The entries a record holds only away from their defaults, so that records written
         before they existed read the same: ``distractor_pool`` (a pool of the caller's),
-        ``candidates`` (other than ``designed``) and ``sensor`` (other than ``ideal``)."""
+        ``candidates`` (other than ``designed``), ``sensor`` (other than ``ideal``), ``task``
+        (other than ``lift``) and ``shifts`` (any, as ``NAME:LEVEL`` items)."""
         out: dict[str, Any] = {"distractor_pool": list(self.pool)} if self.pool else {}
         if self.candidates != "designed":
             out["candidates"] = self.candidates
         if self.sensor != "ideal":
             out["sensor"] = self.sensor
+        if self.task != "lift":
+            out["task"] = self.task
+        if self.shifts:
+            out["shifts"] = [str(s) for s in self.shifts]
         return out
 
 

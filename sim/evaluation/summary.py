@@ -10,6 +10,7 @@ import re
 from collections import Counter
 
 from posegrasp.world.tiers import DEFAULT_TIER
+from sim.episodes.episode import PLACE_TOLERANCE
 
 
 def _ar(value: float | None) -> str:
@@ -78,8 +79,10 @@ def format_report(report: dict) -> str:
     (`area_line`) and the most frequent notes of each failure reason (`failure_notes`)."""
     rows = [
         f"estimator {report['estimator']}, tier {report.get('tier', DEFAULT_TIER)}, "
-        f"sensor {report.get('sensor', 'ideal')}: "
-        f"{report['episodes_per_object']} episodes per object, "
+        f"sensor {report.get('sensor', 'ideal')}"
+        + (f", task {report['task']}" if report.get("task", "lift") != "lift" else "")
+        + (f", shifts {','.join(report['shifts'])}" if report.get("shifts") else "")
+        + f": {report['episodes_per_object']} episodes per object, "
         f"seeds from {report['seed_start']}, {report['workers']} worker(s), "
         f"{report['wall_s']:.1f} s wall",
         f"{'object':<8} {'success':>8} {'rate':>6} {'wilson 95%':>15} {'t med mm':>9} "
@@ -105,6 +108,19 @@ def format_report(report: dict) -> str:
         f"estimates; grasped with a wrong pose: {o['grasped_wrong_pose']}; missed with a right "
         f"pose: {o['missed_right_pose']}"
     )
+    if "lifted" in o:
+        tm, rm = o["place_translation_m_median"], o["place_rotation_deg_median"]
+        rows.append(
+            f"placed within {PLACE_TOLERANCE[0] * 100:g} cm and {PLACE_TOLERANCE[1]:g} deg of the "
+            f"goal: {o['successes']} of {o['lifted']} lifted; "
+            + (
+                "none lifted"
+                if tm is None
+                else f"where they rest, median {tm * 1000:.1f} mm and {rm:.1f} deg from the goal "
+                f"(p90 {o['place_translation_m_p90'] * 1000:.1f} mm, "
+                f"{o['place_rotation_deg_p90']:.1f} deg)"
+            )
+        )
     if (area := area_line(items)) is not None:
         rows.append(area)
     notes = failure_notes(report["episodes"])
