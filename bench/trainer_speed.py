@@ -55,7 +55,7 @@ from perception.training.data.dataset import DATASETS, PoseDataset
 from perception.training.trainers.ddp import ONE_PROCESS
 from perception.training.trainers.detection_data import DetectionSet, augment_shard, start_from
 from perception.training.trainers.detector_trainer import DetectorTrainConfig, detection_loss
-from perception.training.trainers.loop import MAX_BATCH
+from perception.training.trainers.options import MAX_BATCH
 from perception.training.trainers.posenet_trainer import (
     BATCH_KEYS,
     GRAD_CLIP,

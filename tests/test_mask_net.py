@@ -4,6 +4,7 @@ a true mask as the detector does, and the shipped net gives back the outline a c
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from perception.mask_net import (
     paste,
     window_of,
 )
-from perception.training.trainers.masknet_trainer import degrade
+from perception.training.trainers.mask_windows import degrade
 from posegrasp.core.errors import InvalidArgumentError
 
 
@@ -141,26 +142,23 @@ def test_the_paper_protocols_net_gives_back_a_part_its_detector_lost() -> None:
     assert _iou(sharp, truth) > 0.9
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("heavy", [False, True])
-def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch, heavy) -> None:
-    """On a few rendered scenes: the windows are cut once and cached; a run stopped in the middle
-    of an epoch and resumed ends with the very weights of a run never stopped; a run of other
-    epochs does not resume it; an unfinished run is not exported, and the export writes the net
-    and its manifest entry."""
-    import json
-
+def _render(tmp_path, monkeypatch, dist: str, folder: str, counts: dict[str, int]) -> Path:
+    """Scenes of `dist` rendered into ``<data>/<folder>`` under a data root of the test's own."""
     from perception.training.datagen import main as datagen
-    from perception.training.shipping.ship import export_masknet
-    from perception.training.trainers.masknet_trainer import MaskTrainConfig, train
-    from posegrasp.core.errors import AssetError
 
     monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path / "data"))
-    out = tmp_path / "data" / "tiny"
-    for split, count in (("train", 6), ("val", 2)):
-        argv = ["--dist", "headcam", "--split", split, "--count", str(count)]
-        assert datagen([*argv, "--out", str(out), "--quiet"]) == 0
-    cfg = MaskTrainConfig(
+    out = tmp_path / "data" / folder
+    for split, count in counts.items():
+        argv = ["--dist", dist, "--split", split, "--count", str(count), "--out", str(out)]
+        assert datagen([*argv, "--quiet"]) == 0
+    return out
+
+
+def _tiny_run(tmp_path, heavy: bool = True):
+    """A run of two epochs of a tiny net on the scenes of `_render` (``tiny``, 6 train, 2 val)."""
+    from perception.training.trainers.masknet_trainer import MaskTrainConfig
+
+    return MaskTrainConfig(
         sources=(("tiny", 6),),
         val=("tiny", 2),
         heavy=heavy,
@@ -169,6 +167,18 @@ def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch, heavy) -
         net=MaskNetConfig(size=32, widths=(4, 8, 16)),
         out=tmp_path / "whole",
     )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("heavy", [False, True])
+def test_the_trainer_resumes_exactly(tmp_path, monkeypatch, heavy) -> None:
+    """On a few rendered scenes: the windows are cut once and cached; a run stopped in the middle
+    of an epoch and resumed ends with the very weights of a run never stopped; a run of other
+    epochs does not resume it."""
+    from perception.training.trainers.masknet_trainer import train
+
+    _render(tmp_path, monkeypatch, "headcam", "tiny", {"train": 6, "val": 2})
+    cfg = _tiny_run(tmp_path, heavy)
     whole = train(cfg)
     assert whole["epoch"] == 2 and [h["epoch"] for h in whole["history"]] == [1, 2]
     assert 0 <= whole["history"][-1]["iou"] <= 1
@@ -177,21 +187,37 @@ def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch, heavy) -
     stopped = replace(cfg, out=tmp_path / "stopped")
     cut_short = train(stopped, max_steps=per_epoch + 1)
     assert (cut_short["epoch"], cut_short["step"]) == (1, per_epoch + 1)
-    with pytest.raises(AssetError, match="1/2 epochs"):
-        export_masknet(stopped.out / "last.pt", "cmd", tmp_path / "w" / "masknet.pt")
     with pytest.raises(InvalidArgumentError, match="--epochs 2"):
         train(replace(stopped, epochs=3))
     resumed = train(stopped)
-    assert resumed["step"] == whole["step"]
+    assert resumed["step"] == whole["step"] and resumed["history"] == whole["history"]
     for key, value in whole["model"].items():
         assert torch.equal(value, resumed["model"][key]), key
-    entry = export_masknet(stopped.out / "last.pt", "cmd", tmp_path / "w" / "masknet.pt")
+
+
+@pytest.mark.slow
+def test_the_export_writes_the_net_and_the_stages_behind_it(tmp_path, monkeypatch) -> None:
+    """An unfinished run is not exported; the export writes the net and its manifest entry; a
+    further stage from the shipped net, on windows of another seed, starts with that net's
+    validation, will not resume as a run of another seed, and its entry lists both stages."""
+    import json
+
+    from perception.training.shipping.ship import export_masknet
+    from perception.training.trainers.masknet_trainer import train
+    from posegrasp.core.errors import AssetError
+
+    _render(tmp_path, monkeypatch, "headcam", "tiny", {"train": 6, "val": 2})
+    cfg = _tiny_run(tmp_path)
+    whole = train(cfg)
+    stopped = train(replace(cfg, out=tmp_path / "stopped"), max_steps=1)
+    with pytest.raises(AssetError, match="0/2 epochs"):
+        export_masknet(tmp_path / "stopped" / "last.pt", "cmd", tmp_path / "w" / "masknet.pt")
+    assert stopped["step"] == 1
+    entry = export_masknet(cfg.out / "last.pt", "cmd", tmp_path / "w" / "masknet.pt")
     manifest = json.loads((tmp_path / "w" / "manifest.json").read_text())
     assert manifest["mask_net"] == entry
-    assert entry["wall_s"] == round(resumed["wall_s"], 1) and entry["epochs_done"] == 2
+    assert entry["wall_s"] == round(whole["wall_s"], 1) and entry["epochs_done"] == 2
     assert MaskRefiner.from_weights(tmp_path / "w" / "masknet.pt").cfg == cfg.net
-    # A further stage from the shipped net, on windows of another seed: it starts with that
-    # net's validation, will not resume as a run of another seed, and its entry lists both stages.
     further = replace(
         cfg, out=tmp_path / "further", epochs=1, seed=1, init=tmp_path / "w" / "masknet.pt"
     )
@@ -207,21 +233,28 @@ def test_the_trainer_resumes_exactly_and_exports(tmp_path, monkeypatch, heavy) -
     second = export_masknet(further.out / "last.pt", "cmd2", tmp_path / "w" / "masknet.pt")
     assert [s["command"] for s in second["stages"]] == ["cmd", "cmd2"]
     assert second["stages"][0]["wall_s"] == entry["wall_s"] and second["epochs_done"] == 1
-    # The same stage shipped as the net of one object alone: its own file and entry, the
-    # protocol's net and entry untouched, and its hash checked when it is loaded.
-    shipped = (tmp_path / "w" / "masknet.pt").read_bytes()
-    alone = export_masknet(
-        further.out / "last.pt", "cmd3", tmp_path / "w" / "masknet.pt", expert="faucet"
-    )
-    manifest = json.loads((tmp_path / "w" / "manifest.json").read_text())
-    assert manifest["mask_net"] == second and manifest["mask_net_experts"]["faucet"] == alone
+    _export_an_expert(tmp_path / "w", further.out / "last.pt", second)
+
+
+def _export_an_expert(weights: Path, last: Path, shipped_entry: dict) -> None:
+    """The same stage shipped as the net of one object alone: its own file and entry, the
+    protocol's net and entry untouched, and its hash checked when it is loaded."""
+    import json
+
+    from perception.training.shipping.ship import export_masknet
+    from posegrasp.core.errors import AssetError
+
+    shipped = (weights / "masknet.pt").read_bytes()
+    alone = export_masknet(last, "cmd3", weights / "masknet.pt", expert="faucet")
+    manifest = json.loads((weights / "manifest.json").read_text())
+    assert manifest["mask_net"] == shipped_entry and manifest["mask_net_experts"]["faucet"] == alone
     assert alone["file"] == "masknet_faucet.pt" and alone["stages"][-1]["command"] == "cmd3"
-    assert (tmp_path / "w" / "masknet.pt").read_bytes() == shipped
-    both = MaskRefiner.from_weights(tmp_path / "w" / "masknet.pt", experts=("faucet",))
+    assert (weights / "masknet.pt").read_bytes() == shipped
+    both = MaskRefiner.from_weights(weights / "masknet.pt", experts=("faucet",))
     assert list(both.experts) == ["faucet"]
-    (tmp_path / "w" / "masknet_faucet.pt").write_bytes(shipped + b"\0")  # other bytes
+    (weights / "masknet_faucet.pt").write_bytes(shipped + b"\0")  # other bytes
     with pytest.raises(AssetError, match=r"masknet_faucet\.pt do not match"):
-        MaskRefiner.from_weights(tmp_path / "w" / "masknet.pt", experts=("faucet",))
+        MaskRefiner.from_weights(weights / "masknet.pt", experts=("faucet",))
 
 
 def test_an_objects_own_net_redraws_that_objects_masks_alone() -> None:
@@ -249,7 +282,7 @@ def test_an_objects_own_net_redraws_that_objects_masks_alone() -> None:
 
 def test_the_examples_are_drawn_into_a_picture(tmp_path) -> None:
     """One row per example, the three masks' outlines on its window: a PNG is written."""
-    from perception.training.trainers.masknet_trainer import plot_examples
+    from perception.training.evals.masknet_eval import plot_examples
 
     rgb = np.full((64, 64, 3), 120, np.uint8)
     truth = _disc((64, 64), (32, 32), 20)
@@ -258,24 +291,25 @@ def test_the_examples_are_drawn_into_a_picture(tmp_path) -> None:
     assert (tmp_path / "m.png").stat().st_size > 1000
 
 
-def test_the_detectors_own_masks_are_the_coarse_input_of_their_windows(tmp_path, monkeypatch):
-    """Windows of the `detected` images are cut around the detector's own mask of each object,
-    which is their coarse input as it is: they are cached, a run trains on them beside the
-    degraded true masks (its batches carry them unchanged) and validates on the detector's
-    masks of the validation scenes too. The cache is kept in blocks: a longer run runs the
-    detector only on the images past the blocks a shorter one finished."""
+class _StandIn:
+    """The detector of `_stand_in_detector`: its answers by image, and how often it ran."""
+
+    def __init__(self, answers: dict) -> None:
+        self.answers, self.calls = answers, 0
+
+    def detect(self, rgb, score_threshold=None):
+        self.calls += 1
+        return self.answers[rgb.tobytes()]
+
+
+def _stand_in_detector(tmp_path, monkeypatch) -> tuple[Path, _StandIn]:
+    """Paper scenes (5 train, 2 val) and a detector standing in for the shipped one: its mask of
+    each object is the true one with its right third dropped."""
     import perception.detector as detector_module
-    import perception.training.trainers.masknet_trainer as tm
     from perception.detector import Detection
     from perception.training.data.dataset import PoseDataset
-    from perception.training.datagen import main as datagen
 
-    monkeypatch.setenv("POSEGRASP_DATA", str(tmp_path / "data"))
-    out = tmp_path / "data" / "paper"
-    for split, count in (("train", 5), ("val", 2)):
-        argv = ["--dist", "paper", "--split", split, "--count", str(count), "--out", str(out)]
-        assert datagen([*argv, "--quiet"]) == 0
-    # The detector stands in here: each object's true mask with its right third dropped.
+    out = _render(tmp_path, monkeypatch, "paper", "paper", {"train": 5, "val": 2})
     answers: dict[bytes, list[Detection]] = {}
     for split in ("train", "val"):
         ds = PoseDataset(out, split)
@@ -289,40 +323,54 @@ def test_the_detectors_own_masks_are_the_coarse_input_of_their_windows(tmp_path,
                     lost[:, cols[0] + 2 * len(cols) // 3 :] = False
                 dets.append(Detection(obj.name, 0.9, np.zeros(4), lost))
             answers[s.rgb.tobytes()] = dets
+    stand_in = _StandIn(answers)
+    monkeypatch.setattr(detector_module.Detector, "from_weights", lambda path: stand_in)
+    return out, stand_in
 
-    class Standin:
-        calls = 0
 
-        def detect(self, rgb, score_threshold=None):
-            Standin.calls += 1
-            return answers[rgb.tobytes()]
+def test_the_detectors_windows_are_cut_around_its_masks_and_kept_in_blocks(tmp_path, monkeypatch):
+    """Windows of the `detected` images are cut around the detector's own mask of each object,
+    which is their coarse input as it is. They are cached in blocks: a longer run runs the
+    detector only on the images past the blocks a shorter one finished, and a run again not at
+    all."""
+    from perception.metrics import mask_iou
+    from perception.training.data.dataset import PoseDataset
+    from perception.training.evals.masknet_eval import MIN_VISIBLE_PX
+    from perception.training.trainers import mask_windows
 
-    monkeypatch.setattr(detector_module.Detector, "from_weights", lambda path: Standin())
+    out, stand_in = _stand_in_detector(tmp_path, monkeypatch)
     net_cfg = MaskNetConfig(size=32, widths=(4, 8, 16))
-    monkeypatch.setattr(tm, "DETECTED_BLOCK", 2)
-    shorter = tm.detector_windows("paper", "train", 2, 2, net_cfg, None)
-    assert Standin.calls == 2
-    windows = tm.detector_windows("paper", "train", 2, 3, net_cfg, None)
-    assert Standin.calls == 3  # the finished block of the shorter run is reused
+    monkeypatch.setattr(mask_windows, "DETECTED_BLOCK", 2)
+    shorter = mask_windows.detector_windows("paper", "train", 2, 2, net_cfg, None)
+    assert stand_in.calls == 2
+    windows = mask_windows.detector_windows("paper", "train", 2, 3, net_cfg, None)
+    assert stand_in.calls == 3  # the finished block of the shorter run is reused
     assert np.array_equal(windows["coarse"][: len(shorter["coarse"])], shorter["coarse"])
     ds = PoseDataset(out, "train")
     expected = []
     for i in range(2, 5):
-        for obj, det in zip(ds[i].objects, answers[ds[i].rgb.tobytes()], strict=True):
-            if (
-                obj.mask_visib.sum() >= tm.MIN_VISIBLE_PX
-                and tm.mask_iou(det.mask, obj.mask_visib) >= 0.3
-            ):
+        for obj, det in zip(ds[i].objects, stand_in.answers[ds[i].rgb.tobytes()], strict=True):
+            if obj.mask_visib.sum() >= MIN_VISIBLE_PX and mask_iou(det.mask, obj.mask_visib) >= 0.3:
                 win = window_of(det.mask, net_cfg.margin)
                 expected.append(cut(det.mask.astype(np.float32), win, 32) >= 0.5)
     assert len(expected) >= 2 and len(windows["coarse"]) == len(expected)
     for got, want in zip(windows["coarse"], expected, strict=True):
         assert np.array_equal(got.astype(bool), want)
     assert windows["target"].dtype == np.uint8 and windows["rgb"].shape[1:] == (32, 32, 3)
-    calls = Standin.calls
-    again = tm.detector_windows("paper", "train", 2, 3, net_cfg, None)
-    assert Standin.calls == calls and np.array_equal(again["coarse"], windows["coarse"])
+    again = mask_windows.detector_windows("paper", "train", 2, 3, net_cfg, None)
+    assert stand_in.calls == 3 and np.array_equal(again["coarse"], windows["coarse"])
 
+
+def test_a_run_trains_on_the_detectors_masks_as_they_are(tmp_path, monkeypatch):
+    """A run with `detected` images trains on their windows beside the degraded true masks, its
+    batches carrying the detector's masks unchanged, and validates on the detector's masks of
+    the validation scenes too."""
+    from perception.training.trainers import mask_windows
+    from perception.training.trainers import masknet_trainer as tm
+
+    _stand_in_detector(tmp_path, monkeypatch)
+    net_cfg = MaskNetConfig(size=32, widths=(4, 8, 16))
+    windows = mask_windows.detector_windows("paper", "train", 2, 3, net_cfg, None)
     seen: list[np.ndarray] = []
     real_input = tm.net_input
 

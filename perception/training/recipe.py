@@ -36,6 +36,9 @@ from perception.training.shipping.recipe_stages import (
 )
 from perception.training.shipping.ship import plot_curves
 from perception.training.trainers.checkpoints import read_checkpoint
+from perception.training.trainers.detector_trainer import SMOKE as DETECTOR_SMOKE
+from perception.training.trainers.masknet_trainer import PROTOCOLS
+from perception.training.trainers.posenet_trainer import SMOKE as POSENET_SMOKE
 from posegrasp.core.cli import ArgumentParser, command
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir, data_root
@@ -65,8 +68,10 @@ def _stage(trainer: str) -> Callable[..., Stage]:
 
 _posenet, _detector, _masknet = _stage("posenet"), _stage("detector"), _stage("masknet")
 _TIERS = {"headcam_hard": 3000, "headcam_any-pose": 3000, "headcam": 3000}
-_TIERS_MORE_HARD = {"headcam_hard": 9000, "headcam_any-pose": 3000, "headcam": 3000}
-_PAPER_DETECTED = {"val": ("paper", 1000), "channels_last": True, "detector": "detector-tune-paper"}
+#: The mask nets' data are their protocols' (what ``train_masknet --protocol P`` trains on).
+_TIERS_MORE_HARD, _TIERS_VAL = dict(PROTOCOLS["tiers"].sources), PROTOCOLS["tiers"].val
+_PAPER, _PAPER_VAL = dict(PROTOCOLS["paper"].sources), PROTOCOLS["paper"].val
+_PAPER_DETECTED = {"val": _PAPER_VAL, "channels_last": True, "detector": "detector-tune-paper"}
 
 #: Every stage behind the shipped weights, in the order they run.
 STAGES: tuple[Stage, ...] = (
@@ -207,7 +212,7 @@ STAGES: tuple[Stage, ...] = (
         _TIERS_MORE_HARD,
         epochs=5,
         lr=2e-3,
-        val=("headcam_hard", 500),
+        val=_TIERS_VAL,
         channels_last=True,
     ),
     _masknet(
@@ -217,7 +222,7 @@ STAGES: tuple[Stage, ...] = (
         lr=1e-3,
         init="masknet-tiers-scratch",
         seed=1,
-        val=("headcam_hard", 500),
+        val=_TIERS_VAL,
         channels_last=True,
     ),
     # The paper protocol's mask net; its last stages also learn from the windows its detector
@@ -225,35 +230,35 @@ STAGES: tuple[Stage, ...] = (
     # faucet's own net.
     _masknet(
         "masknet-paper-scratch",
-        {"paper": 30000},
+        _PAPER,
         epochs=6,
         lr=2e-3,
-        val=("paper", 1000),
+        val=_PAPER_VAL,
         channels_last=True,
     ),
     _masknet(
         "masknet-paper-fresh-windows",
-        {"paper": 30000},
+        _PAPER,
         epochs=4,
         lr=1e-3,
         init="masknet-paper-scratch",
         seed=1,
-        val=("paper", 1000),
+        val=_PAPER_VAL,
         channels_last=True,
     ),
     _masknet(
         "masknet-paper-fresh-windows-lower-lr",
-        {"paper": 30000},
+        _PAPER,
         epochs=4,
         lr=5e-4,
         init="masknet-paper-fresh-windows",
         seed=2,
-        val=("paper", 1000),
+        val=_PAPER_VAL,
         channels_last=True,
     ),
     _masknet(
         "masknet-paper-detector-masks-10k",
-        {"paper": 30000},
+        _PAPER,
         epochs=3,
         lr=5e-4,
         init="masknet-paper-fresh-windows-lower-lr",
@@ -263,7 +268,7 @@ STAGES: tuple[Stage, ...] = (
     ),
     _masknet(
         "masknet-paper-detector-masks-20k",
-        {"paper": 30000},
+        _PAPER,
         epochs=2,
         lr=5e-4,
         init="masknet-paper-detector-masks-10k",
@@ -273,7 +278,7 @@ STAGES: tuple[Stage, ...] = (
     ),
     _masknet(
         "masknet-paper-detector-masks-40k",
-        {"paper": 30000},
+        _PAPER,
         epochs=2,
         lr=5e-4,
         init="masknet-paper-detector-masks-20k",
@@ -312,21 +317,22 @@ SMOKE_DATA = (
     ("headcam", "val", 2),
 )
 _TINY_MASKNET = MaskNetConfig(size=32, widths=(4, 8, 16))
-_FEW_IMAGES = {"batch": 2, "val_images": 2, "workers": 0, "threads": 1}
+#: The trainers' own smoke settings (``--smoke``).
+_TINY_POSENET = {"batch": POSENET_SMOKE.batch, "width": POSENET_SMOKE.width}
+_FEW_IMAGES = {k: getattr(DETECTOR_SMOKE, k) for k in ("batch", "val_images", "workers", "threads")}
 
 #: Every trainer for a few steps on tiny data, each with a stage that starts from another, and
 #: an artefact of each: a check of a set-up (and of the recipe's machinery) in about a minute.
 SMOKE = Recipe(
     (
-        _posenet("pose-scratch", {"paper": 6, "headcam": 4}, epochs=1, lr=2e-3, batch=16, width=4),
+        _posenet("pose-scratch", {"paper": 6, "headcam": 4}, epochs=1, lr=2e-3, **_TINY_POSENET),
         _posenet(
             "pose-tune-headcam",
             {"headcam": 4},
             epochs=1,
             lr=1e-3,
             init="pose-scratch",
-            batch=16,
-            width=4,
+            **_TINY_POSENET,
         ),
         _detector("detector-scratch", {"headcam": 4}, epochs=1, lr=1e-3, **_FEW_IMAGES),
         _detector(

@@ -29,7 +29,7 @@ from perception.training.trainers.detector_trainer import (
     DetectorTrainConfig,
     train,
 )
-from perception.training.trainers.loop import (
+from perception.training.trainers.options import (
     MAX_LIMIT,
     add_arithmetic_arguments,
     add_compute_arguments,
@@ -41,16 +41,8 @@ from posegrasp.core.cli import ArgumentParser, add_out_argument, command
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.core.validate import (
-    DEFAULT_WORKERS,
-    MAX_WORKERS,
-    arg,
-    check_int,
-    check_output_dir,
-)
+from posegrasp.core.validate import MAX_WORKERS, arg, check_int, check_output_dir
 from posegrasp.world.objects import check_objects
-
-#: The command line of this module.
 
 
 def parse_config(argv: list[str] | None) -> tuple[DetectorTrainConfig, argparse.Namespace]:
@@ -152,10 +144,10 @@ def _parser() -> ArgumentParser:
     p.add_argument(
         "--workers",
         type=arg(check_int, 0, MAX_WORKERS, "--workers", base=int),
-        default=DEFAULT_WORKERS,
+        default=d.workers,
         metavar="N",
         help=f"data-loading processes, 0..{MAX_WORKERS} (0: load in the training process; "
-        f"default {DEFAULT_WORKERS})",
+        f"default {d.workers})",
     )
     add_compute_arguments(p, DEVICES, MAX_THREADS, "torch")
     add_arithmetic_arguments(p, d.precision, "weights (and so the feature maps)")

@@ -42,29 +42,28 @@ from pathlib import Path
 
 import torch
 
+from perception.detector import TIERS_DETECTOR
 from perception.training.data.dataset import parse_data
+from perception.training.evals.masknet_eval import evaluate, plot_examples
 from perception.training.shipping.ship import export_masknet
-from perception.training.trainers.loop import (
+from perception.training.trainers.masknet_trainer import (
+    DEFAULT_PROTOCOL,
+    PROTOCOLS,
+    TRAIN_COMMAND,
+    MaskTrainConfig,
+    train,
+)
+from perception.training.trainers.options import (
     add_arithmetic_arguments,
     add_data_argument,
     add_schedule_arguments,
     add_seed_argument,
-)
-from perception.training.trainers.masknet_trainer import (
-    PROTOCOLS,
-    TRAIN_COMMAND,
-    MaskTrainConfig,
-    evaluate,
-    plot_examples,
-    train,
 )
 from posegrasp.core.cli import ArgumentParser, add_out_argument, command, write_json
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import checkpoint_dir
 from posegrasp.core.validate import arg, check_choice, check_int, check_plot_path
 from posegrasp.world.objects import OBJECT_NAMES
-
-#: The command line of this module.
 
 
 def parse_config(argv: list[str] | None) -> tuple[MaskTrainConfig, argparse.Namespace]:
@@ -87,7 +86,7 @@ def parse_config(argv: list[str] | None) -> tuple[MaskTrainConfig, argparse.Name
     if args.val is not None and (len(args.val) != 1 or args.val[0][1] is None):
         raise InvalidArgumentError("--val wants one NAME=N")
     folder, first = proto.sources[0]
-    name = "masknet" + ("" if args.protocol == "tiers" else f"_{args.protocol}")
+    name = "masknet" + ("" if args.protocol == DEFAULT_PROTOCOL else f"_{args.protocol}")
     cfg = MaskTrainConfig(
         detected=None if args.detected is None else (folder, first, args.detected),
         detector=None if args.detected is None else args.detector or proto.detector,
@@ -125,7 +124,11 @@ def main(argv: list[str] | None = None) -> int:
 def _report(args: argparse.Namespace) -> int:
     """``--evaluate``: measure the protocol's shipped net and print (and write) the figures."""
     examples: list | None = [] if args.plot else None
-    report = evaluate(args.split, args.images, args.protocol, examples=examples)
+    proto = PROTOCOLS[args.protocol]
+    detector = proto.detector or TIERS_DETECTOR
+    report = evaluate(
+        proto.val[0], args.split, args.images, detector, proto.weights, proto.experts, examples
+    )
     print(
         f"{report['split']}: {report['objects']} objects, mask IoU with the truth: detector "
         f"{report['detector_iou']:.3f}, refined {report['refined_iou']:.3f} (better for "
@@ -147,9 +150,9 @@ def _parser() -> ArgumentParser:
     p.add_argument(
         "--protocol",
         type=arg(check_choice, tuple(PROTOCOLS), "protocol"),
-        default="tiers",
+        default=DEFAULT_PROTOCOL,
         help="the images and detector: tiers (the head camera's scenes, hybrid-global) or paper "
-        "(the paper's studio images, hybrid-global-paper) (default tiers)",
+        f"(the paper's studio images, hybrid-global-paper) (default {DEFAULT_PROTOCOL})",
     )
     add_data_argument(p, "split folders of training scenes", "the protocol's")
     p.add_argument(
@@ -199,6 +202,12 @@ def _parser() -> ArgumentParser:
         help="with --export: ship the net as the one that redraws this object's masks alone "
         "(masknet_<object>.pt beside the protocol's net), one of: " + ", ".join(OBJECT_NAMES),
     )
+    _add_evaluate_arguments(p)
+    return p
+
+
+def _add_evaluate_arguments(p: ArgumentParser) -> None:
+    """Add ``--evaluate`` and its options: the split, the images, the figures and the picture."""
     p.add_argument(
         "--evaluate",
         action="store_true",
@@ -224,7 +233,6 @@ def _parser() -> ArgumentParser:
         default=None,
         help="with --evaluate: draw each class's first object's masks into this PNG",
     )
-    return p
 
 
 if __name__ == "__main__":

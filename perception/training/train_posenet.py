@@ -18,15 +18,11 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from perception.nets import (
-    CROP,
-    ROTATIONS,
-    VARIANTS,
-)
+from perception.nets import CROP, ROTATIONS, VARIANTS
 from perception.training.data.crop_sets import CropConfig
 from perception.training.data.dataset import DATASETS, DISTS, parse_limit
 from perception.training.trainers.ddp import DEVICES, MAX_THREADS
-from perception.training.trainers.loop import (
+from perception.training.trainers.options import (
     add_arithmetic_arguments,
     add_compute_arguments,
     add_data_argument,
@@ -43,8 +39,6 @@ from posegrasp.core.cli import ArgumentParser, add_out_argument, command
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice
-
-#: The command line of this module.
 
 
 def parse_config(argv: list[str] | None) -> tuple[PoseNetTrainConfig, argparse.Namespace]:
@@ -130,7 +124,7 @@ def _parser() -> ArgumentParser:
     p.add_argument(
         "--variant",
         type=arg(check_choice, VARIANTS, "variant"),
-        default="ours",
+        default=d.variant,
         help=f"one of: {', '.join(VARIANTS)}",
     )
     add_data_argument(p, "distributions", ",".join(DISTS))
@@ -152,7 +146,7 @@ def _parser() -> ArgumentParser:
     p.add_argument("--lam", type=float, default=d.lam, help="rotation weight")
     p.add_argument("--crop", type=int, default=CROP, help=f"crop side [px] (default {CROP})")
     p.add_argument(
-        "--rotation", default="view-roll", help=f"ours' rotation output: {', '.join(ROTATIONS)}"
+        "--rotation", default=d.rotation, help=f"ours' rotation output: {', '.join(ROTATIONS)}"
     )
     p.add_argument("--objects", default="", help="train one net on these objects (comma list)")
     p.add_argument("--no-augment", action="store_true", help="no photometric jitter")

@@ -231,21 +231,7 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
     write_models(cfg.out, _classes(cfg))
     _write_info(cfg, info, max(cfg.count, info["splits"].get(cfg.split, {}).get("count", 0)))
     todo = [i for i in range(cfg.count) if not _done(cfg, i)]
-    groups: dict[int, list[int]] = {}  # the samples still to render per generator scene
-    for i in todo:
-        groups.setdefault(i // cfg.views, []).append(i)
-    tasks = [tuple(g) for g in groups.values()]
-    # Images still to render per scene; a scene's files are merged when it reaches zero. Scenes
-    # with nothing to render are merged at the end if their files are missing.
-    left: dict[int, int] = {}
-    for i in todo:
-        left[i // bop.IMAGES_PER_SCENE] = left.get(i // bop.IMAGES_PER_SCENE, 0) + 1
-    n_scenes = -(-cfg.count // bop.IMAGES_PER_SCENE)
-    stale = set(left) | {
-        s
-        for s in range(n_scenes)
-        if not (bop.scene_dir(cfg.out, cfg.split, s) / "scene_gt.json").exists()
-    }
+    tasks, left, stale = _plan(cfg, todo)
     bar = progress_bar(
         total=cfg.count,
         initial=cfg.count - len(todo),
@@ -265,29 +251,7 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
             stale.discard(s)
 
     try:
-        if len(tasks) <= 1 or (cfg.workers <= 1 and cfg.backend == "local"):
-            gen = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier)
-            try:
-                for task in tasks:
-                    for i in _generate(cfg, gen, task):
-                        finished(i)
-            finally:
-                gen.close()
-        else:  # in the order the images come back; the Ray backend sizes its own chunks
-            chunk = default_chunk(len(tasks), cfg.workers) if cfg.backend == "local" else None
-            for done in run_map(
-                _work,
-                tasks,
-                backend=cfg.backend,
-                workers=cfg.workers,
-                address=cfg.address,
-                chunk=chunk,
-                initializer=_init_worker,
-                initargs=(cfg,),
-                ordered=False,
-            ):
-                for i in done:
-                    finished(i)
+        _render_tasks(cfg, tasks, finished)
     finally:
         bar.close()
     for s in sorted(stale):
@@ -298,3 +262,55 @@ def generate(cfg: GenConfig, on_image: Callable[[int], None] | None = None) -> i
     add_wall_time(cfg.out, cfg.split, time.monotonic() - started)
     write_camera(cfg.out, cfg.split, cfg.width, cfg.height)
     return len(todo)
+
+
+def _plan(
+    cfg: GenConfig, todo: list[int]
+) -> tuple[list[tuple[int, ...]], dict[int, int], set[int]]:
+    """The work of the images `todo` of a split: its tasks (the images of one generator scene
+    each), the images still to render per BOP scene (a scene's files are merged when it reaches
+    zero), and the BOP scenes whose files are to be merged (those with images to render, and
+    those whose files are missing, merged at the end)."""
+    groups: dict[int, list[int]] = {}  # the samples still to render per generator scene
+    for i in todo:
+        groups.setdefault(i // cfg.views, []).append(i)
+    left: dict[int, int] = {}
+    for i in todo:
+        left[i // bop.IMAGES_PER_SCENE] = left.get(i // bop.IMAGES_PER_SCENE, 0) + 1
+    n_scenes = -(-cfg.count // bop.IMAGES_PER_SCENE)
+    stale = set(left) | {
+        s
+        for s in range(n_scenes)
+        if not (bop.scene_dir(cfg.out, cfg.split, s) / "scene_gt.json").exists()
+    }
+    return [tuple(g) for g in groups.values()], left, stale
+
+
+def _render_tasks(
+    cfg: GenConfig, tasks: list[tuple[int, ...]], finished: Callable[[int], None]
+) -> None:
+    """Render `tasks` in this process, or on the workers of `cfg`'s backend in the order the
+    images come back, calling `finished` with each image's index once its files are written."""
+    if len(tasks) <= 1 or (cfg.workers <= 1 and cfg.backend == "local"):
+        gen = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier)
+        try:
+            for task in tasks:
+                for i in _generate(cfg, gen, task):
+                    finished(i)
+        finally:
+            gen.close()
+        return
+    chunk = default_chunk(len(tasks), cfg.workers) if cfg.backend == "local" else None
+    for done in run_map(  # the Ray backend sizes its own chunks
+        _work,
+        tasks,
+        backend=cfg.backend,
+        workers=cfg.workers,
+        address=cfg.address,
+        chunk=chunk,
+        initializer=_init_worker,
+        initargs=(cfg,),
+        ordered=False,
+    ):
+        for i in done:
+            finished(i)

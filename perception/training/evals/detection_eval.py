@@ -59,6 +59,39 @@ def coco_ap(
         there is no detection; -1 when there is no ground truth (pycocotools' convention).
     """
     COCO, COCOeval, mask_utils = pycocotools_api()
+    images, anns, box_res, seg_res = _coco_records(gts, dets, min_visible_px, classes, mask_utils)
+    cats = [{"id": k + 1, "name": n} for k, n in enumerate(classes)]
+    out: dict[str, float] = {}
+    with contextlib.redirect_stdout(io.StringIO()):  # pycocotools prints progress
+        gt_api = COCO()
+        gt_api.dataset = {"images": images, "annotations": anns, "categories": cats}
+        gt_api.createIndex()
+        for kind, res in (("box", box_res), ("mask", seg_res)):
+            if not res:
+                out[f"{kind}_ap50"] = out[f"{kind}_ap"] = 0.0 if anns else -1.0
+                continue
+            ev = COCOeval(gt_api, gt_api.loadRes(res), "bbox" if kind == "box" else "segm")
+            ev.evaluate()
+            ev.accumulate()
+            ev.summarize()
+            out[f"{kind}_ap"] = float(ev.stats[0])
+            out[f"{kind}_ap50"] = float(ev.stats[1])
+            if per_class is not None:
+                for name, (ap, ap50) in _per_class_ap(ev, classes).items():
+                    per_class.setdefault(name, {})[f"{kind}_ap"] = ap
+                    per_class[name][f"{kind}_ap50"] = ap50
+    return out
+
+
+def _coco_records(
+    gts: list[list[tuple[int, np.ndarray]]],
+    dets: list[list[Detection]],
+    min_visible_px: int,
+    classes: Sequence[str],
+    mask_utils: Any,
+) -> tuple[list[dict], list[dict], list[dict], list[dict]]:
+    """`coco_ap`'s ground truth and detections as COCO records: the images, the annotations
+    (small objects marked crowd), the box results and the mask results."""
 
     def rle(mask: np.ndarray) -> dict:
         return mask_utils.encode(np.asfortranarray(mask.astype(np.uint8)))
@@ -89,27 +122,7 @@ def coco_ap(
             common = {"image_id": i, "category_id": classes.index(d.name) + 1, "score": d.score}
             box_res.append({**common, "bbox": [x0, y0, x1 - x0, y1 - y0]})
             seg_res.append({**common, "segmentation": rle(d.mask)})
-    cats = [{"id": k + 1, "name": n} for k, n in enumerate(classes)]
-    out: dict[str, float] = {}
-    with contextlib.redirect_stdout(io.StringIO()):  # pycocotools prints progress
-        gt_api = COCO()
-        gt_api.dataset = {"images": images, "annotations": anns, "categories": cats}
-        gt_api.createIndex()
-        for kind, res in (("box", box_res), ("mask", seg_res)):
-            if not res:
-                out[f"{kind}_ap50"] = out[f"{kind}_ap"] = 0.0 if anns else -1.0
-                continue
-            ev = COCOeval(gt_api, gt_api.loadRes(res), "bbox" if kind == "box" else "segm")
-            ev.evaluate()
-            ev.accumulate()
-            ev.summarize()
-            out[f"{kind}_ap"] = float(ev.stats[0])
-            out[f"{kind}_ap50"] = float(ev.stats[1])
-            if per_class is not None:
-                for name, (ap, ap50) in _per_class_ap(ev, classes).items():
-                    per_class.setdefault(name, {})[f"{kind}_ap"] = ap
-                    per_class[name][f"{kind}_ap50"] = ap50
-    return out
+    return images, anns, box_res, seg_res
 
 
 def _per_class_ap(ev: Any, classes: Sequence[str]) -> dict[str, tuple[float, float]]:

@@ -17,6 +17,7 @@ image is jittered as in one process), rank 0 evaluating and writing the checkpoi
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,18 +45,11 @@ from perception.training.trainers.detection_data import (
     start_from,
     training_images,
 )
-from perception.training.trainers.loop import (
-    PRECISIONS,
-    Checkpointer,
-    autocast,
-)
+from perception.training.trainers.loop import PRECISIONS, Run, Step, autocast, fit
 from perception.training.trainers.schedule import learning_rate, optimiser_step
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import checkpoint_dir, data_root
-from posegrasp.core.progress import progress_bar
-from posegrasp.core.validate import (
-    check_choice,
-)
+from posegrasp.core.validate import DEFAULT_WORKERS, check_choice
 
 #: The command line of this module.
 TRAIN_COMMAND = "python -m perception.training.train_detector"
@@ -114,7 +108,7 @@ class DetectorTrainConfig:
     limits: tuple[tuple[str, int], ...] = ()
     val_images: int = 100
     seed: int = 0
-    workers: int = 1
+    workers: int = DEFAULT_WORKERS
     threads: int | None = None
     out: Path | None = None
     checkpoint_minutes: float = 5.0
@@ -213,71 +207,126 @@ def train(cfg: DetectorTrainConfig, resume: bool = True, max_steps: int | None =
         InvalidArgumentError: a device that is not there, or a batch the processes cannot share.
     """
     with joined(cfg.device, cfg.batch) as ranks:
-        return _train(cfg, ranks, resume, max_steps)
-
-
-@dataclass
-class _Run:
-    """A run's model and optimiser, its plan and where it stands (updated as it trains).
-
-    Attributes:
-        model: the unwrapped detector (what a checkpoint holds).
-        opt: its optimiser.
-        ckpt: the checkpoint file.
-        steps_per_epoch, total_steps: the plan.
-        generator: the stream of image orders and augmentation.
-        step: optimiser steps done.
-        epoch0: whole epochs done when this process started.
-        history: per-epoch validation.
-        g_state: `generator`'s state at the checkpoint this process resumed, or None.
-        wall_s: wall time of the run before this process resumed it [s].
-    """
-
-    model: nn.Module
-    opt: torch.optim.Optimizer
-    ckpt: Path
-    steps_per_epoch: int
-    total_steps: int
-    generator: torch.Generator
-    step: int = 0
-    epoch0: int = 0
-    history: list[dict] = field(default_factory=list)
-    g_state: torch.Tensor | None = None
-    wall_s: float = 0.0
-
-
-def _train(cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, max_steps: int | None) -> dict:
-    """`train` in this process, its place in the run being `ranks`."""
-    root = dataset_root(cfg)
-    train_set, parts, val_data = _datasets(cfg, root)
-    pycocotools_api()  # fail now, not after the first epoch, when pycocotools is missing
-    run = _start_run(cfg, ranks, resume, root, train_set, parts)
-    net = ranks.wrap(run.model)  # the model itself with one process
-    seeds = _data_seeds(cfg, root, train_set, parts, val_data)
-    ckpts = Checkpointer(
-        lambda epoch, wall: _save(cfg, run, ranks, seeds, epoch, wall),
-        cfg.checkpoint_minutes,
-        run.wall_s,
-    )
-    for epoch in range(run.epoch0, cfg.epochs):
-        losses = _train_epoch(cfg, run, net, train_set, epoch, ranks, ckpts, max_steps)
-        if max_steps is not None and max_steps <= run.step < (epoch + 1) * run.steps_per_epoch:
-            ckpts.save(epoch)
-            return _result(run, finished=False)
-        if ranks.main:  # rank 0 evaluates and saves; the others meet it at the next step
-            _validate(cfg, run, val_data, epoch, losses, ranks)
-            ckpts.save(epoch + 1)
-    return _result(run, finished=True)
-
-
-def _result(run: _Run, finished: bool) -> dict:
-    """What `train` returns."""
+        trainer = DetectorTrainer(cfg, ranks)
+        run, finished = fit(
+            trainer,
+            cfg.epochs,
+            resume=resume,
+            checkpoint_minutes=cfg.checkpoint_minutes,
+            loss_log=cfg.loss_log,
+            max_steps=max_steps,
+        )
     return {
-        "checkpoint": str(run.ckpt),
+        "checkpoint": str(trainer.ckpt),
         "history": run.history,
         "step": run.step,
         "finished": finished,
     }
+
+
+class DetectorTrainer:
+    """The detector's part of the training loop (`perception.training.trainers.loop.fit`): its
+    training images and their augmentation, its step and its COCO AP.
+
+    Args:
+        cfg: the run.
+        ranks: this process's place in it.
+    """
+
+    def __init__(self, cfg: DetectorTrainConfig, ranks: Ranks) -> None:
+        self.cfg, self.ranks = cfg, ranks
+        self.label = "detector"
+        self.ckpt = (cfg.out or checkpoint_dir()) / CHECKPOINT_NAME
+        self.generator = torch.Generator()  # the image orders and the augmentation
+        self.g_state: torch.Tensor | None = None  # the generator's state at the checkpoint
+        self.losses: list[float] = []  # the steps' losses of the epoch, over the processes
+
+    def start(self, resume: bool) -> Run:
+        """The images (`_datasets`), the model and its optimiser (`_start_run`), wrapped for the
+        processes.
+
+        Raises:
+            AssetError: missing data or pycocotools, or a checkpoint that does not fit.
+        """
+        cfg = self.cfg
+        root = dataset_root(cfg)
+        self.train_set, parts, self.val_data = _datasets(cfg, root)
+        pycocotools_api()  # fail now, not after the first epoch, when pycocotools is missing
+        run, self.g_state = _start_run(cfg, self.ranks, resume, root, self.train_set, parts)
+        self.net = self.ranks.wrap(run.model)  # the model itself with one process
+        self.seeds = _data_seeds(cfg, root, self.train_set, parts, self.val_data)
+        return run
+
+    def batches(self, run: Run, epoch: int) -> Iterator[list]:
+        """This rank's shards of the epoch's batches not done yet, (image, target) pairs.
+
+        The epoch's image order is drawn from the run's generator seeded by the epoch; a run
+        resumed mid-epoch skips the batches it has done and continues the augmentation stream
+        where it stopped.
+        """
+        cfg, g = self.cfg, self.generator
+        g.manual_seed(cfg.seed * 1000 + epoch)
+        order = torch.randperm(len(self.train_set), generator=g).tolist()
+        done = run.done_in(epoch)
+        if self.g_state is not None and done > 0:  # mid-epoch: continue the augmentation stream
+            g.set_state(self.g_state)
+        self.g_state, self.losses = None, []
+        yield from torch.utils.data.DataLoader(
+            self.train_set,
+            batch_size=cfg.batch // self.ranks.world,
+            sampler=self.ranks.shard(order[done * cfg.batch : run.steps_per_epoch * cfg.batch]),
+            collate_fn=collate_list,
+            num_workers=cfg.workers,
+            generator=torch.Generator().manual_seed(cfg.seed),  # leaves the global RNG alone
+        )
+
+    def step(self, run: Run, batch: list, epoch: int) -> Step:
+        """One optimiser step on this rank's shard `batch`; shows the parts of its loss."""
+        cfg, device = self.cfg, self.ranks.device
+        images = augment_shard([image for image, _ in batch], self.generator, self.ranks)
+        targets = [{k: v.to(device) for k, v in t.items()} for _, t in batch]
+        loss, parts = detection_loss(cfg, self.net, images, targets, device)
+        lr = learning_rate(run.step, cfg.epochs * run.steps_per_epoch, cfg.lr, cfg.warmup)
+        optimiser_step(run.model, run.opt, loss, lr, cfg.grad_clip)
+        self.losses.append(self.ranks.mean(loss))  # every rank takes part
+        shown = {k.removeprefix("loss_"): float(v.detach()) for k, v in parts.items()}
+        return Step(loss, lr, shown)
+
+    def validate(self, run: Run, epoch: int) -> None:
+        """COCO AP on the first val images, into the history with the epoch's mean training
+        loss, and printed."""
+        cfg = self.cfg
+        det = Detector(
+            self.ranks.on_cpu(run.model),
+            cfg.detector,
+            score_threshold=cfg.detector.box_score_thresh,
+        )
+        val = evaluate_detector(det, self.val_data, cfg.val_images, cfg.min_visible_px)
+        run.model.train()
+        mean_loss = float(np.mean(self.losses)) if self.losses else None
+        run.history.append({"epoch": epoch + 1, "step": run.step, "train_loss": mean_loss, **val})
+        print(
+            f"epoch {epoch + 1}: val box AP50 {val['box_ap50']:.3f}, mask AP50 "
+            f"{val['mask_ap50']:.3f}, box AP {val['box_ap']:.3f}, mask AP {val['mask_ap']:.3f} "
+            f"({val['images']} images)"
+        )
+
+    def save(self, run: Run, epoch: int, wall_s: float) -> None:
+        """Write the run's checkpoint (rank 0; the others do nothing)."""
+        if self.ranks.main:
+            save_checkpoint(
+                self.ckpt,
+                run.model,
+                run.opt,
+                model_config=self.cfg.detector.to_dict(),
+                train_config=self.cfg.to_dict(),
+                step=run.step,
+                epoch=epoch,
+                history=run.history,
+                rng=rng_state(self.generator),
+                data_seeds=self.seeds,
+                header={"kind": "detector", "command": command_line(self.cfg), "wall_s": wall_s},
+            )
 
 
 def _datasets(cfg: DetectorTrainConfig, root: Path) -> tuple[Any, list, PoseDataset]:
@@ -311,9 +360,10 @@ def _datasets(cfg: DetectorTrainConfig, root: Path) -> tuple[Any, list, PoseData
 
 def _start_run(
     cfg: DetectorTrainConfig, ranks: Ranks, resume: bool, root: Path, train_set: Any, parts: list
-) -> _Run:
+) -> tuple[Run, torch.Tensor | None]:
     """The seeded model and optimiser, fresh, started from `cfg.init`, or resumed from the run's
-    checkpoint (which also fixes how many of the training images the run uses).
+    checkpoint (which also fixes how many of the training images the run uses), and the state of
+    the run's generator at that checkpoint (None: none).
 
     Raises:
         AssetError: a corrupt checkpoint, or one of another architecture or other data.
@@ -328,28 +378,15 @@ def _start_run(
     out = cfg.out or checkpoint_dir()
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / CHECKPOINT_NAME
-    history: list[dict]
-    step, epoch0, history, g_state, wall_s = 0, 0, [], None, 0.0
+    run, g_state = Run(model, opt, steps_per_epoch=0), None
     if resume and ckpt.is_file():
-        step, epoch0, history, g_state, wall_s = _resume(
+        run.step, run.epoch, run.history, g_state, run.wall_s = _resume(
             cfg, ckpt, model, opt, root, train_set, parts
         )
         if ranks.main:
-            print(f"resuming {ckpt} at epoch {epoch0}, step {step}")
-    steps_per_epoch = len(train_set) // cfg.batch
-    return _Run(
-        model=model,
-        opt=opt,
-        ckpt=ckpt,
-        steps_per_epoch=steps_per_epoch,
-        total_steps=cfg.epochs * steps_per_epoch,
-        generator=torch.Generator(),
-        step=step,
-        epoch0=epoch0,
-        history=history,
-        g_state=g_state,
-        wall_s=wall_s,
-    )
+            print(f"resuming {ckpt} at epoch {run.epoch}, step {run.step}")
+    run.steps_per_epoch = len(train_set) // cfg.batch  # (`_resume` may cut the set)
+    return run, g_state
 
 
 def _resume(
@@ -420,90 +457,6 @@ def _data_seeds(
     }
 
 
-def _train_epoch(
-    cfg: DetectorTrainConfig,
-    run: _Run,
-    net: nn.Module,
-    train_set: Any,
-    epoch: int,
-    ranks: Ranks,
-    ckpts: Checkpointer,
-    max_steps: int | None,
-) -> list[float]:
-    """The steps of epoch `epoch` (0-based) not done yet, up to `max_steps` in all, saving the
-    checkpoint when it is due.
-
-    The epoch's image order is drawn from the run's generator seeded by the epoch; a run resumed
-    mid-epoch skips the batches it has done and continues the augmentation stream where it
-    stopped.
-
-    Returns:
-        The loss of each step, averaged over the processes.
-    """
-    g = run.generator
-    g.manual_seed(cfg.seed * 1000 + epoch)
-    order = torch.randperm(len(train_set), generator=g).tolist()
-    done = run.step - epoch * run.steps_per_epoch  # batches of this epoch already done (resume)
-    if run.g_state is not None and done > 0:  # mid-epoch: continue the augmentation stream
-        g.set_state(run.g_state)
-    run.g_state = None
-    loader = torch.utils.data.DataLoader(
-        train_set,
-        batch_size=cfg.batch // ranks.world,
-        sampler=ranks.shard(order[done * cfg.batch : run.steps_per_epoch * cfg.batch]),
-        collate_fn=collate_list,
-        num_workers=cfg.workers,
-        generator=torch.Generator().manual_seed(cfg.seed),  # leaves the global RNG alone
-    )
-    run.model.train()
-    bar = progress_bar(
-        loader,
-        desc=f"detector epoch {epoch + 1}/{cfg.epochs}",
-        initial=done,
-        total=run.steps_per_epoch,
-        mininterval=2.0,
-        disable=not ranks.main,
-    )
-    losses = []
-    for batch in bar:
-        if max_steps is not None and run.step >= max_steps:
-            break
-        parts, loss = _train_step(cfg, run, net, batch, epoch, ranks)
-        losses.append(loss)
-        if run.step % 10 == 0:
-            bar.set_postfix(
-                {k.removeprefix("loss_"): f"{float(v.detach()):.3f}" for k, v in parts.items()}
-            )
-        ckpts.save_if_due(epoch)
-    bar.close()
-    return losses
-
-
-def _train_step(
-    cfg: DetectorTrainConfig,
-    run: _Run,
-    net: nn.Module,
-    batch: list,
-    epoch: int,
-    ranks: Ranks,
-) -> tuple[dict[str, torch.Tensor], float]:
-    """One optimiser step on this rank's shard `batch` of (image, target) pairs.
-
-    Returns:
-        The parts of the loss on the shard, and the loss averaged over the processes.
-    """
-    images = augment_shard([image for image, _ in batch], run.generator, ranks)
-    targets = [{k: v.to(ranks.device) for k, v in t.items()} for _, t in batch]
-    loss, parts = detection_loss(cfg, net, images, targets, ranks.device)
-    lr = learning_rate(run.step, run.total_steps, cfg.lr, cfg.warmup)
-    optimiser_step(run.model, run.opt, loss, lr, cfg.grad_clip)
-    run.step += 1
-    loss_all = ranks.mean(loss)  # over the processes (every rank takes part)
-    if cfg.loss_log is not None:
-        ranks.log(cfg.loss_log, step=run.step, epoch=epoch + 1, loss=loss_all, lr=lr)
-    return parts, loss_all
-
-
 def detection_loss(
     cfg: DetectorTrainConfig,
     net: nn.Module,
@@ -522,52 +475,3 @@ def detection_loss(
         parts = net(images, targets)
     parts = {k: v.float() for k, v in parts.items()}
     return sum(parts.values()), parts
-
-
-def _validate(
-    cfg: DetectorTrainConfig,
-    run: _Run,
-    val_data: PoseDataset,
-    epoch: int,
-    losses: list[float],
-    ranks: Ranks,
-) -> None:
-    """COCO AP after epoch `epoch` (0-based) on the first val images: append to the history with
-    the epoch's mean training loss, and print the figures."""
-    det = Detector(
-        ranks.on_cpu(run.model), cfg.detector, score_threshold=cfg.detector.box_score_thresh
-    )
-    val = evaluate_detector(det, val_data, cfg.val_images, cfg.min_visible_px)
-    run.model.train()
-    mean_loss = float(np.mean(losses)) if losses else None
-    run.history.append({"epoch": epoch + 1, "step": run.step, "train_loss": mean_loss, **val})
-    print(
-        f"epoch {epoch + 1}: val box AP50 {val['box_ap50']:.3f}, mask AP50 "
-        f"{val['mask_ap50']:.3f}, box AP {val['box_ap']:.3f}, mask AP {val['mask_ap']:.3f} "
-        f"({val['images']} images)"
-    )
-
-
-def _save(
-    cfg: DetectorTrainConfig,
-    run: _Run,
-    ranks: Ranks,
-    seeds: dict[str, Any],
-    epoch: int,
-    wall_s: float,
-) -> None:
-    """Write the run's checkpoint (rank 0; the others do nothing)."""
-    if ranks.main:
-        save_checkpoint(
-            run.ckpt,
-            run.model,
-            run.opt,
-            model_config=cfg.detector.to_dict(),
-            train_config=cfg.to_dict(),
-            step=run.step,
-            epoch=epoch,
-            history=run.history,
-            rng=rng_state(run.generator),
-            data_seeds=seeds,
-            header={"kind": "detector", "command": command_line(cfg), "wall_s": wall_s},
-        )

@@ -1,29 +1,28 @@
-"""What the loops of the trainers share: when a run writes its checkpoint, the wall time it has
-taken over all its resumptions, the arithmetic of their forward passes, and their one command-line
-vocabulary (``--data NAME=COUNT,...``, ``--init``, ``--epochs``, ``--batch``, ``--lr``, ``--seed``,
-``--precision``, ``--channels-last``, ``--out``), checked while parsing."""
+"""The training loop the three nets share (`fit`), and what their runs have in common.
+
+`fit` reads as a run goes: start the run (fresh, from another net's weights, or resumed from its
+own checkpoint), then every epoch its steps in the run's seeded order, a checkpoint whenever one is
+due, then validation and a checkpoint at the epoch's end. A net brings only what is its own, the
+five methods of a `NetTrainer`: its data and model (`start`), an epoch's batches (`batches`), one
+optimiser step (`step`), its validation (`validate`) and its checkpoint (`save`). Exporting the
+weights is the commands' (`perception.training.shipping.ship`).
+"""
 
 from __future__ import annotations
 
 import contextlib
-import math
 import time
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
 
 import torch
+from torch import nn
 
-from perception.training.data.dataset import DATASETS, parse_data
-from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.core.validate import arg, check_choice, check_int, check_seed
+from perception.training.trainers.ddp import Ranks
+from posegrasp.core.progress import progress_bar
 
-#: Most epochs and largest global batch a command line accepts.
-MAX_EPOCHS = 10_000
-MAX_BATCH = 65_536
-#: Most images a run may be limited to (``--limit``).
-MAX_LIMIT = 100_000_000
-#: Largest peak learning rate a command line accepts.
-MAX_LR = 1.0
 #: Arithmetic of the training forward passes (``--precision``): fp32, or bf16 autocast.
 PRECISIONS = ("fp32", "bf16")
 
@@ -35,107 +34,142 @@ def autocast(precision: str, device: torch.device) -> contextlib.AbstractContext
     return contextlib.nullcontext()
 
 
-def check_learning_rate(value: Any, name: str = "--lr") -> float:
-    """`value` as a peak learning rate: a finite number in (0, `MAX_LR`].
+@dataclass
+class Run:
+    """A run's model and optimiser, its plan and where it stands (`fit` updates it as it trains).
 
-    Raises:
-        InvalidArgumentError: anything else, in one line naming the option and the range.
+    Attributes:
+        model: the net itself, unwrapped (what a checkpoint holds).
+        opt: its optimiser.
+        steps_per_epoch: the optimiser steps of an epoch.
+        step: optimiser steps done.
+        epoch: whole epochs done.
+        history: per-epoch validation.
+        wall_s: wall time of the run before this process started it [s].
     """
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-    if not ok or not math.isfinite(value) or not 0 < value <= MAX_LR:
-        raise InvalidArgumentError(f"invalid {name} {value!r}; valid: numbers in (0, {MAX_LR:g}]")
-    return float(value)
+
+    model: nn.Module
+    opt: torch.optim.Optimizer
+    steps_per_epoch: int
+    step: int = 0
+    epoch: int = 0
+    history: list[dict] = field(default_factory=list)
+    wall_s: float = 0.0
+
+    def done_in(self, epoch: int) -> int:
+        """The steps of epoch `epoch` (0-based) done already (those of a resumed epoch)."""
+        return max(0, self.step - epoch * self.steps_per_epoch)
 
 
-def add_schedule_arguments(
-    parser, epochs: int, batch: int, lr: float, epoch_of: str, batch_of: str
-) -> None:
-    """Add ``--epochs``, ``--batch`` and ``--lr``, checked while parsing, with their defaults;
-    `epoch_of` and `batch_of` say what an epoch passes over and what a batch holds."""
-    parser.add_argument(
-        "--epochs",
-        type=arg(check_int, 1, MAX_EPOCHS, "--epochs", base=int),
-        default=epochs,
-        help=f"passes over {epoch_of}, 1..{MAX_EPOCHS} (default {epochs})",
-    )
-    parser.add_argument(
-        "--batch",
-        type=arg(check_int, 1, MAX_BATCH, "--batch", base=int),
-        default=batch,
-        help=f"global batch{batch_of}, 1..{MAX_BATCH} (default {batch})",
-    )
-    parser.add_argument(
-        "--lr",
-        type=arg(check_learning_rate, "--lr", base=float),
-        default=lr,
-        help=f"peak learning rate, in (0, {MAX_LR:g}] (default {lr:g})",
-    )
+@dataclass(frozen=True)
+class Step:
+    """What one optimiser step reports.
+
+    Attributes:
+        loss: the loss on this process's shard of the batch.
+        lr: the learning rate of the step.
+        shown: the figures the progress bar shows.
+    """
+
+    loss: torch.Tensor
+    lr: float
+    shown: dict[str, float]
 
 
-def add_data_argument(parser, what: str, default: str, folder_first: bool = False) -> None:
-    """Add ``--data NAME[=COUNT],...``: the dataset folders under the data root a run trains on
-    and how many training images of each (all when no COUNT), checked while parsing
-    (`perception.training.data.dataset.parse_data`; None when not given).
+class NetTrainer(Protocol):
+    """What a net brings to `fit`.
+
+    Attributes:
+        label: what the progress bar calls the net.
+        ranks: this process's place in the run (`perception.training.trainers.ddp`).
+    """
+
+    label: str
+    ranks: Ranks
+
+    def start(self, resume: bool) -> Run:
+        """The run's data, model and optimiser: fresh, started from another net's weights, or
+        (with `resume`) resumed from the run's own checkpoint when it has one."""
+        ...
+
+    def batches(self, run: Run, epoch: int) -> Iterator[Any]:
+        """The batches of epoch `epoch` (0-based) that are not done yet, in the run's order for
+        that epoch (this process's shard of each)."""
+        ...
+
+    def step(self, run: Run, batch: Any, epoch: int) -> Step:
+        """One optimiser step on `batch`, at step `run.step`."""
+        ...
+
+    def validate(self, run: Run, epoch: int) -> None:
+        """Measure the net after epoch `epoch` (0-based), append the figures to `run.history`
+        and print them."""
+        ...
+
+    def save(self, run: Run, epoch: int, wall_s: float) -> None:
+        """Write the run's checkpoint: `epoch` whole epochs done, `wall_s` the run's wall time
+        over all its resumptions [s]."""
+        ...
+
+
+def fit(
+    net: NetTrainer,
+    epochs: int,
+    *,
+    resume: bool = True,
+    checkpoint_minutes: float = 5.0,
+    loss_log: Path | None = None,
+    max_steps: int | None = None,
+) -> tuple[Run, bool]:
+    """Train `net` for `epochs` epochs: the loop every trainer runs.
+
+    Rank 0 validates and saves after each epoch; the other processes meet it at the next step.
 
     Args:
-        parser: the command line.
-        what: what the names are, for the help.
-        default: what the run trains on without the option, for the help.
-        folder_first: the first NAME may also be a folder path.
+        net: the net's part of the run.
+        epochs: whole epochs to reach.
+        resume: continue from the run's checkpoint when it has one.
+        checkpoint_minutes: save at least this often during an epoch.
+        loss_log: append one JSON line per step here (step, epoch, loss averaged over the
+            processes, learning rate), or None.
+        max_steps: stop, saved, once this many steps are done in all (as an interruption would;
+            the run resumes from there).
+
+    Returns:
+        The run, and whether all its epochs are done.
     """
-    first = " (the first may be a folder path)" if folder_first else ""
-    parser.add_argument(
-        "--data",
-        type=arg(parse_data, folder_first),
-        default=None,
-        metavar="NAME[=N],...",
-        help=f"{what}{first} and the training images of each, of: {', '.join(DATASETS)} "
-        f"(default {default})",
-    )
-
-
-def add_seed_argument(parser, default: int, what: str) -> None:
-    """Add ``--seed``, checked while parsing; `what` says what it seeds."""
-    parser.add_argument(
-        "--seed",
-        type=arg(check_seed, "--seed", base=int),
-        default=default,
-        help=f"seed of {what} (default {default})",
-    )
-
-
-def add_compute_arguments(parser, devices: tuple[str, ...], max_threads: int, what: str) -> None:
-    """Add ``--threads`` (`what` threads per process) and ``--device``, checked while parsing."""
-    parser.add_argument(
-        "--threads",
-        type=arg(check_int, 1, max_threads, "--threads", base=int),
-        default=None,
-        help=f"{what} threads per process, 1..{max_threads} (default: the cores shared by the "
-        "processes)",
-    )
-    parser.add_argument(
-        "--device",
-        type=arg(check_choice, devices, "device"),
-        default="auto",
-        help=f"one of: {', '.join(devices)}",
-    )
-
-
-def add_arithmetic_arguments(parser, precision: str, laid_out: str) -> None:
-    """Add ``--precision`` (default `precision`) and ``--channels-last`` (`laid_out` in
-    channels-last memory layout), checked while parsing."""
-    parser.add_argument(
-        "--precision",
-        type=arg(check_choice, PRECISIONS, "precision"),
-        default=precision,
-        help=f"arithmetic of the forward passes, one of: {', '.join(PRECISIONS)} (bf16: "
-        f"bfloat16 autocast, the loss in fp32; default {precision})",
-    )
-    parser.add_argument(
-        "--channels-last",
-        action="store_true",
-        help=f"{laid_out} in channels-last memory layout",
-    )
+    run = net.start(resume)
+    ckpts = Checkpointer(lambda e, wall_s: net.save(run, e, wall_s), checkpoint_minutes, run.wall_s)
+    ranks = net.ranks
+    for epoch in range(run.epoch, epochs):
+        run.model.train()
+        bar = progress_bar(
+            net.batches(run, epoch),
+            desc=f"{net.label} epoch {epoch + 1}/{epochs}",
+            initial=run.done_in(epoch),
+            total=run.steps_per_epoch,
+            mininterval=2.0,
+            disable=not ranks.main,
+        )
+        for batch in bar:
+            if max_steps is not None and run.step >= max_steps:
+                bar.close()
+                ckpts.save(epoch)
+                return run, False
+            step = net.step(run, batch, epoch)
+            run.step += 1
+            if loss_log is not None:  # every rank takes part in the mean
+                loss = ranks.mean(step.loss)
+                ranks.log(loss_log, step=run.step, epoch=epoch + 1, loss=loss, lr=step.lr)
+            if run.step % 20 == 0:
+                bar.set_postfix({k: f"{v:.3f}" for k, v in step.shown.items()})
+            ckpts.save_if_due(epoch)
+        bar.close()
+        run.epoch = epoch + 1
+        if ranks.main:
+            net.validate(run, epoch)
+            ckpts.save(run.epoch)
+    return run, True
 
 
 class Checkpointer:

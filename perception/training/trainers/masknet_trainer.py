@@ -1,21 +1,17 @@
-"""The training of the mask net (`perception.mask_net`) on rendered scenes (its command
-line: `perception.training.train_masknet`), and its measure on held-out images with the
-detector's own masks: the tiers' or the paper protocol's (`PROTOCOLS`).
+"""The training of the mask net (`perception.mask_net`) on rendered scenes (its command line:
+`perception.training.train_masknet`), for the tiers' or the paper protocol's images
+(`PROTOCOLS`).
 
-Each visible object of a training image (at least `MIN_VISIBLE_PX` visible pixels) gives one
-window around its true visible mask, its centre and side jittered as a detector's box would be.
-The windows are cut once into a cache (``$POSEGRASP_DATA/masknet``). The coarse input is drawn on
-the batch from the true mask (`degrade`): averaged onto a coarse grid and drawn back, thresholded
-at a random level, its thin parts opened away at random, with whole parts lost and gained, and
-shifted by a few pixels. The loss is the binary cross-entropy with the true mask's coverage of
-each window pixel. A run's further windows may be cut around a detector's own masks, which are
-then their coarse input (`detector_windows`).
+A run trains on windows cut once around each visible object (`perception.training.trainers.
+mask_windows`): their coarse input is drawn for each batch from the true mask (`degrade`), or is a
+detector's own mask for the windows cut around it. The loss is the binary cross-entropy with the
+true mask's coverage of each window pixel; validation measures the IoU of the net's masks with
+the truth, also on the detector's masks of the validation scenes when the run has them.
 """
 
 from __future__ import annotations
 
-import math
-import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
@@ -23,7 +19,7 @@ from typing import Any, cast
 import numpy as np
 import torch
 
-from perception.detector import PAPER_DETECTOR, Detection, Detector
+from perception.detector import PAPER_DETECTOR
 from perception.mask_net import (
     DEFAULT_MASKNET,
     PAPER_MASKNET,
@@ -31,12 +27,9 @@ from perception.mask_net import (
     MaskNet,
     MaskNetConfig,
     MaskRefiner,
-    cut,
     net_input,
-    window_of,
 )
-from perception.metrics import mask_iou
-from perception.training.data.dataset import PoseDataset, format_data
+from perception.training.data.dataset import format_data
 from perception.training.trainers.checkpoints import (
     config_dict,
     read_checkpoint,
@@ -45,29 +38,16 @@ from perception.training.trainers.checkpoints import (
     save_checkpoint,
     seed_torch,
 )
-from perception.training.trainers.loop import (
-    Checkpointer,
-    autocast,
-)
+from perception.training.trainers.ddp import ONE_PROCESS
+from perception.training.trainers.loop import Run, Step, autocast, fit
 from perception.training.trainers.manifest import shipped_entry, stage_record
+from perception.training.trainers.mask_windows import build_cache, degrade, detector_windows
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.files import sha256_file
-from posegrasp.core.paths import checkpoint_dir, data_root, in_repo
-from posegrasp.core.progress import progress_bar
+from posegrasp.core.paths import checkpoint_dir, in_repo
 
 #: The command line of this module.
 TRAIN_COMMAND = "python -m perception.training.train_masknet"
-#: Objects with fewer visible pixels give no training window.
-MIN_VISIBLE_PX = 100
-#: `detector_windows` keeps its windows in blocks of this many images.
-DETECTED_BLOCK = 10000
-
-#: A detection counts as an object's (`detector_windows`) from this score and mask IoU with it.
-DETECTED_SCORE = 0.3
-DETECTED_IOU = 0.3
-#: The splits a run trains on by default and how many images of each.
-DEFAULT_SOURCES = (("headcam_hard", 9000), ("headcam_any-pose", 3000), ("headcam", 3000))
-VAL_SOURCE = ("headcam_hard", 500)
 
 
 @dataclass(frozen=True)
@@ -96,11 +76,18 @@ class MaskNetProtocol:
 #: images on random backgrounds (``hybrid-global-paper``), whose detector misses whole parts of
 #: an object and takes in background beside it (docs/DESIGN.md §7, "Mask refinement").
 PROTOCOLS = {
-    "tiers": MaskNetProtocol(DEFAULT_SOURCES, VAL_SOURCE, None, DEFAULT_MASKNET),
+    "tiers": MaskNetProtocol(
+        (("headcam_hard", 9000), ("headcam_any-pose", 3000), ("headcam", 3000)),
+        ("headcam_hard", 500),
+        None,
+        DEFAULT_MASKNET,
+    ),
     "paper": MaskNetProtocol(
         (("paper", 30000),), ("paper", 1000), PAPER_DETECTOR, PAPER_MASKNET, PAPER_MASKNET_EXPERTS
     ),
 }
+#: The protocol of a run unless told (``--protocol``): its splits are a run's by default.
+DEFAULT_PROTOCOL = "tiers"
 
 
 @dataclass(frozen=True)
@@ -113,7 +100,7 @@ class MaskTrainConfig:
         heavy: coarse masks with whole parts lost and gained and windows jittered twice as far
             (`degrade`'s `heavy`, `_jittered_window`'s `spread`), as both protocols' detectors
             need; off, only outlines a pixel or two off.
-        epochs, batch, lr: the schedule (one-cycle, AdamW).
+        epochs, batch, lr, weight_decay: the schedule (one-cycle, AdamW).
         seed: of the windows' jitter, the batches' order and the coarse masks.
         precision, channels_last: the arithmetic (`perception.training.trainers.loop`).
         out: checkpoint folder (default ``<data>/checkpoints/masknet``).
@@ -125,14 +112,16 @@ class MaskTrainConfig:
             are (`detector_windows`), instead of drawn from the truth (None: none). Validation
             then also measures the net on the detector's masks of the validation scenes.
         detector: the detector of `detected` (None: the tiers').
+        checkpoint_minutes: save a resumable checkpoint at least this often.
     """
 
-    sources: tuple[tuple[str, int], ...] = DEFAULT_SOURCES
-    val: tuple[str, int] = VAL_SOURCE
+    sources: tuple[tuple[str, int], ...] = PROTOCOLS[DEFAULT_PROTOCOL].sources
+    val: tuple[str, int] = PROTOCOLS[DEFAULT_PROTOCOL].val
     heavy: bool = True
     epochs: int = 3
     batch: int = 32
     lr: float = 2e-3
+    weight_decay: float = 1e-4
     seed: int = 0
     precision: str = "bf16"
     channels_last: bool = True
@@ -141,306 +130,128 @@ class MaskTrainConfig:
     init: Path | None = None
     detected: tuple[str, int, int] | None = None
     detector: Path | None = None
+    checkpoint_minutes: float = 5.0
 
 
-def _jittered_window(
-    mask: np.ndarray, margin: float, rng: np.random.Generator, spread: float = 1.0
-) -> tuple[int, int, int] | None:
-    """`window_of` the mask, its centre moved by about `spread` x 5 % of its side and its side
-    scaled by about `spread` x 8 % at random (a detector's box is a little off)."""
-    win = window_of(mask, margin)
-    if win is None:
-        return None
-    x0, y0, side = win
-    new = max(8, round(side * math.exp(rng.normal(0, 0.08 * spread))))
-    dx, dy = rng.normal(0, 0.05 * spread * side, 2)
-    return (
-        round(x0 + (side - new) / 2 + dx),
-        round(y0 + (side - new) / 2 + dy),
-        new,
+def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = None) -> dict:
+    """Train (resuming from ``cfg.out/last.pt`` when asked and present: the same steps as a run
+    never stopped); returns the last checkpoint's contents. `max_steps` stops the run, saved,
+    after that many steps in all (as an interruption would).
+
+    Raises:
+        InvalidArgumentError: the checkpoint to resume belongs to a run of other epochs, batch,
+            seed or start (its schedule or data would change under it).
+        AssetError: `cfg.init` is missing, corrupt or of another net.
+    """
+    trainer = MaskNetTrainer(cfg)
+    fit(
+        trainer,
+        cfg.epochs,
+        resume=resume,
+        checkpoint_minutes=cfg.checkpoint_minutes,
+        max_steps=max_steps,
     )
+    return read_checkpoint(trainer.ckpt)
 
 
-def _kept(name: str) -> dict[str, np.ndarray] | None:
-    """The windows kept as ``$POSEGRASP_DATA/masknet/<name>.npz``, None when not kept yet."""
-    path = data_root() / "masknet" / f"{name}.npz"
-    if not path.is_file():
-        return None
-    with np.load(path) as z:
-        return {k: z[k] for k in z.files}
+class MaskNetTrainer:
+    """The mask net's part of the training loop (`perception.training.trainers.loop.fit`): its
+    windows, the coarse masks drawn for each batch, its step and its validation IoUs. One
+    process, on the CPU.
 
-
-def _keep(name: str, cache: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Write `cache` as `_kept` reads it (whole or not at all) and return it."""
-    path = data_root() / "masknet" / f"{name}.npz"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **cast("dict[str, Any]", cache))  # NumPy: a key could be allow_pickle
-    tmp.replace(path)
-    return cache
-
-
-def _split(root: Path, split: str) -> PoseDataset:
-    """The rendered split under `root`.
-
-    Raises:
-        AssetError: it is missing (the message names ``make data``).
+    Args:
+        cfg: the run.
     """
-    try:
-        return PoseDataset(root, split)
-    except (OSError, KeyError, ValueError) as exc:
-        raise AssetError(
-            f"no {split} split in {root} ({exc}); render it with `make data`"
-        ) from None
 
+    def __init__(self, cfg: MaskTrainConfig) -> None:
+        self.cfg, self.ranks = cfg, ONE_PROCESS
+        self.label = "mask net"
+        self.ckpt = cfg.out / "last.pt"
+        self.g = torch.Generator()  # an epoch's order and coarse masks
 
-def build_cache(
-    folder: str, split: str, images: int, net: MaskNetConfig, seed: int, spread: float = 1.0
-) -> dict[str, np.ndarray]:
-    """The windows of the first `images` images of a split (jittered by `spread`,
-    `_jittered_window`), cut once and kept in ``$POSEGRASP_DATA/masknet``: ``rgb`` (N, S, S, 3)
-    uint8, ``target`` (N, S, S) uint8 (the true visible mask's coverage of each pixel, 0-255)
-    and ``cls`` (N,) the class names.
+    def start(self, resume: bool) -> Run:
+        """The windows (`training_windows`), the net, its optimiser and schedule (`_start_run`);
+        a run from a shipped net is first validated as it starts (epoch 0)."""
+        cfg = self.cfg
+        seed_torch(cfg.seed, None)
+        self.windows = training_windows(cfg)
+        run, self.sched, self.record, self.lineage = _start_run(cfg, self.windows, resume)
+        cfg.out.mkdir(parents=True, exist_ok=True)
+        self.data_seeds = _data_seeds(cfg, self.windows)
+        if cfg.init is not None and not run.history:  # the start, on the same validation windows
+            run.history.append({"epoch": 0, "step": 0, **self._ious(run)})
+            print(f"start ({cfg.init}): {run.history[-1]}", flush=True)
+        return run
 
-    Raises:
-        AssetError: the split is missing (the message names ``make data``).
-    """
-    root = data_root() / folder
-    S = net.size
-    name = f"{folder}_{split}_{images}_{S}_{net.margin}_{seed}" + (
-        f"_{spread}" if spread != 1 else ""
-    )
-    if (kept := _kept(name)) is not None:
-        return kept
-    data = _split(root, split)
-    n = min(images, len(data))
-    rgbs, targets, names = [], [], []
-    for i in progress_bar(range(n), desc=f"windows of {folder}/{split}", mininterval=5):
-        sample = data[i]
-        rng = np.random.default_rng([seed, i])
-        for obj in sample.objects:
-            if int(obj.mask_visib.sum()) < MIN_VISIBLE_PX:
+    def batches(self, run: Run, epoch: int) -> Iterator[np.ndarray]:
+        """The window indices of the epoch's batches not done yet, in the epoch's seeded order.
+
+        The batches done before a resume draw their coarse masks all the same (`degrade`, whose
+        draws the data never changes), so the steps after it draw as an unstopped run's did.
+        """
+        cfg = self.cfg
+        self.g = torch.Generator().manual_seed(cfg.seed * 1000 + epoch)
+        order = torch.randperm(len(self.windows.train["rgb"]), generator=self.g).numpy()
+        done = run.done_in(epoch)
+        for b in range(run.steps_per_epoch):
+            if b < done:
+                degrade(torch.zeros(cfg.batch, 1, 1), self.g, cfg.heavy)
                 continue
-            win = _jittered_window(obj.mask_visib, net.margin, rng, spread)
-            assert win is not None
-            rgbs.append(cut(sample.rgb, win, S))
-            cover = cut(obj.mask_visib.astype(np.float32), win, S)
-            targets.append(np.round(cover * 255).astype(np.uint8))
-            names.append(obj.name)
-    cache = {"rgb": np.stack(rgbs), "target": np.stack(targets), "cls": np.array(names)}
-    return _keep(name, cache)
+            yield np.sort(order[b * cfg.batch : (b + 1) * cfg.batch])
 
+    def step(self, run: Run, batch: np.ndarray, epoch: int) -> Step:
+        """One optimiser step on the windows `batch`: their coarse masks drawn from the truth
+        (the detector's own for its windows), the binary cross-entropy with the true coverage."""
+        cfg, tr = self.cfg, self.windows.train
+        t = torch.as_tensor(tr["target"][batch]).float() / 255
+        coarse = degrade(t, self.g, cfg.heavy).numpy()
+        first, detected = self.windows.first_detected, self.windows.detected
+        if detected is not None and (mine := batch >= first).any():
+            coarse[mine] = detected["coarse"][batch[mine] - first]
+        x = net_input(tr["rgb"][batch], coarse)
+        if cfg.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        with autocast(cfg.precision, self.ranks.device):
+            logits = run.model(x)
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(logits.float()[:, 0], t)
+        lr = run.opt.param_groups[0]["lr"]
+        run.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        run.opt.step()
+        self.sched.step()
+        return Step(loss, lr, {"loss": loss.item()})
 
-def best_detection(
-    dets: list[Detection], name: str, truth: np.ndarray, least: float
-) -> tuple[Detection | None, float]:
-    """Of the detections `dets` of class `name`, the one whose mask overlaps the true visible
-    mask `truth` most, with that mask IoU; (None, `least`) when none reaches `least`."""
-    best, best_iou = None, least
-    for d in dets:
-        if d.name == name and (iou := mask_iou(d.mask, truth)) >= best_iou:
-            best, best_iou = d, iou
-    return best, best_iou
+    def validate(self, run: Run, epoch: int) -> None:
+        """The IoUs on the validation windows (`window_ious`), into the history and printed."""
+        run.history.append({"epoch": epoch + 1, "step": run.step, **self._ious(run)})
+        print(f"epoch {epoch + 1}: {run.history[-1]}", flush=True)
 
+    def _ious(self, run: Run) -> dict[str, float]:
+        """`window_ious` of the net on the run's validation windows."""
+        w = self.windows
+        return window_ious(cast("MaskNet", run.model), w.val, 0, self.cfg.heavy, w.val_detected)
 
-def detector_windows(
-    folder: str,
-    split: str,
-    first: int,
-    images: int,
-    net: MaskNetConfig,
-    detector_path: Path | None,
-) -> dict[str, np.ndarray]:
-    """Windows of images ``first .. first + images - 1`` of a split as the estimator cuts them:
-    around the mask of the detector's detection of each visible object (the same class, score
-    >= `DETECTED_SCORE`, the largest mask IoU with the truth, at least `DETECTED_IOU`), with
-    that mask as the coarse input. Kept in ``$POSEGRASP_DATA/masknet`` as `build_cache`'s, with
-    ``coarse`` (N, S, S) uint8 in {0, 1}, in blocks of `DETECTED_BLOCK` images from `first`: a
-    longer run reuses the blocks of a shorter one, and an interrupted one keeps the blocks it
-    finished. Objects the detector misses give no window.
-
-    Raises:
-        AssetError: the split is missing (the message names ``make data``), the detector's
-            weights are, or the detector found no object at all.
-    """
-    from perception.detector import TIERS_DETECTOR
-
-    path_of_detector = detector_path or TIERS_DETECTOR
-    tag = sha256_file(path_of_detector)[:12] if path_of_detector.is_file() else "missing"
-    data = _split(data_root() / folder, split)
-    last = min(first + images, len(data))
-    detector, desc = None, f"detections of {folder}/{split}"
-    blocks = []
-    for start in range(first, last, DETECTED_BLOCK):
-        images_here = range(start, min(start + DETECTED_BLOCK, last))
-        name = f"{folder}_{split}_{start}+{len(images_here)}_{net.size}_{net.margin}_detected_{tag}"
-        if (kept := _kept(name)) is None:
-            detector = detector or Detector.from_weights(path_of_detector)
-            kept = _keep(name, _detected_block(data, images_here, net, detector, desc))
-        blocks.append(kept)
-    out = {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]} if blocks else {}
-    if not out or not len(out["cls"]):
-        raise AssetError(f"the detector found no object in {folder}/{split} {first}+{images}")
-    return out
-
-
-def _detected_block(
-    data: PoseDataset, images: range, net: MaskNetConfig, detector: Detector, desc: str
-) -> dict[str, np.ndarray]:
-    """`detector_windows` of the `images` of `data` (empty arrays when the detector finds none
-    of their objects)."""
-    S = net.size
-    rgbs, coarse, targets, names = [], [], [], []
-    for i in progress_bar(images, desc=desc, mininterval=5):
-        sample = data[i]
-        dets = detector.detect(sample.rgb, DETECTED_SCORE)
-        for obj in sample.objects:
-            truth = obj.mask_visib
-            if int(truth.sum()) < MIN_VISIBLE_PX:
-                continue
-            best, _ = best_detection(dets, obj.name, truth, DETECTED_IOU)
-            win = None if best is None else window_of(best.mask, net.margin)
-            if win is None:
-                continue
-            assert best is not None  # win is None when best is
-            rgbs.append(cut(sample.rgb, win, S))
-            coarse.append((cut(best.mask.astype(np.float32), win, S) >= 0.5).astype(np.uint8))
-            cover = cut(truth.astype(np.float32), win, S)
-            targets.append(np.round(cover * 255).astype(np.uint8))
-            names.append(obj.name)
-    return {
-        "rgb": np.asarray(rgbs, np.uint8).reshape(-1, S, S, 3),
-        "coarse": np.asarray(coarse, np.uint8).reshape(-1, S, S),
-        "target": np.asarray(targets, np.uint8).reshape(-1, S, S),
-        "cls": np.array(names, dtype=str),
-    }
-
-
-def _lose_and_gain(coarse: torch.Tensor, g: torch.Generator) -> torch.Tensor:
-    """Coarse masks (B, 1, S, S) with, each with probability one half, a disc cut out of the
-    object and a disc of background added beside it: centred 0.5-1.3 of the object's radius
-    (that of a disc of its area) from its centre, in a random direction, with a radius of
-    0.3-0.8 of it."""
-    B, _, S, _ = coarse.shape
-    yy, xx = torch.meshgrid(torch.arange(S).float(), torch.arange(S).float(), indexing="ij")
-    draws = torch.rand(B, 2, 4, generator=g)
-    out = coarse.clone()
-    for b in range(B):
-        pixels = out[b, 0].nonzero().float()
-        if len(pixels) == 0:
-            continue
-        cy, cx = pixels.mean(0)
-        extent = math.sqrt(len(pixels) / math.pi)
-        for k, cut_out in enumerate((True, False)):
-            on, turn, away, size = (float(v) for v in draws[b, k])
-            if on < 0.5:
-                continue
-            angle, dist = 2 * math.pi * turn, extent * (0.5 + 0.8 * away)
-            y, x = cy + dist * math.sin(angle), cx + dist * math.cos(angle)
-            disc = (yy - y) ** 2 + (xx - x) ** 2 <= (extent * (0.3 + 0.5 * size)) ** 2
-            out[b, 0] = out[b, 0] * ~disc if cut_out else torch.maximum(out[b, 0], disc.float())
-    return out
-
-
-def degrade(target: torch.Tensor, g: torch.Generator, heavy: bool = False) -> torch.Tensor:
-    """Coarse masks (B, S, S) in {0, 1} drawn from true coverages (B, S, S) in [0, 1], as the
-    detector draws them: averaged onto a grid of 10-32 cells across the window and drawn back
-    bilinearly, thresholded at 0.35-0.65, thin parts opened away (kernel 1, 3 or 5 px) in half
-    of them, shifted by up to 2 px. With `heavy`, whole parts are also lost and gained
-    (`_lose_and_gain`) before the shift, which goes up to 4 px."""
-    B, S, _ = target.shape
-    x = target[:, None].float()
-    out = torch.empty_like(x)
-    groups = torch.randint(0, 4, (B,), generator=g)
-    for k in range(4):  # a few grid sizes per batch
-        idx = (groups == k).nonzero()[:, 0]
-        if len(idx) == 0:
-            continue
-        cells = int(torch.randint(10, 33, (1,), generator=g))
-        low = torch.nn.functional.adaptive_avg_pool2d(x[idx], cells)
-        out[idx] = torch.nn.functional.interpolate(
-            low, size=(S, S), mode="bilinear", align_corners=False
+    def save(self, run: Run, epoch: int, wall_s: float) -> None:
+        """Write the run's checkpoint, with its schedule and the stages behind its start."""
+        save_checkpoint(
+            self.ckpt,
+            run.model,
+            run.opt,
+            model_config=config_dict(self.cfg.net),
+            train_config=self.record,
+            step=run.step,
+            epoch=epoch,
+            history=run.history,
+            rng=rng_state(),
+            data_seeds=self.data_seeds,
+            header={
+                "kind": "masknet",
+                "command": command_line(self.cfg),
+                "scheduler": self.sched.state_dict(),
+                "wall_s": wall_s,
+                "lineage": self.lineage,
+            },
         )
-    level = 0.35 + 0.3 * torch.rand(B, 1, 1, 1, generator=g)
-    coarse = (out >= level).float()
-    opened = torch.rand(B, generator=g) < 0.5
-    kernel = int(torch.randint(0, 3, (1,), generator=g)) * 2 + 1
-    if kernel > 1 and opened.any():
-        pad = kernel // 2
-        sub = coarse[opened]
-        eroded = -torch.nn.functional.max_pool2d(-sub, kernel, 1, pad)
-        coarse[opened] = torch.nn.functional.max_pool2d(eroded, kernel, 1, pad)
-    if heavy:
-        coarse = _lose_and_gain(coarse, g)
-    reach = 4 if heavy else 2
-    dx, dy = (int(v) for v in torch.randint(-reach, reach + 1, (2,), generator=g))
-    return torch.roll(coarse[:, 0], shifts=(dy, dx), dims=(1, 2))
-
-
-def _iou(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
-    """Per-window IoU of boolean masks (B, S, S)."""
-    inter = (pred & truth).flatten(1).sum(1).float()
-    union = (pred | truth).flatten(1).sum(1).float()
-    return torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(inter))
-
-
-@torch.inference_mode()
-def validate(
-    net: MaskNet,
-    val: dict[str, np.ndarray],
-    seed: int,
-    heavy: bool = False,
-    detected: dict[str, np.ndarray] | None = None,
-) -> dict[str, float]:
-    """Mean IoU with the true mask (coverage >= 0.5) of the degraded input and of the net's
-    mask, on the validation windows (their coarse masks seeded, the same every epoch); with
-    `detected` (`detector_windows`), also of the detector's masks (``detector_iou``) and of the
-    net's redrawing of them (``detected_iou``)."""
-    net.eval()
-    extra: dict[str, float] = {}
-    if detected is not None:
-        given, redrawn = [], []
-        for i in range(0, len(detected["rgb"]), 256):
-            c = detected["coarse"][i : i + 256]
-            truth = torch.as_tensor(detected["target"][i : i + 256]) >= 128
-            logits = net(net_input(detected["rgb"][i : i + 256], c.astype(np.float32)))[:, 0]
-            given.append(_iou(torch.as_tensor(c) > 0, truth))
-            redrawn.append(_iou(logits >= 0, truth))
-        extra = {
-            "detector_iou": float(torch.cat(given).mean()),
-            "detected_iou": float(torch.cat(redrawn).mean()),
-        }
-    g = torch.Generator().manual_seed(seed)
-    before, after = [], []
-    for i in range(0, len(val["rgb"]), 256):
-        t = torch.as_tensor(val["target"][i : i + 256]).float() / 255
-        coarse = degrade(t, g, heavy)
-        logits = net(net_input(val["rgb"][i : i + 256], coarse.numpy()))[:, 0]
-        truth = t >= 0.5
-        before.append(_iou(coarse >= 0.5, truth))
-        after.append(_iou(logits >= 0, truth))
-    return {
-        "coarse_iou": float(torch.cat(before).mean()),
-        "iou": float(torch.cat(after).mean()),
-        **extra,
-    }
-
-
-def _start_from(net: MaskNet, init: Path) -> dict[str, Any]:
-    """Load the shipped mask net at `init` (hash checked) into `net`; returns the stages that
-    made it, from its manifest (one unnamed stage when the manifest does not record it).
-
-    Raises:
-        AssetError: the file is missing or corrupt, or its net is not `net`'s.
-    """
-    shipped = MaskRefiner.from_weights(init).net
-    if shipped.cfg != net.cfg:
-        raise AssetError(f"{init} holds a mask net of {shipped.cfg}, this run trains {net.cfg}")
-    net.load_state_dict(shipped.state_dict())
-    entry = shipped_entry(init)
-    if entry is None:
-        return {"stages": [{"command": None, "init": str(init)}]}
-    return {"stages": entry.get("stages") or [stage_record(entry)]}
 
 
 @dataclass
@@ -484,36 +295,13 @@ def training_windows(cfg: MaskTrainConfig) -> Windows:
     return Windows(train, first_detected, detected, val, val_detected)
 
 
-@dataclass
-class _Run:
-    """A run's net, optimiser and schedule, and where it stands (updated as it trains).
-
-    Attributes:
-        net: the net (channels-last when the run asks for it).
-        opt, sched: its optimiser and one-cycle schedule.
-        steps_per_epoch: the plan.
-        record: what the run was started with (epochs, batch, lr, seed, init, detected), its
-            ``train_config``; a resumed run must match it.
-        lineage: the stages that made the net it started from (``stages``).
-        step, epoch: optimiser steps and whole epochs done.
-        history: per-epoch validation.
-        wall0: wall time before this process resumed it [s].
-    """
-
-    net: MaskNet
-    opt: torch.optim.Optimizer
-    sched: torch.optim.lr_scheduler.LRScheduler
-    steps_per_epoch: int
-    record: dict[str, Any]
-    lineage: dict[str, Any]
-    step: int = 0
-    epoch: int = 0
-    history: list[dict] = field(default_factory=list)
-    wall0: float = 0.0
-
-
-def _start_run(cfg: MaskTrainConfig, windows: Windows, resume: bool) -> _Run:
-    """The net, fresh, started from `cfg.init`, or resumed from ``cfg.out/last.pt``.
+def _start_run(
+    cfg: MaskTrainConfig, windows: Windows, resume: bool
+) -> tuple[Run, torch.optim.lr_scheduler.LRScheduler, dict[str, Any], dict[str, Any]]:
+    """The net, fresh, started from `cfg.init`, or resumed from ``cfg.out/last.pt``; its
+    one-cycle schedule; what the run was started with (epochs, batch, lr, seed, init, detected:
+    its ``train_config``, which a resumed run must match); the stages that made the net it
+    started from (``stages``).
 
     Raises:
         InvalidArgumentError: the checkpoint to resume belongs to a run of other epochs, batch,
@@ -532,11 +320,10 @@ def _start_run(cfg: MaskTrainConfig, windows: Windows, resume: bool) -> _Run:
     }
     if cfg.channels_last:
         net = net.to(memory_format=torch.channels_last)
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=1e-4)
-    steps_per_epoch = len(windows.train["rgb"]) // cfg.batch
-    total = steps_per_epoch * cfg.epochs
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    run = Run(net, opt, steps_per_epoch=len(windows.train["rgb"]) // cfg.batch)
+    total = run.steps_per_epoch * cfg.epochs
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, cfg.lr, total_steps=total, pct_start=0.15)
-    run = _Run(net, opt, sched, steps_per_epoch, record, lineage)
     last = cfg.out / "last.pt"
     if resume and last.is_file():
         state = read_checkpoint(last)
@@ -549,10 +336,27 @@ def _start_run(cfg: MaskTrainConfig, windows: Windows, resume: bool) -> _Run:
                 "start over with --no-resume"
             )
         run.step, run.epoch, run.history = restore(state, net, opt)
-        run.lineage = state.get("lineage", lineage)
+        lineage = state.get("lineage", lineage)
         sched.load_state_dict(state["scheduler"])
-        run.wall0 = float(state["wall_s"])
-    return run
+        run.wall_s = float(state["wall_s"])
+    return run, sched, record, lineage
+
+
+def _start_from(net: MaskNet, init: Path) -> dict[str, Any]:
+    """Load the shipped mask net at `init` (hash checked) into `net`; returns the stages that
+    made it, from its manifest (one unnamed stage when the manifest does not record it).
+
+    Raises:
+        AssetError: the file is missing or corrupt, or its net is not `net`'s.
+    """
+    shipped = MaskRefiner.from_weights(init).net
+    if shipped.cfg != net.cfg:
+        raise AssetError(f"{init} holds a mask net of {shipped.cfg}, this run trains {net.cfg}")
+    net.load_state_dict(shipped.state_dict())
+    entry = shipped_entry(init)
+    if entry is None:
+        return {"stages": [{"command": None, "init": str(init)}]}
+    return {"stages": entry.get("stages") or [stage_record(entry)]}
 
 
 def _data_seeds(cfg: MaskTrainConfig, windows: Windows) -> dict[str, Any]:
@@ -576,195 +380,59 @@ def _data_seeds(cfg: MaskTrainConfig, windows: Windows) -> dict[str, Any]:
     return seeds
 
 
-def train(cfg: MaskTrainConfig, resume: bool = True, max_steps: int | None = None) -> dict:
-    """Train (resuming from ``cfg.out/last.pt`` when asked and present: the same steps as a run
-    never stopped); returns the last checkpoint's contents. `max_steps` stops the run, saved,
-    after that many steps in all (as an interruption would).
-
-    Raises:
-        InvalidArgumentError: the checkpoint to resume belongs to a run of other epochs, batch,
-            seed or start (its schedule or data would change under it).
-        AssetError: `cfg.init` is missing, corrupt or of another net.
-    """
-    seed_torch(cfg.seed, None)
-    windows = training_windows(cfg)
-    run = _start_run(cfg, windows, resume)
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    last = cfg.out / "last.pt"
-    data_seeds = _data_seeds(cfg, windows)
-    if cfg.init is not None and not run.history:  # the start, on the same validation windows
-        val = validate(run.net, windows.val, 0, cfg.heavy, windows.val_detected)
-        run.history.append({"epoch": 0, "step": 0, **val})
-        print(f"start ({cfg.init}): {run.history[-1]}", flush=True)
-
-    def save(done: int, wall_s: float) -> None:
-        save_checkpoint(
-            last,
-            run.net,
-            run.opt,
-            model_config=config_dict(cfg.net),
-            train_config=run.record,
-            step=run.step,
-            epoch=done,
-            history=run.history,
-            rng=rng_state(),
-            data_seeds=data_seeds,
-            header={
-                "kind": "masknet",
-                "command": command_line(cfg),
-                "scheduler": run.sched.state_dict(),
-                "wall_s": wall_s,
-                "lineage": run.lineage,
-            },
-        )
-
-    _train_epochs(cfg, windows, run, Checkpointer(save, minutes=5, wall_s=run.wall0), max_steps)
-    return read_checkpoint(last)
-
-
-def _train_epochs(
-    cfg: MaskTrainConfig, windows: Windows, run: _Run, ckpts: Checkpointer, max_steps: int | None
-) -> None:
-    """The steps not done yet, validating and saving after each epoch; stops, saved, after
-    `max_steps` steps in all."""
-    tr, detected = windows.train, windows.detected
-    device = torch.device("cpu")
-    while run.epoch < cfg.epochs:
-        epoch = run.epoch
-        g = torch.Generator().manual_seed(cfg.seed * 1000 + epoch)
-        order = torch.randperm(len(tr["rgb"]), generator=g).numpy()
-        run.net.train()
-        desc = f"mask net epoch {epoch + 1}/{cfg.epochs}"
-        bar = progress_bar(range(run.steps_per_epoch), desc=desc)
-        for b in bar:
-            if b < run.step - epoch * run.steps_per_epoch:
-                # Done before the resume: only the coarse masks' draws, which the data never
-                # changes, so the steps after it draw as an unstopped run's did.
-                degrade(torch.zeros(cfg.batch, 1, 1), g, cfg.heavy)
-                continue
-            if max_steps is not None and run.step >= max_steps:
-                ckpts.save(epoch)
-                return
-            idx = np.sort(order[b * cfg.batch : (b + 1) * cfg.batch])
-            t = torch.as_tensor(tr["target"][idx]).float() / 255
-            coarse = degrade(t, g, cfg.heavy).numpy()
-            if detected is not None and (mine := idx >= windows.first_detected).any():
-                coarse[mine] = detected["coarse"][idx[mine] - windows.first_detected]
-            x = net_input(tr["rgb"][idx], coarse)
-            if cfg.channels_last:
-                x = x.contiguous(memory_format=torch.channels_last)
-            with autocast(cfg.precision, device):
-                logits = run.net(x)
-            loss = torch.nn.functional.binary_cross_entropy_with_logits(logits.float()[:, 0], t)
-            run.opt.zero_grad(set_to_none=True)
-            loss.backward()
-            run.opt.step()
-            run.sched.step()
-            run.step += 1
-            if b % 20 == 0:
-                bar.set_postfix(loss=f"{loss.item():.4f}")
-            ckpts.save_if_due(epoch)
-        run.epoch += 1
-        val = validate(run.net, windows.val, 0, cfg.heavy, windows.val_detected)
-        run.history.append({"epoch": run.epoch, "step": run.step, **val})
-        print(f"epoch {run.epoch}: {run.history[-1]}", flush=True)
-        ckpts.save(run.epoch)
-
-
-def evaluate(
-    split: str, images: int, protocol: str = "tiers", examples: list | None = None
-) -> dict[str, Any]:
-    """The protocol's detector's masks of the `images` first images of a split of its
-    validation folder (every visible object it finds, mask IoU >= 0.5 with the truth) against
-    its shipped mask net's, by IoU with the true visible mask, per class and overall.
-    `examples`, when given, receives the first object of each class: (name, image window,
-    detector's, mask net's and true mask in it, both IoUs)."""
-    from perception.detector import TIERS_DETECTOR
-
-    proto = PROTOCOLS[protocol]
-    folder = proto.val[0]
-    detector = Detector.from_weights(proto.detector or TIERS_DETECTOR)
-    refiner = MaskRefiner.from_weights(proto.weights, experts=proto.experts)
-    data = PoseDataset(data_root() / folder, split)
-    rows: list[tuple[str, float, float]] = []
-    spent = 0.0
-    for i in progress_bar(
-        range(min(images, len(data))), desc=f"masks of {folder}/{split}", mininterval=5
-    ):
-        sample = data[i]
-        dets = detector.detect(sample.rgb, 0.3)
-        for obj in sample.objects:
-            truth = obj.mask_visib
-            if int(truth.sum()) < MIN_VISIBLE_PX:
-                continue
-            best, best_iou = best_detection(dets, obj.name, truth, 0.5)
-            if best is None:
-                continue
-            t0 = time.perf_counter()
-            sharp = refiner.refine(sample.rgb, best.mask, obj.name)
-            spent += time.perf_counter() - t0
-            after = mask_iou(sharp, truth)
-            rows.append((obj.name, best_iou, after))
-            if examples is not None and all(e[0] != obj.name for e in examples):
-                win = window_of(truth, refiner.cfg.margin)
-                assert win is not None
-                S = 4 * refiner.cfg.size
-                cuts = [cut(m.astype(np.float32), win, S) >= 0.5 for m in (best.mask, sharp, truth)]
-                examples.append((obj.name, cut(sample.rgb, win, S), *cuts, best_iou, after))
-    names = sorted({r[0] for r in rows})
-    per = {
-        n: {
-            "objects": sum(r[0] == n for r in rows),
-            "detector_iou": float(np.mean([r[1] for r in rows if r[0] == n])),
-            "refined_iou": float(np.mean([r[2] for r in rows if r[0] == n])),
+@torch.inference_mode()
+def window_ious(
+    net: MaskNet,
+    val: dict[str, np.ndarray],
+    seed: int,
+    heavy: bool = False,
+    detected: dict[str, np.ndarray] | None = None,
+) -> dict[str, float]:
+    """Mean IoU with the true mask (coverage >= 0.5) of the degraded input and of the net's
+    mask, on the validation windows (their coarse masks seeded, the same every epoch); with
+    `detected` (`detector_windows`), also of the detector's masks (``detector_iou``) and of the
+    net's redrawing of them (``detected_iou``)."""
+    net.eval()
+    extra: dict[str, float] = {}
+    if detected is not None:
+        given, redrawn = [], []
+        for i in range(0, len(detected["rgb"]), 256):
+            c = detected["coarse"][i : i + 256]
+            truth = torch.as_tensor(detected["target"][i : i + 256]) >= 128
+            logits = net(net_input(detected["rgb"][i : i + 256], c.astype(np.float32)))[:, 0]
+            given.append(_iou(torch.as_tensor(c) > 0, truth))
+            redrawn.append(_iou(logits >= 0, truth))
+        extra = {
+            "detector_iou": float(torch.cat(given).mean()),
+            "detected_iou": float(torch.cat(redrawn).mean()),
         }
-        for n in names
-    }
+    g = torch.Generator().manual_seed(seed)
+    before, after = [], []
+    for i in range(0, len(val["rgb"]), 256):
+        t = torch.as_tensor(val["target"][i : i + 256]).float() / 255
+        coarse = degrade(t, g, heavy)
+        logits = net(net_input(val["rgb"][i : i + 256], coarse.numpy()))[:, 0]
+        truth = t >= 0.5
+        before.append(_iou(coarse >= 0.5, truth))
+        after.append(_iou(logits >= 0, truth))
     return {
-        "split": f"{folder}/{split}",
-        "images": min(images, len(data)),
-        "objects": len(rows),
-        "detector_iou": float(np.mean([r[1] for r in rows])),
-        "refined_iou": float(np.mean([r[2] for r in rows])),
-        "refined_better": float(np.mean([r[2] > r[1] for r in rows])),
-        "ms_per_mask": 1000 * spent / max(1, len(rows)),
-        "per_class": per,
+        "coarse_iou": float(torch.cat(before).mean()),
+        "iou": float(torch.cat(after).mean()),
+        **extra,
     }
 
 
-def plot_examples(examples: list, path: Path) -> None:
-    """One row per class: the window, then the detector's, the mask net's and the true mask's
-    outlines drawn on it."""
-    import cv2
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(len(examples), 4, figsize=(8, 2.1 * len(examples)), squeeze=False)
-    for row, (name, rgb, det, sharp, truth, before, after) in zip(axes, examples, strict=True):
-        titles = (name, f"detector: IoU {before:.3f}", f"mask net: IoU {after:.3f}", "truth")
-        colours = (None, (255, 60, 60), (60, 255, 60), (255, 255, 255))
-        for ax, mask, title, colour in zip(
-            row, (None, det, sharp, truth), titles, colours, strict=True
-        ):
-            img = rgb.copy()
-            if mask is not None:
-                edges = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3)))
-                img[edges.astype(bool)] = colour
-            ax.imshow(img)
-            ax.set_title(title, fontsize=8)
-            ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    print(f"wrote {path}")
+def _iou(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """Per-window IoU of boolean masks (B, S, S)."""
+    inter = (pred & truth).flatten(1).sum(1).float()
+    union = (pred | truth).flatten(1).sum(1).float()
+    return torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(inter))
 
 
 def command_line(cfg: MaskTrainConfig) -> str:
     """The CLI command that runs `cfg` (as far as the CLI exposes it: the protocol whose
     validation scenes it has, then what it changes), in the trainers' shared spelling."""
-    protocol = next((k for k, v in PROTOCOLS.items() if v.val == cfg.val), "tiers")
+    protocol = next((k for k, v in PROTOCOLS.items() if v.val == cfg.val), DEFAULT_PROTOCOL)
     proto, d = PROTOCOLS[protocol], MaskTrainConfig
     options = (
         (cfg.lr != d.lr, f"--lr {cfg.lr:g}"),

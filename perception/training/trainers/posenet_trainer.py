@@ -12,22 +12,16 @@ rank its shard of it, rank 0 validating and writing the checkpoint.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
 from torch import nn
 
-from perception.nets import (
-    CROP,
-    NetConfig,
-    PoseNet,
-    PoseOutput,
-    load_posenet,
-    normalise,
-)
+from perception.nets import CROP, NetConfig, PoseNet, PoseOutput, load_posenet, normalise
 from perception.training.data.crop_sets import CropConfig, data_seed_ranges, split_crops
 from perception.training.data.dataset import DISTS, format_data
 from perception.training.evals.posenet_eval import evaluate_arrays
@@ -41,17 +35,12 @@ from perception.training.trainers.checkpoints import (
     seed_torch,
 )
 from perception.training.trainers.ddp import Ranks, joined
-from perception.training.trainers.loop import (
-    PRECISIONS,
-    Checkpointer,
-    autocast,
-)
+from perception.training.trainers.loop import PRECISIONS, Run, Step, autocast, fit
 from perception.training.trainers.losses import posenet_loss
 from perception.training.trainers.manifest import shipped_stages
 from perception.training.trainers.schedule import learning_rate, optimiser_step
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import checkpoint_dir
-from posegrasp.core.progress import progress_bar
 from posegrasp.core.validate import check_choice
 from posegrasp.world.objects import OBJECT_NAMES
 
@@ -61,6 +50,8 @@ TRAIN_COMMAND = "python -m perception.training.train_posenet"
 LINEAGE_KEYS = ("command", "init_from", "train_config", "epoch", "wall_s", "data_seeds", "commit")
 #: Gradient-norm clip of every step.
 GRAD_CLIP = 5.0
+
+_M = TypeVar("_M", bound=nn.Module)
 
 
 @dataclass(frozen=True)
@@ -215,58 +206,95 @@ def train(cfg: PoseNetTrainConfig, resume: bool = True, command: str | None = No
         InvalidArgumentError: a device that is not there, or a batch the processes cannot share.
     """
     with joined(cfg.device, cfg.batch) as ranks:
-        return _train(cfg, ranks, resume, command)
+        trainer = PoseNetTrainer(cfg, ranks, command)
+        run, _ = fit(
+            trainer,
+            cfg.epochs,
+            resume=resume,
+            checkpoint_minutes=cfg.checkpoint_minutes,
+            loss_log=cfg.loss_log,
+        )
+    return {"checkpoint": str(trainer.ckpt), "history": run.history}
 
 
-@dataclass
-class _Run:
-    """A run's model and optimiser, its plan and where it stands (updated as it trains).
+class PoseNetTrainer:
+    """The pose nets' part of the training loop (`perception.training.trainers.loop.fit`): the
+    run's crops, its net (and a teacher when distilling), its step and its validation.
 
-    Attributes:
-        model: the unwrapped net (what a checkpoint holds).
-        opt: its optimiser.
-        ckpt: the checkpoint file.
-        lineage: the checkpoint's header: command, the run it started from, wall time.
-        data_seeds: which data the run trains on.
-        steps_per_epoch, total_steps: the plan.
-        step: optimiser steps done.
-        epoch0: whole epochs done when this process started.
-        history: per-epoch validation.
+    Args:
+        cfg: the run.
+        ranks: this process's place in it.
+        command: the command its checkpoint records (None: the CLI command of `cfg`).
     """
 
-    model: PoseNet
-    opt: torch.optim.Optimizer
-    ckpt: Path
-    lineage: dict[str, Any]
-    data_seeds: dict[str, Any]
-    steps_per_epoch: int
-    total_steps: int
-    step: int = 0
-    epoch0: int = 0
-    history: list[dict] = field(default_factory=list)
+    def __init__(self, cfg: PoseNetTrainConfig, ranks: Ranks, command: str | None) -> None:
+        self.cfg, self.ranks, self.command = cfg, ranks, command
+        self.label = cfg.variant
+        self.ckpt = checkpoint_path(cfg)
+        self.g = torch.Generator().manual_seed(cfg.seed)  # the order and jitter of the batches
 
+    def start(self, resume: bool) -> Run:
+        """The crops, the model and its optimiser (`_start_run`), wrapped for the processes."""
+        cfg, ranks = self.cfg, self.ranks
+        seed_torch(cfg.seed, ranks.threads(cfg.threads))
+        self.tr, self.va, self.data_seeds = _training_crops(cfg, ranks)
+        run, self.lineage = _start_run(cfg, ranks, resume, self.command, len(self.tr["crops"]))
+        self.net = ranks.wrap(_laid_out(cfg, run.model))  # the model itself with one process
+        with torch.random.fork_rng():  # building the teacher leaves the run's random stream alone
+            teacher = load_posenet(cfg.teacher, verify=False) if cfg.teacher else None
+        self.teacher = None if teacher is None else _laid_out(cfg, teacher).to(ranks.device)
+        return run
 
-def _train(cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | None) -> dict:
-    """`train` in this process, its place in the run being `ranks`."""
-    seed_torch(cfg.seed, ranks.threads(cfg.threads))
-    tr, va, data_seeds = _training_crops(cfg, ranks)
-    run = _start_run(cfg, ranks, resume, command, data_seeds, len(tr["crops"]))
-    net = ranks.wrap(_laid_out(cfg, run.model))  # the model itself with one process
-    with torch.random.fork_rng():  # building the teacher leaves the run's random stream alone
-        teacher = load_posenet(cfg.teacher, verify=False) if cfg.teacher else None
-    if teacher is not None:
-        teacher = _laid_out(cfg, teacher).to(ranks.device)
-    wall_s = float(run.lineage.get("wall_s") or 0.0)  # over resumptions
-    ckpts = Checkpointer(
-        lambda epoch, wall: _save(cfg, run, ranks, epoch, wall), cfg.checkpoint_minutes, wall_s
-    )
-    g = torch.Generator().manual_seed(cfg.seed)
-    for epoch in range(run.epoch0, cfg.epochs):
-        _train_epoch(cfg, run, net, teacher, tr, epoch, g, ranks, ckpts)
-        if ranks.main:  # rank 0 validates and saves; the others meet it at the next step
-            _validate(run, va, epoch, ranks)
-            ckpts.save(epoch + 1)
-    return {"checkpoint": str(run.ckpt), "history": run.history}
+    def batches(self, run: Run, epoch: int) -> Iterator[dict[str, torch.Tensor]]:
+        """This rank's shards of the epoch's batches not done yet (`BATCH_KEYS`).
+
+        The epoch's order is drawn from the run's generator seeded by the epoch, so a run resumed
+        mid-epoch skips the batches it has done and continues with the same ones.
+        """
+        cfg = self.cfg
+        self.g.manual_seed(cfg.seed * 1000 + epoch)
+        order = torch.randperm(len(self.tr["crops"]), generator=self.g).numpy()
+        for b in range(run.done_in(epoch), run.steps_per_epoch):
+            idx = self.ranks.shard(order[b * cfg.batch : (b + 1) * cfg.batch])
+            yield batch_tensors(self.tr, idx, self.ranks.device)
+
+    def step(self, run: Run, batch: dict[str, torch.Tensor], epoch: int) -> Step:
+        """One optimiser step on this rank's shard `batch`; shows the parts of its loss."""
+        cfg = self.cfg
+        x = training_inputs(cfg, batch, self.g, self.ranks)
+        loss, parts = training_loss(cfg, self.net, self.teacher, x, batch)
+        lr = learning_rate(run.step, cfg.epochs * run.steps_per_epoch, cfg.lr, decay=cfg.decay)
+        optimiser_step(run.model, run.opt, loss, lr, GRAD_CLIP)
+        return Step(loss, lr, parts)
+
+    def validate(self, run: Run, epoch: int) -> None:
+        """The pose errors on the val crops (`evaluate_arrays`), into the history and printed."""
+        model = cast("PoseNet", self.ranks.on_cpu(run.model))
+        val = evaluate_arrays(model, self.va)  # it works on the CPU
+        run.history.append({"epoch": epoch + 1, "step": run.step, **val})
+        print(
+            f"epoch {epoch + 1}: val centre {val['center_px']:.2f} px, distance "
+            f"{val['distance_pct']:.2f} %, rotation {val['rotation_deg']:.2f} deg, "
+            f"outliers {val['outlier_rate']:.1%}"
+        )
+
+    def save(self, run: Run, epoch: int, wall_s: float) -> None:
+        """Write the run's checkpoint (rank 0; the others only keep the wall time)."""
+        self.lineage["wall_s"] = wall_s
+        if self.ranks.main:
+            save_checkpoint(
+                self.ckpt,
+                run.model,
+                run.opt,
+                model_config=self.cfg.net_config().to_dict(),
+                train_config=self.cfg.to_dict(),
+                step=run.step,
+                epoch=epoch,
+                history=run.history,
+                rng=rng_state(),
+                data_seeds=self.data_seeds,
+                header=self.lineage,
+            )
 
 
 def _training_crops(cfg: PoseNetTrainConfig, ranks: Ranks) -> tuple[dict, dict, dict[str, Any]]:
@@ -295,22 +323,16 @@ def _training_crops(cfg: PoseNetTrainConfig, ranks: Ranks) -> tuple[dict, dict, 
 
 
 def _start_run(
-    cfg: PoseNetTrainConfig,
-    ranks: Ranks,
-    resume: bool,
-    command: str | None,
-    data_seeds: dict[str, Any],
-    n_train: int,
-) -> _Run:
+    cfg: PoseNetTrainConfig, ranks: Ranks, resume: bool, command: str | None, n_train: int
+) -> tuple[Run, dict[str, Any]]:
     """The model and optimiser, fresh, started from `cfg.init`, or resumed from the run's own
-    checkpoint.
+    checkpoint, and the checkpoint's header: command, the run it started from, wall time.
 
     Args:
         cfg: the run.
         ranks: this process's place in it.
         resume: continue from the run's checkpoint if it exists.
         command: the command to record (None: the CLI command of `cfg`).
-        data_seeds: which data the run trains on.
         n_train: training crops.
 
     Raises:
@@ -318,7 +340,6 @@ def _start_run(
     """
     model = PoseNet(cfg.net_config())
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    steps_per_epoch = max(1, n_train // cfg.batch)
     ckpt = checkpoint_path(cfg)
     ckpt.parent.mkdir(parents=True, exist_ok=True)
     lineage: dict[str, Any] = {
@@ -329,14 +350,15 @@ def _start_run(
     resuming = resume and ckpt.is_file()
     if cfg.init and not resuming:
         lineage["init_from"] = _start_from(model, _resolve_init(cfg.init, ckpt.parent))
-    run = _Run(model, opt, ckpt, lineage, data_seeds, steps_per_epoch, cfg.epochs * steps_per_epoch)
+    run = Run(model, opt, steps_per_epoch=max(1, n_train // cfg.batch))
     if resuming:
         state = read_checkpoint(ckpt)
-        run.lineage = {k: state.get(k, v) for k, v in lineage.items()}
-        run.step, run.epoch0, run.history = restore(state, model, opt)
+        lineage = {k: state.get(k, v) for k, v in lineage.items()}
+        run.step, run.epoch, run.history = restore(state, model, opt)
         if ranks.main:
-            print(f"resuming {ckpt} at epoch {run.epoch0}, step {run.step}")
-    return run
+            print(f"resuming {ckpt} at epoch {run.epoch}, step {run.step}")
+    run.wall_s = float(lineage.get("wall_s") or 0.0)  # over resumptions
+    return run, lineage
 
 
 def _start_from(model: PoseNet, src: Path) -> dict[str, Any]:
@@ -363,7 +385,7 @@ def _start_from(model: PoseNet, src: Path) -> dict[str, Any]:
 BATCH_KEYS = ("crops", "cls", "scale", "uv_unit", "p", "theta")
 
 
-def _laid_out(cfg: PoseNetTrainConfig, model: PoseNet) -> PoseNet:
+def _laid_out(cfg: PoseNetTrainConfig, model: _M) -> _M:
     """`model`, its weights moved to channels-last layout when the run asks for it (the same
     parameter objects, so an optimiser over them still holds)."""
     return model.to(memory_format=torch.channels_last) if cfg.channels_last else model
@@ -426,95 +448,3 @@ def _fp32(out: PoseOutput) -> PoseOutput:
     if all(t.dtype == torch.float32 for t in (out.uv_unit, out.p, out.cs)):
         return out
     return PoseOutput(out.uv_unit.float(), out.p.float(), out.cs.float())
-
-
-def _train_epoch(
-    cfg: PoseNetTrainConfig,
-    run: _Run,
-    net: nn.Module,
-    teacher: PoseNet | None,
-    tr: dict,
-    epoch: int,
-    g: torch.Generator,
-    ranks: Ranks,
-    ckpts: Checkpointer,
-) -> None:
-    """The steps of epoch `epoch` (0-based) not done yet, saving the checkpoint when it is due.
-
-    The epoch's order is drawn from `g` seeded by the epoch, so a run resumed mid-epoch skips
-    the batches it has done and continues with the same ones.
-    """
-    g.manual_seed(cfg.seed * 1000 + epoch)
-    order = torch.randperm(len(tr["crops"]), generator=g).numpy()
-    skip = run.step - epoch * run.steps_per_epoch  # batches of this epoch already done (resume)
-    run.model.train()
-    bar = progress_bar(
-        range(run.steps_per_epoch),
-        desc=f"{cfg.variant} epoch {epoch + 1}/{cfg.epochs}",
-        disable=not ranks.main,
-    )
-    for b in bar:
-        if b < skip:
-            continue
-        idx = ranks.shard(order[b * cfg.batch : (b + 1) * cfg.batch])  # this rank's shard
-        batch = batch_tensors(tr, idx, ranks.device)
-        parts = _train_step(cfg, run, net, teacher, batch, epoch, g, ranks)
-        if b % 20 == 0:
-            bar.set_postfix({k: f"{v:.3f}" for k, v in parts.items()})
-        ckpts.save_if_due(epoch)
-
-
-def _train_step(
-    cfg: PoseNetTrainConfig,
-    run: _Run,
-    net: nn.Module,
-    teacher: PoseNet | None,
-    batch: dict[str, torch.Tensor],
-    epoch: int,
-    g: torch.Generator,
-    ranks: Ranks,
-) -> dict[str, float]:
-    """One optimiser step on this rank's shard `batch` of a global batch (`BATCH_KEYS`).
-
-    Returns:
-        The parts of the loss on the shard (`posenet_loss`).
-    """
-    x = training_inputs(cfg, batch, g, ranks)
-    loss, parts = training_loss(cfg, net, teacher, x, batch)
-    lr = learning_rate(run.step, run.total_steps, cfg.lr, decay=cfg.decay)
-    optimiser_step(run.model, run.opt, loss, lr, GRAD_CLIP)
-    run.step += 1
-    if cfg.loss_log is not None:
-        loss_all = ranks.mean(loss)  # every rank takes part
-        ranks.log(cfg.loss_log, step=run.step, epoch=epoch + 1, loss=loss_all, lr=lr)
-    return parts
-
-
-def _validate(run: _Run, va: dict, epoch: int, ranks: Ranks) -> None:
-    """Validate after epoch `epoch` (0-based): append to the history and print the figures."""
-    val = evaluate_arrays(ranks.on_cpu(run.model), va)  # posenet_eval works on the CPU
-    run.history.append({"epoch": epoch + 1, "step": run.step, **val})
-    print(
-        f"epoch {epoch + 1}: val centre {val['center_px']:.2f} px, distance "
-        f"{val['distance_pct']:.2f} %, rotation {val['rotation_deg']:.2f} deg, "
-        f"outliers {val['outlier_rate']:.1%}"
-    )
-
-
-def _save(cfg: PoseNetTrainConfig, run: _Run, ranks: Ranks, epoch: int, wall_s: float) -> None:
-    """Write the run's checkpoint (rank 0; the others only keep the wall time)."""
-    run.lineage["wall_s"] = wall_s
-    if ranks.main:
-        save_checkpoint(
-            run.ckpt,
-            run.model,
-            run.opt,
-            model_config=run.model.cfg.to_dict(),
-            train_config=cfg.to_dict(),
-            step=run.step,
-            epoch=epoch,
-            history=run.history,
-            rng=rng_state(),
-            data_seeds=run.data_seeds,
-            header=run.lineage,
-        )
