@@ -1,9 +1,10 @@
 """The statistics of paired grasp experiments: pure functions, no I/O.
 
-Wilson intervals of a success rate, the exact McNemar test on discordant pairs, the
-risk-coverage curve of a confidence, and paired bootstrap intervals of success, friction-margin,
-per-episode score and risk-coverage area differences (`sim.compare`, `sim.evaluate`,
-`sim.gate`).
+Wilson intervals of a success rate, the exact McNemar test on discordant pairs (from their
+counts, or from paired successes), the Wilcoxon signed-rank test of paired placement errors with
+failures ranked worst, the risk-coverage curve of a confidence, and paired bootstrap intervals of
+success, friction-margin, per-episode score and risk-coverage area differences (`sim.compare`,
+`sim.evaluate`, `sim.gate`, `sim.board`).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.stats import binomtest, spearmanr
+from scipy.stats import binomtest, rankdata, spearmanr, wilcoxon
 
 from posegrasp.core.errors import InvalidArgumentError
 
@@ -76,6 +77,107 @@ def mcnemar_exact(a_only: int, b_only: int, one_sided: bool = False) -> float:
     if one_sided:
         return float(binomtest(a_only, n, 0.5, alternative="greater").pvalue)
     return float(binomtest(min(a_only, b_only), n, 0.5).pvalue)
+
+
+def mcnemar_paired(success_a: Sequence[bool], success_b: Sequence[bool]) -> dict:
+    """McNemar's test of paired successes, exact and two-sided: A and B on the same episodes.
+
+    McNemar (1947), "Note on the sampling error of the difference between correlated
+    proportions or percentages", Psychometrika 12(2); the exact conditional form (Fagerland,
+    Lydersen and Laake 2013, BMC Med. Res. Methodol. 13:91, eq. 2): only the discordant pairs
+    count, and if neither is better each goes A's way with probability 1/2, so with ``b`` pairs
+    that only A won and ``c`` that only B won, ``p = min(1, 2 P(X <= min(b, c)))`` for
+    ``X ~ Binomial(b + c, 1/2)`` (`mcnemar_exact`); 1 without a discordant pair.
+
+    Args:
+        success_a: per episode, whether A succeeded; (N,).
+        success_b: per episode, whether B succeeded, the episodes in the same order; (N,).
+
+    Returns:
+        ``episodes`` (N), ``a`` and ``b`` (their successes), ``a_only`` and ``b_only`` (the
+        discordant pairs) and ``p``.
+
+    Raises:
+        InvalidArgumentError: sequences of different lengths.
+    """
+    if len(success_a) != len(success_b):
+        raise InvalidArgumentError(
+            f"mcnemar_paired: {len(success_a)} and {len(success_b)} outcomes; pair the same "
+            "episodes"
+        )
+    a, b = np.asarray(success_a, bool), np.asarray(success_b, bool)
+    a_only, b_only = int(np.sum(a & ~b)), int(np.sum(~a & b))
+    return {
+        "episodes": len(a),
+        "a": int(a.sum()),
+        "b": int(b.sum()),
+        "a_only": a_only,
+        "b_only": b_only,
+        "p": mcnemar_exact(a_only, b_only),
+    }
+
+
+def _worst_ranked(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The paired differences A - B (N,) of `wilcoxon_worst_ranked`: a failure on both sides is
+    a tie (0); a failure on one side is the largest magnitude, shared by every such pair, signed
+    towards the side that failed."""
+    fail_a, fail_b = np.isinf(a), np.isinf(b)
+    one, both_ran = fail_a ^ fail_b, ~(fail_a | fail_b)
+    d = np.zeros_like(a)
+    d[both_ran] = a[both_ran] - b[both_ran]
+    top = 1.0 + 2.0 * float(np.max(np.abs(d), initial=0.0))
+    d[one] = np.where(fail_a[one], top, -top)
+    return d
+
+
+def wilcoxon_worst_ranked(errors_a: Sequence[float], errors_b: Sequence[float]) -> dict:
+    """The Wilcoxon signed-rank test of paired errors (A and B on the same episodes), two-sided,
+    an episode that failed before it had an error (``inf``) ranked worst.
+
+    Wilcoxon (1945), "Individual comparisons by ranking methods", Biometrics Bulletin 1(6): the
+    differences ``d = A - B`` are ranked by magnitude (ties share their mean rank), zero
+    differences left out (Wilcoxon's own rule, ``zero_method="wilcox"``), and ``R+``, ``R-``
+    are the rank sums of the positive and negative ones; the p-value is
+    `scipy.stats.wilcoxon`'s (exact for small samples without ties, else the normal
+    approximation with the tie correction).
+
+    A failure (``inf``: the object was never lifted, so it rests nowhere near its goal) is worse
+    than any error: a pair where both failed is a tie (left out, like any zero difference), a
+    pair where one failed has a difference larger in magnitude than every finite one and equal
+    to every other such pair's (they share the top ranks), signed against the side that failed.
+
+    Args:
+        errors_a: per episode, A's error (any unit, the same for both; ``inf``: failed); (N,).
+        errors_b: B's, the episodes in the same order; (N,).
+
+    Returns:
+        ``episodes`` (N), ``ranked`` (the pairs with a nonzero difference), ``r_plus`` and
+        ``r_minus`` (rank sums: ``r_minus > r_plus`` says A's errors are the smaller), and ``p``
+        (1 when no pair differs).
+
+    Raises:
+        InvalidArgumentError: sequences of different lengths, NaN or a negative infinity.
+    """
+    a, b = np.asarray(errors_a, float), np.asarray(errors_b, float)
+    if a.shape != b.shape or a.ndim != 1:
+        raise InvalidArgumentError(
+            f"wilcoxon_worst_ranked: {a.shape} and {b.shape} errors; pair the same episodes"
+        )
+    if np.isnan(a).any() or np.isnan(b).any() or (np.minimum(a, b) == -np.inf).any():
+        raise InvalidArgumentError("wilcoxon_worst_ranked: errors are numbers or +inf (failed)")
+    d = _worst_ranked(a, b)
+    nz = d[d != 0]
+    ranks = rankdata(np.abs(nz))
+    out = {
+        "episodes": int(a.size),
+        "ranked": int(nz.size),
+        "r_plus": float(ranks[nz > 0].sum()),
+        "r_minus": float(ranks[nz < 0].sum()),
+        "p": 1.0,
+    }
+    if nz.size:
+        out["p"] = float(wilcoxon(nz, zero_method="wilcox", alternative="two-sided").pvalue)
+    return out
 
 
 def paired(a: np.ndarray, b: np.ndarray, boot: int, rng: np.random.Generator) -> dict:
