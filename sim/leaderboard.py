@@ -1,13 +1,24 @@
-"""The leaderboard: every (estimator, tier, sensor) cell on the same held-out episodes.
+"""The leaderboard: every (estimator, tier, sensor, task, shifts) cell on the same episodes.
 
     python -m sim.leaderboard [--estimators LIST] [--poses CSV EXPORT ...] [--tiers LIST] \
-        [--sensors LIST] [--objects all] [--episodes N] [--workers N] [--backend local|ray] \
-        [--out DIR] [--publish]
+        [--sensors LIST] [--tasks lift,place] [--shifts SETTINGS] [--objects all] \
+        [--episodes N] [--workers N] [--backend local|ray] [--out DIR] [--publish]
 
 A row is any estimator a spec names (`sim.episodes.registry`: a built-in name, an installed entry
 point, a plug-in ``package.module:factory``) or the poses of a BOP results CSV of a method run
 elsewhere (``--poses CSV EXPORT``: the CSV answers the export of `sim.export_bop` it names, whose
 episodes must be the board's), ranked with the others on the same episodes.
+
+Beside today's cells (task ``lift``, no shift) the board runs tracks (`sim.board.tracks`):
+``--tasks lift,place`` adds the place task (the robot carries the object to a goal pose and
+succeeds only if it rests within 2 cm and 10 deg), ``--shifts`` purely visual scene shifts, a
+comma list of settings: ``none``, ``NAME[:LEVEL]``, several at once joined by ``+``
+(``light_colour:3+camera:3``), every factor at once ``all[:LEVEL]``, and ``factors[:LEVEL]`` for
+``none`` and each factor alone (``--shifts none,camera:3,all:3``). Every cell plays the same
+seeds, so the page pairs them episode by episode: each pair of estimators in a cell (McNemar's
+exact test; on the place task also the signed-rank test of placement errors), and each estimator
+under each shift against itself unshifted. Today's cells keep their files, so a board of the
+default track reads them back.
 
 Each cell is one evaluation (`sim.evaluation`; its report and journal under ``--out``/cells), so
 a stopped leaderboard resumes where it stopped when its command runs again, as the line it
@@ -15,17 +26,21 @@ prints says: a finished cell is read back, a started one resumes from its journa
 records the estimator's settings and weights it ran with
 (`sim.episodes.registry.estimator_settings`; a CSV's and its export's hashes); where they are not
 today's, the board refuses to run and names the cells, rather than mix runs of other settings into
-it; so it does for a cell that holds an episode stopped rather than played, or other episodes than
-the board's. An estimator that cannot be made here (an extra not installed) is refused before any
-cell runs, in one line naming the install. An estimator that needs depth
-(`sim.episodes.registry.needs_depth`) sees ``rgbd`` observations, every other one ``rgb``; an
-RGB-only estimator sees only the sensor's colour model, so its cells under sensors that differ only
-in depth are one run, shown under each.
+it; so it does for a cell that holds an episode stopped rather than played, other episodes than
+the board's, or another task or other shifts than its own. An estimator that cannot be made
+here (an extra not installed) is refused before any cell runs, in one line naming the install. An
+estimator that needs depth (`sim.episodes.registry.needs_depth`) sees ``rgbd`` observations, every
+other one ``rgb``; an RGB-only estimator sees only the sensor's colour model, so its cells under
+sensors that differ only in depth are one run, shown under each.
 
-The board goes under ``--out``: the whole board as JSON, the Markdown page and three plots
-(`sim.board`), the page linking its plots relative to where it is written;
-``--publish`` writes the shipped page instead (`docs/LEADERBOARD.md`, its JSON and plots, never
-edited by hand).
+Every cell's episodes run through `sim.evaluation.evaluate_protocol` on ``--backend`` (a local
+pool of ``--workers``, or Ray: ``--backend ray [--address HOST:PORT]`` for a big board), the
+tracks' cells as today's.
+
+The board goes under ``--out``: the whole board as JSON, the Markdown page and its plots
+(`sim.board`; with the place task, also success against the estimate's error), the page linking
+its plots relative to where it is written; ``--publish`` writes the shipped page instead
+(`docs/LEADERBOARD.md`, its JSON and plots, never edited by hand).
 """
 
 from __future__ import annotations
@@ -53,22 +68,24 @@ from posegrasp.core.journal import Interrupted
 from posegrasp.core.paths import DOCS_DIR, in_repo
 from posegrasp.core.validate import arg, check_int, check_names
 from posegrasp.world.constants import EVAL_SEED_BASE
+from posegrasp.world.goals import TASKS
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.sensors import SENSOR_NAMES, Sensor
 from posegrasp.world.tiers import TIERS
 from sim.board.analysis import analyse
-from sim.board.cells import (
-    cell_summary,
-    cells_of,
-    poses_rows,
-    run_cell,
-    run_time_s,
-    stale_cells,
-    today_settings,
-    unfit_cells,
-)
+from sim.board.cells import cells_of, run_cell, stale_cells, today_settings, unfit_cells
 from sim.board.figures import plots
 from sim.board.page import markdown
+from sim.board.poses import poses_rows
+from sim.board.summary import cell_summary, run_time_s
+from sim.board.tracks import (
+    BASE_TASK,
+    NO_SHIFT,
+    SHIFTS_SYNTAX,
+    check_shift_settings,
+    check_tasks,
+    track_title,
+)
 from sim.episodes.registry import BOARD_ESTIMATORS
 
 #: The default sensors: the ideal camera and a structured-light depth camera.
@@ -134,6 +151,26 @@ def _add_output_arguments(p: ArgumentParser) -> None:
     )
 
 
+def _add_track_arguments(p: ArgumentParser) -> None:
+    """Add the board's tracks: ``--tasks`` and ``--shifts`` (`sim.board.tracks`)."""
+    p.add_argument(
+        "--tasks",
+        default=[BASE_TASK],
+        type=arg(check_tasks),
+        metavar="LIST",
+        help=f"a comma list of {', '.join(TASKS)}: lift grasps and holds; place then carries "
+        f"the object to a goal pose and scores where it rests (2 cm, 10 deg) (default {BASE_TASK})",
+    )
+    p.add_argument(
+        "--shifts",
+        default=[NO_SHIFT],
+        type=arg(check_shift_settings),
+        metavar="SETTINGS",
+        help=f"purely visual scene shifts, each setting a track: {SHIFTS_SYNTAX} (default "
+        f"{NO_SHIFT}; e.g. none,camera:3,all:3)",
+    )
+
+
 def _parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m sim.leaderboard", description=__doc__.split("\n")[0])
     p.add_argument(
@@ -167,6 +204,7 @@ def _parser() -> ArgumentParser:
             metavar="LIST",
             help=f"a comma list of {', '.join(choices)}, or 'all' (default {','.join(default)})",
         )
+    _add_track_arguments(p)
     p.add_argument(
         "--episodes",
         type=arg(check_int, 1, 100_000, "--episodes", base=int),
@@ -212,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     cells_dir = Path(args.out) / "cells"
     page, plot_dir, board_json = _outputs(args)
     rows = poses_rows(args.poses, args.objects, args.episodes)
-    cells = cells_of(args.estimators, args.tiers, args.sensors, rows)
+    cells = cells_of(args.estimators, args.tiers, args.sensors, rows, args.tasks, args.shifts)
     settings = today_settings(cells)
     again = _command(argv)
     if stale := stale_cells(cells, cells_dir, settings):
@@ -237,8 +275,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for i, cell in enumerate(cells, 1):
             at = f"at cell {i} of {len(cells)} ({cell.run_key})"
+            track = track_title(cell.task, cell.shifts)
             print(
-                f"cell {i}/{len(cells)}: {cell.estimator}, {cell.tier}, {cell.sensor}", flush=True
+                f"cell {i}/{len(cells)}: {cell.estimator}, {cell.tier}, {cell.sensor}, {track}",
+                flush=True,
             )
             row = {**asdict(cell), "run_key": cell.run_key}
             try:
@@ -266,12 +306,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _board(argv, args, board_cells: list[dict], reports: dict[str, dict], start: float) -> dict:
-    """The whole board as JSON: how it was made, every cell and the analysis."""
+    """The whole board as JSON: how it was made (its tracks too), every cell and the analysis;
+    its wall time [s] is its episodes' (`sim.board.summary.run_time_s`)."""
     return {
         "command": _command(argv),
         "estimators": list(dict.fromkeys(c["estimator"] for c in board_cells)),
         "tiers": list(args.tiers),
         "sensors": [Sensor.parse(s).name for s in args.sensors],
+        "tasks": list(args.tasks),
+        "shifts": list(args.shifts),
         "objects": list(args.objects),
         "episodes": args.episodes,
         "episodes_per_cell": args.episodes * len(args.objects),

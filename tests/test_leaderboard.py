@@ -12,6 +12,7 @@ import pytest
 from posegrasp.world.constants import EVAL_SEED_BASE
 from sim import leaderboard
 from sim.board import cells as board_cells
+from sim.board import summary as board_summary
 from sim.board.analysis import findings
 from sim.board.figures import plots
 from sim.evaluation.stats import wilson_interval
@@ -39,7 +40,7 @@ def _report(successes: list[bool], workers: int = 2, wall_ms: float = 500.0) -> 
             "success_rate": k / n,
             "pose_correct": k,
             "grasped_wrong_pose": 0,
-            **{key: 0.5 for key in board_cells.AR_KEYS},
+            **{key: 0.5 for key in board_summary.AR_KEYS},
         },
     }
 
@@ -48,11 +49,11 @@ def test_the_wall_time_is_the_episodes_own_shared_over_the_workers() -> None:
     """A cell read back from its report (or resumed from its journal) counts the time its
     episodes took, not the moment it took to read them."""
     reports = [_report([True] * 4, workers=2), _report([False] * 3, workers=1, wall_ms=1000.0)]
-    assert board_cells.run_time_s(reports) == pytest.approx(4 * 0.5 / 2 + 3 * 1.0)
+    assert board_summary.run_time_s(reports) == pytest.approx(4 * 0.5 / 2 + 3 * 1.0)
 
 
 def test_a_cell_summary_holds_its_rate_inside_its_interval() -> None:
-    s = board_cells.cell_summary(_report([True] * 4))
+    s = board_summary.cell_summary(_report([True] * 4))
     assert s["success_rate"] == 1.0
     assert s["wilson"][0] <= s["success_rate"] <= s["wilson"][1]
     assert s["wilson"] == list(wilson_interval(4, 4))
@@ -68,11 +69,11 @@ def test_the_plots_draw_a_cell_where_every_grasp_held(tmp_path: Path) -> None:
             "tier": "isolated",
             "sensor": "ideal",
             "run_key": f"isolated__ideal__{name}",
-            "summary": board_cells.cell_summary(_report(oks)),
+            "summary": board_summary.cell_summary(_report(oks)),
         }
         for name, oks in (("oracle", [True] * 4), ("crude", [True, False, False, False]))
     ]
-    spearman = {key: {"rho": None} for key in board_cells.AR_KEYS}
+    spearman = {key: {"rho": None} for key in board_summary.AR_KEYS}
     board = {
         "cells": cells,
         "sensors": ["ideal"],
@@ -168,7 +169,7 @@ def test_the_settings_of_an_estimator_tell_its_configs_apart() -> None:
 
 def test_the_findings_name_the_tiers_a_peer_wins_and_the_time_shares() -> None:
     def cell(name: str, tier: str, oks: list[bool], ms: float) -> dict:
-        summary = board_cells.cell_summary(_report(oks))
+        summary = board_summary.cell_summary(_report(oks))
         summary["time_ms_median"] = ms
         return {"estimator": name, "sensor": "kinect-v1", "tier": tier, "summary": summary}
 
@@ -303,3 +304,173 @@ def test_the_default_outputs_stay_under_out(tmp_path: Path, monkeypatch) -> None
 def test_every_flag_has_help() -> None:
     for action in leaderboard._parser()._actions:
         assert action.help, f"{action.option_strings} has no help"
+
+
+def test_the_shift_settings_read_as_the_help_says() -> None:
+    from sim.board.tracks import check_shift_settings, check_tasks
+
+    assert check_shift_settings("none, camera:3, all:3, camera:3+light_colour:3") == [
+        "none",
+        "camera:3",
+        "all:3",
+        "light_colour:3+camera:3",  # factors in their own order, whatever order given
+    ]
+    assert check_shift_settings("camera") == ["camera:2"]
+    each = check_shift_settings("factors:1")
+    assert each[0] == "none" and "walls:1" in each and len(each) == 9
+    assert check_tasks("place,lift") == ["place", "lift"]
+
+
+@pytest.mark.parametrize(
+    "flag, value, says",
+    [
+        ("--tasks", "lift,carry", "valid tasks: lift, place"),
+        ("--tasks", "lift,lift", "more than once"),
+        ("--shifts", "none,fog:3", "light_colour"),
+        ("--shifts", "camera:4", "levels 1 mild"),
+        ("--shifts", "none,camera:3,camera:3", "camera:3 twice"),
+    ],
+)
+def test_a_bad_track_is_one_line_naming_the_choices(flag, value, says, capsys) -> None:
+    assert leaderboard.main([flag, value]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and says in err and "Traceback" not in err
+
+
+def test_todays_track_keeps_its_cells_files() -> None:
+    cells = board_cells.cells_of(
+        ["oracle", "ppf"], ["isolated"], ["kinect-v1"], (), ["lift", "place"], ["none", "all:3"]
+    )
+    keys = [c.run_key for c in cells]
+    assert keys[:2] == ["isolated__ideal__oracle", "isolated__kinect-v1__ppf"]
+    assert keys[2:4] == [
+        "isolated__ideal__shift-all_3__oracle",
+        "isolated__kinect-v1__shift-all_3__ppf",
+    ]
+    assert keys[4] == "isolated__ideal__place__oracle"
+    assert keys[7] == "isolated__kinect-v1__place__shift-all_3__ppf"
+    assert {(c.task, c.shifts) for c in cells} == {
+        (t, s) for t in ("lift", "place") for s in ("none", "all:3")
+    }
+
+
+def test_a_verdict_needs_both_tests_on_the_place_task() -> None:
+    from sim.board.pairs import compare_pair, verdict
+
+    inf = float("inf")
+    # A lifts and places all 12, B none: both tests say A.
+    a = {("phone", i): (True, 0.001) for i in range(12)}
+    b = {("phone", i): (False, inf) for i in range(12)}
+    assert verdict("a", "b", compare_pair(a, b, place=False)) == "a > b"
+    assert verdict("b", "a", compare_pair(b, a, place=True)) == "a > b"
+    # Both place every time, A always closer: successes tie, the rank test does not.
+    closer = {k: (True, 0.001) for k in a}
+    farther = {k: (True, 0.01 + k[1] * 1e-4) for k in a}
+    test = compare_pair(closer, farther, place=True)
+    assert verdict("a", "b", test) == "a > b in error only"
+    assert verdict("a", "b", compare_pair(closer, closer, place=False)) == "tied at the ceiling"
+    half = {k: (k[1] % 2 == 0, 0.001) for k in a}
+    assert verdict("a", "b", compare_pair(half, half, place=False)) == "tied"
+
+
+def _played(out: Path, run_key: str) -> list[tuple[str, int]]:
+    report = json.loads((out / "cells" / f"{run_key}.json").read_text())
+    return [(e["object"], e["seed"]) for e in report["episodes"]]
+
+
+def test_a_board_of_tracks_pairs_its_cells_resumes_and_refuses(tmp_path: Path, capsys) -> None:
+    """Today's cells are read back by a board with tracks; every cell plays the same episodes;
+    the page shows the pairs, the drops with the oracle unchanged, and the place columns; a
+    report or a journal of another track is refused in one line."""
+    out = tmp_path / "out"
+    today = _board_argv(out, "oracle,noisy-oracle,crude")
+    assert leaderboard.main(today) == 0
+    first = out / "cells" / "isolated__ideal__crude.json"
+    stamp = first.stat().st_mtime_ns
+    argv = [*today, "--tasks", "lift,place", "--shifts", "none,camera:3"]
+    assert leaderboard.main(argv) == 0
+    assert first.stat().st_mtime_ns == stamp  # read back, not run again
+    board = json.loads((out / "leaderboard.json").read_text())
+    assert (board["tasks"], board["shifts"]) == (["lift", "place"], ["none", "camera:3"])
+    keys = [c["run_key"] for c in board["cells"]]
+    assert len(keys) == 12 and "isolated__ideal__place__shift-camera_3__crude" in keys
+    assert len({tuple(_played(out, k)) for k in keys}) == 1  # the same seeds everywhere
+    a = board["analysis"]
+    assert len(a["pairs"]) == 4 and a["oracle_shifts"] == {"rows": 2, "changed": []}
+    assert {p["rank"] is None for p in a["pairs"] if p["task"] == "lift"} == {True}
+    assert {"lift", "place"} <= set(a["success_by_error"])
+    text = (out / "LEADERBOARD.md").read_text()
+    for shown in (
+        "## isolated, sensor `ideal`, place, shift camera:3",
+        "| lifted | rests from goal (med mm, deg) |",
+        "## Pairs of estimators",
+        "| isolated | ideal | noisy-oracle | crude |",
+        "rank p (R-, R+)",
+        "## Scene shifts: the drop per factor",
+        "| estimator | none | camera:3 |",
+        "| oracle (instrument) | 2/2 | 2/2, drop 0 pp, p 1 |",
+        "The oracle's row shows no change",
+        "wall time ",
+    ):
+        assert shown in text, shown
+    assert "leaderboard/success_vs_error.png" in _images_resolve(out / "LEADERBOARD.md")
+    # A cell stopped half way resumes alone; the board is the same.
+    (out / "cells" / "isolated__ideal__place__crude.json").unlink()
+    assert leaderboard.main(argv) == 0
+    again = json.loads((out / "leaderboard.json").read_text())
+    assert [c["summary"]["successes"] for c in again["cells"]] == [
+        c["summary"]["successes"] for c in board["cells"]
+    ]
+    # A report of another track in a cell's place is refused, naming both tracks.
+    lift = out / "cells" / "isolated__ideal__shift-camera_3__crude.json"
+    place = out / "cells" / "isolated__ideal__place__shift-camera_3__crude.json"
+    lift.write_text(place.read_text())
+    capsys.readouterr()
+    assert leaderboard.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "task place with shifts camera:3, not lift with camera:3" in err
+    # So is the journal of another track.
+    lift.unlink()
+    header = {"journal": "evaluate", "version": 1, "protocol": {"task": "place"}}
+    lift.with_suffix(".journal.jsonl").write_text(json.dumps(header) + "\n")
+    assert leaderboard.main(argv) == 2
+    assert "task place with shifts none, not lift" in capsys.readouterr().err
+
+
+def test_the_tracks_cells_run_on_the_boards_backend(tmp_path: Path, monkeypatch) -> None:
+    """A track's cell goes through the one way into an evaluation with the board's backend,
+    workers and address, its protocol holding the task and the shifts."""
+    import sim.evaluation
+
+    seen = []
+    real = sim.evaluation.evaluate_protocol
+
+    def spy(protocol, estimator, **run):
+        seen.append((protocol.task, [str(s) for s in protocol.shifts], run["backend"]))
+        return real(protocol, estimator, **{**run, "backend": "local"})
+
+    monkeypatch.setattr(sim.evaluation, "evaluate_protocol", spy)
+    argv = [*_board_argv(tmp_path, "oracle"), "--tasks", "place", "--shifts", "camera:1"]
+    argv[argv.index("--episodes") + 1] = "1"
+    assert leaderboard.main([*argv, "--backend", "ray"]) == 0
+    assert seen == [("place", ["camera:1"], "ray")]
+
+
+@pytest.mark.slow
+def test_a_tracks_cell_on_ray_is_the_local_one(tmp_path: Path) -> None:
+    """A place cell under a shift played by a Ray started here holds the episodes the local
+    pool plays."""
+    extra = ["--tasks", "place", "--shifts", "camera:3"]
+    local, ray = tmp_path / "local", tmp_path / "ray"
+    assert leaderboard.main([*_board_argv(local, "crude"), *extra]) == 0
+    argv = [*_board_argv(ray, "crude"), *extra, "--backend", "ray"]
+    argv[argv.index("--workers") + 1] = "2"
+    assert leaderboard.main(argv) == 0
+    key = "isolated__ideal__place__shift-camera_3__crude"
+
+    def kept(out: Path) -> list:
+        eps = json.loads((out / "cells" / f"{key}.json").read_text())["episodes"]
+        return [(e["seed"], e["success"], e.get("place"), e["T_C_O_est"]) for e in eps]
+
+    assert kept(ray) == kept(local)

@@ -1,10 +1,20 @@
-"""What the leaderboard says: what BOP scores tell of grasps over its cells (`analyse`) and its
-findings in plain words (`findings`), every figure read from the board.
+"""What the leaderboard says: what BOP scores tell of grasps over its lift cells, its cells
+paired episode by episode (`sim.board.pairs`) (`analyse`), and its findings in plain words
+(`findings`), every figure read from the board.
 """
 
 from __future__ import annotations
 
-from sim.board.cells import AR_KEYS, summaries
+from sim.board.pairs import (
+    ALPHA,
+    ORACLE,
+    drop_table,
+    oracle_under_shifts,
+    pair_tables,
+    success_by_error,
+)
+from sim.board.summary import AR_KEYS, summaries
+from sim.board.tracks import BASE_TASK
 from sim.episodes.registry import CLASSICAL_PEERS
 from sim.episodes.registry import DEFAULT_ESTIMATOR as OURS
 from sim.evaluation.bop_agreement import ar_for_success, episode_aucs, spearman_with_interval
@@ -14,11 +24,27 @@ TARGET_SUCCESS = 0.95
 
 
 def analyse(cells: list[dict], reports: dict[str, dict]) -> dict:
-    """What BOP scores say about grasps over the board: per AR, Spearman's rho of AR against
+    """What the board says. What BOP scores say about grasps, over the lift cells (every shift;
+    a place cell's success is more than the grasp's): per AR, Spearman's rho of AR against
     success over the cells; per tier, each error's separation AUC over the episodes of every
-    estimator but the oracle, and the AR that a logistic fit says gives `TARGET_SUCCESS`."""
-    scored = [c for c in cells if c.get("summary") and c["estimator"] != "oracle"]
-    out: dict = {"spearman": {}, "auc": {}, "ar_for_success": {}}
+    estimator but the oracle, and the AR that a logistic fit says gives `TARGET_SUCCESS`. Then
+    the paired tables of `sim.board.pairs`: ``pairs`` (`pair_tables`), ``drops``
+    (`drop_table`), ``oracle_shifts`` (`oracle_under_shifts`) and ``success_by_error``."""
+    scored = [
+        c
+        for c in cells
+        if c.get("summary") and c["estimator"] != "oracle" and c.get("task", BASE_TASK) == BASE_TASK
+    ]
+    drops = drop_table(cells, reports)
+    out: dict = {
+        "spearman": {},
+        "auc": {},
+        "ar_for_success": {},
+        "pairs": pair_tables(cells, reports),
+        "drops": drops,
+        "oracle_shifts": oracle_under_shifts(drops),
+        "success_by_error": success_by_error(cells, reports),
+    }
     for key in AR_KEYS:
         pts = [c for c in scored if c["summary"][key] is not None]
         out["spearman"][key] = spearman_with_interval(
@@ -103,4 +129,29 @@ def findings(board: dict) -> list[str]:
             f"- For {TARGET_SUCCESS:.0%} grasps a method needs AR_MSSD of about {need[lo_t]:.2f} "
             f"({lo_t}) to {need[hi_t]:.2f} ({hi_t})."
         )
-    return [*out, ""]
+    return [*out, *paired_findings(a), ""]
+
+
+def paired_findings(a: dict) -> list[str]:
+    """The paired tables in plain words (none on a board without them): how many pairs of
+    estimators differ and how many are tied (at the ceiling), and the largest drop under a
+    scene shift with its McNemar p."""
+    out = []
+    if pairs := a.get("pairs"):
+        verdicts = [p["verdict"] for p in pairs]
+        ceiling = verdicts.count("tied at the ceiling")
+        tied = verdicts.count("tied") + ceiling
+        out.append(
+            f"- Of {len(pairs)} pairs of estimators in the cells, {len(pairs) - tied} differ on "
+            f"the same episodes (McNemar p < {ALPHA}; on the place task with the rank test), "
+            f"{tied} are tied ({ceiling} at the ceiling)."
+        )
+    shown = [d for d in a.get("drops") or [] if d["estimator"] != ORACLE and d["drop"]]
+    if shown:
+        d = max(shown, key=lambda d: d["drop"])
+        out.append(
+            f"- The largest drop under a scene shift: {d['estimator']} under {d['shifts']} "
+            f"({d['task']}, {d['tier']}, `{d['sensor']}`) from {d['base']} to {d['shifted']} of "
+            f"{d['episodes']} (McNemar p {d['p']:.2g})."
+        )
+    return out

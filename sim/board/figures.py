@@ -1,5 +1,6 @@
 """The leaderboard's plots (`plots`), legible at every board size, from one cell to the full board:
-success per cell, AR against success, and success against coverage.
+success per cell, AR against success, success against coverage and, on a board with the place
+task, lift and place success against the estimate's error.
 
 Each plot is sized by what it holds (panels, groups, bars), keeps every estimator's full name in
 a legend outside its panels, and is saved with its whole drawing (labels and legend) inside the
@@ -9,13 +10,16 @@ success plot, as the ceiling, and never among the estimators that AR or confiden
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from sim.board.cells import AR_KEYS, summaries
+from sim.board.summary import AR_KEYS, summaries
+from sim.board.tracks import BASE_TASK
+from sim.evaluation.stats import wilson_interval
 
 #: The estimator left out of the AR and coverage plots.
 ORACLE = "oracle"
@@ -184,8 +188,59 @@ def risk_coverage_plot(
     _save(fig, path)
 
 
+def _bin_labels(edges: Sequence[float]) -> list[str]:
+    """A bin's label per edge: ``lo-hi``, the last ``lo+``."""
+    return [f"{lo:g}-{hi:g}" for lo, hi in itertools.pairwise(edges)] + [f"{edges[-1]:g}+"]
+
+
+#: The errors of the error plot: the key of `sim.board.pairs.ERROR_BINS` and the axis' label.
+ERROR_AXES = (
+    ("translation_mm", "estimate's translation error [mm]"),
+    ("rotation_deg", "estimate's rotation error [deg]"),
+)
+
+
+def error_plot(by_task: dict[str, dict], path: Path) -> None:
+    """Success against the estimate's translation and rotation error, binned: a panel per
+    error, a line per task (lift: held; place: placed within tolerance) with the Wilson
+    interval of each bin that holds episodes; the oracle left out
+    (`sim.board.pairs.success_by_error`)."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(ERROR_AXES), figsize=(4.2 * len(ERROR_AXES), 3.2), sharey=True)
+    drawn: dict[str, Any] = {}
+    for ax, (key, label) in zip(np.atleast_1d(axes), ERROR_AXES, strict=True):
+        edges = next(iter(by_task.values()))[key]["edges"]
+        for i, (task, bins) in enumerate(by_task.items()):
+            counts = zip(bins[key]["successes"], bins[key]["episodes"], strict=True)
+            at = [(j, k, n) for j, (k, n) in enumerate(counts) if n]
+            if not at:
+                continue
+            rates = np.array([k / n for _, k, n in at])
+            wil = np.array([wilson_interval(k, n) for _, k, n in at])
+            drawn[task] = ax.errorbar(
+                [j + 0.08 * (i - 0.5) for j, _, _ in at],
+                rates,
+                yerr=[rates - wil[:, 0], wil[:, 1] - rates],
+                marker="o",
+                ms=4,
+                capsize=2,
+                color=f"C{i}",
+                label=task,
+            )
+        ax.set_xticks(range(len(edges)), _bin_labels(edges), rotation=30, fontsize=8)
+        ax.set_xlim(-0.5, len(edges) - 0.5)
+        ax.set_ylim(-0.02, 1.05)
+        ax.set_xlabel(label)
+    np.atleast_1d(axes)[0].set_ylabel("success")
+    fig.tight_layout()
+    _legend(fig, list(drawn.values()), list(drawn), (1.0, 0.95))
+    _save(fig, path)
+
+
 def plots(board: dict, folder: Path) -> None:
-    """success.png, ar_vs_success.png and risk_coverage.png in folder."""
+    """success.png, ar_vs_success.png and risk_coverage.png in folder (of today's track: lift,
+    no shift; the AR plot over every lift cell) and, on a board with the place task,
+    success_vs_error.png."""
     folder.mkdir(parents=True, exist_ok=True)
     cells = [c for c in board["cells"] if c.get("summary")]
     names = list(dict.fromkeys(c["estimator"] for c in cells))
@@ -194,7 +249,7 @@ def plots(board: dict, folder: Path) -> None:
     sensors, tiers = board["sensors"], board["tiers"]
     success_plot(by_key, names, colour, sensors, tiers, folder / "success.png")
     ar_plot(
-        cells,
+        [c for c in cells if c.get("task", BASE_TASK) == BASE_TASK],
         names,
         colour,
         AR_KEYS,
@@ -202,3 +257,6 @@ def plots(board: dict, folder: Path) -> None:
         folder / "ar_vs_success.png",
     )
     risk_coverage_plot(by_key, names, colour, sensors, tiers, folder / "risk_coverage.png")
+    by_task = board["analysis"].get("success_by_error") or {}
+    if "place" in by_task:
+        error_plot(by_task, folder / "success_vs_error.png")

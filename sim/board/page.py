@@ -1,11 +1,16 @@
-"""The leaderboard's page: how it was made, its findings, one table per (sensor, tier), what BOP
+"""The leaderboard's page: how it was made, its findings, one table per (track, sensor, tier),
+the pairs of estimators and the drop under each scene shift (`sim.board.sections`), what BOP
 scores say about grasps, and its plots linked from where the page is written.
 """
 
 from __future__ import annotations
 
+import itertools
+
 from sim.board.analysis import TARGET_SUCCESS, findings
-from sim.board.cells import AR_KEYS
+from sim.board.sections import drop_section, error_section, pair_section
+from sim.board.summary import AR_KEYS, on_track
+from sim.board.tracks import BASE_TASK, NO_SHIFT, track_title
 
 
 def _pct(x: float | None) -> str:
@@ -16,9 +21,15 @@ def _num(x: float | None, fmt: str = ".3f") -> str:
     return "-" if x is None else format(x, fmt)
 
 
+def _wall(seconds: float) -> str:
+    """A wall time [s] in hours, or minutes under one hour."""
+    return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.1f} min"
+
+
 def markdown(board: dict, plots: str = "leaderboard") -> str:
-    """The leaderboard page: how it was made, one table per (sensor, tier), the BOP analysis;
-    its images are in the folder `plots`, as a link from the page's folder reads it."""
+    """The leaderboard page: how it was made, one table per (track, sensor, tier), the pairs
+    and drops, the BOP analysis; its images are in the folder `plots`, as a link from the
+    page's folder reads it."""
     lines = [
         "# Leaderboard",
         "",
@@ -33,7 +44,7 @@ def markdown(board: dict, plots: str = "leaderboard") -> str:
         "",
         f"{board['episodes_per_cell']} episodes per cell ({board['episodes']} per object x "
         f"{len(board['objects'])} objects), seeds from {board['seed_start']}; "
-        f"wall time {board['wall_s'] / 3600:.1f} h with {board.get('workers', 1)} workers (the "
+        f"wall time {_wall(board['wall_s'])} with {board.get('workers', 1)} workers (the "
         "episodes' own times, shared over the workers that ran them).",
         "",
         f"![success per cell]({plots}/success.png)",
@@ -41,6 +52,7 @@ def markdown(board: dict, plots: str = "leaderboard") -> str:
         *findings(board),
     ]
     lines += _cell_tables(board)
+    lines += pair_section(board) + drop_section(board) + error_section(board, plots)
     lines += _bop_section(board["analysis"], plots)
     lines += [
         "",
@@ -56,36 +68,64 @@ def markdown(board: dict, plots: str = "leaderboard") -> str:
     return "\n".join(lines)
 
 
-def _cell_tables(board: dict) -> list[str]:
-    """One Markdown table per (sensor, tier): a row per estimator."""
-    lines: list[str] = []
-    head = (
-        "| estimator | obs | success | 95 % CI | pose right | held, wrong pose | AR_MSSD | "
-        "AR_MSPD | AR_VSD | ms/image (med, p90) | RC area | leading failures |"
+#: The columns of every cell's table, and those a place cell adds.
+HEAD = (
+    "| estimator | obs | success | 95 % CI | pose right | held, wrong pose | AR_MSSD | "
+    "AR_MSPD | AR_VSD | ms/image (med, p90) | RC area | leading failures |"
+)
+PLACE_HEAD = " lifted | rests from goal (med mm, deg) |"
+
+
+def _cell_row(c: dict, place: bool) -> str:
+    """A cell's row of its table (its error where it could not run)."""
+    s = c.get("summary")
+    if s is None:
+        blanks = " |" * (11 if place else 9)
+        return f"| {c['estimator']} | {c['obs_mode']} | {c['error']} |{blanks}"
+    fails = ", ".join(f"{r} {n}" for r, n in s["failures"]) or "-"
+    rc = s["risk_coverage"]
+    row = (
+        f"| {c['estimator']} | {c['obs_mode']} | {s['successes']}/{s['episodes']} "
+        f"| {_pct(s['wilson'][0])}-{_pct(s['wilson'][1])} "
+        f"| {_pct(s['pose_correct_rate'])} | {s['grasped_wrong_pose']} "
+        f"| {_num(s['ar_mssd'])} | {_num(s['ar_mspd'])} | {_num(s['ar_vsd'])} "
+        f"| {_num(s['time_ms_median'], '.0f')}, {_num(s['time_ms_p90'], '.0f')} "
+        f"| {_num(rc['area'] if rc else None, '.2f')} | {fails} |"
     )
-    for sensor in board["sensors"]:
-        for tier in board["tiers"]:
-            lines += [f"## {tier}, sensor `{sensor}`", "", head, "|" + "---|" * 12]
-            for c in board["cells"]:
-                if c["tier"] != tier or c["sensor"] != sensor:
-                    continue
-                s = c.get("summary")
-                if s is None:
-                    lines.append(
-                        f"| {c['estimator']} | {c['obs_mode']} | {c['error']} |" + " |" * 9
-                    )
-                    continue
-                fails = ", ".join(f"{r} {n}" for r, n in s["failures"]) or "-"
-                rc = s["risk_coverage"]
-                lines.append(
-                    f"| {c['estimator']} | {c['obs_mode']} | {s['successes']}/{s['episodes']} "
-                    f"| {_pct(s['wilson'][0])}-{_pct(s['wilson'][1])} "
-                    f"| {_pct(s['pose_correct_rate'])} | {s['grasped_wrong_pose']} "
-                    f"| {_num(s['ar_mssd'])} | {_num(s['ar_mspd'])} | {_num(s['ar_vsd'])} "
-                    f"| {_num(s['time_ms_median'], '.0f')}, {_num(s['time_ms_p90'], '.0f')} "
-                    f"| {_num(rc['area'] if rc else None, '.2f')} | {fails} |"
-                )
-            lines.append("")
+    if place:
+        row += (
+            f" {s.get('lifted', '-')}/{s['episodes']} "
+            f"| {_num(s.get('place_translation_mm_median'), '.1f')}, "
+            f"{_num(s.get('place_rotation_deg_median'), '.1f')} |"
+        )
+    return row
+
+
+def _cell_tables(board: dict) -> list[str]:
+    """One Markdown table per (track, sensor, tier): a row per estimator; a place cell's also
+    shows the episodes that lifted the object and, over them, the median distance and turn of
+    where it rests from its goal."""
+    lines: list[str] = []
+    for task, shifts, sensor, tier in itertools.product(
+        board.get("tasks", [BASE_TASK]),
+        board.get("shifts", [NO_SHIFT]),
+        board["sensors"],
+        board["tiers"],
+    ):
+        today = (task, shifts) == (BASE_TASK, NO_SHIFT)
+        place = task == "place"
+        lines += [
+            f"## {tier}, sensor `{sensor}`" + ("" if today else f", {track_title(task, shifts)}"),
+            "",
+            HEAD + (PLACE_HEAD if place else ""),
+            "|" + "---|" * (14 if place else 12),
+        ]
+        lines += [
+            _cell_row(c, place)
+            for c in board["cells"]
+            if (c["tier"], c["sensor"]) == (tier, sensor) and on_track(c, task, shifts)
+        ]
+        lines.append("")
     return lines
 
 
