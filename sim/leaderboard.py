@@ -73,11 +73,11 @@ from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.sensors import SENSOR_NAMES, Sensor
 from posegrasp.world.tiers import TIERS
 from sim.board.analysis import analyse
+from sim.board.cell_summaries import cell_summary, run_time_s
 from sim.board.cells import cells_of, run_cell, stale_cells, today_settings, unfit_cells
 from sim.board.figures import plots
 from sim.board.page import markdown
 from sim.board.poses import poses_rows
-from sim.board.summary import cell_summary, run_time_s
 from sim.board.tracks import (
     BASE_TASK,
     NO_SHIFT,
@@ -307,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _board(argv, args, board_cells: list[dict], reports: dict[str, dict], start: float) -> dict:
     """The whole board as JSON: how it was made (its tracks too), every cell and the analysis;
-    its wall time [s] is its episodes' (`sim.board.summary.run_time_s`)."""
+    its wall time [s] is its episodes' (`sim.board.cell_summaries.run_time_s`)."""
     return {
         "command": _command(argv),
         "estimators": list(dict.fromkeys(c["estimator"] for c in board_cells)),

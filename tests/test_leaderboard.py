@@ -11,8 +11,8 @@ import pytest
 
 from posegrasp.world.constants import EVAL_SEED_BASE
 from sim import leaderboard
+from sim.board import cell_summaries as board_summary
 from sim.board import cells as board_cells
-from sim.board import summary as board_summary
 from sim.board.analysis import findings
 from sim.board.figures import plots
 from sim.evaluation.stats import wilson_interval

@@ -5,6 +5,7 @@ paired episode by episode (`sim.board.pairs`) (`analyse`), and its findings in p
 
 from __future__ import annotations
 
+from sim.board.cell_summaries import AR_KEYS, summaries
 from sim.board.pairs import (
     ALPHA,
     ORACLE,
@@ -13,7 +14,6 @@ from sim.board.pairs import (
     pair_tables,
     success_by_error,
 )
-from sim.board.summary import AR_KEYS, summaries
 from sim.board.tracks import BASE_TASK
 from sim.episodes.registry import CLASSICAL_PEERS
 from sim.episodes.registry import DEFAULT_ESTIMATOR as OURS

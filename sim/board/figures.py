@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.board.summary import AR_KEYS, summaries
+from sim.board.cell_summaries import AR_KEYS, summaries
 from sim.board.tracks import BASE_TASK
 from sim.evaluation.stats import wilson_interval
 

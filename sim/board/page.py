@@ -8,8 +8,8 @@ from __future__ import annotations
 import itertools
 
 from sim.board.analysis import TARGET_SUCCESS, findings
+from sim.board.cell_summaries import AR_KEYS, on_track
 from sim.board.sections import drop_section, error_section, pair_section
-from sim.board.summary import AR_KEYS, on_track
 from sim.board.tracks import BASE_TASK, NO_SHIFT, track_title
 
 
