@@ -5,7 +5,9 @@ with ``obs_mode="rgbd"``, its depth image), as the sensor model ``sensor`` retur
 intrinsics and pose, the requested object
 class and the height of the table top the object rests on (known scene geometry, in the world
 frame); the action is the estimated pose of that object in the camera frame (or "no estimate");
-the step executes the grasp on that pose. `posegrasp.core.contract.Observation.from_env(obs,
+the step executes the grasp on that pose and, on the place task (``task="place"``), carries the
+object to a goal pose and sets it down. Scene shifts (``shifts``) change what the head camera
+sees and nothing of the physics. `posegrasp.core.contract.Observation.from_env(obs,
 info)` turns a reset's observation and info into the `Observation` an estimator takes, the one
 `sim.evaluate` hands it for the same episode (examples/env_route.py).
 """
@@ -28,6 +30,7 @@ from posegrasp.core.validate import SEED_LIMIT, check_seed
 from posegrasp.world.camera import CameraRenderer, external_renderer
 from posegrasp.world.constants import EXTERNAL_CAMERA
 from posegrasp.world.objects import OBJECT_NAMES, object_names
+from posegrasp.world.shifts import Shift, canonical, parse_shifts
 from posegrasp.world.tiers import check_tier
 from sim.episodes.episode import Episode, EpisodeConfig, check_estimate
 
@@ -130,13 +133,60 @@ def _pose(pos: np.ndarray, quat: np.ndarray, what: str) -> tuple[np.ndarray | No
     return T, None
 
 
+def env_config(
+    base: EpisodeConfig,
+    width: int,
+    height: int,
+    tier: str | None = None,
+    obs_mode: str | None = None,
+    sensor: str | None = None,
+    task: str | None = None,
+    shifts: str | Sequence[Shift] | None = None,
+) -> EpisodeConfig:
+    """The episode config of an env: `base` at the resolution width x height, with each of
+    tier, obs_mode, sensor, task and shifts that is given in place of the base's (shifts as a
+    `posegrasp.world.shifts.parse_shifts` spec such as ``"camera:3,light_colour"`` or as
+    `Shift` values).
+
+    Raises:
+        UnknownNameError: a tier, observation mode, sensor, task or scene shift that does not
+            exist, listing the valid ones.
+        InvalidArgumentError: a bad shift level, a factor given twice, or shifts that are
+            neither text nor `Shift` values.
+    """
+    if shifts is None:
+        scene = base.scene
+    elif isinstance(shifts, str):
+        scene = replace(base.scene, shifts=parse_shifts(shifts))
+    elif isinstance(shifts, (list, tuple)):
+        scene = replace(base.scene, shifts=canonical(shifts))
+    else:
+        raise InvalidArgumentError(
+            f"shifts must be a spec such as 'camera:3,light_colour' or Shift values, got "
+            f"{type(shifts).__name__}"
+        )
+    return replace(
+        base,
+        width=width,
+        height=height,
+        scene=scene,
+        tier=check_tier(tier if tier is not None else base.tier),
+        obs_mode=obs_mode if obs_mode is not None else base.obs_mode,
+        sensor=sensor if sensor is not None else base.sensor,
+        task=task if task is not None else base.task,
+    )
+
+
 class GraspEvalEnv(gym.Env):
     """Score a 6D pose estimate by a simulated Fetch grasping the object on it.
 
     ## Description
     Each episode builds a seeded MuJoCo scene (Fetch in front of a table with one object),
     renders the head camera and asks the agent for the pose of the requested object. The single
-    step plans a grasp with mink on that pose and executes it in physics. An episode is
+    step plans a grasp with mink on that pose and executes it in physics; on the place task it
+    then carries the object to a goal pose on the table drawn from the episode seed
+    (`posegrasp.world.goals`), placing it as the agent's pose says it lies in the hand, sets it
+    down and lets it settle. An episode is
     `sim.episodes.episode.Episode` itself: with the same object, episode seed, tier and config, an
     env episode and `sim.episodes.episode.play_episode` build the same scene, render the same image
     and, on the same pose, grasp the same way.
@@ -169,17 +219,25 @@ class GraspEvalEnv(gym.Env):
     for the same object and episode seed, so its estimate is the same to the bit.
 
     ## Rewards
-    1.0 when the object is lifted at least 0.10 m above the table and still held after a 2 s
-    hold, else 0.0. `info` repeats it as `success` with `failure_reason`, the pose errors
+    Lift task (default): 1.0 when the object is lifted at least 0.10 m above the table and still
+    held after a 2 s hold, else 0.0. Place task: 1.0 when, after that lift, the object comes to
+    rest within `sim.episodes.episode.PLACE_TOLERANCE` (2 cm and 10 deg, symmetry-aware) of its
+    goal, else 0.0. `info` repeats it as `success` with `failure_reason` (the place task's own:
+    ``place_infeasible``, ``dropped``, ``tipped``, ``off_target``), the pose errors
     (`pose_error`, with BOP's MSSD and MSPD), `pose_correct` (MSSD below 10 % of the diameter;
-    None without a valid estimate), `lift_height`, and with `timings=True` the wall-clock
-    `timings_ms` (off by default: wall-clock times differ between runs, and same-seed rollouts
-    are identical).
+    None without a valid estimate), `lift_height`, on the place task `place` (the goal, the
+    final pose ``T_world_O_final``, the `errors` from the goal, `placed` and its own
+    `failure_reason`: `sim.episodes.episode.Episode.place_record`; None when the lift failed,
+    as nothing was placed), and with `timings=True` the wall-clock `timings_ms` (off by default:
+    wall-clock times differ between runs, and same-seed rollouts are identical).
 
     ## Starting State
     The object at a random position and yaw on the table, the robot's base at a random pose
     facing it, the head aimed at it: the scene of the episode seed (below), built by
-    `posegrasp.world.scene.build_scene`.
+    `posegrasp.world.scene.build_scene`, seen under the env's scene shifts (`shifts`), which
+    change lights, textures, colours, visual-only distractors and the head camera's pose in its
+    link, never the layout or the physics. The place task's goal is drawn from the episode
+    seed on a stream of its own.
 
     ## Seeding
     Every episode plays one *episode seed*, reported as ``info["episode_seed"]`` by `reset` and
@@ -222,12 +280,17 @@ class GraspEvalEnv(gym.Env):
     ``rgb`` or ``rgbd`` (`sim.episodes.episode.OBS_MODES`; default ``rgb``, or the config's);
     `sensor`: the head camera's sensor model (`posegrasp.world.sensors.SENSOR_NAMES`; default
     ``ideal``, or the config's). The env and `sim.evaluate` observe alike when both name the same
-    sensor.
+    sensor. `task`: ``lift`` or ``place`` (`posegrasp.world.goals.TASKS`; default ``lift``, or
+    the config's); `shifts`: the scene shifts, a spec of `posegrasp.world.shifts.parse_shifts`
+    (``"camera:3,light_colour"``, ``"all:3"``) or `Shift` values (default none, or the
+    config's); both as `sim.evaluate`'s ``--task`` and ``--shift``.
 
     ## Version History
     * v0: first version; the depth observation (``obs_mode``), the sensor models (``sensor``),
       the episode-seed mapping above, `pose_correct` and the units check on positions were
       added without a version change (the defaults observe and act as before).
+    * v0: the place task (``task``, `info["place"]`) and the scene shifts (``shifts``) were
+      added without a version change (the defaults lift and observe as before).
     """
 
     # gymnasium declares metadata an instance attribute with a class default; so does this.
@@ -244,6 +307,8 @@ class GraspEvalEnv(gym.Env):
         tier: str | None = None,
         obs_mode: str | None = None,
         sensor: str | None = None,
+        task: str | None = None,
+        shifts: str | Sequence[Shift] | None = None,
     ) -> None:
         #: The class indices of the observation and of neighbours: the built-in objects, then
         #: the user objects installed when the env was made (`object_names()`).
@@ -253,13 +318,10 @@ class GraspEvalEnv(gym.Env):
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise UnknownNameError("render mode", str(render_mode), self.metadata["render_modes"])
         base = config or EpisodeConfig()
-        self.tier = check_tier(tier if tier is not None else base.tier)
-        mode = obs_mode if obs_mode is not None else base.obs_mode
-        sensor = sensor if sensor is not None else base.sensor
-        self.config = replace(
-            base, width=width, height=height, tier=self.tier, obs_mode=mode, sensor=sensor
-        )
-        self.obs_mode = self.config.obs_mode
+        self.config = env_config(base, width, height, tier, obs_mode, sensor, task, shifts)
+        self.tier, self.obs_mode = self.config.tier, self.config.obs_mode
+        #: What the robot does with the object (``lift`` or ``place``) and the scene shifts.
+        self.task, self.shifts = self.config.task, self.config.scene.shifts
         setup_rendering()
         self.object = object
         self.timings = timings
@@ -446,6 +508,8 @@ class GraspEvalEnv(gym.Env):
             "episode_seed": result.seed,
             "tier": result.tier,
         }
+        if self.task == "place":
+            info["place"] = result.place
         if self.timings:
             info["timings_ms"] = result.timings_ms
         if error is not None:

@@ -1,7 +1,8 @@
 """Evaluate an estimator by grasp success over many seeded episodes.
 
     python -m sim.evaluate --objects all --episodes 50 --estimator hybrid [--workers N] \
-        [--tier T] [--noise SIGMAS] [--margin] --json out.json --plot success_vs_error.png
+        [--tier T] [--noise SIGMAS] [--margin] [--task lift|place] [--shift SPEC] \
+        --json out.json --plot success_vs_error.png
 
 Scene seeds start at `posegrasp.world.constants.EVAL_SEED_BASE`, far from the seeds the data
 generator renders training images from, so a learned estimator is never scored on a scene it was
@@ -112,7 +113,13 @@ def _episodes_of(args) -> BopPosesEstimator | None:
 
 def _protocol(args, poses: BopPosesEstimator | None) -> Protocol:
     """The protocol the command line asks for: its episodes (or, with ``--poses``, the
-    export's, `sim.evaluation.export_protocol`) and their settings."""
+    export's, `sim.evaluation.export_protocol`, seen through the sensor and under the scene
+    shifts its images were rendered with) and their settings.
+
+    Raises:
+        InvalidArgumentError: with ``--poses``, a ``--sensor`` or ``--shift`` other than the
+            export's.
+    """
     settings = {
         "noise": args.noise,
         "margin": args.margin,
@@ -130,7 +137,14 @@ def _protocol(args, poses: BopPosesEstimator | None) -> Protocol:
                 f"the export {poses.export.root} was rendered through sensor {rendered}, not "
                 f"{args.sensor}; leave out --sensor (the export's is recorded)"
             )
-        return export_protocol(poses, **{**settings, "sensor": rendered})
+        shifts = poses.export.shifts
+        if args.shift and args.shift != shifts:
+            under = ",".join(map(str, shifts)) or "no scene shift"
+            raise InvalidArgumentError(
+                f"the export {poses.export.root} was rendered under {under}, not "
+                f"{','.join(map(str, args.shift))}; leave out --shift (the export's are recorded)"
+            )
+        return export_protocol(poses, **{**settings, "sensor": rendered, "shifts": shifts})
     return Protocol(
         objects=tuple(args.objects),
         episodes=args.episodes,

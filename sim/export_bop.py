@@ -1,7 +1,7 @@
 """Export the head-camera views of an evaluation's episodes as a BOP dataset.
 
     python -m sim.export_bop --tier T --objects car,phone --episodes N [--seed-start S] \
-        [--sensor NAME] --out DIR [--no-gt]
+        [--sensor NAME] [--shift SPEC] --out DIR [--no-gt]
 
 Any estimator that reads BOP datasets can then estimate the poses of these images offline and
 hand back a BOP results CSV, which `sim.evaluation.bop_results` turns into the estimates of the
@@ -13,7 +13,10 @@ returns them (`posegrasp.world.sensors`; default ``ideal``, the rendered images)
 sensor's model the depth has its noise and its holes (0, BOP's missing depth), and
 ``px_count_valid`` counts the pixels with depth under it. The episodes' own VSD
 (`sim.episodes.episode.EpisodeResult.vsd`) is measured against the ideal depth whatever the sensor,
-so it is that against the exported depth only for ``ideal``.
+so it is that against the exported depth only for ``ideal``. With ``--shift SPEC`` the scenes are
+seen under those scene shifts (`posegrasp.world.shifts`: lights, textures, colours, visual-only
+distractors, the head camera's pose), as ``sim.evaluate --shift SPEC`` sees them; the map file
+records them, and ``sim.evaluate --poses CSV --from DIR`` grasps in the same shifted scenes.
 
 Layout of ``DIR`` (BOP toolkit, docs/bop_datasets_format.md; millimetres in every BOP file)::
 
@@ -30,8 +33,8 @@ Layout of ``DIR`` (BOP toolkit, docs/bop_datasets_format.md; millimetres in ever
     DIR/test/<scene_id:06d>/mask_visib/000000_<gt:06d>.png visible part, 0/255 (ditto)
     DIR/test_targets_bop19.json             per image: the episode's target (inst_count 1)
     DIR/test_targets_bop24.json             per image: scene_id, im_id
-    DIR/posegrasp_episodes.json             the episodes: tier, seeds, objects, sensor, image
-                                            ids, table_top_z [m] per image
+    DIR/posegrasp_episodes.json             the episodes: tier, seeds, objects, sensor, scene
+                                            shifts, image ids, table_top_z [m] per image
 
 One scene per episode, one image each (im_id 0): a BOP scene is one static arrangement, and
 each episode is its own. Its ``scene_id`` is `sim.evaluation.bop_results.scene_ids` of the
@@ -89,9 +92,11 @@ from posegrasp.core.validate import arg, check_int, check_seed
 from posegrasp.world import constants as C
 from posegrasp.world.camera import body_mask, depth_to_uint16
 from posegrasp.world.objects import OBJECT_NAMES, check_objects, load_object
+from posegrasp.world.scene import SceneConfig
+from posegrasp.world.shifts import Shift, canonical
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
 from sim.episodes.episode import Episode, EpisodeConfig, execution_settings
-from sim.episodes.registry import add_sensor_argument
+from sim.episodes.registry import add_sensor_argument, add_shift_argument
 from sim.evaluation.bop_results import EXPORT_FORMAT, EXPORT_VERSION, MAP_FILE, scene_ids
 
 #: BOP split the images go to.
@@ -105,7 +110,7 @@ _HIDDEN_GROUP = 5
 #: BOP's box of an object with no visible pixel (scripts/calc_gt_info.py).
 _NO_BOX = [-1, -1, -1, -1]
 #: Protocol entries of maps written before they were recorded, at the value they had then.
-_PROTOCOL_BEFORE = {"sensor": "ideal"}
+_PROTOCOL_BEFORE: dict[str, Any] = {"sensor": "ideal", "shifts": []}
 
 
 #: The im_id of every image: each scene holds one.
@@ -170,8 +175,10 @@ def export_protocol(
     tier: str,
     ground_truth: bool,
     sensor: str = "ideal",
+    shifts: tuple[Shift, ...] = (),
 ) -> dict[str, Any]:
-    """What defines an export's files: a folder holds one export, rewritten only by the same."""
+    """What defines an export's files: a folder holds one export, rewritten only by the same.
+    The scene shifts are ``NAME:LEVEL`` items in `posegrasp.world.shifts.FACTORS` order."""
     return {
         "format": EXPORT_FORMAT,
         "version": EXPORT_VERSION,
@@ -185,6 +192,7 @@ def export_protocol(
         "width": EpisodeConfig.width,
         "height": EpisodeConfig.height,
         "sensor": sensor,
+        "shifts": [str(s) for s in canonical(shifts)],
     }
 
 
@@ -195,6 +203,7 @@ def _describe(p: dict[str, Any]) -> str:
     return (
         f"tier {p.get('tier')}, objects {objects}, {p.get('episodes')} episodes from seed "
         f"{p.get('seed_start')}, {gt} ground truth, sensor {p.get('sensor', 'ideal')}"
+        + (f", shifts {','.join(map(str, shifts))}" if (shifts := p.get("shifts")) else "")
     )
 
 
@@ -339,6 +348,7 @@ def export_bop(
     ground_truth: bool = True,
     progress: bool = True,
     sensor: str = "ideal",
+    shifts: tuple[Shift, ...] = (),
 ) -> dict[str, Any]:
     """Write the head-camera views of the episodes objects x range(episodes) as a BOP dataset.
 
@@ -352,6 +362,7 @@ def export_bop(
         progress: show a progress bar.
         sensor: the head camera's sensor model (`posegrasp.world.sensors.SENSOR_NAMES`) whose
             colour and depth images are written.
+        shifts: the scene shifts the scenes are seen under (`posegrasp.world.shifts`).
 
     Returns:
         The map file's content (`sim.evaluation.bop_results.MAP_FILE`).
@@ -360,10 +371,11 @@ def export_bop(
         InvalidArgumentError: out holds other files or another export; a bad argument.
         UnknownNameError: a sensor not in `posegrasp.world.sensors.SENSOR_NAMES`.
     """
-    cfg = EpisodeConfig(tier=check_tier(tier), obs_mode="rgbd", sensor=sensor)
+    scene = SceneConfig(shifts=canonical(shifts))
+    cfg = EpisodeConfig(scene=scene, tier=check_tier(tier), obs_mode="rgbd", sensor=sensor)
     _check_episodes(objects, episodes, seed_start)
     out = Path(out)
-    protocol = export_protocol(objects, episodes, seed_start, tier, ground_truth, sensor)
+    protocol = export_protocol(objects, episodes, seed_start, tier, ground_truth, sensor, shifts)
     check_out_folder(out, protocol)
     info = _map_info(protocol, objects, episodes, seed_start, tier)
     # The images' index entries, kept as each image's files are written: a stopped export
@@ -492,6 +504,7 @@ def main(argv: list[str] | None = None) -> int:
         help="first scene seed, as sim.evaluate's (default: its held-out scenes)",
     )
     add_sensor_argument(p)
+    add_shift_argument(p)
     add_out_argument(p, "the BOP dataset and its map file", required=True)
     p.add_argument(
         "--no-gt",
@@ -502,7 +515,13 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     check_seed(args.seed_start, "--seed-start", args.episodes)
     protocol = export_protocol(
-        args.objects, args.episodes, args.seed_start, args.tier, not args.no_gt, args.sensor
+        args.objects,
+        args.episodes,
+        args.seed_start,
+        args.tier,
+        not args.no_gt,
+        args.sensor,
+        args.shift,
     )
     check_out_folder(args.out, protocol)  # before any rendering
     setup_rendering()
@@ -514,6 +533,7 @@ def main(argv: list[str] | None = None) -> int:
         args.tier,
         not args.no_gt,
         sensor=args.sensor,
+        shifts=args.shift,
     )
     n = len(info["images"])
     print(

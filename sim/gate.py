@@ -4,6 +4,7 @@
     python -m sim.gate --write     # run them and write the baseline (commit it with the weights)
     python -m sim.gate --estimator hybrid          # one estimator only
     python -m sim.gate --estimator E --obs-mode rgbd   # an estimator that reads depth
+    python -m sim.gate --write --task place --baseline out/gate_place.json   # a place gate
     python -m sim.gate --workers 2 [--backend ray [--address ADDR]] [--baseline PATH]
 
 The default estimator (`GATE_ESTIMATORS`) runs `GATE_EPISODES` held-out episodes per object of
@@ -30,6 +31,13 @@ other seeds, other execution settings, another observation mode (``--obs-mode``)
 weights, is an error that says how to rewrite it; a baseline of another protocol or other weights
 is refused before any episode runs.
 
+A baseline holds one record per estimator, of one task (``--task lift|place``) under one set of
+scene shifts (``--shift``, none by default): a run of another task or other shifts is refused
+before any episode runs, with the command that records a baseline of its own for it. Such a
+baseline goes in a file of its own (``--write --task place --baseline PATH``, then
+``--task place --baseline PATH``): ``--write`` of a place task or of shifts into the shipped
+`BASELINE`, which holds the lift baselines, is refused.
+
 The weights fingerprint holds the SHA-256 of every weights file the estimator loads, as its
 factory opens them (`sim.episodes.registry.estimator_weights`): retraining any net the estimator
 uses (detector, pose nets, mask net) refuses the baseline. A plug-in reports its files with a
@@ -46,17 +54,20 @@ import numpy as np
 
 from posegrasp.core.backends import add_backend_arguments, check_backend
 from posegrasp.core.cli import ArgumentParser, add_workers_argument, command, write_json
-from posegrasp.core.errors import AssetError, PosegraspError
+from posegrasp.core.errors import AssetError, InvalidArgumentError, PosegraspError
 from posegrasp.core.journal import journal_path, resumable
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.shifts import Shift
 from sim.episodes.episode import execution_settings
 from sim.episodes.registry import (
     DEFAULT_ESTIMATOR,
     add_estimator_arguments,
     add_obs_mode_argument,
     add_sensor_argument,
+    add_shift_argument,
+    add_task_argument,
     check_depth,
     estimator_fingerprint,
 )
@@ -96,7 +107,12 @@ PROTOCOL = {
     "execution": "execution settings",
     "obs_mode": "observation mode (--obs-mode)",
     "sensor": "sensor model (--sensor; recorded when not ideal)",
+    "task": "task (--task; recorded when not lift)",
+    "shifts": "scene shifts (--shift; recorded when any)",
 }
+#: The settings of `PROTOCOL` a baseline is recorded for apart (`mismatch` says how to record
+#: one), with the value a record without them has.
+RECORDED_FOR = {"task": "lift", "shifts": None}
 
 
 def _rewrite_hint(path: Path) -> str:
@@ -127,11 +143,19 @@ def load_baselines(path: Path = BASELINE) -> dict[str, dict]:
     return data
 
 
-def gate_protocol(estimator: str, obs_mode: str = "rgb", sensor: str = "ideal") -> dict:
+def gate_protocol(
+    estimator: str,
+    obs_mode: str = "rgb",
+    sensor: str = "ideal",
+    task: str = "lift",
+    shifts: tuple[Shift, ...] = (),
+) -> dict:
     """The settings of a gate run of `estimator` (`PROTOCOL`'s keys), known before it runs; the
-    sensor only when it is not ``ideal``, as reports record it."""
+    sensor, task and shifts only away from their defaults, as reports record them
+    (`sim.evaluation.Protocol.recorded_apart`)."""
+    apart = gate_run_protocol(GATE_EPISODES, obs_mode, sensor, task, shifts).recorded_apart()
     return {
-        **({} if sensor == "ideal" else {"sensor": sensor}),
+        **{k: v for k, v in apart.items() if k in PROTOCOL},
         "estimator": estimator,
         "tier": GATE_TIER,
         "seed_start": GATE_SEED_START,
@@ -141,9 +165,38 @@ def gate_protocol(estimator: str, obs_mode: str = "rgb", sensor: str = "ideal") 
     }
 
 
+def _recorded_for(settings: dict) -> str:
+    """The task and scene shifts a run or baseline is of, in words."""
+    shifts = settings.get("shifts")
+    under = f"scene shifts {','.join(shifts)}" if shifts else "no scene shift"
+    return f"the {settings.get('task', 'lift')} task under {under}"
+
+
+def _record_command(run: dict) -> str:
+    """The command that records a baseline of the settings of `run` in a file of its own."""
+    flags = [f"--estimator {run.get('estimator')}"]
+    if run.get("obs_mode", "rgb") != "rgb":
+        flags.append(f"--obs-mode {run['obs_mode']}")
+    if "sensor" in run:
+        flags.append(f"--sensor {run['sensor']}")
+    if run.get("task", "lift") != "lift":
+        flags.append(f"--task {run['task']}")
+    if run.get("shifts"):
+        flags.append(f"--shift {','.join(run['shifts'])}")
+    return f"python -m sim.gate --write {' '.join(flags)} --baseline PATH"
+
+
 def mismatch(run: dict, baseline: dict, weights: dict[str, str]) -> str | None:
     """Why a run of the settings in `run` (`PROTOCOL`'s keys) and weights `weights` cannot be
-    paired with `baseline`, as a FAIL verdict naming the first difference; None when it can."""
+    paired with `baseline`, as a FAIL verdict naming the first difference; None when it can. A
+    baseline of another task or other scene shifts (`RECORDED_FOR`) is not rewritten but
+    recorded apart: the verdict gives the command that records one for the run."""
+    if any(run.get(k, d) != baseline.get(k, d) for k, d in RECORDED_FOR.items()):
+        return (
+            f"FAIL: the baseline of {run.get('estimator')} was recorded for "
+            f"{_recorded_for(baseline)}, not {_recorded_for(run)}; record one for this run in a "
+            f"file of its own with `{_record_command(run)}` and compare with --baseline PATH"
+        )
     for key, what in PROTOCOL.items():
         if run.get(key) != baseline.get(key):
             return (
@@ -174,13 +227,16 @@ def run_gate(
     sensor: str = "ideal",
     journal: Path | None = None,
     resume: bool = False,
+    task: str = "lift",
+    shifts: tuple[Shift, ...] = (),
 ) -> dict:
     """The gate's evaluation: `episodes` per object of `GATE_TIER` from `GATE_SEED_START`,
-    friction margins measured, the estimator seeing `obs_mode`, on `backend`
-    (`posegrasp.core.backends.run_map`), its finished episodes kept in `journal` (resumed with
-    `resume`; `sim.evaluation.evaluate_protocol`)."""
+    friction margins measured, the estimator seeing `obs_mode` through `sensor` under the scene
+    `shifts`, the robot doing `task`, on `backend` (`posegrasp.core.backends.run_map`), its
+    finished episodes kept in `journal` (resumed with `resume`;
+    `sim.evaluation.evaluate_protocol`)."""
     return evaluate_protocol(
-        gate_run_protocol(episodes, obs_mode, sensor),
+        gate_run_protocol(episodes, obs_mode, sensor, task, shifts),
         estimator,
         workers=workers,
         backend=backend,
@@ -191,7 +247,11 @@ def run_gate(
 
 
 def gate_run_protocol(
-    episodes: int = GATE_EPISODES, obs_mode: str = "rgb", sensor: str = "ideal"
+    episodes: int = GATE_EPISODES,
+    obs_mode: str = "rgb",
+    sensor: str = "ideal",
+    task: str = "lift",
+    shifts: tuple[Shift, ...] = (),
 ) -> Protocol:
     """The episodes of a gate run (`sim.evaluation.Protocol`)."""
     return Protocol(
@@ -202,14 +262,22 @@ def gate_run_protocol(
         margin=True,
         obs_mode=obs_mode,
         sensor=sensor,
+        task=task,
+        shifts=shifts,
     )
 
 
-def gate_journal(estimator: str, obs_mode: str = "rgb", sensor: str = "ideal") -> Path:
+def gate_journal(
+    estimator: str,
+    obs_mode: str = "rgb",
+    sensor: str = "ideal",
+    task: str = "lift",
+    shifts: tuple[Shift, ...] = (),
+) -> Path:
     """Where a gate run of `estimator` keeps its finished episodes until the gate's verdict or
     baseline is written: the data folder's runs/ (`posegrasp.core.journal.journal_path`)."""
-    protocol = run_protocol(gate_run_protocol(GATE_EPISODES, obs_mode, sensor), estimator)
-    return journal_path(None, "gate", protocol)
+    protocol = gate_run_protocol(GATE_EPISODES, obs_mode, sensor, task, shifts)
+    return journal_path(None, "gate", run_protocol(protocol, estimator))
 
 
 def _outcomes(episodes: list[dict]) -> dict[tuple[str, int], tuple[bool, float | None]]:
@@ -299,7 +367,8 @@ def _gate_one(name: str, args, baselines: dict, journal: Path) -> bool:
         note = f"weights fingerprint of {', '.join(weights) or 'no file (it loads none)'}"
     print(f"{name}: {note}")
     if not args.write:
-        why = mismatch(gate_protocol(name, args.obs_mode, args.sensor), baselines[name], weights)
+        run = gate_protocol(name, args.obs_mode, args.sensor, args.task, args.shift)
+        why = mismatch(run, baselines[name], weights)
         if why is not None:
             print(f"{name}: {why}")
             return False
@@ -315,6 +384,8 @@ def _gate_one(name: str, args, baselines: dict, journal: Path) -> bool:
                 args.sensor,
                 journal,
                 args.resume and journal.is_file(),
+                args.task,
+                args.shift,
             ),
             f"the gate's run of {name}",
         )
@@ -327,9 +398,8 @@ def _gate_one(name: str, args, baselines: dict, journal: Path) -> bool:
     return ok
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status (1 when the gate fails)."""
+def _parser() -> ArgumentParser:
+    """The command line of `main`."""
     p = ArgumentParser(prog="python -m sim.gate", description=__doc__.split("\n")[0])
     p.add_argument("--write", action="store_true", help="write the baseline instead of comparing")
     p.add_argument(
@@ -344,6 +414,8 @@ def main(argv: list[str] | None = None) -> int:
     add_estimator_arguments(p, default=None, noise=False, purpose="only this one")
     add_obs_mode_argument(p)
     add_sensor_argument(p)
+    add_task_argument(p)
+    add_shift_argument(p)
     add_backend_arguments(p)
     p.add_argument(
         "--resume",
@@ -351,12 +423,37 @@ def main(argv: list[str] | None = None) -> int:
         help="finish an interrupted gate of the same arguments from its journals (one per "
         "estimator, under the data folder's runs/)",
     )
-    args = p.parse_args(argv)
+    return p
+
+
+def check_write(path: Path, task: str, shifts: tuple[Shift, ...]) -> None:
+    """Refuse to write a baseline of the place task or of scene shifts into the shipped
+    `BASELINE`, which holds the lift baselines without shifts that CI compares with.
+
+    Raises:
+        InvalidArgumentError: in one line, naming ``--baseline PATH``.
+    """
+    flags = ([f"--task {task}"] if task != "lift" else []) + (
+        [f"--shift {','.join(map(str, shifts))}"] if shifts else []
+    )
+    if flags and Path(path).resolve() == BASELINE:
+        raise InvalidArgumentError(
+            f"{BASELINE.parent.name}/{BASELINE.name} holds the lift baselines without scene "
+            f"shifts; write the baseline of {' '.join(flags)} to a file of its own with "
+            "--baseline PATH"
+        )
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status (1 when the gate fails)."""
+    args = _parser().parse_args(argv)
     if args.estimator:
         check_depth(args.estimator, args.obs_mode)
     setup_rendering()
     check_backend(args.backend, args.address)
     if args.write:
+        check_write(args.baseline, args.task, args.shift)
         check_output_file(args.baseline, "--baseline")
         baselines = {}
         if args.estimator and args.baseline.is_file():  # one estimator keeps the others
@@ -374,7 +471,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"{', '.join(baselines)}; write one with `python -m sim.gate --write --estimator E`"
             )
     failed = False
-    journals = [gate_journal(name, args.obs_mode, args.sensor) for name in names]
+    journals = [
+        gate_journal(name, args.obs_mode, args.sensor, args.task, args.shift) for name in names
+    ]
     for name, journal in zip(names, journals, strict=True):
         failed |= not _gate_one(name, args, baselines, journal)
     if args.write:

@@ -2,9 +2,10 @@
 
     python -m sim.render_scene --object phone --seed 0 --png head.png [--external]
         [--width 640 --height 480] [--distractors N] [--no-shadows] [--sensor NAME] [--depth]
+        [--shift SPEC]
 
     python -m sim.render_scene --sheet docs/tiers.png [--object phone --seed 0]
-        [--estimator hybrid] [--sensor NAME]
+        [--estimator hybrid] [--sensor NAME] [--shift SPEC]
 
 writes the head camera's RGB image to `--png`, as the sensor `--sensor` returns it (the sensor
 models of `posegrasp.world.sensors`, with the noise an episode of the same seed observes;
@@ -15,7 +16,10 @@ picture of every tier (`posegrasp.world.tiers`), head camera above the external 
 on each head image the target's true pose (white) and the pose `--estimator` finds in that image
 (green), seen through the sensor as in an episode, with the estimate's errors in the label
 (`--estimator none`: no poses); with `--external` also writes `<stem>_external.png` next to it,
-a view from the world camera "external" that shows the robot, the table and the objects. Every
+a view from the world camera "external" that shows the robot, the table and the objects. With
+`--shift SPEC` every image is of the scene under those scene shifts (`posegrasp.world.shifts`:
+``NAME[:LEVEL]``, a comma list, ``all[:LEVEL]``), the sheet's head images and estimates too, as
+an episode with ``--shift SPEC`` sees it; the sheet's labels name them. Every
 argument is checked before the scene is built; a bad one gives a single `error: ...` line on
 stderr that names the valid choices, and exit status 2.
 """
@@ -49,6 +53,7 @@ from posegrasp.world.camera import (
 from posegrasp.world.objects import OBJECT_NAMES, object_names
 from posegrasp.world.scene import SceneConfig, build_scene
 from posegrasp.world.sensors import Sensor
+from posegrasp.world.shifts import FACTORS, Shift
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier, tier_scene
 from sim.episodes.episode import Episode, EpisodeConfig
 from sim.episodes.registry import (
@@ -56,6 +61,7 @@ from sim.episodes.registry import (
     PrivilegedEstimator,
     add_estimator_arguments,
     add_sensor_argument,
+    add_shift_argument,
     depth_unused_note,
     make_estimator,
     needs_depth,
@@ -94,6 +100,7 @@ class RenderRequest:
             `NO_ESTIMATOR`.
         sensor: the head camera's sensor model (`posegrasp.world.sensors.SENSOR_NAMES`).
         depth: also write the head camera's depth as the sensor returns it (`depth_paths`).
+        shifts: the scene shifts every image is rendered under (`posegrasp.world.shifts`).
     """
 
     object: str
@@ -108,6 +115,7 @@ class RenderRequest:
     estimator: str = NO_ESTIMATOR
     sensor: str = "ideal"
     depth: bool = False
+    shifts: tuple[Shift, ...] = ()
 
     @property
     def external_path(self) -> Path:
@@ -124,8 +132,9 @@ class RenderRequest:
 
 
 def _add_sensing_arguments(p: argparse.ArgumentParser) -> None:
-    """Add what the head camera senses: ``--sensor`` and ``--depth``."""
+    """Add what the head camera senses: ``--sensor``, ``--depth`` and ``--shift``."""
     add_sensor_argument(p)
+    add_shift_argument(p)
     p.add_argument(
         "--depth",
         action="store_true",
@@ -232,6 +241,7 @@ def check_request(args: argparse.Namespace) -> RenderRequest:
         estimator=estimator,
         sensor=args.sensor,
         depth=args.depth,
+        shifts=args.shift,
     )
     if req.external:
         check_output_file(req.external_path, "--external")
@@ -315,9 +325,8 @@ def render(req: RenderRequest) -> list[Path]:
     Returns:
         The paths written, head camera first, then its depth images, then the external view.
     """
-    scene = build_scene(
-        req.object, req.seed, tier_scene(req.tier, SceneConfig(n_distractors=req.distractors))
-    )
+    base = SceneConfig(n_distractors=req.distractors, shifts=req.shifts)
+    scene = build_scene(req.object, req.seed, tier_scene(req.tier, base))
     sensor = Sensor.parse(req.sensor)
     written = [req.out]
     options = RenderOptions(shadows=req.shadows, reflections=False)
@@ -354,6 +363,15 @@ def _estimate_on_head(
     return img, f"{estimator.name} estimate: {errors}", ERRORS_COLOUR
 
 
+def shifts_text(shifts: tuple[Shift, ...]) -> str:
+    """Scene shifts in a few words: ``all:L`` for every factor at level L, else the
+    ``NAME:LEVEL`` items."""
+    levels = {s.level for s in shifts}
+    if len(shifts) == len(FACTORS) and len(levels) == 1:
+        return f"all:{levels.pop()}"
+    return ",".join(map(str, shifts))
+
+
 def render_sheet(req: RenderRequest, path: Path) -> Path:
     """One column per tier (seed `req.seed`, target `req.object`): the head camera above the
     external view, each at `req.width` x `req.height`, with the tier's name and summary. Unless
@@ -361,7 +379,8 @@ def render_sheet(req: RenderRequest, path: Path) -> Path:
     (`sim.episodes.episode.Episode.estimate`); the image shows the true pose and the estimate, the
     label the estimate's translation and rotation errors, or that it found no target. The head
     images are seen through `req.sensor`, with the depth image for an estimator that needs it
-    (`sim.episodes.registry.needs_depth`)."""
+    (`sim.episodes.registry.needs_depth`), under the scene shifts `req.shifts`, which the
+    first label line names."""
     estimator = None if req.estimator == NO_ESTIMATOR else make_estimator(req.estimator)
     obs_mode = "rgbd" if needs_depth(req.estimator) else "rgb"
     columns = []
@@ -373,13 +392,14 @@ def render_sheet(req: RenderRequest, path: Path) -> Path:
             tier=name,
             obs_mode=obs_mode,
             sensor=req.sensor,
+            scene=SceneConfig(shifts=req.shifts),
         )
         ep = Episode(req.object, req.seed, cfg)
         try:
             obs = ep.observe()
             hidden = (
                 f" ({ep.scene.occlusion:.0%} of the target hidden)" if ep.scene.occlusion else ""
-            )
+            ) + (f", shifts {shifts_text(req.shifts)}" if req.shifts else "")
             head, lines = obs.rgb, [(name + hidden, TEXT_COLOUR), (tier.summary, TEXT_COLOUR)]
             if estimator is not None:
                 head, errors, colour = _estimate_on_head(ep, obs, estimator)

@@ -7,9 +7,12 @@ is the largest magnitude up to which the success rate stays at or above 90 %; wh
 falls below, the study bounds it from below by its largest level (``tolerance`` null and
 ``at_least`` that level in the JSON, ``>= level`` in the table). Scenes are held out from the
 networks' training data (seeds from `posegrasp.world.constants.EVAL_SEED_BASE` by default).
+With ``--task place`` success is the place task's (`sim.episodes.episode.EpisodeConfig.task`:
+lifted, carried to a goal and resting within 2 cm and 10 deg of it), so the curves say how much
+pose error a place tolerates; the JSON has the same form, its task in the journal and the plot.
 
     python -m sim.tolerance --object phone   (or --objects all) [--episodes 10] [--workers N]
-        [--tier T] [--json out/tolerance.json] [--plot out/tolerance.png]
+        [--tier T] [--task lift|place] [--json out/tolerance.json] [--plot out/tolerance.png]
 
 writes the curves and tolerances as JSON (`--json`, read by ``sim.evaluate --tolerance``) and
 their plot (`--plot`).
@@ -44,6 +47,7 @@ from posegrasp.core.validate import (
 from posegrasp.world import constants as C
 from posegrasp.world.objects import check_objects, object_names
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
+from sim.episodes.registry import add_task_argument
 
 #: Error kinds and the magnitudes tried, in report units (mm or deg).
 LEVELS: dict[str, tuple[float, ...]] = {
@@ -69,12 +73,14 @@ def _noise(kind: str, value: float):
     return PoseNoise(size["ray"], size["lateral"], size["inplane"], size["outplane"], mode="fixed")
 
 
-def _job(args: tuple[str, str, float, int, str]) -> tuple[str, str, float, int, bool, str | None]:
-    obj, kind, value, seed, tier = args
+def _job(
+    args: tuple[str, str, float, int, str, str],
+) -> tuple[str, str, float, int, bool, str | None]:
+    obj, kind, value, seed, tier, task = args
     from sim.episodes.episode import Episode, EpisodeConfig
     from sim.episodes.pose_noise import perturb_pose
 
-    ep = Episode(obj, seed, EpisodeConfig(tier=tier))
+    ep = Episode(obj, seed, EpisodeConfig(tier=tier, task=task))
     try:
         rng = np.random.default_rng([seed, 104729, int(value * 1000)])
         T_est = perturb_pose(ep.T_C_O_true, _noise(kind, value), rng)
@@ -110,9 +116,9 @@ def curve_record(levels: list[float], rates: list[float]) -> dict:
     return out
 
 
-def format_tolerances(result: dict) -> str:
+def format_tolerances(result: dict, task: str = "lift") -> str:
     """The tolerances as a table, one row per object; a bound is printed ``>= level`` and
-    explained below the table."""
+    explained below the table; `task` names what succeeded (``lift``: the grasp)."""
     rows = [f"{'object':<8}" + "".join(f"{k:>14}" for k in LEVELS)]
     bounded = False
     for o, kinds in result.items():
@@ -125,7 +131,8 @@ def format_tolerances(result: dict) -> str:
             else:
                 cells.append(f"{c['tolerance']:>14.1f}")
         rows.append(f"{o:<8}" + "".join(cells))
-    rows.append(f"tolerance = error where success drops below {THRESHOLD:.0%}")
+    what = "success" if task == "lift" else f"{task} success"
+    rows.append(f"tolerance = error where {what} drops below {THRESHOLD:.0%}")
     if bounded:
         rows.append(
             f">= L: success never fell below {THRESHOLD:.0%} up to the largest level tested, L; "
@@ -144,24 +151,25 @@ def study(
     address: str | None = None,
     journal: Path | None = None,
     resume: bool = False,
+    task: str = "lift",
 ) -> dict:
     """Run the study on one tier and return {object: {kind: {levels, rates, tolerance}}};
     `backend` and `address` say where the episodes run (`posegrasp.core.backends.run_map`);
     `journal` keeps every finished episode, and `resume` runs only those it lacks
-    (`posegrasp.core.journal`)."""
+    (`posegrasp.core.journal`); `task` is what succeeds (`posegrasp.world.goals.TASKS`)."""
     check_tier(tier)
     n_jobs = len(objects) * sum(map(len, LEVELS.values())) * episodes
     workers, note = effective_workers(workers, n_jobs)
     if note:
         print(note, file=sys.stderr)
     jobs = (  # made as the workers take them
-        (o, k, float(v), seed_start + i, tier)
+        (o, k, float(v), seed_start + i, tier, task)
         for o in objects
         for k, vals in LEVELS.items()
         for v in vals
         for i in range(episodes)
     )
-    protocol = study_protocol(objects, episodes, seed_start, tier)
+    protocol = study_protocol(objects, episodes, seed_start, tier, task)
     results = run_journaled(
         _job,
         jobs,
@@ -185,19 +193,23 @@ def study(
     return out
 
 
-def study_protocol(objects: list[str], episodes: int, seed_start: int, tier: str) -> dict:
-    """What defines a study's results: a resumed one must have the same."""
+def study_protocol(
+    objects: list[str], episodes: int, seed_start: int, tier: str, task: str = "lift"
+) -> dict:
+    """What defines a study's results: a resumed one must have the same (the task only when it
+    is not ``lift``, so journals of lift studies read as before)."""
     return {
         "objects": list(objects),
         "episodes": episodes,
         "seed_start": seed_start,
         "tier": tier,
         "levels": LEVELS,
+        **({} if task == "lift" else {"task": task}),
     }
 
 
-def plot(result: dict, path: Path) -> None:
-    """Success rate against each error kind, one line per object."""
+def plot(result: dict, path: Path, task: str = "lift") -> None:
+    """Success rate against each error kind, one line per object (`task`'s success)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -211,9 +223,10 @@ def plot(result: dict, path: Path) -> None:
         name, unit = kind.rsplit("_", 1)
         ax.set_xlabel(f"{name} error [{unit}]")
         ax.grid(alpha=0.3)
-    axes[0].set_ylabel("grasp success rate")
+    what = "grasp" if task == "lift" else task
+    axes[0].set_ylabel(f"{what} success rate")
     axes[-1].legend(fontsize=8)
-    fig.suptitle("Grasp success against injected pose error")
+    fig.suptitle(f"{what.capitalize()} success against injected pose error")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -253,6 +266,7 @@ def parser() -> ArgumentParser:
         type=arg(check_tier),
         help=f"scene tier, one of: {', '.join(TIERS)}",
     )
+    add_task_argument(p)
     add_json_argument(p, "the curves and tolerances", DEFAULT_JSON)
     p.add_argument(
         "--plot",
@@ -278,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
     objects = args.objects or [args.object or "phone"]
     check_seed(args.seed_start, "--seed-start", args.episodes)
     check_backend(args.backend, args.address)
-    protocol = study_protocol(objects, args.episodes, args.seed_start, args.tier)
+    protocol = study_protocol(objects, args.episodes, args.seed_start, args.tier, args.task)
     journal = journal_path(args.json, "tolerance", protocol)
     result = study(
         objects,
@@ -290,10 +304,11 @@ def main(argv: list[str] | None = None) -> int:
         args.address,
         journal=journal,
         resume=args.resume,
+        task=args.task,
     )
     log = summary_stream(args.json)
-    plot(result, args.plot)
-    print(format_tolerances(result), file=log)
+    plot(result, args.plot, args.task)
+    print(format_tolerances(result, args.task), file=log)
     print(f"wrote {args.plot}", file=log)
     write_json(args.json, result)
     journal.unlink(missing_ok=True)  # the curves now hold every episode

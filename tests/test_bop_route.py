@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from posegrasp.world.shifts import parse_shifts
 from sim import compare as cmp
 from sim import evaluate as ev
 from sim import evaluation
@@ -177,3 +178,55 @@ def test_ar_vsd_counts_an_episode_without_vsd_as_a_miss_and_old_reports_have_non
     ok = {**_failed("missed", []), "vsd": [0.0] * 10}
     assert evaluation.bop_scores([ok, _failed("no_estimate", [])])["ar_vsd"] == 0.5
     assert evaluation.bop_scores([_failed("no_estimate", [])])["ar_vsd"] is None
+
+
+def _oracle(tmp_path: Path, name: str, *extra: str) -> dict:
+    out = tmp_path / f"{name}.json"
+    argv = ["--estimator", "oracle", "--objects", ",".join(OBJECTS), "--episodes", "2"]
+    assert ev.main([*argv, *extra, "--json", str(out)]) == 0
+    return json.loads(out.read_text())
+
+
+def _outcomes(report: dict) -> dict:
+    return {
+        (e["object"], e["seed"]): (e["success"], e["failure_reason"]) for e in report["episodes"]
+    }
+
+
+def test_the_poses_route_places(export: Path, tmp_path: Path) -> None:
+    """``--task place`` on the BOP route: a CSV of the truth places as the oracle does."""
+    csv = tmp_path / "truth.csv"
+    _bench().write_csv(export, csv, None)
+    out = tmp_path / "place.json"
+    argv = ["--poses", str(csv), "--from", str(export), "--task", "place", "--json", str(out)]
+    assert ev.main(argv) == 0
+    r = json.loads(out.read_text())
+    assert r["task"] == "place" and all(e["place"] is not None for e in r["episodes"])
+    assert _outcomes(r) == _outcomes(_oracle(tmp_path, "oracle_place", "--task", "place"))
+    assert r["overall"]["successes"] == 4
+
+
+def test_the_poses_route_grasps_in_the_exports_shifted_scenes(tmp_path: Path, capsys) -> None:
+    """An export rendered under shifts records them; the route grasps in the same shifted
+    scenes (the oracle's outcomes under ``--shift``), and refuses another ``--shift``."""
+    spec = "camera:3,table_texture:3"
+    root = tmp_path / "shifted"
+    export_bop(root, OBJECTS, 2, SEED, "isolated", progress=False, shifts=parse_shifts(spec))
+    csv = tmp_path / "truth.csv"
+    _bench().write_csv(root, csv, None)
+    out = tmp_path / "bop.json"
+    assert ev.main(["--poses", str(csv), "--from", str(root), "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["shifts"] == ["table_texture:3", "camera:3"]
+    assert r["overall"]["ar_mssd"] == 1.0 and r["poses"]["truth_match"]["nearest_own"] == 4
+    oracle = _oracle(tmp_path, "oracle_shifted", "--shift", spec)
+    assert _outcomes(r) == _outcomes(oracle) and oracle["shifts"] == r["shifts"]
+    for e, o in zip(r["episodes"], oracle["episodes"], strict=True):
+        assert e["T_C_O_true"] == o["T_C_O_true"]  # the same moved camera
+    same = ["--poses", str(csv), "--from", str(root), "--shift", "table_texture:3,camera:3"]
+    assert ev.main([*same, "--json", str(tmp_path / "same.json")]) == 0
+    capsys.readouterr()
+    assert ev.main(["--poses", str(csv), "--from", str(root), "--shift", "camera:1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "rendered under table_texture:3,camera:3, not camera:1; leave out --shift" in err
+    assert "\n" not in err

@@ -4,7 +4,7 @@ observation an estimator gets through it (`Observation.from_env`)."""
 from __future__ import annotations
 
 import warnings
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 
 import gymnasium as gym
@@ -16,9 +16,11 @@ import posegrasp  # noqa: F401  (registers the env)
 from perception.estimators import LEARNED_ESTIMATORS
 from posegrasp.core.contract import Estimate, Observation
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError, StateError, UnknownNameError
+from posegrasp.world.scene import SceneConfig
+from posegrasp.world.shifts import parse_shifts
 from posegrasp.world.tiers import TIERS
 from sim.env import MAX_NEIGHBOURS, GraspEvalEnv, pose_action
-from sim.episodes.episode import Episode, EpisodeConfig
+from sim.episodes.episode import PLACE_TOLERANCE, Episode, EpisodeConfig, play_episode
 from sim.episodes.registry import make_estimator
 from sim.evaluation import Protocol, evaluate_protocol
 
@@ -280,6 +282,89 @@ def test_an_unknown_sensor_is_one_line() -> None:
     base = EpisodeConfig(sensor="azure-tof")
     assert GraspEvalEnv(config=base).config.sensor == "azure-tof"  # the config's, unless named
     assert GraspEvalEnv(config=base, sensor="ideal").config.sensor == "ideal"
+
+
+def test_check_env_passes_on_the_place_task_under_shifts() -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # advisory warnings about unbounded Box spaces
+        env = gym.make("GraspEval-v0", object="phone", task="place", shifts="camera:3,walls:1")
+        check_env(env.unwrapped)
+    assert env.unwrapped.task == "place" and env.unwrapped.shifts == parse_shifts(
+        "walls:1,camera:3"
+    )
+
+
+def test_the_place_task_reports_its_record_in_info() -> None:
+    """The oracle's pose is placed on its goal; the place record is in `info`; a lift env's
+    info has none, and a failed lift has nothing placed."""
+    env = GraspEvalEnv(object="phone", task="place")
+    env.reset(seed=SEED)
+    _, reward, terminated, _, info = env.step(pose_action(_truth(env)))
+    assert reward == 1.0 and terminated and info["success"] and info["failure_reason"] is None
+    record = info["place"]
+    assert record["placed"] is True and record["failure_reason"] is None
+    assert set(record) >= {"goal", "T_world_O_final", "errors", "placed"}
+    assert record["errors"]["translation_m"] < PLACE_TOLERANCE[0]
+    assert record["errors"]["rotation_deg"] < PLACE_TOLERANCE[1]
+    # The episode's own record: the same goal as `play_episode` draws for the seed.
+    want = play_episode("phone", SEED, make_estimator("oracle"), EpisodeConfig(task="place"))
+    assert want.place is not None and record["goal"] == want.place["goal"]
+    env.reset(seed=SEED)
+    _, reward, *_, info = env.step(pose_action(None))
+    assert reward == 0.0 and info["failure_reason"] == "no_estimate" and info["place"] is None
+    env.close()
+    env = GraspEvalEnv(object="phone")
+    env.reset(seed=SEED)
+    assert "place" not in env.step(pose_action(_truth(env)))[-1]
+    env.close()
+
+
+def test_the_env_observes_the_shifted_scene_an_episode_observes() -> None:
+    shifts = "light_colour:3,camera:3"
+    env = GraspEvalEnv(object="car", shifts=shifts)
+    obs, info = env.reset(seed=SEED + 3)
+    env.close()
+    cfg = EpisodeConfig(scene=SceneConfig(shifts=parse_shifts(shifts)))
+    episode = Episode("car", SEED + 3, cfg)
+    want = episode.observe()
+    episode.close()
+    got = Observation.from_env(obs, info)
+    for f in fields(Observation):
+        a, b = getattr(got, f.name), getattr(want, f.name)
+        assert type(a) is type(b) and np.array_equal(a, b), f.name
+    plain = GraspEvalEnv(object="car")
+    unshifted, _ = plain.reset(seed=SEED + 3)
+    plain.close()
+    assert not np.array_equal(unshifted["rgb"], obs["rgb"])
+    # Shift values and a spec give the same env; the config's shifts and task hold unless named.
+    assert GraspEvalEnv(shifts=list(parse_shifts(shifts))).shifts == parse_shifts(shifts)
+    base = EpisodeConfig(task="place", scene=SceneConfig(shifts=parse_shifts("walls")))
+    assert (GraspEvalEnv(config=base).task, GraspEvalEnv(config=base).shifts) == (
+        "place",
+        parse_shifts("walls"),
+    )
+    assert GraspEvalEnv(config=base, task="lift", shifts="").config == replace(
+        base, task="lift", scene=SceneConfig()
+    )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "says"),
+    [
+        ({"task": "stack"}, UnknownNameError, "valid tasks: lift, place"),
+        ({"shifts": "fog"}, UnknownNameError, "valid scene shifts: light_colour, "),
+        ({"shifts": "camera:4"}, InvalidArgumentError, "levels 1 mild, 2 medium, 3 strong"),
+        ({"shifts": "camera,camera:3"}, InvalidArgumentError, "camera asked for more than once"),
+        ({"shifts": 3}, InvalidArgumentError, "shifts must be a spec such as"),
+        ({"shifts": ["camera"]}, InvalidArgumentError, "are Shift values"),
+    ],
+)
+def test_a_bad_task_or_shift_is_one_line_naming_the_valid_ones(
+    kwargs: dict, error: type, says: str
+) -> None:
+    with pytest.raises(error) as info:
+        GraspEvalEnv(**kwargs)
+    assert says in str(info.value) and "\n" not in str(info.value)
 
 
 def test_from_env_names_what_it_lacks() -> None:

@@ -12,6 +12,8 @@ import pytest
 from perception.training.data.bop import read_png
 from posegrasp.core.contract import Observation
 from posegrasp.world import constants as C
+from posegrasp.world.scene import SceneConfig
+from posegrasp.world.shifts import parse_shifts
 from sim import export_bop as xb
 from sim.episodes.episode import Episode, EpisodeConfig
 from sim.evaluation.bop_results import MAP_FILE, BopPosesEstimator, read_export
@@ -294,3 +296,56 @@ def test_a_map_written_before_sensors_were_recorded_is_the_ideal_one(
     xb.check_out_folder(tmp_path, xb.export_protocol(OBJECTS, 1, SEED, TIER, True))  # no error
     with pytest.raises(xb.InvalidArgumentError, match=r"sensor ideal\).*sensor azure-tof"):
         xb.check_out_folder(tmp_path, xb.export_protocol(OBJECTS, 1, SEED, TIER, True, "azure-tof"))
+
+
+def test_a_shifted_export_writes_the_shifted_images_and_records_the_shifts(
+    export: Path, tmp_path: Path, capsys
+) -> None:
+    spec = "camera:3,light_colour:3"
+    out = tmp_path / "shifted"
+    args = ["--tier", TIER, "--objects", "car", "--episodes", "1", "--out", str(out)]
+    assert xb.main([*args, "--shift", spec]) == 0
+    assert "shifts light_colour:3,camera:3" in capsys.readouterr().out
+    assert load(out / MAP_FILE)["shifts"] == ["light_colour:3", "camera:3"]
+    assert load(export / MAP_FILE)["shifts"] == [] and read_export(export).shifts == ()
+    assert read_export(out).shifts == parse_shifts(spec)
+    cfg = EpisodeConfig(scene=SceneConfig(shifts=parse_shifts(spec)), tier=TIER, obs_mode="rgbd")
+    ep = Episode("car", SEED, cfg)
+    try:
+        obs, T_true = ep.observe(), ep.T_C_O_true
+    finally:
+        ep.close()
+    sdir = scene(out, "car")
+    rgb = read_png(sdir / "rgb" / "000000.png", out, None)
+    np.testing.assert_array_equal(rgb, obs.rgb)
+    assert not np.array_equal(
+        rgb, read_png(scene(export, "car") / "rgb" / "000000.png", export, None)
+    )
+    # The camera moved in its head link: the ground truth is the pose in the moved camera.
+    (gt,) = load(sdir / "scene_gt.json")["0"]
+    np.testing.assert_allclose(np.reshape(gt["cam_R_m2c"], (3, 3)), T_true[:3, :3], atol=1e-12)
+    (ideal_gt,) = load(scene(export, "car") / "scene_gt.json")["0"]
+    assert not np.allclose(gt["cam_t_m2c"], ideal_gt["cam_t_m2c"], atol=1.0)
+    # The folder holds that export: other shifts, or none, do not rewrite it.
+    for other in (["--shift", "camera:1"], []):
+        assert xb.main([*args, *other]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "shifts light_colour:3,camera:3)" in err and "\n" not in err
+
+
+def test_a_bad_shift_is_one_line_naming_the_factors_and_levels(tmp_path: Path, capsys) -> None:
+    for spec, says in [("fog", "valid scene shifts: light_colour, "), ("walls:7", "levels 1 mild")]:
+        assert xb.main(["--shift", spec, "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("error:") and says in err and "\n" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_map_written_before_shifts_were_recorded_has_none(export: Path, tmp_path: Path) -> None:
+    old = load(export / MAP_FILE)
+    del old["shifts"]
+    (tmp_path / MAP_FILE).write_text(json.dumps(old))
+    xb.check_out_folder(tmp_path, xb.export_protocol(OBJECTS, 1, SEED, TIER, True))  # no error
+    with pytest.raises(xb.InvalidArgumentError, match=r"sensor ideal\).*shifts walls:2$"):
+        shifted = xb.export_protocol(OBJECTS, 1, SEED, TIER, True, shifts=parse_shifts("walls"))
+        xb.check_out_folder(tmp_path, shifted)

@@ -12,6 +12,7 @@ from posegrasp.core.errors import AssetError
 from posegrasp.core.files import sha256_file
 from posegrasp.core.paths import REPO_ROOT
 from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.shifts import parse_shifts
 from sim import gate
 from sim.episodes.episode import execution_settings
 
@@ -126,6 +127,72 @@ def test_the_gate_refuses_another_mode_before_running(
     assert "hybrid: FAIL: the run's observation mode (--obs-mode) ('rgbd')" in out
     assert gate.main(["--baseline", str(path), "--obs-mode", "bad"]) == 2
     assert "valid observation modes: rgb, rgbd" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("run", "recorded", "flags"),
+    [
+        ({"task": "place"}, "the lift task under no scene shift", "--task place"),
+        ({"shifts": ["camera:3"]}, "the lift task under no scene shift", "--shift camera:3"),
+        ({}, "the place task under no scene shift", ""),
+    ],
+)
+def test_a_baseline_of_another_task_or_shifts_is_refused_with_how_to_record_one(
+    baseline: dict, run: dict, recorded: str, flags: str
+) -> None:
+    """A baseline is of one task under one set of shifts: a run of another is not paired, and
+    the verdict names the command that records a baseline for it."""
+    if not run:
+        baseline = gate.baseline_of(_report(task="place"), WEIGHTS)
+        assert baseline["task"] == "place"
+    ok, verdict = gate.compare(_report(**run), baseline, WEIGHTS)
+    assert not ok and "\n" not in verdict
+    assert f"the baseline of hybrid was recorded for {recorded}, not the " in verdict
+    command = f"`python -m sim.gate --write --estimator hybrid {flags}".rstrip()
+    assert command + " --baseline PATH`" in verdict and "a file of its own" in verdict
+    # A baseline of the run's own task and shifts pairs with it.
+    own = gate.baseline_of(_report(**run), WEIGHTS)
+    assert {k: own[k] for k in run} == run and gate.compare(_report(**run), own, WEIGHTS)[0]
+
+
+def test_the_gate_protocol_records_task_and_shifts_as_reports_do() -> None:
+    assert "task" not in gate.gate_protocol("hybrid") and "shifts" not in gate.gate_protocol("h")
+    run = gate.gate_protocol("hybrid", task="place", shifts=parse_shifts("walls,camera:3"))
+    assert run["task"] == "place" and run["shifts"] == ["walls:2", "camera:3"]
+    protocol = gate.gate_run_protocol(task="place", shifts=parse_shifts("camera:3"))
+    assert protocol.episode_config().task == "place"
+    assert gate.gate_journal("hybrid", task="place") != gate.gate_journal("hybrid")
+
+
+def test_the_gate_refuses_a_place_run_before_running(
+    tmp_path: Path, capsys, monkeypatch, baseline: dict
+) -> None:
+    """``--task place`` against a lift baseline fails without running an episode, in one line
+    that names how to record a place baseline; writing one into the shipped lift baselines is
+    refused; a bad task or shift is one line naming the valid ones."""
+    path = tmp_path / "b.json"
+    path.write_text(json.dumps({"hybrid": {**baseline, **gate.gate_protocol("hybrid")}}))
+    monkeypatch.setattr(gate, "estimator_fingerprint", lambda name: (WEIGHTS, None))
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the gate ran episodes against a baseline it must refuse")
+
+    monkeypatch.setattr(gate, "run_gate", no_run)
+    assert gate.main(["--baseline", str(path), "--task", "place"]) == 1
+    (line,) = [ln for ln in capsys.readouterr().out.splitlines() if "FAIL" in ln]
+    assert line.startswith("hybrid: FAIL: the baseline of hybrid was recorded for the lift task")
+    assert "--write --estimator hybrid --task place --baseline PATH" in line
+    assert gate.main(["--baseline", str(path), "--shift", "all:3"]) == 1
+    assert "--shift light_colour:3,light_intensity:3," in capsys.readouterr().out
+    for argv, says in [
+        (["--write", "--task", "place"], "write the baseline of --task place to a file of its own"),
+        (["--write", "--shift", "camera"], "of --shift camera:2 to a file of its own"),
+        (["--task", "stack"], "valid tasks: lift, place"),
+        (["--shift", "fog"], "valid scene shifts: light_colour"),
+    ]:
+        assert gate.main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, argv
 
 
 def test_a_baseline_without_an_observation_mode_fails_closed(tmp_path: Path, baseline) -> None:

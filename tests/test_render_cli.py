@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.scene import SceneConfig
 from posegrasp.world.sensors import SENSOR_NAMES
+from posegrasp.world.shifts import parse_shifts
 from posegrasp.world.tiers import TIERS
 from sim.episodes.episode import Episode, EpisodeConfig
 from sim.render_scene import depth_to_mm, far_plane, main
@@ -65,6 +67,7 @@ def test_help(capsys: pytest.CaptureFixture) -> None:
         "--distractors",
         "--sensor",
         "--depth",
+        "--shift",
     )
     for option in options:
         assert option in text
@@ -95,6 +98,8 @@ BAD_INPUTS = [
         ["unknown sensor 'lidar'", "valid sensors: " + ", ".join(SENSOR_NAMES)],
     ),
     (["--sheet", "{tmp}/s.png", "--depth"], ["--depth applies to --png only"]),
+    (["--shift", "fog"], ["unknown scene shift 'fog'", "valid scene shifts: light_colour, "]),
+    (["--shift", "camera:9"], ["invalid level '9' of scene shift 'camera'", "3 strong"]),
     (["--png", "{tmp}/h.png", "--depth"], ["--depth", "is a folder"]),
 ]
 
@@ -187,3 +192,24 @@ def test_a_colour_model_changes_the_head_image_and_a_depth_model_says_its_depth_
     assert np.abs(images["ideal+camera"] - images["ideal"]).mean() > 0.5
     np.testing.assert_array_equal(images["azure-tof"], images["ideal"])  # a depth model alone
     assert not list(tmp_path.glob("*_depth*.png"))  # no --depth: no depth images
+
+
+def test_a_shifted_head_image_is_what_an_episode_under_the_shifts_observes(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    spec = "light_colour:3,camera:3"
+    argv = ["--object", "phone", "--seed", "3", "--no-shadows", "--width", "200", "--height", "150"]
+    assert main([*argv, "--png", str(tmp_path / "plain.png")]) == 0
+    assert main([*argv, "--png", str(tmp_path / "shifted.png"), "--shift", spec]) == 0
+    cfg = EpisodeConfig(
+        width=200, height=150, shadows=False, scene=SceneConfig(shifts=parse_shifts(spec))
+    )
+    ep = Episode("phone", 3, cfg)
+    try:
+        want = ep.observe().rgb
+    finally:
+        ep.close()
+    shifted = cv2.imread(str(tmp_path / "shifted.png"))[..., ::-1]
+    np.testing.assert_array_equal(shifted, want)
+    plain = cv2.imread(str(tmp_path / "plain.png"))[..., ::-1]
+    assert np.abs(shifted.astype(int) - plain).mean() > 5

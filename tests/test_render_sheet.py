@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from importlib.util import find_spec
 from pathlib import Path
 
 import cv2
@@ -14,6 +15,8 @@ import pytest
 
 from perception.overlay import silhouette
 from posegrasp.core.contract import Estimate, Observation
+from posegrasp.world.scene import SceneConfig
+from posegrasp.world.shifts import parse_shifts
 from posegrasp.world.tiers import TIERS
 from sim import render_scene
 from sim.episodes.episode import Episode, EpisodeConfig
@@ -88,6 +91,27 @@ def test_oracle_estimate_is_drawn_on_the_true_outline(
     assert plain.shape == (40 + 2 * H, W, 3)
     assert _share(plain[40 : 40 + H], outline, (0, 255, 0)) < 0.1
     assert np.array_equal(plain[40 + H :], img[LABEL + H :])  # the external view is untouched
+
+
+@pytest.mark.skipif(find_spec("pybullet_data") is None, reason="all:1 stands distractors")
+def test_the_sheet_is_drawn_under_the_shifts_and_names_them(
+    tmp_path: Path, one_tier: None, label_lines: list[str]
+) -> None:
+    out = tmp_path / "shifted.png"
+    argv = ["--sheet", str(out), "--width", str(W), "--height", str(H), "--seed", str(SEED)]
+    assert main([*argv, "--no-shadows", "--estimator", "none", "--shift", "all:1"]) == 0
+    assert f"{TIER}, shifts all:1" in label_lines
+    cfg = EpisodeConfig(
+        width=W, height=H, shadows=False, tier=TIER, scene=SceneConfig(shifts=parse_shifts("all:1"))
+    )
+    ep = Episode("phone", SEED, cfg)
+    try:
+        want = ep.observe().rgb
+    finally:
+        ep.close()
+    head = cv2.imread(str(out))[..., ::-1][40 : 40 + H]
+    np.testing.assert_array_equal(head, want)
+    assert render_scene.shifts_text(parse_shifts("camera:3,walls")) == "walls:2,camera:3"
 
 
 class _Blind:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from posegrasp.core.validate import check_tolerance_curves
@@ -38,3 +40,22 @@ def test_default_scenes_are_held_out_from_training() -> None:
     args = tol.parser().parse_args([])
     assert args.seed_start == C.EVAL_SEED_BASE >= C.DATA_SEED_LIMIT
     assert tol.parser().parse_args(["--seed-start", "7"]).seed_start == 7
+
+
+def test_the_place_task_study_scores_the_place(tmp_path, monkeypatch, capsys) -> None:
+    """``--task place``: success is the place's; the journal's protocol names the task (a lift
+    study's does not), the JSON is curves as sim.evaluate --tolerance reads them."""
+    monkeypatch.setattr(tol, "LEVELS", {k: (0, 60) for k in tol.LEVELS})
+    out = tmp_path / "place.json"
+    argv = ["--object", "phone", "--episodes", "1", "--workers", "1", "--task", "place"]
+    assert tol.main([*argv, "--json", str(out), "--plot", str(tmp_path / "p.png")]) == 0
+    curves = check_tolerance_curves(json.loads(out.read_text()))
+    assert set(curves) == {"phone"} and curves["phone"]["lateral_mm"]["success_rate"][0] == 1.0
+    # 60 mm beside the truth, the phone is lifted, if at all, and set down off its goal.
+    assert curves["phone"]["lateral_mm"]["success_rate"][1] == 0.0
+    assert "where place success drops below 90%" in capsys.readouterr().out
+    assert tol.study_protocol(["phone"], 1, 0, "isolated", "place")["task"] == "place"
+    assert "task" not in tol.study_protocol(["phone"], 1, 0, "isolated")
+    assert tol.main(["--task", "carry"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "valid tasks: lift, place" in err and "\n" not in err

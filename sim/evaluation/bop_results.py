@@ -37,6 +37,7 @@ from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.validate import check_int, check_seed
 from posegrasp.world.objects import check_object, object_names
 from posegrasp.world.sensors import Sensor
+from posegrasp.world.shifts import Shift, parse_shifts
 from posegrasp.world.tiers import check_tier
 
 #: The export's map file: its episodes and how they map to BOP scene and image ids.
@@ -116,6 +117,9 @@ class ExportEpisodes:
             ``Observation.table_top_z`` tells a live estimator).
         sensor: the sensor model its images were rendered through (`posegrasp.world.sensors`;
             ``ideal`` in maps written before exports recorded it).
+        shifts: the scene shifts its images were rendered under (`posegrasp.world.shifts`;
+            none in maps written before exports recorded them): the episodes grasp in the same
+            shifted scenes.
     """
 
     root: Path
@@ -127,6 +131,7 @@ class ExportEpisodes:
     images: dict[tuple[str, int], tuple[int, int]]
     table_top_z: dict[tuple[str, int], float]
     sensor: str = "ideal"
+    shifts: tuple[Shift, ...] = ()
 
     @property
     def image_ids(self) -> set[tuple[int, int]]:
@@ -139,6 +144,7 @@ class ExportEpisodes:
         return (
             f"tier {self.tier}, objects {','.join(self.objects)}, seeds {self.seed_start}..{last}, "
             f"sensor {self.sensor}"
+            + (f", shifts {','.join(map(str, self.shifts))}" if self.shifts else "")
         )
 
 
@@ -198,6 +204,7 @@ def read_export(root: Path | str) -> ExportEpisodes:
             tables[key] = float(im["table_top_z"])
         ground_truth = bool(raw["ground_truth"])
         sensor = Sensor.parse(raw.get("sensor", "ideal")).name
+        shifts = parse_shifts(",".join(raw.get("shifts", [])))
     except (KeyError, TypeError, ValueError) as exc:
         raise _bad_map(path, f"missing or malformed field {exc}") from None
     except PosegraspError as exc:
@@ -212,7 +219,7 @@ def read_export(root: Path | str) -> ExportEpisodes:
             "its image ids are not those of its episodes (sim.evaluation.bop_results.scene_ids)",
         )
     return ExportEpisodes(
-        root, tier, seed_start, objects, episodes, ground_truth, images, tables, sensor
+        root, tier, seed_start, objects, episodes, ground_truth, images, tables, sensor, shifts
     )
 
 

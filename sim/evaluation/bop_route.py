@@ -27,15 +27,16 @@ def poses_estimator(csv_path: Path, export: Path) -> BopPosesEstimator:
 
 
 def export_protocol(estimator: BopPosesEstimator, **settings: Any) -> Protocol:
-    """The protocol of the export's episodes (its objects, episodes, seed start and tier), with
-    the episode `settings` given (`Protocol`'s ``margin``, ``obs_mode``, ...)."""
+    """The protocol of the export's episodes (its objects, episodes, seed start, tier and the
+    scene shifts its images were rendered under), with the episode `settings` given
+    (`Protocol`'s ``margin``, ``obs_mode``, ``task``, ...)."""
     export = estimator.export
     return Protocol(
         objects=tuple(export.objects),
         episodes=export.episodes,
         seed_start=export.seed_start,
         tier=export.tier,
-        **settings,
+        **{"shifts": export.shifts, **settings},
     )
 
 
