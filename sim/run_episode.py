@@ -503,9 +503,8 @@ def _save(folder: Path, obs, depth: np.ndarray, ep, result, film: Film, log: Tex
     print(depth_line, file=log)
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def _parser() -> ArgumentParser:
+    """The command line: the episode, the estimator, what it observes and the outputs."""
     p = ArgumentParser(prog="python -m sim.run_episode", description=__doc__.split("\n")[0])
     p.add_argument(
         "--object",
@@ -544,7 +543,13 @@ def main(argv: list[str] | None = None) -> int:
         "last)",
         aliases=("--save",),
     )
-    args = p.parse_args(argv)
+    return p
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
     check_depth(args.estimator, args.obs_mode)
     setup_rendering()
     log = summary_stream(args.json)

@@ -109,18 +109,7 @@ def format_report(report: dict) -> str:
         f"pose: {o['missed_right_pose']}"
     )
     if "lifted" in o:
-        tm, rm = o["place_translation_m_median"], o["place_rotation_deg_median"]
-        rows.append(
-            f"placed within {PLACE_TOLERANCE[0] * 100:g} cm and {PLACE_TOLERANCE[1]:g} deg of the "
-            f"goal: {o['successes']} of {o['lifted']} lifted; "
-            + (
-                "none lifted"
-                if tm is None
-                else f"where they rest, median {tm * 1000:.1f} mm and {rm:.1f} deg from the goal "
-                f"(p90 {o['place_translation_m_p90'] * 1000:.1f} mm, "
-                f"{o['place_rotation_deg_p90']:.1f} deg)"
-            )
-        )
+        rows.append(place_line(o))
     if (area := area_line(items)) is not None:
         rows.append(area)
     notes = failure_notes(report["episodes"])
@@ -128,6 +117,31 @@ def format_report(report: dict) -> str:
         rows.append("why episodes failed (most frequent notes, episodes with each):")
         for reason, top in notes.items():
             rows.extend(f"  {reason}: {n}x {_one_line(note)}" for note, n in top)
+    rows.extend(margin_lines(items, report["overall"]))
+    return "\n".join(rows)
+
+
+def place_line(overall: dict) -> str:
+    """The place task's line: how many of the lifted objects were placed, and where they rest
+    from their goals (median and p90 over the lifted episodes)."""
+    tm, rm = overall["place_translation_m_median"], overall["place_rotation_deg_median"]
+    head = (
+        f"placed within {PLACE_TOLERANCE[0] * 100:g} cm and {PLACE_TOLERANCE[1]:g} deg of the "
+        f"goal: {overall['successes']} of {overall['lifted']} lifted; "
+    )
+    if tm is None:
+        return head + "none lifted"
+    return head + (
+        f"where they rest, median {tm * 1000:.1f} mm and {rm:.1f} deg from the goal "
+        f"(p90 {overall['place_translation_m_p90'] * 1000:.1f} mm, "
+        f"{overall['place_rotation_deg_p90']:.1f} deg)"
+    )
+
+
+def margin_lines(items: list[tuple[str, dict]], overall: dict) -> list[str]:
+    """The friction margins per group with their bootstrap intervals, and their Spearman
+    correlation with the pose error (none when no margin was measured)."""
+    rows: list[str] = []
     margins = [(n, g) for n, g in items if "friction_margin_mean" in g]
     if margins:
         rows.append("friction margin (lowest sliding friction that still holds; lower is firmer):")
@@ -136,7 +150,7 @@ def format_report(report: dict) -> str:
             f"[{g['friction_margin_low']:.3f}, {g['friction_margin_high']:.3f}] (bootstrap 95 %)"
             for n, g in margins
         )
-        rho = report["overall"].get("margin_error_spearman") or {}
+        rho = overall.get("margin_error_spearman") or {}
         if any(rho.get(k) is not None for k in ("translation_m", "rotation_deg", "add_m")):
             rows.append(
                 f"margin vs pose error, Spearman over {rho['episodes']} grasped episodes: "
@@ -146,4 +160,4 @@ def format_report(report: dict) -> str:
                     if rho.get(k) is not None
                 )
             )
-    return "\n".join(rows)
+    return rows
