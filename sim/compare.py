@@ -299,6 +299,25 @@ def report_sensor(report: dict, source: str) -> str:
     return named[0] if named else "ideal"
 
 
+def check_same_task(paths: list[Path]) -> None:
+    """Refuse to pair reports of different tasks (a report's ``task``; ``lift`` when it records
+    none): a placed object and a lifted one are different outcomes.
+
+    Raises:
+        InvalidArgumentError: two reports name different tasks, naming the first that differs.
+    """
+    first: tuple[Path, str] | None = None
+    for path in paths:
+        task = str(read_report(path).get("task", "lift"))
+        if first is None:
+            first = (path, task)
+        elif task != first[1]:
+            raise InvalidArgumentError(
+                f"{first[0]} is of the {first[1]} task and {path} of the {task} task; pair runs "
+                "of one task"
+            )
+
+
 def check_same_sensor(paths: list[Path]) -> None:
     """Refuse to pair reports whose estimators observed through different sensor models
     (`report_sensor`).
@@ -530,6 +549,7 @@ def main(argv: list[str] | None = None) -> int:
     log = summary_stream(args.json)
     check_same_execution([args.a, args.b, *args.more])
     check_same_sensor([args.a, args.b, *args.more])
+    check_same_task([args.a, args.b, *args.more])
     if args.curve:
         rows = curve([args.a, args.b, *args.more], args.boot)
         print(format_curve(rows), file=log)

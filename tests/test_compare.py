@@ -415,3 +415,16 @@ def test_cli_pairs_the_risk_coverage_area(tmp_path: Path, capsys) -> None:
     assert f"RC area  A {ra:.3f} B -: B gives no confidence, so the areas do not pair" in text
     assert cmp.main([str(c), str(c), "--boot", "200"]) == 0
     assert "RC area  neither estimator gives a confidence" in capsys.readouterr().out
+
+
+def test_reports_of_different_tasks_are_not_paired(tmp_path: Path, capsys) -> None:
+    """A lift report (recording no task) and a place report of the same episodes are refused in
+    one line; two of one task pair."""
+    eps = [_episode("phone", s, "isolated", True, 0.2) for s in range(1, 4)]
+    lift = _write(tmp_path / "lift.json", eps, "isolated")
+    place = _write(tmp_path / "place.json", eps, "isolated", task="place")
+    assert cmp.main([str(lift), str(place)]) == 2
+    err = capsys.readouterr().err
+    assert f"{lift} is of the lift task and {place} of the place task" in err
+    assert len(err.splitlines()) == 1 and "pair runs of one task" in err
+    assert cmp.main([str(place), str(place)]) == 0

@@ -1,5 +1,6 @@
-"""Ship the pose nets' checkpoints one trained oneself, and draw their training curves
-(`perception.training.shipping.ship` does the shipping).
+"""Ship the pose nets' checkpoints one trained oneself, and draw their training curves.
+
+The shipping itself is `perception.training.shipping.ship`.
 
     python -m perception.training.export [--checkpoints DIR (default: <data>/checkpoints)]
         [--out DIR] [--plot training_curves.png]
