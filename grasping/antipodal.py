@@ -58,6 +58,8 @@ MIN_TABLE_CLEARANCE = 0.008
 #: The mean outward normal where a pad touches must lie within this of the closing direction
 #: [deg] (the friction cone of the coefficient 1 is 45 deg).
 CONE_DEG = 30.0
+#: Its cosine.
+COS_CONE = math.cos(math.radians(CONE_DEG))
 #: Points within this of the outermost one on a side are where that pad touches [m].
 CONTACT_BAND = 0.002
 #: The contact patch must span at least this along the pads (vertically or across) [m].
@@ -118,6 +120,13 @@ def _frame(approach: np.ndarray, y: np.ndarray, site: np.ndarray) -> np.ndarray:
     return T
 
 
+def horizontal_basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit directions (e1, e2) spanning the plane normal to the unit direction `up`."""
+    e1 = np.cross(up, np.eye(3)[int(np.argmin(np.abs(up)))])
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1)
+
+
 def antipodal_grasps(
     points: np.ndarray,
     normals: np.ndarray,
@@ -140,62 +149,126 @@ def antipodal_grasps(
     """
     u = np.asarray(up, float) / np.linalg.norm(up)
     h = points @ u
-    low = float(h.min())
-    # A horizontal basis (e1, e2) of the plane normal to u.
-    e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(u, e1)
-    approach = -u
-    cos_cone = math.cos(math.radians(CONE_DEG))
+    e1, e2 = horizontal_basis(u)
     out: list[Antipodal] = []
     for k in range(round(180.0 / ANGLE_STEP_DEG)):
         theta = math.radians(k * ANGLE_STEP_DEG)
         y = math.cos(theta) * e1 + math.sin(theta) * e2
-        z = np.cross(approach, y)  # across the pads, horizontal
-        py, pz = points @ y, points @ z
-        ny = normals @ y
-        for s in np.arange(pz.min(), pz.max() + 1e-9, SLIDE_STEP):
-            slab = np.abs(pz - s) <= FINGER_Z + CLEARANCE
-            if slab.sum() < 10:
-                continue
-            top = float(h[slab].max())
-            for depth in DEPTHS:
-                site_h = max(top - depth, low + FINGER_X[1] + table_clearance)
-                tip_h = site_h - FINGER_X[1]
-                # What the pads take: the slab from the fingertips up (the palm check covers
-                # what lies above the fingers).
-                held = slab & (h >= tip_h - CLEARANCE)
-                if held.sum() < 10:
-                    continue
-                ymin, ymax = float(py[held].min()), float(py[held].max())
-                width = ymax - ymin
-                if not MIN_WIDTH <= width <= MAX_WIDTH:
-                    continue
-                pad = held & (h <= site_h - FINGER_X[0])
-                # Where the pads touch: the outermost surface facing each pad (a surface facing
-                # away, such as the inside of a thin wall, lies behind it).
-                plus = pad & (py >= ymax - CONTACT_BAND) & (ny > 0)
-                minus = pad & (py <= ymin + CONTACT_BAND) & (ny < 0)
-                if plus.sum() < 3 or minus.sum() < 3:
-                    continue
-                c_plus = float(_mean_dir(normals[plus]) @ y)
-                c_minus = float(-_mean_dir(normals[minus]) @ y)
-                if min(c_plus, c_minus) < cos_cone:
-                    continue
-                if min(_span(points[plus], u, z), _span(points[minus], u, z)) < MIN_PATCH:
-                    continue
-                centre_y = (ymin + ymax) / 2
-                site = centre_y * y + s * z + site_h * u
-                T = _frame(approach, y, site)
-                if not clear(T, width, points, site_h - low):
-                    continue
-                arm = abs(float((com - site) @ z))
-                cone = math.degrees(math.acos(min(c_plus, c_minus, 1.0)))
-                reach = top - tip_h
-                out.append(Antipodal(T, width, score_grasp(arm, cone, reach), arm, cone, reach))
-                break
+        out += _closing_along(_Closing.make(points, normals, h, u, y, com, table_clearance))
     out.sort(key=lambda g: g.score)
     return out
+
+
+@dataclass(frozen=True)
+class _Closing:
+    """The surface seen by a gripper coming down -u and closing along the horizontal y.
+
+    Attributes:
+        points, normals: the surface samples and their outward normals in O.
+        h, py, pz: each sample's height along u, and its coordinates along y and along z.
+        ny: each normal's component along y.
+        u, y, z: up, the closing direction and the direction across the pads (-u cross y).
+        low: the lowest sample's height (the table's) [m].
+        com: the centre of mass in O [m].
+        table_clearance: how far above the table the fingertips stay [m].
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    h: np.ndarray
+    py: np.ndarray
+    pz: np.ndarray
+    ny: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    low: float
+    com: np.ndarray
+    table_clearance: float
+
+    @staticmethod
+    def make(
+        points: np.ndarray,
+        normals: np.ndarray,
+        h: np.ndarray,
+        u: np.ndarray,
+        y: np.ndarray,
+        com: np.ndarray,
+        table_clearance: float,
+    ) -> _Closing:
+        """The view of samples `points` (heights `h` along `u`) closing along `y`."""
+        z = np.cross(-u, y)  # across the pads, horizontal
+        py, pz, ny = points @ y, points @ z, normals @ y
+        low = float(h.min())
+        return _Closing(points, normals, h, py, pz, ny, u, y, z, low, com, table_clearance)
+
+
+def _closing_along(c: _Closing) -> list[Antipodal]:
+    """The grasps closing along c.y: on each grasp line (every `SLIDE_STEP` across), the first
+    of `DEPTHS` below the top of what lies in the pads' slab that makes a grasp."""
+    out: list[Antipodal] = []
+    for s in np.arange(c.pz.min(), c.pz.max() + 1e-9, SLIDE_STEP):
+        slab = np.abs(c.pz - s) <= FINGER_Z + CLEARANCE
+        if slab.sum() < 10:
+            continue
+        top = float(c.h[slab].max())
+        for depth in DEPTHS:
+            grasp = _grasp_at(c, s, slab, top, depth)
+            if grasp is not None:
+                out.append(grasp)
+                break
+    return out
+
+
+def _grasp_at(
+    c: _Closing, s: float, slab: np.ndarray, top: float, depth: float
+) -> Antipodal | None:
+    """The grasp on line s (along c.z) with the site `depth` below `top`, when it passes the
+    module's checks; None otherwise."""
+    site_h = max(top - depth, c.low + FINGER_X[1] + c.table_clearance)
+    tip_h = site_h - FINGER_X[1]
+    # What the pads take: the slab from the fingertips up (the palm check covers what lies
+    # above the fingers).
+    held = slab & (c.h >= tip_h - CLEARANCE)
+    if held.sum() < 10:
+        return None
+    ymin, ymax = float(c.py[held].min()), float(c.py[held].max())
+    width = ymax - ymin
+    if not MIN_WIDTH <= width <= MAX_WIDTH:
+        return None
+    pad = held & (c.h <= site_h - FINGER_X[0])
+    cosines = _contact_cosines(c, pad, ymin, ymax)
+    if cosines is None:
+        return None
+    centre_y = (ymin + ymax) / 2
+    site = centre_y * c.y + s * c.z + site_h * c.u
+    T = _frame(-c.u, c.y, site)
+    if not clear(T, width, c.points, site_h - c.low):
+        return None
+    arm = abs(float((c.com - site) @ c.z))
+    cone = math.degrees(math.acos(min(*cosines, 1.0)))
+    reach = top - tip_h
+    return Antipodal(T, width, score_grasp(arm, cone, reach), arm, cone, reach)
+
+
+def _contact_cosines(
+    c: _Closing, pad: np.ndarray, ymin: float, ymax: float
+) -> tuple[float, float] | None:
+    """Where the pads touch, the outermost surface facing each pad (a surface facing away, such
+    as the inside of a thin wall, lies behind it): the cosines of its mean normal with the
+    closing direction on either side, None when either side is not antipodal (too few points,
+    outside `CONE_DEG`, or a patch under `MIN_PATCH`)."""
+    plus = pad & (c.py >= ymax - CONTACT_BAND) & (c.ny > 0)
+    minus = pad & (c.py <= ymin + CONTACT_BAND) & (c.ny < 0)
+    if plus.sum() < 3 or minus.sum() < 3:
+        return None
+    c_plus = float(_mean_dir(c.normals[plus]) @ c.y)
+    c_minus = float(-_mean_dir(c.normals[minus]) @ c.y)
+    if min(c_plus, c_minus) < COS_CONE:
+        return None
+    if min(_span(c.points[plus], c.u, c.z), _span(c.points[minus], c.u, c.z)) < MIN_PATCH:
+        return None
+    return c_plus, c_minus
 
 
 def score_grasp(com_arm: float, cone_deg: float, reach: float) -> float:

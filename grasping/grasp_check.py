@@ -16,6 +16,8 @@ an episode names them: ``collision`` (the hand touched the plane, or the object 
 from __future__ import annotations
 
 import functools
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import mujoco
@@ -51,6 +53,9 @@ class CheckConfig:
         success_height: required clearance of the object's lowest point over the plane.
         knock_tolerance: object displacement before closing that counts as a collision.
         batch: candidates simulated together.
+        threads: batches simulated at once, each in a thread of its own (MuJoCo steps without
+            holding the GIL; every batch is its own model, so the outcomes do not depend on
+            it).
     """
 
     settle: float = 0.5
@@ -65,12 +70,21 @@ class CheckConfig:
     success_height: float = 0.10
     knock_tolerance: float = 0.02
     batch: int = 16
+    threads: int = 1
 
 
 @functools.cache
 def _gripper_source() -> mujoco.MjSpec:
-    """A spec holding the converted Fetch, whose gripper link subtree is copied per hand."""
-    return fetch_spec()
+    """A spec holding the converted Fetch, whose gripper link subtree is copied per hand, with
+    only the meshes that subtree uses: attaching copies every mesh of the spec, and compiling
+    the robot's other meshes for every hand took most of a batch's set-up."""
+    spec = fetch_spec()
+    geoms = spec.body(C.GRIPPER_BODY).find_all(mujoco.mjtObj.mjOBJ_GEOM)
+    used = {g.meshname for g in geoms if g.type == mujoco.mjtGeom.mjGEOM_MESH}
+    for mesh in list(spec.meshes):
+        if mesh.name not in used:
+            spec.delete(mesh)
+    return spec
 
 
 def _smooth(s: float) -> float:
@@ -125,19 +139,24 @@ class _Batch:
         self.data = mujoco.MjData(self.model)
         m = self.model
         n = len(grasps)
-        self.slides = [[m.actuator(f"g{i}/act_slide{k}").id for k in range(3)] for i in range(n)]
+        self.slides = np.array(
+            [m.actuator(f"g{i}/act_slide{k}").id for i in range(n) for k in range(3)]
+        )
         self.fingers = [
             [m.actuator(f"g{i}/act_{j.removeprefix(C.PREFIX)}").id for j in C.FINGER_JOINTS]
             for i in range(n)
         ]
-        self.obj_geoms, self.finger_geoms, self.hand_geoms = [], [], []
+        self.obj_geoms, self.finger_geoms = [], []
+        self.geom_hand = np.full(m.ngeom, -1)  # the hand each geom belongs to (-1: none)
         for i in range(n):
             self.obj_geoms.append(set(np.flatnonzero(m.geom_bodyid == m.body(f"obj{i}").id)))
             fingers = [m.body(f"g{i}/{b}").id for b in C.FINGER_BODIES]
             self.finger_geoms.append([set(np.flatnonzero(m.geom_bodyid == f)) for f in fingers])
             subtree = [b for b in range(m.nbody) if m.body(b).name.startswith(f"g{i}/")]
-            self.hand_geoms.append(set(np.flatnonzero(np.isin(m.geom_bodyid, subtree))))
+            self.geom_hand[np.isin(m.geom_bodyid, subtree)] = i
         self.plane = m.geom("plane").id
+        # Each hand's third row of rotation: what a lift along world z is in its own axes.
+        self.lift_axes = np.array([T[2, :3] for T in self.T_pre])
         for i in range(n):
             for j in C.FINGER_JOINTS:
                 self.data.qpos[m.joint(f"g{i}/{j}").qposadr[0]] = C.FINGER_TRAVEL
@@ -169,11 +188,22 @@ class _Batch:
     def held(self, i: int, pairs: list[tuple[int, int]]) -> bool:
         return all(self.touching(f, self.obj_geoms[i], pairs) for f in self.finger_geoms[i])
 
-    def drive(self, i: int, along: float, lift: float) -> None:
-        """Command hand i `along` [m] down its approach from the pre-grasp and `lift` [m] up."""
-        R = self.T_pre[i][:3, :3]
-        local = np.array([along, 0.0, 0.0]) + R.T @ np.array([0.0, 0.0, lift])
-        self.data.ctrl[self.slides[i]] = local
+    def drive(self, along: float, lift: float) -> None:
+        """Command every hand `along` [m] down its approach from the pre-grasp and `lift` [m]
+        up (in each hand's own axes: R^T (0, 0, lift) is lift times R's third row)."""
+        local = np.array([along, 0.0, 0.0]) + lift * self.lift_axes
+        self.data.ctrl[self.slides] = local.ravel()
+
+    def hands_on_plane(self) -> np.ndarray:
+        """The hands (indices) that touch the plane now."""
+        d = self.data
+        if d.ncon == 0:
+            return np.zeros(0, int)
+        g1, g2 = d.contact.geom1, d.contact.geom2
+        hands = np.concatenate(
+            [self.geom_hand[g1[g2 == self.plane]], self.geom_hand[g2[g1 == self.plane]]]
+        )
+        return hands[hands >= 0]
 
 
 def check_grasps(
@@ -196,11 +226,27 @@ def check_grasps(
         One outcome per grasp, from `OUTCOMES`.
     """
     cfg = config or CheckConfig()
-    out: list[str] = []
-    starts = range(0, len(grasps), cfg.batch)
-    for s in progress_bar(starts, desc="physics check", disable=not progress or len(starts) < 2):
-        out += _check_batch(obj, np.asarray(quat, float), grasps[s : s + cfg.batch], cfg)
-    return out
+    q = np.asarray(quat, float)
+    batches = [grasps[s : s + cfg.batch] for s in range(0, len(grasps), cfg.batch)]
+    # Copies placed alike settle alike: one settling per batch size serves every batch.
+    settled = {n: _settled(obj, q, n, cfg) for n in sorted({len(b) for b in batches})}
+
+    def check(batch: list[np.ndarray]) -> list[str]:
+        return _check_batch(obj, settled[len(batch)], batch, cfg)
+
+    hide = not progress or len(batches) < 2
+    pool = ThreadPoolExecutor(max_workers=cfg.threads)
+    try:
+        done = progress_bar(
+            pool.map(check, batches), total=len(batches), desc="physics check", disable=hide
+        )
+        return [outcome for outcomes in done for outcome in outcomes]
+    finally:
+        pool.shutdown(cancel_futures=True)  # stopped (Ctrl-C): the batches not begun are not run
+
+
+#: Batches are built one at a time: their hands are copied from one spec (`_gripper_source`).
+_BUILDING = threading.Lock()
 
 
 def _settled(obj: ObjectModel, quat: np.ndarray, n: int, cfg: CheckConfig) -> list[np.ndarray]:
@@ -228,27 +274,25 @@ def _settled(obj: ObjectModel, quat: np.ndarray, n: int, cfg: CheckConfig) -> li
 
 
 def _check_batch(
-    obj: ObjectModel, quat: np.ndarray, grasps: list[np.ndarray], cfg: CheckConfig
+    obj: ObjectModel, poses: list[np.ndarray], grasps: list[np.ndarray], cfg: CheckConfig
 ) -> list[str]:
+    """The outcomes of grasps on copies of the object settled at `poses` (`_settled`)."""
     n = len(grasps)
-    b = _Batch(obj, _settled(obj, quat, n, cfg), grasps, cfg)
+    with _BUILDING:
+        b = _Batch(obj, poses, grasps, cfg)
     m, d = b.model, b.data
     m.opt.timestep = cfg.timestep
     start = [b.pose(i)[:3, 3].copy() for i in range(n)]
     outcome: list[str | None] = [None] * n
-    hit = [False] * n
+    hit = np.zeros(n, bool)
 
     def run(seconds: float, along, lift) -> None:
         steps = max(1, round(seconds / cfg.timestep))
         for k in range(1, steps + 1):
             s = _smooth(k / steps)
-            for i in range(n):
-                b.drive(i, along(s), lift(s))
+            b.drive(along(s), lift(s))
             mujoco.mj_step(m, d)
-            pairs = b.contacts()
-            for i in range(n):
-                if not hit[i] and b.touching(b.hand_geoms[i], {b.plane}, pairs):
-                    hit[i] = True
+            hit[b.hands_on_plane()] = True
 
     pre = cfg.pregrasp
     run(0.2, lambda s: 0.0, lambda s: 0.0)

@@ -9,9 +9,9 @@ directory (`posegrasp.world.user_objects`: ``$POSEGRASP_OBJECTS``, else
 parameters recorded; mass (given, or density times the hulls' volume) and inertia from the hulls,
 also for a mesh that is not watertight; the stable resting poses, found by dropping it
 (`posegrasp.world.resting`); for every resting pose, grasp candidates for the Fetch gripper
-(antipodal pairs, checked by closing the gripper in physics; `grasping.mesh_grasps`); its
-symmetries, detected or given, in BOP's models_info form; and a preview sheet. Then
-``python -m sim.run_episode --object NAME`` grasps it.
+(antipodal pairs, checked by closing the gripper in physics, a batch of them on each core;
+`grasping.mesh_grasps`); its symmetries, detected or given, in BOP's models_info form; and a
+preview sheet. Then ``python -m sim.run_episode --object NAME`` grasps it.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from grasping.antipodal import hull_points
+from grasping.antipodal import horizontal_basis, hull_points
+from grasping.grasp_check import CheckConfig
 from grasping.mesh_grasps import KEEP, PoseGrasps, mesh_grasps
 from grasping.top_grasps import FINGER_X, MAX_WIDTH
 from posegrasp.core.cli import (
@@ -48,6 +49,7 @@ from posegrasp.core.paths import git_commit
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_float, check_input_file, check_int, check_seed
 from posegrasp.world import meshes as M
+from posegrasp.world.object_preview import preview_sheet
 from posegrasp.world.objects import OBJECT_NAMES, ObjectModel
 from posegrasp.world.resting import (
     CLUSTER_DEG,
@@ -65,7 +67,6 @@ from posegrasp.world.user_objects import (
     objects_dir,
     write_object_folder,
 )
-from sim.object_preview import preview_sheet
 
 #: Density when neither --mass nor --density is given [kg/m^3] (a solid plastic part).
 DEFAULT_DENSITY = 500.0
@@ -164,9 +165,7 @@ def _narrowest(points: np.ndarray, up: np.ndarray) -> float:
     keep = points[h >= h.min() + FINGER_X[1] + 0.008]
     if len(keep) < 3:
         keep = points
-    e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(u, e1)
+    e1, e2 = horizontal_basis(u)
     widths = []
     for k in range(36):
         t = math.pi * k / 36
@@ -223,33 +222,17 @@ def make_object(
     t_start = time.perf_counter()
     load_start = _load()
     timings: dict[str, float] = {}
-    check_new_name(name)
-    if object_folder(name).exists() and not force:
-        raise InvalidArgumentError(
-            f"a user object {name!r} exists in {objects_dir()}; give --force to replace it"
-        )
-    if mass is not None and density is not None:
-        raise InvalidArgumentError("give --mass or --density, not both")
-
-    def say(text: str) -> None:
-        print(text, file=log, flush=True)
-
+    _check_request(name, mass, density, force)
+    say = _printer(log)
     src = _source(
         mesh_path, name, units, scale, mass, density, friction, symmetry, seed, coacd, say, timings
     )
     found, axis = _resting(src, mesh_path, drops, seed, up, say, timings)
-
-    t = time.perf_counter()
-    by_pose = {f"p{i}": p.quat for i, p in enumerate(found)}
-    grasps_s = mesh_grasps(src.obj_s, by_pose, keep=keep, progress=True)
-    timings["grasps"] = time.perf_counter() - t
+    grasps_s = _grasps(src, found, keep, timings)
     graspable = _graspable(mesh_path, found, grasps_s, src.dec, seed)
     canon, why = _canonical(mesh_path, found, graspable, axis, up)
     made = _in_canonical_frame(src, found, canon, why, grasps_s)
-
-    t = time.perf_counter()
-    obj, png = _preview(name, mesh_path, src, made)
-    timings["preview"] = time.perf_counter() - t
+    obj, png = _preview(name, mesh_path, src, made, timings)
     timings["total"] = time.perf_counter() - t_start
 
     request = _Request(mesh_path, name, units, scale, mass, symmetry, drops, seed, keep)
@@ -258,6 +241,50 @@ def make_object(
     description["folder"] = str(folder)
     _report(description, log)
     return description
+
+
+def _check_request(name: str, mass: float | None, density: float | None, force: bool) -> None:
+    """Raise `InvalidArgumentError` when the object cannot be made as asked: a name a new object
+    may not take (`check_new_name`), a user object of that name and no `force`, or both a mass
+    and a density."""
+    check_new_name(name)
+    if object_folder(name).exists() and not force:
+        raise InvalidArgumentError(
+            f"a user object {name!r} exists in {objects_dir()}; give --force to replace it"
+        )
+    if mass is not None and density is not None:
+        raise InvalidArgumentError("give --mass or --density, not both")
+
+
+def _printer(log) -> Callable[[str], None]:
+    """A function printing one progress line to `log` at once."""
+
+    def say(text: str) -> None:
+        print(text, file=log, flush=True)
+
+    return say
+
+
+def _grasps(
+    src: _Source, found: list[RestingPose], keep: int, timings: dict[str, float]
+) -> dict[str, PoseGrasps]:
+    """The checked grasps of every resting pose found (named p0, p1, ... in their order), in
+    frame S; the time taken goes into `timings`."""
+    t = time.perf_counter()
+    by_pose = {f"p{i}": p.quat for i, p in enumerate(found)}
+    config = CheckConfig(threads=_cores())
+    grasps_s = mesh_grasps(src.obj_s, by_pose, keep=keep, config=config, progress=True)
+    timings["grasps"] = time.perf_counter() - t
+    return grasps_s
+
+
+def _cores() -> int:
+    """The cores this process may run on: the grasps' physics checks run a batch on each (as
+    CoACD's threads use them all)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity on this platform
+        return os.cpu_count() or 1
 
 
 @dataclass(frozen=True)
@@ -341,8 +368,12 @@ def _in_canonical_frame(
     )
 
 
-def _preview(name: str, mesh_path: Path, src: _Source, made: _Made) -> tuple[ObjectModel, Any]:
-    """The object as a model and its preview sheet (every resting pose with its grasps)."""
+def _preview(
+    name: str, mesh_path: Path, src: _Source, made: _Made, timings: dict[str, float]
+) -> tuple[ObjectModel, Any]:
+    """The object as a model and its preview sheet (every resting pose with its grasps); the
+    time taken goes into `timings`."""
+    t = time.perf_counter()
     obj = ObjectModel(
         name=name,
         description="",
@@ -358,7 +389,9 @@ def _preview(name: str, mesh_path: Path, src: _Source, made: _Made) -> tuple[Obj
         f"{name}: {mesh_path.name}, {len(made.hulls)} hulls, {made.props.mass * 1000:.0f} g, "
         f"symmetries {made.syms.describe()}"
     )
-    return obj, preview_sheet(obj, made.poses, made.drawn, title)
+    sheet = preview_sheet(obj, made.poses, made.drawn, title)
+    timings["preview"] = time.perf_counter() - t
+    return obj, sheet
 
 
 def _description(
@@ -677,6 +710,15 @@ def _parser() -> ArgumentParser:
         default=1.0,
         help="factor applied after the units (default 1)",
     )
+    _add_physics_arguments(p)
+    _add_search_arguments(p)
+    p.add_argument("--force", action="store_true", help="replace a user object of that name")
+    add_json_argument(p, "the object's description")
+    return p
+
+
+def _add_physics_arguments(p: ArgumentParser) -> None:
+    """``--mass`` or ``--density``, ``--friction`` and ``--symmetry``: the object's physics."""
     group = p.add_mutually_exclusive_group()
     group.add_argument(
         "--mass",
@@ -702,6 +744,11 @@ def _parser() -> ArgumentParser:
         "detecting them: AXIS:N (AXIS x, y or z; N 2..60, or inf for any angle); "
         "repeat for several; 'none' for none",
     )
+
+
+def _add_search_arguments(p: ArgumentParser) -> None:
+    """``--drops``, ``--keep``, ``--seed``, ``--up`` and ``--coacd``: how the hulls, resting
+    poses and grasps are found."""
     p.add_argument(
         "--drops",
         type=arg(check_int, 16, 1024, "--drops", base=int),
@@ -736,9 +783,6 @@ def _parser() -> ArgumentParser:
         help="a parameter of the convex decomposition (repeat for several; recorded in the "
         "object): " + ", ".join(f"{k} (default {v})" for k, v in M.COACD_DEFAULTS.items()),
     )
-    p.add_argument("--force", action="store_true", help="replace a user object of that name")
-    add_json_argument(p, "the object's description")
-    return p
 
 
 @command

@@ -165,3 +165,35 @@ def test_dropped_object_is_not_a_success() -> None:
     ex._advance(1.5)
     assert not ex.held()
     assert ex.lift_height() < 0.10
+
+
+def test_physics_check_outcomes_of_a_grasp_on_the_object_beside_it_and_in_the_table() -> None:
+    """The physics check of candidates (`grasping.grasp_check`): the best antipodal grasp of the
+    upright phone holds; moved 20 cm aside the fingers close on nothing; moved aside with the
+    fingertips 1 cm below the table the hand runs into it. Batches run in threads give the
+    same outcomes; each hand carries the gripper link's own mesh only (not every mesh of the
+    robot)."""
+    from grasping import grasp_check
+    from grasping.antipodal import antipodal_grasps, hull_points
+    from grasping.mesh_grasps import convex_pieces
+    from grasping.top_grasps import FINGER_X
+
+    obj = load_object("phone")
+    quat = obj.resting_poses["upright"]
+    up = quat_to_mat(quat)[2]
+    hulls, com = convex_pieces(obj)
+    points, normals = hull_points(hulls)
+    best = antipodal_grasps(points, normals, up, com)[0].T_O_G
+    tip_height = float(best[:3, 3] @ up - (points @ up).min()) - FINGER_X[1]
+    aside, into_table = best.copy(), best.copy()
+    aside[:3, 3] += 0.2 * best[:3, 2]
+    into_table[:3, 3] = aside[:3, 3] - (tip_height + 0.01) * up
+    outcomes = grasp_check.check_grasps(obj, quat, [best, aside, into_table])
+    assert outcomes == ["success", "missed", "collision"]
+    # A batch a thread: the same outcomes, in the candidates' order, as one batch after another.
+    one, two = (grasp_check.CheckConfig(batch=1, threads=k) for k in (1, 2))
+    trials = [into_table, best, aside]
+    assert grasp_check.check_grasps(obj, quat, trials, two) == grasp_check.check_grasps(
+        obj, quat, trials, one
+    )
+    assert [m.name for m in grasp_check._gripper_source().meshes] == [C.GRIPPER_BODY]
