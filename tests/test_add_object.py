@@ -446,7 +446,7 @@ def test_env_takes_a_user_object(made, monkeypatch) -> None:
 @pytest.mark.slow
 def test_export_bop_writes_user_models(made, monkeypatch, tmp_path) -> None:
     from perception.training.data.bop import obj_id
-    from sim.bop_results import read_export
+    from sim.evaluation.bop_results import read_export
     from sim.export_bop import export_bop
 
     root, _ = made
@@ -508,8 +508,8 @@ def test_the_refiner_and_the_codebook_draw_a_user_object_from_its_hulls(
 
 @pytest.mark.slow
 def test_a_learned_estimator_says_it_does_not_know_a_user_object(made, monkeypatch) -> None:
-    from sim.episode import play_episode
-    from sim.estimators import make_estimator
+    from sim.episodes.episode import play_episode
+    from sim.episodes.registry import make_estimator
 
     root, _ = made
     monkeypatch.setenv(OBJECTS_ENV, str(root))
@@ -520,12 +520,12 @@ def test_a_learned_estimator_says_it_does_not_know_a_user_object(made, monkeypat
 
 @pytest.mark.slow
 def test_oracle_grasps_a_made_object_on_isolated_and_any_pose(made, monkeypatch) -> None:
-    from sim.episode import play_episode
-    from sim.estimators import NoisyOracleEstimator, OracleEstimator
+    from sim.episodes.episode import play_episode
+    from sim.episodes.registry import NoisyOracleEstimator, OracleEstimator
 
     root, _ = made
     monkeypatch.setenv(OBJECTS_ENV, str(root))
-    from sim.episode import EpisodeConfig
+    from sim.episodes.episode import EpisodeConfig
 
     for name in ("box", "cylinder", "openbox"):
         for tier in ("isolated", "any-pose"):
