@@ -28,6 +28,7 @@ disagree or rest on fewer than `MIN_PAIRS` episodes: the exact test is then the 
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -299,6 +300,17 @@ def report_sensor(report: dict, source: str) -> str:
     return named[0] if named else "ideal"
 
 
+def _first_differing(
+    paths: list[Path], value: Callable[[Path], str]
+) -> tuple[tuple[Path, str], tuple[Path, str]] | None:
+    """The first report and the first after it whose `value` differs from its, or None."""
+    first = (paths[0], value(paths[0]))
+    for path in paths[1:]:
+        if (v := value(path)) != first[1]:
+            return first, (path, v)
+    return None
+
+
 def check_same_task(paths: list[Path]) -> None:
     """Refuse to pair reports of different tasks (a report's ``task``; ``lift`` when it records
     none): a placed object and a lifted one are different outcomes.
@@ -306,16 +318,12 @@ def check_same_task(paths: list[Path]) -> None:
     Raises:
         InvalidArgumentError: two reports name different tasks, naming the first that differs.
     """
-    first: tuple[Path, str] | None = None
-    for path in paths:
-        task = str(read_report(path).get("task", "lift"))
-        if first is None:
-            first = (path, task)
-        elif task != first[1]:
-            raise InvalidArgumentError(
-                f"{first[0]} is of the {first[1]} task and {path} of the {task} task; pair runs "
-                "of one task"
-            )
+    found = _first_differing(paths, lambda p: str(read_report(p).get("task", "lift")))
+    if found is not None:
+        (a, ta), (b, tb) = found
+        raise InvalidArgumentError(
+            f"{a} is of the {ta} task and {b} of the {tb} task; pair runs of one task"
+        )
 
 
 def check_same_sensor(paths: list[Path]) -> None:
@@ -326,16 +334,12 @@ def check_same_sensor(paths: list[Path]) -> None:
         InvalidArgumentError: a report does not conform to the schema or mixes sensors, or two
             name different sensors, naming the first that differs.
     """
-    first: tuple[Path, str] | None = None
-    for path in paths:
-        sensor = report_sensor(read_report(path), str(path))
-        if first is None:
-            first = (path, sensor)
-        elif sensor != first[1]:
-            raise InvalidArgumentError(
-                f"{first[0]} observed through sensor {first[1]!r} and {path} through {sensor!r}; "
-                "pair runs of one sensor"
-            )
+    found = _first_differing(paths, lambda p: report_sensor(read_report(p), str(p)))
+    if found is not None:
+        (a, sa), (b, sb) = found
+        raise InvalidArgumentError(
+            f"{a} observed through sensor {sa!r} and {b} through {sb!r}; pair runs of one sensor"
+        )
 
 
 def compare(
