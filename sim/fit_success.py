@@ -1,6 +1,6 @@
 """Fit P(grasp success | pose error) per object and tier from noisy-oracle episodes.
 
-    python -m sim.fit_success --tier isolated --episodes 100 [--workers N] \
+    python -m sim.fit_success --tier isolated --episodes 100 [--task lift] [--workers N] \
         [--models docs/success_model.json]
     python -m sim.fit_success --refit                  # refit every model from its stored episodes
     python -m sim.fit_success --check run.json ...     # predicted against measured success
@@ -10,7 +10,9 @@ episode draws its own sigma for each component (along and across the camera ray 
 and out-of-plane [deg]) uniformly up to the given figure, then Gaussian errors, so the sample
 covers every mix of the four components. Each episode's error components and outcome train a
 `perception.success_model.SuccessModel` whose bandwidths maximise the leave-one-out likelihood.
-The models of a tier replace that tier's in `--models` and keep the others.
+The models of a tier replace that tier's in `--models` and keep the others. A model is of one task
+(`--task`, `sim.episodes.registry.add_task_argument`): the lift's are stored as
+``<object>/<tier>``, the place's as ``<object>/<tier>/place`` (`model_key`).
 ``perception.training.tables --success-model`` then reports the grasp success the test-split
 poses should reach, without running a robot. `--refit` fits every model in `--models` again from the
 episodes it stores (no episodes are run). `--check` takes reports of ``sim.evaluate --json`` and
@@ -34,6 +36,7 @@ from posegrasp.core.paths import DOCS_DIR
 from posegrasp.core.validate import arg, check_int, check_names, check_output_file
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import DEFAULT_TIER, TIERS, check_tier
+from sim.episodes.registry import add_task_argument
 from sim.evaluation import Protocol, evaluate_protocol
 
 #: The noise of the sampled episodes (`--noise` of noisy-oracle): largest sigmas along and across
@@ -44,10 +47,18 @@ SEED_START = 1_700_000_000
 DEFAULT_MODELS = DOCS_DIR / "success_model.json"
 
 
-def sample(objects: list[str], episodes: int, tier: str, workers: int) -> list[dict]:
-    """Noisy-oracle episodes of every object, each as its error components and outcome:
-    [{"object", "seed", "x" (4,), "success"}]."""
-    protocol = Protocol(tuple(objects), episodes, SEED_START, tier, SPREAD)
+def model_key(obj: str, tier: str, task: str = "lift") -> str:
+    """The key of an object's model on a tier and task: ``<object>/<tier>`` for the lift (as
+    every model was stored before tasks), ``<object>/<tier>/<task>`` otherwise."""
+    return f"{obj}/{tier}" if task == "lift" else f"{obj}/{tier}/{task}"
+
+
+def sample(
+    objects: list[str], episodes: int, tier: str, workers: int, task: str = "lift"
+) -> list[dict]:
+    """Noisy-oracle episodes of every object on the task, each as its error components and
+    outcome: [{"object", "seed", "x" (4,), "success"}]."""
+    protocol = Protocol(tuple(objects), episodes, SEED_START, tier, SPREAD, task=task)
     report = evaluate_protocol(protocol, "noisy-oracle", workers=workers)
     return [
         {
@@ -66,14 +77,14 @@ def _record(model: SuccessModel) -> dict:
     return model.to_json() | {"episodes": len(model.y), "success_rate": model.rate}
 
 
-def fit(samples: list[dict], objects: list[str], tier: str) -> dict[str, dict]:
-    """One model per object from its samples, by ``"<object>/<tier>"``."""
+def fit(samples: list[dict], objects: list[str], tier: str, task: str = "lift") -> dict[str, dict]:
+    """One model per object from its samples, by `model_key`."""
     models = {}
     for o in objects:
         mine = [s for s in samples if s["object"] == o]
         X = np.array([s["x"] for s in mine])
         y = np.array([s["success"] for s in mine], float)
-        models[f"{o}/{tier}"] = _record(SuccessModel.fit(X, y))
+        models[model_key(o, tier, task)] = _record(SuccessModel.fit(X, y))
     return models
 
 
@@ -91,14 +102,15 @@ def check(models: dict[str, SuccessModel], report: dict) -> tuple[float, int, in
     a pose estimate.
 
     Raises:
-        AssetError: a report without episodes, or an object or tier no model covers.
+        AssetError: a report without episodes, or an object, tier or task no model covers.
     """
     episodes = [e for e in report.get("episodes", []) if e.get("pose_error") is not None]
     if not episodes:
         raise AssetError("the report lists no episode with a pose error (sim.evaluate --json)")
     p = []
     for e in episodes:
-        key = f"{e['object']}/{e.get('tier', report.get('tier'))}"
+        tier = e.get("tier", report.get("tier"))
+        key = model_key(e["object"], tier, report.get("task", "lift"))
         if key not in models:
             raise AssetError(f"no success model for {key}; fit it with `python -m sim.fit_success`")
         p.append(float(models[key].predict(components_of(e["pose_error"]))))
@@ -112,9 +124,8 @@ def _read_json(path: Path, what: str) -> dict:
         raise AssetError(f"cannot read {what} {path} ({exc})") from None
 
 
-@command
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit status."""
+def _parser() -> ArgumentParser:
+    """The command line: the episodes, the models' file and the mode."""
     p = ArgumentParser(prog="python -m sim.fit_success", description=__doc__.split("\n")[0])
     p.add_argument(
         "--objects",
@@ -134,6 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         type=arg(check_tier),
         help=f"scene tier, one of: {', '.join(TIERS)}",
     )
+    add_task_argument(p)
     add_workers_argument(p)
     p.add_argument(
         "--models",
@@ -146,7 +158,13 @@ def main(argv: list[str] | None = None) -> int:
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--refit", action="store_true", help="refit the models from their episodes")
     mode.add_argument("--check", type=Path, nargs="+", metavar="RUN", help="sim.evaluate reports")
-    args = p.parse_args(argv)
+    return p
+
+
+@command
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
     if args.check:
         loaded = load_models(args.models)
         for path in args.check:
@@ -168,11 +186,10 @@ def main(argv: list[str] | None = None) -> int:
             raise AssetError(f"{args.models} holds no models to refit")
         models = refit(old)
     else:
-        samples = sample(args.objects, args.episodes, args.tier, args.workers)
-        models = {**old, **fit(samples, args.objects, args.tier)}
-    shown = (
-        sorted(models) if args.refit else sorted(k for k in models if k.endswith(f"/{args.tier}"))
-    )
+        samples = sample(args.objects, args.episodes, args.tier, args.workers, args.task)
+        models = {**old, **fit(samples, args.objects, args.tier, args.task)}
+    mine = {model_key(o, args.tier, args.task) for o in args.objects}
+    shown = sorted(models) if args.refit else sorted(k for k in models if k in mine)
     for key in shown:
         m = models[key]
         bw = ", ".join(f"{c} {h:g}" for c, h in zip(COMPONENTS, m["bandwidth"], strict=True))

@@ -133,7 +133,10 @@ CLIS: dict[str, tuple[list[str], list[str]]] = {
     ),
     "sim.gate": (["--write", "--baseline", "--workers", "--estimator"], ["run_gate"]),
     "sim.compare": (["--json", "--boot", "--curve", "--plot"], []),
-    "sim.fit_success": (["--objects", "--episodes", "--tier", "--workers", "--models"], ["sample"]),
+    "sim.fit_success": (
+        ["--objects", "--episodes", "--tier", "--task", "--workers", "--models"],
+        ["sample"],
+    ),
     "perception.training.datagen": (
         [
             "--dist",

@@ -146,3 +146,19 @@ def test_refit_and_check_from_the_cli(tmp_path: Path, capsys) -> None:
     run.write_text(json.dumps(_report("hard", rows)))
     assert fit_success.main(["--check", str(run), "--models", str(path)]) == 2
     assert "no success model for phone/hard" in capsys.readouterr().err
+
+
+def test_a_place_report_is_checked_against_the_place_models(tmp_path: Path, capsys) -> None:
+    """The models of the place task are keyed apart from the lift's; a place report asks for
+    them and names the one it misses."""
+    X, y = _step_data(80)
+    model = SuccessModel.fit(X, y)
+    assert fit_success.model_key("phone", "far") == "phone/far"
+    assert fit_success.model_key("phone", "far", "place") == "phone/far/place"
+    rows = [("phone", 2.0, True), ("phone", 200.0, False)]
+    place = _report("far", rows) | {"task": "place"}
+    lift_only = {"phone/far": model}
+    with pytest.raises(AssetError, match="no success model for phone/far/place"):
+        fit_success.check(lift_only, place)
+    pred, k, n = fit_success.check({"phone/far/place": model}, place)
+    assert (k, n) == (1, 2) and 0 <= pred <= 1
