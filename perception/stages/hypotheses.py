@@ -39,7 +39,7 @@ class NetsPose:
 
 class CodebookHypotheses:
     """The codebook's hypothesis source: a detection's mask matched against the silhouettes of
-    its object over the whole rotation group, the best templates `min_angle_deg` apart.
+    its object over the whole rotation group (`CodebookMatch.best` ranks the templates).
 
     Args:
         codebooks: where the codebooks come from.
@@ -68,14 +68,6 @@ class CodebookHypotheses:
         views = occluded_views(det.mask, occluder, view, self.config.occluded_grow) or [view]
         scores = job.scores([(v.bits, v.hidden) for v in views], executor)
         return CodebookMatch(job.book, views, scores, K)
-
-    def best(self, match: CodebookMatch, skip: int, count: int, taken: list[int]) -> list[int]:
-        """The templates ranked `skip` to `skip + count` by score after the suppression, those
-        in `taken` left out."""
-        found = top_hypotheses(
-            match.scores, match.book.rotations, skip + count, self.config.min_angle_deg
-        )
-        return [i for i in found[skip:] if i not in taken]
 
 
 class RestingHypotheses:
@@ -167,7 +159,7 @@ class Hypotheses:
         first = NetsPose.hypotheses(det)
         taken: list[int] = []
         if match is not None:
-            taken = self.codebook.best(match, 0, book.hypotheses, [])
+            taken = match.best(0, book.hypotheses, [], book.min_angle_deg)
             if priors.gravity is not None and book.resting_hypotheses:
                 taken += self.resting.best(match, priors.gravity, book.resting_hypotheses, taken)
             first += match.hypotheses(taken)

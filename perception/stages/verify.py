@@ -6,8 +6,8 @@ from __future__ import annotations
 from perception.parts import ConvexParts
 from perception.refine import PoseRefiner
 from perception.scoring import Scorer, ScoringConfig
-from perception.stages.config import GlobalConfig, SecondLookConfig
-from perception.stages.hypotheses import CodebookHypotheses, RestingHypotheses
+from perception.stages.config import CodebookConfig, GlobalConfig, SecondLookConfig
+from perception.stages.hypotheses import RestingHypotheses
 from perception.stages.work import Kit, Work
 from perception.verification import RefinementConfig, Verification, VerifyJob
 
@@ -58,21 +58,22 @@ class SecondLook:
 
     Args:
         config: the second look's settings.
-        codebook: the codebook stage's templates, ranked as they are there.
+        codebook: the codebook's settings (the templates are ranked as the hypotheses stage
+            ranks them, after its `CodebookConfig.hypotheses`).
     """
 
     name = "second_look"
 
-    def __init__(self, config: SecondLookConfig, codebook: CodebookHypotheses) -> None:
+    def __init__(self, config: SecondLookConfig, codebook: CodebookConfig) -> None:
         self.config, self.codebook = config, codebook
-        self.resting = RestingHypotheses(codebook.config.min_angle_deg)
+        self.resting = RestingHypotheses(codebook.min_angle_deg)
 
     @classmethod
     def build(cls, config: GlobalConfig, kit: Kit) -> SecondLook | None:
         """The stage of `config.second_look` (None: left out)."""
         if config.second_look is None:
             return None
-        return cls(config.second_look, CodebookHypotheses(kit.codebooks, config.codebook))
+        return cls(config.second_look, config.codebook)
 
     def wanted(self, work: Work) -> bool:
         """Whether the work allows it, the mask was matched and the best is unsure or none."""
@@ -89,7 +90,8 @@ class SecondLook:
         match, look, gravity = work.match, self.config, work.priors.gravity
         assert match is not None and work.verification is not None
         taken = list(work.taken)
-        later = self.codebook.best(match, self.codebook.config.hypotheses, look.hypotheses, taken)
+        book = self.codebook
+        later = match.best(book.hypotheses, look.hypotheses, taken, book.min_angle_deg)
         if gravity is not None and look.resting:
             later += self.resting.best(match, gravity, look.resting, taken + later)
         work.verification.add(match.hypotheses(later))

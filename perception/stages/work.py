@@ -16,7 +16,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from perception.codebook import Codebook, CodebookCache, MaskView, hypothesis_pose
+from perception.codebook import (
+    Codebook,
+    CodebookCache,
+    MaskView,
+    hypothesis_pose,
+    top_hypotheses,
+)
 from perception.detector import Detection
 from perception.hybrid import HybridPoseEstimator, PoseDetection, occluder_of
 from perception.mask_net import MaskRefiner
@@ -76,6 +82,12 @@ class CodebookMatch:
             Hypothesis(hypothesis_pose(self.book, i % n, self.views[i // n], self.K), "codebook")
             for i in indices
         ]
+
+    def best(self, skip: int, count: int, taken: list[int], min_angle_deg: float) -> list[int]:
+        """The templates ranked `skip` to `skip + count` by score after the suppression
+        (`min_angle_deg` [deg] apart), those in `taken` left out."""
+        found = top_hypotheses(self.scores, self.book.rotations, skip + count, min_angle_deg)
+        return [i for i in found[skip:] if i not in taken]
 
 
 @dataclass(frozen=True)
