@@ -49,11 +49,12 @@ def bop_scores(episodes: list[dict]) -> dict[str, float | None]:
     }
 
 
-def group_summary(episodes: list[dict]) -> dict[str, Any]:
+def group_summary(episodes: list[dict], task: str = "lift") -> dict[str, Any]:
     """The aggregates of a group of episodes (one object's, or all): successes, rate and Wilson
     95 % interval, failure reasons, median and 90th-percentile pose errors ([m], [deg]), friction
     margin mean with its bootstrap 95 % interval and its Spearman correlation with the pose
-    error (when measured), how often pose and grasp disagree, `bop_scores`, `place_summary`,
+    error (when measured), how often pose and grasp disagree, `bop_scores`, on the place `task`
+    `place_summary`,
     the risk-coverage
     curve of the estimates' confidences with its area (``risk_coverage``,
     `sim.evaluation.stats.risk_coverage`; None when no episode has a confidence), and the median
@@ -91,7 +92,8 @@ def group_summary(episodes: list[dict]) -> dict[str, Any]:
     out["grasped_wrong_pose"] = sum(bool(e["success"]) and not e["pose_correct"] for e in judged)
     out["missed_right_pose"] = sum(not e["success"] and bool(e["pose_correct"]) for e in judged)
     out.update(bop_scores(episodes))
-    out.update(place_summary(episodes))
+    if task == "place":
+        out.update(place_summary(episodes))
     out["risk_coverage"] = risk_coverage(
         [e.get("confidence") for e in episodes], [bool(e["success"]) for e in episodes]
     )
@@ -103,13 +105,11 @@ def group_summary(episodes: list[dict]) -> dict[str, Any]:
 
 
 def place_summary(episodes: list[dict]) -> dict[str, Any]:
-    """The place task's aggregates (empty for lift episodes): how many episodes lifted the object
-    (``lifted``: those that went on to place it), and over them the median and 90th percentile
-    of where it came to rest against its goal, symmetry-aware (``place_translation_m_*`` [m],
-    ``place_rotation_deg_*`` [deg])."""
+    """The place task's aggregates: how many episodes lifted the object (``lifted``: those
+    that went on to place it), and over them the median and 90th percentile of where it came to
+    rest against its goal, symmetry-aware (``place_translation_m_*`` [m],
+    ``place_rotation_deg_*`` [deg]; None when none lifted)."""
     placed = [e["place"] for e in episodes if e.get("place")]
-    if not any("place" in e for e in episodes) and not placed:
-        return {}
     out: dict[str, Any] = {"lifted": len(placed)}
     for key in ("translation_m", "rotation_deg"):
         v = np.array([p["errors"][key] for p in placed])
@@ -153,10 +153,10 @@ def make_report(
             "workers": workers,
             "wall_s": wall_s,
             "per_object": {
-                o: group_summary([e for e in episodes if e["object"] == o])
+                o: group_summary([e for e in episodes if e["object"] == o], protocol.task)
                 for o in protocol.objects
             },
-            "overall": group_summary(episodes),
+            "overall": group_summary(episodes, protocol.task),
             "episodes": episodes,
             **protocol.recorded_apart(),
         },
