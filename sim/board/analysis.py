@@ -33,7 +33,7 @@ def analyse(cells: list[dict], reports: dict[str, dict]) -> dict:
     scored = [
         c
         for c in cells
-        if c.get("summary") and c["estimator"] != "oracle" and c.get("task", BASE_TASK) == BASE_TASK
+        if c.get("summary") and c["estimator"] != ORACLE and c.get("task", BASE_TASK) == BASE_TASK
     ]
     drops = drop_table(cells, reports)
     out: dict = {

@@ -18,11 +18,10 @@ from typing import Any
 import numpy as np
 
 from sim.board.cell_summaries import AR_KEYS, summaries
+from sim.board.pairs import ORACLE
 from sim.board.tracks import BASE_TASK
 from sim.evaluation.stats import wilson_interval
 
-#: The estimator left out of the AR and coverage plots.
-ORACLE = "oracle"
 #: Resolution of the saved images [dots per inch].
 DPI = 110
 

@@ -124,9 +124,9 @@ def drop_table(cells: list[dict], reports: dict[str, dict]) -> list[dict]:
     out = []
     groups = _groups(cells)
     for (tier, sensor, task, shifts), group in groups.items():
-        base = {c["estimator"]: c for c in groups.get((tier, sensor, task, NO_SHIFT), [])}
         if shifts == NO_SHIFT:
             continue
+        base = {c["estimator"]: c for c in groups.get((tier, sensor, task, NO_SHIFT), [])}
         for c in group:
             if c["estimator"] not in base:
                 continue
