@@ -288,9 +288,10 @@ class DetectorTrainer:
         loss, parts = detection_loss(cfg, self.net, images, targets, device)
         lr = learning_rate(run.step, cfg.epochs * run.steps_per_epoch, cfg.lr, cfg.warmup)
         optimiser_step(run.model, run.opt, loss, lr, cfg.grad_clip)
-        self.losses.append(self.ranks.mean(loss))  # every rank takes part
-        shown = {k.removeprefix("loss_"): float(v.detach()) for k, v in parts.items()}
-        return Step(loss, lr, shown)
+        mean = self.ranks.mean(loss)  # every rank takes part
+        self.losses.append(mean)
+        shown = {k.removeprefix("loss_"): v.detach() for k, v in parts.items()}
+        return Step(loss, lr, shown, mean)
 
     def validate(self, run: Run, epoch: int) -> None:
         """COCO AP on the first val images, into the history with the epoch's mean training

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -68,12 +68,15 @@ class Step:
     Attributes:
         loss: the loss on this process's shard of the batch.
         lr: the learning rate of the step.
-        shown: the figures the progress bar shows.
+        shown: the figures the progress bar shows (tensors are read only when it shows them).
+        mean: the loss averaged over the processes when the net has averaged it already (None:
+            `fit` averages it when it logs the loss).
     """
 
     loss: torch.Tensor
     lr: float
-    shown: dict[str, float]
+    shown: Mapping[str, float | torch.Tensor]
+    mean: float | None = None
 
 
 class NetTrainer(Protocol):
@@ -159,10 +162,10 @@ def fit(
             step = net.step(run, batch, epoch)
             run.step += 1
             if loss_log is not None:  # every rank takes part in the mean
-                loss = ranks.mean(step.loss)
+                loss = ranks.mean(step.loss) if step.mean is None else step.mean
                 ranks.log(loss_log, step=run.step, epoch=epoch + 1, loss=loss, lr=step.lr)
             if run.step % 20 == 0:
-                bar.set_postfix({k: f"{v:.3f}" for k, v in step.shown.items()})
+                bar.set_postfix({k: f"{float(v):.3f}" for k, v in step.shown.items()})
             ckpts.save_if_due(epoch)
         bar.close()
         run.epoch = epoch + 1

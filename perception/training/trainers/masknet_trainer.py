@@ -219,7 +219,7 @@ class MaskNetTrainer:
         loss.backward()
         run.opt.step()
         self.sched.step()
-        return Step(loss, lr, {"loss": loss.item()})
+        return Step(loss, lr, {"loss": loss.detach()})
 
     def validate(self, run: Run, epoch: int) -> None:
         """The IoUs on the validation windows (`window_ious`), into the history and printed."""
