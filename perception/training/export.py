@@ -17,9 +17,6 @@ from posegrasp.core.paths import WEIGHTS_DIR, checkpoint_dir
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_plot_path
 
-#: The shipped pose nets: each variant, and `ours` fine-tuned on the hard tier too (the expert
-#: of ``hybrid``, `perception.hybrid.HARD_POSENET`).
-
 
 @command
 def main(argv: list[str] | None = None) -> int:

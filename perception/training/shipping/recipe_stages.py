@@ -22,13 +22,12 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from perception.training.shipping.ship import checkpoint_record, ship
+from perception.training.shipping.ship import checkpoint_record, ship, stamp_manifest
 from perception.training.trainers import detector_trainer, masknet_trainer, posenet_trainer
 from perception.training.trainers.checkpoints import read_checkpoint
 from perception.training.trainers.manifest import MANIFEST_NAME, read_manifest, stage_record
 from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 from posegrasp.core.files import atomic_write_json
-from posegrasp.core.paths import git_commit
 
 #: The trainers a stage may use: their modules, each with ``train(config)`` and
 #: ``command_line(config)``.
@@ -370,9 +369,5 @@ def ship_all(recipe: Recipe, checkpoints: Path, weights: Path) -> list[dict[str,
         dest = weights / artefact.file
         command = stage_command(last, checkpoints)
         entries.append(ship(state, kind, dest, artefact.key, command, earlier, stage=last.name))
-    manifest_path = weights / MANIFEST_NAME
-    manifest = read_manifest(manifest_path)
-    manifest["rebuild"] = "make weights"
-    manifest["exported_at_commit"] = git_commit()
-    atomic_write_json(manifest_path, manifest)
+    stamp_manifest(weights)
     return entries

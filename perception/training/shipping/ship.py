@@ -186,7 +186,17 @@ def export(checkpoints: Path, out: Path = WEIGHTS_DIR) -> dict:
         ship(state, "posenet", path, ("pose_nets", variant), command, _stages(state)[:-1])
     if not found:
         raise AssetError(f"no checkpoints under {checkpoints}; run {TRAIN_COMMAND}")
-    manifest_path = out / MANIFEST_NAME
+    return stamp_manifest(out)
+
+
+def stamp_manifest(weights: Path) -> dict[str, Any]:
+    """Record in the manifest in `weights` how its files are rebuilt and the commit that shipped
+    them; returns the manifest.
+
+    Raises:
+        AssetError: a manifest that is not valid JSON.
+    """
+    manifest_path = weights / MANIFEST_NAME
     manifest = read_manifest(manifest_path)
     manifest["rebuild"] = "make weights"
     manifest["exported_at_commit"] = git_commit()
