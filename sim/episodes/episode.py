@@ -499,9 +499,14 @@ class Episode:
             reason = outcome.failure_reason
         res.place = self.place_record(reason)
         res.success, res.failure_reason = res.place["placed"], res.place["failure_reason"]
+        res.timings_ms = self._totalled()
+
+    def _totalled(self) -> dict[str, float]:
+        """The episode's timings so far [ms] with their ``total`` (every stage's, ``ik`` being
+        part of ``plan``) last, anew."""
         self.timings_ms.pop("total", None)
         self.timings_ms["total"] = sum(v for k, v in self.timings_ms.items() if k != "ik")
-        res.timings_ms = dict(self.timings_ms)
+        return dict(self.timings_ms)
 
     def place_record(self, reason: str | None) -> dict[str, Any]:
         """Where the target rests now against its goal: the goal, the final pose T_world_O,
@@ -583,9 +588,8 @@ class Episode:
         notes: list[str],
         part: str | None = None,
     ) -> EpisodeResult:
-        timings = self.timings_ms
         lift = self.scene.object_lowest_z() - self.scene.table_top_z
-        timings["total"] = sum(v for k, v in timings.items() if k not in ("total", "ik"))
+        timings = self._totalled()
         return EpisodeResult(
             self.object,
             self.seed,
@@ -598,7 +602,7 @@ class Episode:
             errors,
             float(lift),
             part,
-            dict(timings),
+            timings,
             notes,
             scene=self.scene_info(),
             sensor=self.sensor.name,
