@@ -1,6 +1,6 @@
 """How often can the robot place an object it holds when it knows the object's pose?
 
-    python studies/place_ceiling.py [--tiers all] [--episodes 20] [--json PATH]
+    python studies/place_ceiling.py [--tiers all] [--episodes 20] [--workers N] [--json PATH]
 
 For each tier, `oracle` plays the place task (`sim.episodes.episode.EpisodeConfig.task`) on the
 same held-out scenes (`--episodes` per object, seeds from
@@ -16,26 +16,21 @@ Per tier it prints both successes (Wilson 95 % intervals) and the failures of ea
 from __future__ import annotations
 
 import sys
-from collections import Counter
-from dataclasses import replace
 
-from grasping.place import PlaceConfig
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
+    add_workers_argument,
     command,
     summary_stream,
     write_json,
 )
-from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_int, check_names
 from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import TIERS
-from sim.episodes.episode import Episode, EpisodeConfig
-from sim.episodes.registry import make_estimator
-from sim.evaluation.stats import wilson_interval
+from sim.evaluation import Protocol, evaluate_protocol
 
 #: The robot's beliefs compared (`grasping.place.BELIEFS`).
 BELIEFS = ("estimate", "truth")
@@ -56,32 +51,21 @@ def _parser() -> ArgumentParser:
         type=arg(check_int, 1, 1000, "--episodes", base=int),
         help="episodes per object and tier, 1..1000 (default 20)",
     )
+    add_workers_argument(p)
     add_json_argument(p, "the successes and failures per tier and belief")
     return p
 
 
-def _play(tier: str, belief: str, episodes: int) -> dict:
+def _play(tier: str, belief: str, episodes: int, workers: int) -> dict:
     """One tier's place episodes of the oracle with one belief: successes and failures."""
-    oracle = make_estimator("oracle")
-    config = replace(EpisodeConfig(task="place", tier=tier), place=PlaceConfig(belief=belief))
-    reasons: Counter[str] = Counter()
-    placed = 0
-    seeds = [(o, EVAL_SEED_BASE + i) for o in OBJECT_NAMES for i in range(episodes)]
-    for obj, seed in progress_bar(seeds, desc=f"{tier} {belief}", leave=False):
-        ep = Episode(obj, seed, config)
-        try:
-            res = ep.run(oracle)[1]
-        finally:
-            ep.close()
-        placed += res.success
-        if not res.success:
-            reasons[str(res.failure_reason)] += 1
-    lo, hi = wilson_interval(placed, len(seeds))
+    protocol = Protocol(OBJECT_NAMES, episodes, EVAL_SEED_BASE, tier, task="place", belief=belief)
+    report = evaluate_protocol(protocol, "oracle", workers=workers)
+    o = report["overall"]
     return {
-        "episodes": len(seeds),
-        "placed": placed,
-        "wilson": [lo, hi],
-        "failures": dict(sorted(reasons.items())),
+        "episodes": o["episodes"],
+        "placed": o["successes"],
+        "wilson": [o["wilson_low"], o["wilson_high"]],
+        "failures": o["failure_reasons"],
     }
 
 
@@ -96,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     for tier in args.tiers:
         rows[tier] = {}
         for belief in BELIEFS:
-            r = rows[tier][belief] = _play(tier, belief, args.episodes)
+            r = rows[tier][belief] = _play(tier, belief, args.episodes, args.workers)
             lo, hi = r["wilson"]
             print(
                 f"{tier:<9} {belief:<9} {r['placed']:>4}/{r['episodes']:<3} [{lo:.3f}, {hi:.3f}]  "

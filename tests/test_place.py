@@ -105,3 +105,14 @@ def test_a_pose_turned_about_the_vertical_is_lifted_but_not_placed(task: str) ->
         return
     assert res.place is not None and not res.success and res.failure_reason == "off_target"
     assert res.place["errors"]["rotation_deg"] > PLACE_TOLERANCE[1]
+
+
+def test_a_protocol_carries_the_place_belief_and_records_it_apart() -> None:
+    from sim.evaluation import Protocol
+
+    truth = Protocol(["phone"], 1, task="place", belief="truth")
+    assert truth.episode_config().place.belief == "truth"
+    assert truth.recorded_apart() == {"task": "place", "belief": "truth"}
+    assert "belief" not in Protocol(["phone"], 1, task="place").recorded_apart()
+    with pytest.raises(UnknownNameError, match="estimate, truth"):
+        Protocol(["phone"], 1, task="place", belief="guess")

@@ -15,6 +15,7 @@ from typing import Any
 
 from grasping.candidates import CANDIDATE_SOURCES
 from grasping.execute import ExecutionConfig
+from grasping.place import PlaceConfig
 from grasping.planner import PlannerConfig
 from posegrasp.core.validate import check_choice
 from posegrasp.world import constants as C
@@ -50,6 +51,8 @@ class Protocol:
             it, or lift it and ``place`` it at a goal drawn from the seed.
         shifts: the scene shifts every episode is seen under (`posegrasp.world.shifts`:
             purely visual; none: the room as it is).
+        belief: on the place task, where the robot believes the object lies in its hand
+            (`grasping.place.BELIEFS`; ``truth`` is privileged, for measuring the place itself).
 
     Raises:
         UnknownNameError: a tier, observation mode, candidate source, sensor, task or scene
@@ -68,6 +71,7 @@ class Protocol:
     sensor: str = "ideal"
     task: str = "lift"
     shifts: tuple[Shift, ...] = ()
+    belief: str = "estimate"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "objects", tuple(self.objects))
@@ -99,18 +103,22 @@ class Protocol:
             obs_mode=self.obs_mode,
             sensor=self.sensor,
             task=self.task,
+            place=PlaceConfig(belief=self.belief),
         )
 
     def recorded_apart(self) -> dict[str, Any]:
         """The entries a record holds only away from their defaults, so that records written
         before they existed read the same: ``distractor_pool`` (a pool of the caller's),
         ``candidates`` (other than ``designed``), ``sensor`` (other than ``ideal``), ``task``
-        (other than ``lift``) and ``shifts`` (any, as ``NAME:LEVEL`` items)."""
+        (other than ``lift``), ``shifts`` (any, as ``NAME:LEVEL`` items) and ``belief`` (other
+        than ``estimate``)."""
         out: dict[str, Any] = {"distractor_pool": list(self.pool)} if self.pool else {}
         if self.candidates != "designed":
             out["candidates"] = self.candidates
         if self.sensor != "ideal":
             out["sensor"] = self.sensor
+        if self.belief != "estimate":
+            out["belief"] = self.belief
         if self.task != "lift":
             out["task"] = self.task
         if self.shifts:
