@@ -338,7 +338,8 @@ def build_scene(
     for _attempt in range(OCCLUSION_ATTEMPTS):
         # The occlusion is measured without the shifts (visual distractors, a moved camera), so
         # they never change which layout is taken; the one taken is then built again with them
-        # from the same draws.
+        # from the same draws (not shifted in place: the occlusion's render context, reused for
+        # the same model, would keep its unshifted textures).
         state = rng.bit_generator.state
         scene = _assemble(models, cfg, rng, seed)
         hidden = occlusion(
