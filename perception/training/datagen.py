@@ -118,6 +118,13 @@ def _parser() -> argparse.ArgumentParser:
         help=f"headcam only: images per scene, 1..{MAX_VIEWS}, the head aimed at each object in "
         "turn (default 1: one image per scene, as an episode sees it)",
     )
+    p.add_argument(
+        "--rooms",
+        action="store_true",
+        help="headcam only: each scene in a room drawn for training (lights, surfaces, object "
+        "colours, camera, unseen distractors; perception.training.data.rooms); the default "
+        "folder then ends in _rooms",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_backend_arguments(p)
     return p
@@ -135,6 +142,8 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
     check_backend(a.backend, a.address)
     if a.tier is not None and a.dist != "headcam":
         raise InvalidArgumentError(f"--tier applies to --dist headcam, not {a.dist}")
+    if a.rooms and a.dist != "headcam":
+        raise InvalidArgumentError(f"--rooms applies to --dist headcam, not {a.dist}")
     if a.views > 1 and a.dist != "headcam":
         raise InvalidArgumentError(f"--views applies to --dist headcam, not {a.dist}")
     width = a.width if a.width is not None else DEFAULT_SIZE[a.dist][0]
@@ -142,7 +151,8 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
     check_resolution(width, height)
     out = a.out
     if out is None:
-        out = data_root() / (a.dist if a.tier is None else f"{a.dist}_{a.tier}")
+        name = a.dist if a.tier is None else f"{a.dist}_{a.tier}"
+        out = data_root() / (f"{name}_rooms" if a.rooms else name)
         check_output_dir(out, "--out")
     return GenConfig(
         dist=a.dist,
@@ -159,6 +169,7 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
         backend=a.backend,
         address=a.address,
         views=a.views,
+        rooms=a.rooms,
     )
 
 

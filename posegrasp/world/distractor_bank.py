@@ -13,6 +13,7 @@ standing on the table top at (x, y) it sits at (x, y, table top z); lengths in [
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -30,6 +31,11 @@ from posegrasp.world.objects import VISUAL_GROUP
 #: Ids of pybullet's random URDFs that are reserved for scene-shift distractors: never used for
 #: training, so every estimator sees them for the first time. Ids 0-899 are left for training.
 DISTRACTOR_IDS = range(900, 1000)
+#: Ids left for training (the rooms of `perception.training.data.rooms`): 0-899 but 168, whose
+#: mesh file holds no triangles.
+TRAINING_IDS = tuple(i for i in range(900) if i != 168)
+#: The banks a scene's distractors may be drawn from, by name.
+BANKS: dict[str, Sequence[int]] = {"held-out": DISTRACTOR_IDS, "training": TRAINING_IDS}
 #: Name of the static body that holds the distractors, and the prefix of their geoms and meshes.
 BODY = "shift_distractors"
 #: Distractor centres lie this far from the target's centre [m] (min, max).
@@ -117,6 +123,7 @@ def add_distractors(
     table_top_z: float,
     rng: np.random.Generator,
     tries: int = 60,
+    ids: Sequence[int] = DISTRACTOR_IDS,
 ) -> int:
     """Stand up to `count` bank meshes on the table around the target, as visual-only geoms of
     one static body (added last to the worldbody, so every other body keeps its id).
@@ -132,6 +139,7 @@ def add_distractors(
         table_top_z: height of the table top [m].
         rng: the shift's own random stream.
         tries: positions drawn per distractor.
+        ids: the bank's ids to draw from (`BANKS`).
 
     Returns:
         How many distractors were placed.
@@ -140,12 +148,12 @@ def add_distractors(
         AssetError: pybullet's meshes are missing.
     """
     bank_dir()
-    ids = rng.choice(np.asarray(DISTRACTOR_IDS), size=count, replace=False)
+    drawn = rng.choice(np.asarray(ids), size=count, replace=False)
     centre = footprints[0].mean(axis=0)
     body = spec.worldbody.add_body()
     body.name = BODY
     taken = list(footprints)
-    for mesh_id in ids:
+    for mesh_id in drawn:
         mesh = bank_mesh(int(mesh_id))
         turn = _TURNS[int(rng.integers(len(_TURNS)))]
         for _ in range(tries):

@@ -17,6 +17,7 @@ from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from posegrasp.core.paths import SCENES_DIR
 from posegrasp.core.transforms import quat_mul, yaw_quat
 from posegrasp.world import constants as C
+from posegrasp.world.distractor_bank import BANKS
 from posegrasp.world.layout import footprint, sample_layout
 from posegrasp.world.objects import (
     OBJECT_NAMES,
@@ -69,6 +70,9 @@ class SceneConfig:
         shifts: purely visual scene shifts (`posegrasp.world.shifts.parse_shifts`), drawn from
             their own streams of the seed: the layout and the physics are the same with or
             without them, only the images change.
+        distractor_bank: the bank the `distractors` shift draws its meshes from
+            (`posegrasp.world.distractor_bank.BANKS`): ``held-out`` for scoring, ``training``
+            for the training data's rooms.
     """
 
     n_distractors: int = 0
@@ -92,6 +96,11 @@ class SceneConfig:
     distractor_pool: tuple[str, ...] = ()
     robot: RobotConfig = field(default_factory=RobotConfig)
     shifts: tuple[Shift, ...] = ()
+    distractor_bank: str = "held-out"
+
+    def __post_init__(self) -> None:
+        if self.distractor_bank not in BANKS:
+            raise UnknownNameError("distractor bank", self.distractor_bank, BANKS)
 
 
 @dataclass
@@ -392,7 +401,7 @@ def _assemble(
         if shifts:
             footprints.append(footprint(obj, rest, yaw) + xy)
     if shifts:
-        shift_spec(spec, shifts, seed, footprints, table_top_z)
+        shift_spec(spec, shifts, seed, footprints, table_top_z, BANKS[cfg.distractor_bank])
 
     model = spec.compile()
     if cfg.randomize_appearance:

@@ -22,7 +22,7 @@ import mujoco
 import numpy as np
 
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
-from posegrasp.world.distractor_bank import add_distractors, bank_dir
+from posegrasp.world.distractor_bank import DISTRACTOR_IDS, add_distractors, bank_dir
 from posegrasp.world.shift_edits import (
     CAMERA_HEIGHT,
     CAMERA_TILT,
@@ -238,6 +238,7 @@ def shift_spec(
     seed: int,
     footprints: list[np.ndarray],
     table_top_z: float,
+    ids: Sequence[int] = DISTRACTOR_IDS,
 ) -> None:
     """The shifts' additions to a scene's spec before it is compiled: the `distractors`.
 
@@ -248,6 +249,7 @@ def shift_spec(
         footprints: the objects' footprints in world xy [m], the target first
             (`posegrasp.world.layout.footprint`, placed).
         table_top_z: height of the table top [m].
+        ids: the distractor bank's ids (the held-out ones unless told).
 
     Raises:
         AssetError: `distractors` without pybullet installed.
@@ -255,7 +257,7 @@ def shift_spec(
     for s in canonical(shifts):
         if FACTORS[s.factor].edit is None:
             rng = shift_rng(seed, s.factor)
-            add_distractors(spec, DISTRACTOR_COUNTS[s.level], footprints, table_top_z, rng)
+            add_distractors(spec, DISTRACTOR_COUNTS[s.level], footprints, table_top_z, rng, ids=ids)
 
 
 def apply_shifts(

@@ -36,9 +36,11 @@ from posegrasp.world.tiers import TIERS
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 DISTS: tuple[str, ...] = ("paper", "headcam")
-#: Dataset folders under the data root: each distribution's, and the head camera's per scene
-#: tier (``headcam_<tier>``, made by ``datagen --dist headcam --tier <tier>``).
-DATASETS: tuple[str, ...] = (*DISTS, *(f"headcam_{t}" for t in TIERS))
+#: Dataset folders under the data root: each distribution's, the head camera's per scene tier
+#: (``headcam_<tier>``, made by ``datagen --dist headcam --tier <tier>``), and the head camera's
+#: in rooms drawn for training (``..._rooms``, ``datagen --rooms``).
+_HEADCAM: tuple[str, ...] = ("headcam", *(f"headcam_{t}" for t in TIERS))
+DATASETS: tuple[str, ...] = (*DISTS, *_HEADCAM[1:], *(f"{d}_rooms" for d in _HEADCAM))
 
 
 @dataclass(frozen=True)

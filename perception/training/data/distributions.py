@@ -20,6 +20,7 @@ import numpy as np
 
 from perception.training.data.dataset import DISTS
 from perception.training.data.offscreen import OffscreenRenderer
+from perception.training.data.rooms import randomize_room, room_shifts
 from perception.training.data.studio import HIDDEN_GROUP, Studio, StudioConfig
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from posegrasp.core.transforms import invert_transform
@@ -100,27 +101,42 @@ class HeadcamGenerator:
         width, height: image size [px].
     """
 
-    def __init__(self, width: int, height: int, tier: str | None = None) -> None:
+    def __init__(
+        self, width: int, height: int, tier: str | None = None, rooms: bool = False
+    ) -> None:
         self.width, self.height = width, height
-        self.tier = tier
+        self.tier, self.rooms = tier, rooms
+        self._room: dict[str, Any] = {}
         self.renderer = OffscreenRenderer(width, height)
+
+    def _config(self, seed: int, **fields: Any) -> SceneConfig:
+        """The scene config of an image of scene `seed`: randomised appearance, and with
+        `rooms` the room's distractors from the training bank."""
+        if self.rooms:
+            fields.update(shifts=room_shifts(seed), distractor_bank="training")
+        return SceneConfig(randomize_appearance=True, **fields)
 
     def _scene(self, name: str, seed: int) -> Scene:
         """``build_scene(name, seed)``: of the generator's tier, or without one, with a number of
         distractors drawn from ``default_rng([seed, 1])`` (when they do not fit on the table, one
         fewer is tried until none is left)."""
         if self.tier is not None:
-            cfg = tier_scene(self.tier, SceneConfig(randomize_appearance=True))
-            return build_scene(name, seed, cfg)
+            return self._roomed(build_scene(name, seed, tier_scene(self.tier, self._config(seed))))
         wanted = int(np.random.default_rng([seed, 1]).integers(0, MAX_DISTRACTORS + 1))
         for n in range(wanted, 0, -1):
             try:
-                return build_scene(
-                    name, seed, SceneConfig(n_distractors=n, randomize_appearance=True)
-                )
+                return self._roomed(build_scene(name, seed, self._config(seed, n_distractors=n)))
             except InvalidArgumentError:  # the objects did not fit on the table
                 pass
-        return build_scene(name, seed, SceneConfig(n_distractors=0, randomize_appearance=True))
+        return self._roomed(build_scene(name, seed, self._config(seed)))
+
+    def _roomed(self, scene: Scene) -> Scene:
+        """The scene in its room (`perception.training.data.rooms`) when the generator draws
+        rooms; the room's draws go into its images' records."""
+        if self.rooms:
+            bodies = [o.body for o in scene.objects]
+            self._room = randomize_room(scene.model, scene.data, bodies, scene.seed)
+        return scene
 
     def render(self, name: str, seed: int) -> RenderedImage:
         """The head camera's view of `_scene` with its visible objects (view 0 of
@@ -204,6 +220,8 @@ class HeadcamGenerator:
         extra = {"target": aimed.name, "n_distractors": len(scene.objects) - 1}
         if view > 0:
             extra["view"] = view
+        if self.rooms:
+            extra["room"] = self._room
         return RenderedImage(rgb, K, T_C_W, objects, extra)
 
     def close(self) -> None:
@@ -263,12 +281,12 @@ def _body_window(
 
 
 def make_generator(
-    dist: str, width: int, height: int, tier: str | None = None
+    dist: str, width: int, height: int, tier: str | None = None, rooms: bool = False
 ) -> PaperGenerator | HeadcamGenerator:
-    """The generator of a distribution (one of `DISTS`) at width x height [px]; `tier` applies
-    to ``headcam``."""
+    """The generator of a distribution (one of `DISTS`) at width x height [px]; `tier` and
+    `rooms` (`perception.training.data.rooms`) apply to ``headcam``."""
     if dist == "paper":
         return PaperGenerator(width, height)
     if dist == "headcam":
-        return HeadcamGenerator(width, height, tier)
+        return HeadcamGenerator(width, height, tier, rooms)
     raise UnknownNameError("distribution", dist, DISTS)

@@ -2,7 +2,9 @@
 
 Seeds: sample ``index`` of a split shows scene ``index // views`` (``views`` = 1 unless
 ``--views``), whose seed is ``SEED_BASES[split] + index // views``; the bases are 10^8 apart, so
-splits never share a seed (``--count`` is at most 10^8). ``paper`` draws everything from
+splits never share a seed (``--count`` is at most 10^8). Rooms (``--rooms``,
+`perception.training.data.rooms`) start `ROOM_SEED_OFFSET` further on, so their scenes are never
+the plain splits' (``--count`` is then at most that offset). ``paper`` draws everything from
 ``numpy.random.default_rng(seed)``; ``headcam`` builds ``build_scene(target, seed, ...)`` with the
 number of distractors drawn from ``default_rng([seed, 1])`` and renders view ``index % views`` of
 it (`HeadcamGenerator.render_views`: view 0 aimed at the target, the others at each object in
@@ -47,6 +49,8 @@ from posegrasp.world.objects import OBJECT_NAMES
 GENERATOR_VERSIONS: dict[str, str] = {"paper": "3", "headcam": "2"}
 SEED_BASES: dict[str, int] = {"train": 0, "val": 100_000_000, "test": 200_000_000}
 MAX_COUNT = 100_000_000
+#: Where the seeds of a split's rooms start after its plain seeds.
+ROOM_SEED_OFFSET = 50_000_000
 #: Most head-camera views rendered of one scene (`--views`).
 MAX_VIEWS = 16
 DEFAULT_SIZE: dict[str, tuple[int, int]] = {"paper": (256, 256), "headcam": (640, 480)}
@@ -71,6 +75,7 @@ class GenConfig:
             table scenes of 0-3 distractors the shipped networks were trained on.
         views: ``headcam`` images per scene (`HeadcamGenerator.render_views`); 1 for
             ``paper``.
+        rooms: ``headcam`` scenes in rooms drawn for training (`perception.training.data.rooms`).
     """
 
     dist: str
@@ -87,10 +92,18 @@ class GenConfig:
     backend: str = "local"
     address: str | None = None
     views: int = 1
+    rooms: bool = False
+
+    def __post_init__(self) -> None:
+        if self.rooms and (self.dist != "headcam" or self.count > ROOM_SEED_OFFSET):
+            raise InvalidArgumentError(
+                f"rooms are of --dist headcam and at most {ROOM_SEED_OFFSET} images per split"
+            )
 
     def seed(self, index: int) -> int:
         """Seed of sample index (of its scene)."""
-        return SEED_BASES[self.split] + index // self.views
+        offset = ROOM_SEED_OFFSET if self.rooms else 0
+        return SEED_BASES[self.split] + offset + index // self.views
 
     def view(self, index: int) -> int:
         """View of its scene that sample index shows."""
@@ -105,6 +118,7 @@ class GenConfig:
         objs = "all" if self.objects == OBJECT_NAMES else ",".join(self.objects)
         tier = "" if self.tier is None else f" --tier {self.tier}"
         tier += "" if self.views == 1 else f" --views {self.views}"
+        tier += " --rooms" if self.rooms else ""
         return (
             f"python -m perception.training.datagen --dist {self.dist} --split {self.split} "
             f"--count {self.count} --objects {objs} --width {self.width} --height {self.height}"
@@ -128,11 +142,12 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
         info = load_info(cfg.out)
         have = (info.get("dist"), info.get("width"), info.get("height"), info.get("version"))
         want = (cfg.dist, cfg.width, cfg.height, GENERATOR_VERSIONS[cfg.dist])
-        if have != want or info.get("tier") != cfg.tier:
+        if have != want or info.get("tier") != cfg.tier or info.get("rooms", False) != cfg.rooms:
             raise InvalidArgumentError(
                 f"{cfg.out} holds a {have[0]} dataset at {have[1]}x{have[2]} (generator "
-                f"version {have[3]}, tier {info.get('tier')}); this run asks for {cfg.dist} at "
-                f"{cfg.width}x{cfg.height} (version {want[3]}, tier {cfg.tier}); "
+                f"version {have[3]}, tier {info.get('tier')}, rooms {info.get('rooms', False)}); "
+                f"this run asks for {cfg.dist} at {cfg.width}x{cfg.height} (version {want[3]}, "
+                f"tier {cfg.tier}, rooms {cfg.rooms}); "
                 "use another --out"
             )
         old = info["splits"].get(cfg.split)
@@ -165,12 +180,14 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
         }
         if cfg.tier is not None:
             info["tier"] = cfg.tier
+        if cfg.rooms:
+            info["rooms"] = True
     return info
 
 
 def _write_info(cfg: GenConfig, info: dict[str, Any], count: int) -> None:
     """Write info.json with the split's entry set to count images."""
-    base = SEED_BASES[cfg.split]
+    base = cfg.seed(0)
     info["splits"][cfg.split] = {
         "count": count,
         "objects": list(cfg.objects),
@@ -190,7 +207,7 @@ def _init_worker(cfg: GenConfig) -> None:
     os.environ.setdefault("LP_NUM_THREADS", "1")
     setup_rendering()
     _WORKER["cfg"] = cfg
-    _WORKER["gen"] = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier)
+    _WORKER["gen"] = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier, cfg.rooms)
 
 
 def _work(indices: tuple[int, ...]) -> tuple[int, ...]:
@@ -292,7 +309,7 @@ def _render_tasks(
     """Render `tasks` in this process, or on the workers of `cfg`'s backend in the order the
     images come back, calling `finished` with each image's index once its files are written."""
     if len(tasks) <= 1 or (cfg.workers <= 1 and cfg.backend == "local"):
-        gen = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier)
+        gen = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier, cfg.rooms)
         try:
             for task in tasks:
                 for i in _generate(cfg, gen, task):

@@ -1,0 +1,188 @@
+"""Rooms that change, for training: a wide randomisation of a head-camera scene's look.
+
+The scene shifts (`posegrasp.world.shifts`) are the test's rooms: named factors at three levels,
+drawn from the scoring seeds. Training draws its own rooms from a wider, continuous family, with
+generators of its own, so that nothing is fitted to the shifts' definitions or their seeds:
+
+- lights: any colour (each channel's gain drawn in 0.15..1, the largest set to 1, blended in by a
+  drawn share), any intensity (x0.2..2.2, log-uniform), the sun anywhere in the upper
+  hemisphere, the lamps turned anywhere about the table;
+- surfaces: the table top, the walls and the floor, each painted with the studio's procedural
+  textures (`perception.training.data.textures.procedural_texture`: smooth noise, stripes or
+  blobs in saturated, pastel or grey colours), blended a drawn share over its own;
+- objects: every visual part of every annotated object moved a drawn share of the way to a
+  colour of its own (any hue, saturation and value), so that an object is told by its shape;
+- camera: the head camera raised or lowered up to 12 cm and tilted up to 10 deg;
+- distractors: unseen visual-only meshes from the training part of the distractor bank
+  (`posegrasp.world.distractor_bank.TRAINING_IDS`, never the ids the shifts score with), 2, 4
+  or 7 of them, added before the scene is compiled (`room_shifts`).
+
+Each factor is drawn on with probability `FACTOR_ODDS`, from ``default_rng([seed, ROOM_STREAM])``,
+so an image's room depends only on its seed. The physics and the scene's layout are those of the
+plain scene of the same seed; only the camera's pose in its head link and what is drawn change.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import mujoco
+import numpy as np
+
+from perception.training.data.textures import procedural_texture
+from posegrasp.core.transforms import quat_mul
+from posegrasp.world import constants as C
+from posegrasp.world.shift_edits import TABLE_TEXTURE, visual_geoms
+from posegrasp.world.shift_textures import hsv, set_texture, texture_size
+from posegrasp.world.shifts import Shift
+
+#: The second word of every room's seed sequence.
+ROOM_STREAM = 0x2007
+#: Chance that each factor is drawn on in an image.
+FACTOR_ODDS = 0.5
+#: The room's textures: the table top, the walls, the floor.
+SURFACES = (TABLE_TEXTURE, "room_wall_tex", "room_floor_tex")
+#: Ranges of the draws: light gain, camera height [m] and tilt [rad].
+INTENSITY = (0.2, 2.2)
+CAMERA_HEIGHT = 0.12
+CAMERA_TILT = np.deg2rad(10.0)
+#: The factors, in the order they are drawn and applied.
+FACTORS = ("light_colour", "light_intensity", "light_direction", "surfaces", "objects", "camera")
+
+
+def room_rng(seed: int) -> np.random.Generator:
+    """The random stream of the room of the image of scene `seed`."""
+    return np.random.default_rng([seed, ROOM_STREAM])
+
+
+def room_shifts(seed: int) -> tuple[Shift, ...]:
+    """The scene shifts the room of scene `seed` is built with: the `distractors` shift at a
+    drawn level (2, 4 or 7 meshes) with probability `FACTOR_ODDS`, else none; the scene draws
+    them from the training bank (``SceneConfig(distractor_bank="training")``)."""
+    rng = np.random.default_rng([seed, ROOM_STREAM, 1])
+    if rng.random() >= FACTOR_ODDS:
+        return ()
+    return (Shift("distractors", int(rng.integers(1, 4))),)
+
+
+def _gain(model: mujoco.MjModel, gain: np.ndarray) -> None:
+    for field in (model.light_diffuse, model.light_specular, model.light_ambient):
+        field[:] = field * gain
+    head = model.vis.headlight
+    for colour in (head.diffuse, head.ambient, head.specular):
+        colour[:] = colour * gain
+
+
+def _light_colour(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
+    tint = rng.uniform(0.15, 1.0, 3)
+    tint /= tint.max()
+    share = float(rng.uniform(0.2, 1.0))
+    _gain(model, 1.0 + share * (tint - 1.0))
+    return [round(float(v), 3) for v in (*tint, share)]
+
+
+def _light_intensity(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
+    gain = float(np.exp(rng.uniform(*np.log(INTENSITY))))
+    _gain(model, np.full(3, gain))
+    return round(gain, 3)
+
+
+def _light_direction(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
+    centre = np.asarray(data.geom("table_top").xpos, float)
+    turn = float(rng.uniform(-np.pi, np.pi))
+    c, s = np.cos(turn), np.sin(turn)
+    for i in range(model.nlight):
+        if model.light_type[i] == mujoco.mjtLightType.mjLIGHT_DIRECTIONAL:
+            a, azimuth = (
+                float(rng.uniform(0.0, np.deg2rad(85.0))),
+                float(rng.uniform(-np.pi, np.pi)),
+            )
+            model.light_dir[i] = [
+                np.sin(a) * np.cos(azimuth),
+                np.sin(a) * np.sin(azimuth),
+                -np.cos(a),
+            ]
+        else:
+            p = model.light_pos[i] - centre
+            model.light_pos[i] = centre + np.array([c * p[0] - s * p[1], s * p[0] + c * p[1], p[2]])
+            d = centre - model.light_pos[i]
+            model.light_dir[i] = d / np.linalg.norm(d)
+    return round(float(np.rad2deg(turn)), 1)
+
+
+def _surfaces(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
+    shares = []
+    for name in SURFACES:
+        h, w = texture_size(model, name)
+        t = model.texture(name).id
+        adr, c = int(model.tex_adr[t]), int(model.tex_nchannel[t])
+        own = model.tex_data[adr : adr + h * w * c].reshape(h, w, c)[..., :3].astype(float)
+        drawn = cv2.resize(procedural_texture(rng, 128), (w, h), interpolation=cv2.INTER_LINEAR)
+        share = float(rng.uniform(0.4, 1.0))
+        set_texture(model, name, np.round((1 - share) * own + share * drawn).astype(np.uint8))
+        shares.append(round(share, 2))
+    return shares
+
+
+def _objects(model: mujoco.MjModel, bodies: list[str], rng: np.random.Generator) -> list[float]:
+    shares = []
+    for body in bodies:
+        share = float(rng.uniform(0.2, 1.0))
+        for g in visual_geoms(model, body):
+            colour = hsv(
+                float(rng.random()), float(rng.uniform(0.0, 1.0)), float(rng.uniform(0.1, 0.95))
+            )
+            model.geom_rgba[g, :3] = (1 - share) * model.geom_rgba[g, :3] + share * colour
+        shares.append(round(share, 2))
+    return shares
+
+
+def _camera(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
+    cam = model.camera(C.HEAD_CAMERA).id
+    dz = float(rng.uniform(-CAMERA_HEIGHT, CAMERA_HEIGHT))
+    tilt = float(rng.uniform(-CAMERA_TILT, CAMERA_TILT))
+    R_world_body = data.xmat[model.cam_bodyid[cam]].reshape(3, 3)
+    model.cam_pos[cam] = model.cam_pos[cam] + R_world_body.T @ np.array([0.0, 0.0, dz])
+    # A MuJoCo camera looks along its -z with y up: turning about +x by -tilt looks down.
+    turn = np.array([np.cos(-tilt / 2), np.sin(-tilt / 2), 0.0, 0.0])
+    model.cam_quat[cam] = quat_mul(model.cam_quat[cam], turn)
+    return [round(dz, 3), round(float(np.rad2deg(tilt)), 1)]
+
+
+def randomize_room(
+    model: mujoco.MjModel, data: mujoco.MjData, bodies: list[str], seed: int
+) -> dict[str, Any]:
+    """Draw the room of scene `seed` onto its compiled, settled model in place (the factors of
+    `FACTORS`, each on with probability `FACTOR_ODDS`), and bring the cameras' and lights' world
+    poses up to date.
+
+    Args:
+        model, data: the compiled scene and its state, kinematics up to date.
+        bodies: the body names of the scene's annotated objects.
+        seed: the scene's seed.
+
+    Returns:
+        What was drawn, factor by factor (for the image's record).
+    """
+    rng = room_rng(seed)
+    on = rng.random(len(FACTORS)) < FACTOR_ODDS
+    drawn: dict[str, Any] = {}
+    for name, wanted in zip(FACTORS, on, strict=True):
+        if not wanted:
+            continue
+        if name == "objects":
+            drawn[name] = _objects(model, bodies, rng)
+        else:
+            drawn[name] = _EDITS[name](model, data, rng)
+    mujoco.mj_camlight(model, data)
+    return drawn
+
+
+_EDITS = {
+    "light_colour": _light_colour,
+    "light_intensity": _light_intensity,
+    "light_direction": _light_direction,
+    "surfaces": _surfaces,
+    "camera": _camera,
+}
