@@ -22,6 +22,7 @@ the matching. The verification of the poses refined from these hypotheses is
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import math
 import sys
@@ -352,7 +353,11 @@ def top_hypotheses(
 
 
 class CodebookCache:
-    """Codebooks by object, built on first use and kept on disk (`folder`) and in memory."""
+    """Codebooks by object, built on first use and kept on disk (`folder`) and in memory.
+
+    A file is named by the object, the grid and a digest of the pieces it was drawn from
+    (`pieces_digest`), so an object made again from another mesh under the same name (``add_object
+    --force``) gets a codebook of its own, never the old one's."""
 
     def __init__(
         self,
@@ -369,7 +374,8 @@ class CodebookCache:
     def get(self, name: str) -> Codebook:
         """The codebook of object `name`."""
         if name not in self._books:
-            path = self.folder / f"{name}_{self.views}x{self.inplane}.npz"
+            digest = pieces_digest(self.source.parts(name).pieces)
+            path = self.folder / f"{name}_{self.views}x{self.inplane}_{digest}.npz"
             try:
                 book = Codebook.load(name, path)
             except (OSError, KeyError, ValueError):
@@ -380,6 +386,15 @@ class CodebookCache:
                     pass  # a read-only data folder: the codebook stays in memory
             self._books[name] = book
         return self._books[name]
+
+
+def pieces_digest(pieces: list[np.ndarray]) -> str:
+    """A short digest of an object's convex pieces (their vertices in O, in order)."""
+    h = hashlib.sha256()
+    for p in pieces:
+        h.update(np.ascontiguousarray(p, np.float64).tobytes())
+        h.update(b"|")
+    return h.hexdigest()[:12]
 
 
 #: A framing of a detected mask as the codebook matches it: packed mask bits, packed hidden

@@ -293,6 +293,24 @@ def test_building_a_codebook_says_so_once(tmp_path, capsys) -> None:
     assert "building the car's silhouette codebook" in err[0] and "cached in" in err[0]
 
 
+def test_an_object_made_again_from_another_mesh_gets_a_codebook_of_its_own(tmp_path) -> None:
+    from perception.global_pose import CodebookCache
+    from perception.parts import ConvexParts, Parts
+
+    class Stretched(ConvexParts):
+        """The car's pieces, twice as long in x: the same name, another mesh."""
+
+        def parts(self, name: str) -> Parts:
+            own = super().parts(name)
+            return Parts(name, [p * [2.0, 1.0, 1.0] for p in own.pieces], own.colours)
+
+    first = CodebookCache(12, 4, folder=tmp_path).get("car")
+    again = CodebookCache(12, 4, folder=tmp_path, source=Stretched()).get("car")
+    assert len(list(tmp_path.glob("car_12x4_*.npz"))) == 2
+    assert not np.array_equal(first.side, again.side)
+    assert np.array_equal(CodebookCache(12, 4, folder=tmp_path).get("car").bits, first.bits)
+
+
 def test_an_episode_without_a_grasp_writes_no_film(tmp_path, capsys) -> None:
     argv = ["--object", "phone", "--estimator", "noisy-oracle", "--noise", "1000,1000,0,0"]
     assert run_episode.main([*argv, "--out", str(tmp_path)]) == 0
