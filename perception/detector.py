@@ -33,6 +33,10 @@ DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
 #: folder with a manifest of its own; the estimators other than ``hybrid-global`` keep the
 #: head-camera one.
 TIERS_DETECTOR = WEIGHTS_DIR / "tiers" / "detector.pt"
+#: `TIERS_DETECTOR` fine-tuned further on scenes in rooms drawn for training (lights, surfaces,
+#: object colours, camera, unseen distractors; `perception.training.data.rooms`), for
+#: ``hybrid-global-rooms``.
+ROOMS_DETECTOR = WEIGHTS_DIR / "rooms" / "detector.pt"
 #: The detector of the paper's protocol: `DEFAULT_WEIGHTS` fine-tuned on its studio images too.
 PAPER_DETECTOR = WEIGHTS_DIR / "paper_protocol" / "detector.pt"
 REBUILD_HINT = (

@@ -61,6 +61,21 @@ def _hybrid_global() -> PoseEstimator:
     return GlobalPoseEstimator.from_weights(GlobalConfig())
 
 
+def _hybrid_global_rooms() -> PoseEstimator:
+    """`hybrid-global` with its detector and mask net trained further on scenes in rooms drawn
+    for training (lights, surfaces, object colours, camera, unseen distractors:
+    `perception.training.data.rooms`); the nets, codebooks and every stage as
+    `hybrid-global`'s."""
+    from perception.detector import ROOMS_DETECTOR
+    from perception.global_pose import GlobalPoseEstimator
+    from perception.hybrid import HybridPoseEstimator
+    from perception.mask_net import ROOMS_MASKNET, MaskRefiner
+
+    hybrid = HybridPoseEstimator.from_weights(detector_path=ROOMS_DETECTOR)
+    masks = MaskRefiner.from_weights(ROOMS_MASKNET)
+    return GlobalPoseEstimator(hybrid, name="hybrid-global-rooms", masks=masks)
+
+
 def _hybrid_global_table() -> PoseEstimator:
     """`hybrid-global` with the table prior: its pose then put onto the known table (the
     scene's prior, where the observation gives it; the neighbours' support elsewhere)."""
@@ -143,6 +158,7 @@ LEARNED_ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
     "hybrid-paper": _hybrid_paper,
     "hybrid-refine": _hybrid_refine,
     "hybrid-global": _hybrid_global,
+    "hybrid-global-rooms": _hybrid_global_rooms,
     "hybrid-global-table": _hybrid_global_table,
     "hybrid-global-paper": _hybrid_global_paper,
     "hybrid-global-user": _hybrid_global_user,

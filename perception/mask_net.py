@@ -34,6 +34,9 @@ from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.paths import WEIGHTS_DIR
 
 DEFAULT_MASKNET = WEIGHTS_DIR / "tiers" / "masknet.pt"
+#: `DEFAULT_MASKNET` trained further on windows of scenes in rooms drawn for training, for
+#: ``hybrid-global-rooms``.
+ROOMS_MASKNET = WEIGHTS_DIR / "rooms" / "masknet.pt"
 #: The mask net of the paper's protocol (256x256 studio images on random backgrounds), trained on
 #: those images with the larger errors of that protocol's detector.
 PAPER_MASKNET = WEIGHTS_DIR / "paper_protocol" / "masknet.pt"

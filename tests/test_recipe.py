@@ -322,10 +322,12 @@ def test_the_mask_net_trainer_records_its_own_argv(tmp_path, monkeypatch) -> Non
 def test_make_data_renders_every_image_the_recipe_trains_on() -> None:
     text = (Path(__file__).resolve().parent.parent / "Makefile").read_text().replace("\\\n", " ")
     rendered: dict[tuple[str, str], int] = {}
-    for var, prefix in (("DATA_COUNTS", ""), ("TIER_COUNTS", "headcam_")):
+    for var, prefix in (("DATA_COUNTS", ""), ("TIER_COUNTS", "headcam_"), ("ROOM_COUNTS", "")):
         line = next(x for x in text.splitlines() if x.startswith(f"{var} :="))
         for spec in line.split(":=")[1].split():
             folder, split, count = spec.split(":")
+            if var == "ROOM_COUNTS":  # a tier's rooms, or the mixed scenes' ("-")
+                folder = "headcam_rooms" if folder == "-" else f"headcam_{folder}_rooms"
             rendered[(prefix + folder, split)] = int(count)
     for stage in RECIPE.stages:
         needs = [((name, "train"), n) for name, n in stage.data]

@@ -71,6 +71,16 @@ _TIERS = {"headcam_hard": 3000, "headcam_any-pose": 3000, "headcam": 3000}
 #: The mask nets' data are their protocols' (what ``train_masknet --protocol P`` trains on).
 _TIERS_MORE_HARD, _TIERS_VAL = dict(PROTOCOLS["tiers"].sources), PROTOCOLS["tiers"].val
 _PAPER, _PAPER_VAL = dict(PROTOCOLS["paper"].sources), PROTOCOLS["paper"].val
+#: The rooms' stages: scenes in rooms drawn for training (`perception.training.data.rooms`), with
+#: plain scenes the tiers' stages saw, so that the plain room is kept.
+_ROOMS = {
+    "headcam_hard_rooms": 2500,
+    "headcam_rooms": 2500,
+    "headcam_any-pose_rooms": 1000,
+    "headcam_hard": 1500,
+    "headcam": 1500,
+}
+_ROOMS_VAL = ("headcam_hard_rooms", 200)
 _PAPER_DETECTED = {"val": _PAPER_VAL, "channels_last": True, "detector": "detector-tune-paper"}
 
 #: Every stage behind the shipped weights, in the order they run.
@@ -225,6 +235,26 @@ STAGES: tuple[Stage, ...] = (
         val=_TIERS_VAL,
         channels_last=True,
     ),
+    # `hybrid-global-rooms`' detector and mask net: the tiers' ones, further on the rooms.
+    _detector(
+        "detector-tune-tiers-rooms",
+        _ROOMS,
+        epochs=2,
+        lr=3e-4,
+        init="detector-tune-tiers-more-hard",
+        precision="bf16",
+        channels_last=True,
+    ),
+    _masknet(
+        "masknet-tiers-rooms",
+        _ROOMS,
+        epochs=2,
+        lr=5e-4,
+        init="masknet-tiers-fresh-windows",
+        seed=2,
+        val=_ROOMS_VAL,
+        channels_last=True,
+    ),
     # The paper protocol's mask net; its last stages also learn from the windows its detector
     # cuts of the training images after the first 30,000, the very last one shipped as the
     # faucet's own net.
@@ -299,6 +329,8 @@ RECIPE = Recipe(
         Artefact("detector.pt", ("detector",), "detector-tune-headcam-and-hard", unrecorded=1),
         Artefact("tiers/detector.pt", ("detector",), "detector-tune-tiers-more-hard", 1),
         Artefact("tiers/masknet.pt", ("mask_net",), "masknet-tiers-fresh-windows"),
+        Artefact("rooms/detector.pt", ("detector",), "detector-tune-tiers-rooms", 1),
+        Artefact("rooms/masknet.pt", ("mask_net",), "masknet-tiers-rooms"),
         Artefact("paper_protocol/detector.pt", ("detector",), "detector-tune-paper", 2),
         Artefact("paper_protocol/masknet.pt", ("mask_net",), "masknet-paper-detector-masks-20k"),
         Artefact(

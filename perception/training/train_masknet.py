@@ -115,6 +115,8 @@ def main(argv: list[str] | None = None) -> int:
     train(cfg, resume=not args.no_resume)
     if args.export:
         weights = PROTOCOLS[args.protocol].weights
+        if args.weights_out is not None:
+            weights = args.weights_out / weights.name
         line = f"{TRAIN_COMMAND} {shlex.join(argv)}".strip()
         entry = export_masknet(cfg.out / "last.pt", line, weights, args.expert)
         print(f"wrote {entry['file']} beside {weights} ({entry['bytes']} bytes)")
@@ -194,6 +196,13 @@ def _parser() -> ArgumentParser:
         action="store_true",
         help="write the protocol's net and its manifest entry when done (the shipped ones are "
         "written by `python -m perception.training.recipe --ship`)",
+    )
+    p.add_argument(
+        "--weights-out",
+        type=Path,
+        default=None,
+        help="with --export: the folder to write the net and its manifest into (default: the "
+        "protocol's, perception/weights/tiers or perception/weights/paper_protocol)",
     )
     p.add_argument(
         "--expert",
