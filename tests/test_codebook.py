@@ -303,7 +303,7 @@ def test_the_global_estimator_recovers_what_the_nets_missed(tmp_path, nets_off: 
     v = e.info["verify"]
     assert v["source"] == "codebook" and v["confidence"] > 1.0
     assert v["hypotheses"] == (6 if nets_off == "behind" else 7)
-    assert (tmp_path / f"{name}_300x18.npz").is_file()  # the codebook was cached
+    assert len(list(tmp_path.glob(f"{name}_300x18_*.npz"))) == 1  # the codebook was cached
 
 
 def test_the_second_look_verifies_more_hypotheses_only_when_the_best_is_unsure(tmp_path) -> None:
