@@ -238,7 +238,9 @@ def _edges(ids: np.ndarray, edge_distance: np.ndarray) -> float:
     outline = np.zeros(ids.shape, bool)
     outline[:, 1:] |= ids[:, 1:] != ids[:, :-1]
     outline[1:, :] |= ids[1:, :] != ids[:-1, :]
-    d = edge_distance[outline]
+    # A window without edges holds huge distances, whose squares would overflow; any distance
+    # past 1e4 px weighs exactly 0, as the unclipped one did.
+    d = np.minimum(edge_distance[outline], 1e4)
     if d.size < 10:
         return 0.0
     return float(np.mean(np.exp(-(d * d) / (2 * EDGE_SIGMA_PX * EDGE_SIGMA_PX))))
