@@ -9,6 +9,8 @@ angles [rad], world frame unless named otherwise.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import mujoco
 import numpy as np
 
@@ -60,7 +62,7 @@ def _sign(rng: np.random.Generator) -> float:
     return 1.0 if rng.random() < 0.5 else -1.0
 
 
-def _scale_lights(model: mujoco.MjModel, gain: np.ndarray) -> None:
+def scale_lights(model: mujoco.MjModel, gain: np.ndarray) -> None:
     """Multiply every light's colours, and the headlight's, by gain (3,)."""
     for field in (model.light_diffuse, model.light_specular, model.light_ambient):
         field[:] = field * gain
@@ -74,7 +76,7 @@ def light_colour(
 ) -> None:
     """Tint the lights (and the headlight) with one of `TINTS`, `TINT_STRENGTH` of the way."""
     tint = np.array(list(TINTS.values())[int(rng.integers(len(TINTS)))])
-    _scale_lights(model, 1.0 + TINT_STRENGTH[level - 1] * (tint - 1.0))
+    scale_lights(model, 1.0 + TINT_STRENGTH[level - 1] * (tint - 1.0))
 
 
 def light_intensity(
@@ -82,7 +84,7 @@ def light_intensity(
 ) -> None:
     """Dim or brighten every light (and the headlight) by `INTENSITY`."""
     dim, bright = INTENSITY[level - 1]
-    _scale_lights(model, np.full(3, dim if rng.random() < 0.5 else bright))
+    scale_lights(model, np.full(3, dim if rng.random() < 0.5 else bright))
 
 
 def _table_centre(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
@@ -97,11 +99,24 @@ def light_direction(
     it (lights of the worldbody: their pose is in world coordinates)."""
     azimuth = float(rng.uniform(-np.pi, np.pi))
     turn = _sign(rng) * LAMP_TURN[level - 1]
+    turn_lights(model, data, turn, lambda: (SUN_ANGLE[level - 1], azimuth))
+
+
+def turn_lights(
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    turn: float,
+    sun: Callable[[], tuple[float, float]],
+) -> None:
+    """Point each directional light `sun()` = (angle from straight down, azimuth) [rad], asked
+    once per such light in order, and move the other lights `turn` about the vertical through
+    the table's centre, aimed at it (lights of the worldbody: their pose is in world
+    coordinates)."""
     centre = _table_centre(model, data)
     c, s = np.cos(turn), np.sin(turn)
     for i in range(model.nlight):
         if model.light_type[i] == mujoco.mjtLightType.mjLIGHT_DIRECTIONAL:
-            a = SUN_ANGLE[level - 1]
+            a, azimuth = sun()
             model.light_dir[i] = [
                 np.sin(a) * np.cos(azimuth),
                 np.sin(a) * np.sin(azimuth),
@@ -190,9 +205,15 @@ def camera_pose(
     """Raise or lower the head camera `CAMERA_HEIGHT` along world z and tilt it `CAMERA_TILT`
     up or down about its own x axis (right), by editing its pose in its body: the head's joints,
     and so the robot's physics, are unchanged, and the camera's world pose follows."""
-    cam = model.camera(C.HEAD_CAMERA).id
     dz = _sign(rng) * CAMERA_HEIGHT[level - 1]
     tilt = _sign(rng) * CAMERA_TILT[level - 1]
+    move_camera(model, data, dz, tilt)
+
+
+def move_camera(model: mujoco.MjModel, data: mujoco.MjData, dz: float, tilt: float) -> None:
+    """Raise the head camera `dz` [m] along world z and tilt it `tilt` [rad] up about its own x
+    axis, by editing its pose in its body (the head's joints are unchanged)."""
+    cam = model.camera(C.HEAD_CAMERA).id
     R_world_body = data.xmat[model.cam_bodyid[cam]].reshape(3, 3)
     model.cam_pos[cam] = model.cam_pos[cam] + R_world_body.T @ np.array([0.0, 0.0, dz])
     # A MuJoCo camera looks along its -z with y up: turning about +x by -tilt looks down.

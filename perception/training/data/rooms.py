@@ -31,9 +31,13 @@ import mujoco
 import numpy as np
 
 from perception.training.data.textures import procedural_texture
-from posegrasp.core.transforms import quat_mul
-from posegrasp.world import constants as C
-from posegrasp.world.shift_edits import TABLE_TEXTURE, visual_geoms
+from posegrasp.world.shift_edits import (
+    TABLE_TEXTURE,
+    move_camera,
+    scale_lights,
+    turn_lights,
+    visual_geoms,
+)
 from posegrasp.world.shift_textures import hsv, set_texture, texture_size
 from posegrasp.world.shifts import Shift
 
@@ -66,48 +70,27 @@ def room_shifts(seed: int) -> tuple[Shift, ...]:
     return (Shift("distractors", int(rng.integers(1, 4))),)
 
 
-def _gain(model: mujoco.MjModel, gain: np.ndarray) -> None:
-    for field in (model.light_diffuse, model.light_specular, model.light_ambient):
-        field[:] = field * gain
-    head = model.vis.headlight
-    for colour in (head.diffuse, head.ambient, head.specular):
-        colour[:] = colour * gain
-
-
 def _light_colour(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
     tint = rng.uniform(0.15, 1.0, 3)
     tint /= tint.max()
     share = float(rng.uniform(0.2, 1.0))
-    _gain(model, 1.0 + share * (tint - 1.0))
+    scale_lights(model, 1.0 + share * (tint - 1.0))
     return [round(float(v), 3) for v in (*tint, share)]
 
 
 def _light_intensity(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
     gain = float(np.exp(rng.uniform(*np.log(INTENSITY))))
-    _gain(model, np.full(3, gain))
+    scale_lights(model, np.full(3, gain))
     return round(gain, 3)
 
 
 def _light_direction(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
-    centre = np.asarray(data.geom("table_top").xpos, float)
     turn = float(rng.uniform(-np.pi, np.pi))
-    c, s = np.cos(turn), np.sin(turn)
-    for i in range(model.nlight):
-        if model.light_type[i] == mujoco.mjtLightType.mjLIGHT_DIRECTIONAL:
-            a, azimuth = (
-                float(rng.uniform(0.0, np.deg2rad(85.0))),
-                float(rng.uniform(-np.pi, np.pi)),
-            )
-            model.light_dir[i] = [
-                np.sin(a) * np.cos(azimuth),
-                np.sin(a) * np.sin(azimuth),
-                -np.cos(a),
-            ]
-        else:
-            p = model.light_pos[i] - centre
-            model.light_pos[i] = centre + np.array([c * p[0] - s * p[1], s * p[0] + c * p[1], p[2]])
-            d = centre - model.light_pos[i]
-            model.light_dir[i] = d / np.linalg.norm(d)
+
+    def sun() -> tuple[float, float]:
+        return float(rng.uniform(0.0, np.deg2rad(85.0))), float(rng.uniform(-np.pi, np.pi))
+
+    turn_lights(model, data, turn, sun)
     return round(float(np.rad2deg(turn)), 1)
 
 
@@ -139,14 +122,9 @@ def _objects(model: mujoco.MjModel, bodies: list[str], rng: np.random.Generator)
 
 
 def _camera(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
-    cam = model.camera(C.HEAD_CAMERA).id
     dz = float(rng.uniform(-CAMERA_HEIGHT, CAMERA_HEIGHT))
     tilt = float(rng.uniform(-CAMERA_TILT, CAMERA_TILT))
-    R_world_body = data.xmat[model.cam_bodyid[cam]].reshape(3, 3)
-    model.cam_pos[cam] = model.cam_pos[cam] + R_world_body.T @ np.array([0.0, 0.0, dz])
-    # A MuJoCo camera looks along its -z with y up: turning about +x by -tilt looks down.
-    turn = np.array([np.cos(-tilt / 2), np.sin(-tilt / 2), 0.0, 0.0])
-    model.cam_quat[cam] = quat_mul(model.cam_quat[cam], turn)
+    move_camera(model, data, dz, tilt)
     return [round(dz, 3), round(float(np.rad2deg(tilt)), 1)]
 
 
