@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -179,11 +180,15 @@ def _record_command(run: dict) -> str:
         flags.append(f"--obs-mode {run['obs_mode']}")
     if "sensor" in run:
         flags.append(f"--sensor {run['sensor']}")
-    if run.get("task", "lift") != "lift":
-        flags.append(f"--task {run['task']}")
-    if run.get("shifts"):
-        flags.append(f"--shift {','.join(run['shifts'])}")
+    flags += _track_flags(run.get("task", "lift"), run.get("shifts") or [])
     return f"python -m sim.gate --write {' '.join(flags)} --baseline PATH"
+
+
+def _track_flags(task: str, shifts: Sequence[object]) -> list[str]:
+    """The ``--task`` and ``--shift`` flags of a run away from the lift task without shifts."""
+    return ([f"--task {task}"] if task != "lift" else []) + (
+        [f"--shift {','.join(map(str, shifts))}"] if shifts else []
+    )
 
 
 def mismatch(run: dict, baseline: dict, weights: dict[str, str]) -> str | None:
@@ -433,9 +438,7 @@ def check_write(path: Path, task: str, shifts: tuple[Shift, ...]) -> None:
     Raises:
         InvalidArgumentError: in one line, naming ``--baseline PATH``.
     """
-    flags = ([f"--task {task}"] if task != "lift" else []) + (
-        [f"--shift {','.join(map(str, shifts))}"] if shifts else []
-    )
+    flags = _track_flags(task, shifts)
     if flags and Path(path).resolve() == BASELINE:
         raise InvalidArgumentError(
             f"{BASELINE.parent.name}/{BASELINE.name} holds the lift baselines without scene "

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from perception.metrics import mask_iou
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
@@ -40,7 +41,6 @@ from posegrasp.core.validate import arg, check_choice, check_int, check_names
 from posegrasp.world import constants as C
 from posegrasp.world.camera import body_mask
 from posegrasp.world.objects import OBJECT_NAMES
-from posegrasp.world.shifts import parse_shifts
 from posegrasp.world.tiers import TIERS
 
 #: The stages an image can be put down to, in pipeline order, then the images that went right.
@@ -49,11 +49,6 @@ OUTCOMES = ("detection", "mask", "hypotheses", "verification", "support", "right
 WRONG_OBJECT_SHARE, MASK_IOU = 0.1, 0.7
 #: A pose is right within this MSSD, relative to the object's diameter (the board's measure).
 RIGHT_MSSD = 0.1
-
-
-def _iou(a: np.ndarray, b: np.ndarray) -> float:
-    union = np.logical_or(a, b).sum()
-    return float(np.logical_and(a, b).sum() / union) if union else 0.0
 
 
 def outcome(work: Any, truth: np.ndarray, errors: Any) -> str:
@@ -71,7 +66,7 @@ def outcome(work: Any, truth: np.ndarray, errors: Any) -> str:
         final = work.winner.T_C_O
     if final is not None and right(final):
         return "right"
-    if _iou(target.mask, truth) < MASK_IOU:
+    if mask_iou(target.mask, truth) < MASK_IOU:
         return "mask"
     if not any(right(v.T_C_O) for v in work.ranked):
         return "hypotheses"
@@ -86,10 +81,11 @@ def _count(
     """Each estimator's images per outcome under one shift setting: the held-out episodes' first
     images, one scene at a time, each estimator on the same image."""
     from perception.stages import Work, run_stages
+    from sim.board.tracks import shifts_of
     from sim.episodes.episode import Episode
     from sim.evaluation import Protocol
 
-    shifts = parse_shifts("" if setting == "none" else setting)
+    shifts = shifts_of(setting)
     protocol = Protocol(OBJECT_NAMES, episodes, C.EVAL_SEED_BASE, tier, shifts=shifts)
     counts = {name: dict.fromkeys(OUTCOMES, 0) for name in estimators}
     for name, seed in protocol.seeds():

@@ -78,7 +78,7 @@ def _rgb(image: np.ndarray) -> np.ndarray:
 def texture_colours(model: mujoco.MjModel, name: str) -> np.ndarray:
     """The two colours of texture `name`: the mean of its darker and of its lighter half of
     pixels, (2, 3) RGB in [0, 1]."""
-    pixels = _pixels(model, name)[:, :3] / 255.0
+    pixels = texture_pixels(model, name)[:, :3] / 255.0
     order = np.argsort(pixels.sum(axis=1), kind="stable")
     half = len(order) // 2
     return np.stack([pixels[order[:half]].mean(axis=0), pixels[order[half:]].mean(axis=0)])
@@ -87,7 +87,7 @@ def texture_colours(model: mujoco.MjModel, name: str) -> np.ndarray:
 def set_texture(model: mujoco.MjModel, name: str, image: np.ndarray) -> None:
     """Overwrite the 2D RGB texture `name` of a compiled model with `image`, shape (H, W, 3),
     uint8, of the texture's own size."""
-    pixels = _pixels(model, name)
+    pixels = texture_pixels(model, name)
     pixels[:] = image[..., : pixels.shape[1]].reshape(pixels.shape)
 
 
@@ -97,7 +97,7 @@ def texture_size(model: mujoco.MjModel, name: str) -> tuple[int, int]:
     return int(model.tex_height[t]), int(model.tex_width[t])
 
 
-def _pixels(model: mujoco.MjModel, name: str) -> np.ndarray:
+def texture_pixels(model: mujoco.MjModel, name: str) -> np.ndarray:
     """The pixels of texture `name`, (H * W, channels) uint8: a view of the model's `tex_data`."""
     t = model.texture(name).id
     h, w = texture_size(model, name)

@@ -106,7 +106,6 @@ class HeadcamGenerator:
     ) -> None:
         self.width, self.height = width, height
         self.tier, self.rooms = tier, rooms
-        self._room: dict[str, Any] = {}
         self.renderer = OffscreenRenderer(width, height)
 
     def _config(self, seed: int, **fields: Any) -> SceneConfig:
@@ -116,27 +115,27 @@ class HeadcamGenerator:
             fields.update(shifts=room_shifts(seed), distractor_bank="training")
         return SceneConfig(randomize_appearance=True, **fields)
 
+    def _room(self, scene: Scene) -> dict[str, Any]:
+        """Put `scene` in its room (`perception.training.data.rooms`) when the generator draws
+        rooms; the room's draws (empty without rooms), for its images' records."""
+        if not self.rooms:
+            return {}
+        bodies = [o.body for o in scene.objects]
+        return randomize_room(scene.model, scene.data, bodies, scene.seed)
+
     def _scene(self, name: str, seed: int) -> Scene:
         """``build_scene(name, seed)``: of the generator's tier, or without one, with a number of
         distractors drawn from ``default_rng([seed, 1])`` (when they do not fit on the table, one
         fewer is tried until none is left)."""
         if self.tier is not None:
-            return self._roomed(build_scene(name, seed, tier_scene(self.tier, self._config(seed))))
+            return build_scene(name, seed, tier_scene(self.tier, self._config(seed)))
         wanted = int(np.random.default_rng([seed, 1]).integers(0, MAX_DISTRACTORS + 1))
         for n in range(wanted, 0, -1):
             try:
-                return self._roomed(build_scene(name, seed, self._config(seed, n_distractors=n)))
+                return build_scene(name, seed, self._config(seed, n_distractors=n))
             except InvalidArgumentError:  # the objects did not fit on the table
                 pass
-        return self._roomed(build_scene(name, seed, self._config(seed)))
-
-    def _roomed(self, scene: Scene) -> Scene:
-        """The scene in its room (`perception.training.data.rooms`) when the generator draws
-        rooms; the room's draws go into its images' records."""
-        if self.rooms:
-            bodies = [o.body for o in scene.objects]
-            self._room = randomize_room(scene.model, scene.data, bodies, scene.seed)
-        return scene
+        return build_scene(name, seed, self._config(seed))
 
     def render(self, name: str, seed: int) -> RenderedImage:
         """The head camera's view of `_scene` with its visible objects (view 0 of
@@ -154,6 +153,7 @@ class HeadcamGenerator:
         object the head is aimed at.
         """
         scene = self._scene(name, seed)
+        room = self._room(scene)
         model, data = scene.model, scene.data
         settled, moved = data.qpos.copy(), False
         jitter = SceneConfig().aim_jitter
@@ -167,11 +167,14 @@ class HeadcamGenerator:
                     aim_head(model, data, data.body(aimed.body).xpos + offset)
                 mujoco.mj_forward(model, data)
                 moved = v > 0
-            images.append(self._image(scene, aimed, v))
+            images.append(self._image(scene, aimed, v, room))
         return images
 
-    def _image(self, scene: Scene, aimed: PlacedObject, view: int) -> RenderedImage:
-        """The head camera's current view of scene with its visible objects.
+    def _image(
+        self, scene: Scene, aimed: PlacedObject, view: int, room: dict[str, Any]
+    ) -> RenderedImage:
+        """The head camera's current view of scene with its visible objects (and with rooms,
+        the `room`'s draws in its record).
 
         Each object's full silhouette is drawn with every geom but its own hidden and read
         back, as depth, only inside a box that holds its projection; its visible pixels are
@@ -221,7 +224,7 @@ class HeadcamGenerator:
         if view > 0:
             extra["view"] = view
         if self.rooms:
-            extra["room"] = self._room
+            extra["room"] = room
         return RenderedImage(rgb, K, T_C_W, objects, extra)
 
     def close(self) -> None:

@@ -24,6 +24,7 @@ plain scene of the same seed; only the camera's pose in its head link and what i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import cv2
@@ -38,7 +39,7 @@ from posegrasp.world.shift_edits import (
     turn_lights,
     visual_geoms,
 )
-from posegrasp.world.shift_textures import hsv, set_texture, texture_size
+from posegrasp.world.shift_textures import hsv, set_texture, texture_pixels, texture_size
 from posegrasp.world.shifts import Shift
 
 #: The second word of every room's seed sequence.
@@ -51,8 +52,6 @@ SURFACES = (TABLE_TEXTURE, "room_wall_tex", "room_floor_tex")
 INTENSITY = (0.2, 2.2)
 CAMERA_HEIGHT = 0.12
 CAMERA_TILT = np.deg2rad(10.0)
-#: The factors, in the order they are drawn and applied.
-FACTORS = ("light_colour", "light_intensity", "light_direction", "surfaces", "objects", "camera")
 
 
 def room_rng(seed: int) -> np.random.Generator:
@@ -70,7 +69,9 @@ def room_shifts(seed: int) -> tuple[Shift, ...]:
     return (Shift("distractors", int(rng.integers(1, 4))),)
 
 
-def _light_colour(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
+def _light_colour(
+    model: mujoco.MjModel, data: mujoco.MjData, bodies: list[str], rng: np.random.Generator
+) -> Any:
     tint = rng.uniform(0.15, 1.0, 3)
     tint /= tint.max()
     share = float(rng.uniform(0.2, 1.0))
@@ -78,13 +79,17 @@ def _light_colour(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Gen
     return [round(float(v), 3) for v in (*tint, share)]
 
 
-def _light_intensity(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
+def _light_intensity(
+    model: mujoco.MjModel, data: mujoco.MjData, bodies: list[str], rng: np.random.Generator
+) -> Any:
     gain = float(np.exp(rng.uniform(*np.log(INTENSITY))))
     scale_lights(model, np.full(3, gain))
     return round(gain, 3)
 
 
-def _light_direction(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
+def _light_direction(
+    model: mujoco.MjModel, data: mujoco.MjData, bodies: list[str], rng: np.random.Generator
+) -> Any:
     turn = float(rng.uniform(-np.pi, np.pi))
 
     def sun() -> tuple[float, float]:
@@ -94,13 +99,13 @@ def _light_direction(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.
     return round(float(np.rad2deg(turn)), 1)
 
 
-def _surfaces(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
+def _surfaces(
+    model: mujoco.MjModel, data: mujoco.MjData, bodies: list[str], rng: np.random.Generator
+) -> Any:
     shares = []
     for name in SURFACES:
         h, w = texture_size(model, name)
-        t = model.texture(name).id
-        adr, c = int(model.tex_adr[t]), int(model.tex_nchannel[t])
-        own = model.tex_data[adr : adr + h * w * c].reshape(h, w, c)[..., :3].astype(float)
+        own = texture_pixels(model, name)[:, :3].reshape(h, w, 3).astype(float)
         drawn = cv2.resize(procedural_texture(rng, 128), (w, h), interpolation=cv2.INTER_LINEAR)
         share = float(rng.uniform(0.4, 1.0))
         set_texture(model, name, np.round((1 - share) * own + share * drawn).astype(np.uint8))
@@ -108,7 +113,9 @@ def _surfaces(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generat
     return shares
 
 
-def _objects(model: mujoco.MjModel, bodies: list[str], rng: np.random.Generator) -> list[float]:
+def _objects(
+    model: mujoco.MjModel, data: mujoco.MjData, bodies: list[str], rng: np.random.Generator
+) -> Any:
     shares = []
     for body in bodies:
         share = float(rng.uniform(0.2, 1.0))
@@ -121,7 +128,9 @@ def _objects(model: mujoco.MjModel, bodies: list[str], rng: np.random.Generator)
     return shares
 
 
-def _camera(model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator) -> Any:
+def _camera(
+    model: mujoco.MjModel, data: mujoco.MjData, bodies: list[str], rng: np.random.Generator
+) -> Any:
     dz = float(rng.uniform(-CAMERA_HEIGHT, CAMERA_HEIGHT))
     tilt = float(rng.uniform(-CAMERA_TILT, CAMERA_TILT))
     move_camera(model, data, dz, tilt)
@@ -147,20 +156,21 @@ def randomize_room(
     on = rng.random(len(FACTORS)) < FACTOR_ODDS
     drawn: dict[str, Any] = {}
     for name, wanted in zip(FACTORS, on, strict=True):
-        if not wanted:
-            continue
-        if name == "objects":
-            drawn[name] = _objects(model, bodies, rng)
-        else:
-            drawn[name] = _EDITS[name](model, data, rng)
+        if wanted:
+            drawn[name] = _EDITS[name](model, data, bodies, rng)
     mujoco.mj_camlight(model, data)
     return drawn
 
 
-_EDITS = {
+#: Each factor's edit of a compiled scene: (model, data, the annotated bodies, the room's stream)
+#: -> what it drew.
+_EDITS: dict[str, Callable[..., Any]] = {
     "light_colour": _light_colour,
     "light_intensity": _light_intensity,
     "light_direction": _light_direction,
     "surfaces": _surfaces,
+    "objects": _objects,
     "camera": _camera,
 }
+#: The factors, in the order they are drawn and applied.
+FACTORS = tuple(_EDITS)
