@@ -48,9 +48,10 @@ DATA_COUNTS := paper:train:70000 paper:val:1000 paper:test:1000 \
 # Head-camera test scenes of the tiers (folders headcam_<tier>), for accuracy per tier.
 TIER_COUNTS := hard:train:9000 hard:val:500 hard:test:500 clutter:test:300 any-pose:test:300 \
 	any-pose:train:3000 far:train:20000 far:val:300 far:test:300
-# Head-camera scenes in rooms drawn for training (`--rooms`, folders headcam[_<tier>]_rooms; `-`
-# is the mixed table scenes), for hybrid-global-rooms.
-ROOM_COUNTS := hard:train:2500 hard:val:200 -:train:2500 any-pose:train:1000
+# Head-camera scenes in rooms drawn for training (`--rooms FAMILY`, folders
+# headcam[_<tier>]_rooms[_joint]; `-` is the mixed table scenes), for hybrid-global-rooms.
+ROOM_COUNTS := hard:train:2500:wide hard:val:200:wide -:train:2500:wide any-pose:train:1000:wide \
+	hard:train:3000:joint hard:val:200:joint -:train:1500:joint
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
 	  $(PY) -m perception.training.datagen --dist $$dist --split $$split --count $$count --workers 2 \
@@ -58,10 +59,10 @@ data: setup
 	@for spec in $(TIER_COUNTS); do IFS=: read tier split count <<< "$$spec"; \
 	  $(PY) -m perception.training.datagen --dist headcam --tier $$tier --split $$split \
 	  --count $$count --workers 2 || exit 1; done
-	@for spec in $(ROOM_COUNTS); do IFS=: read tier split count <<< "$$spec"; \
+	@for spec in $(ROOM_COUNTS); do IFS=: read tier split count family <<< "$$spec"; \
 	  if [ "$$tier" = "-" ]; then tier_arg=""; else tier_arg="--tier $$tier"; fi; \
-	  $(PY) -m perception.training.datagen --dist headcam $$tier_arg --rooms --split $$split \
-	  --count $$count --workers 2 || exit 1; done
+	  $(PY) -m perception.training.datagen --dist headcam $$tier_arg --rooms $$family \
+	  --split $$split --count $$count --workers 2 || exit 1; done
 
 # The shipped weights, from scratch: every stage of the recipe (perception/training/recipe.py,
 # `python -m perception.training.recipe --dry-run` prints it) that is not done yet, each resuming

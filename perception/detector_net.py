@@ -7,7 +7,8 @@ usual max-pooled level at stride 64), narrow box and mask heads, few proposals, 
 input size (a 640x480 image is resized to 320x240 inside the model). Label 0 is background and
 label k the k-th of `DetectorConfig.classes`: the six built-in objects in
 `posegrasp.world.objects.OBJECT_NAMES` order (their BOP object ids), then any user objects a
-detector was fine-tuned on.
+detector was fine-tuned on; or, for a detector of any object, one class, `ANY_OBJECT`, that every
+annotated object is.
 
 Inference on images, the box conventions and loading weights live in `perception.detector`.
 """
@@ -31,6 +32,19 @@ from torchvision.ops import MultiScaleRoIAlign
 
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.world.objects import OBJECT_NAMES
+
+#: The one class of a detector of any object (``train_detector --any-object``): every annotated
+#: object, whatever it is, is one of these.
+ANY_OBJECT = "object"
+
+
+def class_label(classes: Sequence[str], name: str) -> int | None:
+    """The label (1..) a detector of `classes` gives an object of class `name`: its place among
+    the classes counted from 1; 1 for every object when the one class is `ANY_OBJECT`; None for
+    an object it does not detect."""
+    if tuple(classes) == (ANY_OBJECT,):
+        return 1
+    return list(classes).index(name) + 1 if name in classes else None
 
 
 @dataclass(frozen=True)
@@ -98,6 +112,10 @@ class DetectorConfig:
             raise InvalidArgumentError(
                 f"need 0 < min_size <= max_size, got {self.min_size}, {self.max_size}"
             )
+
+    def label(self, name: str) -> int | None:
+        """The label the detector gives an object of class `name` (`class_label`)."""
+        return class_label(self.classes, name)
 
     def widened(self, names: Sequence[str]) -> DetectorConfig:
         """This config with `names` added to its classes (those it has already are kept)."""

@@ -258,7 +258,7 @@ def _gt_info(
     name: str, T_C_O: np.ndarray, K: np.ndarray, visible: np.ndarray, full: np.ndarray, depth
 ) -> dict[str, Any]:
     """One object's scene_gt_info entry (BOP scripts/calc_gt_info.py's keys and conventions)."""
-    px_all, bbox_obj = full_silhouette(load_object(name), T_C_O, K, full)
+    px_all, bbox_obj = full_silhouette(load_object(name).mesh, T_C_O, K, full)
     px_visib = int(visible.sum())
     return {
         "bbox_obj": bbox_obj if px_visib else _NO_BOX,

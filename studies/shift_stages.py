@@ -1,11 +1,12 @@
 """Which stage of a learned estimator fails when the room changes?
 
     python studies/shift_stages.py [--estimators hybrid-global,hybrid-global-rooms]
-        [--tier isolated] [--shifts factors:3,all:3] [--episodes 20] [--json PATH]
+        [--tier isolated] [--shifts factors:3,all:3] [--episodes 20] [--dev] [--json PATH]
 
 For each shift setting (`sim.board.tracks.check_shift_settings`), the head camera's first image of
 the held-out episodes the board plays (`--episodes` per object, seeds from
-`posegrasp.world.constants.EVAL_SEED_BASE`) goes through each estimator's stages
+`posegrasp.world.constants.EVAL_SEED_BASE`; with ``--dev`` the development episodes from
+``DEV_SEED_BASE``, for choosing between candidates) goes through each estimator's stages
 (`perception.stages.run_stages`), and each image is put down to the first stage that failed it:
 
 - ``detection``: no target detected, or the target's mask covers under 10 % of the true visible
@@ -76,17 +77,18 @@ def outcome(work: Any, truth: np.ndarray, errors: Any) -> str:
 
 
 def _count(
-    estimators: dict[str, Any], tier: str, setting: str, episodes: int, bar: Any
+    estimators: dict[str, Any], tier: str, setting: str, seeds: tuple[int, int], bar: Any
 ) -> dict[str, dict[str, int]]:
-    """Each estimator's images per outcome under one shift setting: the held-out episodes' first
-    images, one scene at a time, each estimator on the same image."""
+    """Each estimator's images per outcome under one shift setting: the first images of
+    `seeds` (episodes per object, first seed), one scene at a time, each estimator on the same
+    image."""
     from perception.stages import Work, run_stages
     from sim.board.tracks import shifts_of
     from sim.episodes.episode import Episode
     from sim.evaluation import Protocol
 
     shifts = shifts_of(setting)
-    protocol = Protocol(OBJECT_NAMES, episodes, C.EVAL_SEED_BASE, tier, shifts=shifts)
+    protocol = Protocol(OBJECT_NAMES, *seeds, tier, shifts=shifts)
     counts = {name: dict.fromkeys(OUTCOMES, 0) for name in estimators}
     for name, seed in protocol.seeds():
         ep = Episode(name, seed, protocol.episode_config())
@@ -131,6 +133,12 @@ def _parser() -> ArgumentParser:
         type=arg(check_int, 1, 1000, "--episodes", base=int),
         help="episodes per object, 1..1000 (default 20)",
     )
+    p.add_argument(
+        "--dev",
+        action="store_true",
+        help="the development episodes (seeds from DEV_SEED_BASE), for choosing between "
+        "candidates, instead of the held-out ones the board scores",
+    )
     add_json_argument(p, "the images per outcome, per estimator and shift setting")
     return p
 
@@ -149,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, dict[str, dict[str, int]]] = {}
     bar = progress_bar(total=len(settings) * args.episodes * len(OBJECT_NAMES), desc="images")
     for setting in settings:
-        rows[setting] = _count(estimators, args.tier, setting, args.episodes, bar)
+        seeds = (args.episodes, C.DEV_SEED_BASE if args.dev else C.EVAL_SEED_BASE)
+        rows[setting] = _count(estimators, args.tier, setting, seeds, bar)
     bar.close()
     print(f"{'shift':<18} {'estimator':<22} " + " ".join(f"{o:>12}" for o in OUTCOMES), file=log)
     for setting, per in rows.items():

@@ -233,7 +233,7 @@ def test_truncated_silhouette_counts_pixels_outside_the_image() -> None:
     # Ground truth: the same view on an image 200 px wider on the right.
     wide = _silhouette("car", T, K, (200, 400))
     assert wide[:, :200].sum() == cut.sum() and wide[:, 200:].sum() > 0.1 * wide.sum()
-    n, box = full_silhouette(obj, T, K, cut)
+    n, box = full_silhouette(obj.mesh, T, K, cut)
     assert n == pytest.approx(wide.sum(), rel=0.01)
     assert box == pytest.approx(bop.bbox_xywh(wide), abs=1)
 

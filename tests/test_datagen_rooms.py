@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -10,10 +11,16 @@ import numpy as np
 import pytest
 
 from perception.training.data.distributions import HeadcamGenerator
-from perception.training.data.render_split import ROOM_SEED_OFFSET, SEED_BASES, GenConfig
-from perception.training.data.rooms import FACTORS, randomize_room, room_shifts
+from perception.training.data.render_split import (
+    MAX_COUNT,
+    ROOM_SEED_OFFSETS,
+    SEED_BASES,
+    GenConfig,
+)
+from perception.training.data.rooms import FACTORS, FAMILIES, randomize_room, room_shifts
 from perception.training.datagen import main
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
+from posegrasp.world.constants import DATA_SEED_LIMIT
 from posegrasp.world.distractor_bank import BODY, DISTRACTOR_IDS, TRAINING_IDS, bank_mesh
 from posegrasp.world.scene import SceneConfig, build_scene
 
@@ -45,8 +52,8 @@ def test_a_room_changes_what_is_drawn_and_no_physics() -> None:
     assert np.array_equal(plain.data.qpos, roomed.data.qpos)
 
 
-def _draw(scene, seed: int) -> dict:
-    return randomize_room(scene.model, scene.data, [o.body for o in scene.objects], seed)
+def _draw(scene, seed: int, family: str = "wide") -> dict:
+    return randomize_room(scene.model, scene.data, [o.body for o in scene.objects], seed, family)
 
 
 def test_training_distractors_come_from_the_training_bank_only() -> None:
@@ -81,8 +88,8 @@ def test_rooms_render_the_same_images_as_annotated_and_their_seeds_are_their_own
     }
     assert files["a"] == files["b"] and len(files["a"]) >= 6
     info = json.loads((tmp_path / "a" / "info.json").read_text())
-    assert info["rooms"] is True
-    assert info["splits"]["val"]["seed_range"][0] == SEED_BASES["val"] + ROOM_SEED_OFFSET
+    assert info["rooms"] == "wide"
+    assert info["splits"]["val"]["seed_range"][0] == SEED_BASES["val"] + ROOM_SEED_OFFSETS["wide"]
     assert "--rooms" in info["splits"]["val"]["command"]
     record = json.loads(next((tmp_path / "a").rglob("records/*.json")).read_text())
     assert "room" in json.dumps(record)
@@ -91,19 +98,43 @@ def test_rooms_render_the_same_images_as_annotated_and_their_seeds_are_their_own
     plain = ["--dist", "headcam", "--split", "val", "--count", "1", *size]
     assert main([*plain, "--out", str(tmp_path / "a")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "rooms True" in err[0] and "rooms False" in err[0]
+    assert len(err) == 1 and "rooms wide" in err[0] and "rooms None" in err[0]
 
 
 def test_rooms_are_of_the_head_camera_only(capsys) -> None:
     assert main(["--dist", "paper", "--split", "val", "--count", "1", "--rooms"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--rooms applies to --dist headcam" in err[0]
-    with pytest.raises(InvalidArgumentError, match="at most"):
-        GenConfig("headcam", "train", ROOM_SEED_OFFSET + 1, Path("x"), rooms=True)
+    with pytest.raises(InvalidArgumentError, match="holds 1"):
+        GenConfig("headcam", "train", MAX_COUNT + 1, Path("x"), rooms="wide")
+    assert main(["--dist", "headcam", "--split", "val", "--count", "1", "--rooms", "dim"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "wide" in err[0] and "joint" in err[0]
+
+
+def test_each_family_of_rooms_has_seeds_of_its_own_and_joint_rooms_draw_more_at_once() -> None:
+    assert set(ROOM_SEED_OFFSETS) == set(FAMILIES)
+    kinds = [
+        GenConfig("headcam", split, MAX_COUNT, Path("x"), rooms=rooms, bank=bank)
+        for split in SEED_BASES
+        for rooms in (None, *FAMILIES)
+        for bank in (False, True)
+    ]
+    ranges = sorted((c.seed(0), c.seed(MAX_COUNT - 1) + 1) for c in kinds)
+    assert all(a[1] <= b[0] for a, b in itertools.pairwise(ranges))
+    assert ranges[-1][1] <= DATA_SEED_LIMIT
+    scene = build_scene("phone", 7, SceneConfig(randomize_appearance=True))
+    per_image = {
+        family: np.mean([len(_draw(scene, seed, family)) for seed in range(60)])
+        for family in FAMILIES
+    }
+    assert per_image["joint"] > 1.5 * per_image["wide"], per_image
+    shifted = {f: sum(bool(room_shifts(s, f)) for s in range(200)) for f in FAMILIES}
+    assert shifted["joint"] > 1.5 * shifted["wide"], shifted
 
 
 def test_a_room_view_is_the_view_of_its_scene(tmp_path: Path) -> None:
-    gen = HeadcamGenerator(W, H, rooms=True)
+    gen = HeadcamGenerator(W, H, rooms="wide")
     try:
         seed = next(s for s in range(100) if "camera" in _camera_draw(s))
         image = gen.render("phone", seed)

@@ -19,6 +19,7 @@ from perception.nets import load_posenet
 from perception.training import recipe as recipe_mod
 from perception.training import train_detector, train_masknet, train_posenet
 from perception.training.data.dataset import DISTS
+from perception.training.data.rooms import folder_suffix
 from perception.training.recipe import RECIPE, SMOKE
 from perception.training.shipping.recipe_stages import (
     STAGE_FILE,
@@ -325,9 +326,10 @@ def test_make_data_renders_every_image_the_recipe_trains_on() -> None:
     for var, prefix in (("DATA_COUNTS", ""), ("TIER_COUNTS", "headcam_"), ("ROOM_COUNTS", "")):
         line = next(x for x in text.splitlines() if x.startswith(f"{var} :="))
         for spec in line.split(":=")[1].split():
-            folder, split, count = spec.split(":")
+            folder, split, count, *family = spec.split(":")
             if var == "ROOM_COUNTS":  # a tier's rooms, or the mixed scenes' ("-")
-                folder = "headcam_rooms" if folder == "-" else f"headcam_{folder}_rooms"
+                folder = "headcam" if folder == "-" else f"headcam_{folder}"
+                folder += folder_suffix(family[0])
             rendered[(prefix + folder, split)] = int(count)
     for stage in RECIPE.stages:
         needs = [((name, "train"), n) for name, n in stage.data]

@@ -37,6 +37,7 @@ from perception.training.data.render_split import (
     GenConfig,
     generate,
 )
+from perception.training.data.rooms import FAMILIES, folder_suffix
 from perception.training.data.sheets import write_preview
 from posegrasp.core.backends import add_backend_arguments, check_backend
 from posegrasp.core.cli import ArgumentParser, add_out_argument, add_workers_argument, command, fail
@@ -120,10 +121,23 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--rooms",
-        action="store_true",
+        nargs="?",
+        const="wide",
+        default=None,
+        metavar="FAMILY",
+        type=arg(check_choice, list(FAMILIES), "room family"),
         help="headcam only: each scene in a room drawn for training (lights, surfaces, object "
-        "colours, camera, unseen distractors; perception.training.data.rooms); the default "
-        "folder then ends in _rooms",
+        "colours, camera, unseen distractors; perception.training.data.rooms), of the family "
+        f"{' or '.join(FAMILIES)} (default wide: each factor in about half the images; joint: "
+        "most factors at once); the default folder then ends in _rooms, or _rooms_<family>",
+    )
+    p.add_argument(
+        "--bank",
+        action="store_true",
+        help="headcam only, without --tier: scenes whose only objects in sight are meshes of the "
+        "training bank (pybullet's random meshes 0-899), each annotated as an object of its own "
+        "(bank-NNN), for a detector of objects it has never seen; the default folder is then "
+        "headcam_bank[_rooms...]",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_backend_arguments(p)
@@ -142,8 +156,10 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
     check_backend(a.backend, a.address)
     if a.tier is not None and a.dist != "headcam":
         raise InvalidArgumentError(f"--tier applies to --dist headcam, not {a.dist}")
-    if a.rooms and a.dist != "headcam":
+    if a.rooms is not None and a.dist != "headcam":
         raise InvalidArgumentError(f"--rooms applies to --dist headcam, not {a.dist}")
+    if a.bank and (a.dist != "headcam" or a.tier is not None or a.views > 1):
+        raise InvalidArgumentError("--bank applies to --dist headcam, without --tier or --views")
     if a.views > 1 and a.dist != "headcam":
         raise InvalidArgumentError(f"--views applies to --dist headcam, not {a.dist}")
     width = a.width if a.width is not None else DEFAULT_SIZE[a.dist][0]
@@ -152,7 +168,8 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
     out = a.out
     if out is None:
         name = a.dist if a.tier is None else f"{a.dist}_{a.tier}"
-        out = data_root() / (f"{name}_rooms" if a.rooms else name)
+        name += "_bank" if a.bank else ""
+        out = data_root() / (name if a.rooms is None else name + folder_suffix(a.rooms))
         check_output_dir(out, "--out")
     return GenConfig(
         dist=a.dist,
@@ -170,6 +187,7 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
         address=a.address,
         views=a.views,
         rooms=a.rooms,
+        bank=a.bank,
     )
 
 

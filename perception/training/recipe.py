@@ -81,6 +81,16 @@ _ROOMS = {
     "headcam": 1500,
 }
 _ROOMS_VAL = ("headcam_hard_rooms", 200)
+#: Then rooms that differ in most factors at once (the ``joint`` family), with some of the first
+#: rooms and plain scenes again.
+_ROOMS_JOINT = {
+    "headcam_hard_rooms_joint": 3000,
+    "headcam_rooms_joint": 1500,
+    "headcam_hard_rooms": 1000,
+    "headcam_hard": 1500,
+    "headcam": 500,
+}
+_ROOMS_JOINT_VAL = ("headcam_hard_rooms_joint", 200)
 _PAPER_DETECTED = {"val": _PAPER_VAL, "channels_last": True, "detector": "detector-tune-paper"}
 
 #: Every stage behind the shipped weights, in the order they run.
@@ -253,6 +263,25 @@ STAGES: tuple[Stage, ...] = (
         init="masknet-tiers-fresh-windows",
         seed=2,
         val=_ROOMS_VAL,
+        channels_last=True,
+    ),
+    _detector(
+        "detector-tune-tiers-rooms-joint",
+        _ROOMS_JOINT,
+        epochs=2,
+        lr=2e-4,
+        init="detector-tune-tiers-rooms",
+        precision="bf16",
+        channels_last=True,
+    ),
+    _masknet(
+        "masknet-tiers-rooms-joint",
+        _ROOMS_JOINT,
+        epochs=1,
+        lr=3e-4,
+        init="masknet-tiers-rooms",
+        seed=3,
+        val=_ROOMS_JOINT_VAL,
         channels_last=True,
     ),
     # The paper protocol's mask net; its last stages also learn from the windows its detector

@@ -21,6 +21,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from perception.detector_net import ANY_OBJECT
 from perception.training.shipping.ship import export_detector
 from perception.training.trainers.ddp import DEVICES, MAX_THREADS
 from perception.training.trainers.detector_trainer import (
@@ -91,8 +92,12 @@ def parse_config(argv: list[str] | None) -> tuple[DetectorTrainConfig, argparse.
             precision=args.precision,
             channels_last=args.channels_last,
         )
+    if args.objects and args.any_object:
+        raise InvalidArgumentError("--any-object detects every object; drop --objects")
     if args.objects:
         cfg = replace(cfg, detector=cfg.detector.widened(args.objects))
+    if args.any_object:
+        cfg = replace(cfg, detector=replace(cfg.detector, classes=(ANY_OBJECT,), n_classes=2))
     return cfg, args
 
 
@@ -133,6 +138,12 @@ def _parser() -> ArgumentParser:
         metavar="LIST",
         help="user objects to detect besides the six built-in ones (comma list; with --init, "
         "the class heads of those weights are widened for them)",
+    )
+    p.add_argument(
+        "--any-object",
+        action="store_true",
+        help=f"one class, {ANY_OBJECT!r}, that every annotated object is, whatever it is: a "
+        "detector of objects it has never seen (trained on bank scenes, datagen --bank)",
     )
     add_schedule_arguments(p, d.epochs, d.batch, d.lr, "the train split", " of images")
     p.add_argument(

@@ -75,6 +75,9 @@ HOME_POSTURE: dict[str, float] = {
 #: The data generator (`perception.training.data.render_split.SEED_BASES`) draws its scenes from
 #: seeds below this.
 DATA_SEED_LIMIT = 300_000_000
+#: Development episodes, for choosing between candidate weights or settings, start at this seed:
+#: above every data seed and below every scoring seed, so that nothing is chosen on the scores.
+DEV_SEED_BASE = 500_000_000
 #: Episodes that score a learned estimator start at this seed, so that no evaluated scene was a
 #: training, validation or test image of the networks.
 EVAL_SEED_BASE = 1_000_000_000

@@ -24,7 +24,7 @@ import trimesh
 from scipy.spatial import ConvexHull
 
 from posegrasp.core.errors import AssetError
-from posegrasp.core.transforms import mat_to_quat, rot_x, rot_y, rot_z
+from posegrasp.core.transforms import mat_to_quat, quat_to_mat, rot_x, rot_y, rot_z
 from posegrasp.world.layout import MIN_GAP, gap, on_table
 from posegrasp.world.objects import VISUAL_GROUP
 
@@ -38,6 +38,10 @@ TRAINING_IDS = tuple(i for i in range(900) if i != 168)
 BANKS: dict[str, Sequence[int]] = {"held-out": DISTRACTOR_IDS, "training": TRAINING_IDS}
 #: Name of the static body that holds the distractors, and the prefix of their geoms and meshes.
 BODY = "shift_distractors"
+#: A bank mesh annotated as an object (the training images of a detector of any object) is
+#: called ``bank-NNN``; its BOP object id is this plus NNN, above every other object's.
+BANK_PREFIX = "bank-"
+BANK_OBJ_ID_BASE = 10_000
 #: Distractor centres lie this far from the target's centre [m] (min, max).
 RING = (0.1, 0.36)
 #: Half-width of the sector towards the robot (-x from the target) kept free of distractors, so
@@ -62,6 +66,19 @@ class BankMesh:
     vertices: np.ndarray
     faces: np.ndarray
     rgba: tuple[float, ...]
+
+
+def bank_name(mesh_id: int) -> str:
+    """The object name of bank mesh `mesh_id` where it is annotated (``bank-NNN``)."""
+    return f"{BANK_PREFIX}{mesh_id:03d}"
+
+
+def bank_id(name: str) -> int | None:
+    """The bank mesh id an object name (`bank_name`) stands for; None for any other name."""
+    digits = name[len(BANK_PREFIX) :]
+    if not name.startswith(BANK_PREFIX) or not digits.isdigit() or len(digits) != 3:
+        return None
+    return int(digits)
 
 
 def bank_dir() -> Path:
@@ -183,3 +200,29 @@ def add_distractors(
         geom.group, geom.contype, geom.conaffinity = VISUAL_GROUP, 0, 0
         geom.density = 0.0
     return len(taken) - len(footprints)
+
+
+def bank_geoms(model: mujoco.MjModel) -> list[tuple[int, int]]:
+    """The distractors of a compiled scene: (geom id, bank mesh id) of each, in the order they
+    were placed; none when the scene has no `BODY`."""
+    body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, BODY)
+    if body < 0:
+        return []
+    return [
+        (int(g), int(model.geom(int(g)).name.rsplit("/", 1)[-1]))
+        for g in np.flatnonzero(model.geom_bodyid == body)
+    ]
+
+
+def bank_pose(model: mujoco.MjModel, data: mujoco.MjData, geom: int) -> np.ndarray:
+    """World pose (4, 4) [m] of a distractor's mesh in the frame of its bank file (`bank_mesh`):
+    the compiler moves a mesh geom's frame to the mesh's own centre and axes
+    (``mesh_pos``, ``mesh_quat``), which this undoes."""
+    T_W_geom = np.eye(4)
+    T_W_geom[:3, :3] = data.geom_xmat[geom].reshape(3, 3)
+    T_W_geom[:3, 3] = data.geom_xpos[geom]
+    mesh = int(model.geom_dataid[geom])
+    T_file_geom = np.eye(4)
+    T_file_geom[:3, :3] = quat_to_mat(model.mesh_quat[mesh])
+    T_file_geom[:3, 3] = model.mesh_pos[mesh]
+    return T_W_geom @ np.linalg.inv(T_file_geom)

@@ -11,16 +11,40 @@ from typing import Any, cast
 
 import cv2
 import numpy as np
+import trimesh
+from scipy.spatial import ConvexHull
 
 from perception.geometry import project
 from perception.training.data.bop import MM_PER_M, bbox_xywh, box_xyxy, obj_id, pose_to_bop
 from perception.training.data.distributions import RenderedImage
 from posegrasp.core.transforms import invert_transform
-from posegrasp.world.objects import ObjectModel, load_object
+from posegrasp.world.distractor_bank import bank_id, bank_mesh
+from posegrasp.world.objects import load_object
+
+
+def object_mesh(name: str) -> trimesh.Trimesh:
+    """The mesh in O [m] of an annotated object: a built-in or user object's, or a bank mesh's
+    (``bank-NNN``, `posegrasp.world.distractor_bank.bank_name`)."""
+    mesh_id = bank_id(name)
+    if mesh_id is None:
+        return load_object(name).mesh
+    mesh = bank_mesh(mesh_id)
+    return trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+
+
+def object_diameter(name: str) -> float:
+    """An annotated object's BOP diameter [m]: the largest distance between two vertices of its
+    mesh (`object_mesh`)."""
+    mesh_id = bank_id(name)
+    if mesh_id is None:
+        return load_object(name).diameter
+    v = bank_mesh(mesh_id).vertices
+    hull = v[ConvexHull(v).vertices]
+    return float(np.linalg.norm(hull[:, None] - hull[None], axis=-1).max())
 
 
 def full_silhouette(
-    obj: ObjectModel, T_C_O: np.ndarray, K: np.ndarray, mask: np.ndarray
+    mesh: trimesh.Trimesh, T_C_O: np.ndarray, K: np.ndarray, mask: np.ndarray
 ) -> tuple[int, list[int]]:
     """Pixel count and BOP box of the whole silhouette, including any part outside the image.
 
@@ -29,7 +53,7 @@ def full_silhouette(
     canvases; a pixel counts if more than half of them are covered) for the part outside.
 
     Args:
-        obj: the object's model (its mesh in O [m]).
+        mesh: the object's mesh in O [m] (`object_mesh`).
         T_C_O: the object's pose in the camera (OpenCV), shape (4, 4) [m].
         K: intrinsics, shape (3, 3) [px].
         mask: the rendered silhouette inside the image, shape (H, W), bool.
@@ -38,7 +62,7 @@ def full_silhouette(
         The silhouette's pixel count and its BOP box [x, y, w, h] [px] (x, y may be negative).
     """
     h, w = mask.shape
-    verts = np.asarray(obj.mesh.vertices) @ T_C_O[:3, :3].T + T_C_O[:3, 3]
+    verts = np.asarray(mesh.vertices) @ T_C_O[:3, :3].T + T_C_O[:3, 3]
     if np.any(verts[:, 2] <= 1e-3):
         return int(mask.sum()), bbox_xywh(mask)
     uv = verts[:, :2] / verts[:, 2:3] * [K[0, 0], K[1, 1]] + K[:2, 2]
@@ -53,7 +77,7 @@ def full_silhouette(
     ss = 4 if ch * cw <= 4 * h * w else 2
     fine = np.zeros((ch * ss, cw * ss), np.uint8)
     pts = np.round(((uv - [ox, oy] + 0.5) * ss - 0.5) * 16).astype(np.int32)
-    for tri in np.asarray(obj.mesh.faces):
+    for tri in np.asarray(mesh.faces):
         cv2.fillConvexPoly(fine, pts[tri], 1, cv2.LINE_8, 4)
     # (ch, cw * ss), then (ch, cw): samples covered per pixel; arrays, as ss >= 2
     rows = cast(np.ndarray, sum(fine[i::ss].astype(np.uint16) for i in range(ss)))
@@ -79,8 +103,7 @@ def annotate(image: RenderedImage, seed: int, dist: str) -> dict[str, Any]:
     gts, infos, pg_objs = [], [], []
     T_W_C = invert_transform(image.T_C_W)
     for obj in image.objects:
-        model = load_object(obj.name)
-        px_all, bbox_obj = full_silhouette(model, obj.T_C_O, image.K, obj.mask)
+        px_all, bbox_obj = full_silhouette(object_mesh(obj.name), obj.T_C_O, image.K, obj.mask)
         px_visib = int(obj.mask_visib.sum())
         gts.append({**pose_to_bop(obj.T_C_O), "obj_id": obj_id(obj.name)})
         infos.append(

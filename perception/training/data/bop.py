@@ -17,7 +17,8 @@ Layout of a dataset folder ``<root>`` (one distribution, built by
     <root>/<split>/<scene_id:06d>/records/<im_id:06d>.json  one image's entries of all the above
 
 Sample ``index`` of a split is image ``im_id = index % 1000`` of scene ``index // 1000``. Object
-ids are 1..6 in `posegrasp.world.objects.OBJECT_NAMES` order.
+ids are 1..6 in `posegrasp.world.objects.OBJECT_NAMES` order, user objects after them, and bank
+meshes annotated as objects (``--bank``) 10000 + their mesh id.
 
 Units: BOP files use millimetres for translations, sizes and diameters (``cam_t_m2c``,
 ``cam_t_w2c``, ``models_info``, the PLY vertices), as the BOP toolkit expects. Everything else is
@@ -46,6 +47,7 @@ import numpy as np
 
 from posegrasp.core.errors import AssetError, UnknownNameError
 from posegrasp.core.transforms import make_transform
+from posegrasp.world.distractor_bank import BANK_OBJ_ID_BASE, bank_id, bank_name
 from posegrasp.world.objects import object_names
 
 IMAGES_PER_SCENE = 1000
@@ -64,7 +66,11 @@ SCENE_FILES = ("scene_gt", "scene_camera", "scene_gt_info", "scene_posegrasp")
 
 def obj_id(name: str) -> int:
     """BOP object id of a class: 1..6 for the built-in objects in `OBJECT_NAMES` order, then the
-    user objects installed, 7 upward in `object_names()` order (an export records its own)."""
+    user objects installed, 7 upward in `object_names()` order (an export records its own); a
+    bank mesh annotated as an object (``bank-NNN``) `BANK_OBJ_ID_BASE` + NNN."""
+    mesh_id = bank_id(name)
+    if mesh_id is not None:
+        return BANK_OBJ_ID_BASE + mesh_id
     names = object_names()
     if name not in names:
         raise UnknownNameError("object", name, names)
@@ -73,6 +79,8 @@ def obj_id(name: str) -> int:
 
 def obj_name(oid: int) -> str:
     """Class of a BOP object id (`obj_id`)."""
+    if BANK_OBJ_ID_BASE <= oid < BANK_OBJ_ID_BASE + 1000:
+        return bank_name(oid - BANK_OBJ_ID_BASE)
     names = object_names()
     if not 1 <= oid <= len(names):
         raise UnknownNameError("object id", str(oid), [str(i + 1) for i in range(len(names))])

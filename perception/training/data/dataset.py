@@ -31,6 +31,7 @@ from perception.training.data.bop import (
     scene_dir,
     split_index,
 )
+from perception.training.data.rooms import FAMILIES, folder_suffix
 from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 from posegrasp.world.tiers import TIERS
 
@@ -38,9 +39,17 @@ SPLITS: tuple[str, ...] = ("train", "val", "test")
 DISTS: tuple[str, ...] = ("paper", "headcam")
 #: Dataset folders under the data root: each distribution's, the head camera's per scene tier
 #: (``headcam_<tier>``, made by ``datagen --dist headcam --tier <tier>``), and the head camera's
-#: in rooms drawn for training (``..._rooms``, ``datagen --rooms``).
+#: in rooms drawn for training (``..._rooms`` and ``..._rooms_<family>``, ``datagen --rooms``), and
+#: the head camera's scenes of the training bank's meshes (``headcam_bank[_rooms...]``,
+#: ``datagen --bank``).
 _HEADCAM: tuple[str, ...] = ("headcam", *(f"headcam_{t}" for t in TIERS))
-DATASETS: tuple[str, ...] = (*DISTS, *_HEADCAM[1:], *(f"{d}_rooms" for d in _HEADCAM))
+DATASETS: tuple[str, ...] = (
+    *DISTS,
+    *_HEADCAM[1:],
+    *(d + folder_suffix(f) for f in FAMILIES for d in _HEADCAM),
+    "headcam_bank",
+    *("headcam_bank" + folder_suffix(f) for f in FAMILIES),
+)
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,9 @@ from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from posegrasp.core.transforms import invert_transform
 from posegrasp.world import constants as C
 from posegrasp.world.camera import T_world_cam, camera_intrinsics
+from posegrasp.world.distractor_bank import BODY, bank_geoms, bank_name, bank_pose
 from posegrasp.world.scene import PlacedObject, Scene, SceneConfig, aim_head, build_scene
+from posegrasp.world.shifts import Shift
 from posegrasp.world.tiers import tier_scene
 
 #: At most this many distractors in a headcam scene (drawn uniformly from 0..3).
@@ -50,6 +52,17 @@ class RenderedObject:
     mask: np.ndarray
     mask_visib: np.ndarray
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Instance:
+    """What an image annotates of one object: its class, the geoms that draw it, its pose in
+    the world (4, 4) [m] and its record's fields."""
+
+    name: str
+    geoms: np.ndarray
+    T_W_O: np.ndarray
+    extra: dict[str, Any]
 
 
 @dataclass
@@ -102,7 +115,7 @@ class HeadcamGenerator:
     """
 
     def __init__(
-        self, width: int, height: int, tier: str | None = None, rooms: bool = False
+        self, width: int, height: int, tier: str | None = None, rooms: str | None = None
     ) -> None:
         self.width, self.height = width, height
         self.tier, self.rooms = tier, rooms
@@ -111,17 +124,17 @@ class HeadcamGenerator:
     def _config(self, seed: int, **fields: Any) -> SceneConfig:
         """The scene config of an image of scene `seed`: randomised appearance, and with
         `rooms` the room's distractors from the training bank."""
-        if self.rooms:
-            fields.update(shifts=room_shifts(seed), distractor_bank="training")
+        if self.rooms is not None:
+            fields.update(shifts=room_shifts(seed, self.rooms), distractor_bank="training")
         return SceneConfig(randomize_appearance=True, **fields)
 
     def _room(self, scene: Scene) -> dict[str, Any]:
         """Put `scene` in its room (`perception.training.data.rooms`) when the generator draws
         rooms; the room's draws (empty without rooms), for its images' records."""
-        if not self.rooms:
+        if self.rooms is None:
             return {}
         bodies = [o.body for o in scene.objects]
-        return randomize_room(scene.model, scene.data, bodies, scene.seed)
+        return randomize_room(scene.model, scene.data, bodies, scene.seed, self.rooms)
 
     def _scene(self, name: str, seed: int) -> Scene:
         """``build_scene(name, seed)``: of the generator's tier, or without one, with a number of
@@ -182,54 +195,136 @@ class HeadcamGenerator:
         the same camera write the same depths), so no segmentation render is needed. Objects
         whose boxes do not overlap share one draw; objects outside the image are not drawn.
         """
-        model, data, r = scene.model, scene.data, self.renderer
-        cam = model.camera(C.HEAD_CAMERA).id
+        model = scene.model
+        instances = [
+            Instance(
+                placed.name,
+                np.flatnonzero(model.geom_bodyid == model.body(placed.body).id),
+                scene.object_pose(placed.body),
+                {"body": placed.body, "target": placed is aimed},
+            )
+            for placed in scene.objects
+        ]
+        extra = {"target": aimed.name, "n_distractors": len(scene.objects) - 1}
+        if view > 0:
+            extra["view"] = view
+        if self.rooms is not None:
+            extra["room"] = room
+        return self._shot(scene.model, scene.data, instances, extra)
+
+    def _shot(
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        instances: list[Instance],
+        extra: dict[str, Any],
+    ) -> RenderedImage:
+        """The head camera's image of the scene with the visible ones of `instances` and their
+        masks (see `_image`), `extra` its record's fields."""
+        r, cam = self.renderer, model.camera(C.HEAD_CAMERA).id
         K = camera_intrinsics(model, C.HEAD_CAMERA, self.width, self.height)
         T_C_W = invert_transform(T_world_cam(model, data, C.HEAD_CAMERA))
         r.draw(model, data, cam)
         rgb = r.read_rgb()
-        todo = []  # (placed, body id, window, pose, the scene's depth in the window)
-        for placed in scene.objects:
-            T_C_O = T_C_W @ scene.object_pose(placed.body)
-            bid = model.body(placed.body).id
-            window = _body_window(model, data, bid, T_C_W, K, self.width, self.height)
+        todo = []  # (instance, window, pose, the scene's depth in the window)
+        for inst in instances:
+            T_C_O = T_C_W @ inst.T_W_O
+            window = _geoms_window(model, data, inst.geoms, T_C_W, K, self.width, self.height)
             window = window or (0, 0, self.width, self.height)
             if T_C_O[2, 3] > 0 and window[2] > window[0] and window[3] > window[1]:
-                todo.append((placed, bid, window, T_C_O, r.read_depth(window)))
-        masks: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+                todo.append((inst, window, T_C_O, r.read_depth(window)))
+        masks: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         groups = model.geom_group.copy()
         try:
-            for batch in _disjoint_batches([t[2] for t in todo]):
-                shown = np.isin(model.geom_bodyid, [todo[k][1] for k in batch])
+            for batch in _disjoint_batches([t[1] for t in todo]):
+                shown = np.zeros(model.ngeom, bool)
+                for k in batch:
+                    shown[todo[k][0].geoms] = True
                 model.geom_group[:] = np.where(shown, groups, HIDDEN_GROUP)
                 r.draw(model, data, cam)
                 for k in batch:
-                    placed, _, window, _, scene_depth = todo[k]
+                    _, window, _, scene_depth = todo[k]
                     depth = r.read_depth(window)
                     drawn = depth < 1.0
-                    masks[placed.body] = (drawn, drawn & (depth <= scene_depth))
+                    masks[k] = (drawn, drawn & (depth <= scene_depth))
         finally:
             model.geom_group[:] = groups
         objects = []
-        for placed, _, (x0, y0, x1, y1), T_C_O, _ in todo:
-            drawn, seen = masks[placed.body]
+        for k, (inst, (x0, y0, x1, y1), T_C_O, _) in enumerate(todo):
+            drawn, seen = masks[k]
             if not seen.any():
                 continue
             full = np.zeros((self.height, self.width), bool)
             visib = np.zeros_like(full)
             full[y0:y1, x0:x1], visib[y0:y1, x0:x1] = drawn, seen
-            extra = {"body": placed.body, "target": placed is aimed}
-            objects.append(RenderedObject(placed.name, T_C_O, full, visib, extra))
-        extra = {"target": aimed.name, "n_distractors": len(scene.objects) - 1}
-        if view > 0:
-            extra["view"] = view
-        if self.rooms:
-            extra["room"] = room
+            objects.append(RenderedObject(inst.name, T_C_O, full, visib, inst.extra))
         return RenderedImage(rgb, K, T_C_W, objects, extra)
 
     def close(self) -> None:
         """Free the GL context."""
         self.renderer.close()
+
+
+#: Second word of the seed sequence of a bank scene's own draws: how many meshes, which one the
+#: head is aimed at.
+BANK_STREAM = 0xB4
+
+
+class BankGenerator(HeadcamGenerator):
+    """Head-camera images of table scenes whose only objects in sight are meshes of the
+    training bank (`posegrasp.world.distractor_bank.TRAINING_IDS`: pybullet's random meshes
+    0-899), each annotated as an object of its own (``bank-NNN``, `bank_name`): what a detector
+    of objects it has never seen learns from. None of the six built-in objects is drawn.
+
+    Scene `seed` is the plain head-camera scene of one built-in object, which is hidden, with
+    the `distractors` shift at a level drawn from ``default_rng([seed, BANK_STREAM])`` (2, 4 or
+    7 meshes from the training bank standing around where it stands, on any of their six
+    faces), the head then aimed at one of the meshes (drawn from the same stream, offset by up
+    to `SceneConfig.aim_jitter` per axis); with `rooms`, in a room of that family
+    (`perception.training.data.rooms`, the meshes recoloured as objects are). One view per
+    scene.
+    """
+
+    def _config(self, seed: int, **fields: Any) -> SceneConfig:
+        level = int(np.random.default_rng([seed, BANK_STREAM]).integers(1, 4))
+        shifts = (Shift("distractors", level),)
+        return SceneConfig(
+            randomize_appearance=True, shifts=shifts, distractor_bank="training", **fields
+        )
+
+    def _scene(self, name: str, seed: int) -> Scene:
+        return build_scene(name, seed, self._config(seed))
+
+    def render_views(self, name: str, seed: int, views: Sequence[int]) -> list[RenderedImage]:
+        """The one view of bank scene `seed` (`views` must be ``[0]``)."""
+        if list(views) != [0]:
+            raise InvalidArgumentError("a bank scene has one view")
+        scene = self._scene(name, seed)
+        model, data = scene.model, scene.data
+        for placed in scene.objects:
+            model.geom_group[model.geom_bodyid == model.body(placed.body).id] = HIDDEN_GROUP
+        room = {}
+        if self.rooms is not None:
+            room = randomize_room(model, data, [BODY], seed, self.rooms)
+        meshes = bank_geoms(model)
+        rng = np.random.default_rng([seed, BANK_STREAM, 1])
+        aimed = meshes[int(rng.integers(len(meshes)))][0] if meshes else None
+        if aimed is not None:
+            jitter = SceneConfig().aim_jitter
+            aim_head(model, data, data.geom_xpos[aimed] + rng.uniform(-jitter, jitter, 3))
+            mujoco.mj_forward(model, data)
+        instances = [
+            Instance(
+                bank_name(mesh_id), np.array([g]), bank_pose(model, data, g), {"target": g == aimed}
+            )
+            for g, mesh_id in meshes
+        ]
+        extra: dict[str, Any] = {"bank_meshes": len(meshes)}
+        if aimed is not None:
+            extra["target"] = bank_name(dict(meshes)[aimed])
+        if self.rooms is not None:
+            extra["room"] = room
+        return [self._shot(model, data, instances, extra)]
 
 
 def _disjoint_batches(windows: Sequence[tuple[int, int, int, int]]) -> list[list[int]]:
@@ -252,19 +347,18 @@ def _disjoint_batches(windows: Sequence[tuple[int, int, int, int]]) -> list[list
     return batches
 
 
-def _body_window(
+def _geoms_window(
     model: mujoco.MjModel,
     data: mujoco.MjData,
-    body: int,
+    geoms: np.ndarray,
     T_C_W: np.ndarray,
     K: np.ndarray,
     width: int,
     height: int,
 ) -> tuple[int, int, int, int] | None:
-    """A pixel box (x0, y0, x1, y1) [ends excluded] that holds every pixel of a body's geoms: the
-    projection of the corners of their bounding boxes, widened by 2 px and clipped to the image;
-    None (the whole image) when a corner lies near or behind the camera plane."""
-    geoms = np.flatnonzero(model.geom_bodyid == body)
+    """A pixel box (x0, y0, x1, y1) [ends excluded] that holds every pixel of the geoms `geoms`:
+    the projection of the corners of their bounding boxes, widened by 2 px and clipped to the
+    image; None (the whole image) when a corner lies near or behind the camera plane."""
     if len(geoms) == 0:
         return None
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
@@ -284,12 +378,20 @@ def _body_window(
 
 
 def make_generator(
-    dist: str, width: int, height: int, tier: str | None = None, rooms: bool = False
+    dist: str,
+    width: int,
+    height: int,
+    tier: str | None = None,
+    rooms: str | None = None,
+    bank: bool = False,
 ) -> PaperGenerator | HeadcamGenerator:
-    """The generator of a distribution (one of `DISTS`) at width x height [px]; `tier` and
-    `rooms` (`perception.training.data.rooms`) apply to ``headcam``."""
+    """The generator of a distribution (one of `DISTS`) at width x height [px]; `tier`, `rooms`
+    (`perception.training.data.rooms`) and `bank` (`BankGenerator`, without a tier) apply to
+    ``headcam``."""
     if dist == "paper":
         return PaperGenerator(width, height)
+    if dist == "headcam" and bank:
+        return BankGenerator(width, height, None, rooms)
     if dist == "headcam":
         return HeadcamGenerator(width, height, tier, rooms)
     raise UnknownNameError("distribution", dist, DISTS)

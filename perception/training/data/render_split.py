@@ -2,16 +2,19 @@
 
 Seeds: sample ``index`` of a split shows scene ``index // views`` (``views`` = 1 unless
 ``--views``), whose seed is ``SEED_BASES[split] + index // views``; the bases are 10^8 apart, so
-splits never share a seed (``--count`` is at most 10^8). Rooms (``--rooms``,
-`perception.training.data.rooms`) start `ROOM_SEED_OFFSET` further on, so their scenes are never
-the plain splits' (``--count`` is then at most that offset). ``paper`` draws everything from
-``numpy.random.default_rng(seed)``; ``headcam`` builds ``build_scene(target, seed, ...)`` with the
-number of distractors drawn from ``default_rng([seed, 1])`` and renders view ``index % views`` of
-it (`HeadcamGenerator.render_views`: view 0 aimed at the target, the others at each object in
-turn). The class of sample index (its scene's target) is ``objects[(index // views) %
-len(objects)]``. With several views per scene, building and settling a scene (a third of an
-image's cost) is paid once per scene. Same arguments, same bytes: PNGs are encoded with fixed
-parameters, JSON with sorted keys, and nothing depends on the number of workers or on timing.
+splits never share a seed. Within a split, each kind of scene starts at its own multiple of
+`KIND_SPAN` and holds at most that many (``--count`` is at most `MAX_COUNT`), so no two kinds share
+a seed: rooms (``--rooms [FAMILY]``, `perception.training.data.rooms`) start their family's
+`ROOM_SEED_OFFSETS` further on, the bank's scenes (``--bank``,
+`perception.training.data.distributions.BankGenerator`) `BANK_SEED_OFFSET` further again.
+``paper`` draws everything from ``numpy.random.default_rng(seed)``; ``headcam`` builds
+``build_scene(target, seed, ...)`` with the number of distractors drawn from
+``default_rng([seed, 1])`` and renders view ``index % views`` of it
+(`HeadcamGenerator.render_views`: view 0 aimed at the target, the others at each object in turn).
+The class of sample index (its scene's target) is ``objects[(index // views) % len(objects)]``. With
+several views per scene, building and settling a scene (a third of an image's cost) is paid once per
+scene. Same arguments, same bytes: PNGs are encoded with fixed parameters, JSON with sorted keys,
+and nothing depends on the number of workers or on timing.
 
 Resuming: every file is written to a temporary name and renamed; an image is done once its record
 (``records/<im_id>.json``) exists, and a re-run skips done images. The BOP scene files are merged
@@ -31,6 +34,7 @@ from typing import Any
 from perception.training.data import bop
 from perception.training.data.dataset import load_info
 from perception.training.data.distributions import HeadcamGenerator, PaperGenerator, make_generator
+from perception.training.data.rooms import FAMILIES
 from perception.training.data.writer import (
     add_wall_time,
     merge_scene,
@@ -39,18 +43,23 @@ from perception.training.data.writer import (
     write_sample,
 )
 from posegrasp.core.backends import default_chunk, run_map
-from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
+from posegrasp.world.distractor_bank import TRAINING_IDS, bank_name
 from posegrasp.world.objects import OBJECT_NAMES
 
 #: Generator version per distribution; a dataset folder only resumes at its own version. Paper
 #: protocol 3: the camera 1.2-1.8 object diameters from the object (2: 1.6-4.5).
 GENERATOR_VERSIONS: dict[str, str] = {"paper": "3", "headcam": "2"}
 SEED_BASES: dict[str, int] = {"train": 0, "val": 100_000_000, "test": 200_000_000}
-MAX_COUNT = 100_000_000
-#: Where the seeds of a split's rooms start after its plain seeds.
-ROOM_SEED_OFFSET = 50_000_000
+#: The seeds a kind of scene of a split may take, and so the most images of a split.
+KIND_SPAN = 12_500_000
+MAX_COUNT = KIND_SPAN
+#: Where the seeds of a split's rooms start after its plain seeds, per family of rooms, and where
+#: the bank's scenes start after those of the same room (or the plain ones).
+ROOM_SEED_OFFSETS: dict[str, int] = {"wide": 4 * KIND_SPAN, "joint": 6 * KIND_SPAN}
+BANK_SEED_OFFSET = KIND_SPAN
 #: Most head-camera views rendered of one scene (`--views`).
 MAX_VIEWS = 16
 DEFAULT_SIZE: dict[str, tuple[int, int]] = {"paper": (256, 256), "headcam": (640, 480)}
@@ -75,7 +84,10 @@ class GenConfig:
             table scenes of 0-3 distractors the shipped networks were trained on.
         views: ``headcam`` images per scene (`HeadcamGenerator.render_views`); 1 for
             ``paper``.
-        rooms: ``headcam`` scenes in rooms drawn for training (`perception.training.data.rooms`).
+        rooms: ``headcam`` scenes in rooms drawn for training, of this family of
+            `perception.training.data.rooms.FAMILIES`; None for the plain room.
+        bank: ``headcam`` scenes of the training bank's meshes alone, each annotated as an
+            object of its own (`perception.training.data.distributions.BankGenerator`).
     """
 
     dist: str
@@ -92,17 +104,23 @@ class GenConfig:
     backend: str = "local"
     address: str | None = None
     views: int = 1
-    rooms: bool = False
+    rooms: str | None = None
+    bank: bool = False
 
     def __post_init__(self) -> None:
-        if self.rooms and (self.dist != "headcam" or self.count > ROOM_SEED_OFFSET):
-            raise InvalidArgumentError(
-                f"rooms are of --dist headcam and at most {ROOM_SEED_OFFSET} images per split"
-            )
+        if self.rooms is not None and self.rooms not in ROOM_SEED_OFFSETS:
+            raise UnknownNameError("room family", self.rooms, FAMILIES)
+        if not 1 <= self.count <= MAX_COUNT:
+            raise InvalidArgumentError(f"a split holds 1..{MAX_COUNT} images, not {self.count}")
+        if (self.rooms is not None or self.bank) and self.dist != "headcam":
+            raise InvalidArgumentError("rooms and bank scenes are of --dist headcam")
+        if self.bank and (self.tier is not None or self.views != 1):
+            raise InvalidArgumentError("bank scenes have no tier and one view")
 
     def seed(self, index: int) -> int:
         """Seed of sample index (of its scene)."""
-        offset = ROOM_SEED_OFFSET if self.rooms else 0
+        offset = 0 if self.rooms is None else ROOM_SEED_OFFSETS[self.rooms]
+        offset += BANK_SEED_OFFSET if self.bank else 0
         return SEED_BASES[self.split] + offset + index // self.views
 
     def view(self, index: int) -> int:
@@ -118,7 +136,9 @@ class GenConfig:
         objs = "all" if self.objects == OBJECT_NAMES else ",".join(self.objects)
         tier = "" if self.tier is None else f" --tier {self.tier}"
         tier += "" if self.views == 1 else f" --views {self.views}"
-        tier += " --rooms" if self.rooms else ""
+        if self.rooms is not None:
+            tier += " --rooms" if self.rooms == "wide" else f" --rooms {self.rooms}"
+        tier += " --bank" if self.bank else ""
         return (
             f"python -m perception.training.datagen --dist {self.dist} --split {self.split} "
             f"--count {self.count} --objects {objs} --width {self.width} --height {self.height}"
@@ -131,7 +151,9 @@ class GenConfig:
 
 def _classes(cfg: GenConfig) -> list[str]:
     """The objects a split's images may show: the six built-in ones (the distractors) and the
-    user objects it takes as targets."""
+    user objects it takes as targets; for bank scenes, the training bank's meshes."""
+    if cfg.bank:
+        return [bank_name(i) for i in TRAINING_IDS]
     return [*OBJECT_NAMES, *(o for o in cfg.objects if o not in OBJECT_NAMES)]
 
 
@@ -142,12 +164,14 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
         info = load_info(cfg.out)
         have = (info.get("dist"), info.get("width"), info.get("height"), info.get("version"))
         want = (cfg.dist, cfg.width, cfg.height, GENERATOR_VERSIONS[cfg.dist])
-        if have != want or info.get("tier") != cfg.tier or info.get("rooms", False) != cfg.rooms:
+        rooms, bank = info.get("rooms"), info.get("bank", False)
+        rooms = "wide" if rooms is True else rooms  # folders of the first family said true
+        if have != want or info.get("tier") != cfg.tier or (rooms, bank) != (cfg.rooms, cfg.bank):
             raise InvalidArgumentError(
                 f"{cfg.out} holds a {have[0]} dataset at {have[1]}x{have[2]} (generator "
-                f"version {have[3]}, tier {info.get('tier')}, rooms {info.get('rooms', False)}); "
+                f"version {have[3]}, tier {info.get('tier')}, rooms {rooms}, bank {bank}); "
                 f"this run asks for {cfg.dist} at {cfg.width}x{cfg.height} (version {want[3]}, "
-                f"tier {cfg.tier}, rooms {cfg.rooms}); "
+                f"tier {cfg.tier}, rooms {cfg.rooms}, bank {cfg.bank}); "
                 "use another --out"
             )
         old = info["splits"].get(cfg.split)
@@ -180,8 +204,10 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
         }
         if cfg.tier is not None:
             info["tier"] = cfg.tier
-        if cfg.rooms:
-            info["rooms"] = True
+        if cfg.rooms is not None:
+            info["rooms"] = cfg.rooms
+        if cfg.bank:
+            info["bank"] = True
     return info
 
 
@@ -207,7 +233,7 @@ def _init_worker(cfg: GenConfig) -> None:
     os.environ.setdefault("LP_NUM_THREADS", "1")
     setup_rendering()
     _WORKER["cfg"] = cfg
-    _WORKER["gen"] = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier, cfg.rooms)
+    _WORKER["gen"] = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier, cfg.rooms, cfg.bank)
 
 
 def _work(indices: tuple[int, ...]) -> tuple[int, ...]:
@@ -309,7 +335,7 @@ def _render_tasks(
     """Render `tasks` in this process, or on the workers of `cfg`'s backend in the order the
     images come back, calling `finished` with each image's index once its files are written."""
     if len(tasks) <= 1 or (cfg.workers <= 1 and cfg.backend == "local"):
-        gen = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier, cfg.rooms)
+        gen = make_generator(cfg.dist, cfg.width, cfg.height, cfg.tier, cfg.rooms, cfg.bank)
         try:
             for task in tasks:
                 for i in _generate(cfg, gen, task):

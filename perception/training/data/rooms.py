@@ -17,9 +17,13 @@ generators of its own, so that nothing is fitted to the shifts' definitions or t
   (`posegrasp.world.distractor_bank.TRAINING_IDS`, never the ids the shifts score with), 2, 4
   or 7 of them, added before the scene is compiled (`room_shifts`).
 
-Each factor is drawn on with probability `FACTOR_ODDS`, from ``default_rng([seed, ROOM_STREAM])``,
-so an image's room depends only on its seed. The physics and the scene's layout are those of the
-plain scene of the same seed; only the camera's pose in its head link and what is drawn change.
+Each factor is drawn on with the odds of the room's family (`FAMILIES`), from
+``default_rng([seed, ROOM_STREAM])``, so an image's room depends only on its seed and family:
+``wide`` rooms draw each factor on about half the images, so that a network sees each factor
+alone and in small company; ``joint`` rooms draw nearly every factor at once, as when a room
+differs from the plain one in many ways together. The physics and the scene's layout are those
+of the plain scene of the same seed; only the camera's pose in its head link and what is drawn
+change.
 """
 
 from __future__ import annotations
@@ -44,8 +48,8 @@ from posegrasp.world.shifts import Shift
 
 #: The second word of every room's seed sequence.
 ROOM_STREAM = 0x2007
-#: Chance that each factor is drawn on in an image.
-FACTOR_ODDS = 0.5
+#: The families of rooms: each one's chance that a factor is drawn on in an image.
+FAMILIES: dict[str, float] = {"wide": 0.5, "joint": 0.9}
 #: The room's textures: the table top, the walls, the floor.
 SURFACES = (TABLE_TEXTURE, "room_wall_tex", "room_floor_tex")
 #: Ranges of the draws: light gain, camera height [m] and tilt [rad].
@@ -59,12 +63,12 @@ def room_rng(seed: int) -> np.random.Generator:
     return np.random.default_rng([seed, ROOM_STREAM])
 
 
-def room_shifts(seed: int) -> tuple[Shift, ...]:
+def room_shifts(seed: int, family: str = "wide") -> tuple[Shift, ...]:
     """The scene shifts the room of scene `seed` is built with: the `distractors` shift at a
-    drawn level (2, 4 or 7 meshes) with probability `FACTOR_ODDS`, else none; the scene draws
-    them from the training bank (``SceneConfig(distractor_bank="training")``)."""
+    drawn level (2, 4 or 7 meshes) with the family's odds, else none; the scene draws them from
+    the training bank (``SceneConfig(distractor_bank="training")``)."""
     rng = np.random.default_rng([seed, ROOM_STREAM, 1])
-    if rng.random() >= FACTOR_ODDS:
+    if rng.random() >= FAMILIES[family]:
         return ()
     return (Shift("distractors", int(rng.integers(1, 4))),)
 
@@ -138,22 +142,27 @@ def _camera(
 
 
 def randomize_room(
-    model: mujoco.MjModel, data: mujoco.MjData, bodies: list[str], seed: int
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    bodies: list[str],
+    seed: int,
+    family: str = "wide",
 ) -> dict[str, Any]:
     """Draw the room of scene `seed` onto its compiled, settled model in place (the factors of
-    `FACTORS`, each on with probability `FACTOR_ODDS`), and bring the cameras' and lights' world
-    poses up to date.
+    `FACTORS`, each on with the odds of `family` in `FAMILIES`), and bring the cameras' and
+    lights' world poses up to date.
 
     Args:
         model, data: the compiled scene and its state, kinematics up to date.
         bodies: the body names of the scene's annotated objects.
         seed: the scene's seed.
+        family: the family of rooms it is drawn from.
 
     Returns:
         What was drawn, factor by factor (for the image's record).
     """
     rng = room_rng(seed)
-    on = rng.random(len(FACTORS)) < FACTOR_ODDS
+    on = rng.random(len(FACTORS)) < FAMILIES[family]
     drawn: dict[str, Any] = {}
     for name, wanted in zip(FACTORS, on, strict=True):
         if wanted:
@@ -174,3 +183,9 @@ _EDITS: dict[str, Callable[..., Any]] = {
 }
 #: The factors, in the order they are drawn and applied.
 FACTORS = tuple(_EDITS)
+
+
+def folder_suffix(family: str) -> str:
+    """The end of the dataset folders of a family's rooms: ``_rooms`` for ``wide``, the first
+    family, ``_rooms_<family>`` for the others."""
+    return "_rooms" if family == "wide" else f"_rooms_{family}"

@@ -8,9 +8,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from perception.training.data.annotations import object_diameter
 from perception.training.data.dataset import PoseDataset, Sample
 from posegrasp.core.errors import AssetError, InvalidArgumentError
-from posegrasp.world.objects import load_object
 
 
 def draw_annotations(
@@ -28,7 +28,7 @@ def draw_annotations(
     """
     img = np.ascontiguousarray(sample.rgb.copy())
     for k, obj in enumerate(sample.objects):
-        length = axis_lengths[k] if axis_lengths is not None else load_object(obj.name).diameter / 2
+        length = axis_lengths[k] if axis_lengths is not None else object_diameter(obj.name) / 2
         x0, y0, x1, y1 = obj.box_xyxy
         cv2.rectangle(img, (round(x0), round(y0)), (round(x1), round(y1)), (255, 220, 0), 1)
         pts = np.vstack([np.zeros(3), np.eye(3) * length]) @ obj.T_C_O[:3, :3].T + obj.T_C_O[:3, 3]

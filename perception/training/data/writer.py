@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from perception.training.data.annotations import annotate
+from perception.training.data.annotations import annotate, object_diameter
 from perception.training.data.bop import (
     MM_PER_M,
     SCENE_FILES,
@@ -33,7 +33,8 @@ from perception.training.data.bop import (
     write_same,
 )
 from perception.training.data.distributions import RenderedImage
-from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
+from posegrasp.world.distractor_bank import bank_id, bank_mesh
+from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 
 def write_sample(
@@ -78,9 +79,14 @@ def merge_scene(root: Path, split: str, scene_id: int) -> int:
     return len(records)
 
 
-def _coloured_meshes(obj: ObjectModel) -> list[tuple[trimesh.Trimesh, np.ndarray]]:
-    """The object's meshes in O [m] with their RGBA: a built-in object's parts, a user object's
-    visual mesh."""
+def _coloured_meshes(name: str) -> list[tuple[trimesh.Trimesh, np.ndarray]]:
+    """An object's meshes in O [m] with their RGBA: a built-in object's parts, a user object's
+    visual mesh, a bank mesh (in its file's colour)."""
+    mesh_id = bank_id(name)
+    if mesh_id is not None:
+        mesh = bank_mesh(mesh_id)
+        return [(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False), np.asarray(mesh.rgba))]
+    obj = load_object(name)
     if obj.geometry is not None:
         return [(obj.geometry.visual, np.asarray(obj.geometry.rgba))]
     return [(part.mesh(), np.asarray(part.rgba)) for part in obj.parts]
@@ -88,13 +94,12 @@ def _coloured_meshes(obj: ObjectModel) -> list[tuple[trimesh.Trimesh, np.ndarray
 
 def write_models(root: Path, names: Sequence[str] = OBJECT_NAMES) -> None:
     """BOP models (PLY in mm with vertex colours) and models_info.json for the objects `names`
-    (the built-in ones by default; user objects too)."""
+    (the built-in ones by default; user objects and bank meshes, ``bank-NNN``, too)."""
     info = {}
     for name in names:
-        obj = load_object(name)
         verts, normals, colours, faces = [], [], [], []
         offset = 0
-        for m, rgba in _coloured_meshes(obj):
+        for m, rgba in _coloured_meshes(name):
             verts.append(np.asarray(m.vertices))
             normals.append(np.asarray(m.vertex_normals))
             rgb = np.clip(np.round(rgba[:3] * 255), 0, 255).astype(np.uint8)
@@ -110,12 +115,12 @@ def write_models(root: Path, names: Sequence[str] = OBJECT_NAMES) -> None:
             np.vstack(faces),
         )
         lo, size = v.min(axis=0), v.max(axis=0) - v.min(axis=0)
-        entry: dict[str, Any] = {"diameter": obj.diameter * MM_PER_M}
+        entry: dict[str, Any] = {"diameter": object_diameter(name) * MM_PER_M}
         for i, axis in enumerate("xyz"):
             entry[f"min_{axis}"] = float(lo[i])
             entry[f"size_{axis}"] = float(size[i])
         syms = []
-        for T in obj.symmetries:
+        for T in () if bank_id(name) is not None else load_object(name).symmetries:
             S = np.array(T, float)
             S[:3, 3] *= MM_PER_M
             syms.append([float(x) for x in S.reshape(-1)])

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from perception.detector import Detection, Detector, to_model_box
+from perception.detector_net import class_label
 from perception.training.data.bop import obj_name
 from perception.training.data.dataset import PoseDataset, Sample
 from posegrasp.core.errors import AssetError
@@ -102,7 +103,7 @@ def _coco_records(
         h, w = gt[0][1].shape if gt else (dd[0].mask.shape if dd else (1, 1))
         images.append({"id": i, "height": int(h), "width": int(w)})
         for oid, m in gt:
-            if (name := obj_name(int(oid))) not in classes:
+            if (label := class_label(classes, obj_name(int(oid)))) is None:
                 continue
             r = rle(m)
             area = int(m.sum())
@@ -110,7 +111,7 @@ def _coco_records(
                 {
                     "id": len(anns) + 1,
                     "image_id": i,
-                    "category_id": classes.index(name) + 1,
+                    "category_id": label,
                     "segmentation": r,
                     "area": float(area),
                     "bbox": mask_utils.toBbox(r).tolist(),
@@ -119,7 +120,7 @@ def _coco_records(
             )
         for d in dd:
             x0, y0, x1, y1 = to_model_box(d.box_xyxy)
-            common = {"image_id": i, "category_id": classes.index(d.name) + 1, "score": d.score}
+            common = {"image_id": i, "category_id": class_label(classes, d.name), "score": d.score}
             box_res.append({**common, "bbox": [x0, y0, x1 - x0, y1 - y0]})
             seg_res.append({**common, "segmentation": rle(d.mask)})
     return images, anns, box_res, seg_res

@@ -30,7 +30,8 @@ class DetectionSet(torch.utils.data.Dataset):
     transform would (`input_transform`), so that the work happens in the loading process:
     image (3, h, w) float32 in [0, 1], target a dict with ``boxes`` (N, 4) float32 in
     torchvision's pixel convention, ``labels`` (N,) int64, the objects' places in
-    `DetectorConfig.classes` counted from 1 (for the built-in objects their BOP object ids), and
+    `DetectorConfig.classes` counted from 1 (for the built-in objects their BOP object ids;
+    `DetectorConfig.label`), and
     ``masks`` (N, h, w) uint8. Instances with fewer than `min_visible_px` visible pixels (at full
     resolution), and objects not among the classes, are left out (N may be 0: a negative
     image).
@@ -47,7 +48,7 @@ class DetectionSet(torch.utils.data.Dataset):
         self.data = PoseDataset(root, split)
         self.n = len(self.data) if limit is None else min(limit, len(self.data))
         self.min_visible_px = min_visible_px
-        self.classes = cfg.classes
+        self.cfg = cfg
         self.transform = input_transform(cfg)
 
     def __len__(self) -> int:
@@ -58,16 +59,14 @@ class DetectionSet(torch.utils.data.Dataset):
         keep = [
             o
             for o in s.objects
-            if o.name in self.classes and int(o.mask_visib.sum()) >= self.min_visible_px
+            if self.cfg.label(o.name) is not None and int(o.mask_visib.sum()) >= self.min_visible_px
         ]
         h, w = s.rgb.shape[:2]
         boxes = np.array([to_model_box(box_xyxy(o.mask_visib)) for o in keep]).reshape(-1, 4)
         masks = np.array([o.mask_visib for o in keep], np.uint8).reshape(-1, h, w)
         target = {
             "boxes": torch.from_numpy(boxes).float(),
-            "labels": torch.tensor(
-                [self.classes.index(o.name) + 1 for o in keep], dtype=torch.int64
-            ),
+            "labels": torch.tensor([self.cfg.label(o.name) for o in keep], dtype=torch.int64),
             "masks": torch.from_numpy(masks),
         }
         return self.transform.resize(image_tensor(s.rgb), target)
