@@ -26,12 +26,20 @@ class DetectionConfig:
             mask net (`perception.mask_net`) before its hypotheses and refinement: the
             detector's coarse mask loses thin parts and puts the outline a pixel or two off,
             which the fit turns into distance along the viewing ray (False: the detector's).
+        shortlist: with a detector of any object (`perception.detector_net.ANY_OBJECT`), the
+            detections whose masks the requested object's codebook matches best, this many,
+            are each verified as the target, and the best verified is taken (`AnyObjectDetection`).
     """
 
     target_score: float | None = 0.3
     mask_net: bool = True
+    shortlist: int = 3
 
     def __post_init__(self) -> None:
+        if self.shortlist < 1:
+            raise InvalidArgumentError(
+                f"DetectionConfig.shortlist must be >= 1, got {self.shortlist}"
+            )
         if self.target_score is not None and not 0 <= self.target_score <= 1:
             raise InvalidArgumentError(
                 f"DetectionConfig.target_score must be in [0, 1] or None, got {self.target_score}"

@@ -3,13 +3,17 @@ redrawn by the mask net."""
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import numpy as np
 
+from perception.detector import Detection
+from perception.detector_net import ANY_OBJECT
 from perception.hybrid import HybridPoseEstimator, detect_target
 from perception.mask_net import MaskRefiner
 from perception.stages.config import DetectionConfig, GlobalConfig
+from perception.stages.hypotheses import CodebookHypotheses
 from perception.stages.work import AnyDetection, Detections, Kit, Work
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
@@ -35,7 +39,10 @@ class TargetDetection:
 
     @classmethod
     def build(cls, config: GlobalConfig, kit: Kit) -> TargetDetection:
-        """The stage of `config.detection`."""
+        """The stage of `config.detection`: `AnyObjectDetection` for a detector of any object."""
+        if kit.hybrid.detector.cfg.classes == (ANY_OBJECT,):
+            codebook = CodebookHypotheses(kit.codebooks, config.codebook)
+            return AnyObjectDetection(kit.hybrid, config.detection, codebook, kit)
         return cls(kit.hybrid, config.detection)
 
     @staticmethod
@@ -66,6 +73,92 @@ class TargetDetection:
             info |= {"class": best.name, "score": best.score, "detections": len(dets)}
         neighbours = tuple((p.name, p.T_C_O.copy()) for p in poses)
         return Detections(best, list(dets), neighbours, info)
+
+
+class AnyObjectDetection(TargetDetection):
+    """The detection stage of a detector of any object (`perception.detector_net.ANY_OBJECT`),
+    which names no object: the requested one is told by its mesh.
+
+    Every detection scoring at least `DetectionConfig.target_score` has its mask matched
+    against the requested object's codebook (the best IoU of the mesh's silhouettes over the
+    rotation group, `CodebookHypotheses`); the `DetectionConfig.shortlist` best matched are each
+    verified as the target would be (its hypotheses refined and scored, without the second
+    look, every other detection its occluder: `Kit.neighbour`), and the one whose best pose
+    scores highest is the target, named as the requested object. The other detections are its
+    neighbours and occluders, without poses.
+
+    Args:
+        hybrid: the detector (the pose nets are not used).
+        config: the stage's settings.
+        codebook: the codebook's hypothesis source, whose matches rank the detections.
+        kit: the estimator's pieces: where the matching runs, how a detection is verified.
+    """
+
+    def __init__(
+        self,
+        hybrid: HybridPoseEstimator,
+        config: DetectionConfig,
+        codebook: CodebookHypotheses,
+        kit: Kit,
+    ) -> None:
+        super().__init__(hybrid, config)
+        self.codebook, self.kit = codebook, kit
+
+    def __call__(self, work: Work) -> Work:
+        """`work` with the observation's detections, the target told by its mesh, and the
+        target's occluder."""
+        assert work.obs is not None
+        t0 = time.perf_counter()
+        dets = self.hybrid.detector.detect(work.obs.rgb)
+        t1 = time.perf_counter()
+        threshold = self.config.target_score
+        if threshold is None:
+            threshold = self.hybrid.detector.score_threshold
+        ranked, ious = self.ranked(dets, threshold, work.obs.object, work.obs.K)
+        verified = {k: self.verified(work, dets, k) for k in ranked if len(ranked) > 1}
+        scored = {k: v for k, v in verified.items() if v is not None}
+        pick = max(scored, key=lambda k: scored[k]) if scored else next(iter(ranked), None)
+        info: dict = {
+            "detected": pick is not None,
+            "detections": len(dets),
+            "choice": {"match_iou": ious, "verified": {str(k): v for k, v in verified.items()}},
+        }
+        every: list[AnyDetection] = list(dets)
+        target = None
+        if pick is not None:
+            target = replace(dets[pick], name=work.obs.object)
+            every[pick] = target
+            info |= {"class": ANY_OBJECT, "score": target.score}
+        t2 = time.perf_counter()
+        info["timings_ms"] = {"detect": (t1 - t0) * 1000, "choose": (t2 - t1) * 1000}
+        found = Detections(target, every, (), info)
+        return work.given(found=found, target=target, occluder=found.occluder)
+
+    def ranked(
+        self, dets: list[Detection], threshold: float, name: str, K: np.ndarray
+    ) -> tuple[list[int], list[float]]:
+        """The indices of the `shortlist` detections scoring `threshold` whose masks the
+        codebook of `name` matches best, best first, and every detection's best IoU (-1 for one
+        under the threshold or with an empty mask)."""
+        executor = self.kit.executor()
+        ious = []
+        for d in dets:
+            match = None
+            if d.score >= threshold:
+                match = self.codebook.match(replace(d, name=name), None, K, executor)
+            ious.append(-1.0 if match is None else round(float(match.scores.max()), 4))
+        order = [int(k) for k in np.argsort(-np.asarray(ious), kind="stable") if ious[k] >= 0]
+        return order[: self.config.shortlist], ious
+
+    def verified(self, work: Work, dets: list[Detection], k: int) -> float | None:
+        """The score of the best verified pose of detection `k` taken as the target (None:
+        none verifies)."""
+        assert work.obs is not None
+        as_target = replace(dets[k], name=work.obs.object)
+        every = [as_target if j == k else d for j, d in enumerate(dets)]
+        trial = work.given(found=Detections(as_target, every, (), {}))
+        best = self.kit.neighbour(as_target, trial)
+        return None if best is None else round(float(best.score), 4)
 
 
 class RedrawnMask:

@@ -1,0 +1,80 @@
+"""The detection stage of a detector of any object: the requested object told by its mesh."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from perception.detector import TIERS_DETECTOR, Detection
+from perception.detector_net import ANY_OBJECT
+from perception.global_pose import GlobalPoseEstimator
+from perception.hybrid import HybridPoseEstimator
+from perception.metrics import mask_iou
+from perception.stages import DetectionConfig, GlobalConfig
+from perception.stages.detection import AnyObjectDetection
+from perception.training.data.distributions import HeadcamGenerator
+from posegrasp.core.contract import Observation
+from posegrasp.core.transforms import invert_transform
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def image():
+    gen = HeadcamGenerator(640, 480, tier="clutter")
+    try:
+        return gen.render("phone", 12)
+    finally:
+        gen.close()
+
+
+def _estimator(image) -> GlobalPoseEstimator:
+    """`hybrid-global`'s stages on a detector of any object whose detections are the image's
+    true visible masks, each called an object, in an order no score gives away."""
+    hybrid = HybridPoseEstimator.from_weights(detector_path=TIERS_DETECTOR)
+    hybrid.detector.cfg = replace(hybrid.detector.cfg, classes=(ANY_OBJECT,), n_classes=2)
+    seen = [o for o in image.objects if o.mask_visib.sum() > 400]
+    dets = [
+        Detection(ANY_OBJECT, 0.9 - 0.05 * k, np.zeros(4), o.mask_visib)
+        for k, o in enumerate(sorted(seen, key=lambda o: o.extra["target"]))
+    ]
+    hybrid.detector.detect = lambda rgb, score_threshold=None: list(dets)
+    config = GlobalConfig(detection=DetectionConfig(mask_net=False), support=None, processes=1)
+    return GlobalPoseEstimator(hybrid, config, name="any-object")
+
+
+def test_the_requested_object_is_the_detection_its_mesh_explains_best(image) -> None:
+    est = _estimator(image)
+    assert isinstance(est.stages[0], AnyObjectDetection)
+    names = {o.name for o in image.objects}
+    assert len(names) >= 3
+    T_W_C = invert_transform(image.T_C_W)
+    chosen = 0
+    for o in image.objects:
+        if o.mask_visib.sum() <= 400 or [p.name for p in image.objects].count(o.name) > 1:
+            continue
+        got = est.estimate(Observation(image.rgb, image.K, T_W_C, o.name, 12))
+        assert got.info["detected"] and got.info["class"] == ANY_OBJECT
+        found = got.info["choice"]
+        assert len(found["verified"]) >= 2, found  # a choice was made, not taken by score
+        assert got.T_C_O is not None
+        # The pose found is the object's: its mesh drawn there covers the object's own mask.
+        assert mask_iou(_drawn(o.name, got.T_C_O, image), o.mask_visib) > 0.5, o.name
+        chosen += 1
+    assert chosen >= 2
+
+
+def _drawn(name: str, T_C_O: np.ndarray, image) -> np.ndarray:
+    import cv2
+
+    from perception.training.data.annotations import object_mesh
+
+    mesh = object_mesh(name)
+    v = mesh.vertices @ T_C_O[:3, :3].T + T_C_O[:3, 3]
+    uv = v[:, :2] / v[:, 2:3] * [image.K[0, 0], image.K[1, 1]] + image.K[:2, 2]
+    out = np.zeros(image.rgb.shape[:2], np.uint8)
+    for tri in np.asarray(mesh.faces):
+        cv2.fillConvexPoly(out, np.round(uv[tri]).astype(np.int32), 1)
+    return out.astype(bool)
