@@ -155,7 +155,7 @@ class AnyObjectDetection(TargetDetection):
         none verifies)."""
         assert work.obs is not None
         as_target = replace(dets[k], name=work.obs.object)
-        every = [as_target if j == k else d for j, d in enumerate(dets)]
+        every: list[AnyDetection] = [as_target if j == k else d for j, d in enumerate(dets)]
         trial = work.given(found=Detections(as_target, every, (), {}))
         best = self.kit.neighbour(as_target, trial)
         return None if best is None else round(float(best.score), 4)
