@@ -14,7 +14,7 @@ from perception.training.data import bop
 from perception.training.data.annotations import object_diameter, object_mesh
 from perception.training.data.dataset import PoseDataset
 from perception.training.data.render_split import (
-    BANK_SEED_OFFSET,
+    BANK_SEED_OFFSETS,
     ROOM_SEED_OFFSETS,
     SEED_BASES,
     GenConfig,
@@ -61,8 +61,8 @@ def test_bank_scenes_show_bank_meshes_only_each_annotated_where_it_is_drawn(
     bank_folder: Path, tmp_path: Path
 ) -> None:
     info = json.loads((bank_folder / "info.json").read_text())
-    assert info["bank"] is True and info["rooms"] == "wide"
-    base = SEED_BASES["val"] + ROOM_SEED_OFFSETS["wide"] + BANK_SEED_OFFSET
+    assert info["bank"] == "training" and info["rooms"] == "wide"
+    base = SEED_BASES["val"] + ROOM_SEED_OFFSETS["wide"] + BANK_SEED_OFFSETS["training"]
     assert info["splits"]["val"]["seed_range"][0] == base
     assert "--bank" in info["splits"]["val"]["command"]
     data = PoseDataset(bank_folder, "val")
@@ -114,4 +114,18 @@ def test_bank_scenes_refuse_what_they_are_not(capsys) -> None:
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], err
     with pytest.raises(InvalidArgumentError, match="one view"):
-        GenConfig("headcam", "val", 2, Path("x"), views=2, bank=True)
+        GenConfig("headcam", "val", 2, Path("x"), views=2, bank="training")
+    assert main(["--dist", "headcam", "--bank", "mine", "--split", "val", "--count", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "training" in err[0] and "held-out" in err[0]
+
+
+def test_the_held_out_banks_scenes_show_its_meshes_only(tmp_path: Path) -> None:
+    out = tmp_path / "held"
+    args = ["--dist", "headcam", "--bank", "held-out", "--split", "val", "--count", "2"]
+    assert main([*args, "--width", str(W), "--height", str(H), "--quiet", "--out", str(out)]) == 0
+    data = PoseDataset(out, "val")
+    names = [o.name for i in range(len(data)) for o in data[i].objects]
+    assert names and all(bank_id(n) in DISTRACTOR_IDS for n in names)
+    info = json.loads((out / "info.json").read_text())
+    assert info["bank"] == "held-out" and "--bank held-out" in info["splits"]["val"]["command"]

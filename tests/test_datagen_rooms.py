@@ -118,7 +118,7 @@ def test_each_family_of_rooms_has_seeds_of_its_own_and_joint_rooms_draw_more_at_
         GenConfig("headcam", split, MAX_COUNT, Path("x"), rooms=rooms, bank=bank)
         for split in SEED_BASES
         for rooms in (None, *FAMILIES)
-        for bank in (False, True)
+        for bank in (None, "training", "held-out")
     ]
     ranges = sorted((c.seed(0), c.seed(MAX_COUNT - 1) + 1) for c in kinds)
     assert all(a[1] <= b[0] for a, b in itertools.pairwise(ranges))

@@ -52,6 +52,7 @@ from posegrasp.core.validate import (
     check_output_file,
 )
 from posegrasp.world.camera import check_resolution
+from posegrasp.world.distractor_bank import BANKS
 from posegrasp.world.objects import check_objects
 from posegrasp.world.tiers import TIERS, check_tier
 
@@ -133,11 +134,15 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--bank",
-        action="store_true",
+        nargs="?",
+        const="training",
+        default=None,
+        metavar="BANK",
+        type=arg(check_choice, list(BANKS), "bank"),
         help="headcam only, without --tier: scenes whose only objects in sight are meshes of the "
-        "training bank (pybullet's random meshes 0-899), each annotated as an object of its own "
-        "(bank-NNN), for a detector of objects it has never seen; the default folder is then "
-        "headcam_bank[_rooms...]",
+        "bank BANK (training: pybullet's random meshes 0-899, the default; held-out: 900-999, for "
+        "scoring), each annotated as an object of its own (bank-NNN), for a detector of objects "
+        "it has never seen; the default folder is then headcam_bank[_held-out][_rooms...]",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_backend_arguments(p)
@@ -158,7 +163,7 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
         raise InvalidArgumentError(f"--tier applies to --dist headcam, not {a.dist}")
     if a.rooms is not None and a.dist != "headcam":
         raise InvalidArgumentError(f"--rooms applies to --dist headcam, not {a.dist}")
-    if a.bank and (a.dist != "headcam" or a.tier is not None or a.views > 1):
+    if a.bank is not None and (a.dist != "headcam" or a.tier is not None or a.views > 1):
         raise InvalidArgumentError("--bank applies to --dist headcam, without --tier or --views")
     if a.views > 1 and a.dist != "headcam":
         raise InvalidArgumentError(f"--views applies to --dist headcam, not {a.dist}")
@@ -168,7 +173,8 @@ def parse_args(argv: Sequence[str] | None) -> GenConfig:
     out = a.out
     if out is None:
         name = a.dist if a.tier is None else f"{a.dist}_{a.tier}"
-        name += "_bank" if a.bank else ""
+        if a.bank is not None:
+            name += "_bank" if a.bank == "training" else f"_bank_{a.bank}"
         out = data_root() / (name if a.rooms is None else name + folder_suffix(a.rooms))
         check_output_dir(out, "--out")
     return GenConfig(

@@ -271,25 +271,32 @@ BANK_STREAM = 0xB4
 
 
 class BankGenerator(HeadcamGenerator):
-    """Head-camera images of table scenes whose only objects in sight are meshes of the
-    training bank (`posegrasp.world.distractor_bank.TRAINING_IDS`: pybullet's random meshes
-    0-899), each annotated as an object of its own (``bank-NNN``, `bank_name`): what a detector
-    of objects it has never seen learns from. None of the six built-in objects is drawn.
+    """Head-camera images of table scenes whose only objects in sight are meshes of one bank
+    (`posegrasp.world.distractor_bank.BANKS`: ``training``, pybullet's random meshes 0-899;
+    ``held-out``, 900-999), each annotated as an object of its own (``bank-NNN``, `bank_name`):
+    what a detector of objects it has never seen learns from, and is measured on. None of the
+    six built-in objects is drawn.
 
     Scene `seed` is the plain head-camera scene of one built-in object, which is hidden, with
     the `distractors` shift at a level drawn from ``default_rng([seed, BANK_STREAM])`` (2, 4 or
-    7 meshes from the training bank standing around where it stands, on any of their six
+    7 meshes from the bank standing around where it stands, on any of their six
     faces), the head then aimed at one of the meshes (drawn from the same stream, offset by up
     to `SceneConfig.aim_jitter` per axis); with `rooms`, in a room of that family
     (`perception.training.data.rooms`, the meshes recoloured as objects are). One view per
     scene.
     """
 
+    def __init__(
+        self, width: int, height: int, rooms: str | None = None, bank: str = "training"
+    ) -> None:
+        super().__init__(width, height, None, rooms)
+        self.bank = bank
+
     def _config(self, seed: int, **fields: Any) -> SceneConfig:
         level = int(np.random.default_rng([seed, BANK_STREAM]).integers(1, 4))
         shifts = (Shift("distractors", level),)
         return SceneConfig(
-            randomize_appearance=True, shifts=shifts, distractor_bank="training", **fields
+            randomize_appearance=True, shifts=shifts, distractor_bank=self.bank, **fields
         )
 
     def _scene(self, name: str, seed: int) -> Scene:
@@ -383,15 +390,15 @@ def make_generator(
     height: int,
     tier: str | None = None,
     rooms: str | None = None,
-    bank: bool = False,
+    bank: str | None = None,
 ) -> PaperGenerator | HeadcamGenerator:
     """The generator of a distribution (one of `DISTS`) at width x height [px]; `tier`, `rooms`
     (`perception.training.data.rooms`) and `bank` (`BankGenerator`, without a tier) apply to
     ``headcam``."""
     if dist == "paper":
         return PaperGenerator(width, height)
-    if dist == "headcam" and bank:
-        return BankGenerator(width, height, None, rooms)
+    if dist == "headcam" and bank is not None:
+        return BankGenerator(width, height, rooms, bank)
     if dist == "headcam":
         return HeadcamGenerator(width, height, tier, rooms)
     raise UnknownNameError("distribution", dist, DISTS)

@@ -5,8 +5,9 @@ Seeds: sample ``index`` of a split shows scene ``index // views`` (``views`` = 1
 splits never share a seed. Within a split, each kind of scene starts at its own multiple of
 `KIND_SPAN` and holds at most that many (``--count`` is at most `MAX_COUNT`), so no two kinds share
 a seed: rooms (``--rooms [FAMILY]``, `perception.training.data.rooms`) start their family's
-`ROOM_SEED_OFFSETS` further on, the bank's scenes (``--bank``,
-`perception.training.data.distributions.BankGenerator`) `BANK_SEED_OFFSET` further again.
+`ROOM_SEED_OFFSETS` further on, the bank's scenes (``--bank [BANK]``,
+`perception.training.data.distributions.BankGenerator`) their bank's `BANK_SEED_OFFSETS` further
+again.
 ``paper`` draws everything from ``numpy.random.default_rng(seed)``; ``headcam`` builds
 ``build_scene(target, seed, ...)`` with the number of distractors drawn from
 ``default_rng([seed, 1])`` and renders view ``index % views`` of it
@@ -46,7 +47,7 @@ from posegrasp.core.backends import default_chunk, run_map
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
-from posegrasp.world.distractor_bank import TRAINING_IDS, bank_name
+from posegrasp.world.distractor_bank import BANKS, bank_name
 from posegrasp.world.objects import OBJECT_NAMES
 
 #: Generator version per distribution; a dataset folder only resumes at its own version. Paper
@@ -54,12 +55,12 @@ from posegrasp.world.objects import OBJECT_NAMES
 GENERATOR_VERSIONS: dict[str, str] = {"paper": "3", "headcam": "2"}
 SEED_BASES: dict[str, int] = {"train": 0, "val": 100_000_000, "test": 200_000_000}
 #: The seeds a kind of scene of a split may take, and so the most images of a split.
-KIND_SPAN = 12_500_000
+KIND_SPAN = 6_250_000
 MAX_COUNT = KIND_SPAN
 #: Where the seeds of a split's rooms start after its plain seeds, per family of rooms, and where
-#: the bank's scenes start after those of the same room (or the plain ones).
-ROOM_SEED_OFFSETS: dict[str, int] = {"wide": 4 * KIND_SPAN, "joint": 6 * KIND_SPAN}
-BANK_SEED_OFFSET = KIND_SPAN
+#: the scenes of each bank's meshes start after those of the same room (or the plain ones).
+ROOM_SEED_OFFSETS: dict[str, int] = {"wide": 8 * KIND_SPAN, "joint": 12 * KIND_SPAN}
+BANK_SEED_OFFSETS: dict[str, int] = {"training": KIND_SPAN, "held-out": 2 * KIND_SPAN}
 #: Most head-camera views rendered of one scene (`--views`).
 MAX_VIEWS = 16
 DEFAULT_SIZE: dict[str, tuple[int, int]] = {"paper": (256, 256), "headcam": (640, 480)}
@@ -86,8 +87,9 @@ class GenConfig:
             ``paper``.
         rooms: ``headcam`` scenes in rooms drawn for training, of this family of
             `perception.training.data.rooms.FAMILIES`; None for the plain room.
-        bank: ``headcam`` scenes of the training bank's meshes alone, each annotated as an
-            object of its own (`perception.training.data.distributions.BankGenerator`).
+        bank: ``headcam`` scenes of this bank's meshes alone
+            (`posegrasp.world.distractor_bank.BANKS`), each annotated as an object of its own
+            (`perception.training.data.distributions.BankGenerator`); None for the objects'.
     """
 
     dist: str
@@ -105,22 +107,24 @@ class GenConfig:
     address: str | None = None
     views: int = 1
     rooms: str | None = None
-    bank: bool = False
+    bank: str | None = None
 
     def __post_init__(self) -> None:
         if self.rooms is not None and self.rooms not in ROOM_SEED_OFFSETS:
             raise UnknownNameError("room family", self.rooms, FAMILIES)
         if not 1 <= self.count <= MAX_COUNT:
             raise InvalidArgumentError(f"a split holds 1..{MAX_COUNT} images, not {self.count}")
-        if (self.rooms is not None or self.bank) and self.dist != "headcam":
+        if self.bank is not None and self.bank not in BANK_SEED_OFFSETS:
+            raise UnknownNameError("bank", self.bank, BANK_SEED_OFFSETS)
+        if (self.rooms is not None or self.bank is not None) and self.dist != "headcam":
             raise InvalidArgumentError("rooms and bank scenes are of --dist headcam")
-        if self.bank and (self.tier is not None or self.views != 1):
+        if self.bank is not None and (self.tier is not None or self.views != 1):
             raise InvalidArgumentError("bank scenes have no tier and one view")
 
     def seed(self, index: int) -> int:
         """Seed of sample index (of its scene)."""
         offset = 0 if self.rooms is None else ROOM_SEED_OFFSETS[self.rooms]
-        offset += BANK_SEED_OFFSET if self.bank else 0
+        offset += 0 if self.bank is None else BANK_SEED_OFFSETS[self.bank]
         return SEED_BASES[self.split] + offset + index // self.views
 
     def view(self, index: int) -> int:
@@ -138,7 +142,8 @@ class GenConfig:
         tier += "" if self.views == 1 else f" --views {self.views}"
         if self.rooms is not None:
             tier += " --rooms" if self.rooms == "wide" else f" --rooms {self.rooms}"
-        tier += " --bank" if self.bank else ""
+        if self.bank is not None:
+            tier += " --bank" if self.bank == "training" else f" --bank {self.bank}"
         return (
             f"python -m perception.training.datagen --dist {self.dist} --split {self.split} "
             f"--count {self.count} --objects {objs} --width {self.width} --height {self.height}"
@@ -151,9 +156,9 @@ class GenConfig:
 
 def _classes(cfg: GenConfig) -> list[str]:
     """The objects a split's images may show: the six built-in ones (the distractors) and the
-    user objects it takes as targets; for bank scenes, the training bank's meshes."""
-    if cfg.bank:
-        return [bank_name(i) for i in TRAINING_IDS]
+    user objects it takes as targets; for bank scenes, their bank's meshes."""
+    if cfg.bank is not None:
+        return [bank_name(i) for i in BANKS[cfg.bank]]
     return [*OBJECT_NAMES, *(o for o in cfg.objects if o not in OBJECT_NAMES)]
 
 
@@ -164,7 +169,7 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
         info = load_info(cfg.out)
         have = (info.get("dist"), info.get("width"), info.get("height"), info.get("version"))
         want = (cfg.dist, cfg.width, cfg.height, GENERATOR_VERSIONS[cfg.dist])
-        rooms, bank = info.get("rooms"), info.get("bank", False)
+        rooms, bank = info.get("rooms"), info.get("bank")
         rooms = "wide" if rooms is True else rooms  # folders of the first family said true
         if have != want or info.get("tier") != cfg.tier or (rooms, bank) != (cfg.rooms, cfg.bank):
             raise InvalidArgumentError(
@@ -206,8 +211,8 @@ def _check_info(cfg: GenConfig) -> dict[str, Any]:
             info["tier"] = cfg.tier
         if cfg.rooms is not None:
             info["rooms"] = cfg.rooms
-        if cfg.bank:
-            info["bank"] = True
+        if cfg.bank is not None:
+            info["bank"] = cfg.bank
     return info
 
 
