@@ -4,10 +4,12 @@ any object (``train_detector --any-object``)."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from perception.detector_net import ANY_OBJECT, DetectorConfig, class_label
 from perception.training.data import bop
@@ -21,7 +23,7 @@ from perception.training.data.render_split import (
 )
 from perception.training.datagen import main
 from perception.training.trainers.detection_data import DetectionSet
-from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
+from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 from posegrasp.world.distractor_bank import (
     BANK_OBJ_ID_BASE,
     DISTRACTOR_IDS,
@@ -129,3 +131,23 @@ def test_the_held_out_banks_scenes_show_its_meshes_only(tmp_path: Path) -> None:
     assert names and all(bank_id(n) in DISTRACTOR_IDS for n in names)
     info = json.loads((out / "info.json").read_text())
     assert info["bank"] == "held-out" and "--bank held-out" in info["splits"]["val"]["command"]
+
+
+def test_a_detector_of_any_object_starts_from_a_named_one_but_its_class_layers() -> None:
+    from perception.detector import TIERS_DETECTOR, load_detector_model
+    from perception.detector_net import build_detector
+    from perception.training.trainers.detection_data import start_from
+
+    parent, parent_cfg, _ = load_detector_model(TIERS_DETECTOR, verify=False)
+    cfg = replace(parent_cfg, classes=(ANY_OBJECT,), n_classes=2)
+    model = build_detector(cfg)
+    fresh = {k: v.clone() for k, v in model.state_dict().items()}
+    start_from(model, TIERS_DETECTOR, cfg)
+    got, theirs = model.state_dict(), parent.state_dict()
+    kept = [k for k in got if got[k].shape == theirs[k].shape]
+    anew = [k for k in got if got[k].shape != theirs[k].shape]
+    assert all(torch.equal(got[k], theirs[k].float()) for k in kept)
+    assert anew and all("predictor" in k for k in anew)
+    assert all(torch.equal(got[k], fresh[k]) for k in anew)
+    with pytest.raises(AssetError, match="another detector architecture"):
+        start_from(model, TIERS_DETECTOR, replace(cfg, fpn_channels=32))

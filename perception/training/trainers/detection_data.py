@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from perception.detector import image_tensor, load_detector_model, to_model_box
-from perception.detector_net import DetectorConfig, input_transform
+from perception.detector_net import ANY_OBJECT, DetectorConfig, input_transform
 from perception.training.data.bop import box_xyxy
 from perception.training.data.dataset import PoseDataset
 from perception.training.trainers.ddp import Ranks
@@ -125,17 +125,27 @@ def training_images(
 def start_from(model: torch.nn.Module, path: Path, cfg: DetectorConfig) -> None:
     """Load the weights of a shipped detector or a detector checkpoint into model (float32).
 
+    A detector of more classes starts from its first classes' heads; a detector of any object
+    (`ANY_OBJECT`) from a detector of named classes takes everything but the per-class layers
+    (scores, box offsets and mask logits), which start afresh.
+
     Raises:
         AssetError: the file is missing or corrupt, or holds another architecture.
     """
     parent, parent_cfg, _ = load_detector_model(Path(path), verify=False)
     n = len(parent_cfg.classes)
-    same = replace(cfg, classes=cfg.classes[:n], n_classes=1 + n)
-    if parent_cfg != same or cfg.classes[:n] != parent_cfg.classes:
+    anew = cfg.classes == (ANY_OBJECT,) and parent_cfg.classes != cfg.classes
+    if anew:
+        same = replace(cfg, classes=parent_cfg.classes, n_classes=parent_cfg.n_classes)
+    else:
+        same = replace(cfg, classes=cfg.classes[:n], n_classes=1 + n)
+    if parent_cfg != same or (not anew and cfg.classes[:n] != parent_cfg.classes):
         raise AssetError(f"{path} holds another detector architecture than this run's")
     state = model.state_dict()
     for k, v in parent.state_dict().items():
         v = v.float() if v.is_floating_point() else v
+        if v.shape != state[k].shape and anew:  # a per-class layer: left as initialised
+            continue
         if v.shape != state[k].shape:  # a class head widened for new classes: its first rows
             rows = v.shape[0]
             v = torch.cat([v, state[k][rows:]]) if v.shape[1:] == state[k].shape[1:] else None
