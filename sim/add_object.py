@@ -237,7 +237,9 @@ def make_object(
 
     request = _Request(mesh_path, name, units, scale, mass, symmetry, drops, seed, keep)
     description = _description(request, src, made, obj.diameter, timings, load_start)
-    folder = write_object_folder(name, description, made.visual, made.hulls, png, replace=force)
+    folder = write_object_folder(
+        name, description, made.visual, made.hulls, png, replace=force, texture=made.texture
+    )
     description["folder"] = str(folder)
     _report(description, log)
     return description
@@ -308,6 +310,7 @@ class _Made:
 
     T_O_S: np.ndarray
     visual: trimesh.Trimesh
+    texture: M.Texture | None
     hulls: list[trimesh.Trimesh]
     props: Any
     syms: Any
@@ -355,9 +358,11 @@ def _in_canonical_frame(
     for h in hulls:
         h.apply_transform(T_O_S)
     poses, stored, drawn = _pose_records(found, canon, grasps_s, T_O_S)
+    texture = src.obj_s.geometry.texture if src.obj_s.geometry is not None else None
     return _Made(
         T_O_S=T_O_S,
         visual=visual,
+        texture=None if texture is None else texture.moved(T_O_S),
         hulls=hulls,
         props=M.transform_inertia(src.props_s, T_O_S),
         syms=src.syms_s.transformed(T_O_S),
@@ -382,7 +387,13 @@ def _preview(
         friction=src.friction,
         resting_poses={p["name"]: np.asarray(p["quat"]) for p in made.poses},
         geometry=MeshGeometry(
-            "preview", made.visual, tuple(made.hulls), src.rgba, made.props.com, made.props.inertia
+            "preview",
+            made.visual,
+            tuple(made.hulls),
+            src.rgba,
+            made.props.com,
+            made.props.inertia,
+            made.texture,
         ),
     )
     title = (
@@ -495,8 +506,10 @@ def _source(
     `make_object` for the arguments); each step's time goes into `timings`."""
     t = time.perf_counter()
     raw = M.read_mesh(mesh_path)
-    visual_s, _ = M.centred(M.scaled_mesh(raw, units, scale, mesh_path.name))
+    visual_s, T_centre = M.centred(M.scaled_mesh(raw, units, scale, mesh_path.name))
     rgba = M.mesh_colour(raw)
+    texture = M.mesh_texture(raw, M.UNITS[units] * scale)
+    texture_s = None if texture is None else texture.moved(T_centre)
     ext = visual_s.extents
     say(
         f"read {mesh_path.name}: {len(visual_s.faces)} triangles, "
@@ -532,7 +545,9 @@ def _source(
         parts=(),
         mass=props_s.mass,
         friction=fr,
-        geometry=MeshGeometry("s", visual_s, tuple(dec.hulls), rgba, props_s.com, props_s.inertia),
+        geometry=MeshGeometry(
+            "s", visual_s, tuple(dec.hulls), rgba, props_s.com, props_s.inertia, texture_s
+        ),
     )
     return _Source(raw, visual_s, rgba, syms_s, dec, props_s, fr, obj_s)
 

@@ -249,7 +249,7 @@ def test_wall_time_is_recorded_per_split(paper: Path) -> None:
 def test_depth_read_inside_a_window_is_that_part_of_the_whole_one() -> None:
     # The generator reads each object's depth back only inside its projected box: the box must
     # hold every pixel the object covers, and the part read must equal the whole read there.
-    from perception.training.data.distributions import HeadcamGenerator, _body_window
+    from perception.training.data.distributions import HeadcamGenerator, _geoms_window
     from perception.training.data.studio import HIDDEN_GROUP
 
     gen = HeadcamGenerator(320, 240)
@@ -263,7 +263,8 @@ def test_depth_read_inside_a_window_is_that_part_of_the_whole_one() -> None:
         seen = 0
         for placed in scene.objects:
             bid = model.body(placed.body).id
-            x0, y0, x1, y1 = _body_window(model, data, bid, T_C_W, K, 320, 240)
+            geoms = np.flatnonzero(model.geom_bodyid == bid)
+            x0, y0, x1, y1 = _geoms_window(model, data, geoms, T_C_W, K, 320, 240)
             model.geom_group[:] = np.where(model.geom_bodyid == bid, groups, HIDDEN_GROUP)
             r.draw(model, data, cam)
             whole, part = r.read_depth(), r.read_depth((x0, y0, x1, y1))

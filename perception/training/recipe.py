@@ -271,7 +271,6 @@ STAGES: tuple[Stage, ...] = (
         epochs=2,
         lr=2e-4,
         init="detector-tune-tiers-rooms",
-        precision="bf16",
         channels_last=True,
     ),
     _masknet(

@@ -83,6 +83,12 @@ def read_mesh(path: Path | str) -> trimesh.Trimesh:
     return loaded
 
 
+def _texture_image(material: Any) -> Any:
+    """A trimesh material's texture image (PIL), or None: an OBJ's material holds its image, a
+    glTF's PBR material its base colour texture."""
+    return getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
+
+
 def mesh_colour(mesh: trimesh.Trimesh) -> np.ndarray:
     """The mesh's main colour as rgba in [0, 1] (4,): the material's diffuse colour or the
     average vertex or face colour; a neutral clay when it has none."""
@@ -92,7 +98,7 @@ def mesh_colour(mesh: trimesh.Trimesh) -> np.ndarray:
         if visual.kind == "texture" and getattr(visual, "material", None) is not None:
             material = visual.material
             colour = getattr(material, "main_color", None)
-            image = getattr(material, "image", None)
+            image = _texture_image(material)
             if image is not None:
                 arr = np.asarray(image.convert("RGBA"), float).reshape(-1, 4) / 255.0
                 return np.r_[arr[:, :3].mean(axis=0), 1.0]
@@ -105,6 +111,47 @@ def mesh_colour(mesh: trimesh.Trimesh) -> np.ndarray:
     except (AttributeError, ValueError, TypeError):
         pass
     return default
+
+
+@dataclass(frozen=True)
+class Texture:
+    """A mesh's texture, with the mesh as drawn: its own vertices, so that a vertex on a seam of
+    the texture keeps a coordinate on each side.
+
+    Attributes:
+        vertices: (V, 3) [m].
+        faces: (F, 3) vertex indices.
+        uv: (V, 2) texture coordinates, u to the right, v up from the image's bottom row (OBJ's
+            convention; trimesh turns glTF's into it).
+        image: the texture (H, W, 3) uint8, top row first.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray
+    image: np.ndarray
+
+    def moved(self, T: np.ndarray) -> Texture:
+        """This texture on the mesh moved by T (4, 4)."""
+        v = self.vertices @ T[:3, :3].T + T[:3, 3]
+        return Texture(v, self.faces, self.uv, self.image)
+
+
+def mesh_texture(mesh: trimesh.Trimesh, factor: float) -> Texture | None:
+    """The texture of a mesh as read (`read_mesh`: an OBJ with its MTL and image, a GLB with its
+    embedded image), its vertices scaled by `factor` into metres; None when it has no texture
+    image with a coordinate for every vertex."""
+    visual: Any = mesh.visual
+    image = _texture_image(getattr(visual, "material", None))
+    uv = getattr(visual, "uv", None)
+    if getattr(visual, "kind", None) != "texture" or image is None or uv is None:
+        return None
+    uv = np.asarray(uv, float)
+    v = np.asarray(mesh.vertices, float) * factor
+    if uv.shape != (len(v), 2) or not np.all(np.isfinite(uv)) or not np.all(np.isfinite(v)):
+        return None
+    pixels = np.asarray(image.convert("RGB"), np.uint8)
+    return Texture(v, np.asarray(mesh.faces, np.int64), uv, pixels)
 
 
 def scaled_mesh(mesh: trimesh.Trimesh, units: str, scale: float, source: str) -> trimesh.Trimesh:

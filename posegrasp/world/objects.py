@@ -26,6 +26,7 @@ from posegrasp.core.errors import AssetError, UnknownNameError
 from posegrasp.core.paths import SCENES_DIR
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.core.validate import check_names
+from posegrasp.world.meshes import Texture
 from posegrasp.world.robot import WORLD_CONAFFINITY, WORLD_CONTYPE
 from posegrasp.world.user_objects import (
     MeshGeometry,
@@ -298,7 +299,10 @@ class ObjectModel:
         assert g is not None
         prefix = f"{self.name}.{g.key}"
         if spec.mesh(prefix + "/visual") is None:
-            _add_mesh_asset(spec, prefix + "/visual", g.visual)
+            if g.texture is None:
+                _add_mesh_asset(spec, prefix + "/visual", g.visual)
+            else:
+                _add_textured_asset(spec, prefix, g.texture)
             for i, hull in enumerate(g.hulls):
                 _add_mesh_asset(spec, f"{prefix}/hull{i:03d}", hull)
         vis = body.add_geom()
@@ -306,6 +310,8 @@ class ObjectModel:
         vis.type = mujoco.mjtGeom.mjGEOM_MESH
         vis.meshname = prefix + "/visual"
         vis.rgba = g.rgba
+        if g.texture is not None:  # the texture's own colours, untinted
+            vis.material, vis.rgba = prefix + "/material", [1.0, 1.0, 1.0, 1.0]
         vis.group, vis.contype, vis.conaffinity = VISUAL_GROUP, 0, 0
         vis.density = 0.0
         for i in range(len(g.hulls)):
@@ -336,6 +342,28 @@ def _add_mesh_asset(spec: mujoco.MjSpec, name: str, mesh: trimesh.Trimesh) -> No
     asset.uservert = np.asarray(mesh.vertices, np.float32).ravel()
     asset.userface = np.asarray(mesh.faces, np.int32).ravel()
     asset.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL
+
+
+def _add_textured_asset(spec: mujoco.MjSpec, prefix: str, texture: Texture) -> None:
+    """The mesh asset ``<prefix>/visual`` drawn with its texture (its coordinates per vertex),
+    the texture ``<prefix>/texture`` and the material ``<prefix>/material`` that applies it."""
+    asset = spec.add_mesh()
+    asset.name = prefix + "/visual"
+    asset.uservert = np.asarray(texture.vertices, np.float32).ravel()
+    asset.userface = np.asarray(texture.faces, np.int32).ravel()
+    # MuJoCo reads a texture's rows top first and its v from the top: OBJ's v is from the bottom.
+    uv = np.asarray(texture.uv, np.float32).copy()
+    uv[:, 1] = 1.0 - uv[:, 1]
+    asset.usertexcoord = uv.ravel()
+    asset.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL
+    h, w = texture.image.shape[:2]
+    tex = spec.add_texture()
+    tex.name, tex.type = prefix + "/texture", mujoco.mjtTexture.mjTEXTURE_2D
+    tex.width, tex.height, tex.nchannel = w, h, 3
+    tex.data = np.ascontiguousarray(texture.image, np.uint8).tobytes()
+    material = spec.add_material()
+    material.name = prefix + "/material"
+    material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = prefix + "/texture"
 
 
 def _centred(parts: list[Part]) -> list[Part]:

@@ -13,6 +13,8 @@ writes one folder per object::
                         centre, z up in the canonical resting pose)
         hull_000.ply    one convex collision hull a file, in O [m]
         ...
+        texture.png     with a textured mesh: its texture, and
+        textured.npz    the mesh as drawn with it: vertices in O [m], faces, texture coordinates
         preview.png     the object, its hulls and each resting pose with its grasps
 
 Every length in the files is in metres except the BOP models_info block, whose translations,
@@ -32,11 +34,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import trimesh
 
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.files import atomic_write_json, sha256_file
+from posegrasp.world.meshes import Texture
 
 #: The environment variable naming the user objects directory.
 OBJECTS_ENV = "POSEGRASP_OBJECTS"
@@ -45,6 +49,7 @@ FORMAT_VERSION = 1
 DESCRIPTION_FILE = "object.json"
 VISUAL_FILE = "visual.ply"
 PREVIEW_FILE = "preview.png"
+TEXTURE_FILES = {"mesh": "textured.npz", "image": "texture.png"}
 #: Object names: lower-case letters, digits, '_' and '-', starting with a letter, at most 40.
 NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,39}$")
 #: Largest rotation step of a discretised continuous symmetry, as BOP's toolkit takes it
@@ -123,6 +128,7 @@ class MeshGeometry:
         rgba: colour of the visual mesh, shape (4,).
         com: centre of mass in O [m], shape (3,).
         inertia: inertia tensor about the centre of mass, O's axes [kg m^2], shape (3, 3).
+        texture: the mesh as drawn with its texture, in O (None: drawn in `rgba`).
     """
 
     key: str
@@ -131,6 +137,7 @@ class MeshGeometry:
     rgba: np.ndarray
     com: np.ndarray
     inertia: np.ndarray
+    texture: Texture | None = None
 
 
 @dataclass(frozen=True)
@@ -270,6 +277,7 @@ def read_user_object(name: str) -> UserObjectRecord:
             rgba=_matrix(raw.get("rgba", [0.7, 0.7, 0.7, 1.0]), (4,), "rgba"),
             com=_matrix(raw["centre_of_mass"], (3,), "centre_of_mass"),
             inertia=_matrix(raw["inertia"], (3, 3), "inertia"),
+            texture=_read_texture(folder, raw["texture"]) if "texture" in raw else None,
         )
         rest = {
             r["name"]: _matrix(r["quat"], (4,), "resting pose quat") for r in raw["resting_poses"]
@@ -309,6 +317,27 @@ def read_user_object(name: str) -> UserObjectRecord:
         raise AssetError(f"cannot read object description {path}: {exc!r}") from None
 
 
+def _read_texture(folder: Path, files: dict[str, str]) -> Texture:
+    """A textured mesh's files (`TEXTURE_FILES`), read and checked.
+
+    Raises:
+        AssetError: a file is missing or malformed.
+    """
+    mesh, image = folder / files["mesh"], folder / files["image"]
+    try:
+        with np.load(mesh) as arrays:
+            v, f, uv = (np.asarray(arrays[k]) for k in ("vertices", "faces", "uv"))
+        pixels = cv2.imread(str(image), cv2.IMREAD_COLOR)
+    except (OSError, KeyError, ValueError) as exc:
+        raise AssetError(f"cannot read the texture of {folder.name}: {exc}") from None
+    if pixels is None:
+        raise AssetError(f"cannot read texture image {image}")
+    ok = v.ndim == 2 and v.shape[1] == 3 and uv.shape == (len(v), 2) and f.ndim == 2
+    if not ok or f.shape[1] != 3 or len(f) == 0 or f.min() < 0 or f.max() >= len(v):
+        raise AssetError(f"{mesh}: vertices, faces and texture coordinates do not fit together")
+    return Texture(v.astype(float), f.astype(np.int64), uv.astype(float), pixels[..., ::-1].copy())
+
+
 def write_object_folder(
     name: str,
     description: dict[str, Any],
@@ -316,6 +345,7 @@ def write_object_folder(
     hulls: list[trimesh.Trimesh],
     preview_png: bytes | None = None,
     replace: bool = False,
+    texture: Texture | None = None,
 ) -> Path:
     """Write user object `name`'s folder as a whole: into a temporary folder beside it, renamed
     into place at the end, so a failure leaves no half-written object.
@@ -328,6 +358,7 @@ def write_object_folder(
         hulls: the collision hulls in O [m].
         preview_png: the preview sheet's PNG bytes, if any.
         replace: replace an existing object of that name (refused otherwise).
+        texture: the mesh as drawn with its texture, in O [m], if it has one.
 
     Returns:
         The object's folder.
@@ -351,6 +382,15 @@ def write_object_folder(
             names.append(f"hull_{i:03d}.ply")
             hull.export(tmp / names[-1])
         description = {**description, "visual": VISUAL_FILE, "hulls": names}
+        if texture is not None:
+            np.savez(
+                tmp / TEXTURE_FILES["mesh"],
+                vertices=texture.vertices,
+                faces=texture.faces,
+                uv=texture.uv,
+            )
+            cv2.imwrite(str(tmp / TEXTURE_FILES["image"]), texture.image[..., ::-1])
+            description["texture"] = dict(TEXTURE_FILES)
         if preview_png is not None:
             (tmp / PREVIEW_FILE).write_bytes(preview_png)
             description["preview"] = PREVIEW_FILE

@@ -195,7 +195,12 @@ def write_png(path: Path, image: np.ndarray) -> None:
 
 
 def write_ply(
-    path: Path, vertices: np.ndarray, normals: np.ndarray, colours: np.ndarray, faces: np.ndarray
+    path: Path,
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    colours: np.ndarray,
+    faces: np.ndarray,
+    texture: tuple[np.ndarray, str] | None = None,
 ) -> None:
     """Binary little-endian PLY with vertex normals and colours (the BOP model format).
 
@@ -204,20 +209,26 @@ def write_ply(
         normals: (N, 3) unit normals.
         colours: (N, 3) uint8 RGB.
         faces: (M, 3) vertex indices.
+        texture: the vertices' texture coordinates (N, 2) (v up from the image's bottom row)
+            and the texture's file name beside the PLY, as BOP's textured models give them
+            (``texture_u``, ``texture_v`` and a ``TextureFile`` comment); None: no texture.
     """
     n, m = len(vertices), len(faces)
+    tex = "" if texture is None else f"comment TextureFile {texture[1]}\n"
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment posegrasp procedural model, units: mm\n"
-        f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"{tex}element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
         "property float nx\nproperty float ny\nproperty float nz\n"
         "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        f"element face {m}\nproperty list uchar int vertex_indices\nend_header\n"
+        + ("" if texture is None else "property float texture_u\nproperty float texture_v\n")
+        + f"element face {m}\nproperty list uchar int vertex_indices\nend_header\n"
     )
-    vdt = np.dtype(
-        [("p", "<f4", 3), ("n", "<f4", 3), ("c", "u1", 3)],
-    )
+    fields = [("p", "<f4", 3), ("n", "<f4", 3), ("c", "u1", 3)]
+    vdt = np.dtype(fields if texture is None else [*fields, ("t", "<f4", 2)])
     v = np.empty(n, vdt)
     v["p"], v["n"], v["c"] = vertices, normals, colours
+    if texture is not None:
+        v["t"] = texture[0]
     fdt = np.dtype([("k", "u1"), ("i", "<i4", 3)])
     f = np.empty(m, fdt)
     f["k"], f["i"] = 3, faces

@@ -34,6 +34,7 @@ from perception.training.data.bop import (
 )
 from perception.training.data.distributions import RenderedImage
 from posegrasp.world.distractor_bank import bank_id, bank_mesh
+from posegrasp.world.meshes import Texture
 from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 
@@ -92,28 +93,49 @@ def _coloured_meshes(name: str) -> list[tuple[trimesh.Trimesh, np.ndarray]]:
     return [(part.mesh(), np.asarray(part.rgba)) for part in obj.parts]
 
 
+def _texture(name: str) -> Texture | None:
+    """A user object's texture, with its mesh as drawn (None: none, or not a user object)."""
+    if bank_id(name) is not None:
+        return None
+    geometry = load_object(name).geometry
+    return None if geometry is None else geometry.texture
+
+
+def _write_coloured(path: Path, name: str) -> np.ndarray:
+    """Write an object's meshes into one PLY in [mm] with each mesh's colour on its vertices;
+    returns the vertices written [mm]."""
+    verts, normals, colours, faces = [], [], [], []
+    offset = 0
+    for m, rgba in _coloured_meshes(name):
+        verts.append(np.asarray(m.vertices))
+        normals.append(np.asarray(m.vertex_normals))
+        rgb = np.clip(np.round(rgba[:3] * 255), 0, 255).astype(np.uint8)
+        colours.append(np.tile(rgb, (len(m.vertices), 1)))
+        faces.append(np.asarray(m.faces) + offset)
+        offset += len(m.vertices)
+    v = np.vstack(verts) * MM_PER_M
+    write_ply(path, v, np.vstack(normals), np.vstack(colours), np.vstack(faces))
+    return v
+
+
 def write_models(root: Path, names: Sequence[str] = OBJECT_NAMES) -> None:
-    """BOP models (PLY in mm with vertex colours) and models_info.json for the objects `names`
-    (the built-in ones by default; user objects and bank meshes, ``bank-NNN``, too)."""
+    """BOP models (PLY in mm with vertex colours; a textured user object's with its texture
+    coordinates and its texture, ``obj_<id>.png``, beside it) and models_info.json for the
+    objects `names` (the built-in ones by default; user objects and bank meshes, ``bank-NNN``,
+    too)."""
     info = {}
     for name in names:
-        verts, normals, colours, faces = [], [], [], []
-        offset = 0
-        for m, rgba in _coloured_meshes(name):
-            verts.append(np.asarray(m.vertices))
-            normals.append(np.asarray(m.vertex_normals))
-            rgb = np.clip(np.round(rgba[:3] * 255), 0, 255).astype(np.uint8)
-            colours.append(np.tile(rgb, (len(m.vertices), 1)))
-            faces.append(np.asarray(m.faces) + offset)
-            offset += len(m.vertices)
-        v = np.vstack(verts) * MM_PER_M
-        write_ply(
-            root / "models" / f"obj_{obj_id(name):06d}.ply",
-            v,
-            np.vstack(normals),
-            np.vstack(colours),
-            np.vstack(faces),
-        )
+        path = root / "models" / f"obj_{obj_id(name):06d}.ply"
+        texture = _texture(name)
+        if texture is not None:  # the mesh as drawn, white, and its texture beside it
+            m = trimesh.Trimesh(texture.vertices, texture.faces, process=False)
+            v = np.asarray(m.vertices) * MM_PER_M
+            white = np.full((len(v), 3), 255, np.uint8)
+            png = path.with_suffix(".png")
+            write_ply(path, v, m.vertex_normals, white, m.faces, (texture.uv, png.name))
+            write_png(png, texture.image)
+        else:
+            v = _write_coloured(path, name)
         lo, size = v.min(axis=0), v.max(axis=0) - v.min(axis=0)
         entry: dict[str, Any] = {"diameter": object_diameter(name) * MM_PER_M}
         for i, axis in enumerate("xyz"):
