@@ -78,6 +78,7 @@ _.ipos
 _.fullinertia
 _.uservert
 _.userface
+_.usertexcoord
 _.fromto
 _.copy_during_attach
 
