@@ -4,6 +4,7 @@ pose back through matching, the origin's offset, the box scale and R_corr."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from perception.codebook import (
     sphere_rotations,
     top_hypotheses,
 )
+from perception.detector_net import DetectorConfig
 from perception.metrics import rotation_error_deg
 from perception.parts import ConvexParts, Parts
 from perception.scoring import id_map, image_edges, verification_scores
@@ -268,6 +270,8 @@ def _global_on_one_detection(
 class OneDetection:
     """A detector and nets that find one object, `det`, in any image."""
 
+    detector = SimpleNamespace(cfg=DetectorConfig())  # of the six objects, by name
+
     def __init__(self, det) -> None:
         self.det = det
 
@@ -419,6 +423,8 @@ def test_an_unsure_pose_slides_onto_the_surface_its_neighbours_rest_on(tmp_path)
     ]
 
     class TwoDetections:
+        detector = OneDetection.detector
+
         def estimate_split(self, rgb, K, classes=None, others=False, **_):
             mine = [d for d in dets if d.name in classes]
             return mine, [d for d in dets if d.name not in classes], {"total": 1.0}

@@ -24,6 +24,7 @@ BAD = [
     (DetectionConfig, {"target_score": 1.5}, "DetectionConfig.target_score"),
     (DetectionConfig, {"target_score": math.nan}, "DetectionConfig.target_score"),
     (DetectionConfig, {"mask_net": "yes"}, "DetectionConfig.mask_net"),
+    (DetectionConfig, {"shortlist": 0}, "DetectionConfig.shortlist"),
     (CodebookConfig, {"views": 0}, "CodebookConfig.views"),
     (CodebookConfig, {"inplane": 0}, "CodebookConfig.inplane"),
     (CodebookConfig, {"hypotheses": 0}, "CodebookConfig.hypotheses"),

@@ -36,7 +36,11 @@ class DetectionConfig:
     shortlist: int = 3
 
     def __post_init__(self) -> None:
-        if self.shortlist < 1:
+        if (
+            not isinstance(self.shortlist, int)
+            or isinstance(self.shortlist, bool)
+            or self.shortlist < 1
+        ):
             raise InvalidArgumentError(
                 f"DetectionConfig.shortlist must be >= 1, got {self.shortlist}"
             )

@@ -281,6 +281,7 @@ STAGES: tuple[Stage, ...] = (
         init="masknet-tiers-rooms",
         seed=3,
         val=_ROOMS_JOINT_VAL,
+        precision="fp32",
         channels_last=True,
     ),
     # The paper protocol's mask net; its last stages also learn from the windows its detector

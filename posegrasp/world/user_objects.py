@@ -34,9 +34,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import trimesh
+from PIL import Image, UnidentifiedImageError
 
 from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.files import atomic_write_json, sha256_file
@@ -327,15 +327,14 @@ def _read_texture(folder: Path, files: dict[str, str]) -> Texture:
     try:
         with np.load(mesh) as arrays:
             v, f, uv = (np.asarray(arrays[k]) for k in ("vertices", "faces", "uv"))
-        pixels = cv2.imread(str(image), cv2.IMREAD_COLOR)
-    except (OSError, KeyError, ValueError) as exc:
+        with Image.open(image) as img:
+            pixels = np.asarray(img.convert("RGB"), np.uint8)
+    except (OSError, KeyError, ValueError, UnidentifiedImageError) as exc:
         raise AssetError(f"cannot read the texture of {folder.name}: {exc}") from None
-    if pixels is None:
-        raise AssetError(f"cannot read texture image {image}")
     ok = v.ndim == 2 and v.shape[1] == 3 and uv.shape == (len(v), 2) and f.ndim == 2
     if not ok or f.shape[1] != 3 or len(f) == 0 or f.min() < 0 or f.max() >= len(v):
         raise AssetError(f"{mesh}: vertices, faces and texture coordinates do not fit together")
-    return Texture(v.astype(float), f.astype(np.int64), uv.astype(float), pixels[..., ::-1].copy())
+    return Texture(v.astype(float), f.astype(np.int64), uv.astype(float), pixels)
 
 
 def write_object_folder(
@@ -389,7 +388,7 @@ def write_object_folder(
                 faces=texture.faces,
                 uv=texture.uv,
             )
-            cv2.imwrite(str(tmp / TEXTURE_FILES["image"]), texture.image[..., ::-1])
+            Image.fromarray(texture.image).save(tmp / TEXTURE_FILES["image"])
             description["texture"] = dict(TEXTURE_FILES)
         if preview_png is not None:
             (tmp / PREVIEW_FILE).write_bytes(preview_png)
