@@ -245,7 +245,8 @@ STAGES: tuple[Stage, ...] = (
         val=_TIERS_VAL,
         channels_last=True,
     ),
-    # `hybrid-global-rooms`' detector and mask net: the tiers' ones, further on the rooms.
+    # `hybrid-global-rooms`' detector and mask net: the tiers' ones, further on the rooms, then
+    # on rooms that differ in most ways at once (the joint family).
     _detector(
         "detector-tune-tiers-rooms",
         _ROOMS,
@@ -358,8 +359,8 @@ RECIPE = Recipe(
         Artefact("detector.pt", ("detector",), "detector-tune-headcam-and-hard", unrecorded=1),
         Artefact("tiers/detector.pt", ("detector",), "detector-tune-tiers-more-hard", 1),
         Artefact("tiers/masknet.pt", ("mask_net",), "masknet-tiers-fresh-windows"),
-        Artefact("rooms/detector.pt", ("detector",), "detector-tune-tiers-rooms", 1),
-        Artefact("rooms/masknet.pt", ("mask_net",), "masknet-tiers-rooms"),
+        Artefact("rooms/detector.pt", ("detector",), "detector-tune-tiers-rooms-joint", 1),
+        Artefact("rooms/masknet.pt", ("mask_net",), "masknet-tiers-rooms-joint"),
         Artefact("paper_protocol/detector.pt", ("detector",), "detector-tune-paper", 2),
         Artefact("paper_protocol/masknet.pt", ("mask_net",), "masknet-paper-detector-masks-20k"),
         Artefact(
