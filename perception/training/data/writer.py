@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from perception.training.data.annotations import annotate, object_diameter
+from perception.training.data.annotations import annotate, object_diameter, object_mesh
 from perception.training.data.bop import (
     MM_PER_M,
     SCENE_FILES,
@@ -85,8 +85,7 @@ def _coloured_meshes(name: str) -> list[tuple[trimesh.Trimesh, np.ndarray]]:
     visual mesh, a bank mesh (in its file's colour)."""
     mesh_id = bank_id(name)
     if mesh_id is not None:
-        mesh = bank_mesh(mesh_id)
-        return [(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False), np.asarray(mesh.rgba))]
+        return [(object_mesh(name), np.asarray(bank_mesh(mesh_id).rgba))]
     obj = load_object(name)
     if obj.geometry is not None:
         return [(obj.geometry.visual, np.asarray(obj.geometry.rgba))]
