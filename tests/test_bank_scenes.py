@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import trimesh
 
 from perception.detector_net import ANY_OBJECT, DetectorConfig, class_label
 from perception.training.data import bop
@@ -27,9 +28,14 @@ from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameE
 from posegrasp.world.distractor_bank import (
     BANK_OBJ_ID_BASE,
     DISTRACTOR_IDS,
+    SHAPE_IDS,
+    SHAPE_KINDS,
+    SHAPE_SIZE,
     TRAINING_IDS,
     bank_id,
+    bank_mesh,
     bank_name,
+    shape_mesh,
 )
 from posegrasp.world.objects import OBJECT_NAMES
 
@@ -53,7 +59,7 @@ def test_a_bank_name_is_its_mesh_and_its_bop_id_is_above_every_other_object() ->
     assert bop.obj_name(BANK_OBJ_ID_BASE + 42) == "bank-042"
     assert bop.obj_name(bop.obj_id("phone")) == "phone"
     with pytest.raises(UnknownNameError):
-        bop.obj_name(BANK_OBJ_ID_BASE + 1000)
+        bop.obj_name(BANK_OBJ_ID_BASE + 2000)
     mesh = object_mesh("bank-042")
     assert len(mesh.faces) > 0
     assert 0.0 < object_diameter("bank-042") >= np.ptp(mesh.vertices, axis=0).max()
@@ -131,6 +137,41 @@ def test_the_held_out_banks_scenes_show_its_meshes_only(tmp_path: Path) -> None:
     assert names and all(bank_id(n) in DISTRACTOR_IDS for n in names)
     info = json.loads((out / "info.json").read_text())
     assert info["bank"] == "held-out" and "--bank held-out" in info["splits"]["val"]["command"]
+
+
+def test_generated_shapes_are_closed_seeded_household_sized_and_of_every_kind() -> None:
+    assert not set(SHAPE_IDS) & (set(TRAINING_IDS) | set(DISTRACTOR_IDS))
+    assert bank_name(1234) == "bank-1234" and bank_id("bank-1234") == 1234
+    assert bop.obj_name(bop.obj_id("bank-1234")) == "bank-1234"
+    extents = []
+    for mesh_id in SHAPE_IDS[:60]:
+        m = bank_mesh(mesh_id)
+        assert m is shape_mesh(mesh_id) or np.array_equal(m.vertices, shape_mesh(mesh_id).vertices)
+        assert abs(m.vertices[:, 2].min()) < 1e-9  # standing on its lowest point
+        e = np.ptp(m.vertices, axis=0)
+        assert SHAPE_SIZE[0] - 1e-9 <= e.max() <= SHAPE_SIZE[1] + 1e-9 and e.min() > 0.2 * e.max()
+        assert trimesh.Trimesh(m.vertices, m.faces).is_watertight
+        extents.append(e.max())
+    assert np.ptp(extents) > 0.1  # sizes differ, from small to large
+    kinds = {
+        SHAPE_KINDS[int(np.random.default_rng(i).integers(len(SHAPE_KINDS)))]
+        for i in SHAPE_IDS[:60]
+    }
+    assert kinds == set(SHAPE_KINDS)
+    with pytest.raises(AssetError, match="1000-1999"):
+        shape_mesh(5)
+
+
+def test_the_shapes_banks_scenes_show_generated_shapes_only(tmp_path: Path) -> None:
+    out = tmp_path / "shapes"
+    args = ["--dist", "headcam", "--bank", "shapes", "--split", "val", "--count", "2"]
+    assert main([*args, "--width", str(W), "--height", str(H), "--quiet", "--out", str(out)]) == 0
+    data = PoseDataset(out, "val")
+    names = [o.name for i in range(len(data)) for o in data[i].objects]
+    assert names and all(bank_id(n) in SHAPE_IDS for n in names)
+    info = json.loads((out / "info.json").read_text())
+    base = SEED_BASES["val"] + BANK_SEED_OFFSETS["shapes"]
+    assert info["bank"] == "shapes" and info["splits"]["val"]["seed_range"][0] == base
 
 
 def test_a_detector_of_any_object_starts_from_a_named_one_but_its_class_layers() -> None:

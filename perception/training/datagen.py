@@ -140,9 +140,11 @@ def _parser() -> argparse.ArgumentParser:
         metavar="BANK",
         type=arg(check_choice, list(BANKS), "bank"),
         help="headcam only, without --tier: scenes whose only objects in sight are meshes of the "
-        "bank BANK (training: pybullet's random meshes 0-899, the default; held-out: 900-999, for "
-        "scoring), each annotated as an object of its own (bank-NNN), for a detector of objects "
-        "it has never seen; the default folder is then headcam_bank[_held-out][_rooms...]",
+        "bank BANK (training: pybullet's random meshes 0-899, the default; shapes: generated "
+        "boxes, cylinders, capsules, ellipsoids, cones and bottles 1000-1999, for training too; "
+        "held-out: 900-999, for scoring), each annotated as an object of its own (bank-NNN), for "
+        "a detector of objects it has never seen; the default folder is then "
+        "headcam_bank[_held-out|_shapes][_rooms...]",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_backend_arguments(p)

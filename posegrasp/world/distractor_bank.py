@@ -2,7 +2,9 @@
 
 The meshes are pybullet's procedurally made objects (`pybullet_data/random_urdfs/NNN/NNN.obj`,
 zlib licence, shipped in the ``pybullet`` wheel: ``pip install pybullet``), at the scale and in
-the colour their URDF gives. Only `DISTRACTOR_IDS` are used here. A distractor is a mesh geom of
+the colour their URDF gives, and, for training only, generated shapes (`SHAPE_IDS`: boxes,
+cylinders, capsules, ellipsoids, cones and bottles of household sizes, `shape_mesh`). Only
+`DISTRACTOR_IDS` are used here. A distractor is a mesh geom of
 one static body with no contact and no mass, so it is drawn and never touched: the scene's physics
 is the same with or without it.
 
@@ -34,8 +36,20 @@ DISTRACTOR_IDS = range(900, 1000)
 #: Ids left for training (the rooms of `perception.training.data.rooms`): 0-899 but 168, whose
 #: mesh file holds no triangles.
 TRAINING_IDS = tuple(i for i in range(900) if i != 168)
+#: Ids of generated shapes (`shape_mesh`), for training: pybullet's meshes are small blocky
+#: assemblies, and the objects on a real table are mostly larger, rounder boxes and bodies of
+#: revolution.
+SHAPE_IDS = range(1000, 2000)
 #: The banks a scene's distractors may be drawn from, by name.
-BANKS: dict[str, Sequence[int]] = {"held-out": DISTRACTOR_IDS, "training": TRAINING_IDS}
+BANKS: dict[str, Sequence[int]] = {
+    "held-out": DISTRACTOR_IDS,
+    "training": TRAINING_IDS,
+    "shapes": SHAPE_IDS,
+}
+#: The kinds of generated shape, drawn evenly.
+SHAPE_KINDS = ("box", "cylinder", "capsule", "ellipsoid", "cone", "bottle")
+#: Largest extent of a generated shape [m] (min, max); its other extents are 0.25-1 of it.
+SHAPE_SIZE = (0.04, 0.2)
 #: Name of the static body that holds the distractors, and the prefix of their geoms and meshes.
 BODY = "shift_distractors"
 #: A bank mesh annotated as an object (the training images of a detector of any object) is
@@ -69,16 +83,54 @@ class BankMesh:
 
 
 def bank_name(mesh_id: int) -> str:
-    """The object name of bank mesh `mesh_id` where it is annotated (``bank-NNN``)."""
+    """The object name of bank mesh `mesh_id` where it is annotated (``bank-NNN``, or
+    ``bank-NNNN`` for a generated shape)."""
     return f"{BANK_PREFIX}{mesh_id:03d}"
 
 
 def bank_id(name: str) -> int | None:
     """The bank mesh id an object name (`bank_name`) stands for; None for any other name."""
     digits = name[len(BANK_PREFIX) :]
-    if not name.startswith(BANK_PREFIX) or not digits.isdigit() or len(digits) != 3:
+    if not name.startswith(BANK_PREFIX) or not digits.isdigit() or len(digits) not in (3, 4):
         return None
-    return int(digits)
+    mesh_id = int(digits)
+    if bank_name(mesh_id) != name or mesh_id >= SHAPE_IDS.stop:
+        return None
+    return mesh_id
+
+
+def shape_mesh(mesh_id: int) -> BankMesh:
+    """Generated shape `mesh_id` (one of `SHAPE_IDS`), drawn from ``default_rng(mesh_id)``: its
+    kind from `SHAPE_KINDS`, its largest extent from `SHAPE_SIZE`, the others 0.25-1 of it; a
+    bottle is a body with a neck a third as wide; its colour is drawn too."""
+    if mesh_id not in SHAPE_IDS:
+        first, last = SHAPE_IDS.start, SHAPE_IDS.stop - 1
+        raise AssetError(f"no generated shape {mesh_id}: their ids are {first}-{last}")
+    rng = np.random.default_rng(mesh_id)
+    kind = SHAPE_KINDS[int(rng.integers(len(SHAPE_KINDS)))]
+    size = float(rng.uniform(*SHAPE_SIZE))
+    a, b = size * rng.uniform(0.25, 1.0, 2)
+    if kind == "box":
+        mesh = trimesh.creation.box([size, a, b])
+    elif kind == "cylinder":
+        mesh = trimesh.creation.cylinder(radius=a / 2, height=size, sections=32)
+    elif kind == "capsule":
+        mesh = trimesh.creation.capsule(height=max(size - a, 1e-3), radius=a / 2, count=[16, 16])
+    elif kind == "ellipsoid":
+        mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+        mesh.apply_scale([size, a, b])
+    elif kind == "cone":
+        mesh = trimesh.creation.cone(radius=a / 2, height=size, sections=32)
+    else:
+        body = trimesh.creation.cylinder(radius=a / 2, height=0.7 * size, sections=32)
+        neck = trimesh.creation.cylinder(radius=a / 6, height=0.3 * size, sections=16)
+        neck.apply_translation([0.0, 0.0, 0.5 * size])
+        mesh = trimesh.util.concatenate([body, neck])
+    v = np.asarray(mesh.vertices, np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    v -= [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]]
+    rgba = (*(float(c) for c in rng.uniform(0.1, 0.9, 3)), 1.0)
+    return BankMesh(mesh_id, v, np.asarray(mesh.faces, np.int32), rgba)
 
 
 def bank_dir() -> Path:
@@ -99,11 +151,13 @@ def bank_dir() -> Path:
 
 @cache
 def bank_mesh(mesh_id: int) -> BankMesh:
-    """Bank mesh `mesh_id` (one of `DISTRACTOR_IDS`), read once per process.
+    """Bank mesh `mesh_id` (of a bank of `BANKS`), read (or generated) once per process.
 
     Raises:
         AssetError: pybullet is missing, or its files are.
     """
+    if mesh_id in SHAPE_IDS:
+        return shape_mesh(mesh_id)
     folder = bank_dir() / f"{mesh_id:03d}"
     try:
         urdf = (folder / f"{mesh_id:03d}.urdf").read_text(encoding="utf-8")

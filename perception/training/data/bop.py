@@ -47,7 +47,7 @@ import numpy as np
 
 from posegrasp.core.errors import AssetError, UnknownNameError
 from posegrasp.core.transforms import make_transform
-from posegrasp.world.distractor_bank import BANK_OBJ_ID_BASE, bank_id, bank_name
+from posegrasp.world.distractor_bank import BANK_OBJ_ID_BASE, SHAPE_IDS, bank_id, bank_name
 from posegrasp.world.objects import object_names
 
 IMAGES_PER_SCENE = 1000
@@ -79,7 +79,7 @@ def obj_id(name: str) -> int:
 
 def obj_name(oid: int) -> str:
     """Class of a BOP object id (`obj_id`)."""
-    if BANK_OBJ_ID_BASE <= oid < BANK_OBJ_ID_BASE + 1000:
+    if BANK_OBJ_ID_BASE <= oid < BANK_OBJ_ID_BASE + SHAPE_IDS.stop:
         return bank_name(oid - BANK_OBJ_ID_BASE)
     names = object_names()
     if not 1 <= oid <= len(names):

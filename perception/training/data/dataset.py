@@ -40,7 +40,7 @@ DISTS: tuple[str, ...] = ("paper", "headcam")
 #: Dataset folders under the data root: each distribution's, the head camera's per scene tier
 #: (``headcam_<tier>``, made by ``datagen --dist headcam --tier <tier>``), and the head camera's
 #: in rooms drawn for training (``..._rooms`` and ``..._rooms_<family>``, ``datagen --rooms``), and
-#: the head camera's scenes of a bank's meshes (``headcam_bank[_held-out][_rooms...]``,
+#: the head camera's scenes of a bank's meshes (``headcam_bank[_held-out|_shapes][_rooms...]``,
 #: ``datagen --bank``).
 _HEADCAM: tuple[str, ...] = ("headcam", *(f"headcam_{t}" for t in TIERS))
 DATASETS: tuple[str, ...] = (
@@ -49,7 +49,7 @@ DATASETS: tuple[str, ...] = (
     *(d + folder_suffix(f) for f in FAMILIES for d in _HEADCAM),
     *(
         bank + suffix
-        for bank in ("headcam_bank", "headcam_bank_held-out")
+        for bank in ("headcam_bank", "headcam_bank_held-out", "headcam_bank_shapes")
         for suffix in ("", *(folder_suffix(f) for f in FAMILIES))
     ),
 )

@@ -60,7 +60,11 @@ MAX_COUNT = KIND_SPAN
 #: Where the seeds of a split's rooms start after its plain seeds, per family of rooms, and where
 #: the scenes of each bank's meshes start after those of the same room (or the plain ones).
 ROOM_SEED_OFFSETS: dict[str, int] = {"wide": 8 * KIND_SPAN, "joint": 12 * KIND_SPAN}
-BANK_SEED_OFFSETS: dict[str, int] = {"training": KIND_SPAN, "held-out": 2 * KIND_SPAN}
+BANK_SEED_OFFSETS: dict[str, int] = {
+    "training": KIND_SPAN,
+    "held-out": 2 * KIND_SPAN,
+    "shapes": 3 * KIND_SPAN,
+}
 #: Most head-camera views rendered of one scene (`--views`).
 MAX_VIEWS = 16
 DEFAULT_SIZE: dict[str, tuple[int, int]] = {"paper": (256, 256), "headcam": (640, 480)}
