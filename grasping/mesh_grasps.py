@@ -34,6 +34,11 @@ from posegrasp.world.objects import ObjectModel
 CHECKED = 16
 #: Grasps kept per resting pose (each stored with both finger orders).
 KEEP = 8
+#: Distinct grasps checked in physics over all resting poses, where an object has more than
+#: this over `CHECKED` poses (`checks_per_pose`): a near-symmetric object (a can with its tab)
+#: comes to rest in many poses that differ by a roll, and checking each as fully as an object
+#: of few poses is most of its onboarding time.
+CHECK_BUDGET = 96
 #: Errors of the hand's placement a kept grasp is tried with, in the grasp frame G: (along the
 #: approach, along the closing direction, across the pads) [m] and a turn about the approach
 #: [deg].
@@ -101,6 +106,13 @@ def convex_pieces(obj: ObjectModel) -> tuple[list[trimesh.Trimesh], np.ndarray]:
     volumes = np.array([p.volume for p in parts])
     centres = np.array([p.pos for p in parts], float)
     return [p.mesh() for p in parts], volumes @ centres / volumes.sum()
+
+
+def checks_per_pose(poses: int) -> int:
+    """Distinct grasps to check per resting pose for an object of `poses` resting poses:
+    `CHECKED`, or fewer where that would exceed `CHECK_BUDGET` in all, but never fewer than
+    `KEEP`."""
+    return min(CHECKED, max(KEEP, -(-CHECK_BUDGET // max(poses, 1))))
 
 
 def mesh_grasps(

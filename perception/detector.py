@@ -37,6 +37,9 @@ TIERS_DETECTOR = WEIGHTS_DIR / "tiers" / "detector.pt"
 #: object colours, camera, unseen distractors; `perception.training.data.rooms`), for
 #: ``hybrid-global-rooms``.
 ROOMS_DETECTOR = WEIGHTS_DIR / "rooms" / "detector.pt"
+#: A detector of any object (`perception.detector_net.ANY_OBJECT`), trained on meshes of a bank
+#: and generated shapes alone, never on an object it is asked for: ``hybrid-global-unseen``'s.
+UNSEEN_DETECTOR = WEIGHTS_DIR / "unseen" / "detector.pt"
 #: The detector of the paper's protocol: `DEFAULT_WEIGHTS` fine-tuned on its studio images too.
 PAPER_DETECTOR = WEIGHTS_DIR / "paper_protocol" / "detector.pt"
 REBUILD_HINT = (

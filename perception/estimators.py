@@ -76,6 +76,23 @@ def _hybrid_global_rooms() -> PoseEstimator:
     return GlobalPoseEstimator(hybrid, name="hybrid-global-rooms", masks=masks)
 
 
+def _hybrid_global_unseen() -> PoseEstimator:
+    """`hybrid-global` for objects it was never trained on, from the mesh alone: a detector of
+    any object (trained on a bank of other meshes), the target told among its detections by the
+    mesh's codebook and verification (`perception.stages.detection.AnyObjectDetection`), then
+    the codebook's hypotheses, verification and refinement; no pose net and no mask net (they
+    know the six built-in objects, which this estimator scores as if new). The main pose net
+    is loaded with the detector and never run."""
+    from perception.detector import UNSEEN_DETECTOR
+    from perception.global_pose import GlobalConfig, GlobalPoseEstimator
+    from perception.hybrid import HybridPoseEstimator
+    from perception.stages import DetectionConfig
+
+    hybrid = HybridPoseEstimator.from_weights(detector_path=UNSEEN_DETECTOR, expert_paths=())
+    config = GlobalConfig(detection=DetectionConfig(mask_net=False))
+    return GlobalPoseEstimator(hybrid, config, name="hybrid-global-unseen")
+
+
 def _hybrid_global_table() -> PoseEstimator:
     """`hybrid-global` with the table prior: its pose then put onto the known table (the
     scene's prior, where the observation gives it; the neighbours' support elsewhere)."""
@@ -159,6 +176,7 @@ LEARNED_ESTIMATORS: dict[str, Callable[[], PoseEstimator]] = {
     "hybrid-refine": _hybrid_refine,
     "hybrid-global": _hybrid_global,
     "hybrid-global-rooms": _hybrid_global_rooms,
+    "hybrid-global-unseen": _hybrid_global_unseen,
     "hybrid-global-table": _hybrid_global_table,
     "hybrid-global-paper": _hybrid_global_paper,
     "hybrid-global-user": _hybrid_global_user,

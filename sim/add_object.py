@@ -11,7 +11,10 @@ also for a mesh that is not watertight; the stable resting poses, found by dropp
 (`posegrasp.world.resting`); for every resting pose, grasp candidates for the Fetch gripper
 (antipodal pairs, checked by closing the gripper in physics, a batch of them on each core;
 `grasping.mesh_grasps`); its symmetries, detected or given, in BOP's models_info form; and a
-preview sheet. Then ``python -m sim.run_episode --object NAME`` grasps it.
+preview sheet. Last it builds the object's silhouette codebook, which every RGB estimator here
+matches detections against (`perception.codebook`, cached under the data root), so that the
+object is onboarded as a whole: ``timings_s.onboarding`` in object.json is the time of it all.
+Then ``python -m sim.run_episode --object NAME`` grasps it.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ import trimesh
 
 from grasping.antipodal import horizontal_basis, hull_points
 from grasping.grasp_check import CheckConfig
-from grasping.mesh_grasps import KEEP, PoseGrasps, mesh_grasps
+from grasping.mesh_grasps import KEEP, PoseGrasps, checks_per_pose, mesh_grasps
 from grasping.top_grasps import FINGER_X, MAX_WIDTH
 from posegrasp.core.cli import (
     ArgumentParser,
@@ -44,7 +47,7 @@ from posegrasp.core.cli import (
     write_json,
 )
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.core.files import sha256_file
+from posegrasp.core.files import atomic_write_json, sha256_file
 from posegrasp.core.paths import git_commit
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_float, check_input_file, check_int, check_seed
@@ -59,6 +62,7 @@ from posegrasp.world.resting import (
     upright_quat,
 )
 from posegrasp.world.user_objects import (
+    DESCRIPTION_FILE,
     FORMAT_VERSION,
     PREVIEW_FILE,
     MeshGeometry,
@@ -240,7 +244,11 @@ def make_object(
     folder = write_object_folder(
         name, description, made.visual, made.hulls, png, replace=force, texture=made.texture
     )
-    description["folder"] = str(folder)
+    timings["codebook"] = _codebook(name, say)
+    timings["onboarding"] = time.perf_counter() - t_start
+    written = json.loads((folder / DESCRIPTION_FILE).read_text())
+    atomic_write_json(folder / DESCRIPTION_FILE, {**written, "timings_s": dict(timings)})
+    description = {**written, "timings_s": dict(timings), "folder": str(folder)}
     _report(description, log)
     return description
 
@@ -275,7 +283,10 @@ def _grasps(
     t = time.perf_counter()
     by_pose = {f"p{i}": p.quat for i, p in enumerate(found)}
     config = CheckConfig(threads=_cores())
-    grasps_s = mesh_grasps(src.obj_s, by_pose, keep=keep, config=config, progress=True)
+    checked = checks_per_pose(len(by_pose))
+    grasps_s = mesh_grasps(
+        src.obj_s, by_pose, checked=checked, keep=keep, config=config, progress=True
+    )
     timings["grasps"] = time.perf_counter() - t
     return grasps_s
 
@@ -666,6 +677,19 @@ def _centring(raw: trimesh.Trimesh, units: str, scale: float) -> np.ndarray:
     T[3, 3] = 1.0
     T[:3, 3] = -(v.min(axis=0) + v.max(axis=0)) / 2
     return T
+
+
+def _codebook(name: str, say: Callable[[str], None]) -> float:
+    """Build object `name`'s silhouette codebook on the estimators' grid (`CodebookConfig`),
+    into the cache they read (`perception.codebook.CodebookCache`); its time [s]."""
+    from perception.codebook import CodebookCache
+    from perception.stages.config import CodebookConfig
+
+    say("silhouette codebook")
+    t = time.perf_counter()
+    grid = CodebookConfig()
+    CodebookCache(grid.views, grid.inplane).get(name)
+    return time.perf_counter() - t
 
 
 def _report(d: dict[str, Any], log) -> None:

@@ -69,7 +69,7 @@ from posegrasp.core.paths import DOCS_DIR, in_repo
 from posegrasp.core.validate import arg, check_int, check_names
 from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.goals import TASKS
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import OBJECT_NAMES, check_objects
 from posegrasp.world.sensors import SENSOR_NAMES, Sensor
 from posegrasp.world.tiers import TIERS
 from sim.board.analysis import analyse
@@ -195,7 +195,6 @@ def _parser() -> ArgumentParser:
     for flag, choices, default in (
         ("--tiers", TIERS, TIERS),
         ("--sensors", SENSOR_NAMES, SENSORS),
-        ("--objects", OBJECT_NAMES, OBJECT_NAMES),
     ):
         p.add_argument(
             flag,
@@ -204,6 +203,15 @@ def _parser() -> ArgumentParser:
             metavar="LIST",
             help=f"a comma list of {', '.join(choices)}, or 'all' (default {','.join(default)})",
         )
+    p.add_argument(
+        "--objects",
+        default=list(OBJECT_NAMES),
+        type=arg(check_objects, "--objects"),
+        metavar="LIST",
+        help=f"'all' (default: {', '.join(OBJECT_NAMES)}) or a comma list of objects, built-in or "
+        "user objects (python -m sim.add_object): the unseen-objects track is the board on the "
+        "held-out meshes made user objects (studies/public_meshes.py --set unseen)",
+    )
     _add_track_arguments(p)
     p.add_argument(
         "--episodes",

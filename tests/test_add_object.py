@@ -13,6 +13,8 @@ import pytest
 import trimesh
 
 from grasping.candidates import MESH_PART, grasp_candidates
+from perception.codebook import CodebookCache
+from perception.stages.config import CodebookConfig
 from posegrasp.core.errors import UnknownNameError
 from posegrasp.world.objects import (
     COLLISION_GROUP,
@@ -101,6 +103,12 @@ def test_folder_layout_and_description(made) -> None:
     assert d["decomposition"]["tool"]["version"]
     assert "threshold" in d["decomposition"]["parameters"]
     assert d["timings_s"]["total"] > 0 and d["machine"]["cpus"] >= 1
+    # Onboarding ends with the silhouette codebook, cached where the estimators read it.
+    t = d["timings_s"]
+    assert t["codebook"] > 0 and t["onboarding"] >= t["total"] + t["codebook"]
+    grid = CodebookConfig()
+    book = CodebookCache(grid.views, grid.inplane).get("box")
+    assert book.name == "box" and any(CodebookCache(grid.views, grid.inplane).folder.glob("box_*"))
     assert set(d["grasps"]) == {p["name"] for p in d["resting_poses"]}
     # The open box's CoACD settings are the ones given.
     params = _description(root, "openbox")["decomposition"]["parameters"]

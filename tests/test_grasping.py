@@ -9,6 +9,7 @@ import pytest
 
 from grasping.candidates import grasp_candidates
 from grasping.execute import Executor
+from grasping.mesh_grasps import CHECK_BUDGET, CHECKED, KEEP, checks_per_pose
 from grasping.planner import GraspPlanner, PlanningError
 from grasping.top_grasps import clear, top_grasp_points, top_grasps
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
@@ -197,3 +198,17 @@ def test_physics_check_outcomes_of_a_grasp_on_the_object_beside_it_and_in_the_ta
         obj, quat, trials, one
     )
     assert [m.name for m in grasp_check._gripper_source().meshes] == [C.GRIPPER_BODY]
+
+
+def test_an_object_of_many_resting_poses_checks_fewer_grasps_in_each() -> None:
+    # Up to CHECK_BUDGET / CHECKED poses, each checks CHECKED; beyond, the budget is shared,
+    # never below KEEP a pose (so every grasp that holds can be kept).
+    few = CHECK_BUDGET // CHECKED
+    assert [checks_per_pose(n) for n in (1, few)] == [CHECKED, CHECKED]
+    assert checks_per_pose(few + 1) < CHECKED
+    last = CHECKED
+    for n in range(few + 1, 40):
+        per = checks_per_pose(n)
+        assert KEEP <= per <= last and (per == KEEP or per * n < CHECK_BUDGET + n)
+        last = per
+    assert checks_per_pose(13) == KEEP

@@ -114,8 +114,8 @@ def test_every_stage_is_what_the_manifests_record(tmp_path) -> None:
     paper = next(a for a in RECIPE.artefacts if a.file == "paper_protocol/detector.pt")
     for artefact in RECIPE.artefacts:
         for stage, record in artefact_records(RECIPE, artefact, WEIGHTS_DIR):
-            if stage.setting("detector") is not None:
-                assert stage.setting("detector") == paper.stage
+            if stage.detector_stage() is not None:
+                assert stage.detector_stage() == paper.stage
                 assert record["data_seeds"]["detector_sha256"] == sha256_file(
                     WEIGHTS_DIR / paper.file
                 )

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from perception.detector_net import ANY_OBJECT, DetectorConfig
 from perception.mask_net import MaskNetConfig
 from perception.training.data.render_split import GenConfig, generate
 from perception.training.shipping.recipe_stages import (
@@ -91,6 +92,10 @@ _ROOMS_JOINT = {
     "headcam": 500,
 }
 _ROOMS_JOINT_VAL = ("headcam_hard_rooms_joint", 200)
+#: `hybrid-global-unseen`'s detector of any object: scenes of the training bank's meshes and of
+#: generated shapes in rooms (``datagen --bank [shapes] --rooms``), never a built-in object.
+_UNSEEN = {"headcam_bank_rooms": 4000, "headcam_bank_shapes_rooms": 3000}
+_ANY_OBJECT = DetectorConfig(classes=(ANY_OBJECT,), n_classes=2)
 _PAPER_DETECTED = {"val": _PAPER_VAL, "channels_last": True, "detector": "detector-tune-paper"}
 
 #: Every stage behind the shipped weights, in the order they run.
@@ -285,6 +290,17 @@ STAGES: tuple[Stage, ...] = (
         precision="fp32",
         channels_last=True,
     ),
+    # `hybrid-global-unseen`'s detector: the rooms' one made a detector of any object (its
+    # per-class layers start afresh), on bank scenes alone.
+    _detector(
+        "detector-unseen-bank",
+        _UNSEEN,
+        epochs=2,
+        lr=3e-4,
+        init="detector-tune-tiers-rooms-joint",
+        channels_last=True,
+        detector=_ANY_OBJECT,
+    ),
     # The paper protocol's mask net; its last stages also learn from the windows its detector
     # cuts of the training images after the first 30,000, the very last one shipped as the
     # faucet's own net.
@@ -361,6 +377,7 @@ RECIPE = Recipe(
         Artefact("tiers/masknet.pt", ("mask_net",), "masknet-tiers-fresh-windows"),
         Artefact("rooms/detector.pt", ("detector",), "detector-tune-tiers-rooms-joint", 1),
         Artefact("rooms/masknet.pt", ("mask_net",), "masknet-tiers-rooms-joint"),
+        Artefact("unseen/detector.pt", ("detector",), "detector-unseen-bank", 1),
         Artefact("paper_protocol/detector.pt", ("detector",), "detector-tune-paper", 2),
         Artefact("paper_protocol/masknet.pt", ("mask_net",), "masknet-paper-detector-masks-20k"),
         Artefact(

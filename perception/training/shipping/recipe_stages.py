@@ -96,9 +96,14 @@ class Stage:
         """The value of a setting, `default` when the stage does not set it."""
         return dict(self.settings).get(key, default)
 
+    def detector_stage(self) -> str | None:
+        """The detector stage that cuts a mask net's windows (a detector's own ``detector``
+        setting is its architecture, not a stage)."""
+        return self.setting("detector") if self.trainer == "masknet" else None
+
     def needs(self) -> tuple[str, ...]:
-        """The stages whose checkpoints this one reads: its start and its detector."""
-        return tuple(n for n in (self.init, self.setting("detector")) if n is not None)
+        """The stages whose checkpoints this one reads: its start and its `detector_stage`."""
+        return tuple(n for n in (self.init, self.detector_stage()) if n is not None)
 
     def spec(self) -> dict[str, Any]:
         """The stage as plain JSON data (what its folder's `STAGE_FILE` records)."""
@@ -145,7 +150,7 @@ class Recipe:
                 raise InvalidArgumentError(f"stage {s.name} twice in the recipe")
             if missing := [n for n in s.needs() if n not in seen]:
                 raise InvalidArgumentError(f"stage {s.name} needs {missing}, not before it")
-            detector = s.setting("detector")
+            detector = s.detector_stage()
             if (s.init and seen[s.init] != s.trainer) or (
                 detector and seen[detector] != "detector"
             ):
