@@ -259,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     page, plot_dir, board_json = _outputs(args)
     rows = poses_rows(args.poses, args.objects, args.episodes)
     cells = cells_of(args.estimators, args.tiers, args.sensors, rows, args.tasks, args.shifts)
-    settings = today_settings(cells)
+    settings = today_settings(cells, args.objects)
     again = _command(argv)
     if stale := stale_cells(cells, cells_dir, settings):
         raise _refuse(

@@ -2,7 +2,7 @@
 
     python studies/any_object_recall.py --detector PATH
         [--splits headcam_bank_rooms:val,headcam_bank_held-out_rooms:val] [--images 200]
-        [--score 0.3] [--json PATH]
+        [--score 0.3] [--objects LIST] [--json PATH]
 
 For each dataset split (rendered by ``datagen --bank [BANK] [--rooms]``: scenes whose only
 objects are meshes of one bank, each annotated), over its first `--images` images: the share of
@@ -10,7 +10,11 @@ the annotated objects with at least `MIN_VISIBLE_PX` visible pixels that a detec
 `--score` or more covers (mask IoU with the visible mask >= 0.5: recall), the detections at that
 score that cover none (false positives per image), and COCO's box and mask AP50 over every
 score. The training bank's validation scenes show meshes the detector was trained on in scenes
-it never saw; the held-out bank's show meshes it never saw.
+it never saw; the held-out bank's show meshes it never saw. A FOLDER may also be a dataset's path,
+for example a tier's scenes of the unseen track's objects (``POSEGRASP_OBJECTS=out/unseen/objects
+python -m perception.training.datagen --dist headcam --tier clutter --objects can,milk,...
+--split val --out out/unseen/data/clutter``); ``--objects`` then counts only those objects in the
+recall (the detections that cover any other object are not false ones).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from posegrasp.core.paths import data_root
 from posegrasp.core.progress import progress_bar
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_float, check_input_file, check_int
+from posegrasp.world.objects import check_objects
 
 #: Objects with fewer visible pixels are not counted (the detector's training targets' floor).
 MIN_VISIBLE_PX = 100
@@ -38,14 +43,16 @@ COVER_IOU = 0.5
 
 
 def check_splits(spec: str) -> list[tuple[str, str]]:
-    """``--splits``: a comma list of ``FOLDER:SPLIT``, each folder one of `DATASETS`."""
+    """``--splits``: a comma list of ``FOLDER:SPLIT``, each folder one of `DATASETS` or the path
+    of a dataset's folder."""
     out = []
     for item in (x.strip() for x in spec.split(",") if x.strip()):
-        folder, _, split = item.partition(":")
-        if folder not in DATASETS or split not in SPLITS:
+        folder, _, split = item.rpartition(":")
+        known = folder in DATASETS or ("/" in folder and Path(folder, split).is_dir())
+        if not known or split not in SPLITS:
             raise InvalidArgumentError(
-                f"--splits {item!r}: FOLDER:SPLIT with FOLDER one of {', '.join(DATASETS)} and "
-                f"SPLIT one of {', '.join(SPLITS)}"
+                f"--splits {item!r}: FOLDER:SPLIT with FOLDER one of {', '.join(DATASETS)} or a "
+                f"dataset's path (with a / in it) and SPLIT one of {', '.join(SPLITS)}"
             )
         out.append((folder, split))
     if not out:
@@ -53,8 +60,15 @@ def check_splits(spec: str) -> list[tuple[str, str]]:
     return out
 
 
-def measure(detector: Detector, data: PoseDataset, n: int, score: float) -> dict:
-    """Recall, false positives per image and COCO AP50 over the first `n` images of `data`."""
+def measure(
+    detector: Detector,
+    data: PoseDataset,
+    n: int,
+    score: float,
+    objects: list[str] | None = None,
+) -> dict:
+    """Recall (of `objects` alone, if given), false positives per image and COCO AP50 over the
+    first `n` images of `data`."""
     found = counted = false = 0
     gts, dets_all = [], []
     for i in progress_bar(range(min(n, len(data))), desc="images", leave=False):
@@ -67,11 +81,12 @@ def measure(detector: Detector, data: PoseDataset, n: int, score: float) -> dict
         for o in s.objects:
             if int(o.mask_visib.sum()) < MIN_VISIBLE_PX:
                 continue
-            counted += 1
             ious = [mask_iou(d.mask, o.mask_visib) for d in kept]
-            hits = np.asarray(ious) >= COVER_IOU
-            found += int(hits.any())
+            hits = np.asarray(ious, float) >= COVER_IOU
             covers |= hits
+            if objects is None or o.name in objects:
+                counted += 1
+                found += int(hits.any())
         # A detection overlapping only objects too small to count is not a false one.
         small = [o.mask_visib for o in s.objects if int(o.mask_visib.sum()) < MIN_VISIBLE_PX]
         for k, d in enumerate(kept):
@@ -118,6 +133,13 @@ def _parser() -> ArgumentParser:
         type=arg(check_float, 0.01, 1.0, "--score"),
         help="the score a detection needs, 0.01..1 (default 0.3, the target's)",
     )
+    p.add_argument(
+        "--objects",
+        default=None,
+        type=arg(check_objects, "--objects"),
+        help="count only these objects in the recall (a comma list, built-in or user objects; "
+        "default: every annotated object)",
+    )
     add_json_argument(p, "the figures per split")
     return p
 
@@ -130,8 +152,10 @@ def main(argv: list[str] | None = None) -> int:
     detector = Detector.from_weights(Path(args.detector), verify=False)
     rows = {}
     for folder, split in args.splits:
-        data = PoseDataset(data_root() / folder, split)
-        rows[f"{folder}:{split}"] = measure(detector, data, args.images, args.score)
+        root = Path(folder) if "/" in folder else data_root() / folder
+        rows[f"{folder}:{split}"] = measure(
+            detector, PoseDataset(root, split), args.images, args.score, args.objects
+        )
     print(
         f"{'split':<36} {'images':>6} {'objects':>7} {'recall':>7} {'false/img':>9} "
         f"{'box AP50':>8} {'mask AP50':>9}"
@@ -142,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['false_per_image']:>9.2f} {r['box_ap50']:>8.3f} {r['mask_ap50']:>9.3f}"
         )
     if args.json is not None:
-        write_json(args.json, {"score": args.score, "splits": rows})
+        write_json(args.json, {"score": args.score, "objects": args.objects, "splits": rows})
     return 0
 
 

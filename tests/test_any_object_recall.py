@@ -49,10 +49,20 @@ def test_true_masks_are_all_found_and_the_corner_is_a_false_detection(tmp_path) 
     r = study.measure(_Truth(data), data, 3, 0.3)
     assert r["images"] == 3 and r["objects"] > 0
     assert r["recall"] == 1.0 and r["false_per_image"] == pytest.approx(1.0)
+    # Counting one object alone: its instances only, and the others' detections are not false.
+    name = data[0].objects[0].name
+    one = study.measure(_Truth(data), data, 3, 0.3, [name])
+    assert 0 < one["objects"] < r["objects"] and one["recall"] == 1.0
+    assert one["false_per_image"] == pytest.approx(1.0)
 
 
-def test_the_splits_are_checked_in_one_line() -> None:
+def test_the_splits_are_checked_in_one_line(tmp_path) -> None:
     assert study.check_splits("headcam_bank:val") == [("headcam_bank", "val")]
+    (tmp_path / "mine" / "val").mkdir(parents=True)
+    mine = f"{tmp_path}/mine"
+    assert study.check_splits(f"{mine}:val") == [(mine, "val")]
+    with pytest.raises(InvalidArgumentError, match="FOLDER:SPLIT"):
+        study.check_splits(f"{mine}:test")
     for bad in ("headcam_bank", "nowhere:val", "headcam_bank:dev", " , "):
         with pytest.raises(InvalidArgumentError, match="FOLDER:SPLIT"):
             study.check_splits(bad)

@@ -474,3 +474,20 @@ def test_a_tracks_cell_on_ray_is_the_local_one(tmp_path: Path) -> None:
         return [(e["seed"], e["success"], e.get("place"), e["T_C_O_est"]) for e in eps]
 
     assert kept(ray) == kept(local)
+
+
+def test_a_board_of_user_objects_records_each_ones_revision(monkeypatch, tmp_path) -> None:
+    from posegrasp.world.user_objects import DESCRIPTION_FILE, OBJECTS_ENV
+
+    monkeypatch.setenv(OBJECTS_ENV, str(tmp_path))
+    (tmp_path / "can").mkdir()
+    description = tmp_path / "can" / DESCRIPTION_FILE
+    description.write_text('{"name": "can"}')
+    cells = board_cells.cells_of(["crude"], ["isolated"], ["ideal"], [], ["lift"], ["none"])
+    built_in = board_cells.today_settings(cells, ["phone"])
+    assert "user_objects" not in built_in[cells[0]]
+    first = board_cells.today_settings(cells, ["phone", "can"])[cells[0]]
+    assert set(first["user_objects"]) == {"can"}
+    description.write_text('{"name": "can", "made": "again"}')  # the object made anew
+    again = board_cells.today_settings(cells, ["phone", "can"])[cells[0]]
+    assert board_cells.differences(first, again) == "user_objects.can"

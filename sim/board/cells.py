@@ -16,7 +16,9 @@ from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.files import atomic_write_json
 from posegrasp.core.journal import interrupted
 from posegrasp.world.constants import EVAL_SEED_BASE
+from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.sensors import Sensor
+from posegrasp.world.user_objects import description_revision
 from sim.board.poses import PosesRow, poses_settings
 from sim.board.tracks import BASE_TASK, NO_SHIFT, shifts_of, track_key
 
@@ -272,10 +274,11 @@ def run_cell(cell: Cell, args, cells_dir: Path, settings: dict | None = None) ->
     return report
 
 
-def today_settings(cells: Sequence[Cell]) -> dict[Cell, dict]:
+def today_settings(cells: Sequence[Cell], objects: Sequence[str] = ()) -> dict[Cell, dict]:
     """What each cell runs with today: its estimator's settings and weights
     (`sim.episodes.registry.estimator_settings`), or a CSV row's hashes (`poses_settings`); made
-    once per estimator, before any cell runs.
+    once per estimator, before any cell runs. With user objects among `objects`, each one's
+    description revision too (``user_objects``): an object made again is another object.
 
     Raises:
         InvalidArgumentError: an estimator that cannot be made here (an optional extra not
@@ -284,11 +287,13 @@ def today_settings(cells: Sequence[Cell]) -> dict[Cell, dict]:
     """
     from sim.episodes.registry import estimator_settings
 
+    mine = {n: description_revision(n) for n in objects if n not in OBJECT_NAMES}
+    extra = {"user_objects": mine} if mine else {}
     made: dict[str, dict] = {}
     out = {}
     for cell in cells:
         if cell.poses is not None:
-            out[cell] = poses_settings(*cell.poses)
+            out[cell] = poses_settings(*cell.poses) | extra
             continue
         if cell.estimator not in made:
             try:
@@ -298,5 +303,5 @@ def today_settings(cells: Sequence[Cell]) -> dict[Cell, dict]:
                 raise InvalidArgumentError(
                     f"{first}; or leave {cell.estimator} out of --estimators"
                 ) from None
-        out[cell] = made[cell.estimator]
+        out[cell] = made[cell.estimator] | extra
     return out
