@@ -71,7 +71,7 @@ from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.goals import TASKS
 from posegrasp.world.objects import OBJECT_NAMES, check_objects
 from posegrasp.world.sensors import SENSOR_NAMES, Sensor
-from posegrasp.world.tiers import TIERS
+from posegrasp.world.tiers import TIERS, add_pool_argument
 from sim.board.analysis import analyse
 from sim.board.cell_summaries import cell_summary, run_time_s
 from sim.board.cells import cells_of, run_cell, stale_cells, today_settings, unfit_cells
@@ -212,6 +212,7 @@ def _parser() -> ArgumentParser:
         "user objects (python -m sim.add_object): the unseen-objects track is the board on the "
         "held-out meshes made user objects (studies/public_meshes.py --set unseen)",
     )
+    add_pool_argument(p)
     _add_track_arguments(p)
     p.add_argument(
         "--episodes",
@@ -259,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     page, plot_dir, board_json = _outputs(args)
     rows = poses_rows(args.poses, args.objects, args.episodes)
     cells = cells_of(args.estimators, args.tiers, args.sensors, rows, args.tasks, args.shifts)
-    settings = today_settings(cells, args.objects)
+    settings = today_settings(cells, args.objects, args.pool)
     again = _command(argv)
     if stale := stale_cells(cells, cells_dir, settings):
         raise _refuse(
@@ -324,6 +325,7 @@ def _board(argv, args, board_cells: list[dict], reports: dict[str, dict], start:
         "tasks": list(args.tasks),
         "shifts": list(args.shifts),
         "objects": list(args.objects),
+        "pool": list(args.pool),
         "episodes": args.episodes,
         "episodes_per_cell": args.episodes * len(args.objects),
         "seed_start": EVAL_SEED_BASE,

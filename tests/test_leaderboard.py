@@ -491,3 +491,6 @@ def test_a_board_of_user_objects_records_each_ones_revision(monkeypatch, tmp_pat
     description.write_text('{"name": "can", "made": "again"}')  # the object made anew
     again = board_cells.today_settings(cells, ["phone", "can"])[cells[0]]
     assert board_cells.differences(first, again) == "user_objects.can"
+    # Distractors drawn from user objects: the pool is recorded, and each one's revision.
+    pooled = board_cells.today_settings(cells, ["phone"], ["can"])[cells[0]]
+    assert pooled["pool"] == ["can"] and set(pooled["user_objects"]) == {"can"}

@@ -253,6 +253,7 @@ def run_cell(cell: Cell, args, cells_dir: Path, settings: dict | None = None) ->
             seed_start=EVAL_SEED_BASE,
             tier=cell.tier,
             obs_mode=cell.obs_mode,
+            pool=tuple(getattr(args, "pool", ())),
             sensor=cell.run_sensor,
             task=cell.task,
             shifts=shifts_of(cell.shifts),
@@ -274,11 +275,15 @@ def run_cell(cell: Cell, args, cells_dir: Path, settings: dict | None = None) ->
     return report
 
 
-def today_settings(cells: Sequence[Cell], objects: Sequence[str] = ()) -> dict[Cell, dict]:
+def today_settings(
+    cells: Sequence[Cell], objects: Sequence[str] = (), pool: Sequence[str] = ()
+) -> dict[Cell, dict]:
     """What each cell runs with today: its estimator's settings and weights
     (`sim.episodes.registry.estimator_settings`), or a CSV row's hashes (`poses_settings`); made
-    once per estimator, before any cell runs. With user objects among `objects`, each one's
-    description revision too (``user_objects``): an object made again is another object.
+    once per estimator, before any cell runs. With user objects among `objects` or the
+    distractors' `pool`, each one's description revision too (``user_objects``: an object made
+    again is another object), and a pool of distractors other than the built-in objects
+    (``pool``).
 
     Raises:
         InvalidArgumentError: an estimator that cannot be made here (an optional extra not
@@ -287,8 +292,10 @@ def today_settings(cells: Sequence[Cell], objects: Sequence[str] = ()) -> dict[C
     """
     from sim.episodes.registry import estimator_settings
 
-    mine = {n: description_revision(n) for n in objects if n not in OBJECT_NAMES}
-    extra = {"user_objects": mine} if mine else {}
+    mine = {n: description_revision(n) for n in (*objects, *pool) if n not in OBJECT_NAMES}
+    extra: dict = {"user_objects": mine} if mine else {}
+    if pool:
+        extra["pool"] = list(pool)
     made: dict[str, dict] = {}
     out = {}
     for cell in cells:
