@@ -1,15 +1,17 @@
 """Estimate latency: a whole estimate on held-out episode images, or the hybrid estimator's stages.
 
     python bench/estimate_latency.py [--estimator hybrid-global] [--tier any-pose] [--images 30]
-        [--repeat 1] [--threads 2] [--json PATH]
+        [--objects LIST] [--repeat 1] [--threads 2] [--json PATH]
     python bench/estimate_latency.py --stages [--images 50] [--seed 5000] [--repeat 1]
         [--detector PATH] [--posenet PATH] [--random-weights] [--threads 2] [--json PATH]
 
 A whole estimate (the default): renders the head-camera images of the first `--images` held-out
-episodes of the tier (objects in turn), warms the estimator up on the first of each object
-(loading its codebook), then times `estimate(obs)` on each: median and 90th percentile [ms], and
-the per-stage medians the estimator reports in ``info["timings_ms"]``. Target: the whole
-estimate at most 100 ms per object (median) on 2 cores.
+episodes of the tier (`--objects` in turn: the six built-in ones, or user objects), warms the
+estimator up on the first of each object (loading its codebook), then times `estimate(obs)` on
+each: median and 90th percentile [ms], and the per-stage medians the estimator reports in
+``info["timings_ms"]``. Target: the whole estimate at most 100 ms per object (median) on 2 cores;
+for ``hybrid-global-unseen``, which also tells its target among its detections, 1 s
+(`TARGETS_MS`).
 
 The hybrid estimator's stages (``--stages``): renders `--images` head-camera images (640x480) of
 seeded table scenes with 1 object and as many with 3 objects (the target and 2 distractors, first
@@ -53,15 +55,16 @@ from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int, check_seed
 from posegrasp.world import constants as C
 from posegrasp.world.camera import CameraRenderer, camera_intrinsics
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import OBJECT_NAMES, check_objects
 from posegrasp.world.scene import SceneConfig, build_scene
 from posegrasp.world.tiers import TIERS
 
 if TYPE_CHECKING:
     from perception.hybrid import HybridPoseEstimator
 
-#: A whole estimate's target: median [ms] per object.
+#: A whole estimate's target: median [ms] per object, and the estimators' own where they differ.
 TARGET_MS = 100.0
+TARGETS_MS = {"hybrid-global-unseen": 1000.0}
 #: The stages' targets: the 3-object total's median, and both pose nets per object [ms].
 STAGES_TARGET_MS = 66.0
 NETS_TARGET_MS = 7.0
@@ -72,8 +75,15 @@ WARMUP = 3
 ESTIMATOR, TIER, IMAGES, STAGE_IMAGES, SEED = "hybrid-global", "any-pose", 30, 50, 5000
 
 
-def whole_estimates(estimator_name: str, tier: str, images: int, repeat: int) -> dict[str, Any]:
-    """Time a registered estimator's whole estimate on the tier's held-out episode images.
+def whole_estimates(
+    estimator_name: str,
+    tier: str,
+    images: int,
+    repeat: int,
+    objects: tuple[str, ...] = OBJECT_NAMES,
+) -> dict[str, Any]:
+    """Time a registered estimator's whole estimate on the tier's held-out episode images of
+    `objects` (in turn).
 
     Returns:
         The figures: ``median_ms``, ``p90_ms`` [ms] over the timed images, and the stage medians
@@ -86,15 +96,15 @@ def whole_estimates(estimator_name: str, tier: str, images: int, repeat: int) ->
     observations = []
     for i in range(images):
         ep = Episode(
-            OBJECT_NAMES[i % len(OBJECT_NAMES)],
-            C.EVAL_SEED_BASE + i // len(OBJECT_NAMES),
+            objects[i % len(objects)],
+            C.EVAL_SEED_BASE + i // len(objects),
             EpisodeConfig(tier=tier),
         )
         try:
             observations.append(ep.observe())
         finally:
             ep.close()
-    for obs in observations[: len(OBJECT_NAMES)]:
+    for obs in observations[: len(objects)]:
         estimator.estimate(obs)  # warm-up: weights, and each object's codebook
     times, stages = [], {}
     for obs in observations[1:]:
@@ -110,6 +120,7 @@ def whole_estimates(estimator_name: str, tier: str, images: int, repeat: int) ->
     return {
         "estimator": estimator_name,
         "tier": tier,
+        "objects": list(objects),
         "images": len(times),
         "repeat": repeat,
         "median_ms": float(np.median(times)),
@@ -160,12 +171,13 @@ def time_stages(
 def _report_whole(res: dict[str, Any], threads: int, log: TextIO) -> dict[str, bool]:
     """Print a whole estimate's figures against its target; returns the targets met."""
     med, repeat = res["median_ms"], res["repeat"]
-    met = {"median": med <= TARGET_MS}
+    goal = TARGETS_MS.get(res["estimator"], TARGET_MS)
+    met = {"median": med <= goal}
     print(
         f"{res['estimator']} on {res['tier']}, {res['images']} images"
         + (f" (the fastest of {repeat} runs each)" if repeat > 1 else "")
         + f", {threads} threads: median {med:.0f} ms, 90th percentile {res['p90_ms']:.0f} ms "
-        f"{target(f'median <= {TARGET_MS:.0f} ms', met['median'])}",
+        f"{target(f'median <= {goal:.0f} ms', met['median'])}",
         file=log,
     )
     n = res["images"]
@@ -240,6 +252,12 @@ def _parser() -> ArgumentParser:
         help=f"whole estimate: the episodes' tier (default {TIER})",
     )
     p.add_argument(
+        "--objects",
+        type=arg(check_objects, "--objects"),
+        help="whole estimate: 'all' (default: the six built-in objects) or a comma list of "
+        "objects, built-in or user objects (python -m sim.add_object)",
+    )
+    p.add_argument(
         "--images",
         type=arg(check_int, 2, 10_000, "--images", base=int),
         help=f"images, 2..10000 (default {IMAGES}; with --stages per scene type, {STAGE_IMAGES})",
@@ -272,12 +290,14 @@ def _check_mode(p: ArgumentParser, args: argparse.Namespace) -> None:
     given = {
         "--estimator": args.estimator is not None,
         "--tier": args.tier is not None,
+        "--objects": args.objects is not None,
         "--seed": args.seed is not None,
         "--detector": args.detector is not None,
         "--posenet": args.posenet is not None,
         "--random-weights": args.random_weights,
     }
-    whole_only, stages_only = ("--estimator", "--tier"), ("--seed", "--detector", "--posenet")
+    whole_only = ("--estimator", "--tier", "--objects")
+    stages_only = ("--seed", "--detector", "--posenet")
     wrong = whole_only if args.stages else (*stages_only, "--random-weights")
     bad = [o for o in wrong if given[o]]
     if bad:
@@ -338,8 +358,13 @@ def main(argv: list[str] | None = None) -> int:
             return fail(f"{exc}{hint}")
         met = _report_stages(out, log)
     else:
+        objects = tuple(args.objects or OBJECT_NAMES)
         out = whole_estimates(
-            args.estimator or ESTIMATOR, args.tier or TIER, args.images or IMAGES, args.repeat
+            args.estimator or ESTIMATOR,
+            args.tier or TIER,
+            args.images or IMAGES,
+            args.repeat,
+            objects,
         )
         out["threads"] = args.threads
         met = _report_whole(out, args.threads, log)

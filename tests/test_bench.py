@@ -67,3 +67,15 @@ def test_estimate_latency_stages_time_the_architecture_without_weights(
     # The detector keeps as many boxes as the scene has objects: every stage sees the work.
     assert out["one_object"]["detections_per_image"] == pytest.approx(1.0)
     assert out["three_objects"]["detections_per_image"] == pytest.approx(3.0)
+
+
+def test_estimate_latency_takes_objects_for_a_whole_estimate_only(monkeypatch, capsys) -> None:
+    module = _bench("estimate_latency", monkeypatch)
+    assert module.main(["--stages", "--random-weights", "--objects", "phone"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--objects not with --stages" in err[0]
+    assert module.main(["--objects", "no-such-object"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no-such-object" in err[0]
+    # The unseen estimator's own target: it also tells its target among its detections.
+    assert module.TARGETS_MS["hybrid-global-unseen"] > module.TARGET_MS
