@@ -82,10 +82,12 @@ def summary(result) -> str:
     info = result.estimate_info
     if info:
         if info.get("detected"):
+            box = info.get("box_xyxy")
             lines.append(
-                f"  detection   {info['class']}  score {info['score']:.3f}  box ("
-                + ", ".join(f"{v:.0f}" for v in info["box_xyxy"])
-                + f") px  {info['detections']} detection(s) of the class"
+                f"  detection   {info.get('class', result.object)}  score {info['score']:.3f}"
+                + ("" if box is None else "  box (" + ", ".join(f"{v:.0f}" for v in box) + ") px")
+                + f"  {info['detections']} detection(s)"
+                + (" of the class" if info.get("class", result.object) == result.object else "")
             )
         elif "detected" in info:
             lines.append(f"  detection   no {result.object} detected")

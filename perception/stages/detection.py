@@ -71,6 +71,7 @@ class TargetDetection:
         info: dict = {"detected": best is not None, "timings_ms": dict(timings)}
         if best is not None:
             info |= {"class": best.name, "score": best.score, "detections": len(dets)}
+            info["box_xyxy"] = [float(v) for v in best.box_xyxy]
         neighbours = tuple((p.name, p.T_C_O.copy()) for p in poses)
         return Detections(best, list(dets), neighbours, info)
 
@@ -129,6 +130,7 @@ class AnyObjectDetection(TargetDetection):
             target = replace(dets[pick], name=work.obs.object)
             every[pick] = target
             info |= {"class": ANY_OBJECT, "score": target.score}
+            info["box_xyxy"] = [float(v) for v in target.box_xyxy]
         t2 = time.perf_counter()
         info["timings_ms"] = {"detect": (t1 - t0) * 1000, "choose": (t2 - t1) * 1000}
         found = Detections(target, every, (), info)
