@@ -78,3 +78,25 @@ def _drawn(name: str, T_C_O: np.ndarray, image) -> np.ndarray:
     for tri in np.asarray(mesh.faces):
         cv2.fillConvexPoly(out, np.round(uv[tri]).astype(np.int32), 1)
     return out.astype(bool)
+
+
+def test_the_unseen_estimator_is_the_shipped_detector_of_any_object_without_the_nets() -> None:
+    from perception.detector import UNSEEN_DETECTOR
+    from perception.estimators import load_estimator
+
+    estimator, files = load_estimator("hybrid-global-unseen")
+    assert UNSEEN_DETECTOR.resolve() in files
+    assert isinstance(estimator, GlobalPoseEstimator)
+    assert estimator.hybrid.detector.cfg.classes == (ANY_OBJECT,)
+    names = [s.name for s in estimator.stages]
+    assert isinstance(estimator.stage("detection"), AnyObjectDetection) and "mask" not in names
+    # The detector's manifest records its training: bank scenes alone, as a detector of any
+    # object, never a scene of the six built-in objects.
+    import json
+
+    entry = json.loads((UNSEEN_DETECTOR.parent / "manifest.json").read_text())["detector"]
+    assert "--any-object" in entry["command"] and "headcam_bank" in entry["command"]
+    last = entry["command"].split("--data ")[1].split()[0]
+    assert all(
+        name.startswith("headcam_bank") for name in (p.split("=")[0] for p in last.split(","))
+    )

@@ -197,9 +197,9 @@ def test_shipped_manifest_hashes_match_and_each_file_is_hashed_once(tmp_path) ->
     # trained on what the trainer's tiers protocol names (the command `make weights` runs)
     assert mask_net["data_seeds"]["sources"] == dict(PROTOCOLS["tiers"].sources)
     # A budget on the weights in the repository: an estimator that ships nets of its own raises
-    # it on purpose (hybrid-global-rooms did), nothing else does.
+    # it on purpose (hybrid-global-rooms and hybrid-global-unseen did), nothing else does.
     total = sum(p.stat().st_size for p in WEIGHTS_DIR.rglob("*.pt"))
-    assert total <= 36e6, f"the shipped weights total {total / 1e6:.1f} MB, over 36 MB"
+    assert total <= 40e6, f"the shipped weights total {total / 1e6:.1f} MB, over 40 MB"
     f = tmp_path / "w.bin"
     f.write_bytes(b"abc")
     before = files._sha256.cache_info().misses
