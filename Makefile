@@ -52,6 +52,11 @@ TIER_COUNTS := hard:train:9000 hard:val:500 hard:test:500 clutter:test:300 any-p
 # headcam[_<tier>]_rooms[_joint]; `-` is the mixed table scenes), for hybrid-global-rooms.
 ROOM_COUNTS := hard:train:2500:wide hard:val:200:wide -:train:2500:wide any-pose:train:1000:wide \
 	hard:train:3000:joint hard:val:200:joint -:train:1500:joint
+# Head-camera scenes of a bank's meshes alone, in rooms (`--bank BANK --rooms FAMILY`, folders
+# headcam_bank[_<bank>]_rooms...), for hybrid-global-unseen's detector of any object; the held-out
+# bank's measure it.
+BANK_COUNTS := training:train:4000:wide training:val:200:wide shapes:train:3000:wide \
+	shapes:val:100:wide held-out:val:300:wide
 data: setup
 	@for spec in $(DATA_COUNTS); do IFS=: read dist split count <<< "$$spec"; \
 	  $(PY) -m perception.training.datagen --dist $$dist --split $$split --count $$count --workers 2 \
@@ -62,6 +67,9 @@ data: setup
 	@for spec in $(ROOM_COUNTS); do IFS=: read tier split count family <<< "$$spec"; \
 	  if [ "$$tier" = "-" ]; then tier_arg=""; else tier_arg="--tier $$tier"; fi; \
 	  $(PY) -m perception.training.datagen --dist headcam $$tier_arg --rooms $$family \
+	  --split $$split --count $$count --workers 2 || exit 1; done
+	@for spec in $(BANK_COUNTS); do IFS=: read bank split count family <<< "$$spec"; \
+	  $(PY) -m perception.training.datagen --dist headcam --bank $$bank --rooms $$family \
 	  --split $$split --count $$count --workers 2 || exit 1; done
 
 # The shipped weights, from scratch: every stage of the recipe (perception/training/recipe.py,

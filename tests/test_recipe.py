@@ -323,12 +323,16 @@ def test_the_mask_net_trainer_records_its_own_argv(tmp_path, monkeypatch) -> Non
 def test_make_data_renders_every_image_the_recipe_trains_on() -> None:
     text = (Path(__file__).resolve().parent.parent / "Makefile").read_text().replace("\\\n", " ")
     rendered: dict[tuple[str, str], int] = {}
-    for var, prefix in (("DATA_COUNTS", ""), ("TIER_COUNTS", "headcam_"), ("ROOM_COUNTS", "")):
+    counts = (("DATA_COUNTS", ""), ("TIER_COUNTS", "headcam_"), ("ROOM_COUNTS", ""))
+    for var, prefix in (*counts, ("BANK_COUNTS", "")):
         line = next(x for x in text.splitlines() if x.startswith(f"{var} :="))
         for spec in line.split(":=")[1].split():
             folder, split, count, *family = spec.split(":")
             if var == "ROOM_COUNTS":  # a tier's rooms, or the mixed scenes' ("-")
                 folder = "headcam" if folder == "-" else f"headcam_{folder}"
+                folder += folder_suffix(family[0])
+            if var == "BANK_COUNTS":  # a bank's scenes in rooms (the training bank's: no name)
+                folder = "headcam_bank" + ("" if folder == "training" else f"_{folder}")
                 folder += folder_suffix(family[0])
             rendered[(prefix + folder, split)] = int(count)
     for stage in RECIPE.stages:
