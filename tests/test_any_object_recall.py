@@ -66,3 +66,19 @@ def test_the_splits_are_checked_in_one_line(tmp_path) -> None:
     for bad in ("headcam_bank", "nowhere:val", "headcam_bank:dev", " , "):
         with pytest.raises(InvalidArgumentError, match="FOLDER:SPLIT"):
             study.check_splits(bad)
+
+
+def test_detections_of_any_object_are_no_neighbours_to_rest_on() -> None:
+    # A detector of any object names none of its detections: their meshes are unknown, so the
+    # support of the neighbours verifies none of them (it used to look the name up and raise).
+    from perception.stages import SupportConfig
+    from perception.stages.placement import NeighbourSupport
+
+    mask = np.zeros((20, 20), bool)
+    mask[5:10, 5:10] = True
+    target = Detection("phone", 0.9, np.array([5, 5, 10, 10.0]), mask)
+    other = Detection(ANY_OBJECT, 0.9, np.array([10, 5, 15, 10.0]), np.roll(mask, 5, axis=1))
+    asked = []
+    stage = NeighbourSupport(SupportConfig(), 10.0, lambda d, w: asked.append(d))
+    z, seen = stage.surface(target, [target, other], None, lambda d: asked.append(d))
+    assert z is None and seen == [] and asked == []

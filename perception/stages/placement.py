@@ -14,7 +14,7 @@ from perception.stages.work import AnyDetection, Kit, Placed, Work
 from perception.support import refine_on_support, resting_surface_z
 from perception.verification import Verified
 from posegrasp.core.contract import Observation
-from posegrasp.world.objects import ObjectModel, load_object
+from posegrasp.world.objects import ObjectModel, load_object, object_names
 
 #: Neighbours are verified until this many give a confident resting pose
 #: (`SupportConfig.neighbours`).
@@ -156,7 +156,8 @@ class NeighbourSupport:
     ) -> tuple[float | None, list[dict]]:
         """The height of the surface the target's neighbours rest on, or None when none gives
         a confident resting pose, and what each verified neighbour gave (``class``, ``score``,
-        ``tilt_deg``, ``surface_z``, ``counted``)."""
+        ``tilt_deg``, ``surface_z``, ``counted``); only detections of known objects are
+        neighbours."""
         grown = ndimage.binary_dilation(target.mask, iterations=NEIGHBOUR_TOUCH_PX)
         centre = np.argwhere(target.mask).mean(0)
 
@@ -165,8 +166,13 @@ class NeighbourSupport:
             far = float(np.hypot(*(pixels.mean(0) - centre))) if len(pixels) else math.inf
             return -int((grown & d.mask).sum()), far
 
+        # A detection of a detector of any object names no object: its mesh is unknown, so it
+        # cannot say where it rests.
+        known = set(object_names())
         candidates = [
-            d for d in every if d.name != target.name and load_object(d.name).resting_poses
+            d
+            for d in every
+            if d.name != target.name and d.name in known and load_object(d.name).resting_poses
         ]
         heights: list[float] = []
         seen: list[dict] = []
