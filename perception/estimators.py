@@ -78,19 +78,20 @@ def _hybrid_global_rooms() -> PoseEstimator:
 
 def _hybrid_global_unseen() -> PoseEstimator:
     """`hybrid-global` for objects it was never trained on, from the mesh alone: a detector of
-    any object (trained on a bank of other meshes), the target told among its detections by the
-    mesh's codebook and verification (`perception.stages.detection.AnyObjectDetection`), then
-    the codebook's hypotheses, verification and refinement; no pose net and no mask net (they
-    know the six built-in objects, which this estimator scores as if new). The main pose net
-    is loaded with the detector and never run."""
+    any object and a mask net that redraws any target's mask (both trained on a bank of other
+    meshes), the target told among the detections by the mesh's codebook and verification
+    (`perception.stages.detection.AnyObjectDetection`), then the codebook's hypotheses,
+    verification and refinement; no pose net (the nets know the six built-in objects, which
+    this estimator scores as if new). The main pose net is loaded with the detector and never
+    run."""
     from perception.detector import UNSEEN_DETECTOR
-    from perception.global_pose import GlobalConfig, GlobalPoseEstimator
+    from perception.global_pose import GlobalPoseEstimator
     from perception.hybrid import HybridPoseEstimator
-    from perception.stages import DetectionConfig
+    from perception.mask_net import UNSEEN_MASKNET, MaskRefiner
 
     hybrid = HybridPoseEstimator.from_weights(detector_path=UNSEEN_DETECTOR, expert_paths=())
-    config = GlobalConfig(detection=DetectionConfig(mask_net=False))
-    return GlobalPoseEstimator(hybrid, config, name="hybrid-global-unseen")
+    masks = MaskRefiner.from_weights(UNSEEN_MASKNET)
+    return GlobalPoseEstimator(hybrid, name="hybrid-global-unseen", masks=masks)
 
 
 def _hybrid_global_table() -> PoseEstimator:

@@ -37,6 +37,9 @@ DEFAULT_MASKNET = WEIGHTS_DIR / "tiers" / "masknet.pt"
 #: `DEFAULT_MASKNET` trained further on windows of scenes in rooms drawn for training, for
 #: ``hybrid-global-rooms``.
 ROOMS_MASKNET = WEIGHTS_DIR / "rooms" / "masknet.pt"
+#: `ROOMS_MASKNET` trained further on windows of bank scenes (meshes of every shape, none of the
+#: six built-in objects), for ``hybrid-global-unseen``, which redraws any target's mask with it.
+UNSEEN_MASKNET = WEIGHTS_DIR / "unseen" / "masknet.pt"
 #: The mask net of the paper's protocol (256x256 studio images on random backgrounds), trained on
 #: those images with the larger errors of that protocol's detector.
 PAPER_MASKNET = WEIGHTS_DIR / "paper_protocol" / "masknet.pt"

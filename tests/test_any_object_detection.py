@@ -80,23 +80,25 @@ def _drawn(name: str, T_C_O: np.ndarray, image) -> np.ndarray:
     return out.astype(bool)
 
 
-def test_the_unseen_estimator_is_the_shipped_detector_of_any_object_without_the_nets() -> None:
-    from perception.detector import UNSEEN_DETECTOR
-    from perception.estimators import load_estimator
-
-    estimator, files = load_estimator("hybrid-global-unseen")
-    assert UNSEEN_DETECTOR.resolve() in files
-    assert isinstance(estimator, GlobalPoseEstimator)
-    assert estimator.hybrid.detector.cfg.classes == (ANY_OBJECT,)
-    names = [s.name for s in estimator.stages]
-    assert isinstance(estimator.stage("detection"), AnyObjectDetection) and "mask" not in names
-    # The detector's manifest records its training: bank scenes alone, as a detector of any
-    # object, never a scene of the six built-in objects.
+def test_the_unseen_estimator_is_the_shipped_detector_and_mask_net_of_any_object() -> None:
     import json
 
-    entry = json.loads((UNSEEN_DETECTOR.parent / "manifest.json").read_text())["detector"]
-    assert "--any-object" in entry["command"] and "headcam_bank" in entry["command"]
-    last = entry["command"].split("--data ")[1].split()[0]
-    assert all(
-        name.startswith("headcam_bank") for name in (p.split("=")[0] for p in last.split(","))
-    )
+    from perception.detector import UNSEEN_DETECTOR
+    from perception.estimators import load_estimator
+    from perception.mask_net import UNSEEN_MASKNET
+    from perception.stages.detection import RedrawnMask
+
+    estimator, files = load_estimator("hybrid-global-unseen")
+    assert {UNSEEN_DETECTOR.resolve(), UNSEEN_MASKNET.resolve()} <= set(files)
+    assert isinstance(estimator, GlobalPoseEstimator)
+    assert estimator.hybrid.detector.cfg.classes == (ANY_OBJECT,)
+    assert isinstance(estimator.stage("detection"), AnyObjectDetection)
+    mask = estimator.stage("mask")
+    assert isinstance(mask, RedrawnMask) and mask.knows("bank-042") and mask.knows("phone")
+    # Both nets' manifests record their training: bank scenes alone, never a scene of the six
+    # built-in objects.
+    entries = json.loads((UNSEEN_DETECTOR.parent / "manifest.json").read_text())
+    assert "--any-object" in entries["detector"]["command"]
+    for key in ("detector", "mask_net"):
+        data = entries[key]["command"].split("--data ")[1].split()[0]
+        assert all(p.split("=")[0].startswith("headcam_bank") for p in data.split(",")), key

@@ -165,16 +165,19 @@ class AnyObjectDetection(TargetDetection):
 
 class RedrawnMask:
     """The mask stage: the target's mask redrawn by the mask net, for the built-in objects it
-    was trained on (any other detection keeps the detector's).
+    was trained on (any other detection keeps the detector's); behind a detector of any object
+    (`perception.detector_net.ANY_OBJECT`), every target's, the mask net then being one trained
+    on bank scenes of objects of every shape (``hybrid-global-unseen``'s).
 
     Args:
         masks: the mask net.
+        any_object: redraw the mask of whatever object is asked for.
     """
 
     name = "mask"
 
-    def __init__(self, masks: MaskRefiner) -> None:
-        self.masks = masks
+    def __init__(self, masks: MaskRefiner, any_object: bool = False) -> None:
+        self.masks, self.any_object = masks, any_object
 
     @classmethod
     def build(cls, config: GlobalConfig, kit: Kit) -> RedrawnMask | None:
@@ -185,12 +188,15 @@ class RedrawnMask:
             raise InvalidArgumentError(
                 "DetectionConfig.mask_net asks for the mask net, and none is loaded (Kit.masks)"
             )
-        return cls(kit.masks)
+        return cls(kit.masks, kit.hybrid.detector.cfg.classes == (ANY_OBJECT,))
 
-    @staticmethod
-    def wanted(work: Work) -> bool:
+    def knows(self, name: str) -> bool:
+        """Whether the mask net redraws the masks of object `name`."""
+        return self.any_object or name in OBJECT_NAMES
+
+    def wanted(self, work: Work) -> bool:
         """Whether the target is one of the objects the mask net knows."""
-        return work.target is not None and work.target.name in OBJECT_NAMES
+        return work.target is not None and self.knows(work.target.name)
 
     def __call__(self, work: Work) -> Work:
         """`work` with its target's mask redrawn."""
@@ -200,6 +206,6 @@ class RedrawnMask:
     def redraw(self, det: AnyDetection, rgb: np.ndarray) -> AnyDetection:
         """`det` with its mask redrawn from the image `rgb` (H, W, 3) uint8 (as it is for an
         object the mask net does not know)."""
-        if det.name not in OBJECT_NAMES:
+        if not self.knows(det.name):
             return det
         return replace(det, mask=self.masks.refine(rgb, det.mask, det.name))

@@ -290,8 +290,8 @@ STAGES: tuple[Stage, ...] = (
         precision="fp32",
         channels_last=True,
     ),
-    # `hybrid-global-unseen`'s detector: the rooms' one made a detector of any object (its
-    # per-class layers start afresh), on bank scenes alone.
+    # `hybrid-global-unseen`'s detector and mask net: the rooms' ones on bank scenes alone, the
+    # detector made a detector of any object (its per-class layers start afresh).
     _detector(
         "detector-unseen-bank",
         _UNSEEN,
@@ -300,6 +300,17 @@ STAGES: tuple[Stage, ...] = (
         init="detector-tune-tiers-rooms-joint",
         channels_last=True,
         detector=_ANY_OBJECT,
+    ),
+    _masknet(
+        "masknet-unseen-bank",
+        {"headcam_bank_rooms": 3000, "headcam_bank_shapes_rooms": 2000},
+        epochs=1,
+        lr=3e-4,
+        init="masknet-tiers-rooms-joint",
+        seed=4,
+        val=("headcam_bank_held-out_rooms", 200),
+        precision="fp32",
+        channels_last=True,
     ),
     # The paper protocol's mask net; its last stages also learn from the windows its detector
     # cuts of the training images after the first 30,000, the very last one shipped as the
@@ -378,6 +389,7 @@ RECIPE = Recipe(
         Artefact("rooms/detector.pt", ("detector",), "detector-tune-tiers-rooms-joint", 1),
         Artefact("rooms/masknet.pt", ("mask_net",), "masknet-tiers-rooms-joint"),
         Artefact("unseen/detector.pt", ("detector",), "detector-unseen-bank", 1),
+        Artefact("unseen/masknet.pt", ("mask_net",), "masknet-unseen-bank"),
         Artefact("paper_protocol/detector.pt", ("detector",), "detector-tune-paper", 2),
         Artefact("paper_protocol/masknet.pt", ("mask_net",), "masknet-paper-detector-masks-20k"),
         Artefact(
