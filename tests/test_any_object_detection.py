@@ -17,6 +17,7 @@ from perception.stages.detection import AnyObjectDetection
 from perception.training.data.distributions import HeadcamGenerator
 from posegrasp.core.contract import Observation
 from posegrasp.core.transforms import invert_transform
+from posegrasp.world.scene import build_scene
 
 pytestmark = pytest.mark.slow
 
@@ -52,13 +53,16 @@ def test_the_requested_object_is_the_detection_its_mesh_explains_best(image) -> 
     assert len(names) >= 3
     T_W_C = invert_transform(image.T_C_W)
     chosen = 0
+    table = build_scene("phone", 12).table_top_z  # the scene the image was rendered of
     for o in image.objects:
         if o.mask_visib.sum() <= 400 or [p.name for p in image.objects].count(o.name) > 1:
             continue
-        got = est.estimate(Observation(image.rgb, image.K, T_W_C, o.name, 12))
+        got = est.estimate(Observation(image.rgb, image.K, T_W_C, o.name, 12, table_top_z=table))
         assert got.info["detected"] and got.info["class"] == ANY_OBJECT
         found = got.info["choice"]
         assert len(found["verified"]) >= 2, found  # a choice was made, not taken by score
+        # Each verified detection's pose says where it rests.
+        assert set(found["surface_z"]) <= set(found["verified"])
         assert got.T_C_O is not None
         # The pose found is the object's: its mesh drawn there covers the object's own mask.
         assert mask_iou(_drawn(o.name, got.T_C_O, image), o.mask_visib) > 0.5, o.name

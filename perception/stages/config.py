@@ -29,11 +29,17 @@ class DetectionConfig:
         shortlist: with a detector of any object (`perception.detector_net.ANY_OBJECT`), the
             detections whose masks the requested object's codebook matches best, this many,
             are each verified as the target, and the best verified is taken (`AnyObjectDetection`).
+        table_tolerance_m: with a detector of any object and an observation that gives the
+            table's height, a shortlisted detection whose verified pose rests more than this [m]
+            above or below the table is taken only when none rests on it: a silhouette says
+            nothing of size, so another object, nearer or farther, can fit the mesh as well,
+            but not at the height of the table it stands on (None: the table is not used).
     """
 
     target_score: float | None = 0.3
     mask_net: bool = True
     shortlist: int = 3
+    table_tolerance_m: float | None = 0.03
 
     def __post_init__(self) -> None:
         if (
@@ -43,6 +49,13 @@ class DetectionConfig:
         ):
             raise InvalidArgumentError(
                 f"DetectionConfig.shortlist must be >= 1, got {self.shortlist}"
+            )
+        if self.table_tolerance_m is not None and not (
+            math.isfinite(self.table_tolerance_m) and self.table_tolerance_m > 0
+        ):
+            raise InvalidArgumentError(
+                "DetectionConfig.table_tolerance_m must be positive [m] or None, got "
+                f"{self.table_tolerance_m}"
             )
         if self.target_score is not None and not 0 <= self.target_score <= 1:
             raise InvalidArgumentError(

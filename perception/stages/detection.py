@@ -15,9 +15,10 @@ from perception.mask_net import MaskRefiner
 from perception.stages.config import DetectionConfig, GlobalConfig
 from perception.stages.hypotheses import CodebookHypotheses
 from perception.stages.work import AnyDetection, Detections, Kit, Work
+from perception.support import resting_surface_z
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.world.objects import OBJECT_NAMES
+from posegrasp.world.objects import OBJECT_NAMES, load_object
 
 
 class TargetDetection:
@@ -85,7 +86,9 @@ class AnyObjectDetection(TargetDetection):
     rotation group, `CodebookHypotheses`); the `DetectionConfig.shortlist` best matched are each
     verified as the target would be (its hypotheses refined and scored, without the second
     look, every other detection its occluder: `Kit.neighbour`), and the one whose best pose
-    scores highest is the target, named as the requested object. The other detections are its
+    scores highest is the target, named as the requested object; where the observation gives
+    the table's height, among those whose pose rests on the table
+    (`DetectionConfig.table_tolerance_m`), if any does. The other detections are its
     neighbours and occluders, without poses.
 
     Args:
@@ -117,12 +120,21 @@ class AnyObjectDetection(TargetDetection):
             threshold = self.hybrid.detector.score_threshold
         ranked, ious = self.ranked(dets, threshold, work.obs.object, work.obs.K)
         verified = {k: self.verified(work, dets, k) for k in ranked if len(ranked) > 1}
-        scored = {k: v for k, v in verified.items() if v is not None}
+        scored = {k: v[0] for k, v in verified.items() if v is not None}
+        heights = {k: v[1] for k, v in verified.items() if v is not None}
+        table, tol = work.obs.table_top_z, self.config.table_tolerance_m
+        if table is not None and tol is not None:
+            on_table = {k: v for k, v in scored.items() if abs(heights[k] - table) <= tol}
+            scored = on_table or scored
         pick = max(scored, key=lambda k: scored[k]) if scored else next(iter(ranked), None)
         info: dict = {
             "detected": pick is not None,
             "detections": len(dets),
-            "choice": {"match_iou": ious, "verified": {str(k): v for k, v in verified.items()}},
+            "choice": {
+                "match_iou": ious,
+                "verified": {str(k): None if v is None else v[0] for k, v in verified.items()},
+                "surface_z": {str(k): round(z, 4) for k, z in heights.items()},
+            },
         }
         every: list[AnyDetection] = list(dets)
         target = None
@@ -152,15 +164,18 @@ class AnyObjectDetection(TargetDetection):
         order = [int(k) for k in np.argsort(-np.asarray(ious), kind="stable") if ious[k] >= 0]
         return order[: self.config.shortlist], ious
 
-    def verified(self, work: Work, dets: list[Detection], k: int) -> float | None:
-        """The score of the best verified pose of detection `k` taken as the target (None:
-        none verifies)."""
+    def verified(self, work: Work, dets: list[Detection], k: int) -> tuple[float, float] | None:
+        """The score of the best verified pose of detection `k` taken as the target, and the
+        height [m] in the world of the surface that pose rests on (None: none verifies)."""
         assert work.obs is not None
         as_target = replace(dets[k], name=work.obs.object)
         every: list[AnyDetection] = [as_target if j == k else d for j, d in enumerate(dets)]
         trial = work.given(found=Detections(as_target, every, (), {}))
         best = self.kit.neighbour(as_target, trial)
-        return None if best is None else round(float(best.score), 4)
+        if best is None:
+            return None
+        z = resting_surface_z(best.T_C_O, work.obs.T_world_cam, load_object(work.obs.object))
+        return round(float(best.score), 4), float(z)
 
 
 class RedrawnMask:
