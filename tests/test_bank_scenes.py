@@ -128,17 +128,6 @@ def test_bank_scenes_refuse_what_they_are_not(capsys) -> None:
     assert len(err) == 1 and "training" in err[0] and "held-out" in err[0]
 
 
-def test_the_held_out_banks_scenes_show_its_meshes_only(tmp_path: Path) -> None:
-    out = tmp_path / "held"
-    args = ["--dist", "headcam", "--bank", "held-out", "--split", "val", "--count", "2"]
-    assert main([*args, "--width", str(W), "--height", str(H), "--quiet", "--out", str(out)]) == 0
-    data = PoseDataset(out, "val")
-    names = [o.name for i in range(len(data)) for o in data[i].objects]
-    assert names and all(bank_id(n) in DISTRACTOR_IDS for n in names)
-    info = json.loads((out / "info.json").read_text())
-    assert info["bank"] == "held-out" and "--bank held-out" in info["splits"]["val"]["command"]
-
-
 def test_generated_shapes_are_closed_seeded_household_sized_and_of_every_kind() -> None:
     assert not set(SHAPE_IDS) & (set(TRAINING_IDS) | set(DISTRACTOR_IDS))
     assert bank_name(1234) == "bank-1234" and bank_id("bank-1234") == 1234
@@ -162,16 +151,18 @@ def test_generated_shapes_are_closed_seeded_household_sized_and_of_every_kind() 
         shape_mesh(5)
 
 
-def test_the_shapes_banks_scenes_show_generated_shapes_only(tmp_path: Path) -> None:
-    out = tmp_path / "shapes"
-    args = ["--dist", "headcam", "--bank", "shapes", "--split", "val", "--count", "2"]
+@pytest.mark.parametrize(("bank", "ids"), [("held-out", DISTRACTOR_IDS), ("shapes", SHAPE_IDS)])
+def test_a_banks_scenes_show_its_meshes_only(tmp_path: Path, bank: str, ids) -> None:
+    out = tmp_path / bank
+    args = ["--dist", "headcam", "--bank", bank, "--split", "val", "--count", "2"]
     assert main([*args, "--width", str(W), "--height", str(H), "--quiet", "--out", str(out)]) == 0
     data = PoseDataset(out, "val")
     names = [o.name for i in range(len(data)) for o in data[i].objects]
-    assert names and all(bank_id(n) in SHAPE_IDS for n in names)
+    assert names and all(bank_id(n) in ids for n in names)
     info = json.loads((out / "info.json").read_text())
-    base = SEED_BASES["val"] + BANK_SEED_OFFSETS["shapes"]
-    assert info["bank"] == "shapes" and info["splits"]["val"]["seed_range"][0] == base
+    split = info["splits"]["val"]
+    assert info["bank"] == bank and f"--bank {bank}" in split["command"]
+    assert split["seed_range"][0] == SEED_BASES["val"] + BANK_SEED_OFFSETS[bank]
 
 
 def test_a_detector_of_any_object_starts_from_a_named_one_but_its_class_layers() -> None:

@@ -74,7 +74,7 @@ def read_mesh(path: Path | str) -> trimesh.Trimesh:
     try:
         # An OBJ's MTL may name its image up the tree (``../../textures/x.png``, as packaged
         # object sets lay theirs out): the user's own file, so it is read where it points.
-        resolver = trimesh.resolvers.FilePathResolver(path, allow_anywhere=True)
+        resolver = trimesh.resolvers.FilePathResolver(str(path), allow_anywhere=True)
         loaded = trimesh.load(path, force="mesh", resolver=resolver)
     except Exception as exc:  # trimesh raises whatever its parsers raise
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
