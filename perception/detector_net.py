@@ -113,6 +113,11 @@ class DetectorConfig:
                 f"need 0 < min_size <= max_size, got {self.min_size}, {self.max_size}"
             )
 
+    @property
+    def any_object(self) -> bool:
+        """Whether this is a detector of any object: one class, `ANY_OBJECT`."""
+        return self.classes == (ANY_OBJECT,)
+
     def label(self, name: str) -> int | None:
         """The label the detector gives an object of class `name` (`class_label`)."""
         return class_label(self.classes, name)

@@ -41,7 +41,7 @@ class TargetDetection:
     @classmethod
     def build(cls, config: GlobalConfig, kit: Kit) -> TargetDetection:
         """The stage of `config.detection`: `AnyObjectDetection` for a detector of any object."""
-        if kit.hybrid.detector.cfg.classes == (ANY_OBJECT,):
+        if kit.hybrid.detector.cfg.any_object:
             codebook = CodebookHypotheses(kit.codebooks, config.codebook)
             return AnyObjectDetection(kit.hybrid, config.detection, codebook, kit)
         return cls(kit.hybrid, config.detection)
@@ -203,7 +203,7 @@ class RedrawnMask:
             raise InvalidArgumentError(
                 "DetectionConfig.mask_net asks for the mask net, and none is loaded (Kit.masks)"
             )
-        return cls(kit.masks, kit.hybrid.detector.cfg.classes == (ANY_OBJECT,))
+        return cls(kit.masks, kit.hybrid.detector.cfg.any_object)
 
     def knows(self, name: str) -> bool:
         """Whether the mask net redraws the masks of object `name`."""

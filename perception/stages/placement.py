@@ -9,12 +9,13 @@ from collections.abc import Callable
 import numpy as np
 from scipy import ndimage
 
+from perception.detector_net import ANY_OBJECT
 from perception.stages.config import GlobalConfig, SupportConfig, TableConfig
 from perception.stages.work import AnyDetection, Kit, Placed, Work
 from perception.support import refine_on_support, resting_surface_z
 from perception.verification import Verified
 from posegrasp.core.contract import Observation
-from posegrasp.world.objects import ObjectModel, load_object, object_names
+from posegrasp.world.objects import ObjectModel, load_object
 
 #: Neighbours are verified until this many give a confident resting pose
 #: (`SupportConfig.neighbours`).
@@ -168,11 +169,10 @@ class NeighbourSupport:
 
         # A detection of a detector of any object names no object: its mesh is unknown, so it
         # cannot say where it rests.
-        known = set(object_names())
         candidates = [
             d
             for d in every
-            if d.name != target.name and d.name in known and load_object(d.name).resting_poses
+            if d.name not in (target.name, ANY_OBJECT) and load_object(d.name).resting_poses
         ]
         heights: list[float] = []
         seen: list[dict] = []

@@ -91,12 +91,10 @@ def bank_name(mesh_id: int) -> str:
 def bank_id(name: str) -> int | None:
     """The bank mesh id an object name (`bank_name`) stands for; None for any other name."""
     digits = name[len(BANK_PREFIX) :]
-    if not name.startswith(BANK_PREFIX) or not digits.isdigit() or len(digits) not in (3, 4):
+    if not name.startswith(BANK_PREFIX) or not digits.isdigit():
         return None
     mesh_id = int(digits)
-    if bank_name(mesh_id) != name or mesh_id >= SHAPE_IDS.stop:
-        return None
-    return mesh_id
+    return mesh_id if bank_name(mesh_id) == name and mesh_id < SHAPE_IDS.stop else None
 
 
 def shape_mesh(mesh_id: int) -> BankMesh:

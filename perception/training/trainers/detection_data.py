@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from perception.detector import image_tensor, load_detector_model, to_model_box
-from perception.detector_net import ANY_OBJECT, DetectorConfig, input_transform
+from perception.detector_net import DetectorConfig, input_transform
 from perception.training.data.bop import box_xyxy
 from perception.training.data.dataset import PoseDataset
 from perception.training.trainers.ddp import Ranks
@@ -134,7 +134,7 @@ def start_from(model: torch.nn.Module, path: Path, cfg: DetectorConfig) -> None:
     """
     parent, parent_cfg, _ = load_detector_model(Path(path), verify=False)
     n = len(parent_cfg.classes)
-    anew = cfg.classes == (ANY_OBJECT,) and parent_cfg.classes != cfg.classes
+    anew = cfg.any_object and not parent_cfg.any_object
     if anew:
         same = replace(cfg, classes=parent_cfg.classes, n_classes=parent_cfg.n_classes)
     else:

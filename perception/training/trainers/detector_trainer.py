@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from perception.detector import Detector
-from perception.detector_net import ANY_OBJECT, DetectorConfig, build_detector
+from perception.detector_net import DetectorConfig, build_detector
 from perception.training.data.dataset import DATASETS, PoseDataset, format_data, load_info
 from perception.training.evals.detection_eval import evaluate_detector, pycocotools_api
 from perception.training.trainers.checkpoints import (
@@ -181,7 +181,7 @@ def command_line(cfg: DetectorTrainConfig) -> str:
         (cfg.seed != d.seed, f"--seed {cfg.seed}"),
         (cfg.precision != d.precision, f"--precision {cfg.precision}"),
         (cfg.channels_last, "--channels-last"),
-        (cfg.detector.classes == (ANY_OBJECT,), "--any-object"),
+        (cfg.detector.any_object, "--any-object"),
         (cfg.init is not None, f"--init {cfg.init}"),
         (cfg.out is not None, f"--out {cfg.out}"),
     )
