@@ -83,6 +83,10 @@ def sphere_rotations(views: int, inplane: int) -> np.ndarray:
     return out.reshape(-1, 3, 3)
 
 
+#: Rotations a codebook draws at a time (`Codebook.build`).
+BUILD_BATCH = 256
+
+
 def _pack(sil: np.ndarray) -> np.ndarray:
     """A (S, S) bool silhouette as S * S / 64 uint64 words."""
     return np.packbits(sil.reshape(-1)).view(np.uint64)
@@ -121,21 +125,29 @@ class Codebook:
         )
         pieces = (source or ConvexParts()).parts(name).pieces
         verts = np.concatenate(pieces)
-        slices = np.cumsum([0] + [len(p) for p in pieces])
+        ends = np.cumsum([0] + [len(p) for p in pieces])
+        pieces_at = [slice(int(i0), int(i1)) for i0, i1 in itertools.pairwise(ends)]
         R = sphere_rotations(views, inplane)
         S = SILHOUETTE_PX
-        X = np.einsum("nij,vj->nvi", R, verts)
-        uv = TEMPLATE_F * X[..., :2] / (TEMPLATE_Z + X[..., 2:3])
-        lo, hi = uv.min(1), uv.max(1)
-        centre, side = (lo + hi) / 2, (hi - lo).max(1)
-        offset = -centre / side[:, None]  # the origin projects at (0, 0)
-        px = (uv - centre[:, None]) * (FILL * S / side)[:, None, None] + S / 2
         bits = np.empty((len(R), S * S // 64), np.uint64)
+        side, offset = np.empty(len(R)), np.empty((len(R), 2))
         sil = np.zeros((S, S), np.uint8)
-        for n in range(len(R)):
-            sil[:] = 0
-            _fill(sil, px[n], slices)
-            bits[n] = _pack(sil.view(bool))
+        # A batch of rotations at a time: every vertex under all of them at once would fill
+        # memory (rotations x vertices x 3) and wait on it.
+        for n0 in range(0, len(R), BUILD_BATCH):
+            X = np.einsum("nij,vj->inv", R[n0 : n0 + BUILD_BATCH], verts)
+            uv = TEMPLATE_F * X[:2] / (TEMPLATE_Z + X[2])  # (2, batch, vertices)
+            lo, hi = uv.min(2).T, uv.max(2).T
+            centre, span = (lo + hi) / 2, (hi - lo).max(1)
+            side[n0 : n0 + len(span)] = span
+            offset[n0 : n0 + len(span)] = -centre / span[:, None]  # the origin projects at (0, 0)
+            px = (uv - centre.T[:, :, None]) * (FILL * S / span)[:, None] + S / 2
+            px = px.transpose(1, 2, 0)
+            px32, pts16 = px.astype(np.float32), np.round(px * 16).astype(np.int32)
+            for k in range(len(span)):
+                sil[:] = 0
+                _fill(sil, px32[k], pts16[k], pieces_at)
+                bits[n0 + k] = _pack(sil.view(bool))
         return cls(name, R, bits, side, offset)
 
     def save(self, path: Path) -> None:
@@ -192,12 +204,13 @@ class Codebook:
         return inter / np.maximum(union, 1)
 
 
-def _fill(canvas: np.ndarray, px: np.ndarray, slices: np.ndarray) -> None:
-    """Fill the union of the convex hulls of each piece's projected points (N, 2) [px]."""
-    pts16 = np.round(px * 16).astype(np.int32)
-    for i0, i1 in itertools.pairwise(slices):
-        hull = cv2.convexHull(px[i0:i1].astype(np.float32), returnPoints=False)[:, 0] + i0
-        cv2.fillConvexPoly(canvas, pts16[hull], 1, cv2.LINE_8, 4)
+def _fill(canvas: np.ndarray, px32: np.ndarray, pts16: np.ndarray, pieces: list[slice]) -> None:
+    """Fill the union of the convex hulls of each piece's projected points: `px32` (N, 2)
+    float32 [px], `pts16` the same in sixteenths of a pixel (N, 2) int32, `pieces` each piece's
+    points."""
+    for piece in pieces:
+        hull = cv2.convexHull(px32[piece], returnPoints=False)[:, 0]
+        cv2.fillConvexPoly(canvas, pts16[piece][hull], 1, cv2.LINE_8, 4)
 
 
 @dataclass(frozen=True)

@@ -456,6 +456,8 @@ def _description(
             "parameters": src.dec.parameters,
             "hulls": len(made.hulls),
             "seconds": round(src.dec.seconds, 2),
+            "triangles": src.dec.faces,
+            "simplified_from": src.dec.simplified_from,
         },
         "symmetries": {
             "source": "given" if req.symmetry else "detected",
@@ -540,7 +542,8 @@ def _source(
     say("convex decomposition (CoACD) ...")
     dec = M.decompose(visual_s, **{"seed": seed, **(coacd or {})})
     timings["decomposition"] = time.perf_counter() - t
-    say(f"  {len(dec.hulls)} hulls in {dec.seconds:.1f} s")
+    cut = f", cut from its {dec.faces}-triangle simplification" if dec.simplified_from else ""
+    say(f"  {len(dec.hulls)} hulls in {dec.seconds:.1f} s{cut}")
     props_s = M.mass_properties(
         dec.hulls, mass=mass, density=None if mass is not None else (density or DEFAULT_DENSITY)
     )

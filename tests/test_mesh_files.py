@@ -4,10 +4,17 @@ packaged object sets lay theirs out (``meshes/x.obj`` naming ``../textures/x.png
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 from PIL import Image
 
-from posegrasp.world.meshes import mesh_texture, read_mesh
+from posegrasp.world.meshes import (
+    DECOMPOSE_MAX_FACES,
+    decompose,
+    mesh_texture,
+    read_mesh,
+    simplified,
+)
 
 
 def _textured(tmp_path, image_path: str):
@@ -41,3 +48,22 @@ def test_an_objs_texture_up_the_tree_is_read(tmp_path) -> None:
 def test_an_objs_texture_beside_it_is_read(tmp_path) -> None:
     texture = mesh_texture(read_mesh(_textured(tmp_path, "box_tex.png")), 1.0)
     assert texture is not None and (texture.image[..., 0] == 200).all()
+
+
+def test_a_dense_mesh_is_simplified_before_its_decomposition() -> None:
+    """CoACD cuts a simplification of a mesh over `DECOMPOSE_MAX_FACES` triangles, and says so;
+    a mesh within it is cut as it is."""
+    dense = trimesh.creation.icosphere(subdivisions=6, radius=0.03)  # 81,920 triangles
+    assert len(dense.faces) > DECOMPOSE_MAX_FACES
+    small = simplified(dense, DECOMPOSE_MAX_FACES)
+    assert len(small.faces) <= DECOMPOSE_MAX_FACES
+    assert small.volume == pytest.approx(dense.volume, rel=0.01)
+    coarse = trimesh.creation.icosphere(subdivisions=2, radius=0.03)
+    assert simplified(coarse, DECOMPOSE_MAX_FACES) is coarse
+
+    quick = {"max_convex_hull": 1, "mcts_iterations": 10, "mcts_nodes": 5, "resolution": 200}
+    dec = decompose(dense, **quick)
+    assert dec.simplified_from == len(dense.faces) and dec.faces == len(small.faces)
+    # One hull of at most 64 vertices (`max_ch_vertex`) inside the sphere.
+    assert 0.75 * dense.volume < sum(h.volume for h in dec.hulls) <= 1.01 * dense.volume
+    assert decompose(coarse, **quick).simplified_from is None

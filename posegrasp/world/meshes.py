@@ -38,6 +38,10 @@ FOLDS = (2, 3, 4, 5, 6, 8, 10, 12)
 CONTINUOUS_TEST_ANGLES = (0.41, 1.13, 2.27, 2.95, 4.37)
 #: The most symmetry transforms a discrete group may have (the icosahedron's).
 MAX_GROUP = 60
+#: Meshes of more triangles are simplified to this many (quadric decimation) before CoACD cuts
+#: them into hulls: its cuts cost time with every triangle, and hulls of at most
+#: ``max_ch_vertex`` vertices carry none of the detail lost. The visual mesh keeps them all.
+DECOMPOSE_MAX_FACES = 5000
 #: Default CoACD parameters (`decompose`).
 COACD_DEFAULTS: dict[str, Any] = {
     "threshold": 0.05,
@@ -227,18 +231,24 @@ class Decomposition:
         hulls: the convex hulls [m], each watertight.
         tool: the decomposition's tool and version.
         parameters: the parameters it was run with.
-        seconds: how long it took [s].
+        seconds: how long it took [s], the simplification included.
+        faces: the triangles of the mesh it cut: the mesh's own, or at most
+            `DECOMPOSE_MAX_FACES` where it had more.
+        simplified_from: the mesh's own triangles where it was simplified first, else None.
     """
 
     hulls: list[trimesh.Trimesh]
     tool: dict[str, str]
     parameters: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
+    faces: int = 0
+    simplified_from: int | None = None
 
 
 def decompose(mesh: trimesh.Trimesh, **overrides: Any) -> Decomposition:
     """Approximate convex decomposition with CoACD (`COACD_DEFAULTS`, updated by `overrides`).
-    A mesh that is not watertight is remeshed by CoACD's own preprocessing first.
+    A mesh of over `DECOMPOSE_MAX_FACES` triangles is simplified to that many first (quadric
+    decimation); one that is not watertight is remeshed by CoACD's own preprocessing.
 
     Raises:
         InvalidArgumentError: an unknown parameter, or CoACD found no hull.
@@ -254,8 +264,9 @@ def decompose(mesh: trimesh.Trimesh, **overrides: Any) -> Decomposition:
     params = {**COACD_DEFAULTS, **overrides}
     coacd.set_log_level("error")
     t = time.perf_counter()
+    cut = simplified(mesh, DECOMPOSE_MAX_FACES)
     parts = coacd.run_coacd(
-        coacd.Mesh(np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)), **params
+        coacd.Mesh(np.asarray(cut.vertices, float), np.asarray(cut.faces, np.int64)), **params
     )
     seconds = time.perf_counter() - t
     hulls = []
@@ -268,7 +279,22 @@ def decompose(mesh: trimesh.Trimesh, **overrides: Any) -> Decomposition:
         raise InvalidArgumentError("the convex decomposition found no hull of positive volume")
     from importlib.metadata import version
 
-    return Decomposition(hulls, {"name": "coacd", "version": version("coacd")}, params, seconds)
+    return Decomposition(
+        hulls,
+        {"name": "coacd", "version": version("coacd")},
+        params,
+        seconds,
+        len(cut.faces),
+        len(mesh.faces) if cut is not mesh else None,
+    )
+
+
+def simplified(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
+    """`mesh` itself if it has at most `max_faces` triangles, else its quadric decimation to
+    that many (fast-simplification's, deterministic)."""
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    return mesh.simplify_quadric_decimation(face_count=max_faces)
 
 
 @dataclass(frozen=True)
