@@ -1,7 +1,8 @@
 """Meshes posegrasp did not make, from packages on PyPI, made into objects, grasped by the oracle.
 
     python studies/public_meshes.py [--set public|unseen] [--episodes 100] \
-        [--tiers isolated,any-pose,clutter] [--workers 2] [--out out/public] [--json PATH]
+        [--tiers isolated,any-pose,clutter] [--dense FACES] [--workers 2] [--out out/public] \
+        [--json PATH]
 
 Each mesh comes out of a pinned wheel of the package that ships it (``pip download --no-deps``
 into ``<out>/wheels``, the member read from the zip). The ``public`` set: robosuite's can, milk
@@ -17,7 +18,9 @@ per tier (seeds from `posegrasp.world.constants.EVAL_SEED_BASE`; 0: none), exact
 oracle`` does. Made objects and reports already in `--out` are reused, so a rerun after an
 interruption goes on where it stopped. Prints one row per mesh: source, size, faces, watertight
 or not, hulls, resting poses (graspable), candidates, add_object time, codebook time, the
-onboarding's whole time and oracle success per tier.
+onboarding's whole time and oracle success per tier. With `--dense FACES`, each mesh is also
+subdivided and simplified to FACES triangles (``<out>/meshes/<name>_dense.stl``, no texture) and
+made the object ``<name>_dense`` the same way: onboarding's time on a dense mesh.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ import os
 import subprocess
 import sys
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from posegrasp.core.cli import (
@@ -127,6 +130,28 @@ def fetch_mesh(mesh: PublicMesh, out: Path) -> Path:
     target.parent.mkdir(parents=True, exist_ok=True)
     target.write_bytes(data)  # last: its presence says every member is there
     return target
+
+
+def dense_mesh(mesh: PublicMesh, path: Path, faces: int, out: Path) -> tuple[PublicMesh, Path]:
+    """The mesh subdivided until it has at least `faces` triangles, then quadric-simplified to
+    `faces` (``out/meshes/<name>_dense.stl``, in the mesh's own units), and its `PublicMesh`."""
+    import trimesh
+
+    from posegrasp.world.meshes import read_mesh
+
+    target = out / "meshes" / f"{mesh.name}_dense.stl"
+    if not target.is_file():
+        m = read_mesh(path)
+        m = trimesh.Trimesh(m.vertices, m.faces)  # the geometry alone
+        while len(m.faces) < faces:
+            m = m.subdivide()
+        m = m.simplify_quadric_decimation(face_count=faces)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        part = target.with_name(target.name + ".part.stl")
+        m.export(part)
+        part.replace(target)
+    member = f"{mesh.member}, subdivided and simplified to {faces} triangles"
+    return replace(mesh, name=f"{mesh.name}_dense", member=member, extras=()), target
 
 
 def make(mesh: PublicMesh, path: Path, objects: Path) -> dict:
@@ -242,6 +267,14 @@ def main(argv: list[str] | None = None) -> int:
         help="'all' or a comma list of the set's meshes (default: all), of: "
         + "; ".join(f"{k}: {', '.join(m.name for m in ms)}" for k, ms in SETS.items()),
     )
+    p.add_argument(
+        "--dense",
+        type=arg(check_int, 1000, 1_000_000, "--dense", base=int),
+        default=None,
+        metavar="FACES",
+        help="also make each mesh subdivided and simplified to FACES triangles, 1000..1000000, "
+        "as <name>_dense (default: not)",
+    )
     add_workers_argument(p)
     add_out_argument(p, "wheels, meshes, objects and reports, reused by a rerun", "out/public")
     add_json_argument(p, "the rows")
@@ -252,10 +285,15 @@ def main(argv: list[str] | None = None) -> int:
     os.environ[OBJECTS_ENV] = str(objects)  # the evaluations' workers inherit it
     rows = []
     for mesh in (m for m in SETS[args.set] if args.meshes is None or m.name in args.meshes):
-        desc = make(mesh, fetch_mesh(mesh, args.out), objects)
-        tiers = args.tiers if args.episodes > 0 else []
-        reports = {t: grasp(mesh.name, t, args.episodes, args.out, args.workers) for t in tiers}
-        rows.append(row(mesh, desc, reports))
+        path = fetch_mesh(mesh, args.out)
+        made = [(mesh, path)]
+        if args.dense is not None:
+            made.append(dense_mesh(mesh, path, args.dense, args.out))
+        for m, path in made:
+            desc = make(m, path, objects)
+            tiers = args.tiers if args.episodes > 0 else []
+            reports = {t: grasp(m.name, t, args.episodes, args.out, args.workers) for t in tiers}
+            rows.append(row(m, desc, reports))
     print(table(rows), file=log)
     print(f"objects in {objects}: {OBJECTS_ENV}={objects} python -m sim.run_episode ...", file=log)
     if args.json is not None:
