@@ -6,10 +6,6 @@
   `GravityConfig.tilt_deg` of resting are plausible, and the best few within
   `GravityConfig.snap_tilt_deg` are snapped onto their resting pose and refined again, turning
   about the vertical only.
-- **The table's height** (`GravityConfig.table_tolerance_m`): with the height of the table the
-  objects rest on (`Observation.table_top_z`, a prior of the scene), a pose whose object would
-  rest more than the tolerance above or below it is not plausible either: a silhouette does not
-  fix the distance along the viewing ray, the table does.
 - **In-plane range** (`max_inplane_deg`): the paper's protocol draws every view with its in-plane
   angle (`perception.geometry.encode`'s theta) in -60..60 deg; a pose outside the range is not
   plausible. Within `POLE_DEG` of the object's z axis the angle is not defined and every pose is.
@@ -26,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from perception.geometry import axes_from_p, ray_correction
-from perception.support import resting_surface_z, snap_to_resting
+from perception.support import snap_to_resting
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.world.objects import ObjectModel
 
@@ -58,16 +54,12 @@ class GravityConfig:
             snapped; in (0, 180).
         snap_iterations: refiner steps of a snapped pose's run (turning about the vertical
             only, it has four unknowns, not six); >= 1.
-        table_tolerance_m: with the table's height in the observation, a pose whose object
-            would rest more than this [m] above or below the table is not plausible either
-            (`TableHeight`); None: the height is not used; >= 0.
     """
 
     tilt_deg: float = 10.0
     snap_candidates: int = 5
     snap_tilt_deg: float = 25.0
     snap_iterations: int = 6
-    table_tolerance_m: float | None = None
 
     def __post_init__(self) -> None:
         for key in ("tilt_deg", "snap_tilt_deg"):
@@ -81,11 +73,6 @@ class GravityConfig:
         if self.snap_iterations < 1:
             raise InvalidArgumentError(
                 f"GravityConfig.snap_iterations must be >= 1, got {self.snap_iterations}"
-            )
-        tol = self.table_tolerance_m
-        if tol is not None and not tol >= 0:
-            raise InvalidArgumentError(
-                f"GravityConfig.table_tolerance_m must be >= 0 or None, got {tol}"
             )
 
 
@@ -158,29 +145,6 @@ def inplane_deg(T_C_O: np.ndarray) -> float | None:
 
 
 @dataclass(frozen=True)
-class TableHeight:
-    """The table one detection's object rests on.
-
-    Attributes:
-        T_world_cam: the camera's pose in the world (4, 4) [m].
-        top_z: the height of the table's top in the world [m].
-        model: the object (its resting poses; at least one).
-        tolerance_m: how far [m] above or below the top a plausible pose may rest.
-    """
-
-    T_world_cam: np.ndarray
-    top_z: float
-    model: ObjectModel
-    tolerance_m: float
-
-    def holds(self, T_C_O: np.ndarray) -> bool:
-        """Whether pose T_C_O (4, 4) rests within the tolerance of the table's top
-        (`perception.support.resting_surface_z`: on the resting pose nearest its rotation)."""
-        z = resting_surface_z(T_C_O, self.T_world_cam, self.model)
-        return abs(z - self.top_z) <= self.tolerance_m
-
-
-@dataclass(frozen=True)
 class Plausibility:
     """One detection's priors.
 
@@ -188,12 +152,10 @@ class Plausibility:
         gravity: the gravity prior, or None (no camera pose, an object without resting poses,
             or images without gravity).
         max_inplane_deg: the largest in-plane angle [deg] of a plausible pose (None: any).
-        table: the table a plausible pose rests on (None: not used).
     """
 
     gravity: Gravity | None = None
     max_inplane_deg: float | None = None
-    table: TableHeight | None = None
 
     def judge(self, T_C_O: np.ndarray) -> tuple[float, bool]:
         """(tilt from resting [deg], 0 without gravity; whether the pose is plausible)."""
@@ -204,6 +166,4 @@ class Plausibility:
         if self.max_inplane_deg is not None:
             roll = inplane_deg(T_C_O)
             plausible = plausible and (roll is None or roll <= self.max_inplane_deg)
-        if plausible and self.table is not None:
-            plausible = self.table.holds(T_C_O)
         return tilt, plausible

@@ -42,7 +42,6 @@ BAD = [
     (GravityConfig, {"snap_candidates": -1}, "GravityConfig.snap_candidates"),
     (GravityConfig, {"snap_tilt_deg": 180.0}, "GravityConfig.snap_tilt_deg"),
     (GravityConfig, {"snap_iterations": 0}, "GravityConfig.snap_iterations"),
-    (GravityConfig, {"table_tolerance_m": -0.01}, "GravityConfig.table_tolerance_m"),
     (InplaneConfig, {"max_deg": 0.0}, "InplaneConfig.max_deg"),
     (SecondLookConfig, {"hypotheses": -1}, "SecondLookConfig.hypotheses"),
     (SecondLookConfig, {"resting": -3}, "SecondLookConfig.resting"),

@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from perception.priors import Gravity, GravityConfig, Plausibility, TableHeight
 from perception.support import refine_on_support, snap_to_resting
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world.objects import load_object
@@ -169,20 +168,3 @@ def test_mask_fit_with_an_empty_mask_keeps_the_pose():
     fit = refine_with_mask(T_c_o, T_w_c, K, model, np.zeros((480, 640), bool))
     np.testing.assert_array_equal(fit.T_C_O, T_c_o)
     assert fit.renders == 0
-
-
-@pytest.mark.parametrize("name", ["phone", "car"])
-def test_a_pose_is_plausible_on_the_tables_height_alone(name):
-    """`TableHeight`: the true resting pose holds, the same pose 5 cm along its viewing ray (the
-    distance a silhouette does not fix) does not; the `Plausibility` of a detection judges by
-    it only when given."""
-    model, T_w_c, T_c_o = resting_truth(name, next(iter(load_object(name).resting_poses)), 30.0)
-    table = TableHeight(T_w_c, SUPPORT_Z, model, 0.03)
-    assert table.holds(T_c_o)
-    along = T_c_o.copy()
-    along[:3, 3] *= 1 + 0.05 / np.linalg.norm(T_c_o[:3, 3])
-    assert not table.holds(along)
-    gravity = Gravity(T_w_c[:3, :3], model, GravityConfig())
-    assert Plausibility(gravity).judge(along)[1]
-    assert not Plausibility(gravity, table=table).judge(along)[1]
-    assert Plausibility(gravity, table=table).judge(T_c_o)[1]

@@ -20,11 +20,10 @@ from perception.codebook import (
 )
 from perception.hybrid import PoseDetection
 from perception.parallel import Executor
-from perception.priors import Gravity, GravityConfig, InplaneConfig, Plausibility, TableHeight
+from perception.priors import Gravity, GravityConfig, InplaneConfig, Plausibility
 from perception.stages.config import CodebookConfig, GlobalConfig
 from perception.stages.work import AnyDetection, CodebookMatch, Kit, Work
 from perception.verification import Hypothesis
-from posegrasp.core.contract import Observation
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world.objects import load_object
 
@@ -155,7 +154,7 @@ class Hypotheses:
         det, book = work.target, self.config
         assert det is not None
         executor = self.executor()
-        priors = self.priors(det.name, work.R_W_C, work.obs)
+        priors = self.priors(det.name, work.R_W_C)
         match = self.codebook.match(det, work.occluder, work.K, executor)
         first = NetsPose.hypotheses(det)
         taken: list[int] = []
@@ -172,19 +171,12 @@ class Hypotheses:
             hypotheses=tuple(first),
         )
 
-    def priors(
-        self, name: str, R_W_C: np.ndarray | None, obs: Observation | None = None
-    ) -> Plausibility:
+    def priors(self, name: str, R_W_C: np.ndarray | None) -> Plausibility:
         """The priors of a detection of `name`: gravity with the camera's rotation in the world
-        `R_W_C` (3, 3) and the object's resting poses, the in-plane range, and with
-        `GravityConfig.table_tolerance_m` the table's height the observation `obs` gives."""
+        `R_W_C` (3, 3) and the object's resting poses, the in-plane range."""
         model = load_object(name)
-        gravity = table = None
+        gravity = None
         if self.gravity is not None and R_W_C is not None and model.resting_poses:
             gravity = Gravity(R_W_C, model, self.gravity)
-            tol = self.gravity.table_tolerance_m
-            if tol is not None and obs is not None and obs.table_top_z is not None:
-                T_world_cam = np.asarray(obs.T_world_cam, float)
-                table = TableHeight(T_world_cam, float(obs.table_top_z), model, tol)
         inplane = None if self.inplane is None else self.inplane.max_deg
-        return Plausibility(gravity, inplane, table)
+        return Plausibility(gravity, inplane)
