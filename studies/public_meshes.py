@@ -137,7 +137,7 @@ def dense_mesh(mesh: PublicMesh, path: Path, faces: int, out: Path) -> tuple[Pub
     `faces` (``out/meshes/<name>_dense.stl``, in the mesh's own units), and its `PublicMesh`."""
     import trimesh
 
-    from posegrasp.world.meshes import read_mesh
+    from posegrasp.world.meshes import read_mesh, simplified
 
     target = out / "meshes" / f"{mesh.name}_dense.stl"
     if not target.is_file():
@@ -145,7 +145,7 @@ def dense_mesh(mesh: PublicMesh, path: Path, faces: int, out: Path) -> tuple[Pub
         m = trimesh.Trimesh(m.vertices, m.faces)  # the geometry alone
         while len(m.faces) < faces:
             m = m.subdivide()
-        m = m.simplify_quadric_decimation(face_count=faces)
+        m = simplified(m, faces)
         target.parent.mkdir(parents=True, exist_ok=True)
         part = target.with_name(target.name + ".part.stl")
         m.export(part)

@@ -42,6 +42,8 @@ MAX_GROUP = 60
 #: them into hulls: its cuts cost time with every triangle, and hulls of at most
 #: ``max_ch_vertex`` vertices carry none of the detail lost. The visual mesh keeps them all.
 DECOMPOSE_MAX_FACES = 5000
+#: Passes of quadric decimation `simplified` makes at most.
+SIMPLIFY_PASSES = 4
 #: Default CoACD parameters (`decompose`).
 COACD_DEFAULTS: dict[str, Any] = {
     "threshold": 0.05,
@@ -291,10 +293,14 @@ def decompose(mesh: trimesh.Trimesh, **overrides: Any) -> Decomposition:
 
 def simplified(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     """`mesh` itself if it has at most `max_faces` triangles, else its quadric decimation to
-    that many (fast-simplification's, deterministic)."""
-    if len(mesh.faces) <= max_faces:
-        return mesh
-    return mesh.simplify_quadric_decimation(face_count=max_faces)
+    that many (fast-simplification's, deterministic; a pass that stops short, as on a mesh of
+    many seams, is followed by another, `SIMPLIFY_PASSES` in all)."""
+    out = mesh
+    for _ in range(SIMPLIFY_PASSES):
+        if len(out.faces) <= max_faces:
+            break
+        out = out.simplify_quadric_decimation(face_count=max_faces)
+    return out
 
 
 @dataclass(frozen=True)
