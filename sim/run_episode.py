@@ -82,12 +82,12 @@ def summary(result) -> str:
     info = result.estimate_info
     if info:
         if info.get("detected"):
-            box = info.get("box_xyxy")
+            box, named = info.get("box_xyxy"), info.get("class", result.object)
             lines.append(
-                f"  detection   {info.get('class', result.object)}  score {info['score']:.3f}"
+                f"  detection   {named}  score {info['score']:.3f}"
                 + ("" if box is None else "  box (" + ", ".join(f"{v:.0f}" for v in box) + ") px")
                 + f"  {info['detections']} detection(s)"
-                + (" of the class" if info.get("class", result.object) == result.object else "")
+                + (" of the class" if named == result.object else "")
             )
         elif "detected" in info:
             lines.append(f"  detection   no {result.object} detected")

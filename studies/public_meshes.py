@@ -33,6 +33,8 @@ import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import trimesh
+
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
@@ -47,6 +49,7 @@ from posegrasp.core.files import atomic_write_json
 from posegrasp.core.runtime import setup_rendering
 from posegrasp.core.validate import arg, check_choice, check_int, check_names
 from posegrasp.world.constants import EVAL_SEED_BASE
+from posegrasp.world.meshes import read_mesh, simplified
 from posegrasp.world.user_objects import OBJECTS_ENV
 
 
@@ -135,10 +138,6 @@ def fetch_mesh(mesh: PublicMesh, out: Path) -> Path:
 def dense_mesh(mesh: PublicMesh, path: Path, faces: int, out: Path) -> tuple[PublicMesh, Path]:
     """The mesh subdivided until it has at least `faces` triangles, then quadric-simplified to
     `faces` (``out/meshes/<name>_dense.stl``, in the mesh's own units), and its `PublicMesh`."""
-    import trimesh
-
-    from posegrasp.world.meshes import read_mesh, simplified
-
     target = out / "meshes" / f"{mesh.name}_dense.stl"
     if not target.is_file():
         m = read_mesh(path)
@@ -284,6 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     objects = (args.out / "objects").resolve()
     os.environ[OBJECTS_ENV] = str(objects)  # the evaluations' workers inherit it
     rows = []
+    tiers = args.tiers if args.episodes > 0 else []
     for mesh in (m for m in SETS[args.set] if args.meshes is None or m.name in args.meshes):
         path = fetch_mesh(mesh, args.out)
         made = [(mesh, path)]
@@ -291,7 +291,6 @@ def main(argv: list[str] | None = None) -> int:
             made.append(dense_mesh(mesh, path, args.dense, args.out))
         for m, path in made:
             desc = make(m, path, objects)
-            tiers = args.tiers if args.episodes > 0 else []
             reports = {t: grasp(m.name, t, args.episodes, args.out, args.workers) for t in tiers}
             rows.append(row(m, desc, reports))
     print(table(rows), file=log)

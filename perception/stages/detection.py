@@ -120,20 +120,19 @@ class AnyObjectDetection(TargetDetection):
             threshold = self.hybrid.detector.score_threshold
         ranked, ious = self.ranked(dets, threshold, work.obs.object, work.obs.K)
         verified = {k: self.verified(work, dets, k) for k in ranked if len(ranked) > 1}
-        scored = {k: v[0] for k, v in verified.items() if v is not None}
-        heights = {k: v[1] for k, v in verified.items() if v is not None}
+        scored = {k: v for k, v in verified.items() if v is not None}  # (score, surface z)
         table, tol = work.obs.table_top_z, self.config.table_tolerance_m
+        choices = scored
         if table is not None and tol is not None:
-            on_table = {k: v for k, v in scored.items() if abs(heights[k] - table) <= tol}
-            scored = on_table or scored
-        pick = max(scored, key=lambda k: scored[k]) if scored else next(iter(ranked), None)
+            choices = {k: v for k, v in scored.items() if abs(v[1] - table) <= tol} or scored
+        pick = max(choices, key=lambda k: choices[k][0]) if choices else next(iter(ranked), None)
         info: dict = {
             "detected": pick is not None,
             "detections": len(dets),
             "choice": {
                 "match_iou": ious,
                 "verified": {str(k): None if v is None else v[0] for k, v in verified.items()},
-                "surface_z": {str(k): round(z, 4) for k, z in heights.items()},
+                "surface_z": {str(k): round(v[1], 4) for k, v in scored.items()},
             },
         }
         every: list[AnyDetection] = list(dets)
