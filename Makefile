@@ -51,7 +51,7 @@ TIER_COUNTS := hard:train:9000 hard:val:500 hard:test:500 clutter:test:300 any-p
 # Head-camera scenes in rooms drawn for training (`--rooms FAMILY`, folders
 # headcam[_<tier>]_rooms[_joint]; `-` is the mixed table scenes), for hybrid-global-rooms.
 ROOM_COUNTS := hard:train:2500:wide hard:val:200:wide -:train:2500:wide any-pose:train:1000:wide \
-	hard:train:3000:joint hard:val:200:joint -:train:1500:joint
+	hard:train:5500:joint hard:val:200:joint -:train:2500:joint
 # Head-camera scenes of a bank's meshes alone, in rooms (`--bank BANK --rooms FAMILY`, folders
 # headcam_bank[_<bank>]_rooms...), for hybrid-global-unseen's detector of any object; the held-out
 # bank's measure it.

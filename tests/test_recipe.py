@@ -265,6 +265,12 @@ def test_the_smoke_recipe_trains_resumes_and_ships_into_its_own_folder(
     other = Recipe((changed,), ())
     with pytest.raises(AssetError, match="another version of stage mask-scratch"):
         run_stage(other, changed, checkpoints)
+    # A stage that takes more images of a folder than are rendered is refused, naming it.
+    folder = SMOKE.stage("mask-scratch").data[0][0]
+    greedy = replace(SMOKE.stage("mask-scratch"), name="mask-greedy", data=((folder, 10**6),))
+    with pytest.raises(AssetError, match=rf"more images than are rendered \({folder}: \d+ of"):
+        run_stage(Recipe((greedy,), ()), greedy, checkpoints)
+    assert not (checkpoints / "mask-greedy").exists()
     # Shipping is refused, and writes nothing, while a stage is not done.
     with pytest.raises(AssetError, match="not trained yet: pose-scratch, pose-tune-headcam"):
         ship_all(SMOKE, tmp_path / "empty", weights)

@@ -92,6 +92,14 @@ _ROOMS_JOINT = {
     "headcam": 500,
 }
 _ROOMS_JOINT_VAL = ("headcam_hard_rooms_joint", 200)
+#: Then the joint rooms again, more of them, new ones among them.
+_ROOMS_JOINT_MORE = {
+    "headcam_hard_rooms_joint": 5500,
+    "headcam_rooms_joint": 2500,
+    "headcam_hard": 1500,
+    "headcam_hard_rooms": 1000,
+    "headcam": 500,
+}
 #: `hybrid-global-unseen`'s detector of any object: scenes of the training bank's meshes and of
 #: generated shapes in rooms (``datagen --bank [shapes] --rooms``), never a built-in object.
 _UNSEEN = {"headcam_bank_rooms": 4000, "headcam_bank_shapes_rooms": 3000}
@@ -279,6 +287,14 @@ STAGES: tuple[Stage, ...] = (
         init="detector-tune-tiers-rooms",
         channels_last=True,
     ),
+    _detector(
+        "detector-tune-tiers-rooms-joint-more",
+        _ROOMS_JOINT_MORE,
+        epochs=1,
+        lr=1.5e-4,
+        init="detector-tune-tiers-rooms-joint",
+        channels_last=True,
+    ),
     _masknet(
         "masknet-tiers-rooms-joint",
         _ROOMS_JOINT,
@@ -386,7 +402,7 @@ RECIPE = Recipe(
         Artefact("detector.pt", ("detector",), "detector-tune-headcam-and-hard", unrecorded=1),
         Artefact("tiers/detector.pt", ("detector",), "detector-tune-tiers-more-hard", 1),
         Artefact("tiers/masknet.pt", ("mask_net",), "masknet-tiers-fresh-windows"),
-        Artefact("rooms/detector.pt", ("detector",), "detector-tune-tiers-rooms-joint", 1),
+        Artefact("rooms/detector.pt", ("detector",), "detector-tune-tiers-rooms-joint-more", 1),
         Artefact("rooms/masknet.pt", ("mask_net",), "masknet-tiers-rooms-joint"),
         Artefact("unseen/detector.pt", ("detector",), "detector-unseen-bank", 1),
         Artefact("unseen/masknet.pt", ("mask_net",), "masknet-unseen-bank"),

@@ -22,12 +22,14 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from perception.training.data.dataset import PoseDataset
 from perception.training.shipping.ship import checkpoint_record, ship, stamp_manifest
 from perception.training.trainers import detector_trainer, masknet_trainer, posenet_trainer
 from perception.training.trainers.checkpoints import read_checkpoint
 from perception.training.trainers.manifest import MANIFEST_NAME, read_manifest, stage_record
 from posegrasp.core.errors import AssetError, InvalidArgumentError, UnknownNameError
 from posegrasp.core.files import atomic_write_json
+from posegrasp.core.paths import data_root
 
 #: The trainers a stage may use: their modules, each with ``train(config)`` and
 #: ``command_line(config)``.
@@ -256,6 +258,19 @@ def _recorded_spec(folder: Path) -> dict[str, Any] | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
+def missing_images(stage: Stage) -> list[str]:
+    """The folders of a stage's data that hold fewer training images than the stage takes of
+    them, each as ``NAME: HAVE of WANT``: a count in the recipe is what the stage trains on,
+    where a trainer's own limit is only a cap."""
+    out = []
+    for name, want in stage.data:
+        root = data_root() / name
+        have = len(PoseDataset(root, "train")) if (root / "info.json").is_file() else 0
+        if have < want:
+            out.append(f"{name}: {have} of {want}")
+    return out
+
+
 def run_stage(recipe: Recipe, stage: Stage, checkpoints: Path) -> dict[str, Any]:
     """Train one stage (resuming its checkpoint when it has one): one call to its trainer's
     ``train(config)``.
@@ -273,6 +288,11 @@ def run_stage(recipe: Recipe, stage: Stage, checkpoints: Path) -> dict[str, Any]
                 f"stage {stage.name} needs stage {need}, which is not trained; run it first "
                 f"(--only {need}) or the whole recipe"
             )
+    if short := missing_images(stage):
+        raise AssetError(
+            f"stage {stage.name} trains on more images than are rendered ({'; '.join(short)}); "
+            "render them first (make data)"
+        )
     folder = checkpoints / stage.name
     recorded = _recorded_spec(folder)
     if recorded is not None and recorded != stage.spec():
