@@ -106,3 +106,32 @@ def test_the_unseen_estimator_is_the_shipped_detector_and_mask_net_of_any_object
     for key in ("detector", "mask_net"):
         data = entries[key]["command"].split("--data ")[1].split()[0]
         assert all(p.split("=")[0].startswith("headcam_bank") for p in data.split(",")), key
+
+
+@pytest.mark.parametrize("target_score", [0.3, None])
+def test_a_target_may_score_under_the_detectors_threshold(image, target_score) -> None:
+    # The phone's own mask, scoring between DetectionConfig.target_score and the detector's
+    # threshold: a candidate when the stage asks for that score, not otherwise.
+    phone = next(o for o in image.objects if o.name == "phone")
+    hybrid = HybridPoseEstimator.from_weights(detector_path=TIERS_DETECTOR)
+    hybrid.detector.cfg = replace(hybrid.detector.cfg, classes=(ANY_OBJECT,), n_classes=2)
+    assert hybrid.detector.score_threshold == 0.5
+    own = Detection(ANY_OBJECT, 0.4, np.zeros(4), phone.mask_visib)
+
+    def detect(rgb, score_threshold=None):
+        floor = hybrid.detector.score_threshold if score_threshold is None else score_threshold
+        return [d for d in (own,) if d.score >= floor]
+
+    hybrid.detector.detect = detect
+    detection = DetectionConfig(mask_net=False, target_score=target_score)
+    config = GlobalConfig(detection=detection, support=None, processes=1)
+    est = GlobalPoseEstimator(hybrid, config, name="any-object")
+    table = build_scene("phone", 12).table_top_z
+    obs = Observation(
+        image.rgb, image.K, invert_transform(image.T_C_W), "phone", 12, table_top_z=table
+    )
+    got = est.estimate(obs)
+    assert got.info["detected"] is (target_score is not None)
+    if target_score is not None:
+        assert got.info["score"] == pytest.approx(0.4)
+        assert mask_iou(_drawn("phone", got.T_C_O, image), phone.mask_visib) > 0.5

@@ -81,15 +81,15 @@ class AnyObjectDetection(TargetDetection):
     """The detection stage of a detector of any object (`perception.detector_net.ANY_OBJECT`),
     which names no object: the requested one is told by its mesh.
 
-    Every detection scoring at least `DetectionConfig.target_score` has its mask matched
-    against the requested object's codebook (the best IoU of the mesh's silhouettes over the
-    rotation group, `CodebookHypotheses`); the `DetectionConfig.shortlist` best matched are each
-    verified as the target would be (its hypotheses refined and scored, without the second
-    look, every other detection its occluder: `Kit.neighbour`), and the one whose best pose
-    scores highest is the target, named as the requested object; where the observation gives
-    the table's height, among those whose pose rests on the table
-    (`DetectionConfig.table_tolerance_m`), if any does. The other detections are its
-    neighbours and occluders, without poses.
+    Every detection scoring at least `DetectionConfig.target_score` (below the detector's own
+    threshold too) has its mask matched against the requested object's codebook (the best IoU
+    of the mesh's silhouettes over the rotation group, `CodebookHypotheses`); the
+    `DetectionConfig.shortlist` best matched are each verified as the target would be (its
+    hypotheses refined and scored, without the second look, every other detection its occluder:
+    `Kit.neighbour`), and the one whose best pose scores highest is the target, named as the
+    requested object; where the observation gives the table's height, among those whose pose
+    rests on the table (`DetectionConfig.table_tolerance_m`), if any does. The other detections
+    that score the detector's threshold are its neighbours and occluders, without poses.
 
     Args:
         hybrid: the detector (the pose nets are not used).
@@ -112,12 +112,12 @@ class AnyObjectDetection(TargetDetection):
         """`work` with the observation's detections, the target told by its mesh, and the
         target's occluder."""
         assert work.obs is not None
+        floor = self.hybrid.detector.score_threshold
+        threshold = floor if self.config.target_score is None else self.config.target_score
         t0 = time.perf_counter()
-        dets = self.hybrid.detector.detect(work.obs.rgb)
+        # Any detection may be the target: detect down to its score, the others keep the floor.
+        dets = self.hybrid.detector.detect(work.obs.rgb, min(floor, threshold))
         t1 = time.perf_counter()
-        threshold = self.config.target_score
-        if threshold is None:
-            threshold = self.hybrid.detector.score_threshold
         ranked, ious = self.ranked(dets, threshold, work.obs.object, work.obs.K)
         verified = {k: self.verified(work, dets, k) for k in ranked if len(ranked) > 1}
         scored = {k: v for k, v in verified.items() if v is not None}  # (score, surface z)
@@ -135,11 +135,13 @@ class AnyObjectDetection(TargetDetection):
                 "surface_z": {str(k): round(v[1], 4) for k, v in scored.items()},
             },
         }
-        every: list[AnyDetection] = list(dets)
-        target = None
-        if pick is not None:
-            target = replace(dets[pick], name=work.obs.object)
-            every[pick] = target
+        target = None if pick is None else replace(dets[pick], name=work.obs.object)
+        every: list[AnyDetection] = [
+            target if k == pick and target is not None else d
+            for k, d in enumerate(dets)
+            if k == pick or d.score >= floor
+        ]
+        if target is not None:
             info |= {"class": ANY_OBJECT, "score": target.score}
             info["box_xyxy"] = [float(v) for v in target.box_xyxy]
         t2 = time.perf_counter()
@@ -168,7 +170,10 @@ class AnyObjectDetection(TargetDetection):
         height [m] in the world of the surface that pose rests on (None: none verifies)."""
         assert work.obs is not None
         as_target = replace(dets[k], name=work.obs.object)
-        every: list[AnyDetection] = [as_target if j == k else d for j, d in enumerate(dets)]
+        floor = self.hybrid.detector.score_threshold
+        every: list[AnyDetection] = [
+            as_target if j == k else d for j, d in enumerate(dets) if j == k or d.score >= floor
+        ]
         trial = work.given(found=Detections(as_target, every, (), {}))
         best = self.kit.neighbour(as_target, trial)
         if best is None:
