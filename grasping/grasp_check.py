@@ -225,22 +225,48 @@ def check_grasps(
     Returns:
         One outcome per grasp, from `OUTCOMES`.
     """
-    cfg = config or CheckConfig()
-    q = np.asarray(quat, float)
-    batches = [grasps[s : s + cfg.batch] for s in range(0, len(grasps), cfg.batch)]
-    # Copies placed alike settle alike: one settling per batch size serves every batch.
-    settled = {n: _settled(obj, q, n, cfg) for n in sorted({len(b) for b in batches})}
+    return check_grasps_in_poses(obj, [(quat, grasps)], config, progress)[0]
 
-    def check(batch: list[np.ndarray]) -> list[str]:
-        return _check_batch(obj, settled[len(batch)], batch, cfg)
+
+def check_grasps_in_poses(
+    obj: ObjectModel,
+    jobs: list[tuple[np.ndarray, list[np.ndarray]]],
+    config: CheckConfig | None = None,
+    progress: bool = False,
+) -> list[list[str]]:
+    """`check_grasps` for several resting poses at once: (orientation wxyz, grasps T_O_G) per
+    pose. Each pose's grasps are batched as `check_grasps` batches them alone, so its outcomes
+    are the same; the batches of every pose share one pool of `CheckConfig.threads`, so that a
+    pose whose last batch is short leaves no thread idle.
+
+    Returns:
+        One outcome per grasp, from `OUTCOMES`, per pose.
+    """
+    cfg = config or CheckConfig()
+    batches: list[tuple[int, list[np.ndarray]]] = []
+    settled: dict[tuple[int, int], list[np.ndarray]] = {}
+    for k, (quat, grasps) in enumerate(jobs):
+        q = np.asarray(quat, float)
+        mine = [grasps[s : s + cfg.batch] for s in range(0, len(grasps), cfg.batch)]
+        batches += [(k, b) for b in mine]
+        # Copies placed alike settle alike: one settling per batch size serves every batch.
+        for n in sorted({len(b) for b in mine}):
+            settled[(k, n)] = _settled(obj, q, n, cfg)
+
+    def check(job: tuple[int, list[np.ndarray]]) -> list[str]:
+        k, batch = job
+        return _check_batch(obj, settled[(k, len(batch))], batch, cfg)
 
     hide = not progress or len(batches) < 2
+    out: list[list[str]] = [[] for _ in jobs]
     pool = ThreadPoolExecutor(max_workers=cfg.threads)
     try:
         done = progress_bar(
             pool.map(check, batches), total=len(batches), desc="physics check", disable=hide
         )
-        return [outcome for outcomes in done for outcome in outcomes]
+        for (k, _), outcomes in zip(batches, done, strict=True):
+            out[k] += outcomes
+        return out
     finally:
         pool.shutdown(cancel_futures=True)  # stopped (Ctrl-C): the batches not begun are not run
 

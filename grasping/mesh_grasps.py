@@ -25,8 +25,7 @@ from grasping.antipodal import (
     flipped,
     hull_points,
 )
-from grasping.grasp_check import CheckConfig, check_grasps
-from posegrasp.core.progress import progress_bar
+from grasping.grasp_check import CheckConfig, check_grasps_in_poses
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.world.objects import ObjectModel
 
@@ -132,7 +131,7 @@ def mesh_grasps(
         checked: distinct grasps checked in physics per pose.
         keep: grasps kept per pose (each returned with both finger orders).
         config: the physics check's stages.
-        progress: show a progress bar over the poses.
+        progress: show a progress bar over the physics checks' batches.
 
     Returns:
         pose name -> its grasps (empty when none holds).
@@ -141,7 +140,8 @@ def mesh_grasps(
     hulls, com = convex_pieces(obj)
     points, normals = hull_points(hulls)
     out: dict[str, PoseGrasps] = {}
-    for name, quat in progress_bar(resting.items(), desc="grasps", disable=not progress):
+    jobs: list[tuple[PoseGrasps, list, np.ndarray, list[np.ndarray]]] = []
+    for name, quat in resting.items():
         up = quat_to_mat(np.asarray(quat, float))[2]
         found = antipodal_grasps(points, normals, up, com)
         if not found:  # lying low: let the fingertips come nearer the table
@@ -155,8 +155,13 @@ def mesh_grasps(
         for a in tried:
             trials.append(a.T_O_G)
             trials += [_perturbed(a.T_O_G, p) for p in PERTURBATIONS]
-        outcomes = check_grasps(obj, quat, trials, config)
-        per = len(PERTURBATIONS) + 1
+        jobs.append((res, tried, np.asarray(quat, float), trials))
+    # Every pose's physics in one pool: an object of many poses keeps every thread busy.
+    checked_all = check_grasps_in_poses(
+        obj, [(quat, trials) for _, _, quat, trials in jobs], config, progress
+    )
+    per = len(PERTURBATIONS) + 1
+    for (res, tried, _, _), outcomes in zip(jobs, checked_all, strict=True):
         ranked = []
         for i, a in enumerate(tried):
             own = outcomes[i * per : (i + 1) * per]

@@ -200,6 +200,29 @@ def test_physics_check_outcomes_of_a_grasp_on_the_object_beside_it_and_in_the_ta
     assert [m.name for m in grasp_check._gripper_source().meshes] == [C.GRIPPER_BODY]
 
 
+def test_the_poses_of_an_object_checked_together_give_each_pose_its_own_outcomes() -> None:
+    # Two resting poses' batches in one pool (each pose's last batch short): each pose gets
+    # exactly the outcomes it gets checked alone.
+    from grasping import grasp_check
+    from grasping.antipodal import antipodal_grasps, hull_points
+    from grasping.mesh_grasps import convex_pieces
+
+    obj = load_object("phone")
+    hulls, com = convex_pieces(obj)
+    points, normals = hull_points(hulls)
+    jobs = []
+    for pose in ("upright", "up_-y"):
+        quat = obj.resting_poses[pose]
+        found = antipodal_grasps(points, normals, quat_to_mat(quat)[2], com)
+        aside = found[0].T_O_G.copy()
+        aside[:3, 3] += 0.2 * aside[:3, 2]
+        jobs.append((quat, [found[0].T_O_G, aside, found[-1].T_O_G]))
+    cfg = grasp_check.CheckConfig(batch=2, threads=2)
+    together = grasp_check.check_grasps_in_poses(obj, jobs, cfg)
+    assert together == [grasp_check.check_grasps(obj, q, g, cfg) for q, g in jobs]
+    assert [o[1] for o in together] == ["missed", "missed"]
+
+
 def test_an_object_of_many_resting_poses_checks_fewer_grasps_in_each() -> None:
     # Up to CHECK_BUDGET / CHECKED poses, each checks CHECKED; beyond, the budget is shared,
     # never below KEEP a pose (so every grasp that holds can be kept).
