@@ -83,15 +83,19 @@ def _hybrid_global_unseen() -> PoseEstimator:
     (`perception.stages.detection.AnyObjectDetection`), then the codebook's hypotheses,
     verification and refinement; no pose net (the nets know the six built-in objects, which
     this estimator scores as if new). The main pose net is loaded with the detector and never
-    run."""
+    run. A candidate needs the detector's own score (`DetectionConfig.target_score` None):
+    candidates down to `hybrid-global`'s lower score were found no more often on development
+    seeds, and each costs a codebook match and maybe a verification."""
     from perception.detector import UNSEEN_DETECTOR
-    from perception.global_pose import GlobalPoseEstimator
+    from perception.global_pose import GlobalConfig, GlobalPoseEstimator
     from perception.hybrid import HybridPoseEstimator
     from perception.mask_net import UNSEEN_MASKNET, MaskRefiner
+    from perception.stages import DetectionConfig
 
     hybrid = HybridPoseEstimator.from_weights(detector_path=UNSEEN_DETECTOR, expert_paths=())
     masks = MaskRefiner.from_weights(UNSEEN_MASKNET)
-    return GlobalPoseEstimator(hybrid, name="hybrid-global-unseen", masks=masks)
+    config = GlobalConfig(detection=DetectionConfig(target_score=None))
+    return GlobalPoseEstimator(hybrid, config, name="hybrid-global-unseen", masks=masks)
 
 
 def _hybrid_global_table() -> PoseEstimator:
