@@ -206,38 +206,25 @@ class _Batch:
         return hands[hands >= 0]
 
 
-def check_grasps(
-    obj: ObjectModel,
-    quat: np.ndarray,
-    grasps: list[np.ndarray],
-    config: CheckConfig | None = None,
-    progress: bool = False,
-) -> list[str]:
-    """Close the gripper on each grasp of an object resting in orientation quat, and lift.
-
-    Args:
-        obj: the object (any `ObjectModel`, a mesh object being made included).
-        quat: orientation of O resting on the plane, wxyz.
-        grasps: grasp-site poses T_O_G (4, 4) [m] in O, approaching from above in that pose.
-        config: the stages; `CheckConfig()` by default.
-        progress: show a progress bar.
-
-    Returns:
-        One outcome per grasp, from `OUTCOMES`.
-    """
-    return check_grasps_in_poses(obj, [(quat, grasps)], config, progress)[0]
-
-
 def check_grasps_in_poses(
     obj: ObjectModel,
     jobs: list[tuple[np.ndarray, list[np.ndarray]]],
     config: CheckConfig | None = None,
     progress: bool = False,
 ) -> list[list[str]]:
-    """`check_grasps` for several resting poses at once: (orientation wxyz, grasps T_O_G) per
-    pose. Each pose's grasps are batched as `check_grasps` batches them alone, so its outcomes
-    are the same; the batches of every pose share one pool of `CheckConfig.threads`, so that a
-    pose whose last batch is short leaves no thread idle.
+    """Close the gripper on each grasp of an object resting in each of several orientations,
+    and lift.
+
+    Args:
+        obj: the object (any `ObjectModel`, a mesh object being made included).
+        jobs: per resting pose, (orientation of O resting on the plane, wxyz; grasp-site poses
+            T_O_G (4, 4) [m] in O, approaching from above in that pose).
+        config: the stages; `CheckConfig()` by default.
+        progress: show a progress bar.
+
+    A pose's grasps go in batches of `CheckConfig.batch` of their own, so its outcomes do not
+    depend on the other poses; the batches of every pose share one pool of
+    `CheckConfig.threads`, so that a pose whose last batch is short leaves no thread idle.
 
     Returns:
         One outcome per grasp, from `OUTCOMES`, per pose.

@@ -189,14 +189,15 @@ def test_physics_check_outcomes_of_a_grasp_on_the_object_beside_it_and_in_the_ta
     aside, into_table = best.copy(), best.copy()
     aside[:3, 3] += 0.2 * best[:3, 2]
     into_table[:3, 3] = aside[:3, 3] - (tip_height + 0.01) * up
-    outcomes = grasp_check.check_grasps(obj, quat, [best, aside, into_table])
-    assert outcomes == ["success", "missed", "collision"]
+
+    def check(trials, cfg=None):
+        return grasp_check.check_grasps_in_poses(obj, [(quat, trials)], cfg)[0]
+
+    assert check([best, aside, into_table]) == ["success", "missed", "collision"]
     # A batch a thread: the same outcomes, in the candidates' order, as one batch after another.
     one, two = (grasp_check.CheckConfig(batch=1, threads=k) for k in (1, 2))
     trials = [into_table, best, aside]
-    assert grasp_check.check_grasps(obj, quat, trials, two) == grasp_check.check_grasps(
-        obj, quat, trials, one
-    )
+    assert check(trials, two) == check(trials, one)
     assert [m.name for m in grasp_check._gripper_source().meshes] == [C.GRIPPER_BODY]
 
 
@@ -219,7 +220,7 @@ def test_the_poses_of_an_object_checked_together_give_each_pose_its_own_outcomes
         jobs.append((quat, [found[0].T_O_G, aside, found[-1].T_O_G]))
     cfg = grasp_check.CheckConfig(batch=2, threads=2)
     together = grasp_check.check_grasps_in_poses(obj, jobs, cfg)
-    assert together == [grasp_check.check_grasps(obj, q, g, cfg) for q, g in jobs]
+    assert together == [grasp_check.check_grasps_in_poses(obj, [j], cfg)[0] for j in jobs]
     assert [o[1] for o in together] == ["missed", "missed"]
 
 
