@@ -140,7 +140,8 @@ def mesh_grasps(
     hulls, com = convex_pieces(obj)
     points, normals = hull_points(hulls)
     out: dict[str, PoseGrasps] = {}
-    jobs: list[tuple[PoseGrasps, list, np.ndarray, list[np.ndarray]]] = []
+    checks: list[tuple[PoseGrasps, list]] = []  # each checked pose and its distinct grasps
+    jobs: list[tuple[np.ndarray, list[np.ndarray]]] = []  # its orientation and physics trials
     for name, quat in resting.items():
         up = quat_to_mat(np.asarray(quat, float))[2]
         found = antipodal_grasps(points, normals, up, com)
@@ -155,13 +156,12 @@ def mesh_grasps(
         for a in tried:
             trials.append(a.T_O_G)
             trials += [_perturbed(a.T_O_G, p) for p in PERTURBATIONS]
-        jobs.append((res, tried, np.asarray(quat, float), trials))
+        checks.append((res, tried))
+        jobs.append((np.asarray(quat, float), trials))
     # Every pose's physics in one pool: an object of many poses keeps every thread busy.
-    checked_all = check_grasps_in_poses(
-        obj, [(quat, trials) for _, _, quat, trials in jobs], config, progress
-    )
     per = len(PERTURBATIONS) + 1
-    for (res, tried, _, _), outcomes in zip(jobs, checked_all, strict=True):
+    done = check_grasps_in_poses(obj, jobs, config, progress)
+    for (res, tried), outcomes in zip(checks, done, strict=True):
         ranked = []
         for i, a in enumerate(tried):
             own = outcomes[i * per : (i + 1) * per]

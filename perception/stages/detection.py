@@ -135,12 +135,7 @@ class AnyObjectDetection(TargetDetection):
                 "surface_z": {str(k): round(v[1], 4) for k, v in scored.items()},
             },
         }
-        target = None if pick is None else replace(dets[pick], name=work.obs.object)
-        every: list[AnyDetection] = [
-            target if k == pick and target is not None else d
-            for k, d in enumerate(dets)
-            if k == pick or d.score >= floor
-        ]
+        target, every = self.as_target(dets, pick, work.obs.object)
         if target is not None:
             info |= {"class": ANY_OBJECT, "score": target.score}
             info["box_xyxy"] = [float(v) for v in target.box_xyxy]
@@ -165,15 +160,27 @@ class AnyObjectDetection(TargetDetection):
         order = [int(k) for k in np.argsort(-np.asarray(ious), kind="stable") if ious[k] >= 0]
         return order[: self.config.shortlist], ious
 
+    def as_target(
+        self, dets: list[Detection], k: int | None, name: str
+    ) -> tuple[Detection | None, list[AnyDetection]]:
+        """Detection `k` named as the requested object `name` (None: no target), and the
+        detections kept with it, in its place: those that score the detector's threshold (the
+        others were candidates only)."""
+        target = None if k is None else replace(dets[k], name=name)
+        floor = self.hybrid.detector.score_threshold
+        every: list[AnyDetection] = [
+            target if j == k and target is not None else d
+            for j, d in enumerate(dets)
+            if j == k or d.score >= floor
+        ]
+        return target, every
+
     def verified(self, work: Work, dets: list[Detection], k: int) -> tuple[float, float] | None:
         """The score of the best verified pose of detection `k` taken as the target, and the
         height [m] in the world of the surface that pose rests on (None: none verifies)."""
         assert work.obs is not None
-        as_target = replace(dets[k], name=work.obs.object)
-        floor = self.hybrid.detector.score_threshold
-        every: list[AnyDetection] = [
-            as_target if j == k else d for j, d in enumerate(dets) if j == k or d.score >= floor
-        ]
+        as_target, every = self.as_target(dets, k, work.obs.object)
+        assert as_target is not None
         trial = work.given(found=Detections(as_target, every, (), {}))
         best = self.kit.neighbour(as_target, trial)
         if best is None:
