@@ -135,3 +135,63 @@ def test_a_target_may_score_under_the_detectors_threshold(image, target_score) -
     if target_score is not None:
         assert got.info["score"] == pytest.approx(0.4)
         assert mask_iou(_drawn("phone", got.T_C_O, image), phone.mask_visib) > 0.5
+
+
+def test_an_object_the_detector_parts_in_two_is_found_whole(image) -> None:
+    # The phone's mask cut in two, left and right, each half a detection of its own (as a
+    # detector of any object parts an object of two colours): the halves joined are the target.
+    phone = next(o for o in image.objects if o.name == "phone")
+    xs = np.nonzero(phone.mask_visib.any(0))[0]
+    cut = int(np.median(xs))
+    halves = [phone.mask_visib.copy(), phone.mask_visib.copy()]
+    halves[0][:, cut:] = False
+    halves[1][:, :cut] = False
+    hybrid = HybridPoseEstimator.from_weights(detector_path=TIERS_DETECTOR)
+    hybrid.detector.cfg = replace(hybrid.detector.cfg, classes=(ANY_OBJECT,), n_classes=2)
+    others = [o.mask_visib for o in image.objects if o.name != "phone" and o.mask_visib.sum() > 400]
+    dets = [Detection(ANY_OBJECT, 0.9, np.zeros(4), m) for m in [*halves, *others]]
+    for d in dets:
+        ys, xs = np.nonzero(d.mask)
+        d.box_xyxy[:] = [xs.min(), ys.min(), xs.max(), ys.max()]
+    hybrid.detector.detect = lambda rgb, score_threshold=None: list(dets)
+    config = GlobalConfig(detection=DetectionConfig(mask_net=False), support=None, processes=1)
+    est = GlobalPoseEstimator(hybrid, config, name="any-object")
+    table = build_scene("phone", 12).table_top_z
+    obs = Observation(
+        image.rgb, image.K, invert_transform(image.T_C_W), "phone", 12, table_top_z=table
+    )
+    got = est.estimate(obs)
+    choice = got.info["choice"]
+    assert choice["joined"][str(choice["picked"])] == [0, 1], choice
+    assert mask_iou(_drawn("phone", got.T_C_O, image), phone.mask_visib) > 0.5
+
+
+def test_a_candidate_is_on_the_table_only_at_the_tables_height(image) -> None:
+    # The phone's own mask fits the phone resting on the scene's table; the same mask
+    # does not fit it on a table 15 cm higher or lower, nor without a tolerance does the
+    # table rule anything out.
+    from perception.codebook import CodebookCache
+    from perception.parallel import OneProcess
+    from perception.stages import CodebookConfig
+    from perception.stages.detection import on_table
+    from perception.stages.hypotheses import CodebookHypotheses
+    from posegrasp.world.objects import load_object
+
+    phone = next(o for o in image.objects if o.name == "phone")
+    book = CodebookConfig()
+    source = CodebookHypotheses(CodebookCache(book.views, book.inplane), book)
+    det = Detection("phone", 0.9, np.zeros(4), phone.mask_visib)
+    match = source.match(det, None, image.K, OneProcess())
+    assert match is not None
+    table = build_scene("phone", 12).table_top_z
+    T_W_C = invert_transform(image.T_C_W)
+
+    def on(z, tol=0.03):
+        obs = Observation(image.rgb, image.K, T_W_C, "phone", 12, table_top_z=z)
+        return on_table(
+            match, book, load_object("phone"), obs, DetectionConfig(table_tolerance_m=tol)
+        )
+
+    assert on(table)
+    assert not on(table + 0.15) and not on(table - 0.15)
+    assert on(table + 0.15, tol=None) and on(None)

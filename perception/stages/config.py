@@ -34,12 +34,17 @@ class DetectionConfig:
             above or below the table is taken only when none rests on it: a silhouette says
             nothing of size, so another object, nearer or farther, can fit the mesh as well,
             but not at the height of the table it stands on (None: the table is not used).
+        joined: with a detector of any object, up to this many detections whose masks touch
+            are also a candidate together, their masks joined: a detector of any object
+            parts an object of several colours along its colours, so the whole of it may be
+            no single detection (1: each detection alone).
     """
 
     target_score: float | None = 0.3
     mask_net: bool = True
     shortlist: int = 3
     table_tolerance_m: float | None = 0.03
+    joined: int = 3
 
     def __post_init__(self) -> None:
         if (
@@ -50,6 +55,8 @@ class DetectionConfig:
             raise InvalidArgumentError(
                 f"DetectionConfig.shortlist must be >= 1, got {self.shortlist}"
             )
+        if not isinstance(self.joined, int) or isinstance(self.joined, bool) or self.joined < 1:
+            raise InvalidArgumentError(f"DetectionConfig.joined must be >= 1, got {self.joined}")
         if self.table_tolerance_m is not None and not (
             math.isfinite(self.table_tolerance_m) and self.table_tolerance_m > 0
         ):

@@ -3,22 +3,24 @@ redrawn by the mask net."""
 
 from __future__ import annotations
 
+import itertools
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 
 from perception.detector import Detection
 from perception.detector_net import ANY_OBJECT
 from perception.hybrid import HybridPoseEstimator, detect_target
 from perception.mask_net import MaskRefiner
-from perception.stages.config import DetectionConfig, GlobalConfig
+from perception.stages.config import CodebookConfig, DetectionConfig, GlobalConfig
 from perception.stages.hypotheses import CodebookHypotheses
-from perception.stages.work import AnyDetection, Detections, Kit, Work
+from perception.stages.work import AnyDetection, CodebookMatch, Detections, Kit, Work
 from perception.support import resting_surface_z
 from posegrasp.core.contract import Observation
 from posegrasp.core.errors import InvalidArgumentError
-from posegrasp.world.objects import OBJECT_NAMES, load_object
+from posegrasp.world.objects import OBJECT_NAMES, ObjectModel, load_object
 
 
 class TargetDetection:
@@ -82,20 +84,23 @@ class AnyObjectDetection(TargetDetection):
     which names no object: the requested one is told by its mesh.
 
     Every detection scoring at least `DetectionConfig.target_score` (below the detector's own
-    threshold too) has its mask matched against the requested object's codebook (the best IoU
-    of the mesh's silhouettes over the rotation group, `CodebookHypotheses`); the
-    `DetectionConfig.shortlist` best matched are each verified as the target would be (its
-    hypotheses refined and scored, without the second look, every other detection its occluder:
-    `Kit.neighbour`), and the one whose best pose scores highest is the target, named as the
-    requested object; where the observation gives the table's height, among those whose pose
-    rests on the table (`DetectionConfig.table_tolerance_m`), if any does. The other detections
-    that score the detector's threshold are its neighbours and occluders, without poses.
+    threshold too) is a candidate, and so are up to `DetectionConfig.joined` of them whose masks
+    touch, taken together (`Candidate`: a detector of any object parts an object of several
+    colours along its colours). Each candidate's mask is matched against the requested object's
+    codebook (the best IoU of the mesh's silhouettes over the rotation group,
+    `CodebookHypotheses`); the `DetectionConfig.shortlist` best matched are each verified as the
+    target would be (its hypotheses refined and scored, without the second look, every other
+    detection its occluder: `Kit.neighbour`), and the one whose best pose scores highest is the
+    target, named as the requested object; where the observation gives the table's height,
+    among those whose pose rests on the table (`DetectionConfig.table_tolerance_m`), if any
+    does. The other detections that score the detector's threshold are its neighbours and
+    occluders, without poses.
 
     Args:
         hybrid: the detector (the pose nets are not used).
         config: the stage's settings.
-        codebook: the codebook's hypothesis source, whose matches rank the detections.
-        kit: the estimator's pieces: where the matching runs, how a detection is verified.
+        codebook: the codebook's hypothesis source, whose matches rank the candidates.
+        kit: the estimator's pieces: where the matching runs, how a candidate is verified.
     """
 
     def __init__(
@@ -118,8 +123,9 @@ class AnyObjectDetection(TargetDetection):
         # Any detection may be the target: detect down to its score, the others keep the floor.
         dets = self.hybrid.detector.detect(work.obs.rgb, min(floor, threshold))
         t1 = time.perf_counter()
-        ranked, ious = self.ranked(dets, threshold, work.obs.object, work.obs.K)
-        verified = {k: self.verified(work, dets, k) for k in ranked if len(ranked) > 1}
+        cands = candidates(dets, threshold, self.config.joined)
+        ranked, ious = self.ranked(cands, work)
+        verified = {k: self.verified(work, dets, cands[k]) for k in ranked if len(ranked) > 1}
         scored = {k: v for k, v in verified.items() if v is not None}  # (score, surface z)
         table, tol = work.obs.table_top_z, self.config.table_tolerance_m
         choices = scored
@@ -130,12 +136,14 @@ class AnyObjectDetection(TargetDetection):
             "detected": pick is not None,
             "detections": len(dets),
             "choice": {
+                "picked": pick,
                 "match_iou": ious,
+                "joined": {str(k): list(c.members) for k, c in enumerate(cands) if c.joined},
                 "verified": {str(k): None if v is None else v[0] for k, v in verified.items()},
                 "surface_z": {str(k): round(v[1], 4) for k, v in scored.items()},
             },
         }
-        target, every = self.as_target(dets, pick, work.obs.object)
+        target, every = self.as_target(dets, None if pick is None else cands[pick], work.obs.object)
         if target is not None:
             info |= {"class": ANY_OBJECT, "score": target.score}
             info["box_xyxy"] = [float(v) for v in target.box_xyxy]
@@ -144,42 +152,50 @@ class AnyObjectDetection(TargetDetection):
         found = Detections(target, every, (), info)
         return work.given(found=found, target=target, occluder=found.occluder)
 
-    def ranked(
-        self, dets: list[Detection], threshold: float, name: str, K: np.ndarray
-    ) -> tuple[list[int], list[float]]:
-        """The indices of the `shortlist` detections scoring `threshold` whose masks the
-        codebook of `name` matches best, best first, and every detection's best IoU (-1 for one
-        under the threshold or with an empty mask)."""
-        executor = self.kit.executor()
-        ious = []
-        for d in dets:
-            match = None
-            if d.score >= threshold:
-                match = self.codebook.match(replace(d, name=name), None, K, executor)
+    def ranked(self, cands: list[Candidate], work: Work) -> tuple[list[int], list[float]]:
+        """The indices of the `shortlist` candidates whose masks the codebook of the requested
+        object matches best, best first, and every candidate's best IoU (-1 for an empty mask).
+        Where the observation gives the table's height, the candidates one of whose best
+        templates (`CodebookConfig.hypotheses`) would rest on it (`on_table`) come first."""
+        obs = work.obs
+        assert obs is not None
+        executor, book = self.kit.executor(), self.codebook.config
+        model = load_object(obs.object)
+        ious, off = [], []
+        for c in cands:
+            match = self.codebook.match(
+                replace(c.detection, name=obs.object), None, obs.K, executor
+            )
             ious.append(-1.0 if match is None else round(float(match.scores.max()), 4))
-        order = [int(k) for k in np.argsort(-np.asarray(ious), kind="stable") if ious[k] >= 0]
+            off.append(match is None or not on_table(match, book, model, obs, self.config))
+        found = [k for k in range(len(cands)) if ious[k] >= 0]
+        order = sorted(found, key=lambda k: (off[k], -ious[k]))  # stable: ties keep their order
         return order[: self.config.shortlist], ious
 
     def as_target(
-        self, dets: list[Detection], k: int | None, name: str
+        self, dets: list[Detection], cand: Candidate | None, name: str
     ) -> tuple[Detection | None, list[AnyDetection]]:
-        """Detection `k` named as the requested object `name` (None: no target), and the
-        detections kept with it, in its place: those that score the detector's threshold (the
-        others were candidates only)."""
-        target = None if k is None else replace(dets[k], name=name)
+        """Candidate `cand` named as the requested object `name` (None: no target), and the
+        detections kept with it, in place of its first: those that score the detector's
+        threshold (the others were candidates only), but for the candidate's own."""
+        target = None if cand is None else replace(cand.detection, name=name)
+        own = () if cand is None else cand.members
         floor = self.hybrid.detector.score_threshold
-        every: list[AnyDetection] = [
-            target if j == k and target is not None else d
-            for j, d in enumerate(dets)
-            if j == k or d.score >= floor
-        ]
+        every: list[AnyDetection] = []
+        for j, d in enumerate(dets):
+            if target is not None and j == own[0]:
+                every.append(target)
+            elif j not in own and d.score >= floor:
+                every.append(d)
         return target, every
 
-    def verified(self, work: Work, dets: list[Detection], k: int) -> tuple[float, float] | None:
-        """The score of the best verified pose of detection `k` taken as the target, and the
-        height [m] in the world of the surface that pose rests on (None: none verifies)."""
+    def verified(
+        self, work: Work, dets: list[Detection], cand: Candidate
+    ) -> tuple[float, float] | None:
+        """The score of the best verified pose of candidate `cand` taken as the target, and
+        the height [m] in the world of the surface that pose rests on (None: none verifies)."""
         assert work.obs is not None
-        as_target, every = self.as_target(dets, k, work.obs.object)
+        as_target, every = self.as_target(dets, cand, work.obs.object)
         assert as_target is not None
         trial = work.given(found=Detections(as_target, every, (), {}))
         best = self.kit.neighbour(as_target, trial)
@@ -187,6 +203,112 @@ class AnyObjectDetection(TargetDetection):
             return None
         z = resting_surface_z(best.T_C_O, work.obs.T_world_cam, load_object(work.obs.object))
         return round(float(best.score), 4), float(z)
+
+
+#: Pixels between two masks that still touch: the detector's outlines fall a pixel or two off.
+TOUCH_PX = 3
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """What may be the requested object: one detection, or several whose masks touch, taken
+    together (their masks and boxes joined, the lowest score).
+
+    Attributes:
+        detection: the candidate as one detection.
+        members: the indices of the detections it is made of, in order.
+    """
+
+    detection: Detection
+    members: tuple[int, ...]
+
+    @property
+    def joined(self) -> bool:
+        """Whether it joins several detections."""
+        return len(self.members) > 1
+
+
+def on_table(
+    match: CodebookMatch,
+    book: CodebookConfig,
+    model: ObjectModel,
+    obs: Observation,
+    config: DetectionConfig,
+) -> bool:
+    """Whether one of the best `book.hypotheses` templates of a candidate's `match` puts the
+    requested object (`model`) at rest within `config.table_tolerance_m` of the table's height
+    (True where the observation does not give it, or the tolerance is None): a silhouette fits
+    any object nearer or farther, scaled, but the table fixes how far the requested one is, so
+    a candidate of another size fits it nowhere on the table."""
+    table, tol = obs.table_top_z, config.table_tolerance_m
+    if table is None or tol is None:
+        return True
+    best = match.hypotheses(match.best(0, book.hypotheses, [], book.min_angle_deg))
+    return any(abs(resting_surface_z(h.T_C_O, obs.T_world_cam, model) - table) <= tol for h in best)
+
+
+def candidates(dets: list[Detection], threshold: float, joined: int) -> list[Candidate]:
+    """Every detection scoring `threshold`, alone, then every connected group of 2 to `joined`
+    of them whose masks touch (`TOUCH_PX`), by size then by index."""
+    kept = [k for k, d in enumerate(dets) if d.score >= threshold]
+    out = [Candidate(dets[k], (k,)) for k in kept]
+    if joined < 2 or len(kept) < 2:
+        return out
+    near = touching([dets[k].mask for k in kept])
+    for size in range(2, joined + 1):
+        for group in itertools.combinations(range(len(kept)), size):
+            if _connected(group, near):
+                members = tuple(kept[i] for i in group)
+                out.append(Candidate(_joined([dets[k] for k in members]), members))
+    return out
+
+
+def touching(masks: list[np.ndarray], gap: int = TOUCH_PX) -> set[tuple[int, int]]:
+    """The pairs (i, j), i < j, of masks that come within `gap` pixels of each other."""
+    boxes = [_bounds(m) for m in masks]
+    kernel = np.ones((2 * gap + 1, 2 * gap + 1), np.uint8)
+    out = set()
+    for i, j in itertools.combinations(range(len(masks)), 2):
+        a, b = boxes[i], boxes[j]
+        if a is None or b is None:
+            continue
+        y0, x0 = max(a[0], b[0]) - gap, max(a[1], b[1]) - gap
+        y1, x1 = min(a[2], b[2]) + gap, min(a[3], b[3]) + gap
+        if y0 >= y1 or x0 >= x1:
+            continue  # the boxes, grown by the gap, do not meet
+        y0, x0 = max(y0 - gap, 0), max(x0 - gap, 0)
+        grown = cv2.dilate(masks[i][y0 : y1 + gap, x0 : x1 + gap].astype(np.uint8), kernel)
+        if (grown.astype(bool) & masks[j][y0 : y1 + gap, x0 : x1 + gap]).any():
+            out.add((i, j))
+    return out
+
+
+def _bounds(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(y0, x0, y1, x1) of a mask's pixels, the ends exclusive (None: empty)."""
+    ys, xs = np.nonzero(mask.any(1))[0], np.nonzero(mask.any(0))[0]
+    if len(ys) == 0:
+        return None
+    return int(ys[0]), int(xs[0]), int(ys[-1]) + 1, int(xs[-1]) + 1
+
+
+def _connected(group: tuple[int, ...], near: set[tuple[int, int]]) -> bool:
+    """Whether the members of `group` are connected by `near`'s pairs."""
+    reached, todo = {group[0]}, [group[0]]
+    while todo:
+        i = todo.pop()
+        for j in group:
+            if j not in reached and ((i, j) in near or (j, i) in near):
+                reached.add(j)
+                todo.append(j)
+    return len(reached) == len(group)
+
+
+def _joined(dets: list[Detection]) -> Detection:
+    """Detections taken as one: the union of their masks and boxes, their lowest score."""
+    boxes = np.array([d.box_xyxy for d in dets], np.float64)
+    box = np.concatenate([boxes[:, :2].min(0), boxes[:, 2:].max(0)])
+    mask = np.logical_or.reduce([d.mask for d in dets])
+    return Detection(dets[0].name, min(d.score for d in dets), box, mask)
 
 
 class RedrawnMask:
