@@ -85,16 +85,18 @@ def _hybrid_global_unseen() -> PoseEstimator:
     this estimator scores as if new). The main pose net is loaded with the detector and never
     run. A candidate needs the detector's own score (`DetectionConfig.target_score` None):
     candidates down to `hybrid-global`'s lower score were found no more often on development
-    seeds, and each costs a codebook match and maybe a verification."""
+    seeds, and each costs a codebook match and maybe a verification. Where the observation
+    gives the table's height, the pose is put onto it (`TableConfig`): an object it knows only
+    by its mesh has no neighbours that could say where the table is."""
     from perception.detector import UNSEEN_DETECTOR
     from perception.global_pose import GlobalConfig, GlobalPoseEstimator
     from perception.hybrid import HybridPoseEstimator
     from perception.mask_net import UNSEEN_MASKNET, MaskRefiner
-    from perception.stages import DetectionConfig
+    from perception.stages import DetectionConfig, TableConfig
 
     hybrid = HybridPoseEstimator.from_weights(detector_path=UNSEEN_DETECTOR, expert_paths=())
     masks = MaskRefiner.from_weights(UNSEEN_MASKNET)
-    config = GlobalConfig(detection=DetectionConfig(target_score=None))
+    config = GlobalConfig(detection=DetectionConfig(target_score=None), table=TableConfig())
     return GlobalPoseEstimator(hybrid, config, name="hybrid-global-unseen", masks=masks)
 
 

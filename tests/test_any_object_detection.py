@@ -91,12 +91,14 @@ def test_the_unseen_estimator_is_the_shipped_detector_and_mask_net_of_any_object
     from perception.estimators import load_estimator
     from perception.mask_net import UNSEEN_MASKNET
     from perception.stages.detection import RedrawnMask
+    from perception.stages.placement import TablePrior
 
     estimator, files = load_estimator("hybrid-global-unseen")
     assert {UNSEEN_DETECTOR.resolve(), UNSEEN_MASKNET.resolve()} <= set(files)
     assert isinstance(estimator, GlobalPoseEstimator)
     assert estimator.hybrid.detector.cfg.classes == (ANY_OBJECT,)
     assert isinstance(estimator.stage("detection"), AnyObjectDetection)
+    assert isinstance(estimator.stage("table"), TablePrior)  # no neighbours say where it is
     mask = estimator.stage("mask")
     assert isinstance(mask, RedrawnMask) and mask.knows("bank-042") and mask.knows("phone")
     # Both nets' manifests record their training: bank scenes alone, never a scene of the six
