@@ -25,6 +25,8 @@ BAD = [
     (DetectionConfig, {"target_score": math.nan}, "DetectionConfig.target_score"),
     (DetectionConfig, {"mask_net": "yes"}, "DetectionConfig.mask_net"),
     (DetectionConfig, {"shortlist": 0}, "DetectionConfig.shortlist"),
+    (DetectionConfig, {"joined": 0}, "DetectionConfig.joined"),
+    (DetectionConfig, {"joined": True}, "DetectionConfig.joined"),
     (DetectionConfig, {"table_tolerance_m": 0.0}, "DetectionConfig.table_tolerance_m"),
     (DetectionConfig, {"table_tolerance_m": math.nan}, "DetectionConfig.table_tolerance_m"),
     (CodebookConfig, {"views": 0}, "CodebookConfig.views"),

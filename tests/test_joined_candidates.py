@@ -7,9 +7,7 @@ import numpy as np
 import pytest
 
 from perception.detector import Detection
-from perception.stages import DetectionConfig
 from perception.stages.detection import TOUCH_PX, candidates, touching
-from posegrasp.core.errors import InvalidArgumentError
 
 
 def _det(score: float, y0: int, x0: int, y1: int, x1: int) -> Detection:
@@ -60,9 +58,3 @@ def test_touching_detections_are_joined_up_to_the_limit() -> None:
     # The one under the threshold joins nothing, though it touches 3.
     assert all(4 not in c.members for c in candidates(dets, 0.3, 3))
     assert (3, 4) in [c.members for c in candidates(dets, 0.1, 2)]
-
-
-@pytest.mark.parametrize("joined", [0, -1, 1.5, True])
-def test_joined_must_be_a_count(joined) -> None:
-    with pytest.raises(InvalidArgumentError, match=r"DetectionConfig\.joined"):
-        DetectionConfig(joined=joined)
