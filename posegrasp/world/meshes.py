@@ -39,8 +39,10 @@ CONTINUOUS_TEST_ANGLES = (0.41, 1.13, 2.27, 2.95, 4.37)
 #: The most symmetry transforms a discrete group may have (the icosahedron's).
 MAX_GROUP = 60
 #: Meshes of more triangles are simplified to this many (quadric decimation) before CoACD cuts
-#: them into hulls: its cuts cost time with every triangle, and hulls of at most
-#: ``max_ch_vertex`` vertices carry none of the detail lost. The visual mesh keeps them all.
+#: them into hulls: reading, checking and remeshing cost it time with every triangle, and hulls
+#: of at most ``max_ch_vertex`` vertices carry none of the detail lost. The visual mesh keeps
+#: them all. A mesh CoACD finds not manifold (decimation leaves most so) it remeshes at its own
+#: ``preprocess_resolution`` and cuts that, so the cap does not bound the cutting's time.
 DECOMPOSE_MAX_FACES = 5000
 #: Passes of quadric decimation `simplified` makes at most.
 SIMPLIFY_PASSES = 4
