@@ -197,3 +197,27 @@ def test_a_candidate_is_on_the_table_only_at_the_tables_height(image) -> None:
     assert on(table)
     assert not on(table + 0.15) and not on(table - 0.15)
     assert on(table + 0.15, tol=None) and on(None)
+
+
+def test_a_lone_candidate_is_taken_unmatched(image) -> None:
+    # One detection: nothing to choose between, so no match is spent on it; its pose is found.
+    phone = next(o for o in image.objects if o.name == "phone")
+    hybrid = HybridPoseEstimator.from_weights(detector_path=TIERS_DETECTOR)
+    hybrid.detector.cfg = replace(hybrid.detector.cfg, classes=(ANY_OBJECT,), n_classes=2)
+    own = Detection(ANY_OBJECT, 0.9, np.zeros(4), phone.mask_visib)
+    hybrid.detector.detect = lambda rgb, score_threshold=None: [own]
+    config = GlobalConfig(detection=DetectionConfig(mask_net=False), support=None, processes=1)
+    est = GlobalPoseEstimator(hybrid, config, name="any-object")
+    stage = est.stage("detection")
+    matched = []
+    match = stage.codebook.match
+    stage.codebook.match = lambda *a, **k: matched.append(1) or match(*a, **k)
+    table = build_scene("phone", 12).table_top_z
+    obs = Observation(
+        image.rgb, image.K, invert_transform(image.T_C_W), "phone", 12, table_top_z=table
+    )
+    got = est.estimate(obs)
+    assert got.info["choice"]["match_iou"] == [None] and got.info["choice"]["picked"] == 0
+    assert got.info["detected"]
+    assert mask_iou(_drawn("phone", got.T_C_O, image), phone.mask_visib) > 0.5
+    assert not matched  # the choice spent no match (the hypotheses stage has its own)

@@ -152,13 +152,16 @@ class AnyObjectDetection(TargetDetection):
         found = Detections(target, every, (), info)
         return work.given(found=found, target=target, occluder=found.occluder)
 
-    def ranked(self, cands: list[Candidate], work: Work) -> tuple[list[int], list[float]]:
+    def ranked(self, cands: list[Candidate], work: Work) -> tuple[list[int], list[float | None]]:
         """The indices of the `shortlist` candidates whose masks the codebook of the requested
         object matches best, best first, and every candidate's best IoU (-1 for an empty mask).
         Where the observation gives the table's height, the candidates one of whose best
-        templates (`CodebookConfig.hypotheses`) would rest on it (`on_table`) come first."""
+        templates (`CodebookConfig.hypotheses`) would rest on it (`on_table`) come first. A
+        lone candidate is not matched (None): there is nothing to choose."""
         obs = work.obs
         assert obs is not None
+        if len(cands) == 1:
+            return ([0] if cands[0].detection.mask.any() else []), [None]
         executor, book = self.kit.executor(), self.codebook.config
         model = load_object(obs.object)
         ious, off = [], []
@@ -170,7 +173,8 @@ class AnyObjectDetection(TargetDetection):
             off.append(match is None or not on_table(match, book, model, obs, self.config))
         found = [k for k in range(len(cands)) if ious[k] >= 0]
         order = sorted(found, key=lambda k: (off[k], -ious[k]))  # stable: ties keep their order
-        return order[: self.config.shortlist], ious
+        matched: list[float | None] = list(ious)
+        return order[: self.config.shortlist], matched
 
     def as_target(
         self, dets: list[Detection], cand: Candidate | None, name: str
