@@ -88,8 +88,9 @@ class AnyObjectDetection(TargetDetection):
     touch, taken together (`Candidate`: a detector of any object parts an object of several
     colours along its colours). Each candidate's mask is matched against the requested object's
     codebook (the best IoU of the mesh's silhouettes over the rotation group,
-    `CodebookHypotheses`); the `DetectionConfig.shortlist` best matched are each verified as the
-    target would be (its hypotheses refined and scored, without the second look, every other
+    `CodebookHypotheses`); those that fit the mesh resting on the table rank first (`on_table`),
+    then by match, and the `DetectionConfig.shortlist` first are each verified as the target
+    would be (its hypotheses refined and scored, without the second look, every other
     detection its occluder: `Kit.neighbour`), and the one whose best pose scores highest is the
     target, named as the requested object; where the observation gives the table's height,
     among those whose pose rests on the table (`DetectionConfig.table_tolerance_m`), if any
