@@ -14,6 +14,7 @@ from perception.detector import Detection
 from perception.detector_net import ANY_OBJECT
 from perception.hybrid import HybridPoseEstimator, detect_target
 from perception.mask_net import MaskRefiner
+from perception.overlay import mask_box
 from perception.stages.config import CodebookConfig, DetectionConfig, GlobalConfig
 from perception.stages.hypotheses import CodebookHypotheses
 from perception.stages.work import AnyDetection, CodebookMatch, Detections, Kit, Work
@@ -270,15 +271,15 @@ def candidates(dets: list[Detection], threshold: float, joined: int) -> list[Can
 
 def touching(masks: list[np.ndarray], gap: int = TOUCH_PX) -> set[tuple[int, int]]:
     """The pairs (i, j), i < j, of masks that come within `gap` pixels of each other."""
-    boxes = [_bounds(m) for m in masks]
+    boxes = [mask_box(m) for m in masks]  # (x0, y0, x1, y1), the ends exclusive
     kernel = np.ones((2 * gap + 1, 2 * gap + 1), np.uint8)
     out = set()
     for i, j in itertools.combinations(range(len(masks)), 2):
         a, b = boxes[i], boxes[j]
         if a is None or b is None:
             continue
-        y0, x0 = max(a[0], b[0]) - gap, max(a[1], b[1]) - gap
-        y1, x1 = min(a[2], b[2]) + gap, min(a[3], b[3]) + gap
+        x0, y0 = max(a[0], b[0]) - gap, max(a[1], b[1]) - gap
+        x1, y1 = min(a[2], b[2]) + gap, min(a[3], b[3]) + gap
         if y0 >= y1 or x0 >= x1:
             continue  # the boxes, grown by the gap, do not meet
         y0, x0 = max(y0 - gap, 0), max(x0 - gap, 0)
@@ -286,14 +287,6 @@ def touching(masks: list[np.ndarray], gap: int = TOUCH_PX) -> set[tuple[int, int
         if (grown.astype(bool) & masks[j][y0 : y1 + gap, x0 : x1 + gap]).any():
             out.add((i, j))
     return out
-
-
-def _bounds(mask: np.ndarray) -> tuple[int, int, int, int] | None:
-    """(y0, x0, y1, x1) of a mask's pixels, the ends exclusive (None: empty)."""
-    ys, xs = np.nonzero(mask.any(1))[0], np.nonzero(mask.any(0))[0]
-    if len(ys) == 0:
-        return None
-    return int(ys[0]), int(xs[0]), int(ys[-1]) + 1, int(xs[-1]) + 1
 
 
 def _connected(group: tuple[int, ...], near: set[tuple[int, int]]) -> bool:
