@@ -39,6 +39,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from posegrasp.core.errors import InvalidArgumentError
+from posegrasp.world.meshes import points_diameter
 
 Symmetry = dict[str, np.ndarray]
 
@@ -398,19 +399,7 @@ def diameter(pts: np.ndarray) -> float:
     Returns:
         The diameter [m] (exact over the points, via their convex hull when N is large).
     """
-    pts = _points(pts)
-    if pts.shape[0] > 64:
-        from scipy.spatial import ConvexHull, QhullError
-
-        try:
-            pts = pts[ConvexHull(pts).vertices]
-        except QhullError:  # degenerate (flat or collinear) point sets: use all points
-            pass
-    best = 0.0
-    for start in range(0, pts.shape[0], 1024):
-        diff = pts[start : start + 1024, None, :] - pts[None, :, :]
-        best = max(best, float((diff * diff).sum(axis=-1).max()))
-    return math.sqrt(best)
+    return points_diameter(_points(pts))
 
 
 def error_components(T_est: np.ndarray, T_true: np.ndarray) -> dict[str, float]:

@@ -458,6 +458,7 @@ def _description(
             "seconds": round(src.dec.seconds, 2),
             "triangles": src.dec.faces,
             "simplified_from": src.dec.simplified_from,
+            "convex": src.dec.convex,
         },
         "symmetries": {
             "source": "given" if req.symmetry else "detected",
@@ -539,11 +540,14 @@ def _source(
     say(f"  symmetries: {syms_s.describe()}")
 
     t = time.perf_counter()
-    say("convex decomposition (CoACD) ...")
+    say("convex decomposition ...")
     dec = M.decompose(visual_s, **{"seed": seed, **(coacd or {})})
     timings["decomposition"] = time.perf_counter() - t
     cut = f", cut from its {dec.faces}-triangle simplification" if dec.simplified_from else ""
-    say(f"  {len(dec.hulls)} hulls in {dec.seconds:.1f} s{cut}")
+    if dec.convex:
+        say(f"  convex: its own hull, in {dec.seconds:.1f} s")
+    else:
+        say(f"  {len(dec.hulls)} hulls in {dec.seconds:.1f} s{cut}")
     props_s = M.mass_properties(
         dec.hulls, mass=mass, density=None if mass is not None else (density or DEFAULT_DENSITY)
     )
@@ -701,7 +705,11 @@ def _report(d: dict[str, Any], log) -> None:
     lines = [
         f"object {d['name']} written to {d['folder']}",
         f"  hulls        {d['decomposition']['hulls']} "
-        f"(CoACD {d['decomposition']['tool']['version']})",
+        + (
+            "(the mesh is convex: its own hull)"
+            if d["decomposition"].get("convex")
+            else f"(CoACD {d['decomposition']['tool']['version']})"
+        ),
         f"  mass         {d['mass'] * 1000:.0f} g ({d['mass_from']})",
         f"  symmetries   {d['symmetries']['summary']}",
         f"  resting poses {len(poses)} ({sum(not p['graspable'] for p in poses)} not graspable); "

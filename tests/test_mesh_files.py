@@ -9,8 +9,10 @@ import trimesh
 from PIL import Image
 
 from posegrasp.world.meshes import (
+    COACD_DEFAULTS,
     DECOMPOSE_MAX_FACES,
     decompose,
+    is_convex,
     mesh_texture,
     read_mesh,
     simplified,
@@ -61,9 +63,49 @@ def test_a_dense_mesh_is_simplified_before_its_decomposition() -> None:
     coarse = trimesh.creation.icosphere(subdivisions=2, radius=0.03)
     assert simplified(coarse, DECOMPOSE_MAX_FACES) is coarse
 
-    quick = {"max_convex_hull": 1, "mcts_iterations": 10, "mcts_nodes": 5, "resolution": 200}
-    dec = decompose(dense, **quick)
-    assert dec.simplified_from == len(dense.faces) and dec.faces == len(small.faces)
-    # One hull of at most 64 vertices (`max_ch_vertex`) inside the sphere.
-    assert 0.75 * dense.volume < sum(h.volume for h in dec.hulls) <= 1.01 * dense.volume
-    assert decompose(coarse, **quick).simplified_from is None
+    # A ring is not convex, so CoACD cuts it (here told to stop at its first hull).
+    ring = trimesh.creation.torus(0.03, 0.012, major_sections=128, minor_sections=64)
+    assert len(ring.faces) > DECOMPOSE_MAX_FACES
+    quick = {"threshold": 1.0, "max_convex_hull": 1, "resolution": 200}
+    dec = decompose(ring, **quick)
+    assert not dec.convex
+    assert dec.simplified_from == len(ring.faces) and dec.faces == DECOMPOSE_MAX_FACES
+    few = trimesh.creation.torus(0.03, 0.012, major_sections=32, minor_sections=16)
+    assert decompose(few, **quick).simplified_from is None
+
+
+def test_a_convex_mesh_is_its_own_hull() -> None:
+    """A mesh convex within `CONVEX_TOL` is one hull, its own, of at most ``max_ch_vertex``
+    vertices, and CoACD is not run; a mesh with a dent deeper than that is cut."""
+    box = trimesh.creation.box(extents=[0.05, 0.04, 0.03])
+    dec = decompose(box)
+    assert dec.convex and len(dec.hulls) == 1
+    assert np.allclose(np.sort(dec.hulls[0].vertices, axis=0), np.sort(box.vertices, axis=0))
+
+    sphere = trimesh.creation.icosphere(subdivisions=6, radius=0.03)
+    dec = decompose(sphere)
+    (hull,) = dec.hulls
+    assert dec.convex and len(hull.vertices) <= COACD_DEFAULTS["max_ch_vertex"]
+    # Inside the sphere, touching it at each vertex, and closed.
+    assert hull.is_watertight and 0.85 * sphere.volume < hull.volume <= sphere.volume
+    assert np.allclose(np.linalg.norm(hull.vertices, axis=1), 0.03)
+    assert len(decompose(sphere, max_ch_vertex=20).hulls[0].vertices) <= 20
+
+    assert is_convex(trimesh.creation.capsule(height=0.08, radius=0.02))
+    # A block with a groove 10 mm wide and 6 mm deep along its top is not convex.
+    slab = trimesh.creation.box(extents=[0.05, 0.04, 0.018])
+    tops = [trimesh.creation.box(extents=[0.02, 0.04, 0.006]) for _ in range(2)]
+    for top, x in zip(tops, (-0.015, 0.015), strict=True):
+        top.apply_translation([x, 0.0, 0.012])
+    grooved = trimesh.util.concatenate([slab, *tops])
+    assert not is_convex(grooved)
+    assert is_convex(
+        trimesh.util.concatenate(
+            [
+                slab,
+                trimesh.creation.box(extents=[0.05, 0.04, 0.006]).apply_translation(
+                    [0.0, 0.0, 0.012]
+                ),
+            ]
+        )
+    )

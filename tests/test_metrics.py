@@ -277,6 +277,20 @@ def test_diameter_by_hand() -> None:
     assert m.diameter(flat) == pytest.approx(2.0 * math.sqrt(0.1**2 + 0.2**2))
 
 
+def test_diameter_of_many_hull_points_is_exact() -> None:
+    # Every vertex of a dense ellipsoid is on its hull: the grouped search gives what the
+    # comparison of every pair gives, here and on clouds of other shapes.
+    import trimesh
+    from scipy.spatial.distance import cdist
+
+    ellipsoid = trimesh.creation.icosphere(subdivisions=5, radius=0.02).vertices * [1.1, 1, 0.97]
+    rng = np.random.default_rng(3)
+    clouds = [ellipsoid, rng.normal(size=(20000, 3)) * [1, 2, 0.5], rng.uniform(size=(3000, 3))]
+    for pts in clouds:
+        exact = max(cdist(pts[a : a + 2000], pts).max() for a in range(0, len(pts), 2000))
+        assert m.diameter(pts) == pytest.approx(exact, rel=1e-12)
+
+
 def test_input_validation() -> None:
     pts = np.zeros((3, 3))
     with pytest.raises(ValueError, match="t_est must be a finite vector"):

@@ -42,8 +42,16 @@ MAX_GROUP = 60
 #: them into hulls: reading, checking and remeshing cost it time with every triangle, and hulls
 #: of at most ``max_ch_vertex`` vertices carry none of the detail lost. The visual mesh keeps
 #: them all. A mesh CoACD finds not manifold (decimation leaves most so) it remeshes at its own
-#: ``preprocess_resolution`` and cuts that, so the cap does not bound the cutting's time.
+#: ``preprocess_resolution`` and cuts that, so the cap does not bound the cutting's time: the
+#: resolution does (a coarser remesh has fewer triangles and fewer small concavities to cut).
 DECOMPOSE_MAX_FACES = 5000
+#: A mesh is its own single hull when its convex hull lies this close to its surface everywhere
+#: (the largest distance of samples of the hull's surface from the mesh's), as a fraction of the
+#: diameter, or within twice the sampling's own distances: CoACD would stop at one hull, after
+#: remeshing it, and the hull of the mesh itself fits it better.
+CONVEX_TOL = 0.01
+#: Cells per side of the grid `points_diameter` groups many points in.
+DIAMETER_GRID = 16
 #: Passes of quadric decimation `simplified` makes at most.
 SIMPLIFY_PASSES = 4
 #: Default CoACD parameters (`decompose`).
@@ -51,7 +59,7 @@ COACD_DEFAULTS: dict[str, Any] = {
     "threshold": 0.05,
     "max_convex_hull": 24,
     "preprocess_mode": "auto",
-    "preprocess_resolution": 40,
+    "preprocess_resolution": 25,
     "resolution": 1000,
     "mcts_nodes": 15,
     "mcts_iterations": 80,
@@ -239,6 +247,7 @@ class Decomposition:
         faces: the triangles of the mesh it cut: the mesh's own, or at most
             `DECOMPOSE_MAX_FACES` where it had more.
         simplified_from: the mesh's own triangles where it was simplified first, else None.
+        convex: the mesh was its own hull (`is_convex`), so CoACD was not run.
     """
 
     hulls: list[trimesh.Trimesh]
@@ -247,12 +256,15 @@ class Decomposition:
     seconds: float = 0.0
     faces: int = 0
     simplified_from: int | None = None
+    convex: bool = False
 
 
 def decompose(mesh: trimesh.Trimesh, **overrides: Any) -> Decomposition:
     """Approximate convex decomposition with CoACD (`COACD_DEFAULTS`, updated by `overrides`).
-    A mesh of over `DECOMPOSE_MAX_FACES` triangles is simplified to that many first (quadric
-    decimation); one that is not watertight is remeshed by CoACD's own preprocessing.
+    A mesh that is convex within `CONVEX_TOL` is its own hull (reduced to ``max_ch_vertex``
+    vertices), without CoACD. Otherwise a mesh of over `DECOMPOSE_MAX_FACES` triangles is
+    simplified to that many first (quadric decimation); one that is not watertight is remeshed
+    by CoACD's own preprocessing.
 
     Raises:
         InvalidArgumentError: an unknown parameter, or CoACD found no hull.
@@ -266,8 +278,15 @@ def decompose(mesh: trimesh.Trimesh, **overrides: Any) -> Decomposition:
             + ", ".join(COACD_DEFAULTS)
         )
     params = {**COACD_DEFAULTS, **overrides}
-    coacd.set_log_level("error")
+    from importlib.metadata import version
+
+    tool = {"name": "coacd", "version": version("coacd")}
     t = time.perf_counter()
+    if is_convex(mesh, int(params["seed"])):
+        hull = reduced_hull(mesh, int(params["max_ch_vertex"]))
+        n = len(mesh.faces)
+        return Decomposition([hull], tool, params, time.perf_counter() - t, n, None, True)
+    coacd.set_log_level("error")
     cut = simplified(mesh, DECOMPOSE_MAX_FACES)
     parts = coacd.run_coacd(
         coacd.Mesh(np.asarray(cut.vertices, float), np.asarray(cut.faces, np.int64)), **params
@@ -281,16 +300,96 @@ def decompose(mesh: trimesh.Trimesh, **overrides: Any) -> Decomposition:
                 hulls.append(hull)
     if not hulls:
         raise InvalidArgumentError("the convex decomposition found no hull of positive volume")
-    from importlib.metadata import version
-
     return Decomposition(
         hulls,
-        {"name": "coacd", "version": version("coacd")},
+        tool,
         params,
         seconds,
         len(cut.faces),
         len(mesh.faces) if cut is not mesh else None,
     )
+
+
+def points_diameter(points: np.ndarray) -> float:
+    """The largest distance between two of `points` (N, 3) [m], exact.
+
+    Only the vertices of the points' convex hull can be the pair. Where they are many (a dense
+    smooth mesh has every vertex on its hull), they are grouped in the cells of a grid
+    (`DIAMETER_GRID` cells a side): the farthest of the groups' most outlying points bound the
+    diameter from below, and only pairs of groups that can hold a pair farther apart (their
+    centres' distance and both radii) are compared point by point, the likeliest first."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(pts) > 64:
+        from scipy.spatial import ConvexHull, QhullError
+
+        try:
+            pts = pts[ConvexHull(pts).vertices]
+        except QhullError:  # degenerate (flat or collinear) point sets: all of them
+            pass
+    if len(pts) <= 1024:
+        return math.sqrt(_farthest_sq(pts, pts))
+    lo, span = pts.min(axis=0), float(np.ptp(pts, axis=0).max())
+    n = DIAMETER_GRID
+    cell = np.minimum((n * (pts - lo) / span).astype(np.int64), n - 1)
+    key = (cell[:, 0] * n + cell[:, 1]) * n + cell[:, 2]
+    order = np.argsort(key, kind="stable")
+    cuts = np.flatnonzero(np.diff(key[order])) + 1
+    groups = [pts[g] for g in np.split(order, cuts)]
+    centres = np.array([g.mean(axis=0) for g in groups])
+    radii = np.array([np.linalg.norm(g - c, axis=1).max() for g, c in zip(groups, centres)])
+    middle = pts.mean(axis=0)
+    outliers = np.array([g[np.argmax(np.linalg.norm(g - middle, axis=1))] for g in groups])
+    best = _farthest_sq(outliers, outliers)  # a pair's distance: a bound from below
+    bound = np.linalg.norm(centres[:, None] - centres[None], axis=-1) + radii[:, None] + radii
+    i, j = np.triu_indices(len(groups))
+    for k in np.argsort(-bound[i, j], kind="stable"):
+        if bound[i[k], j[k]] ** 2 <= best:
+            break  # no pair of groups left can hold a pair farther apart
+        best = max(best, _farthest_sq(groups[i[k]], groups[j[k]]))
+    return math.sqrt(best)
+
+
+def _farthest_sq(a: np.ndarray, b: np.ndarray) -> float:
+    """The largest squared distance between a point of `a` and one of `b` (each (N, 3))."""
+    d = a[:, None, :] - b[None, :, :]
+    return float(np.einsum("ijk,ijk->ij", d, d).max())
+
+
+def is_convex(mesh: trimesh.Trimesh, seed: int = 0) -> bool:
+    """Whether the mesh's convex hull lies within `CONVEX_TOL` of its surface everywhere: the
+    largest distance of 5,000 samples of the hull's surface from 20,000 of the mesh's."""
+    tester = SurfaceDistance(mesh, seed)
+    tol = max(CONVEX_TOL * tester.diameter, 2.0 * tester.baseline)
+    on_hull, _ = trimesh.sample.sample_surface(mesh.convex_hull, 5000, seed=seed + 2)
+    return float(tester.distances(on_hull).max()) <= tol
+
+
+def reduced_hull(mesh: trimesh.Trimesh, max_vertices: int) -> trimesh.Trimesh:
+    """The mesh's convex hull with at most `max_vertices` vertices: where it has more, the hull
+    of its vertices farthest out along the most evenly spread directions (a Fibonacci sphere)
+    that pick at most that many, so that it lies inside the whole hull, touching it at each."""
+    hull = mesh.convex_hull
+    v = np.asarray(hull.vertices)
+    if len(v) <= max_vertices:
+        return hull
+    lo, hi, kept = 4, 16 * max_vertices, np.argmax(v @ _fibonacci(4).T, axis=0)
+    while lo <= hi:  # the most directions whose extreme vertices are few enough
+        n = (lo + hi) // 2
+        picked = np.unique(np.argmax(v @ _fibonacci(n).T, axis=0))
+        if len(picked) <= max_vertices:
+            kept, lo = picked, n + 1
+        else:
+            hi = n - 1
+    return trimesh.convex.convex_hull(v[np.unique(kept)])
+
+
+def _fibonacci(n: int) -> np.ndarray:
+    """`n` unit directions spread evenly over the sphere (n, 3)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    r = np.sqrt(1.0 - z * z)
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
 def simplified(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
@@ -395,12 +494,13 @@ def surface_centre(mesh: trimesh.Trimesh) -> np.ndarray:
     return (np.asarray(mesh.triangles_center) * area[:, None]).sum(axis=0) / area.sum()
 
 
-class SymmetryTester:
-    """Measures how far a rigid motion moves a mesh's surface off itself.
+class SurfaceDistance:
+    """Distances of points from a mesh's surface, measured to 20,000 samples of it (a KD-tree).
 
-    The surface is sampled densely (a KD-tree of 20,000 points) and more sparsely (2,000 test
-    points); a motion's error is the 99th percentile of the distances from the moved test
-    points to the dense samples. The error of the identity is the sampling's own resolution.
+    Attributes:
+        diameter: the diagonal of the mesh's bounding box [m].
+        baseline: the sampling's own resolution: the 99th percentile of the distances of 2,000
+            further samples of the surface [m].
     """
 
     def __init__(self, mesh: trimesh.Trimesh, seed: int = 0) -> None:
@@ -408,14 +508,28 @@ class SymmetryTester:
         self.points, _ = trimesh.sample.sample_surface(mesh, 2000, seed=seed + 1)
         self.tree = cKDTree(dense)
         self.diameter = float(np.linalg.norm(mesh.extents))
-        self.baseline = self.error(np.eye(4))
+        self.baseline = float(np.percentile(self.distances(self.points), 99))
+
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """Each point's distance from the nearest sample of the surface [m]."""
+        d, _ = self.tree.query(points)
+        return np.asarray(d, float)
+
+
+class SymmetryTester(SurfaceDistance):
+    """Measures how far a rigid motion moves a mesh's surface off itself: a motion's error is
+    the 99th percentile of the distances of the moved 2,000 test samples from the surface. The
+    error of the identity is the sampling's own resolution.
+    """
+
+    def __init__(self, mesh: trimesh.Trimesh, seed: int = 0) -> None:
+        super().__init__(mesh, seed)
         self.tol = max(SYMMETRY_TOL * self.diameter, 2.0 * self.baseline)
 
     def error(self, T: np.ndarray) -> float:
         """99th percentile of the distances of the moved surface from the surface [m]."""
         moved = self.points @ T[:3, :3].T + T[:3, 3]
-        d, _ = self.tree.query(moved)
-        return float(np.percentile(d, 99))
+        return float(np.percentile(self.distances(moved), 99))
 
     def holds(self, T: np.ndarray) -> bool:
         """Whether T maps the surface onto itself within the tolerance."""

@@ -26,7 +26,7 @@ from posegrasp.core.errors import AssetError, UnknownNameError
 from posegrasp.core.paths import SCENES_DIR
 from posegrasp.core.transforms import quat_to_mat
 from posegrasp.core.validate import check_names
-from posegrasp.world.meshes import Texture
+from posegrasp.world.meshes import Texture, points_diameter
 from posegrasp.world.robot import WORLD_CONAFFINITY, WORLD_CONTYPE
 from posegrasp.world.user_objects import (
     MeshGeometry,
@@ -224,9 +224,7 @@ class ObjectModel:
     @functools.cached_property
     def diameter(self) -> float:
         """Largest distance between two mesh vertices [m] (BOP's object diameter)."""
-        v = np.asarray(self.mesh.convex_hull.vertices)
-        d = np.linalg.norm(v[:, None, :] - v[None, :, :], axis=-1)
-        return float(d.max())
+        return points_diameter(np.asarray(self.mesh.convex_hull.vertices))
 
     def resting_height(self, quat: np.ndarray) -> float:
         """Height of O's origin above a support plane when resting with orientation quat [m]."""
