@@ -14,6 +14,7 @@ from perception.hybrid import HybridPoseEstimator
 from perception.metrics import mask_iou
 from perception.stages import DetectionConfig, GlobalConfig
 from perception.stages.detection import AnyObjectDetection
+from perception.stages.work import Work, run_stages
 from perception.training.data.distributions import HeadcamGenerator
 from posegrasp.core.contract import Observation
 from posegrasp.core.transforms import invert_transform
@@ -221,3 +222,39 @@ def test_a_lone_candidate_is_taken_unmatched(image) -> None:
     assert got.info["detected"]
     assert mask_iou(_drawn("phone", got.T_C_O, image), phone.mask_visib) > 0.5
     assert not matched  # the choice spent no match (the hypotheses stage has its own)
+
+
+def test_the_chosen_candidates_verification_is_not_run_again(image) -> None:
+    # The candidate chosen was verified as the target in the choice: the stages go on from
+    # that work, and it is the work they would have made anew from the chosen detection.
+    est = _estimator(image)
+    phone = next(o for o in image.objects if o.name == "phone")
+    table = build_scene("phone", 12).table_top_z
+    obs = Observation(
+        image.rgb, image.K, invert_transform(image.T_C_W), "phone", 12, table_top_z=table
+    )
+    work = Work.of(obs)
+    chosen = est.stage("detection")(work)
+    assert chosen.verification is not None and chosen.winner is not None
+    assert len(chosen.found.info["choice"]["verified"]) >= 2
+    anew = chosen.given(
+        target=chosen.found.target,
+        executor=None,
+        match=None,
+        taken=(),
+        hypotheses=(),
+        verification=None,
+        ranked=(),
+    )
+    rest = [s for s in est.stages if s.name in ("mask", "hypotheses", "verify")]
+    assert [s.name for s in rest] == ["hypotheses", "verify"]  # this one draws no masks
+    assert not any(s.wanted(chosen) for s in rest)
+    again = run_stages(rest, anew, {})
+    assert [v.score for v in again.ranked] == [v.score for v in chosen.ranked]
+    assert all(
+        np.array_equal(a.T_C_O, b.T_C_O) for a, b in zip(again.ranked, chosen.ranked, strict=True)
+    )
+    got = est.estimate(obs)
+    assert {"mask", "hypotheses", "verify"}.isdisjoint(got.info["timings_ms"])
+    assert np.array_equal(got.T_C_O, chosen.winner.T_C_O) or got.info["verify"]["second_look"]
+    assert mask_iou(_drawn("phone", got.T_C_O, image), phone.mask_visib) > 0.5

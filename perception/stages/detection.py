@@ -92,11 +92,12 @@ class AnyObjectDetection(TargetDetection):
     `CodebookHypotheses`); those that fit the mesh resting on the table rank first (`on_table`),
     then by match, and the `DetectionConfig.shortlist` first are each verified as the target
     would be (its hypotheses refined and scored, without the second look, every other
-    detection its occluder: `Kit.neighbour`), and the one whose best pose scores highest is the
+    detection its occluder: `Kit.as_target`), and the one whose best pose scores highest is the
     target, named as the requested object; where the observation gives the table's height,
     among those whose pose rests on the table (`DetectionConfig.table_tolerance_m`), if any
-    does. The other detections that score the detector's threshold are its neighbours and
-    occluders, without poses.
+    does. Its verification stands: the mask, hypotheses and verification stages do not run
+    again (the second look and the priors after it do). The other detections that score the
+    detector's threshold are its neighbours and occluders, without poses.
 
     Args:
         hybrid: the detector (the pose nets are not used).
@@ -126,9 +127,16 @@ class AnyObjectDetection(TargetDetection):
         dets = self.hybrid.detector.detect(work.obs.rgb, min(floor, threshold))
         t1 = time.perf_counter()
         cands = candidates(dets, threshold, self.config.joined)
+        T_W_C = work.obs.T_world_cam
         ranked, ious = self.ranked(cands, work)
-        verified = {k: self.verified(work, dets, cands[k]) for k in ranked if len(ranked) > 1}
-        scored = {k: v for k, v in verified.items() if v is not None}  # (score, surface z)
+        done = {k: self.verified(work, dets, cands[k]) for k in ranked if len(ranked) > 1}
+        model = load_object(work.obs.object)
+        verified = {k: None if w.winner is None else w.winner.score for k, w in done.items()}
+        scored = {  # (score, height [m] in the world of the surface the best pose rests on)
+            k: (round(float(w.winner.score), 4), resting_surface_z(w.winner.T_C_O, T_W_C, model))
+            for k, w in done.items()
+            if w.winner is not None
+        }
         table, tol = work.obs.table_top_z, self.config.table_tolerance_m
         choices = scored
         if table is not None and tol is not None:
@@ -141,8 +149,10 @@ class AnyObjectDetection(TargetDetection):
                 "picked": pick,
                 "match_iou": ious,
                 "joined": {str(k): list(c.members) for k, c in enumerate(cands) if c.joined},
-                "verified": {str(k): None if v is None else v[0] for k, v in verified.items()},
-                "surface_z": {str(k): round(v[1], 4) for k, v in scored.items()},
+                "verified": {
+                    str(k): None if v is None else round(float(v), 4) for k, v in verified.items()
+                },
+                "surface_z": {str(k): round(float(v[1]), 4) for k, v in scored.items()},
             },
         }
         target, every = self.as_target(dets, None if pick is None else cands[pick], work.obs.object)
@@ -152,7 +162,20 @@ class AnyObjectDetection(TargetDetection):
         t2 = time.perf_counter()
         info["timings_ms"] = {"detect": (t1 - t0) * 1000, "choose": (t2 - t1) * 1000}
         found = Detections(target, every, (), info)
-        return work.given(found=found, target=target, occluder=found.occluder)
+        out = work.given(found=found, target=target, occluder=found.occluder)
+        if pick in done:  # verified as the target already: the stages go on from there
+            w = done[pick]
+            out = out.given(
+                target=w.target,
+                executor=w.executor,
+                priors=w.priors,
+                match=w.match,
+                taken=w.taken,
+                hypotheses=w.hypotheses,
+                verification=w.verification,
+                ranked=w.ranked,
+            )
+        return out
 
     def ranked(self, cands: list[Candidate], work: Work) -> tuple[list[int], list[float | None]]:
         """The indices of the `shortlist` candidates whose masks the codebook of the requested
@@ -195,20 +218,13 @@ class AnyObjectDetection(TargetDetection):
                 every.append(d)
         return target, every
 
-    def verified(
-        self, work: Work, dets: list[Detection], cand: Candidate
-    ) -> tuple[float, float] | None:
-        """The score of the best verified pose of candidate `cand` taken as the target, and
-        the height [m] in the world of the surface that pose rests on (None: none verifies)."""
+    def verified(self, work: Work, dets: list[Detection], cand: Candidate) -> Work:
+        """Candidate `cand` taken as the target through the stages up to its verification
+        (`Kit.as_target`), the detections kept with it its occluders: the work they leave."""
         assert work.obs is not None
         as_target, every = self.as_target(dets, cand, work.obs.object)
         assert as_target is not None
-        trial = work.given(found=Detections(as_target, every, (), {}))
-        best = self.kit.neighbour(as_target, trial)
-        if best is None:
-            return None
-        z = resting_surface_z(best.T_C_O, work.obs.T_world_cam, load_object(work.obs.object))
-        return round(float(best.score), 4), float(z)
+        return self.kit.as_target(as_target, work.given(found=Detections(as_target, every, (), {})))
 
 
 #: Pixels between two masks that still touch: the detector's outlines fall a pixel or two off.
@@ -341,8 +357,11 @@ class RedrawnMask:
         return self.any_object or name in OBJECT_NAMES
 
     def wanted(self, work: Work) -> bool:
-        """Whether the target is one of the objects the mask net knows."""
-        return work.target is not None and self.knows(work.target.name)
+        """Whether the target is one of the objects the mask net knows, and not verified yet
+        (a target the detection stage verified had its mask redrawn first)."""
+        return (
+            work.target is not None and work.verification is None and self.knows(work.target.name)
+        )
 
     def __call__(self, work: Work) -> Work:
         """`work` with its target's mask redrawn."""

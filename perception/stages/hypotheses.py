@@ -145,8 +145,8 @@ class Hypotheses:
 
     @staticmethod
     def wanted(work: Work) -> bool:
-        """Whether there is a target."""
-        return work.target is not None
+        """Whether there is a target, not verified yet."""
+        return work.target is not None and work.verification is None
 
     def __call__(self, work: Work) -> Work:
         """`work` with where its batches run, its target's priors, codebook match and first

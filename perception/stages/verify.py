@@ -36,8 +36,8 @@ class Verify:
 
     @staticmethod
     def wanted(work: Work) -> bool:
-        """Whether the target has its hypotheses."""
-        return work.target is not None and work.executor is not None
+        """Whether the target has its hypotheses, not verified yet."""
+        return work.target is not None and work.executor is not None and work.verification is None
 
     def __call__(self, work: Work) -> Work:
         """`work` with its hypotheses' verification and ranking."""

@@ -212,6 +212,8 @@ class Kit:
         parts: the objects' convex pieces.
         executor: where the batches of the next image run (chosen once per image).
         neighbour: a neighbour's best verified pose within an image (None: none).
+        as_target: a detection within an image taken through the stages as the target would
+            be, up to its verification (without the second look): the work they leave.
     """
 
     hybrid: HybridPoseEstimator
@@ -220,6 +222,7 @@ class Kit:
     parts: ConvexParts
     executor: Callable[[], Executor]
     neighbour: Callable[[AnyDetection, Work], Verified | None]
+    as_target: Callable[[AnyDetection, Work], Work]
 
 
 def run_stages(stages: Sequence[Stage], work: Work, times: dict[str, float]) -> Work:
