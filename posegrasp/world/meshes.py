@@ -336,7 +336,9 @@ def points_diameter(points: np.ndarray) -> float:
     cuts = np.flatnonzero(np.diff(key[order])) + 1
     groups = [pts[g] for g in np.split(order, cuts)]
     centres = np.array([g.mean(axis=0) for g in groups])
-    radii = np.array([np.linalg.norm(g - c, axis=1).max() for g, c in zip(groups, centres)])
+    radii = np.array(
+        [np.linalg.norm(g - c, axis=1).max() for g, c in zip(groups, centres, strict=True)]
+    )
     middle = pts.mean(axis=0)
     outliers = np.array([g[np.argmax(np.linalg.norm(g - middle, axis=1))] for g in groups])
     best = _farthest_sq(outliers, outliers)  # a pair's distance: a bound from below
