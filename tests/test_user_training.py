@@ -28,7 +28,7 @@ def test_a_widened_config_keeps_the_built_in_labels() -> None:
 
 
 @pytest.mark.slow
-def test_the_chain_trains_a_detector_for_a_user_object(tmp_path, monkeypatch) -> None:
+def test_the_chain_trains_a_detector_for_a_user_object(tmp_path, monkeypatch, capsys) -> None:
     objects, data = tmp_path / "objects", tmp_path / "data"
     monkeypatch.setenv(OBJECTS_ENV, str(objects))
     monkeypatch.setenv("POSEGRASP_DATA", str(data))
@@ -45,11 +45,19 @@ def test_the_chain_trains_a_detector_for_a_user_object(tmp_path, monkeypatch) ->
     assert (out / "models" / "obj_000007.ply").is_file()
 
     shipped = WEIGHTS_DIR / "detector.pt"
+    # Without --objects the detector has no class for the box: refused, not trained blind.
+    blind = ["--smoke", "--init", str(shipped), "--data", str(out), "--out", str(tmp_path / "b")]
+    assert train_detector(blind) == 2
+    assert "give --objects box" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()
     argv = ["--smoke", "--objects", "box", "--init", str(shipped), "--data", str(out)]
     argv += ["--out", str(tmp_path / "ckpt"), "--export", "--weights-out", str(objects)]
     assert train_detector(argv) == 0
     widened = Detector.from_weights(objects / "detector.pt")
     assert widened.cfg.classes == (*OBJECT_NAMES, "box")
+    # The command the weights record runs this again: the widened classes included.
+    recorded = json.loads((objects / "manifest.json").read_text())["detector"]["command"]
+    assert "--objects box" in recorded
     key = "roi_heads.box_predictor.cls_score.weight"
     assert widened.model.state_dict()[key].shape[0] == len(OBJECT_NAMES) + 2
     parent = Detector.from_weights(shipped).model.state_dict()[key]

@@ -175,6 +175,7 @@ def command_line(cfg: DetectorTrainConfig) -> str:
     d = DetectorTrainConfig
     root = str(cfg.data) if cfg.data is not None else "headcam"
     data = format_data(tuple(zip((root, *cfg.also), part_limits(cfg), strict=True)))
+    added = [c for c in cfg.detector.classes if c not in DetectorConfig().classes]
     options = (
         (cfg.batch != d.batch, f"--batch {cfg.batch}"),
         (cfg.lr != d.lr, f"--lr {cfg.lr:g}"),
@@ -182,6 +183,7 @@ def command_line(cfg: DetectorTrainConfig) -> str:
         (cfg.precision != d.precision, f"--precision {cfg.precision}"),
         (cfg.channels_last, "--channels-last"),
         (cfg.detector.any_object, "--any-object"),
+        (bool(added) and not cfg.detector.any_object, f"--objects {','.join(added)}"),
         (cfg.init is not None, f"--init {cfg.init}"),
         (cfg.out is not None, f"--out {cfg.out}"),
     )
@@ -345,6 +347,14 @@ def _datasets(cfg: DetectorTrainConfig, root: Path) -> tuple[Any, list, PoseData
                 "`python -m perception.training.datagen "
                 f"--dist headcam --split {split} --count N --out {root}` (or `make data`)"
             )
+    unknown = _objects_without_class(root, cfg.detector)
+    if unknown:
+        names = ",".join(unknown)
+        raise InvalidArgumentError(
+            f"the training images under {root} were rendered for {names}, which the detector "
+            f"has no class for (its classes: {', '.join(cfg.detector.classes)}); give --objects "
+            f"{names} to add them, or --any-object"
+        )
     train_set, parts = training_images(
         root, cfg.also, cfg.min_visible_px, cfg.detector, part_limits(cfg)
     )
@@ -358,6 +368,14 @@ def _datasets(cfg: DetectorTrainConfig, root: Path) -> tuple[Any, list, PoseData
     if len(val_data) == 0:
         raise AssetError(f"no completed val images under {root}; generate them first")
     return train_set, parts, val_data
+
+
+def _objects_without_class(root: Path, detector: DetectorConfig) -> list[str]:
+    """The objects the train split of `root` was rendered for (its info's ``objects`` of the
+    split, the targets asked for) that `detector` has no class for: every one of their
+    annotations would be left out, silently."""
+    split = load_info(root).get("splits", {}).get("train", {})
+    return sorted({n for n in split.get("objects", []) if detector.label(n) is None})
 
 
 def _start_run(
