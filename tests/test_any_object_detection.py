@@ -258,3 +258,28 @@ def test_the_chosen_candidates_verification_is_not_run_again(image) -> None:
     assert {"mask", "hypotheses", "verify"}.isdisjoint(got.info["timings_ms"])
     assert np.array_equal(got.T_C_O, chosen.winner.T_C_O) or got.info["verify"]["second_look"]
     assert mask_iou(_drawn("phone", got.T_C_O, image), phone.mask_visib) > 0.5
+
+
+def test_a_sure_candidate_on_the_table_ends_the_verifying(image) -> None:
+    # With `sure` met by the first shortlisted candidate, it is the only one verified and the
+    # one taken; without, the whole shortlist is verified.
+    est = _estimator(image)
+    table = build_scene("phone", 12).table_top_z
+    obs = Observation(
+        image.rgb, image.K, invert_transform(image.T_C_W), "phone", 12, table_top_z=table
+    )
+    every = est.estimate(obs).info["choice"]
+    assert len(every["verified"]) >= 2
+    first = next(iter(every["verified"]))
+    rests = (
+        every["surface_z"].get(first) is not None and abs(every["surface_z"][first] - table) <= 0.03
+    )
+    cfg = est.config
+    eager = est.with_config(replace(cfg, detection=replace(cfg.detection, sure=0.01)))
+    got = eager.estimate(obs).info["choice"]
+    if rests:  # the first rests on the table: sure of it at once
+        assert list(got["verified"]) == [first] and got["picked"] == int(first)
+    else:  # it does not: the next ones are verified too
+        assert len(got["verified"]) >= 2
+    strict = est.with_config(replace(cfg, detection=replace(cfg.detection, sure=100.0)))
+    assert strict.estimate(obs).info["choice"]["verified"] == every["verified"]

@@ -38,6 +38,10 @@ class DetectionConfig:
             are also a candidate together, their masks joined: a detector of any object
             parts an object of several colours along its colours, so the whole of it may be
             no single detection (1: each detection alone).
+        sure: with a detector of any object, the shortlist is verified in its order and the
+            first candidate whose best pose scores at least this (and rests on the table, where
+            the observation gives it) is taken without verifying the rest (None: every
+            shortlisted candidate is verified).
     """
 
     target_score: float | None = 0.3
@@ -45,6 +49,7 @@ class DetectionConfig:
     shortlist: int = 3
     table_tolerance_m: float | None = 0.03
     joined: int = 3
+    sure: float | None = None
 
     def __post_init__(self) -> None:
         if (
@@ -63,6 +68,12 @@ class DetectionConfig:
             raise InvalidArgumentError(
                 "DetectionConfig.table_tolerance_m must be positive [m] or None, got "
                 f"{self.table_tolerance_m}"
+            )
+        if self.sure is not None and (
+            isinstance(self.sure, bool) or not (math.isfinite(self.sure) and self.sure > 0)
+        ):
+            raise InvalidArgumentError(
+                f"DetectionConfig.sure must be a positive score or None, got {self.sure}"
             )
         if self.target_score is not None and not 0 <= self.target_score <= 1:
             raise InvalidArgumentError(

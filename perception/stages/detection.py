@@ -129,15 +129,19 @@ class AnyObjectDetection(TargetDetection):
         cands = candidates(dets, threshold, self.config.joined)
         T_W_C = work.obs.T_world_cam
         ranked, ious = self.ranked(cands, work)
-        done = {k: self.verified(work, dets, cands[k]) for k in ranked if len(ranked) > 1}
         model = load_object(work.obs.object)
+        table, tol = work.obs.table_top_z, self.config.table_tolerance_m
+        done: dict[int, Work] = {}
+        for k in ranked if len(ranked) > 1 else []:
+            done[k] = w = self.verified(work, dets, cands[k])
+            if self.sure(w, T_W_C, model, table):
+                break  # sure of it, and on the table: the rest need no verifying
         verified = {k: None if w.winner is None else w.winner.score for k, w in done.items()}
         scored = {  # (score, height [m] in the world of the surface the best pose rests on)
             k: (round(float(w.winner.score), 4), resting_surface_z(w.winner.T_C_O, T_W_C, model))
             for k, w in done.items()
             if w.winner is not None
         }
-        table, tol = work.obs.table_top_z, self.config.table_tolerance_m
         choices = scored
         if table is not None and tol is not None:
             choices = {k: v for k, v in scored.items() if abs(v[1] - table) <= tol} or scored
@@ -176,6 +180,16 @@ class AnyObjectDetection(TargetDetection):
                 ranked=w.ranked,
             )
         return out
+
+    def sure(self, work: Work, T_W_C: np.ndarray, model: ObjectModel, table: float | None) -> bool:
+        """Whether a candidate's verified `work` scores `DetectionConfig.sure` and its pose
+        rests on the table (within `DetectionConfig.table_tolerance_m`, where both are known)."""
+        win, sure, tol = work.winner, self.config.sure, self.config.table_tolerance_m
+        if sure is None or win is None or win.score < sure:
+            return False
+        if table is None or tol is None:
+            return True
+        return abs(resting_surface_z(win.T_C_O, T_W_C, model) - table) <= tol
 
     def ranked(self, cands: list[Candidate], work: Work) -> tuple[list[int], list[float | None]]:
         """The indices of the `shortlist` candidates whose masks the codebook of the requested
