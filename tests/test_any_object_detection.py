@@ -100,6 +100,7 @@ def test_the_unseen_estimator_is_the_shipped_detector_and_mask_net_of_any_object
     assert estimator.hybrid.detector.cfg.classes == (ANY_OBJECT,)
     assert isinstance(estimator.stage("detection"), AnyObjectDetection)
     assert isinstance(estimator.stage("table"), TablePrior)  # no neighbours say where it is
+    assert estimator.config.detection.sure == 1.2  # chosen on development seeds
     mask = estimator.stage("mask")
     assert isinstance(mask, RedrawnMask) and mask.knows("bank-042") and mask.knows("phone")
     # Both nets' manifests record their training: bank scenes alone, never a scene of the six
