@@ -47,8 +47,8 @@ MAX_GROUP = 60
 DECOMPOSE_MAX_FACES = 5000
 #: A mesh is its own single hull when its convex hull lies this close to its surface everywhere
 #: (the largest distance of samples of the hull's surface from the mesh's), as a fraction of the
-#: diameter, or within twice the sampling's own distances: CoACD would stop at one hull, after
-#: remeshing it, and the hull of the mesh itself fits it better.
+#: diagonal of its bounding box, or within twice the sampling's own distances: CoACD would stop
+#: at one hull, after remeshing it, and the hull of the mesh itself fits it better.
 CONVEX_TOL = 0.01
 #: Cells per side of the grid `points_diameter` groups many points in.
 DIAMETER_GRID = 16
