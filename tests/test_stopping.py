@@ -241,8 +241,10 @@ def _board_cmd(out: Path) -> list[str]:
         "ideal",
         "--objects",
         "phone,car",
+        # 24 episodes: with 12, the board was done about 2 s after its first episode was kept,
+        # too soon for a stop drawn within 1 s of it to land while it still ran.
         "--episodes",
-        "3",
+        "6",
         "--workers",
         "1",
         "--out",
