@@ -110,15 +110,7 @@ class GlobalPoseEstimator:
         elif (codebooks.views, codebooks.inplane) != grid:
             codebooks = CodebookCache(*grid, codebooks.folder, codebooks.source)
         self.name, self._config = name, cfg
-        self.kit = Kit(
-            hybrid,
-            masks,
-            codebooks,
-            ConvexParts(),
-            self._executor,
-            self._neighbour,
-            self._as_target,
-        )
+        self.kit = Kit(hybrid, masks, codebooks, ConvexParts(), self._executor, self._as_target)
         built = (stage.build(cfg, self.kit) for stage in STAGES)
         self.stages: tuple[Stage, ...] = tuple(s for s in built if s is not None)
         self._verifying = tuple(s for s in self.stages if type(s) in VERIFY_STAGES)
@@ -213,11 +205,6 @@ class GlobalPoseEstimator:
             "second_look": second_look,
             "config": asdict(self.config),
         }
-
-    def _neighbour(self, d: AnyDetection, work: Work) -> Verified | None:
-        """A neighbour's best pose in the image of `work` (None: none), verified as the
-        target's but without the second look, every other detection its occluder."""
-        return self._as_target(d, work).winner
 
     def _as_target(self, d: AnyDetection, work: Work) -> Work:
         """Detection `d` of the image of `work` taken through the stages as the target would

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -131,20 +132,22 @@ class AnyObjectDetection(TargetDetection):
         ranked, ious = self.ranked(cands, work)
         model = load_object(work.obs.object)
         table, tol = work.obs.table_top_z, self.config.table_tolerance_m
+
+        def on_it(z: float) -> bool:
+            return table is None or tol is None or abs(z - table) <= tol
+
         done: dict[int, Work] = {}
+        scored: dict[int, tuple[float, float]] = {}  # score, height [m] of what the pose rests on
+        sure = self.config.sure
         for k in ranked if len(ranked) > 1 else []:
             done[k] = w = self.verified(work, dets, cands[k])
-            if self.sure(w, T_W_C, model, table):
+            if w.winner is None:
+                continue
+            z = float(resting_surface_z(w.winner.T_C_O, T_W_C, model))
+            scored[k] = (round(float(w.winner.score), 4), z)
+            if sure is not None and w.winner.score >= sure and on_it(z):
                 break  # sure of it, and on the table: the rest need no verifying
-        verified = {k: None if w.winner is None else w.winner.score for k, w in done.items()}
-        scored = {  # (score, height [m] in the world of the surface the best pose rests on)
-            k: (round(float(w.winner.score), 4), resting_surface_z(w.winner.T_C_O, T_W_C, model))
-            for k, w in done.items()
-            if w.winner is not None
-        }
-        choices = scored
-        if table is not None and tol is not None:
-            choices = {k: v for k, v in scored.items() if abs(v[1] - table) <= tol} or scored
+        choices = {k: v for k, v in scored.items() if on_it(v[1])} or scored
         pick = max(choices, key=lambda k: choices[k][0]) if choices else next(iter(ranked), None)
         info: dict = {
             "detected": pick is not None,
@@ -153,10 +156,8 @@ class AnyObjectDetection(TargetDetection):
                 "picked": pick,
                 "match_iou": ious,
                 "joined": {str(k): list(c.members) for k, c in enumerate(cands) if c.joined},
-                "verified": {
-                    str(k): None if v is None else round(float(v), 4) for k, v in verified.items()
-                },
-                "surface_z": {str(k): round(float(v[1]), 4) for k, v in scored.items()},
+                "verified": {str(k): scored[k][0] if k in scored else None for k in done},
+                "surface_z": {str(k): round(v[1], 4) for k, v in scored.items()},
             },
         }
         target, every = self.as_target(dets, None if pick is None else cands[pick], work.obs.object)
@@ -181,17 +182,9 @@ class AnyObjectDetection(TargetDetection):
             )
         return out
 
-    def sure(self, work: Work, T_W_C: np.ndarray, model: ObjectModel, table: float | None) -> bool:
-        """Whether a candidate's verified `work` scores `DetectionConfig.sure` and its pose
-        rests on the table (within `DetectionConfig.table_tolerance_m`, where both are known)."""
-        win, sure, tol = work.winner, self.config.sure, self.config.table_tolerance_m
-        if sure is None or win is None or win.score < sure:
-            return False
-        if table is None or tol is None:
-            return True
-        return abs(resting_surface_z(win.T_C_O, T_W_C, model) - table) <= tol
-
-    def ranked(self, cands: list[Candidate], work: Work) -> tuple[list[int], list[float | None]]:
+    def ranked(
+        self, cands: list[Candidate], work: Work
+    ) -> tuple[list[int], Sequence[float | None]]:
         """The indices of the `shortlist` candidates whose masks the codebook of the requested
         object matches best, best first, and every candidate's best IoU (-1 for an empty mask).
         Where the observation gives the table's height, the candidates one of whose best
@@ -212,8 +205,7 @@ class AnyObjectDetection(TargetDetection):
             off.append(match is None or not on_table(match, book, model, obs, self.config))
         found = [k for k in range(len(cands)) if ious[k] >= 0]
         order = sorted(found, key=lambda k: (off[k], -ious[k]))  # stable: ties keep their order
-        matched: list[float | None] = list(ious)
-        return order[: self.config.shortlist], matched
+        return order[: self.config.shortlist], ious
 
     def as_target(
         self, dets: list[Detection], cand: Candidate | None, name: str

@@ -93,16 +93,16 @@ class NeighbourSupport:
         self,
         config: SupportConfig,
         tilt_deg: float,
-        neighbour: Callable[[AnyDetection, Work], Verified | None],
+        as_target: Callable[[AnyDetection, Work], Work],
     ) -> None:
-        self.config, self.tilt_deg, self.neighbour = config, tilt_deg, neighbour
+        self.config, self.tilt_deg, self.as_target = config, tilt_deg, as_target
 
     @classmethod
     def build(cls, config: GlobalConfig, kit: Kit) -> NeighbourSupport | None:
         """The stage of `config.support` with the gravity prior's tilt (None: left out)."""
         if config.support is None or config.gravity is None:
             return None
-        return cls(config.support, config.gravity.tilt_deg, kit.neighbour)
+        return cls(config.support, config.gravity.tilt_deg, kit.as_target)
 
     def wanted(self, work: Work) -> bool:
         """Whether no earlier prior placed the winner, and it asks for support: unsure, yet
@@ -124,7 +124,7 @@ class NeighbourSupport:
         assert win is not None and det is not None and found is not None and obs is not None
 
         def neighbour(d: AnyDetection) -> Verified | None:
-            return self.neighbour(d, work)
+            return self.as_target(d, work).winner
 
         return work.given(placed=self.place(win.T_C_O.copy(), det, found.every, obs, neighbour))
 

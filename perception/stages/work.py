@@ -211,9 +211,9 @@ class Kit:
         codebooks: the codebooks of the composition's grid.
         parts: the objects' convex pieces.
         executor: where the batches of the next image run (chosen once per image).
-        neighbour: a neighbour's best verified pose within an image (None: none).
         as_target: a detection within an image taken through the stages as the target would
-            be, up to its verification (without the second look): the work they leave.
+            be, up to its verification (without the second look): the work they leave (a
+            neighbour's best verified pose is its winner).
     """
 
     hybrid: HybridPoseEstimator
@@ -221,7 +221,6 @@ class Kit:
     codebooks: CodebookCache
     parts: ConvexParts
     executor: Callable[[], Executor]
-    neighbour: Callable[[AnyDetection, Work], Verified | None]
     as_target: Callable[[AnyDetection, Work], Work]
 
 

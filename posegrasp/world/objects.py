@@ -224,7 +224,7 @@ class ObjectModel:
     @functools.cached_property
     def diameter(self) -> float:
         """Largest distance between two mesh vertices [m] (BOP's object diameter)."""
-        return points_diameter(np.asarray(self.mesh.convex_hull.vertices))
+        return points_diameter(np.asarray(self.mesh.vertices))  # over their hull's vertices
 
     def resting_height(self, quat: np.ndarray) -> float:
         """Height of O's origin above a support plane when resting with orientation quat [m]."""
