@@ -17,7 +17,7 @@ import numpy as np
 import open3d as o3d
 
 from perception.peers.estimator import Registered
-from perception.peers.icp import IcpConfig, PointToPlaneIcp, cloud
+from perception.peers.icp import IcpConfig, PointToPlaneIcp, cloud, open3d_threads
 from perception.peers.points import model_surface, nearest_rigid
 from posegrasp.core.errors import InvalidArgumentError
 from posegrasp.core.transforms import invert_transform
@@ -115,27 +115,25 @@ class FpfhRegistration:
         threads, its warnings (too few mutual correspondences) silenced."""
         cfg = self.config
         o3d.utility.random.seed(int(seed) % 2**31)
-        threads = o3d.utility.get_max_threads()
-        o3d.utility.set_max_threads(cfg.threads)
-        try:
-            with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-                return _REG.registration_ransac_based_on_feature_matching(
-                    scene,
-                    target,
-                    features,
-                    target_features,
-                    cfg.mutual_filter,
-                    distance,
-                    _REG.TransformationEstimationPointToPoint(False),
-                    3,
-                    [
-                        _REG.CorrespondenceCheckerBasedOnEdgeLength(cfg.edge_length),
-                        _REG.CorrespondenceCheckerBasedOnDistance(distance),
-                    ],
-                    _REG.RANSACConvergenceCriteria(cfg.max_iterations, cfg.confidence),
-                )
-        finally:
-            o3d.utility.set_max_threads(threads)
+        with (
+            open3d_threads(cfg.threads),
+            o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error),
+        ):
+            return _REG.registration_ransac_based_on_feature_matching(
+                scene,
+                target,
+                features,
+                target_features,
+                cfg.mutual_filter,
+                distance,
+                _REG.TransformationEstimationPointToPoint(False),
+                3,
+                [
+                    _REG.CorrespondenceCheckerBasedOnEdgeLength(cfg.edge_length),
+                    _REG.CorrespondenceCheckerBasedOnDistance(distance),
+                ],
+                _REG.RANSACConvergenceCriteria(cfg.max_iterations, cfg.confidence),
+            )
 
     def register(self, model: ObjectModel, points_C: np.ndarray, seed: int) -> Registered:
         """The pose of `model` among the scene's points.
