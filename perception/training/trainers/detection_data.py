@@ -17,9 +17,9 @@ import torch
 from perception.detector import image_tensor, load_detector_model, to_model_box
 from perception.detector_net import DetectorConfig, input_transform
 from perception.training.data.bop import box_xyxy
-from perception.training.data.dataset import PoseDataset
+from perception.training.data.dataset import PoseDataset, load_info
 from perception.training.trainers.ddp import Ranks
-from posegrasp.core.errors import AssetError
+from posegrasp.core.errors import AssetError, InvalidArgumentError
 from posegrasp.core.paths import data_root
 
 
@@ -109,7 +109,14 @@ def training_images(
     limits: tuple[int | None, ...],
 ) -> tuple[DetectionSet | torch.utils.data.ConcatDataset[Any], list[DetectionSet]]:
     """The train images of root and of the dataset folders `also` (under the data root), at
-    most `limits[i]` of the i-th of them (None: all): (the mix, its parts)."""
+    most `limits[i]` of the i-th of them (None: all): (the mix, its parts).
+
+    Raises:
+        AssetError: a folder without a train split.
+        InvalidArgumentError: a folder's train split rendered for objects `cfg` has no class
+            for (`DetectionSet` would leave every one of them out, silently).
+    """
+    _check_classes(root, cfg)
     parts = [DetectionSet(root, "train", min_visible_px, cfg, limits[0])]
     for name, limit in zip(also, limits[1:], strict=True):
         extra = data_root() / name
@@ -118,8 +125,23 @@ def training_images(
                 f"no train split under {extra}; build it with `python -m "
                 "perception.training.datagen` (see its --dist and --tier)"
             )
+        _check_classes(extra, cfg)
         parts.append(DetectionSet(extra, "train", min_visible_px, cfg, limit))
     return (parts[0] if len(parts) == 1 else torch.utils.data.ConcatDataset(parts)), parts
+
+
+def _check_classes(folder: Path, cfg: DetectorConfig) -> None:
+    """Raise `InvalidArgumentError` when the train split of `folder` was rendered for objects
+    (its info's ``objects``: the targets asked for) that `cfg` has no class for."""
+    split = load_info(folder).get("splits", {}).get("train", {})
+    unknown = sorted({n for n in split.get("objects", []) if cfg.label(n) is None})
+    if unknown:
+        names = ",".join(unknown)
+        raise InvalidArgumentError(
+            f"the training images under {folder} were rendered for {names}, which the detector "
+            f"has no class for (its classes: {', '.join(cfg.classes)}); give --objects "
+            f"{names} to add them, or --any-object"
+        )
 
 
 def start_from(model: torch.nn.Module, path: Path, cfg: DetectorConfig) -> None:

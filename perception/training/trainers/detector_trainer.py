@@ -347,14 +347,6 @@ def _datasets(cfg: DetectorTrainConfig, root: Path) -> tuple[Any, list, PoseData
                 "`python -m perception.training.datagen "
                 f"--dist headcam --split {split} --count N --out {root}` (or `make data`)"
             )
-    unknown = _objects_without_class(root, cfg.detector)
-    if unknown:
-        names = ",".join(unknown)
-        raise InvalidArgumentError(
-            f"the training images under {root} were rendered for {names}, which the detector "
-            f"has no class for (its classes: {', '.join(cfg.detector.classes)}); give --objects "
-            f"{names} to add them, or --any-object"
-        )
     train_set, parts = training_images(
         root, cfg.also, cfg.min_visible_px, cfg.detector, part_limits(cfg)
     )
@@ -368,14 +360,6 @@ def _datasets(cfg: DetectorTrainConfig, root: Path) -> tuple[Any, list, PoseData
     if len(val_data) == 0:
         raise AssetError(f"no completed val images under {root}; generate them first")
     return train_set, parts, val_data
-
-
-def _objects_without_class(root: Path, detector: DetectorConfig) -> list[str]:
-    """The objects the train split of `root` was rendered for (its info's ``objects`` of the
-    split, the targets asked for) that `detector` has no class for: every one of their
-    annotations would be left out, silently."""
-    split = load_info(root).get("splits", {}).get("train", {})
-    return sorted({n for n in split.get("objects", []) if detector.label(n) is None})
 
 
 def _start_run(
