@@ -170,6 +170,14 @@ class _Batch:
         T[:3, 3] = b.xpos
         return T
 
+    def site(self, i: int) -> np.ndarray:
+        """Hand i's grasp site pose (4, 4) in the world."""
+        link = self.data.body(f"g{i}/{C.GRIPPER_BODY}")
+        T = np.eye(4)
+        T[:3, :3] = link.xmat.reshape(3, 3)
+        T[:3, 3] = link.xpos + T[:3, :3] @ np.asarray(C.GRASP_SITE_OFFSET)
+        return T
+
     def lowest(self, i: int) -> float:
         T = self.pose(i)
         v = np.asarray(self.obj.mesh.vertices)
@@ -286,10 +294,31 @@ def _settled(obj: ObjectModel, quat: np.ndarray, n: int, cfg: CheckConfig) -> li
     return poses
 
 
+def held_in_hand(
+    obj: ObjectModel, quat: np.ndarray, T_O_G: np.ndarray, config: CheckConfig | None = None
+) -> tuple[str, np.ndarray]:
+    """One grasp checked as `check_grasps_in_poses` checks it, on the object resting in
+    orientation quat (wxyz): its outcome (`OUTCOMES`) and where the object then lies in the
+    hand, T_G_O (4, 4) [m], the grasp site to the object after the hold (the planned grasp
+    holds it at inv(T_O_G)): how closing, lifting and holding move it in the fingers."""
+    cfg = config or CheckConfig()
+    q = np.asarray(quat, float)
+    outcomes, held = _run_batch(obj, _settled(obj, q, 1, cfg), [np.asarray(T_O_G, float)], cfg)
+    return outcomes[0], held[0]
+
+
 def _check_batch(
     obj: ObjectModel, poses: list[np.ndarray], grasps: list[np.ndarray], cfg: CheckConfig
 ) -> list[str]:
     """The outcomes of grasps on copies of the object settled at `poses` (`_settled`)."""
+    return _run_batch(obj, poses, grasps, cfg)[0]
+
+
+def _run_batch(
+    obj: ObjectModel, poses: list[np.ndarray], grasps: list[np.ndarray], cfg: CheckConfig
+) -> tuple[list[str], list[np.ndarray]]:
+    """The outcomes of grasps on copies of the object settled at `poses` (`_settled`), and
+    each copy's pose in its hand's grasp site frame after the hold, T_G_O (4, 4)."""
     n = len(grasps)
     with _BUILDING:
         b = _Batch(obj, poses, grasps, cfg)
@@ -328,4 +357,5 @@ def _check_batch(
         if outcome[i] is None:
             up = b.lowest(i) >= cfg.success_height
             outcome[i] = "success" if up and b.held(i, pairs) else "slipped"
-    return [str(o) for o in outcome]
+    held = [np.linalg.inv(b.site(i)) @ b.pose(i) for i in range(n)]
+    return [str(o) for o in outcome], held

@@ -19,7 +19,7 @@ from grasping.planner import GraspPlanner, NoConvergence, PlanningError
 from posegrasp.core.errors import UnknownNameError
 
 #: Where the robot's belief of the object in its hand comes from (`PlaceConfig.belief`).
-BELIEFS = ("estimate", "truth")
+BELIEFS = ("predicted", "estimate", "truth")
 
 
 @dataclass(frozen=True)
@@ -33,16 +33,19 @@ class PlaceConfig:
             that a belief a little low does not push it into the table.
         descent_waypoints: IK waypoints on the way down (the set-down pose the last).
         belief: where the robot believes the object lies in its hand, one of `BELIEFS`:
-            ``estimate``, the estimated pose at grasp time seen from the gripper as it closed
-            (`held_transform`, the task as scored); ``truth``, the true pose in the hand after
-            the lift (privileged: what a perfect look at the object in the hand would give; it
-            measures the place skill itself, without the estimate or the grasp's shift).
+            ``predicted`` (the task as scored), the estimated pose at grasp time seen from the
+            gripper as it closed (`held_transform`), moved in the hand as the physics check of
+            the chosen grasp (`grasping.grasp_check.held_in_hand`) moves the object when its
+            hand closes, lifts and holds (`predicted_hold`); ``estimate``, the same not moved;
+            ``truth``, the true pose in the hand after the lift (privileged: what a perfect look
+            at the object in the hand would give; it measures the place skill itself, without
+            the estimate or the grasp's shift).
     """
 
     hover_height: float = 0.10
     drop: float = 0.008
     descent_waypoints: int = 3
-    belief: str = "estimate"
+    belief: str = "predicted"
 
     def __post_init__(self) -> None:
         if self.belief not in BELIEFS:
@@ -74,6 +77,13 @@ def held_transform(T_world_G: np.ndarray, T_world_O_est: np.ndarray) -> np.ndarr
     """The object-in-gripper transform T_G_O (4, 4) the robot believes: the estimated object
     pose T_world_O_est (4, 4) seen from the grasp site at T_world_G (4, 4), as it closed."""
     return np.linalg.inv(T_world_G) @ T_world_O_est
+
+
+def predicted_hold(T_G_O: np.ndarray, T_O_G: np.ndarray, T_G_O_held: np.ndarray) -> np.ndarray:
+    """The belief T_G_O (4, 4) moved in the hand as a check of its grasp moved the object: the
+    check planned the hand at T_O_G (4, 4), the object at inv(T_O_G) in it, and left it at
+    T_G_O_held (4, 4); the same motion, in the grasp site's frame, applied to the belief."""
+    return T_G_O_held @ T_O_G @ T_G_O
 
 
 def set_down_pose(T_world_goal: np.ndarray, T_G_O: np.ndarray, drop: float) -> np.ndarray:

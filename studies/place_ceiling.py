@@ -4,19 +4,22 @@
 
 For each tier, `oracle` plays the place task (`sim.episodes.episode.EpisodeConfig.task`) on the
 same held-out scenes (`--episodes` per object, seeds from
-`posegrasp.world.constants.EVAL_SEED_BASE`) twice: once as scored, the robot believing the
-object lies in its hand as the true pose at grasp time seen from the gripper as it closed
-(`grasping.place.PlaceConfig.belief` ``estimate``), and once knowing the true pose in its hand
-after the lift (``truth``: what a perfect look at the object in the hand would give). The first
-is the oracle's place success; the gap to the second is what the grasp itself shifts in the hand
-while the fingers close and the arm lifts; what the second misses is the set-down and release.
-Per tier it prints both successes (Wilson 95 % intervals) and the failures of each.
+`posegrasp.world.constants.EVAL_SEED_BASE`) with each belief of where the object lies in its
+hand (`grasping.place.BELIEFS`): ``predicted``, as scored, the true pose at grasp time seen from
+the gripper as it closed, moved as a physics check of the grasp moves the object in the hand;
+``estimate``, the same not moved; and ``truth``, the true pose in the hand after the lift (what
+a perfect look at the object in the hand would give). The gap from ``estimate`` to ``truth`` is
+what the grasp itself shifts in the hand while the fingers close and the arm lifts, the gap from
+``predicted`` to ``truth`` what the check does not foresee of it; what ``truth`` misses is the
+set-down and release. Per tier it prints each belief's successes (Wilson 95 % intervals) and
+failures.
 """
 
 from __future__ import annotations
 
 import sys
 
+from grasping.place import BELIEFS
 from posegrasp.core.cli import (
     ArgumentParser,
     add_json_argument,
@@ -31,9 +34,6 @@ from posegrasp.world.constants import EVAL_SEED_BASE
 from posegrasp.world.objects import OBJECT_NAMES
 from posegrasp.world.tiers import TIERS
 from sim.evaluation import Protocol, evaluate_protocol
-
-#: The robot's beliefs compared (`grasping.place.BELIEFS`).
-BELIEFS = ("estimate", "truth")
 
 
 def _parser() -> ArgumentParser:

@@ -194,6 +194,17 @@ def test_physics_check_outcomes_of_a_grasp_on_the_object_beside_it_and_in_the_ta
         return grasp_check.check_grasps_in_poses(obj, [(quat, trials)], cfg)[0]
 
     assert check([best, aside, into_table]) == ["success", "missed", "collision"]
+    # One grasp alone, as the place task predicts the object in the hand: the same outcome,
+    # and a grasp that holds keeps the object within millimetres of where it was planned.
+    outcome, held = grasp_check.held_in_hand(obj, quat, best)
+    assert outcome == "success"
+    planned = np.linalg.inv(best)
+    assert np.linalg.norm(held[:3, 3] - planned[:3, 3]) < 0.005
+    assert (
+        np.degrees(np.arccos(np.clip((np.trace(held[:3, :3].T @ planned[:3, :3]) - 1) / 2, -1, 1)))
+        < 3
+    )
+    assert grasp_check.held_in_hand(obj, quat, aside)[0] == "missed"
     # A batch a thread: the same outcomes, in the candidates' order, as one batch after another.
     one, two = (grasp_check.CheckConfig(batch=1, threads=k) for k in (1, 2))
     trials = [into_table, best, aside]

@@ -436,6 +436,15 @@ def test_a_board_of_tracks_pairs_its_cells_resumes_and_refuses(tmp_path: Path, c
     lift.with_suffix(".journal.jsonl").write_text(json.dumps(header) + "\n")
     assert leaderboard.main(argv) == 2
     assert "task place with shifts none, not lift" in capsys.readouterr().err
+    lift.with_suffix(".journal.jsonl").unlink()
+    # A place report from before the predicted belief (none recorded: the grasp-time estimate)
+    # is refused, not read as today's place.
+    old = json.loads(place.read_text())
+    assert old["belief"] == "predicted"
+    del old["belief"]
+    place.write_text(json.dumps(old))
+    assert leaderboard.main(argv) == 2
+    assert "placed on the belief estimate, not predicted" in capsys.readouterr().err
 
 
 def test_the_tracks_cells_run_on_the_boards_backend(tmp_path: Path, monkeypatch) -> None:

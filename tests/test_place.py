@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from grasping.place import PlaceConfig, held_transform, set_down_pose
+from grasping.place import PlaceConfig, held_transform, predicted_hold, set_down_pose
 from perception.metrics import rotation_error_deg
 from posegrasp.core.errors import InvalidArgumentError, UnknownNameError
 from posegrasp.world.goals import GoalConfig, draw_goal, footprint, table_top_bounds
@@ -64,7 +64,7 @@ def test_the_set_down_puts_the_believed_object_on_the_goal() -> None:
 def test_bad_task_and_belief_names_are_one_line_errors() -> None:
     with pytest.raises(UnknownNameError, match="lift, place"):
         EpisodeConfig(task="stack")
-    with pytest.raises(UnknownNameError, match="estimate, truth"):
+    with pytest.raises(UnknownNameError, match="predicted, estimate, truth"):
         PlaceConfig(belief="guess")
     with pytest.raises(InvalidArgumentError, match=r"GoalConfig\.distance"):
         GoalConfig(distance=(0.2, 0.1))
@@ -113,6 +113,51 @@ def test_a_protocol_carries_the_place_belief_and_records_it_apart() -> None:
     truth = Protocol(["phone"], 1, task="place", belief="truth")
     assert truth.episode_config().place.belief == "truth"
     assert truth.recorded_apart() == {"task": "place", "belief": "truth"}
-    assert "belief" not in Protocol(["phone"], 1, task="place").recorded_apart()
-    with pytest.raises(UnknownNameError, match="estimate, truth"):
+    scored = Protocol(["phone"], 1, task="place")
+    assert scored.recorded_apart() == {"task": "place", "belief": "predicted"}
+    # Records without a belief were placed on the grasp-time estimate, and read so.
+    assert "belief" not in Protocol(["phone"], 1, task="place", belief="estimate").recorded_apart()
+    assert Protocol(["phone"], 1).recorded_apart() == {}  # a lift has no belief
+    with pytest.raises(UnknownNameError, match="predicted, estimate, truth"):
         Protocol(["phone"], 1, task="place", belief="guess")
+
+
+def test_the_predicted_belief_is_the_belief_moved_as_the_check_moved_the_object() -> None:
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(1)
+
+    def pose(spread: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(rng.normal(0, spread, 3)).as_matrix()
+        T[:3, 3] = rng.normal(0, 0.02, 3)
+        return T
+
+    T_O_G, held, error = pose(1.0), pose(0.3), pose(0.05)
+    planned = np.linalg.inv(T_O_G)
+    # Believed where the check's hand held it: where the check left it.
+    assert np.allclose(predicted_hold(planned, T_O_G, held), held)
+    # Believed off by an error in the hand's frame: the check's motion applied to that belief.
+    moved = predicted_hold(error @ planned, T_O_G, held)
+    assert np.allclose(moved, held @ T_O_G @ error @ planned)
+    assert np.allclose(moved @ np.linalg.inv(error @ planned), held @ T_O_G)
+
+
+def test_the_predicted_belief_places_an_object_the_grasp_turns_in_the_hand() -> None:
+    """Lying on its side, the screen is taken by its base, far from its centre of mass, and
+    turns in the fingers as the arm lifts it: placed on the pose at grasp time it lands off
+    target; on that pose moved as the grasp's physics check predicts, on target."""
+    oracle = make_estimator("oracle")
+
+    def play(belief: str):
+        cfg = EpisodeConfig(tier="any-pose", task="place", place=PlaceConfig(belief=belief))
+        return play_episode("screen", 500000003, oracle, cfg)
+
+    grasp_time, predicted = play("estimate"), play("predicted")
+    assert grasp_time.grasp_part == predicted.grasp_part == "base"
+    assert grasp_time.lift_height == predicted.lift_height  # the same lift
+    assert grasp_time.failure_reason == "off_target"
+    assert grasp_time.place is not None and predicted.place is not None
+    assert grasp_time.place["errors"]["translation_m"] > PLACE_TOLERANCE[0]
+    assert predicted.success and predicted.timings_ms["place_predict"] > 0
+    assert "place_predict" not in grasp_time.timings_ms

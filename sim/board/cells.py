@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from grasping.place import PlaceConfig
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.files import atomic_write_json
 from posegrasp.core.journal import interrupted
@@ -167,15 +168,21 @@ def differences(a: dict, b: dict, most: int = 3) -> str:
 
 def _track_differs(cell: Cell, record: dict) -> str | None:
     """Why a report or a journal's protocol (`record`) is not of the cell's track, or None: the
-    task and the shifts it records (none recorded: ``lift``, no shift)."""
-    theirs = (record.get("task", BASE_TASK), list(record.get("shifts", [])))
+    task and the shifts it records (none recorded: ``lift``, no shift), and on the place task
+    the belief the robot placed on (none recorded: ``estimate``; the board's is the task's
+    default, `grasping.place.PlaceConfig.belief`)."""
+    task = record.get("task", BASE_TASK)
+    theirs = (task, list(record.get("shifts", [])))
     ours = (cell.task, [str(s) for s in shifts_of(cell.shifts)])
-    if theirs == ours:
-        return None
-    return (
-        f"task {theirs[0]} with shifts {','.join(theirs[1]) or NO_SHIFT}, not {cell.task} with "
-        f"{cell.shifts}"
-    )
+    if theirs != ours:
+        return (
+            f"task {theirs[0]} with shifts {','.join(theirs[1]) or NO_SHIFT}, not {cell.task} "
+            f"with {cell.shifts}"
+        )
+    belief, scored = record.get("belief", "estimate"), PlaceConfig().belief
+    if task == "place" and belief != scored:
+        return f"placed on the belief {belief}, not {scored}"
+    return None
 
 
 def _journal_header(path: Path) -> dict:

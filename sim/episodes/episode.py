@@ -18,7 +18,14 @@ from typing import Any
 import numpy as np
 
 from grasping.execute import ExecutionConfig, Executor, GraspOutcome
-from grasping.place import PlaceConfig, PlacePlanner, held_transform, set_down_pose
+from grasping.grasp_check import held_in_hand
+from grasping.place import (
+    PlaceConfig,
+    PlacePlanner,
+    held_transform,
+    predicted_hold,
+    set_down_pose,
+)
 from grasping.planner import GraspPlan, GraspPlanner, PlannerConfig, PlanningError
 from perception import metrics
 from perception.metrics import Symmetry, error_components, identity_symmetry
@@ -311,6 +318,7 @@ class Episode:
             self.goal = draw_goal(self.scene, self.cfg.goal)
         self._planner: GraspPlanner | None = None
         self._executor: Executor | None = None
+        self._grasp: GraspPlan | None = None  # the plan executed
 
     def scene_info(self) -> dict[str, Any]:
         """What makes this scene hard: the target's resting pose and, when the tier bounds
@@ -464,6 +472,7 @@ class Episode:
     def _execute(self, plan: GraspPlan, recorder=None) -> tuple[GraspOutcome, list[str]]:
         """Execute the plan in the scene (each of its stages timed as ``exec_<stage>``, its
         frames kept as `frames`); the outcome and the executor's events, in order."""
+        self._grasp = plan
         executor = self._executor = Executor(self.scene, self.cfg.execution, recorder=recorder)
         outcome = executor.execute(plan)
         for k, v in outcome.timings_ms.items():
@@ -480,7 +489,9 @@ class Episode:
         executor = self._executor
         assert executor is not None and executor.T_world_G_closed is not None
         T_G_O = held_transform(executor.T_world_G_closed, T_world_O_est)
-        if self.cfg.place.belief == "truth":
+        if self.cfg.place.belief == "predicted":
+            T_G_O = self._predicted(T_G_O, res)
+        elif self.cfg.place.belief == "truth":
             T_G_O = held_transform(executor.grasp_site_pose(), self.scene.object_pose())
         T_set = set_down_pose(self.goal.T_world_O, T_G_O, self.cfg.place.drop)
         t = time.perf_counter()
@@ -500,6 +511,22 @@ class Episode:
         res.place = self.place_record(reason)
         res.success, res.failure_reason = res.place["placed"], res.place["failure_reason"]
         res.timings_ms = self._totalled()
+
+    def _predicted(self, T_G_O: np.ndarray, res: EpisodeResult) -> np.ndarray:
+        """The belief T_G_O (4, 4) moved in the hand as a physics check of the executed grasp
+        moves the object (`grasping.place.predicted_hold`), on the object resting in the pose
+        the grasp was made for; unmoved, with a note, where the check does not hold it. Timed as
+        ``place_predict``."""
+        assert self._grasp is not None
+        t = time.perf_counter()
+        cand = self._grasp.candidate
+        obj = self.scene.target.model
+        outcome, held = held_in_hand(obj, obj.resting_poses[cand.pose], cand.T_O_G)
+        self.timings_ms["place_predict"] = (time.perf_counter() - t) * 1000
+        if outcome != "success":
+            res.notes.append(f"place: the grasp's physics check ends {outcome}; belief not moved")
+            return T_G_O
+        return predicted_hold(T_G_O, cand.T_O_G, held)
 
     def _totalled(self) -> dict[str, float]:
         """The episode's timings so far [ms] with their ``total`` (every stage's, ``ik`` being

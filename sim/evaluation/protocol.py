@@ -71,7 +71,7 @@ class Protocol:
     sensor: str = "ideal"
     task: str = "lift"
     shifts: tuple[Shift, ...] = ()
-    belief: str = "estimate"
+    belief: str = "predicted"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "objects", tuple(self.objects))
@@ -110,14 +110,15 @@ class Protocol:
         """The entries a record holds only away from their defaults, so that records written
         before they existed read the same: ``distractor_pool`` (a pool of the caller's),
         ``candidates`` (other than ``designed``), ``sensor`` (other than ``ideal``), ``task``
-        (other than ``lift``), ``shifts`` (any, as ``NAME:LEVEL`` items) and ``belief`` (other
-        than ``estimate``)."""
+        (other than ``lift``), ``shifts`` (any, as ``NAME:LEVEL`` items) and, on the place task,
+        ``belief`` (other than ``estimate``, what every place record before ``predicted``
+        was played with)."""
         out: dict[str, Any] = {"distractor_pool": list(self.pool)} if self.pool else {}
         if self.candidates != "designed":
             out["candidates"] = self.candidates
         if self.sensor != "ideal":
             out["sensor"] = self.sensor
-        if self.belief != "estimate":
+        if self.task == "place" and self.belief != "estimate":
             out["belief"] = self.belief
         if self.task != "lift":
             out["task"] = self.task
