@@ -110,6 +110,7 @@ PROTOCOL = {
     "sensor": "sensor model (--sensor; recorded when not ideal)",
     "task": "task (--task; recorded when not lift)",
     "shifts": "scene shifts (--shift; recorded when any)",
+    "belief": "place belief (recorded on the place task)",
 }
 #: The settings of `PROTOCOL` a baseline is recorded for apart (`mismatch` says how to record
 #: one), with the value a record without them has.

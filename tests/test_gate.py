@@ -259,3 +259,17 @@ def test_grasp_success_gate(estimator: str) -> None:
     report = gate.run_gate(estimator, base["episodes_per_object"], workers=2)
     ok, verdict = gate.compare(report, base)
     assert ok, verdict + "\n" + gate.format_report(report)
+
+
+def test_a_place_baseline_made_on_another_belief_is_refused() -> None:
+    """A place baseline from before the predicted belief (none recorded) is not paired with a
+    place run today; a lift has no belief either side."""
+    weights = gate.estimator_fingerprint(gate.DEFAULT_ESTIMATOR)[0]
+    place = gate.gate_protocol(gate.DEFAULT_ESTIMATOR, task="place")
+    assert place["belief"] == "predicted"
+    before = {**place, "weights": weights}
+    del before["belief"]
+    said = "place belief (recorded on the place task) ('predicted') is not the baseline's (None)"
+    assert said in gate.mismatch(place, before, weights)
+    assert gate.mismatch(place, {**place, "weights": weights}, weights) is None
+    assert "belief" not in gate.gate_protocol(gate.DEFAULT_ESTIMATOR)
