@@ -171,11 +171,11 @@ class _Batch:
         return T
 
     def site(self, i: int) -> np.ndarray:
-        """Hand i's grasp site pose (4, 4) in the world."""
-        link = self.data.body(f"g{i}/{C.GRIPPER_BODY}")
+        """Hand i's grasp site pose (4, 4) in the world (its copy of the robot's site)."""
+        site = self.data.site(f"g{i}/{C.GRASP_SITE}")
         T = np.eye(4)
-        T[:3, :3] = link.xmat.reshape(3, 3)
-        T[:3, 3] = link.xpos + T[:3, :3] @ np.asarray(C.GRASP_SITE_OFFSET)
+        T[:3, :3] = site.xmat.reshape(3, 3)
+        T[:3, 3] = site.xpos
         return T
 
     def lowest(self, i: int) -> float:
@@ -250,7 +250,7 @@ def check_grasps_in_poses(
 
     def check(job: tuple[int, list[np.ndarray]]) -> list[str]:
         k, batch = job
-        return _check_batch(obj, settled[(k, len(batch))], batch, cfg)
+        return _run_batch(obj, settled[(k, len(batch))], batch, cfg)[0]
 
     hide = not progress or len(batches) < 2
     out: list[list[str]] = [[] for _ in jobs]
@@ -305,13 +305,6 @@ def held_in_hand(
     q = np.asarray(quat, float)
     outcomes, held = _run_batch(obj, _settled(obj, q, 1, cfg), [np.asarray(T_O_G, float)], cfg)
     return outcomes[0], held[0]
-
-
-def _check_batch(
-    obj: ObjectModel, poses: list[np.ndarray], grasps: list[np.ndarray], cfg: CheckConfig
-) -> list[str]:
-    """The outcomes of grasps on copies of the object settled at `poses` (`_settled`)."""
-    return _run_batch(obj, poses, grasps, cfg)[0]
 
 
 def _run_batch(

@@ -20,6 +20,8 @@ from posegrasp.core.errors import UnknownNameError
 
 #: Where the robot's belief of the object in its hand comes from (`PlaceConfig.belief`).
 BELIEFS = ("predicted", "estimate", "truth")
+#: The belief of a place record that names none: every one made before ``predicted`` was.
+UNNAMED_BELIEF = "estimate"
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from grasping.place import PlaceConfig
+from grasping.place import UNNAMED_BELIEF, PlaceConfig
 from posegrasp.core.errors import InvalidArgumentError, PosegraspError
 from posegrasp.core.files import atomic_write_json
 from posegrasp.core.journal import interrupted
@@ -179,7 +179,7 @@ def _track_differs(cell: Cell, record: dict) -> str | None:
             f"task {theirs[0]} with shifts {','.join(theirs[1]) or NO_SHIFT}, not {cell.task} "
             f"with {cell.shifts}"
         )
-    belief, scored = record.get("belief", "estimate"), PlaceConfig().belief
+    belief, scored = record.get("belief", UNNAMED_BELIEF), PlaceConfig.belief
     if task == "place" and belief != scored:
         return f"placed on the belief {belief}, not {scored}"
     return None

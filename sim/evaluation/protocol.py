@@ -15,7 +15,7 @@ from typing import Any
 
 from grasping.candidates import CANDIDATE_SOURCES
 from grasping.execute import ExecutionConfig
-from grasping.place import PlaceConfig
+from grasping.place import UNNAMED_BELIEF, PlaceConfig
 from grasping.planner import PlannerConfig
 from posegrasp.core.validate import check_choice
 from posegrasp.world import constants as C
@@ -71,7 +71,7 @@ class Protocol:
     sensor: str = "ideal"
     task: str = "lift"
     shifts: tuple[Shift, ...] = ()
-    belief: str = "predicted"
+    belief: str = PlaceConfig.belief
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "objects", tuple(self.objects))
@@ -118,7 +118,7 @@ class Protocol:
             out["candidates"] = self.candidates
         if self.sensor != "ideal":
             out["sensor"] = self.sensor
-        if self.task == "place" and self.belief != "estimate":
+        if self.task == "place" and self.belief != UNNAMED_BELIEF:
             out["belief"] = self.belief
         if self.task != "lift":
             out["task"] = self.task
